@@ -1,0 +1,346 @@
+"""Timestamped sample types — the messages of the simulator, the logs and the bus.
+
+Every sample is a frozen dataclass whose first field is ``t_s``: sensor time of
+validity in seconds (mission time, float). Vectors are tuples of floats in the frame
+their name says (``_b`` body FRD, ``_n`` local NED, ``_d`` DVL head); SI units only.
+
+The same types travel over Zenoh and are written to MCAP: :func:`to_dict` /
+:func:`from_dict` give the versioned JSON form ``{"type": ..., "schema_version": ...,
+<fields>}`` and :func:`json_schema` its JSON Schema, so third-party tools (Foxglove,
+the ``mcap`` CLI, ``zenoh-cli``) can read them.  :func:`from_dict` is strict: a
+missing or unknown field, a wrong length or a non-number raises
+:class:`SampleError` with a message that says which.  Non-finite numbers are
+*representable* (a real sensor does send NaN) and are judged by the estimator,
+which rejects and counts them; :func:`is_finite` is the check.
+
+Replay order is deterministic: :func:`replay_order_key` sorts by
+``(t_s, source priority, seq)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+SCHEMA_VERSION = 1
+
+Vec3 = tuple[float, float, float]
+
+
+class SampleError(ValueError):
+    """A payload that cannot be turned into a sample (the message says why)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """Strapdown IMU: specific force and angular rate in body FRD."""
+
+    KIND: ClassVar[str] = "imu"
+    t_s: float
+    specific_force_b_m_s2: Vec3
+    omega_b_rad_s: Vec3
+
+
+@dataclass(frozen=True, slots=True)
+class RpmSample:
+    """Propeller speed (rev/min) — the motion model's control input."""
+
+    KIND: ClassVar[str] = "rpm"
+    t_s: float
+    rpm: float
+
+
+@dataclass(frozen=True, slots=True)
+class DvlSample:
+    """DVL bottom-track velocity in the DVL head frame; ``valid`` false on lost lock."""
+
+    KIND: ClassVar[str] = "dvl"
+    t_s: float
+    vel_d_m_s: Vec3
+    valid: bool = True
+    altitude_m: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class DepthSample:
+    """Absolute pressure at the depth sensor (Pa); the depth aid turns it into depth."""
+
+    KIND: ClassVar[str] = "depth"
+    t_s: float
+    pressure_pa: float
+
+
+@dataclass(frozen=True, slots=True)
+class HeadingSample:
+    """Heading (yaw of ``q_nb``, from north towards east) from a compass/AHRS, rad."""
+
+    KIND: ClassVar[str] = "heading"
+    t_s: float
+    yaw_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeSample:
+    """Roll, pitch, yaw from an external AHRS (e.g. ArduSub ATTITUDE), rad."""
+
+    KIND: ClassVar[str] = "attitude"
+    t_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class GnssSample:
+    """Surface GNSS fix (geodetic, WGS-84) with its horizontal 1-σ."""
+
+    KIND: ClassVar[str] = "gnss"
+    t_s: float
+    lat_rad: float
+    lon_rad: float
+    sigma_h_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class UsblSample:
+    """Acoustic (USBL/ultra-short baseline) position fix, geodetic, with 1-σ."""
+
+    KIND: ClassVar[str] = "usbl"
+    t_s: float
+    lat_rad: float
+    lon_rad: float
+    depth_m: float
+    sigma_h_m: float
+    sigma_v_m: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class RangeSample:
+    """Acoustic range to a beacon/landmark at a known local NED position."""
+
+    KIND: ClassVar[str] = "range"
+    t_s: float
+    beacon_id: int
+    beacon_pos_n_m: Vec3
+    range_m: float
+    sigma_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class AltitudeSample:
+    """Height above the seabed (echosounder / DVL / DISTANCE_SENSOR), m."""
+
+    KIND: ClassVar[str] = "altitude"
+    t_s: float
+    altitude_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class VisualMotionSample:
+    """Side-scan visual motion between two sonar windows centred at ``t0_s`` and ``t_s``.
+
+    ``along_m``/``across_m`` are the displacement in the sonar frame (along-track
+    forward, across-track starboard), ``dheading_rad`` the yaw change; ``cov`` the
+    3×3 covariance of (along, across, dheading), row-major.
+    """
+
+    KIND: ClassVar[str] = "visual_motion"
+    t_s: float
+    t0_s: float
+    along_m: float
+    across_m: float
+    dheading_rad: float
+    cov: tuple[float, ...] = field(default=(0.0,) * 9)
+
+
+@dataclass(frozen=True, slots=True)
+class TruthSample:
+    """Simulator ground truth (never used by the estimator, only by metrics)."""
+
+    KIND: ClassVar[str] = "truth"
+    t_s: float
+    pos_n_m: Vec3
+    vel_n_m_s: Vec3
+    q_nb: tuple[float, float, float, float]
+    current_n_m_s: Vec3
+    k_v: float
+    bias_acc_b_m_s2: Vec3 = (0.0, 0.0, 0.0)
+    bias_gyro_b_rad_s: Vec3 = (0.0, 0.0, 0.0)
+
+
+SAMPLE_TYPES: dict[str, type] = {
+    cls.KIND: cls
+    for cls in (ImuSample, RpmSample, DvlSample, DepthSample, HeadingSample, AttitudeSample,
+                GnssSample, UsblSample, RangeSample, AltitudeSample, VisualMotionSample,
+                TruthSample)
+}
+
+# Lower runs first among samples with equal t_s: the IMU propagates to t before aiding
+# at t is fused; truth last so metrics see the state after every update at t.
+SOURCE_PRIORITY: dict[str, int] = {
+    "imu": 0, "rpm": 1, "attitude": 2, "heading": 3, "depth": 4, "dvl": 5, "altitude": 6,
+    "gnss": 7, "usbl": 8, "range": 9, "visual_motion": 10, "truth": 99,
+}
+
+
+def replay_order_key(sample: Any, seq: int) -> tuple[float, int, int]:
+    """Sort key of the deterministic replay order ``(t_s, source priority, seq)``."""
+    return (sample.t_s, SOURCE_PRIORITY.get(sample.KIND, 50), seq)
+
+
+def _field_spec(f: dataclasses.Field) -> tuple[str, int | None]:
+    """('number'|'integer'|'boolean', fixed length or None for scalars)."""
+    ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    ann = ann.replace(" ", "")
+    if ann in ("float",):
+        return "number", None
+    if ann == "int":
+        return "integer", None
+    if ann == "bool":
+        return "boolean", None
+    if ann == "Vec3":
+        return "number", 3
+    if ann == "tuple[float,float,float,float]":
+        return "number", 4
+    if ann == "tuple[float,...]":
+        return "number", -1
+    raise TypeError(f"unsupported field annotation {ann!r}")
+
+
+def _number(value: Any, where: str) -> float:
+    # bool is an int subclass; a boolean where a number belongs is a malformed payload
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if value is None:
+            return math.nan  # JSON has no NaN; null stands for it
+        raise SampleError(f"{where}: expected a number, got {type(value).__name__}")
+    return float(value)
+
+
+def to_dict(sample: Any) -> dict[str, Any]:
+    """Sample → JSON-ready dict with ``type`` and ``schema_version``.
+
+    Non-finite floats become ``None`` (JSON null) so the output is strict JSON.
+    """
+    out: dict[str, Any] = {"type": sample.KIND, "schema_version": SCHEMA_VERSION}
+    for f in dataclasses.fields(sample):
+        v = getattr(sample, f.name)
+        if isinstance(v, tuple):
+            out[f.name] = [None if not math.isfinite(x) else float(x) for x in v]
+        elif isinstance(v, float) and not math.isfinite(v):
+            out[f.name] = None
+        else:
+            out[f.name] = v
+    return out
+
+
+def from_dict(data: Any) -> Any:
+    """JSON dict → sample; raises :class:`SampleError` on anything malformed."""
+    if not isinstance(data, dict):
+        raise SampleError(f"payload is {type(data).__name__}, expected an object")
+    kind = data.get("type")
+    cls = SAMPLE_TYPES.get(kind)  # type: ignore[arg-type]
+    if cls is None:
+        raise SampleError(f"unknown sample type {kind!r}")
+    version = data.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise SampleError(f"{kind}: schema_version {version!r} not supported (want {SCHEMA_VERSION})")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(fields) - {"type", "schema_version"}
+    if unknown:
+        raise SampleError(f"{kind}: unknown field(s) {sorted(unknown)}")
+    kwargs: dict[str, Any] = {}
+    for name, f in fields.items():
+        if name not in data:
+            if f.default is not dataclasses.MISSING:
+                continue
+            raise SampleError(f"{kind}: missing field {name!r}")
+        value = data[name]
+        jtype, length = _field_spec(f)
+        where = f"{kind}.{name}"
+        if length is None:
+            if jtype == "boolean":
+                if not isinstance(value, bool):
+                    raise SampleError(f"{where}: expected true/false")
+                kwargs[name] = value
+            elif jtype == "integer":
+                if isinstance(value, bool) or not isinstance(value, int):
+                    raise SampleError(f"{where}: expected an integer")
+                kwargs[name] = value
+            else:
+                kwargs[name] = _number(value, where)
+        else:
+            if not isinstance(value, (list, tuple)):
+                raise SampleError(f"{where}: expected an array")
+            if length > 0 and len(value) != length:
+                raise SampleError(f"{where}: expected {length} numbers, got {len(value)}")
+            kwargs[name] = tuple(_number(x, f"{where}[{i}]") for i, x in enumerate(value))
+    return cls(**kwargs)
+
+
+def json_schema(cls: type) -> dict[str, Any]:
+    """JSON Schema (draft 2020-12) of a sample type, for MCAP channels and the bus."""
+    props: dict[str, Any] = {
+        "type": {"const": cls.KIND},
+        "schema_version": {"const": SCHEMA_VERSION},
+    }
+    required = ["type", "schema_version"]
+    for f in dataclasses.fields(cls):
+        jtype, length = _field_spec(f)
+        scalar = {"type": [jtype, "null"]} if jtype == "number" else {"type": jtype}
+        if length is None:
+            props[f.name] = scalar
+        else:
+            arr: dict[str, Any] = {"type": "array", "items": scalar}
+            if length > 0:
+                arr.update(minItems=length, maxItems=length)
+            props[f.name] = arr
+        if f.default is dataclasses.MISSING:
+            required.append(f.name)
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": f"adaptnav.{cls.KIND}",
+        "type": "object",
+        "properties": props,
+        "required": required,
+        "additionalProperties": False,
+    }
+
+
+def is_finite(sample: Any) -> bool:
+    """True when every number the sample carries is finite (optional NaN fields excepted).
+
+    Fields whose default is NaN (e.g. ``DvlSample.altitude_m``) mean "not reported".
+    """
+    for f in dataclasses.fields(sample):
+        v = getattr(sample, f.name)
+        optional_nan = isinstance(f.default, float) and math.isnan(f.default)
+        if isinstance(v, tuple):
+            if not all(math.isfinite(x) for x in v):
+                return False
+        elif isinstance(v, float) and not math.isfinite(v) and not optional_nan:
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class ImuBatch:
+    """A run of consecutive IMU samples as arrays — the replay fast path.
+
+    Not a bus message (the bus carries :class:`ImuSample`); sources that read logs group
+    IMU runs between other samples so the estimator can propagate them in one call.
+    ``t_s`` (N,), ``specific_force_b_m_s2`` (N, 3), ``omega_b_rad_s`` (N, 3).
+    """
+
+    KIND: ClassVar[str] = "imu_batch"
+    t_s: Any
+    specific_force_b_m_s2: Any
+    omega_b_rad_s: Any
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def samples(self):
+        """The batch as individual :class:`ImuSample` (for code paths without batching)."""
+        for t, f, w in zip(self.t_s, self.specific_force_b_m_s2, self.omega_b_rad_s):
+            yield ImuSample(float(t), tuple(map(float, f)), tuple(map(float, w)))

@@ -1,0 +1,32 @@
+"""`adaptnav bench TARGET`: speed/memory figures against a peer measured in the same run.
+
+Each target lives in ``service/benchmarks/<target>.py`` with
+``add_arguments(parser)`` (optional) and ``run(args) -> dict`` returning the figures;
+this verb prints them as a table, or as JSON with ``--json``.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+
+HELP = "benchmarks (fusion, calibration, sonar, service) with ratios against a peer"
+TARGETS = ("fusion", "calibration", "sonar", "service")
+
+
+def add_arguments(parser):
+    parser.add_argument("target", choices=TARGETS, help="what to measure")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--quick", action="store_true", help="smaller problem sizes (smoke run)")
+
+
+def run(args):
+    module = importlib.import_module(f"service.benchmarks.{args.target}")
+    figures = module.run(args)
+    if args.json:
+        print(json.dumps(figures, indent=2, sort_keys=True))
+    else:
+        width = max(len(k) for k in figures)
+        for key, value in figures.items():
+            shown = f"{value:.4g}" if isinstance(value, float) else value
+            print(f"{key:<{width}}  {shown}")
+    return 0
