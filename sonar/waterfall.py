@@ -1,0 +1,335 @@
+"""Side-scan waterfall: pings → ground-range image (port left, starboard right, time down).
+
+Steps (Blondel, *The Handbook of Sidescan Sonar*, ch. 4; the seed, sec. 3.2):
+
+1. **Bottom** (altitude ``H`` per ping and side): the recorded altitude, or — when it is
+   missing/zero or disagrees with the echo — the first strong return: the first slant
+   sample whose range-smoothed intensity exceeds ``bottom_fraction`` × the ping's
+   75th-percentile level (skipping the transmit blanking), median-filtered over pings.
+2. **Slant → ground range** on a flat seabed: a ground range ``g`` is seen at slant range
+   ``r = sqrt(g² + H²)``; each output column samples the ping there (linear
+   interpolation).  The water column (``r < H``) disappears by construction.
+3. **Along-track resampling**: with the speed known, the along-track distance is
+   ``s_i = Σ ½ (v_{i-1} + v_i)(t_i − t_{i-1})``; rows are interpolated at uniform ``s``.
+4. **Gain normalisation**: every column is divided by its median over rows (an
+   empirical time-varying gain / beam-pattern correction), every row by its median over
+   columns (ping-to-ping gain jumps: the horizontal lines of the seed).
+5. **Median filter** (3×3 by default) against the remaining line noise and speckle.
+
+Image layout: ``image[row, col]``, ``2 W`` columns; column ``c`` is at across-track
+``y = (c + ½ − W) · ground_res_m`` (negative port, positive starboard).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+from scipy.ndimage import median_filter, uniform_filter1d
+
+from sonar.ping import SonarPing
+
+
+@dataclass(frozen=True)
+class WaterfallConfig:
+    """How :func:`build_waterfall` forms the image.
+
+    Attributes
+    ----------
+    ground_res_m : float or None
+        Across-track pixel size (m); None → the slant sample spacing.
+    along_res_m : float or None
+        Along-track pixel size (m) when resampling by distance; None → the mean distance
+        per ping.  Ignored (one row per ping) when ``resample_along`` is False or the
+        speed is unknown.
+    resample_along : bool
+        Resample rows by distance travelled when every ping has a speed.
+    bottom : {"auto", "altitude", "detect"}
+        Altitude source (see module docstring); "auto" uses the recorded altitude unless
+        it is missing, or on a side where it is more than ``altitude_tolerance``
+        (relative) from the echo on over 30 % of the pings.
+    bottom_fraction : float
+        First-return threshold relative to the ping's 75th-percentile level.
+    blanking_m : float
+        Slant ranges ignored by bottom detection (transmit pulse).
+    altitude_tolerance : float
+        Relative disagreement above which "auto" trusts the echo over the altimeter.
+    gain_normalise : bool
+        Column and row median normalisation.
+    median_ksize : int
+        Median filter size (odd, 1 = off).
+    """
+
+    ground_res_m: float | None = None
+    along_res_m: float | None = None
+    resample_along: bool = True
+    bottom: str = "auto"
+    bottom_fraction: float = 0.2
+    blanking_m: float = 0.5
+    altitude_tolerance: float = 0.2
+    gain_normalise: bool = True
+    median_ksize: int = 3
+
+
+@dataclass(frozen=True, eq=False)
+class Waterfall:
+    """A ground-range side-scan image with the navigation of every row.
+
+    Attributes
+    ----------
+    image : numpy.ndarray, shape (M, 2W), float32
+        Normalised intensity (≈1 on average seabed, 0 where there is no data).
+    ground_res_m : float
+        Across-track metres per column.
+    along_res_m : float
+        Along-track metres per row (NaN when rows are pings and the speed is unknown).
+    t_s : numpy.ndarray, shape (M,)
+        Time of each row (s).
+    along_m : numpy.ndarray, shape (M,)
+        Along-track distance of each row from the first ping (m); NaN if speed unknown.
+    heading_rad : numpy.ndarray, shape (M,)
+        Heading of each row (rad).
+    ping_index : numpy.ndarray, shape (M,)
+        (Fractional) ping index of each row.
+    altitude_m : numpy.ndarray, shape (P, 2)
+        Altitude used per ping (port, starboard), m.
+    """
+
+    image: np.ndarray
+    ground_res_m: float
+    along_res_m: float
+    t_s: np.ndarray
+    along_m: np.ndarray
+    heading_rad: np.ndarray
+    ping_index: np.ndarray
+    altitude_m: np.ndarray
+
+    @property
+    def n_side(self) -> int:
+        """Columns per side ``W``."""
+        return self.image.shape[1] // 2
+
+    def across_m(self, col) -> np.ndarray:
+        """Across-track position (m, starboard positive) of (fractional) columns."""
+        return (np.asarray(col, dtype=float) + 0.5 - self.n_side) * self.ground_res_m
+
+    def col_of(self, across_m) -> np.ndarray:
+        """Column of an across-track position (inverse of :meth:`across_m`)."""
+        return np.asarray(across_m, dtype=float) / self.ground_res_m + self.n_side - 0.5
+
+    def rows(self, start: int, stop: int) -> "Waterfall":
+        """The rows ``[start, stop)`` as a waterfall (views, no copy of the image)."""
+        return Waterfall(self.image[start:stop], self.ground_res_m, self.along_res_m,
+                         self.t_s[start:stop], self.along_m[start:stop],
+                         self.heading_rad[start:stop], self.ping_index[start:stop],
+                         self.altitude_m)
+
+
+def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
+    """Port and starboard samples as (P, N) float32 arrays (sample 0 nearest)."""
+    if not pings:
+        raise ValueError("no pings")
+    n = pings[0].n_samples
+    bad = [i for i, p in enumerate(pings) if p.n_samples != n]
+    if bad:
+        raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
+    port = np.stack([p.port for p in pings]).astype(np.float32)
+    stbd = np.stack([p.starboard for p in pings]).astype(np.float32)
+    np.nan_to_num(port, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    np.nan_to_num(stbd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return port, stbd
+
+
+def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
+                        fraction: float = 0.2, blanking_m: float = 0.5,
+                        smooth_pings: int = 5) -> np.ndarray:
+    """Slant range of the first strong return per ping (the altitude on a flat seabed).
+
+    Parameters
+    ----------
+    samples : numpy.ndarray, shape (P, N)
+        One side's intensities, sample 0 nearest the vehicle.
+    sample_spacing_m : float
+        Slant spacing (m).
+    fraction : float
+        Threshold relative to each ping's 75th-percentile level.
+    blanking_m : float
+        Ranges ignored (transmit pulse, ringing).
+    smooth_pings : int
+        Median filter length over pings (odd).
+
+    Returns
+    -------
+    numpy.ndarray, shape (P,)
+        Slant range (m) of the first return; NaN when a ping has no return.
+    """
+    sm = uniform_filter1d(samples.astype(np.float32), 5, axis=1)
+    level = np.percentile(sm, 75, axis=1)
+    above = sm > (fraction * level)[:, None]
+    above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
+    idx = np.argmax(above, axis=1).astype(float)
+    idx[~above.any(axis=1) | (level <= 0)] = np.nan
+    rng_m = (idx + 0.5) * sample_spacing_m
+    if smooth_pings > 1 and rng_m.size >= smooth_pings:
+        filled = np.where(np.isfinite(rng_m), rng_m, np.nanmedian(rng_m))
+        rng_m = np.where(np.isfinite(rng_m), median_filter(filled, smooth_pings, mode="nearest"), np.nan)
+    return rng_m
+
+
+def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
+                    ground_res_m: float, n_out: int) -> np.ndarray:
+    """Resample slant-range samples at uniform ground range on a flat seabed.
+
+    ``r_j = sqrt(g_j² + H²)`` with ``g_j = (j + ½) ground_res_m``; linear interpolation
+    between slant samples ``r_k = (k + ½) sample_spacing_m``; 0 beyond the last sample.
+
+    Parameters
+    ----------
+    samples : numpy.ndarray, shape (P, N)
+    sample_spacing_m : float
+    altitude_m : numpy.ndarray, shape (P,)
+        NaN altitudes are treated as 0 (slant = ground).
+    ground_res_m : float
+    n_out : int
+
+    Returns
+    -------
+    numpy.ndarray, shape (P, n_out), float32
+    """
+    p, n = samples.shape
+    h = np.nan_to_num(np.asarray(altitude_m, dtype=np.float32), nan=0.0)
+    g = (np.arange(n_out, dtype=np.float32) + 0.5) * np.float32(ground_res_m)
+    k = np.sqrt(g[None, :] ** 2 + h[:, None] ** 2) / np.float32(sample_spacing_m) - 0.5
+    k0 = np.floor(k)
+    frac = (k - k0).astype(np.float32)
+    k0 = k0.astype(np.intp)
+    valid = (k0 >= 0) & (k0 < n - 1)
+    k0c = np.clip(k0, 0, n - 2)
+    a = np.take_along_axis(samples, k0c, axis=1)
+    b = np.take_along_axis(samples, k0c + 1, axis=1)
+    out = a + frac * (b - a)
+    out[~valid] = 0.0
+    return out.astype(np.float32)
+
+
+def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
+               cfg: WaterfallConfig) -> np.ndarray:
+    """Altitude per ping and side (P, 2) following ``cfg.bottom``."""
+    dr = pings[0].sample_spacing_m
+    recorded = np.array([p.altitude_m for p in pings], dtype=float)
+    recorded[~(recorded > 0)] = np.nan
+    if cfg.bottom == "altitude":
+        return np.stack([recorded, recorded], axis=1)
+    if cfg.bottom not in ("auto", "detect"):
+        raise ValueError(f"bottom must be 'auto', 'altitude' or 'detect', not {cfg.bottom!r}")
+    det = np.stack([detect_first_return(s, dr, fraction=cfg.bottom_fraction,
+                                        blanking_m=cfg.blanking_m) for s in (port, stbd)], axis=1)
+    if cfg.bottom == "detect":
+        return det
+    rec = np.stack([recorded, recorded], axis=1)
+    # the echo cannot come from below the seabed: an altimeter that disagrees is wrong
+    # (or measures somewhere else on a slope); a missing one is replaced
+    # decided per side for the whole run, not per ping: switching source ping by ping
+    # makes the near-range columns flicker
+    both = np.isfinite(rec) & np.isfinite(det)
+    disagree = both & (np.abs(rec - det) > cfg.altitude_tolerance * np.maximum(det, 1e-6))
+    side_uses_det = disagree.sum(axis=0) > 0.3 * np.maximum(both.sum(axis=0), 1)
+    use_det = ~np.isfinite(rec) | side_uses_det[None, :]
+    return np.where(use_det, det, rec)
+
+
+def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
+    """Distance travelled at each ping from speed × time (trapezoid); NaN if unknown.
+
+    Speeds missing on fewer than half the pings are interpolated; otherwise all NaN.
+    """
+    t = np.array([p.t_s for p in pings], dtype=float)
+    v = np.array([p.speed_m_s for p in pings], dtype=float)
+    ok = np.isfinite(v)
+    if len(pings) < 2 or ok.sum() < 0.5 * len(pings) or not np.all(np.diff(t) > 0):
+        return np.full(len(pings), np.nan)
+    # a few pings without speed (e.g. the first, before the nav is up): interpolate
+    v = np.interp(np.arange(v.size), np.flatnonzero(ok), v[ok])
+    return np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+
+
+def normalise_gain(image: np.ndarray) -> np.ndarray:
+    """Divide columns then rows by their median over data pixels (>0); float32."""
+    img = image.astype(np.float32, copy=True)
+    data = img > 0
+    masked = np.where(data, img, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        col = np.nanmedian(masked, axis=0)
+    col = np.where(np.isfinite(col) & (col > 0), col, 1.0).astype(np.float32)
+    img /= col[None, :]
+    masked = np.where(data, img, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        row = np.nanmedian(masked, axis=1)
+    row = np.where(np.isfinite(row) & (row > 0), row, 1.0).astype(np.float32)
+    img /= row[:, None]
+    img[~data] = 0.0
+    return img
+
+
+def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = WaterfallConfig()) -> Waterfall:
+    """Pings → ground-range, gain-normalised, median-filtered waterfall.
+
+    Parameters
+    ----------
+    pings : sequence of SonarPing
+        Time-ordered, equal sample counts and slant ranges.
+    config : WaterfallConfig
+
+    Returns
+    -------
+    Waterfall
+    """
+    cfg = config
+    port, stbd = stack_pings(pings)
+    dr = pings[0].sample_spacing_m
+    res = float(cfg.ground_res_m or dr)
+    n_side = int(math.ceil(pings[0].slant_range_m / res))
+    alt = _altitudes(pings, port, stbd, cfg)
+    g_port = slant_to_ground(port, dr, alt[:, 0], res, n_side)
+    g_stbd = slant_to_ground(stbd, dr, alt[:, 1], res, n_side)
+    image = np.hstack([g_port[:, ::-1], g_stbd])
+
+    t = np.array([p.t_s for p in pings], dtype=float)
+    heading = np.array([p.heading_rad for p in pings], dtype=float)
+    ping_index = np.arange(len(pings), dtype=float)
+    dist = along_track_distance_m(pings)
+    along_res = math.nan
+    if cfg.resample_along and np.all(np.isfinite(dist)) and dist[-1] > 0:
+        along_res = float(cfg.along_res_m or dist[-1] / max(len(pings) - 1, 1))
+        s_out = np.arange(0.0, dist[-1] + 1e-9, along_res)
+        # strictly increasing distance for interp (a stopped vehicle repeats s)
+        s_mono = dist + np.arange(dist.size) * 1e-9
+        frac_idx = np.interp(s_out, s_mono, ping_index)
+        i0 = np.clip(np.floor(frac_idx).astype(int), 0, len(pings) - 2 if len(pings) > 1 else 0)
+        w = (frac_idx - i0).astype(np.float32)[:, None]
+        i1 = np.minimum(i0 + 1, len(pings) - 1)
+        image = image[i0] * (1 - w) + image[i1] * w
+        t = np.interp(frac_idx, ping_index, t)
+        heading = np.interp(frac_idx, ping_index, np.unwrap(heading))
+        ping_index, dist = frac_idx, s_out
+    elif np.all(np.isfinite(dist)) and len(pings) > 1:
+        along_res = float(dist[-1] / (len(pings) - 1))
+
+    if cfg.gain_normalise:
+        image = normalise_gain(image)
+    if cfg.median_ksize and cfg.median_ksize > 1:
+        image = cv2.medianBlur(np.ascontiguousarray(image, dtype=np.float32), int(cfg.median_ksize))
+    return Waterfall(image.astype(np.float32), res, along_res, t, dist, heading, ping_index, alt)
+
+
+def to_uint8(image: np.ndarray, *, clip_percentile: float = 99.5) -> np.ndarray:
+    """Display/feature image: sqrt compression, clip at a percentile, scale to 0…255."""
+    img = np.sqrt(np.maximum(image, 0.0, dtype=np.float32))
+    data = img[img > 0]
+    top = float(np.percentile(data, clip_percentile)) if data.size else 1.0
+    return np.clip(img * (255.0 / max(top, 1e-12)), 0, 255).astype(np.uint8)

@@ -1,0 +1,209 @@
+"""XTF side-scan files → :class:`~sonar.ping.SonarPing` per ping (through ``pyxtf``).
+
+XTF (Triton eXtended Triton Format) stores one packet per ping with the samples of every
+channel and the navigation/attitude valid at the ping: ``SensorYcoordinate`` /
+``SensorXcoordinate`` (latitude/longitude in degrees when ``NavUnits == 3``),
+``SensorHeading``/``SensorPitch``/``SensorRoll`` (deg), ``SensorDepth``,
+``SensorPrimaryAltitude`` (m) and ``SensorSpeed`` (knots in the spec; m/s in some
+recorders — we pass the value as recorded, converting only when the file says knots is
+not known reliably, see :func:`read_xtf`).  The port channel is stored far-to-near
+(so that a plain row of port+starboard is the picture); we reverse it so sample 0 is
+nearest the vehicle on both sides.
+
+Robustness: packets pyxtf cannot decode (``XTFUnknownPacket``) are counted and skipped,
+pyxtf's warnings are captured; a truncated file keeps every complete ping before the
+break and reports it.  A file with no side-scan channel raises :class:`SonarFileError`
+with the packet counts, so a CLI can print a clear message.
+"""
+from __future__ import annotations
+
+import calendar
+import math
+import warnings
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sonar.ping import SonarPing
+
+KNOT_M_S = 1852.0 / 3600.0
+
+
+class SonarFileError(ValueError):
+    """A sonar file that gives no pings (the message says why and what it holds)."""
+
+
+@dataclass
+class XtfReadReport:
+    """What :func:`read_xtf` found besides the pings.
+
+    Attributes
+    ----------
+    packet_counts : dict[str, int]
+        Packets by XTF header type name (as decoded by pyxtf, ``unknown`` otherwise).
+    n_undecoded : int
+        Packets pyxtf has no decoder for (skipped).
+    n_truncated : int
+        Pings dropped because their samples were cut short (truncated file).
+    n_no_nav : int
+        Pings whose navigation was all zero (kept, nav set to NaN).
+    error : str or None
+        Why reading stopped early (e.g. truncated file), None when it read to the end.
+    warnings : list[str]
+        Messages pyxtf emitted (deduplicated).
+    """
+
+    packet_counts: dict[str, int] = field(default_factory=dict)
+    n_undecoded: int = 0
+    n_truncated: int = 0
+    n_no_nav: int = 0
+    error: str | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """One-line human summary."""
+        counts = ", ".join(f"{k}: {v}" for k, v in sorted(self.packet_counts.items()))
+        text = f"packets {{{counts}}}; undecoded {self.n_undecoded}; truncated pings {self.n_truncated}"
+        if self.error:
+            text += f"; stopped early: {self.error}"
+        return text
+
+
+def _ping_time_s(pkt) -> float:
+    """POSIX seconds (UTC) of an XTF ping header (date + time + hundredths)."""
+    try:
+        base = calendar.timegm((int(pkt.Year), int(pkt.Month), int(pkt.Day),
+                                int(pkt.Hour), int(pkt.Minute), int(pkt.Second)))
+    except (ValueError, OverflowError):
+        return math.nan
+    return base + 0.01 * float(pkt.HSeconds)
+
+
+def _channel_sides(file_header) -> tuple[int, int] | None:
+    """Indices (into ``ping.data``) of the port and starboard channels, None if absent."""
+    info = list(getattr(file_header, "sonar_info", []) or [])
+    n = int(getattr(file_header, "NumberOfSonarChannels", len(info)) or 0)
+    if n < 2:
+        return None
+    types = [int(getattr(ci, "TypeOfChannel", -1)) for ci in info[:n]]
+    # TypeOfChannel: 1 = port, 2 = starboard (XTF spec); fall back to channel order
+    port = types.index(1) if 1 in types else 0
+    stbd = types.index(2) if 2 in types else 1
+    return port, stbd
+
+
+def read_xtf(path: str | Path, *, speed_in_knots: bool = False) -> tuple[list[SonarPing], XtfReadReport]:
+    """Read every side-scan ping of an XTF file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The XTF file.
+    speed_in_knots : bool
+        Treat ``SensorSpeed`` as knots (the XTF spec) and convert to m/s.  Default False:
+        many AUV recorders (e.g. Iver2/SeaScan) write m/s there.
+
+    Returns
+    -------
+    pings : list[SonarPing]
+        In file order, port reversed so sample 0 is nearest the vehicle.
+    report : XtfReadReport
+        Packet counts, undecoded/truncated packets, early stop reason.
+
+    Raises
+    ------
+    SonarFileError
+        The file is missing, not XTF, or holds no side-scan ping.
+    """
+    import pyxtf  # heavy import kept local
+
+    path = Path(path)
+    if not path.is_file():
+        raise SonarFileError(f"{path}: no such file")
+    report = XtfReadReport()
+    counts: Counter[str] = Counter()
+    pings: list[SonarPing] = []
+    sides = None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            gen = pyxtf.xtf_read_gen(str(path))
+            file_header = next(gen)
+        except Exception as exc:  # pyxtf raises RuntimeError/ValueError/struct errors
+            raise SonarFileError(f"{path}: not a readable XTF file ({exc})") from None
+        sides = _channel_sides(file_header)
+        nav_deg = int(getattr(file_header, "NavUnits", 3)) == 3
+        while True:
+            try:
+                pkt = next(gen)
+            except StopIteration:
+                break
+            except Exception as exc:  # a cut or corrupt packet: keep what we have
+                report.error = f"{type(exc).__name__}: {exc}"
+                break
+            kind = type(pkt).__name__
+            try:
+                name = pyxtf.XTFHeaderType(pkt.HeaderType).name
+            except ValueError:
+                name = "unknown"
+            counts[name] += 1
+            if kind == "XTFUnknownPacket":
+                report.n_undecoded += 1
+                continue
+            if name != "sonar" or sides is None:
+                continue
+            ping = _to_ping(pkt, sides, nav_deg, speed_in_knots, report)
+            if ping is not None:
+                pings.append(ping)
+    report.packet_counts = dict(counts)
+    report.warnings = sorted({str(w.message) for w in caught})
+    if sides is None:
+        raise SonarFileError(
+            f"{path}: no side-scan channels (file header declares "
+            f"{int(getattr(file_header, 'NumberOfSonarChannels', 0))} sonar channel(s)); "
+            + report.summary())
+    if not pings:
+        raise SonarFileError(f"{path}: no readable side-scan ping; " + report.summary())
+    return pings, report
+
+
+def _to_ping(pkt, sides: tuple[int, int], nav_deg: bool, speed_in_knots: bool,
+             report: XtfReadReport) -> SonarPing | None:
+    """One decoded XTF sonar packet → SonarPing, or None (counted) when truncated."""
+    data = list(getattr(pkt, "data", []) or [])
+    chans = list(getattr(pkt, "ping_chan_headers", []) or [])
+    i_port, i_stbd = sides
+    if len(data) <= max(i_port, i_stbd) or len(chans) <= max(i_port, i_stbd):
+        report.n_truncated += 1
+        return None
+    port, stbd = np.asarray(data[i_port]), np.asarray(data[i_stbd])
+    n_port, n_stbd = int(chans[i_port].NumSamples), int(chans[i_stbd].NumSamples)
+    if port.size != n_port or stbd.size != n_stbd or n_port != n_stbd or n_port == 0:
+        report.n_truncated += 1
+        return None
+    slant = float(chans[i_stbd].SlantRange)
+    if not slant > 0:  # some recorders leave it 0: time span × one-way sound speed
+        slant = float(chans[i_stbd].TimeDuration) * float(pkt.SoundVelocity)
+    lat, lon = float(pkt.SensorYcoordinate), float(pkt.SensorXcoordinate)
+    no_nav = lat == 0.0 and lon == 0.0
+    if no_nav:
+        report.n_no_nav += 1
+    nan = math.nan
+    alt = float(pkt.SensorPrimaryAltitude)
+    speed = float(pkt.SensorSpeed) * (KNOT_M_S if speed_in_knots else 1.0)
+    return SonarPing(
+        t_s=_ping_time_s(pkt),
+        port=port[::-1].astype(np.float32),
+        starboard=stbd.astype(np.float32),
+        slant_range_m=slant,
+        altitude_m=alt if (alt > 0 and not no_nav) else nan,
+        heading_rad=math.radians(float(pkt.SensorHeading)) if not no_nav else nan,
+        pitch_rad=math.radians(float(pkt.SensorPitch)),
+        roll_rad=math.radians(float(pkt.SensorRoll)),
+        lat_rad=math.radians(lat) if (nav_deg and not no_nav) else nan,
+        lon_rad=math.radians(lon) if (nav_deg and not no_nav) else nan,
+        sensor_depth_m=float(pkt.SensorDepth) if not no_nav else nan,
+        speed_m_s=speed if (speed > 0 and not no_nav) else nan,
+    )
