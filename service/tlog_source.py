@@ -1,0 +1,222 @@
+"""Replay source for MAVLink telemetry logs (``.tlog``) and ArduPilot DataFlash (``.BIN``).
+
+pymavlink opens a log with the same ``mavutil.mavlink_connection`` API as a live link,
+so the messages go through the same :class:`service.mavlink_convert.MavlinkConverter`
+as the bridge.  Data time comes from the autopilot's ``time_boot_ms``/``time_usec``
+(the tlog's own ``_timestamp`` is the wall clock of the recording computer and is not
+used).  Samples are released in the deterministic replay order
+``(t_s, source priority, seq)`` through a bounded re-order buffer of
+``reorder_window_s`` (messages of one autopilot arrive slightly out of order: ATTITUDE
+is stamped before the RAW_IMU sent just ahead of it).
+
+Corrupt frames (CRC failures, truncated packets) are reported by pymavlink's robust
+parser as ``BAD_DATA`` pseudo-messages; they are counted in ``counters["corrupt_frames"]``
+and skipped.  ``missing`` says, in words, what the log cannot give the estimator —
+e.g. an IMU stream too slow for strapdown (real ArduSub streams RAW_IMU at 2 Hz unless
+asked for more), in which case the IMU samples are withheld and attitude is used.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
+    ConvertConfig,
+    ConversionError,
+    MavlinkConverter,
+)
+from fusion.frames import wrap_angle
+from fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
+
+from pymavlink import mavutil  # noqa: E402
+
+
+@dataclass(frozen=True)
+class TlogConfig:
+    """``[replay.mavlink]``: how a MAVLink log becomes a sample stream."""
+
+    convert: ConvertConfig = field(default_factory=ConvertConfig)
+    min_imu_rate_hz: float = 20.0  # slower IMU streams cannot drive strapdown integration
+    drop_slow_imu: bool = True
+    reorder_window_s: float = 2.0
+    dataflash_baro_instance: int = 1  # ArduSub: BARO[1] is the external (water) sensor
+
+    def validate(self) -> None:
+        if self.min_imu_rate_hz <= 0 or self.reorder_window_s < 0:
+            raise ValueError("min_imu_rate_hz must be > 0 and reorder_window_s ≥ 0")
+
+
+class TlogSource:
+    """Iterate the samples of a ``.tlog`` (or ``.BIN``) in replay order.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log file.
+    config : TlogConfig, optional
+
+    Attributes
+    ----------
+    counters : dict
+        ``messages_read`` (decoded messages), ``corrupt_frames`` (BAD_DATA),
+        ``samples_by_kind``, ``rejected`` (by reason), ``late_samples`` (outside the
+        re-order window), ``duration_s`` (data time span of the samples).
+    missing : list of str
+        What the estimator will lack, in words; complete once iteration has finished.
+    """
+
+    def __init__(self, path: str | Path, config: TlogConfig | None = None):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"MAVLink log not found: {self.path}")
+        self.config = config or TlogConfig()
+        self.converter = MavlinkConverter(self.config.convert)
+        self.counters: dict[str, Any] = {
+            "messages_read": 0, "corrupt_frames": 0, "samples_by_kind": {}, "rejected": {},
+            "late_samples": 0, "duration_s": 0.0,
+        }
+        self.missing: list[str] = []
+        self._imu_dt: list[float] = []
+        self._imu_last_t: float | None = None
+        self._imu_type: str | None = None
+        self._dataflash = self.path.suffix.lower() in (".bin", ".log")
+
+    # --------------------------------------------------------------------- helpers
+    def _reject(self, reason: str) -> None:
+        rej = self.counters["rejected"]
+        rej[reason] = rej.get(reason, 0) + 1
+
+    def _keep_imu(self, sample: ImuSample) -> bool:
+        """Track the IMU rate; withhold samples of a stream too slow for strapdown."""
+        if self._imu_last_t is not None and sample.t_s > self._imu_last_t:
+            self._imu_dt.append(sample.t_s - self._imu_last_t)
+        self._imu_last_t = sample.t_s
+        if not self.config.drop_slow_imu:
+            return True
+        # median of the recent intervals: robust to single dropouts
+        recent = self._imu_dt[-20:]
+        if not recent or statistics.median(recent) > 1.0 / self.config.min_imu_rate_hz:
+            self._reject("imu_too_slow")
+            return False
+        return True
+
+    def _convert(self, msg: Any) -> list:
+        if self._dataflash:
+            return self._convert_dataflash(msg)
+        samples = self.converter.convert(msg)
+        if samples and isinstance(samples[0], ImuSample):
+            self._imu_type = self.converter.imu_message
+        return samples
+
+    def _convert_dataflash(self, msg: Any) -> list:
+        """DataFlash records (already SI apart from degrees): IMU, ATT, BARO, RCOU."""
+        mtype = msg.get_type()
+        t_us = getattr(msg, "TimeUS", None)
+        if t_us is None:
+            return []
+        t_s = self.converter.time.map_boot_s(t_us / 1e6)
+        try:
+            if mtype == "IMU" and getattr(msg, "I", 0) == 0:
+                self._imu_type = "IMU[0]"
+                return [ImuSample(t_s, (msg.AccX, msg.AccY, msg.AccZ), (msg.GyrX, msg.GyrY, msg.GyrZ))]
+            if mtype == "ATT":
+                return [AttitudeSample(t_s, math.radians(msg.Roll), math.radians(msg.Pitch),
+                                       float(wrap_angle(math.radians(msg.Yaw))))]
+            if mtype == "BARO" and getattr(msg, "I", 0) == self.config.dataflash_baro_instance:
+                if not msg.Press > 0:
+                    raise ConversionError("bad_pressure")
+                return [DepthSample(t_s, float(msg.Press))]
+            if mtype == "RCOU":
+                th = self.config.convert.thrusters
+                rpms = []
+                for ch, sign in zip(th.channels, th.forward_signs):
+                    pwm = getattr(msg, f"C{ch}", 0) or 0
+                    if pwm <= 0:
+                        raise ConversionError("thruster_not_output")
+                    rpms.append(sign * th.curve.rpm_of_pwm(pwm))
+                return [RpmSample(t_s, sum(rpms) / len(rpms))]
+        except ConversionError as e:
+            self._reject(e.reason)
+        return []
+
+    # --------------------------------------------------------------------- iteration
+    def _messages(self) -> Iterator[Any]:
+        conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        try:
+            while True:
+                try:
+                    msg = conn.recv_match()
+                except Exception as e:  # a reader bug on garbage must not end the replay
+                    self.counters["corrupt_frames"] += 1
+                    self._reject(f"reader_error:{type(e).__name__}")
+                    continue
+                if msg is None:
+                    return
+                if msg.get_type() == "BAD_DATA":
+                    self.counters["corrupt_frames"] += 1
+                    continue
+                self.counters["messages_read"] += 1
+                yield msg
+        finally:
+            conn.close()
+
+    def __iter__(self) -> Iterator[Any]:
+        heap: list[tuple] = []
+        seq = 0
+        released_t = -math.inf
+        t_first = t_last = None
+        by_kind = self.counters["samples_by_kind"]
+        window = self.config.reorder_window_s
+
+        def release(upto: float):
+            nonlocal released_t, t_first, t_last
+            while heap and heap[0][0][0] <= upto:
+                _, sample = heapq.heappop(heap)
+                released_t = sample.t_s
+                t_first = sample.t_s if t_first is None else t_first
+                t_last = sample.t_s
+                by_kind[sample.KIND] = by_kind.get(sample.KIND, 0) + 1
+                yield sample
+
+        for msg in self._messages():
+            for sample in self._convert(msg):
+                if isinstance(sample, ImuSample) and not self._keep_imu(sample):
+                    continue
+                if sample.t_s < released_t:
+                    self.counters["late_samples"] += 1
+                    self._reject("late")
+                    continue
+                heapq.heappush(heap, (replay_order_key(sample, seq), sample))
+                seq += 1
+                yield from release(sample.t_s - window)
+        yield from release(math.inf)
+        for reason, n in self.converter.rejected.items():
+            self.counters["rejected"][reason] = self.counters["rejected"].get(reason, 0) + n
+        self.counters["duration_s"] = 0.0 if t_first is None else t_last - t_first
+        self.counters["reboots"] = self.converter.time.reboots
+        self.missing = self._diagnose()
+
+    def _diagnose(self) -> list[str]:
+        by_kind = self.counters["samples_by_kind"]
+        out = []
+        if not by_kind.get("imu"):
+            if self._imu_dt:
+                rate = 1.0 / statistics.median(self._imu_dt)
+                fallback = "using ATTITUDE" if by_kind.get("attitude") else "and no ATTITUDE either"
+                out.append(f"no usable IMU stream: {self._imu_type or 'IMU'} at {rate:.1f} Hz is too slow "
+                           f"for strapdown (< {self.config.min_imu_rate_hz:g} Hz); {fallback}")
+            else:
+                out.append("no IMU stream")
+        if not by_kind.get("attitude"):
+            out.append("no attitude (ATTITUDE)")
+        if not by_kind.get("depth"):
+            out.append(f"no depth ({self.config.convert.depth_message} absent or invalid)")
+        if not by_kind.get("rpm"):
+            out.append("no thruster RPM (SERVO_OUTPUT_RAW)")
+        if not (by_kind.get("usbl") or by_kind.get("gnss")):
+            out.append("no position fixes (GPS_INPUT / GPS_RAW_INT with a fix)")
+        return out
