@@ -1,10 +1,48 @@
-"""`adaptnav run` (being built; see the issue tracker)."""
-HELP = "run (not built yet)"
+"""`adaptnav run --config FILE [--set section.key=value ...] [--calibrator-only]`.
+
+Starts the live navigation daemon (:mod:`service.daemon`): Zenoh bus, runner thread
+with the ESKF, calibrator child process, MAVLink bridge when enabled. With
+``--calibrator-only`` it runs just the EM calibrator as a bus node (for another
+computer or shore-side): it subscribes to ``adaptnav/<v>/sensor/*`` and publishes
+releases on ``adaptnav/<v>/calibration/params``; the daemon then uses
+``calibrator.location = "remote"``.
+"""
+from __future__ import annotations
+
+HELP = "run the live navigation daemon (Zenoh, calibrator process, MAVLink bridge)"
 
 
 def add_arguments(parser):
-    pass
+    parser.add_argument("--config", metavar="FILE", help="service config (TOML); defaults when omitted")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key, e.g. --set zenoh.mode=client (repeatable)")
+    parser.add_argument("--calibrator-only", action="store_true",
+                        help="run only the EM calibrator as a bus node")
+    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ... (default INFO)")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the effective config as JSON and exit")
 
 
 def run(args):
-    raise SystemExit("adaptnav run: not built yet")
+    import json
+    import logging
+    import sys
+
+    from fusion.typed_config import ConfigError
+    from service.config import config_dict, load_config
+
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        cfg = load_config(args.config, args.overrides)
+    except ConfigError as e:
+        print(f"adaptnav run: config error: {e}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print(json.dumps(config_dict(cfg), indent=2, sort_keys=True))
+        return 0
+    from service import daemon
+
+    if args.calibrator_only:
+        return daemon.serve_calibrator(cfg)
+    return daemon.serve(cfg)

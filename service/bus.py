@@ -1,0 +1,227 @@
+"""Zenoh bus of the live service (zenoh-python 1.x).
+
+Key expressions (``<v>`` = vehicle name, DESIGN.md "Service")::
+
+    adaptnav/<v>/sensor/<kind>         samples (imu, dvl, depth, heading, gnss, usbl, rpm, ...)
+    adaptnav/<v>/nav/state             NavState with covariance (10 Hz)
+    adaptnav/<v>/nav/aid/<source>      AidStatus per aiding source (1 Hz, latest)
+    adaptnav/<v>/calibration/params    calibrator releases
+    adaptnav/<v>/health                health report (1 Hz)
+    adaptnav/<v>/query/{state,params,config,health}   queryables
+
+Payloads are JSON objects carrying ``type`` and ``schema_version`` (samples through
+:mod:`service.codec`; the service's own messages likewise, registered there), so a
+third-party subscriber (``zenoh-cli``, a Python one-liner) can read them.
+
+Zenoh runs subscriber callbacks on its own threads and forbids blocking there: the
+callbacks here only decode and enqueue; a malformed payload is counted, never raised.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import threading
+from collections import Counter
+from typing import Any, Callable
+
+import zenoh
+
+from fusion.samples import SampleError
+
+from .config import ZenohConfig
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+
+
+class Keys:
+    """Key expressions for one vehicle."""
+
+    def __init__(self, vehicle: str) -> None:
+        self.vehicle = vehicle
+        self.root = f"adaptnav/{vehicle}"
+        self.all = f"{self.root}/**"
+        self.sensors = f"{self.root}/sensor/*"
+        self.nav_state = f"{self.root}/nav/state"
+        self.params = f"{self.root}/calibration/params"
+        self.health = f"{self.root}/health"
+
+    def sensor(self, kind: str) -> str:
+        return f"{self.root}/sensor/{kind}"
+
+    def aid(self, source: str) -> str:
+        return f"{self.root}/nav/aid/{source}"
+
+    def query(self, name: str) -> str:
+        return f"{self.root}/query/{name}"
+
+
+def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """Our :class:`ZenohConfig` → a ``zenoh.Config`` (JSON5 of the zenoh config schema)."""
+    doc: dict[str, Any] = {
+        "mode": cfg.mode,
+        "connect": {"endpoints": list(cfg.connect)},
+        "listen": {"endpoints": list(cfg.listen)},
+        # gossip too: with scouting off, peers must only talk to the endpoints given
+        "scouting": {"multicast": {"enabled": bool(cfg.scouting)},
+                     "gossip": {"enabled": bool(cfg.scouting)}},
+    }
+    return zenoh.Config.from_json5(json.dumps(doc))
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if hasattr(obj, "to_dict"):
+        return obj.to_dict()
+    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+
+
+def _strict(obj: Any) -> Any:
+    """Non-finite floats → None so the payload is strict JSON."""
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(v) for v in obj]
+    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):
+        return _strict(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def message(kind: str, body: dict[str, Any]) -> bytes:
+    """A service message (nav_state, aid_status, motion_params, health, config) as JSON."""
+    doc = {"type": kind, "schema_version": SCHEMA_VERSION, **_strict(body)}
+    return json.dumps(doc, default=_json_default, allow_nan=False).encode()
+
+
+def encode_sample(sample: Any) -> bytes:
+    from . import codec
+
+    return codec.encode(sample)
+
+
+def decode_sample(payload: bytes) -> Any:
+    """Bytes → sample; :class:`SampleError` on anything malformed."""
+    from . import codec
+
+    try:
+        return codec.decode(payload)
+    except SampleError:
+        raise
+    except (ValueError, TypeError, KeyError, UnicodeDecodeError) as e:
+        raise SampleError(f"malformed payload: {e}") from e
+
+
+class Bus:
+    """One Zenoh session with the adaptnav key space of one vehicle.
+
+    Parameters
+    ----------
+    cfg : ZenohConfig
+        Mode, endpoints, scouting.
+    vehicle : str
+        Vehicle name for the key expressions.
+    """
+
+    def __init__(self, cfg: ZenohConfig, vehicle: str) -> None:
+        self.keys = Keys(vehicle)
+        self.session = zenoh.open(zenoh_config(cfg))
+        self.malformed: Counter[str] = Counter()  # by key expression suffix
+        self._lock = threading.Lock()
+        self._publishers: dict[str, Any] = {}
+        self._declared: list[Any] = []
+
+    # -- publishing ------------------------------------------------------------------
+    def _publisher(self, key: str):
+        pub = self._publishers.get(key)
+        if pub is None:
+            with self._lock:
+                pub = self._publishers.get(key)
+                if pub is None:
+                    pub = self._publishers[key] = self.session.declare_publisher(key)
+        return pub
+
+    def put(self, key: str, payload: bytes) -> None:
+        self._publisher(key).put(payload)
+
+    def publish_sample(self, sample: Any) -> None:
+        self.put(self.keys.sensor(sample.KIND), encode_sample(sample))
+
+    def publish(self, key: str, kind: str, body: dict[str, Any]) -> None:
+        self.put(key, message(kind, body))
+
+    # -- subscribing -----------------------------------------------------------------
+    def subscribe_samples(self, enqueue: Callable[[Any], None], key: str | None = None) -> None:
+        """Decode samples on ``key`` (default: all sensor topics) and ``enqueue`` them.
+
+        ``enqueue`` must not block (e.g. ``queue.put_nowait`` wrapped to count overflow).
+        Malformed payloads are counted in :attr:`malformed` and logged at debug level.
+        """
+
+        def on_sample(zsample: Any) -> None:
+            try:
+                item = decode_sample(zsample.payload.to_bytes())
+            except SampleError as e:
+                self.malformed[str(zsample.key_expr).rsplit("/", 1)[-1]] += 1
+                log.debug("malformed payload on %s: %s", zsample.key_expr, e)
+                return
+            enqueue(item)
+
+        self._declared.append(self.session.declare_subscriber(key or self.keys.sensors, on_sample))
+
+    def subscribe_raw(self, key: str, handler: Callable[[str, bytes], None]) -> None:
+        """``handler(key, payload_bytes)`` for every message on ``key`` (must not block)."""
+        self._declared.append(self.session.declare_subscriber(
+            key, lambda s: handler(str(s.key_expr), s.payload.to_bytes())))
+
+    def queryable(self, name: str, answer: Callable[[], bytes]) -> None:
+        """Answer ``adaptnav/<v>/query/<name>`` with ``answer()`` (fast, non-blocking)."""
+        key = self.keys.query(name)
+
+        def on_query(query: Any) -> None:
+            try:
+                query.reply(key, answer())
+            except Exception as e:  # a queryable must never take the session down
+                log.warning("query %s failed: %s", key, e)
+                query.reply_err(str(e).encode())
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def get(self, name: str, timeout_s: float = 2.0) -> dict | None:
+        """Ask a queryable of this vehicle; the first reply's JSON, or ``None``."""
+        for reply in self.session.get(self.keys.query(name), timeout=timeout_s):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+        return None
+
+    def close(self) -> None:
+        for obj in self._declared:
+            try:
+                obj.undeclare()
+            except Exception:  # already gone with a closing session
+                pass
+        self._declared.clear()
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:
+                pass
+        self._publishers.clear()
+        self.session.close()
+
+
+def nonblocking_enqueue(q: "queue.Queue[Any]", overflow: Counter, reason: str = "queue_overflow") -> Callable[[Any], None]:
+    """An ``enqueue`` for :meth:`Bus.subscribe_samples` that drops (and counts) on a full queue."""
+
+    def enqueue(item: Any) -> None:
+        try:
+            q.put_nowait(item)
+        except queue.Full:
+            overflow[reason] += 1
+
+    return enqueue

@@ -1,0 +1,242 @@
+"""The live service's configuration: one typed tree loaded from TOML.
+
+``ServiceConfig`` is a tree of frozen dataclasses built strictly by
+:mod:`fusion.typed_config` (unknown keys are errors naming their dotted path; CLI
+overrides ``--set section.key=value`` go through the same validation). Sections:
+
+- ``vehicle``   name (the ``<v>`` of every Zenoh key expression)
+- ``zenoh``     session mode, endpoints, multicast scouting
+- ``mavlink``   bridge to ArduSub: URL, on/off, output rate, thruster PWM → RPM curve
+- ``origin``    mission origin of the local NED frame (degrees at the edge, converted once)
+- ``filter``    the ESKF's own config (:class:`fusion.config.FilterConfig`: lever arms,
+                noises, gates), embedded as is
+- ``motion``    static RPM → speed table and the initial :class:`MotionParams`
+- ``calibrator`` where the EM calibrator runs, restart backoff, and its own
+                :class:`calibration.online.CalibratorConfig` under ``[calibrator.online]``
+- ``outputs``   publication rates
+- ``health``    silence thresholds
+- ``state_dir`` where learned parameters and slow filter states persist
+
+``deploy/adaptnav.toml`` documents every key.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from fusion.frames import GeoOrigin
+from fusion.motion_model import MotionParams, RpmSpeedTable
+from fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+
+try:  # the filter's config lands from the navigation-core work; embed it when present
+    from fusion.config import FilterConfig
+except ImportError:  # pragma: no cover - only while fusion/config.py does not exist yet
+    @dataclass(frozen=True)
+    class FilterConfig:  # type: ignore[no-redef]
+        """Placeholder until ``fusion.config.FilterConfig`` exists (no keys accepted)."""
+
+try:
+    from calibration.online import CalibratorConfig
+except ImportError:  # pragma: no cover
+    @dataclass(frozen=True)
+    class CalibratorConfig:  # type: ignore[no-redef]
+        """Placeholder until ``calibration.online.CalibratorConfig`` exists."""
+
+log = logging.getLogger(__name__)
+
+SENSOR_KINDS = ("imu", "rpm", "dvl", "depth", "heading", "attitude", "gnss", "usbl",
+                "range", "altitude", "visual_motion", "sonar")
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """``name``: the vehicle's name, the ``<v>`` in ``adaptnav/<v>/...`` keys."""
+
+    name: str = "auv1"
+
+    def validate(self) -> None:
+        if not self.name or any(c in self.name for c in "/*$?#"):
+            raise ValueError(f"name {self.name!r}: must be non-empty without / * $ ? #")
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """Zenoh session.
+
+    ``mode`` peer (embedded, default) | client (through a router) | router.
+    ``connect``/``listen``: endpoint lists such as ``"tcp/127.0.0.1:7447"``.
+    ``scouting``: multicast scouting on/off (off on a vehicle LAN you do not own).
+    """
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    scouting: bool = False
+
+    def validate(self) -> None:
+        if self.mode == "client" and not self.connect:
+            raise ValueError("mode 'client' needs at least one connect endpoint (the router)")
+        for ep in (*self.connect, *self.listen):
+            if "/" not in ep:
+                raise ValueError(f"endpoint {ep!r}: expected <proto>/<address>, e.g. tcp/127.0.0.1:7447")
+
+
+@dataclass(frozen=True)
+class PwmCurve:
+    """Thruster command PWM (µs) → propeller RPM, piecewise linear, signed."""
+
+    pwm_us: tuple[float, ...] = (1100.0, 1460.0, 1500.0, 1540.0, 1900.0)
+    rpm: tuple[float, ...] = (-1500.0, 0.0, 0.0, 0.0, 1500.0)
+
+    def validate(self) -> None:
+        if len(self.pwm_us) != len(self.rpm) or len(self.pwm_us) < 2:
+            raise ValueError("pwm_to_rpm: pwm_us and rpm must be equal-length lists of >= 2 values")
+        if any(b <= a for a, b in zip(self.pwm_us, self.pwm_us[1:])):
+            raise ValueError("pwm_to_rpm.pwm_us must be strictly increasing")
+
+    def rpm_for(self, pwm_us: float) -> float:
+        return float(np.interp(pwm_us, self.pwm_us, self.rpm))
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    """MAVLink bridge to ArduSub (pymavlink URL: ``udpin:``, ``udpout:``, ``tcp:``, serial)."""
+
+    enabled: bool = False
+    url: str = "udpin:0.0.0.0:14550"
+    output_rate_hz: float = 10.0
+    system_id: int = 1
+    component_id: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+    pwm_to_rpm: PwmCurve = field(default_factory=PwmCurve)
+
+    def validate(self) -> None:
+        if not 4.0 <= self.output_rate_hz <= 100.0:
+            raise ValueError("output_rate_hz must be within [4, 100] (ArduSub wants >= 4 Hz)")
+
+
+@dataclass(frozen=True)
+class OriginConfig:
+    """Mission origin of the local NED frame (WGS-84)."""
+
+    lat_deg: float = 0.0
+    lon_deg: float = 0.0
+    alt_m: float = 0.0
+
+    def validate(self) -> None:
+        if not (-90.0 <= self.lat_deg <= 90.0 and -180.0 <= self.lon_deg <= 180.0):
+            raise ValueError("lat_deg/lon_deg out of range")
+
+    def geo(self) -> GeoOrigin:
+        return GeoOrigin(math.radians(self.lat_deg), math.radians(self.lon_deg), self.alt_m)
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Static RPM → speed table and the initial motion parameters."""
+
+    rpm_table: RpmSpeedTable = field(default_factory=RpmSpeedTable)
+    params0: MotionParams = field(default_factory=MotionParams)
+
+
+@dataclass(frozen=True)
+class CalibratorSection:
+    """Background EM calibrator.
+
+    ``enabled``: run it at all. ``location``: ``process`` (child process of the daemon)
+    or ``remote`` (another node runs ``adaptnav run --calibrator-only`` and publishes
+    releases on ``adaptnav/<v>/calibration/params``). ``restart_backoff_s``: first
+    restart delay after a crash, doubled up to ``restart_backoff_max_s``.
+    ``queue_size``: samples buffered towards the process before new ones are dropped
+    (counted) — fusion never waits for EM. ``seed``: its RNG seed.
+    """
+
+    enabled: bool = True
+    location: Literal["process", "remote"] = "process"
+    restart_backoff_s: float = 0.5
+    restart_backoff_max_s: float = 30.0
+    queue_size: int = 20000
+    seed: int = 0
+    online: CalibratorConfig = field(default_factory=CalibratorConfig)
+
+
+@dataclass(frozen=True)
+class OutputsConfig:
+    """Publication rates (Hz): nav state, aid statuses and health."""
+
+    nav_rate_hz: float = 10.0
+    health_rate_hz: float = 1.0
+    aid_rate_hz: float = 1.0
+
+    def validate(self) -> None:
+        for name in ("nav_rate_hz", "health_rate_hz", "aid_rate_hz"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0")
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    """``sensor_timeout_s``: a sensor silent longer than this (data time) is reported
+    stale. ``queue_size``: the runner's input queue bound (overflow counted)."""
+
+    sensor_timeout_s: float = 10.0
+    queue_size: int = 10000
+
+
+@dataclass(frozen=True)
+class PersistenceConfig:
+    """``period_s``: how often (wall seconds) learned state is written; also on shutdown."""
+
+    period_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """The whole live-service configuration (see module docstring)."""
+
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    origin: OriginConfig = field(default_factory=OriginConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    calibrator: CalibratorSection = field(default_factory=CalibratorSection)
+    outputs: OutputsConfig = field(default_factory=OutputsConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
+    persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    state_dir: str = "/var/lib/adaptnav"
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ServiceConfig:
+    """Load ``path`` (TOML; ``None`` = all defaults), apply ``overrides``, validate.
+
+    Raises
+    ------
+    ConfigError
+        With the offending dotted key in the message.
+    """
+    import tomllib
+
+    raw: dict = {}
+    if path is not None:
+        try:
+            raw = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError as e:
+            raise ConfigError(f"config file {path}: not found") from e
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"config file {path}: TOML syntax: {e}") from e
+    return build(ServiceConfig, apply_overrides(raw, list(overrides)))
+
+
+def config_dict(cfg: ServiceConfig) -> dict:
+    """Effective config as plain data (for the log, the ``query/config`` queryable)."""
+    return as_dict(cfg)
+
+
+def log_effective(cfg: ServiceConfig) -> None:
+    log.info("effective config: %s", json.dumps(config_dict(cfg), sort_keys=True))

@@ -1,0 +1,378 @@
+"""The live navigation daemon (``adaptnav run``), DESIGN.md "Service".
+
+Threads and processes::
+
+    Zenoh callbacks ──decode──► input queue ──► runner thread (owns the Estimator)
+    MAVLink bridge  ──samples─►      ▲              │ on_nav  → adaptnav/<v>/nav/state (10 Hz)
+    calibrator process ─releases─────┘              │ on_aid  → latest per source
+          ▲ samples (batched, non-blocking) ◄───────┘ observe
+    housekeeping thread (1 Hz): health + aid statuses published, calibrator supervised
+    (restart with backoff), learned state persisted, systemd watchdog fed.
+
+- The runner is :func:`service.runner.run` with a queue source and a
+  :class:`~service.clock.LiveClock` — the same loop as replay.
+- Releases are applied between samples in data order (stamped with their data time).
+- Learned params + slow filter states are snapshotted *in the runner thread* (the
+  estimator is not shared) and written by the housekeeping thread atomically
+  (:mod:`service.persistence`), periodically and on shutdown; restored on start.
+- SIGTERM/SIGINT → clean shutdown. With ``NOTIFY_SOCKET`` set (systemd ``Type=notify``)
+  READY/WATCHDOG/STOPPING are sent on a plain datagram socket.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import queue
+import signal
+import socket
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+from fusion.motion_model import MotionParams
+
+from .bus import Bus, message, nonblocking_enqueue
+from .calibrator_process import CalibratorProcess, release_from_dict
+from .clock import LiveClock
+from .config import ServiceConfig, config_dict, log_effective
+from .health import Health
+from .persistence import load_state, save_state
+from .sinks import Sink
+
+log = logging.getLogger(__name__)
+
+# sensor kind → the aid source whose status says why nothing is fused when it is silent
+SENSOR_AID_SOURCE = {"rpm": "learned_velocity", "dvl": "dvl", "depth": "depth",
+                     "heading": "heading", "attitude": "attitude", "gnss": "gnss",
+                     "usbl": "usbl", "range": "range", "visual_motion": "visual_motion"}
+
+
+def sd_notify(state: str) -> bool:
+    """Send ``state`` (e.g. ``"READY=1"``) to systemd if ``NOTIFY_SOCKET`` is set."""
+    addr = os.environ.get("NOTIFY_SOCKET")
+    if not addr:
+        return False
+    if addr.startswith("@"):
+        addr = "\0" + addr[1:]  # abstract namespace socket
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+            s.connect(addr)
+            s.sendall(state.encode())
+        return True
+    except OSError as e:
+        log.debug("sd_notify(%s) failed: %s", state, e)
+        return False
+
+
+class QueueSource:
+    """Iterable over the input queue until ``stop`` is set (``qsize`` for health)."""
+
+    def __init__(self, q: "queue.Queue[Any]", stop: threading.Event) -> None:
+        self.q = q
+        self.stop = stop
+
+    def qsize(self) -> int:
+        return self.q.qsize()
+
+    def __iter__(self):
+        while not self.stop.is_set():
+            try:
+                yield self.q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+
+
+class BusSink(Sink):
+    """Runner sink of the daemon: publishes nav states, keeps the latest of everything.
+
+    Runs in the runner thread: only quick work (JSON + ``put``) happens here.
+    """
+
+    def __init__(self, daemon: "Daemon") -> None:
+        self.d = daemon
+        self.latest_state: dict | None = None
+        self.latest_aid: dict[str, Any] = {}
+        self.nav_count = 0
+
+    def on_nav(self, state: Any) -> None:
+        doc = state.to_dict()
+        self.latest_state = doc
+        self.nav_count += 1
+        self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)
+        bridge = self.d.bridge
+        if bridge is not None:
+            bridge.send_nav(state)
+        if self.d._snapshot_due.is_set():
+            self.d._take_snapshot(state.t_s)
+
+    def on_aid(self, statuses: list) -> None:
+        for s in statuses:
+            self.latest_aid[s.source] = s
+
+    def on_release(self, release: Any) -> None:
+        if release.accepted and release.params is not None:
+            self.d.params = release.params
+            self.d._snapshot_due.set()  # persist what was learned soon
+        if self.d.cfg.calibrator.location == "process":  # remote: the node publishes
+            from .calibrator_process import release_to_dict
+
+            self.d.bus.put(self.d.bus.keys.params, json.dumps(release_to_dict(release)).encode())
+
+
+class Daemon:
+    """The live service. ``start()``, then ``stop()`` (or :func:`serve` for the CLI).
+
+    Parameters
+    ----------
+    cfg : ServiceConfig
+    """
+
+    def __init__(self, cfg: ServiceConfig) -> None:
+        self.cfg = cfg
+        self.stop_event = threading.Event()
+        self._snapshot_due = threading.Event()
+        self._snapshot: tuple[float, MotionParams, dict] | None = None
+        self.queue: queue.Queue = queue.Queue(maxsize=cfg.health.queue_size)
+        self.overflow: Counter[str] = Counter()
+        self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
+        self.clock = LiveClock()
+        self.params: MotionParams = cfg.motion.params0
+        self.restored = False
+        self.bridge: Any = None
+        self.calibrator: CalibratorProcess | None = None
+        self.bus: Bus | None = None  # type: ignore[assignment]
+        self.sink = BusSink(self)
+        self.summary: Any = None
+        self.latest_health: dict = {}
+        self._threads: list[threading.Thread] = []
+        self._malformed_reported: Counter[str] = Counter()
+        self._overflow_reported: Counter[str] = Counter()
+
+    # -- construction ---------------------------------------------------------------------
+    def _make_estimator(self) -> Any:
+        from fusion.eskf import Estimator
+
+        restored = load_state(self.cfg.state_dir)
+        if restored is not None and restored.params is not None:
+            self.params = restored.params
+        est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
+        if restored is not None:
+            try:
+                if restored.slow_states:
+                    est.restore_slow_states(restored.slow_states)
+                self.restored = True
+                log.info("restored learned state from %s (data time %.1f s)", self.cfg.state_dir, restored.t_s)
+            except (KeyError, TypeError, ValueError) as e:
+                log.warning("persisted slow states not usable (%s); starting from defaults", e)
+                self.restored = restored.params is not None
+        return est
+
+    def enqueue(self, item: Any) -> None:
+        """Non-blocking put into the runner's input queue (overflow counted)."""
+        try:
+            self.queue.put_nowait(item)
+        except queue.Full:
+            self.overflow["queue_overflow"] += 1
+
+    def _on_remote_release(self, key: str, payload: bytes) -> None:
+        try:
+            self.enqueue(release_from_dict(json.loads(payload)))
+        except ValueError as e:  # includes JSONDecodeError
+            self.bus.malformed["calibration_params"] += 1
+            log.debug("malformed release on %s: %s", key, e)
+
+    def start(self) -> None:
+        cfg = self.cfg
+        log_effective(cfg)
+        self.estimator = self._make_estimator()
+        self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
+        self.bus.subscribe_samples(nonblocking_enqueue(self.queue, self.overflow))
+        if cfg.calibrator.enabled and cfg.calibrator.location == "remote":
+            self.bus.subscribe_raw(self.bus.keys.params, self._on_remote_release)
+            self.health.calibrator_state = "remote"
+        self.bus.queryable("state", lambda: message("nav_state", self.sink.latest_state or {"valid": False}))
+        self.bus.queryable("params", lambda: message("motion_params", {
+            "params": self.params.to_dict(), "restored": self.restored}))
+        self.bus.queryable("config", lambda: message("service_config", config_dict(cfg)))
+        self.bus.queryable("health", lambda: message("health", self.latest_health or self._health_report()))
+        if cfg.calibrator.enabled and cfg.calibrator.location == "process":
+            self.calibrator = CalibratorProcess(cfg, self.params, self.enqueue)
+            self.calibrator.start()
+        if cfg.mavlink.enabled:
+            self._start_bridge()
+        runner = threading.Thread(target=self._run, name="adaptnav-runner", daemon=True)
+        house = threading.Thread(target=self._housekeeping, name="adaptnav-housekeeping", daemon=True)
+        self._threads = [runner, house]
+        for t in self._threads:
+            t.start()
+        sd_notify("READY=1\nSTATUS=navigating")
+        log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
+
+    def _start_bridge(self) -> None:
+        from .mavlink_bridge import MavlinkBridge
+
+        self.bridge = MavlinkBridge.from_config(self.cfg, on_sample=self.enqueue)
+        self.bridge.start()
+
+    def _run(self) -> None:
+        from .runner import run
+
+        self.summary = run(QueueSource(self.queue, self.stop_event), self.estimator, [self.sink],
+                           self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
+                           stop=self.stop_event, health=self.health, close_sinks=False)
+
+    # -- housekeeping ---------------------------------------------------------------------
+    def _take_snapshot(self, t_s: float) -> None:
+        """In the runner thread: copy what persistence needs."""
+        self._snapshot_due.clear()
+        try:
+            self._snapshot = (t_s, self.params, self.estimator.slow_states())
+        except Exception:
+            log.exception("slow_states() failed; persisting params only")
+            self._snapshot = (t_s, self.params, {})
+
+    def _persist(self) -> None:
+        snap = self._snapshot
+        if snap is None:
+            return
+        self._snapshot = None
+        try:
+            save_state(self.cfg.state_dir, snap[0], snap[1], snap[2], self.cfg.vehicle.name)
+        except OSError as e:
+            log.error("could not persist learned state to %s: %s", self.cfg.state_dir, e)
+
+    def _health_report(self) -> dict:
+        # merge counters kept outside the runner thread (bus callbacks, queue overflow)
+        for source, reported in ((self.bus.malformed, self._malformed_reported),
+                                 (self.overflow, self._overflow_reported)):
+            for key, n in list(source.items()):
+                delta = n - reported[key]
+                if delta:
+                    name = key if source is self.overflow else f"malformed:{key}"
+                    self.health.on_rejected(name, delta)
+                    reported[key] = n
+        for _ in range(3):  # the runner may add a sensor while we iterate
+            try:
+                rep = self.health.report(self.clock.now_data_s())
+                break
+            except RuntimeError:
+                continue
+        else:
+            return self.latest_health
+        rep["queue_depth"] = self.queue.qsize()
+        rep["nav_states"] = self.sink.nav_count
+        rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
+        cal = self.calibrator
+        if cal is not None:
+            rep["calibrator"].update(state=cal.state, pid=cal.pid(), restarts=cal.restarts,
+                                     dropped_samples=cal.dropped)
+        rep["params"] = self.params.to_dict()
+        rep["type"] = "health"
+        return rep
+
+    def _aid_statuses(self, report: dict) -> dict[str, dict]:
+        """Latest status per aid source; a silent sensor's source says ``stale`` and why."""
+        from fusion.status import AidStatus
+
+        out = {src: s.to_dict() for src, s in list(self.sink.latest_aid.items())}
+        now = report.get("t_s")
+        for kind in report.get("silent", []):
+            src = SENSOR_AID_SOURCE.get(kind)
+            if src is None:
+                continue
+            age = report["sensors"][kind]["age_s"]
+            status = AidStatus(float(now) if now is not None else math.nan, src, (), (), (), math.nan,
+                               False, "stale").to_dict()
+            status["detail"] = f"no {kind} sample for {age:.1f} s (limit {self.cfg.health.sensor_timeout_s} s)"
+            out[src] = status
+        return out
+
+    def _housekeeping(self) -> None:
+        cfg = self.cfg
+        period_s = 1.0 / cfg.outputs.health_rate_hz
+        aid_period_s = 1.0 / cfg.outputs.aid_rate_hz
+        watchdog_s = int(os.environ.get("WATCHDOG_USEC", "0")) / 2e6
+        next_persist = time.monotonic() + cfg.persistence.period_s
+        next_aid = time.monotonic()
+        tick = min(period_s, aid_period_s, watchdog_s or period_s, 0.25)
+        next_health = time.monotonic()
+        while not self.stop_event.wait(tick):
+            now = time.monotonic()
+            if self.calibrator is not None:
+                self.calibrator.supervise()
+            if now >= next_health:
+                next_health = now + period_s
+                self.latest_health = rep = self._health_report()
+                self.bus.publish(self.bus.keys.health, "health", rep)
+                if now >= next_aid:
+                    next_aid = now + aid_period_s
+                    for src, doc in self._aid_statuses(rep).items():
+                        self.bus.put(self.bus.keys.aid(src), json.dumps(doc).encode())
+            if now >= next_persist:
+                next_persist = now + cfg.persistence.period_s
+                self._snapshot_due.set()  # the runner snapshots at its next nav output
+            self._persist()
+            if watchdog_s and self._threads[0].is_alive():
+                sd_notify("WATCHDOG=1")  # only while the runner lives: systemd restarts a hang
+
+    # -- shutdown -------------------------------------------------------------------------
+    def stop(self, timeout_s: float = 5.0) -> None:
+        if self.stop_event.is_set() and not self._threads:
+            return
+        sd_notify("STOPPING=1")
+        self.stop_event.set()
+        for t in self._threads:
+            t.join(timeout_s)
+        if self.bridge is not None:
+            self.bridge.stop()
+        if self.calibrator is not None:
+            self.calibrator.stop()
+        # the runner has ended: the estimator is ours to read
+        try:
+            t_s = self.estimator.nav_state().t_s if self.estimator.initialized else math.nan
+            self._snapshot = (t_s if math.isfinite(t_s) else 0.0, self.params, self.estimator.slow_states())
+        except Exception:
+            log.exception("final snapshot failed")
+            self._snapshot = (0.0, self.params, {})
+        self._persist()
+        if self.bus is not None:
+            self.bus.close()
+        self._threads = []
+        log.info("adaptnav daemon stopped")
+
+
+def serve(cfg: ServiceConfig) -> int:
+    """Run the daemon until SIGTERM/SIGINT."""
+    daemon = Daemon(cfg)
+    stop = threading.Event()
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        log.info("signal %s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    daemon.start()
+    try:
+        while not stop.wait(0.5):
+            if not daemon._threads[0].is_alive():
+                log.error("runner thread ended unexpectedly")
+                daemon.stop()
+                return 1
+    finally:
+        daemon.stop()
+    return 0
+
+
+def serve_calibrator(cfg: ServiceConfig) -> int:
+    """``--calibrator-only``: the calibrator as its own bus node until SIGTERM/SIGINT."""
+    from .calibrator_process import run_node
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    sd_notify("READY=1\nSTATUS=calibrating")
+    return run_node(cfg, stop)
