@@ -1,0 +1,167 @@
+r"""Navigation metrics against ground truth (replay of simulated missions).
+
+Given the estimated track (nav states at the output rate) and the simulator's truth,
+interpolated linearly onto the estimate's times (only inside the truth's time span):
+
+- horizontal error ``e_k = ‖p̂_k[N,E] − p_k[N,E]‖`` (m); ``final_horizontal_error_m = e_K``,
+  ``rms_horizontal_error_m = sqrt(mean e_k²)``;
+- ``distance_travelled_m``: horizontal path length of the truth, ``Σ ‖p_{j+1} − p_j‖``;
+- ``drift_percent_since_fix = 100 · e_K / D_fix`` where ``D_fix`` is the truth's
+  horizontal path length since the last *fused* absolute position fix (USBL/GNSS);
+  without any fix, since the start (the initial position is the fix);
+- ``current_error_m_s``: ``‖ĉ[N,E] − c[N,E]‖`` at the end (and at the last fix);
+- NEES ``ε_k = δx_kᵀ P_k⁻¹ δx_k`` over the navigation states position, velocity and
+  attitude (d = 9): ``δp = p̂ − p``, ``δv = v̂ − v`` and the attitude error in the
+  navigation frame ``δθ = Log(q ⊗ q̂⁻¹)`` (the estimator's left perturbation,
+  ``q_true = q(δθ) ⊗ q̂``, fusion/state.py), the truth attitude slerped to the epoch.
+  ``nees_mean`` and ``nees_fraction_in_95``: the fraction of epochs inside the two-sided
+  95 % band of χ²(d), ``[χ²_{0.025}(d), χ²_{0.975}(d)]`` (Bar-Shalom, Li & Kirubarajan,
+  *Estimation with Applications to Tracking and Navigation*, 2001, §5.4).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+
+@dataclass(frozen=True)
+class TrackArrays:
+    """Estimated track. ``t_s`` (N,), ``pos_n_m`` (N,3), ``vel_n_m_s`` (N,3),
+    ``q_nb`` (N,4) w,x,y,z, ``cov_pva`` (N,9,9) covariance of (pos, vel, att) errors
+    in m, m/s, rad, ``current_n_m_s`` (N,2) horizontal current estimate."""
+
+    t_s: np.ndarray
+    pos_n_m: np.ndarray
+    vel_n_m_s: np.ndarray
+    q_nb: np.ndarray
+    cov_pva: np.ndarray
+    current_n_m_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class TruthArrays:
+    """Ground truth. ``t_s`` (M,) increasing, ``pos_n_m`` (M,3), ``vel_n_m_s`` (M,3),
+    ``q_nb`` (M,4) w,x,y,z, ``current_n_m_s`` (M,2)."""
+
+    t_s: np.ndarray
+    pos_n_m: np.ndarray
+    vel_n_m_s: np.ndarray
+    q_nb: np.ndarray
+    current_n_m_s: np.ndarray
+
+
+def interp_rows(t_query_s: np.ndarray, t_s: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Linear interpolation of each column of ``values`` (M, k) at ``t_query_s`` (N,)."""
+    values = np.asarray(values, dtype=float)
+    return np.stack([np.interp(t_query_s, t_s, values[:, j]) for j in range(values.shape[1])], axis=1)
+
+
+def horizontal_path_length_m(pos_n_m: np.ndarray) -> np.ndarray:
+    """Cumulative horizontal path length (N,) of positions (N,3), starting at 0."""
+    pos = np.asarray(pos_n_m, dtype=float)
+    if len(pos) == 0:
+        return np.zeros(0)
+    steps = np.hypot(np.diff(pos[:, 0]), np.diff(pos[:, 1]))
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """NEES ``δxᵀ P⁻¹ δx`` per row; ``err`` (N,d), ``cov`` (N,d,d). NaN where P is singular."""
+    err = np.asarray(err, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    out = np.full(len(err), np.nan)
+    if len(err) == 0:
+        return out
+    ok = np.all(np.isfinite(cov.reshape(len(cov), -1)), axis=1) & np.all(np.isfinite(err), axis=1)
+    if not np.any(ok):
+        return out
+    try:
+        chol = np.linalg.cholesky(cov[ok])
+    except np.linalg.LinAlgError:
+        # some covariance is not positive definite: evaluate row by row, skip those
+        for i in np.flatnonzero(ok):
+            try:
+                L = np.linalg.cholesky(cov[i])
+            except np.linalg.LinAlgError:
+                continue
+            y = np.linalg.solve(L, err[i])
+            out[i] = float(y @ y)
+        return out
+    y = np.linalg.solve(chol, err[ok][..., None])[..., 0]
+    out[ok] = np.einsum("ij,ij->i", y, y)
+    return out
+
+
+def attitude_error_n_rad(t_s: np.ndarray, q_est: np.ndarray, truth: TruthArrays) -> np.ndarray:
+    """``Log(q_true ⊗ q̂⁻¹)`` (N,3) rad, the truth attitude slerped to ``t_s``."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    # our quaternions are (w, x, y, z); scipy stores (x, y, z, w)
+    q_true = Rotation.from_quat(np.asarray(truth.q_nb, dtype=float)[:, [1, 2, 3, 0]])
+    r_true = Slerp(truth.t_s, q_true)(np.clip(t_s, truth.t_s[0], truth.t_s[-1]))
+    r_est = Rotation.from_quat(np.asarray(q_est, dtype=float)[:, [1, 2, 3, 0]])
+    return (r_true * r_est.inv()).as_rotvec()
+
+
+def chi2_band_95(dim: int) -> tuple[float, float]:
+    """Two-sided 95 % band ``[χ²_{0.025}(dim), χ²_{0.975}(dim)]`` of one NEES value."""
+    return float(chi2.ppf(0.025, dim)), float(chi2.ppf(0.975, dim))
+
+
+def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float | None) -> dict:
+    """Metrics of the module docstring; empty dict when track and truth do not overlap."""
+    if len(track.t_s) == 0 or len(truth.t_s) < 2:
+        return {}
+    inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
+    if not np.any(inside):
+        return {}
+    t = track.t_s[inside]
+    pos_true = interp_rows(t, truth.t_s, truth.pos_n_m)
+    vel_true = interp_rows(t, truth.t_s, truth.vel_n_m_s)
+    cur_true = interp_rows(t, truth.t_s, truth.current_n_m_s[:, :2])
+    pos_est = track.pos_n_m[inside]
+    err_h = np.hypot(pos_est[:, 0] - pos_true[:, 0], pos_est[:, 1] - pos_true[:, 1])
+
+    # truth path: truth samples inside [t0, tK] plus the interpolated end points
+    t0, tK = float(t[0]), float(t[-1])
+    mid = (truth.t_s > t0) & (truth.t_s < tK)
+    path_t = np.concatenate([[t0], truth.t_s[mid], [tK]])
+    path_pos = np.concatenate([pos_true[:1], truth.pos_n_m[mid], pos_true[-1:]])
+    path_len = horizontal_path_length_m(path_pos)
+    distance = float(path_len[-1])
+    fix_t = t0 if last_fix_t_s is None or not math.isfinite(last_fix_t_s) else min(max(last_fix_t_s, t0), tK)
+    distance_since_fix = distance - float(np.interp(fix_t, path_t, path_len))
+
+    cur_err = np.linalg.norm(track.current_n_m_s[inside][:, :2] - cur_true, axis=1)
+    i_fix = int(np.searchsorted(t, fix_t, side="right")) - 1
+
+    att_err = attitude_error_n_rad(t, track.q_nb[inside], truth)
+    err_pva = np.concatenate([pos_est - pos_true, track.vel_n_m_s[inside] - vel_true, att_err], axis=1)
+    eps = nees(err_pva, track.cov_pva[inside])
+    eps_ok = eps[np.isfinite(eps)]
+    lo, hi = chi2_band_95(9)
+
+    final_err = float(err_h[-1])
+    return {
+        "final_horizontal_error_m": final_err,
+        "rms_horizontal_error_m": float(np.sqrt(np.mean(err_h**2))),
+        "max_horizontal_error_m": float(np.max(err_h)),
+        "distance_travelled_m": distance,
+        "last_fix_t_s": None if last_fix_t_s is None else float(last_fix_t_s),
+        "distance_since_fix_m": distance_since_fix,
+        "drift_percent_since_fix": (100.0 * final_err / distance_since_fix
+                                    if distance_since_fix > 0 else None),
+        "percent_distance_travelled": 100.0 * final_err / distance if distance > 0 else None,
+        "current_error_m_s": float(cur_err[-1]),
+        "current_error_at_last_fix_m_s": float(cur_err[max(i_fix, 0)]),
+        "nees_dim": 9,
+        "nees_states": "pos,vel,att",
+        "nees_mean": float(np.mean(eps_ok)) if len(eps_ok) else None,
+        "nees_band_95": [lo, hi],
+        "nees_fraction_in_95": float(np.mean((eps_ok >= lo) & (eps_ok <= hi))) if len(eps_ok) else None,
+        "epochs": int(len(t)),
+        "duration_s": tK - t0,
+    }

@@ -1,0 +1,149 @@
+"""Replay plots (matplotlib, Agg backend — no display needed).
+
+- ``track.png``: estimated vs true track (north/east), and horizontal error vs time with
+  the filter's ±3σ horizontal bound ``3·sqrt(P_NN + P_EE)`` and fused fixes marked;
+- ``params.png``: motion parameters over time (k_V, then σ of each variance term),
+  with the filter's ``k_speed`` state and the truth ``k_v`` when present;
+- ``innovations.png``: normalised innovations ``ν/√S`` per aiding source over time,
+  fused and rejected apart, with ±3.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_track(rec: Any, path: Path, title: str = "") -> bool:
+    track = rec.track()
+    if len(track.t_s) == 0:
+        return False
+    plt = _pyplot()
+    truth = rec.truth()
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5.5))
+    ax0.plot(track.pos_n_m[:, 1], track.pos_n_m[:, 0], lw=1.0, label="estimate")
+    if truth is not None:
+        ax0.plot(truth.pos_n_m[:, 1], truth.pos_n_m[:, 0], lw=1.0, ls="--", label="truth")
+    ax0.set_xlabel("east (m)")
+    ax0.set_ylabel("north (m)")
+    ax0.set_aspect("equal", adjustable="datalim")
+    ax0.legend(loc="best")
+    ax0.set_title("track")
+    sigma_h = np.sqrt(np.clip(track.cov_pva[:, 0, 0] + track.cov_pva[:, 1, 1], 0.0, None))
+    t_min = (track.t_s - track.t_s[0]) / 60.0
+    if truth is not None:
+        inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
+        n = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 0])
+        e = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 1])
+        err = np.where(inside, np.hypot(track.pos_n_m[:, 0] - n, track.pos_n_m[:, 1] - e), np.nan)
+        ax1.plot(t_min, err, lw=1.0, label="horizontal error")
+    ax1.fill_between(t_min, 0.0, 3.0 * sigma_h, alpha=0.25, color="tab:orange", label="3σ (horizontal)")
+    fixes = [r[0] for r in rec.aid_rows if r[2] and r[1] in rec.FIX_SOURCES]
+    if fixes:
+        ax1.plot((np.asarray(fixes) - track.t_s[0]) / 60.0, np.zeros(len(fixes)), "k|", ms=10,
+                 label="fused position fixes")
+    ax1.set_xlabel("time (min)")
+    ax1.set_ylabel("m")
+    ax1.set_title("horizontal error and ±3σ")
+    ax1.legend(loc="upper left")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def plot_params(rec: Any, path: Path, title: str = "") -> bool:
+    plt = _pyplot()
+    from fusion.motion_model import MotionParams
+
+    rows = []
+    if rec.initial_params is not None and rec.nav_t:
+        rows.append((rec.nav_t[0], rec.initial_params, True))
+    rows += [(r.t_s, r.params, bool(r.accepted)) for r in rec.releases if r.params is not None]
+    if not rows and not rec.nav_t:
+        return False
+    names = MotionParams.VARIANCE_NAMES
+    fig, axes = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
+    t0 = rec.nav_t[0] if rec.nav_t else rows[0][0]
+    if rec.nav_t:
+        axes[0].plot((np.asarray(rec.nav_t) - t0) / 60.0, rec.nav_k_speed, lw=1.0, label="filter k_speed")
+    if rec.truth_rows:
+        t_truth, k_true = rec.truth_k_v()
+        axes[0].plot((t_truth - t0) / 60.0, k_true, "k--", lw=1.0, label="truth k_V")
+    if rows:
+        t = (np.asarray([r[0] for r in rows]) - t0) / 60.0
+        acc = np.asarray([r[2] for r in rows])
+        k_v = np.asarray([r[1].k_v for r in rows])
+        axes[0].step(t[acc], k_v[acc], where="post", label="model k_V (accepted)")
+        if np.any(~acc):
+            axes[0].plot(t[~acc], k_v[~acc], "rx", label="rejected release")
+        for name in names:
+            sig = np.sqrt([getattr(r[1], name) for r in rows])
+            axes[1].step(t[acc], sig[acc], where="post", label=f"σ of {name[4:]}")
+        axes[1].set_yscale("log")
+        axes[1].legend(loc="best", fontsize=8, ncol=2)
+    axes[0].set_ylabel("speed scale")
+    axes[0].legend(loc="best")
+    axes[1].set_ylabel("σ (model units)")
+    axes[1].set_xlabel("time (min)")
+    fig.suptitle(title or "motion parameters")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
+    if not rec.aid_rows:
+        return False
+    plt = _pyplot()
+    sources = sorted({r[1] for r in rec.aid_rows})
+    fig, axes = plt.subplots(len(sources), 1, figsize=(10, 1.9 * len(sources) + 1), sharex=True, squeeze=False)
+    t0 = rec.nav_t[0] if rec.nav_t else rec.aid_rows[0][0]
+    for ax, src in zip(axes[:, 0], sources):
+        rows = [r for r in rec.aid_rows if r[1] == src]
+        width = max(len(r[4]) for r in rows)
+        t = (np.asarray([r[0] for r in rows]) - t0) / 60.0
+        fused = np.asarray([r[2] for r in rows])
+        nu = np.full((len(rows), width), np.nan)
+        for i, r in enumerate(rows):
+            nu[i, :len(r[4])] = r[4]
+        # decimate dense sources: a plot needs no more than ~20k points per panel
+        step = max(1, len(rows) // 20000)
+        for j in range(width):
+            ax.plot(t[fused][::step], nu[fused, j][::step], ".", ms=1.5, label=f"[{j}] fused" if width > 1 else "fused")
+        if np.any(~fused):
+            ax.plot(t[~fused], np.nanmax(np.abs(nu[~fused]), axis=1, initial=0.0), "rx", ms=3, label="rejected")
+        ax.axhline(3.0, color="k", lw=0.5, ls=":")
+        ax.axhline(-3.0, color="k", lw=0.5, ls=":")
+        ax.set_ylabel(f"{src}\nν/√S")
+        ax.legend(loc="upper right", fontsize=7, ncol=4)
+    axes[-1, 0].set_xlabel("time (min)")
+    fig.suptitle(title or "normalised innovations")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def write_all(rec: Any, out_dir: Path, title: str = "") -> list[Path]:
+    """Write the three plots that have data; return the paths written."""
+    out_dir = Path(out_dir)
+    written = []
+    for name, fn in (("track.png", plot_track), ("params.png", plot_params),
+                     ("innovations.png", plot_innovations)):
+        if fn(rec, out_dir / name, title):
+            written.append(out_dir / name)
+    return written

@@ -1,0 +1,290 @@
+"""The one runner loop of adaptnav, shared by the live daemon and replay (DESIGN.md
+"Service": ``run(source, estimator, calibrator, sinks, clock)``).
+
+Live: a Zenoh/MAVLink queue source, :class:`~service.clock.LiveClock`, Zenoh and MAVLink
+sinks, and releases arriving from the calibrator process through the queue. Replay: a
+log or simulator source, :class:`~service.clock.LogClock` (or
+:class:`~service.clock.RealtimeClock`), file sinks, and the calibrator in-process at the
+same data times. Nothing else differs.
+
+Per item, in the source's deterministic order (``fusion.samples.replay_order_key``):
+
+1. output epochs ``t_k = k / output_rate_hz`` that the item's time passes are emitted
+   first: the nav state after all data with ``t ≤ t_k`` goes to every sink's ``on_nav``
+   (an :class:`~fusion.samples.ImuBatch` is split at the epochs, so the rate is exact;
+   a state is not re-emitted while it has not advanced, e.g. in a data gap);
+2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
+   and goes to every sink either way;
+3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
+   ``on_aid``, then, with an in-process calibrator, ``calibrator.observe(sample)`` and
+   ``calibrator.poll()`` whose releases are handled as in 2.
+
+A bad sample never stops the loop: the estimator rejects and counts it; an exception
+raised while handling one item is logged, counted in health (``error:<kind>``) and the
+loop goes on.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from fusion.samples import ImuBatch
+
+from .health import Health
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunSummary:
+    """What one run did (counts of items, not of messages in a file)."""
+
+    items: int = 0
+    samples_used: int = 0           # samples handed to the estimator (IMU counted one by one)
+    imu_samples: int = 0
+    nav_states: int = 0
+    releases: int = 0
+    releases_accepted: int = 0
+    errors: Counter = field(default_factory=Counter)   # exceptions by item kind
+    first_t_s: float = math.nan
+    last_t_s: float = math.nan
+    wall_s: float = 0.0
+    stopped: bool = False
+
+    @property
+    def duration_s(self) -> float:
+        return 0.0 if math.isnan(self.first_t_s) else self.last_t_s - self.first_t_s
+
+    def to_dict(self) -> dict:
+        return {
+            "items": self.items, "samples_used": self.samples_used, "imu_samples": self.imu_samples,
+            "nav_states": self.nav_states, "releases": self.releases,
+            "releases_accepted": self.releases_accepted,
+            "errors": dict(sorted(self.errors.items())),
+            "first_t_s": None if math.isnan(self.first_t_s) else self.first_t_s,
+            "last_t_s": None if math.isnan(self.last_t_s) else self.last_t_s,
+            "duration_s": self.duration_s, "wall_s": self.wall_s, "stopped": self.stopped,
+        }
+
+
+def _is_release(item: Any) -> bool:
+    # a Release has params + accepted and no KIND (samples all have KIND)
+    return not hasattr(item, "KIND") and hasattr(item, "params") and hasattr(item, "accepted")
+
+
+def _stop_requested(stop: Any) -> bool:
+    if stop is None:
+        return False
+    is_set = getattr(stop, "is_set", None)
+    return bool(is_set() if callable(is_set) else stop())
+
+
+class _Loop:
+    """State of one :func:`run` call (kept out of the function for readability)."""
+
+    def __init__(self, estimator, sinks, clock, calibrator, output_rate_hz, health, progress):
+        self.estimator = estimator
+        self.sinks = list(sinks)
+        self.clock = clock
+        self.calibrator = calibrator
+        self.rate = float(output_rate_hz)
+        self.health = health
+        self.progress = progress
+        self.summary = RunSummary()
+        self.next_k: int | None = None     # index of the next output epoch k / rate
+        self.last_emitted_t = -math.inf
+        self._on_nav = [s.on_nav for s in self.sinks]
+        self._on_aid = [s.on_aid for s in self.sinks]
+        self._on_release = [s.on_release for s in self.sinks]
+        self._on_sample = [s.on_sample for s in self.sinks]
+
+    # -- output epochs -------------------------------------------------------------------
+    def epoch(self, k: int) -> float:
+        return k / self.rate
+
+    def emit(self) -> None:
+        est = self.estimator
+        if not est.initialized:
+            return
+        state = est.nav_state()
+        if not state.t_s > self.last_emitted_t:
+            return
+        self.last_emitted_t = state.t_s
+        self.summary.nav_states += 1
+        for f in self._on_nav:
+            f(state)
+
+    def flush_epochs_before(self, t_s: float) -> None:
+        """Emit every epoch ``t_k < t_s`` not yet emitted (the state is the same for all)."""
+        if self.next_k is None:
+            self.next_k = math.ceil(t_s * self.rate - 1e-9)
+        if self.epoch(self.next_k) < t_s:
+            self.emit()
+            # skip the epochs of a gap in one step: the state did not change in between
+            self.next_k = max(self.next_k + 1, math.ceil(t_s * self.rate - 1e-9))
+            while self.epoch(self.next_k) < t_s:
+                self.next_k += 1
+
+    # -- items ------------------------------------------------------------------------------
+    def aid(self, statuses) -> None:
+        if statuses:
+            for f in self._on_aid:
+                f(statuses)
+
+    def release(self, rel: Any) -> None:
+        self.summary.releases += 1
+        if rel.accepted and rel.params is not None:
+            self.estimator.set_motion_params(rel.params)
+            self.summary.releases_accepted += 1
+        if self.health is not None:
+            self.health.on_release(rel)
+        for f in self._on_release:
+            f(rel)
+
+    def imu_batch(self, batch: ImuBatch) -> None:
+        t = np.asarray(batch.t_s, dtype=float)
+        n = len(t)
+        start = 0
+        while start < n:
+            if self.next_k is None:
+                self.next_k = math.ceil(t[start] * self.rate - 1e-9)
+            # emit epochs the first remaining sample is past
+            self.flush_epochs_before(float(t[start]))
+            # samples with t <= next epoch go in this piece
+            stop = int(np.searchsorted(t, self.epoch(self.next_k), side="right"))
+            stop = max(stop, start + 1)
+            piece = batch if (start == 0 and stop >= n) else ImuBatch(
+                t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop])
+            self.aid(self.estimator.process(piece))
+            self.summary.imu_samples += stop - start
+            self.summary.samples_used += stop - start
+            start = stop
+        if self.health is not None and n:
+            self.health.on_sample("imu", float(t[-1]), n)
+
+    def sample(self, sample: Any) -> None:
+        self.flush_epochs_before(sample.t_s)
+        if self.health is not None:
+            self.health.on_sample(sample.KIND, sample.t_s)
+        if sample.KIND != "truth":
+            self.aid(self.estimator.process(sample))
+            self.summary.samples_used += 1
+            if sample.KIND == "imu":
+                self.summary.imu_samples += 1
+        for f in self._on_sample:
+            f(sample)
+        cal = self.calibrator
+        if cal is not None and sample.KIND != "truth":
+            cal.observe(sample)
+            for rel in cal.poll():
+                self.release(rel)
+
+    def item(self, item: Any) -> None:
+        if _is_release(item):
+            self.release(item)
+            return
+        t_s = float(item.t_s[0]) if isinstance(item, ImuBatch) else float(item.t_s)
+        if math.isfinite(t_s):
+            self.clock.wait_until(t_s)
+        if isinstance(item, ImuBatch):
+            if len(item) == 0:
+                return
+            self.imu_batch(item)
+            cal = self.calibrator
+            if cal is not None:
+                cal.observe(item)
+                for rel in cal.poll():
+                    self.release(rel)
+            t_last = float(item.t_s[-1])
+        else:
+            self.sample(item)
+            t_last = t_s
+        s = self.summary
+        if math.isfinite(t_last):
+            if not (s.first_t_s <= t_s):
+                s.first_t_s = t_s if math.isfinite(t_s) else t_last
+            if not (s.last_t_s >= t_last):
+                s.last_t_s = t_last
+        if self.progress is not None and math.isfinite(t_last):
+            self.progress(t_last)
+
+
+def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
+        calibrator: Any = None, *, output_rate_hz: float = 10.0, stop: Any = None,
+        health: Health | None = None, progress: Any = None, close_sinks: bool = True) -> RunSummary:
+    """Run ``source`` through ``estimator`` into ``sinks`` (see the module docstring).
+
+    Parameters
+    ----------
+    source : iterable
+        Samples (``fusion.samples``), :class:`~fusion.samples.ImuBatch` runs and
+        calibrator releases, in replay order. Optional ``qsize()`` gives the queue depth.
+    estimator : fusion.eskf.Estimator
+        ``process(sample) -> list[AidStatus]``, ``set_motion_params``, ``nav_state()``,
+        ``initialized``, ``rejected`` (Counter by reason).
+    sinks : sequence of :class:`service.sinks.Sink`
+    clock : :class:`service.clock.Clock`
+    calibrator : calibration.online.OnlineCalibrator, optional
+        In-process calibrator (replay): ``observe(sample)`` then ``poll() -> [Release]``.
+    output_rate_hz : float
+        Nav-state output rate in data time (Hz).
+    stop : threading.Event or callable, optional
+        Checked between items; when set the loop ends (sinks are still closed).
+    health : Health, optional
+        Accumulates counters; gets a live view of ``estimator.rejected``.
+    progress : callable, optional
+        Called with the data time reached after each item (progress bars).
+    close_sinks : bool
+        Call every sink's ``close()`` at the end.
+
+    Returns
+    -------
+    RunSummary
+    """
+    if not (output_rate_hz > 0 and math.isfinite(output_rate_hz)):
+        raise ValueError(f"output_rate_hz must be a positive number, got {output_rate_hz}")
+    if health is not None:
+        health.estimator_rejected = getattr(estimator, "rejected", None)
+        if calibrator is not None and health.calibrator_state == "off":
+            health.calibrator_state = "in-process"
+    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress)
+    qsize = getattr(source, "qsize", None)
+    wall0 = time.monotonic()
+    try:
+        for item in source:
+            if _stop_requested(stop):
+                loop.summary.stopped = True
+                break
+            loop.summary.items += 1
+            try:
+                loop.item(item)
+            except Exception as exc:  # one bad item must not stop navigation
+                kind = getattr(item, "KIND", type(item).__name__)
+                loop.summary.errors[kind] += 1
+                if health is not None:
+                    health.on_rejected(f"error:{kind}")
+                if loop.summary.errors[kind] <= 10:
+                    log.exception("runner: error handling %s item at t=%s: %s", kind,
+                                  getattr(item, "t_s", "?"), exc)
+            if health is not None and qsize is not None:
+                health.queue_depth = int(qsize())
+        else:
+            # the last epochs up to the end of the data, then the final state itself
+            if loop.next_k is not None and math.isfinite(loop.summary.last_t_s):
+                loop.flush_epochs_before(loop.summary.last_t_s + 1e-9)
+                loop.emit()
+    finally:
+        loop.summary.wall_s = time.monotonic() - wall0
+        if close_sinks:
+            for s in loop.sinks:
+                try:
+                    s.close()
+                except Exception:
+                    log.exception("runner: closing sink %r failed", s)
+    return loop.summary

@@ -1,0 +1,311 @@
+"""Sinks of the runner loop: where nav states, aid statuses and calibrator releases go.
+
+Live, the sinks are the Zenoh publishers and the MAVLink bridge; in replay they are the
+files written here (DESIGN.md "Service": the runner is the same, only sources, clock and
+sinks change). A sink implements any of
+
+- ``on_nav(state)`` — a :class:`fusion.state.NavState` at the output rate,
+- ``on_aid(statuses)`` — the :class:`fusion.status.AidStatus` records of one sample,
+- ``on_release(release)`` — a :class:`calibration.online.Release` (accepted or not),
+- ``on_sample(sample)`` — every non-IMU input sample (truth included, for metrics),
+- ``close()`` — flush and write what is written at the end;
+
+:class:`Sink` gives no-op defaults. Files written here (all deterministic: same input,
+same bytes):
+
+- ``trajectory.csv`` (:class:`TrajectoryCsvSink`), ``aid_status.csv``
+  (:class:`AidStatusCsvSink`), ``params.csv`` (:class:`ParamsCsvSink`);
+- ``metrics.json`` (:class:`MetricsSink`, only when truth is present) and the plots
+  ``track.png``, ``params.png``, ``innovations.png`` (:class:`PlotSink`), both from the
+  series kept by :class:`SeriesRecorder`.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .metrics import TrackArrays, TruthArrays, compute_metrics
+
+
+def fmt(value: Any) -> str:
+    """Deterministic compact text of a number, bool, string or vector (``;``-joined)."""
+    if value is None:
+        return ""
+    if isinstance(value, (bool, np.bool_)):
+        return "1" if value else "0"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return "nan" if math.isnan(v) else format(v, ".10g")
+    if isinstance(value, str):
+        return value
+    arr = np.asarray(value, dtype=float).ravel()
+    return ";".join(format(float(v), ".10g") if math.isfinite(v) else str(float(v)) for v in arr)
+
+
+def _state_slices():
+    # imported lazily: fusion.state is the estimator's contract (DESIGN.md named slices)
+    from fusion import state as st
+    return st
+
+
+class Sink:
+    """No-op base: override what you need."""
+
+    def on_nav(self, state: Any) -> None:
+        pass
+
+    def on_aid(self, statuses: list) -> None:
+        pass
+
+    def on_release(self, release: Any) -> None:
+        pass
+
+    def on_sample(self, sample: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _current_xy(state: Any) -> tuple[float, float]:
+    c = np.asarray(state.current_n_m_s, dtype=float).ravel()
+    return float(c[0]), float(c[1])
+
+
+def _sigma(cov: np.ndarray, sl: Any) -> np.ndarray:
+    return np.sqrt(np.clip(np.diagonal(cov)[sl], 0.0, None))
+
+
+class TrajectoryCsvSink(Sink):
+    """``trajectory.csv``: one row per nav state.
+
+    Columns: ``t_s, north_m, east_m, down_m, vel_n_m_s, vel_e_m_s, vel_d_m_s, roll_rad,
+    pitch_rad, yaw_rad, sigma_north_m, sigma_east_m, sigma_down_m, current_n_m_s,
+    current_e_m_s, k_speed, valid`` and, with ``truth=True``, ``truth_north_m,
+    truth_east_m, truth_down_m, truth_current_n_m_s, truth_current_e_m_s, truth_k_v`` from
+    the latest truth sample no older than ``truth_max_age_s`` (empty otherwise).
+    """
+
+    COLUMNS = ("t_s", "north_m", "east_m", "down_m", "vel_n_m_s", "vel_e_m_s", "vel_d_m_s",
+               "roll_rad", "pitch_rad", "yaw_rad", "sigma_north_m", "sigma_east_m",
+               "sigma_down_m", "current_n_m_s", "current_e_m_s", "k_speed", "valid")
+    TRUTH_COLUMNS = ("truth_north_m", "truth_east_m", "truth_down_m", "truth_current_n_m_s",
+                     "truth_current_e_m_s", "truth_k_v")
+
+    def __init__(self, path: str | Path, truth: bool = False, truth_max_age_s: float = 0.05) -> None:
+        self.path = Path(path)
+        self.truth = truth
+        self.truth_max_age_s = truth_max_age_s
+        self._file = open(self.path, "w", newline="")
+        self._writer = csv.writer(self._file, lineterminator="\n")
+        self._writer.writerow(self.COLUMNS + (self.TRUTH_COLUMNS if truth else ()))
+        self._last_truth = None
+        self._pos = _state_slices().POS
+
+    def on_sample(self, sample: Any) -> None:
+        if sample.KIND == "truth":
+            self._last_truth = sample
+
+    def on_nav(self, state: Any) -> None:
+        p = state.pos_n_m
+        v = state.vel_n_m_s
+        roll, pitch, yaw = state.euler_rad()
+        sig = _sigma(state.cov, self._pos)
+        cn, ce = _current_xy(state)
+        row = [fmt(x) for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
+                                sig[0], sig[1], sig[2], cn, ce, state.k_speed, bool(state.valid))]
+        if self.truth:
+            tr = self._last_truth
+            if tr is not None and abs(state.t_s - tr.t_s) <= self.truth_max_age_s:
+                row += [fmt(x) for x in (*tr.pos_n_m, tr.current_n_m_s[0], tr.current_n_m_s[1], tr.k_v)]
+            else:
+                row += [""] * len(self.TRUTH_COLUMNS)
+        self._writer.writerow(row)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class AidStatusCsvSink(Sink):
+    """``aid_status.csv``: one row per :class:`AidStatus` (vectors ``;``-joined)."""
+
+    COLUMNS = ("t_s", "source", "fused", "reason", "test_ratio", "observation", "innovation",
+               "innovation_variance")
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._file = open(self.path, "w", newline="")
+        self._writer = csv.writer(self._file, lineterminator="\n")
+        self._writer.writerow(self.COLUMNS)
+
+    def on_aid(self, statuses: list) -> None:
+        for s in statuses:
+            self._writer.writerow([fmt(s.t_s), s.source, fmt(bool(s.fused)), s.reason or "",
+                                   fmt(s.test_ratio), fmt(s.observation), fmt(s.innovation),
+                                   fmt(s.innovation_variance)])
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class ParamsCsvSink(Sink):
+    """``params.csv``: motion parameters over time.
+
+    A first row ``initial`` with the parameters the filter started with, then one row per
+    release: ``t_s``, every :class:`~fusion.motion_model.MotionParams` field,
+    ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``.
+    """
+
+    def __init__(self, path: str | Path, initial_params: Any = None, t0_s: float = math.nan) -> None:
+        from fusion.motion_model import MotionParams
+
+        self.path = Path(path)
+        self.names = tuple(MotionParams().to_dict())
+        self._file = open(self.path, "w", newline="")
+        self._writer = csv.writer(self._file, lineterminator="\n")
+        self._writer.writerow(("t_s",) + self.names + ("log_likelihood", "accepted", "reason", "iterations"))
+        if initial_params is not None:
+            d = initial_params.to_dict()
+            self._writer.writerow([fmt(t0_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", ""])
+
+    def on_release(self, release: Any) -> None:
+        d = release.params.to_dict() if release.params is not None else {}
+        self._writer.writerow([fmt(release.t_s)] + [fmt(d.get(n)) for n in self.names]
+                              + [fmt(release.log_likelihood), fmt(bool(release.accepted)),
+                                 str(release.reason or ""), fmt(getattr(release, "iterations", None))])
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class SeriesRecorder(Sink):
+    """Keeps the series that metrics and plots need, as compact lists (→ arrays on demand).
+
+    Nav: t, pos, vel, q_nb, (pos, vel, att) covariance 9×9, current, k_speed. Truth: t,
+    pos, vel, current, k_v, q_nb. Aid: t, source, fused, test ratio, normalised innovation
+    ``ν/√S`` per component. Releases and the initial params. Fused absolute fixes (USBL,
+    GNSS) set ``last_fix_t_s``.
+    """
+
+    FIX_SOURCES = ("usbl", "gnss")
+
+    def __init__(self, initial_params: Any = None) -> None:
+        st = _state_slices()
+        idx = np.arange(st.N_ERR)
+        self._pva = np.r_[idx[st.POS], idx[st.VEL], idx[st.ATT]]
+        self.nav_t: list[float] = []
+        self.nav_pos: list[np.ndarray] = []
+        self.nav_vel: list[np.ndarray] = []
+        self.nav_q: list[np.ndarray] = []
+        self.nav_cov_pva: list[np.ndarray] = []
+        self.nav_current: list[tuple[float, float]] = []
+        self.nav_k_speed: list[float] = []
+        self.truth_rows: list[tuple] = []
+        self.aid_rows: list[tuple[float, str, bool, float, tuple]] = []
+        self.releases: list[Any] = []
+        self.initial_params = initial_params
+        self.last_fix_t_s: float | None = None
+        self.fused_counts: Counter[str] = Counter()
+
+    def on_nav(self, state: Any) -> None:
+        self.nav_t.append(float(state.t_s))
+        self.nav_pos.append(np.array(state.pos_n_m, dtype=float))
+        self.nav_vel.append(np.array(state.vel_n_m_s, dtype=float))
+        self.nav_q.append(np.array(state.q_nb, dtype=float))
+        cov = np.asarray(state.cov)
+        self.nav_cov_pva.append(cov[np.ix_(self._pva, self._pva)])
+        self.nav_current.append(_current_xy(state))
+        self.nav_k_speed.append(float(state.k_speed))
+
+    def on_sample(self, sample: Any) -> None:
+        if sample.KIND == "truth":
+            self.truth_rows.append((sample.t_s, *sample.pos_n_m, *sample.vel_n_m_s,
+                                    sample.current_n_m_s[0], sample.current_n_m_s[1], sample.k_v,
+                                    *sample.q_nb))
+
+    def on_aid(self, statuses: list) -> None:
+        for s in statuses:
+            if s.fused:
+                self.fused_counts[s.source] += 1
+                if s.source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
+                    self.last_fix_t_s = float(s.t_s)
+            nu = np.atleast_1d(np.asarray(s.innovation, dtype=float)).ravel()
+            var = np.atleast_1d(np.asarray(s.innovation_variance, dtype=float))
+            var = np.diagonal(var) if var.ndim == 2 else var.ravel()
+            with np.errstate(invalid="ignore", divide="ignore"):
+                normed = tuple(nu / np.sqrt(var)) if nu.shape == var.shape else tuple(nu * math.nan)
+            self.aid_rows.append((float(s.t_s), str(s.source), bool(s.fused),
+                                  float(s.test_ratio) if s.test_ratio is not None else math.nan, normed))
+
+    def on_release(self, release: Any) -> None:
+        self.releases.append(release)
+
+    # -- arrays ------------------------------------------------------------------------
+    def track(self) -> TrackArrays:
+        n = len(self.nav_t)
+        return TrackArrays(
+            t_s=np.asarray(self.nav_t, dtype=float),
+            pos_n_m=np.asarray(self.nav_pos, dtype=float).reshape(n, 3),
+            vel_n_m_s=np.asarray(self.nav_vel, dtype=float).reshape(n, 3),
+            q_nb=np.asarray(self.nav_q, dtype=float).reshape(n, 4),
+            cov_pva=np.asarray(self.nav_cov_pva, dtype=float).reshape(n, 9, 9),
+            current_n_m_s=np.asarray(self.nav_current, dtype=float).reshape(n, 2),
+        )
+
+    def truth(self) -> TruthArrays | None:
+        if len(self.truth_rows) < 2:
+            return None
+        a = np.asarray(self.truth_rows, dtype=float)
+        # sort by time and drop duplicate stamps so interpolation is well defined
+        a = a[np.argsort(a[:, 0], kind="stable")]
+        keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
+        a = a[keep]
+        return TruthArrays(t_s=a[:, 0], pos_n_m=a[:, 1:4], vel_n_m_s=a[:, 4:7], q_nb=a[:, 10:14],
+                           current_n_m_s=a[:, 7:9])
+
+    def truth_k_v(self) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(self.truth_rows, dtype=float).reshape(-1, 14)
+        return a[:, 0], a[:, 9]
+
+    def metrics(self) -> dict:
+        truth = self.truth()
+        if truth is None:
+            return {}
+        return compute_metrics(self.track(), truth, self.last_fix_t_s)
+
+
+class MetricsSink(Sink):
+    """Writes ``metrics.json`` at close when truth was seen (keeps the dict in ``.metrics``)."""
+
+    def __init__(self, recorder: SeriesRecorder, path: str | Path) -> None:
+        self.recorder = recorder
+        self.path = Path(path)
+        self.metrics: dict = {}
+
+    def close(self) -> None:
+        self.metrics = self.recorder.metrics()
+        if self.metrics:
+            self.path.write_text(json.dumps(self.metrics, indent=2, sort_keys=True) + "\n")
+
+
+class PlotSink(Sink):
+    """Writes ``track.png``, ``params.png``, ``innovations.png`` into ``out_dir`` at close."""
+
+    def __init__(self, recorder: SeriesRecorder, out_dir: str | Path, title: str = "") -> None:
+        self.recorder = recorder
+        self.out_dir = Path(out_dir)
+        self.title = title
+        self.written: list[Path] = []
+
+    def close(self) -> None:
+        from . import plots
+
+        self.written = plots.write_all(self.recorder, self.out_dir, self.title)

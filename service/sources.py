@@ -1,0 +1,249 @@
+"""Sources of the runner loop for replay: logs and the simulator (Stone Soup style:
+readers and simulators are interchangeable as sources).
+
+A source is an iterable of samples (:mod:`fusion.samples`), :class:`ImuBatch` runs and,
+live, calibrator releases, in the deterministic replay order
+``(t_s, source priority, seq)`` (:func:`fusion.samples.replay_order_key`). It also has
+
+- ``counters`` — a :class:`SourceCounters` (messages read, decode errors, corrupt
+  frames, samples with an unusable timestamp, late samples, ...),
+- ``streams`` — the sample kinds the input holds (known up front where possible),
+- ``missing`` — the streams a navigation run would want but the input lacks,
+- ``metadata`` — what the input says about itself (e.g. the simulated scenario).
+
+:func:`order_and_batch` is the common core: a bounded re-ordering heap (``horizon_s`` of
+data time — logs are nearly ordered; a global sort of a 1-h log would hold every sample
+in memory) followed by grouping runs of consecutive, increasing, finite IMU samples into
+:class:`ImuBatch` (the estimator's fast path). An IMU sample that is a duplicate, out of
+order or not finite is passed on alone so the estimator judges (rejects and counts) it.
+Samples whose ``t_s`` is not finite cannot be placed in time: they are dropped and
+counted (``bad_timestamp``).
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import queue as queue_mod
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from fusion.samples import ImuBatch, ImuSample, replay_order_key
+
+# streams navigation uses; a log lacking one of these is reported in ``missing``
+NAV_STREAMS = ("imu", "rpm", "heading", "depth", "dvl", "gnss", "usbl")
+
+
+@dataclass
+class SourceCounters:
+    """Counts of what a source read and refused (merged into ``summary.json``)."""
+
+    messages_read: int = 0
+    samples: int = 0
+    decode_errors: Counter = field(default_factory=Counter)   # by reason
+    corrupt_frames: int = 0
+    bad_timestamp: int = 0
+    late_samples: int = 0          # arrived after later samples were already released
+    by_kind: Counter = field(default_factory=Counter)
+
+    def rejected(self) -> dict[str, int]:
+        """Source-side rejections by reason (for the health/summary merge)."""
+        out: Counter = Counter({f"decode:{k}": v for k, v in self.decode_errors.items()})
+        if self.corrupt_frames:
+            out["corrupt_frame"] += self.corrupt_frames
+        if self.bad_timestamp:
+            out["bad_timestamp"] += self.bad_timestamp
+        return dict(out)
+
+    def to_dict(self) -> dict:
+        return {
+            "messages_read": self.messages_read,
+            "samples": self.samples,
+            "decode_errors": dict(sorted(self.decode_errors.items())),
+            "corrupt_frames": self.corrupt_frames,
+            "bad_timestamp": self.bad_timestamp,
+            "late_samples": self.late_samples,
+            "by_kind": dict(sorted(self.by_kind.items())),
+        }
+
+
+def _batch(run: list[ImuSample]) -> ImuBatch:
+    return ImuBatch(
+        np.fromiter((s.t_s for s in run), dtype=float, count=len(run)),
+        np.array([s.specific_force_b_m_s2 for s in run], dtype=float).reshape(-1, 3),
+        np.array([s.omega_b_rad_s for s in run], dtype=float).reshape(-1, 3),
+    )
+
+
+def _imu_ok(s: ImuSample) -> bool:
+    return all(map(math.isfinite, s.specific_force_b_m_s2)) and all(map(math.isfinite, s.omega_b_rad_s))
+
+
+def order_and_batch(samples: Iterable[Any], counters: SourceCounters, horizon_s: float = 5.0,
+                    max_batch: int = 4096) -> Iterator[Any]:
+    """Reorder ``samples`` within ``horizon_s`` and group IMU runs (module docstring).
+
+    Parameters
+    ----------
+    samples : iterable of samples (any order; nearly ordered is cheap)
+    counters : SourceCounters
+        Updated in place (``samples``, ``by_kind``, ``bad_timestamp``, ``late_samples``).
+    horizon_s : float
+        Re-ordering window in data seconds.
+    max_batch : int
+        Longest :class:`ImuBatch` emitted.
+    """
+    heap: list[tuple] = []
+    seq = 0
+    newest = -math.inf
+    released = -math.inf
+    run: list[ImuSample] = []
+
+    def release(item):
+        nonlocal released
+        if item.t_s < released:
+            counters.late_samples += 1
+        else:
+            released = item.t_s
+        if item.KIND == "imu":
+            if _imu_ok(item) and (not run or item.t_s > run[-1].t_s):
+                run.append(item)
+                if len(run) >= max_batch:
+                    yield _batch(run)
+                    run.clear()
+                return
+            if run:
+                yield _batch(run)
+                run.clear()
+            yield item  # the estimator rejects and counts it
+            return
+        if run:
+            yield _batch(run)
+            run.clear()
+        yield item
+
+    for s in samples:
+        t = getattr(s, "t_s", math.nan)
+        if not isinstance(t, (int, float)) or not math.isfinite(t):
+            counters.bad_timestamp += 1
+            continue
+        counters.samples += 1
+        counters.by_kind[s.KIND] += 1
+        heapq.heappush(heap, (*replay_order_key(s, seq), s))
+        seq += 1
+        if t > newest:
+            newest = t
+        while heap and heap[0][0] < newest - horizon_s:
+            yield from release(heapq.heappop(heap)[3])
+    while heap:
+        yield from release(heapq.heappop(heap)[3])
+    if run:
+        yield _batch(run)
+
+
+class SampleStreamSource:
+    """Any iterable of samples (a reader) as an ordered, batched source.
+
+    Parameters
+    ----------
+    samples : iterable
+        Samples in (nearly) time order.
+    streams : iterable of str, optional
+        Kinds present, when the reader knows them up front.
+    metadata : dict, optional
+    horizon_s : float
+        Re-ordering window (s).
+    """
+
+    def __init__(self, samples: Iterable[Any], streams: Iterable[str] | None = None,
+                 metadata: dict | None = None, horizon_s: float = 5.0,
+                 counters: SourceCounters | None = None) -> None:
+        self._samples = samples
+        self.streams = None if streams is None else sorted(set(streams))
+        self.metadata = metadata or {}
+        self.horizon_s = horizon_s
+        self.counters = counters or SourceCounters()
+
+    @property
+    def missing(self) -> list[str]:
+        seen = set(self.streams or ()) | set(self.counters.by_kind)
+        return [k for k in NAV_STREAMS if k not in seen]
+
+    @property
+    def has_truth(self) -> bool:
+        return "truth" in (self.streams or ()) or self.counters.by_kind.get("truth", 0) > 0
+
+    def __iter__(self) -> Iterator[Any]:
+        return order_and_batch(self._samples, self.counters, self.horizon_s)
+
+
+class SimSource:
+    """A scenario simulated in memory as a source (``sim.simulate(scenario).iter_blocks()``).
+
+    The simulator already yields :class:`ImuBatch` runs and other samples in replay order;
+    they pass through (counted). ``metadata`` holds the scenario.
+    """
+
+    def __init__(self, scenario: Any, result: Any = None) -> None:
+        import sim
+
+        self.scenario = scenario
+        self.result = result if result is not None else sim.simulate(scenario)
+        self.metadata = {"scenario": scenario}
+        self.counters = SourceCounters()
+        self.streams = None
+
+    @property
+    def missing(self) -> list[str]:
+        return [k for k in NAV_STREAMS if k not in self.counters.by_kind]
+
+    has_truth = True
+
+    def __iter__(self) -> Iterator[Any]:
+        c = self.counters
+        for item in self.result.iter_blocks():
+            if isinstance(item, ImuBatch):
+                n = len(item)
+                c.samples += n
+                c.messages_read += n
+                c.by_kind["imu"] += n
+            else:
+                c.samples += 1
+                c.messages_read += 1
+                c.by_kind[item.KIND] += 1
+            yield item
+
+
+class QueueSource:
+    """Live source: items from a :class:`queue.Queue` filled by bus callbacks.
+
+    Iteration ends when ``stop`` is set (checked every ``poll_s``) or a ``None`` item
+    (sentinel) is taken. ``qsize()`` gives the queue depth for health.
+    """
+
+    def __init__(self, q: "queue_mod.Queue[Any]", stop: Any = None, poll_s: float = 0.1) -> None:
+        self.queue = q
+        self.stop = stop
+        self.poll_s = poll_s
+        self.counters = SourceCounters()
+        self.streams = None
+        self.metadata: dict = {}
+
+    def qsize(self) -> int:
+        return self.queue.qsize()
+
+    def __iter__(self) -> Iterator[Any]:
+        while self.stop is None or not self.stop.is_set():
+            try:
+                item = self.queue.get(timeout=self.poll_s)
+            except queue_mod.Empty:
+                continue
+            if item is None:
+                return
+            self.counters.messages_read += 1
+            kind = getattr(item, "KIND", None)
+            if kind is not None:
+                self.counters.by_kind[kind] += len(item) if isinstance(item, ImuBatch) else 1
+            yield item
