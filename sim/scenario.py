@@ -1,0 +1,311 @@
+"""Simulation scenarios: one typed, frozen configuration tree per TOML file.
+
+A scenario fixes everything the simulator draws from: the seed, the trajectory
+pattern, the true motion-model parameters before and after an *environment change*
+(DESIGN.md "Motion model"), the sea current, and every sensor's rate and noise.
+It is loaded strictly with :mod:`fusion.typed_config` (unknown keys are errors) from
+``sim/scenarios/<name>.toml`` (package data) or a path, with ``--set a.b=v`` overrides.
+
+Motion parameters are given as standard deviations (``sigma_*``) because that is how
+people think about them; :meth:`MotionConfig.params_before` / :meth:`Scenario.params_after`
+turn them into :class:`fusion.motion_model.MotionParams` variances.  After
+``environment.change_at_s`` the true ``k_V`` becomes ``environment.k_v_after`` and
+σ_Vv becomes ``motion.sigma_vv_after``; the other ``environment.*_after`` keys change
+the remaining sigmas and the water density (``None`` keeps the value before).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+from fusion.frames import GeoOrigin
+from fusion.motion_model import MotionParams, RpmSpeedTable
+from fusion.typed_config import ConfigError, load_toml
+
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+
+
+@dataclass(frozen=True)
+class OriginConfig:
+    """Mission origin of the local NED frame (degrees at the edge, radians inside)."""
+
+    lat_deg: float = 43.0
+    lon_deg: float = 5.9
+
+    def geo(self) -> GeoOrigin:
+        return GeoOrigin(math.radians(self.lat_deg), math.radians(self.lon_deg), 0.0)
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    """Path the guidance law follows (line-of-sight steering between waypoints)."""
+
+    pattern: Literal["lawnmower", "straight", "circle"] = "lawnmower"
+    speed_m_s: float = 1.5
+    leg_length_m: float = 500.0
+    leg_spacing_m: float = 50.0
+    heading_deg: float = 0.0            # direction of the first leg / of the straight line
+    circle_radius_m: float = 100.0
+    depth_m: float = 20.0               # survey depth
+    start_depth_m: float = 0.0          # 0 = at the surface (GNSS possible) at t = 0
+    dive_rate_m_s: float = 0.3          # peak vertical speed of the (smooth) descent
+    lookahead_m: float = 20.0           # LOS guidance look-ahead distance
+    yaw_gain_per_s: float = 0.5         # yaw-rate command per rad of heading error
+    turn_rate_max_deg_s: float = 6.0
+    roll_amp_deg: float = 0.5           # small roll/pitch oscillations (sea state, trim)
+    pitch_amp_deg: float = 0.5
+    roll_period_s: float = 8.0
+    pitch_period_s: float = 11.0
+    pitch_trim_deg: float = 0.0
+
+    def validate(self) -> None:
+        if self.speed_m_s < 0 or self.leg_length_m <= 0 or self.circle_radius_m <= 0:
+            raise ValueError("speed must be ≥ 0, leg_length_m and circle_radius_m > 0")
+        if self.dive_rate_m_s <= 0 or self.lookahead_m <= 0 or self.turn_rate_max_deg_s <= 0:
+            raise ValueError("dive_rate_m_s, lookahead_m and turn_rate_max_deg_s must be > 0")
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """True motion-model parameters before the environment change (sigmas, not variances)."""
+
+    step_s: float = 1.0
+    ramp_s: float = 0.5                 # body velocity blends between steps over this time
+    k_v: float = 1.0
+    b_w_deg_s: float = 0.0
+    sigma_vv: float = 0.05
+    sigma_vw: float = 0.01
+    sigma_v1: float = 0.01
+    sigma_wv: float = 0.001
+    sigma_ww: float = 0.05
+    sigma_w1: float = 0.001
+    sigma_s: float = 0.01
+    sigma_vv_after: float | None = None
+
+    def validate(self) -> None:
+        if self.step_s <= 0:
+            raise ValueError("step_s must be > 0")
+        if not 0 < self.ramp_s <= 0.5 * self.step_s:
+            raise ValueError("ramp_s must be in (0, step_s/2] (keeps the step recursion stable)")
+
+    def params_before(self) -> MotionParams:
+        return MotionParams(
+            var_vv=self.sigma_vv**2, var_vw=self.sigma_vw**2, var_v1=self.sigma_v1**2,
+            var_wv=self.sigma_wv**2, var_ww=self.sigma_ww**2, var_w1=self.sigma_w1**2,
+            var_s=self.sigma_s**2, k_v=self.k_v, b_w=math.radians(self.b_w_deg_s))
+
+
+@dataclass(frozen=True)
+class EnvironmentConfig:
+    """Water and seabed; the change at ``change_at_s`` (None/∞ = never)."""
+
+    change_at_s: float | None = None
+    k_v_after: float | None = None
+    sigma_vw_after: float | None = None
+    sigma_v1_after: float | None = None
+    sigma_wv_after: float | None = None
+    sigma_ww_after: float | None = None
+    sigma_w1_after: float | None = None
+    sigma_s_after: float | None = None
+    density_kg_m3: float = 1025.0
+    density_after_kg_m3: float | None = None
+    atmospheric_pressure_pa: float = 101325.0
+    bottom_depth_m: float = 30.0        # flat seabed depth (DVL altitude, side-scan)
+
+
+@dataclass(frozen=True)
+class CurrentConfig:
+    """Constant horizontal sea current; direction it flows *towards*, from north to east."""
+
+    speed_m_s: float = 0.1
+    direction_deg: float = 45.0
+
+    def vel_n_m_s(self) -> tuple[float, float]:
+        a = math.radians(self.direction_deg)
+        return (self.speed_m_s * math.cos(a), self.speed_m_s * math.sin(a))
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    grade: Literal["consumer", "tactical", "navigation", "perfect"] = "tactical"
+    rate_hz: float = 100.0
+
+
+@dataclass(frozen=True)
+class HeadingConfig:
+    enabled: bool = True
+    rate_hz: float = 10.0
+    sigma_deg: float = 0.5
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    enabled: bool = True
+    rate_hz: float = 10.0
+    sigma_m: float = 0.05               # pressure noise expressed as depth at 1025 kg/m³
+
+
+@dataclass(frozen=True)
+class GnssConfig:
+    """GNSS fixes at the listed times, emitted only while at the surface."""
+
+    fix_times_s: tuple[float, ...] = (0.0,)
+    max_depth_m: float = 0.5
+    sigma_m: float = 1.5
+
+
+@dataclass(frozen=True)
+class UsblConfig:
+    enabled: bool = True
+    period_s: float = 60.0
+    start_s: float = 60.0
+    lost_after_s: float | None = None   # no fixes after this time (None = never lost)
+    sigma_m: float = 2.0
+    sigma_depth_m: float = 1.0
+
+
+@dataclass(frozen=True)
+class DvlConfig:
+    enabled: bool = False
+    rate_hz: float = 5.0
+    sigma_m_s: float = 0.01
+    dropout_prob: float = 0.02          # independent per-sample lost lock
+    outages_s: tuple[tuple[float, float], ...] = ()   # [start, end) intervals without lock
+    lever_arm_b_m: tuple[float, float, float] = (0.5, 0.0, 0.2)
+    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)   # R_bd as ZYX Euler
+    max_altitude_m: float = 80.0
+
+
+@dataclass(frozen=True)
+class BeaconsConfig:
+    """Acoustic range beacons at known NED positions (the thesis's landmark sim)."""
+
+    enabled: bool = False
+    positions_n_m: tuple[tuple[float, float, float], ...] = (
+        (0.0, 0.0, 30.0), (500.0, 0.0, 30.0), (0.0, 500.0, 30.0), (500.0, 500.0, 30.0))
+    period_s: float = 1.0
+    sigma_m: float = 2.0
+
+
+@dataclass(frozen=True)
+class RpmConfig:
+    rate_hz: float = 10.0
+    table_rpm: tuple[float, ...] = RpmSpeedTable().rpm
+    table_speed_m_s: tuple[float, ...] = RpmSpeedTable().speed_m_s
+
+    def table(self) -> RpmSpeedTable:
+        return RpmSpeedTable(rpm=self.table_rpm, speed_m_s=self.table_speed_m_s)
+
+
+@dataclass(frozen=True)
+class TruthConfig:
+    rate_hz: float = 10.0
+
+
+@dataclass(frozen=True)
+class SonarConfig:
+    enabled: bool = False
+    ping_rate_hz: float = 4.0
+    range_m: float = 50.0
+    samples_per_side: int = 512
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """The whole scenario tree (see the module docstring)."""
+
+    seed: int = 1
+    duration_s: float = 300.0
+    name: str = ""
+    origin: OriginConfig = field(default_factory=OriginConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
+    current: CurrentConfig = field(default_factory=CurrentConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    heading: HeadingConfig = field(default_factory=HeadingConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
+    usbl: UsblConfig = field(default_factory=UsblConfig)
+    dvl: DvlConfig = field(default_factory=DvlConfig)
+    beacons: BeaconsConfig = field(default_factory=BeaconsConfig)
+    rpm: RpmConfig = field(default_factory=RpmConfig)
+    truth: TruthConfig = field(default_factory=TruthConfig)
+    sonar: SonarConfig = field(default_factory=SonarConfig)
+
+    def validate(self) -> None:
+        if self.duration_s <= 0:
+            raise ValueError("duration_s must be > 0")
+        if self.seed < 0:
+            raise ValueError("seed must be ≥ 0")
+        steps_per_imu = self.motion.step_s * self.imu.rate_hz
+        if abs(steps_per_imu - round(steps_per_imu)) > 1e-9 or round(steps_per_imu) < 2:
+            raise ValueError(f"motion.step_s × imu.rate_hz must be an integer ≥ 2, got {steps_per_imu}")
+        n_steps = self.duration_s / self.motion.step_s
+        if abs(n_steps - round(n_steps)) > 1e-9:
+            raise ValueError("duration_s must be a whole number of motion.step_s")
+        self.params_after()  # raises on invalid values
+
+    @property
+    def change_at_s(self) -> float:
+        c = self.environment.change_at_s
+        return math.inf if c is None else c
+
+    def params_before(self) -> MotionParams:
+        """True :class:`MotionParams` before the environment change."""
+        return self.motion.params_before()
+
+    def params_after(self) -> MotionParams:
+        """True :class:`MotionParams` after the environment change."""
+        env, p = self.environment, self.motion.params_before()
+        changes = {}
+        for name in ("vw", "v1", "wv", "ww", "w1", "s"):
+            value = getattr(env, f"sigma_{name}_after")
+            if value is not None:
+                changes[f"var_{name}"] = value**2
+        if self.motion.sigma_vv_after is not None:
+            changes["var_vv"] = self.motion.sigma_vv_after**2
+        if env.k_v_after is not None:
+            changes["k_v"] = env.k_v_after
+        return replace(p, **changes)
+
+    def params_at(self, t_s: float) -> MotionParams:
+        return self.params_after() if t_s >= self.change_at_s else self.params_before()
+
+    def density_at(self, t_s: float) -> float:
+        env = self.environment
+        if t_s >= self.change_at_s and env.density_after_kg_m3 is not None:
+            return env.density_after_kg_m3
+        return env.density_kg_m3
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """A bare name → ``sim/scenarios/<name>.toml``; anything else is a file path."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.parent != Path("."):
+        return p
+    return SCENARIO_DIR / f"{p.name}.toml"
+
+
+def available_scenarios() -> list[str]:
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+
+
+def load_scenario(name_or_path: str | Path, overrides=()) -> Scenario:
+    """Load a scenario by name or path and apply ``key=value`` overrides.
+
+    Raises
+    ------
+    ConfigError
+        Unknown scenario, unknown key (named with its dotted path), bad value.
+    """
+    path = scenario_path(name_or_path)
+    if not path.is_file():
+        raise ConfigError(f"scenario {str(name_or_path)!r} not found (looked for {path}; "
+                          f"built-in: {', '.join(available_scenarios())})")
+    scenario = load_toml(Scenario, path.read_text(), list(overrides))
+    if not scenario.name:
+        scenario = replace(scenario, name=path.stem)
+    return scenario

@@ -1,0 +1,191 @@
+r"""Aiding-sensor models on top of the dense truth (vectorised over sample times).
+
+- heading: ``ψ + N(0, σ²)``, wrapped to [−π, π).
+- depth: absolute pressure ``p = p_atm + ρ(t) g d + N(0, (ρ₀ g σ_d)²)`` — the density ρ
+  changes with the environment, so a filter that keeps the old ρ sees a small depth bias.
+- GNSS: only while the true depth ≤ ``max_depth_m``; horizontal noise σ per axis.
+- USBL: geodetic position + depth with σ_h per horizontal axis and σ_v, every
+  ``period_s`` from ``start_s`` until ``lost_after_s`` (inclusive).
+- DVL bottom track: ``v_d = R_db (R_bn v_n + ω_b × r_b) + N(0, σ²)`` with lever arm
+  ``r_b`` and mounting ``R_bd``; ``valid`` false during outages, random drop-outs, or
+  when the altitude exceeds the bottom-lock range.
+- range beacons: ``|p − b| + N(0, σ²)``.
+- RPM: the commanded propeller speed of the step in force.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fusion.frames import GRAVITY_M_S2
+from fusion.samples import (DepthSample, DvlSample, GnssSample, HeadingSample, RangeSample,
+                            RpmSample, TruthSample, UsblSample)
+from sim.scenario import Scenario
+from sim.vehicle import DenseTruth, MotionSteps
+
+
+def sample_times(rate_hz: float, duration_s: float, start_s: float = 0.0) -> np.ndarray:
+    """Instants ``start + k / rate`` up to and including ``duration_s`` (integer arithmetic)."""
+    if rate_hz <= 0:
+        return np.empty(0)
+    n = int(math.floor((duration_s - start_s) * rate_hz + 1e-9)) + 1
+    return start_s + np.arange(max(n, 0)) / rate_hz
+
+
+def periodic_times(period_s: float, end_s: float, start_s: float = 0.0) -> np.ndarray:
+    """Instants ``start + k · period`` up to and including ``end_s``."""
+    if period_s <= 0 or end_s < start_s:
+        return np.empty(0)
+    n = int(math.floor((end_s - start_s) / period_s + 1e-9)) + 1
+    return start_s + np.arange(n) * period_s
+
+
+class TruthInterpolator:
+    """Truth at arbitrary times by linear interpolation of the IMU-rate grid."""
+
+    def __init__(self, dense: DenseTruth):
+        self.d = dense
+        self.dt = dense.t_s[1] - dense.t_s[0]
+
+    def _interp(self, arr: np.ndarray, t: np.ndarray) -> np.ndarray:
+        x = np.clip(t / self.dt, 0.0, len(self.d.t_s) - 1.0)
+        i0 = np.minimum(np.floor(x + 1e-9).astype(int), len(self.d.t_s) - 2)
+        frac = np.clip(x - i0, 0.0, 1.0)
+        frac = np.where(frac < 1e-9, 0.0, frac)  # exact grid instants stay exact
+        a0, a1 = arr[i0], arr[i0 + 1]
+        if arr.ndim == 2:
+            frac = frac[:, None]
+        return a0 + (a1 - a0) * frac
+
+    def pos(self, t):
+        return self._interp(self.d.pos_n_m, t)
+
+    def vel(self, t):
+        return self._interp(self.d.vel_n_m_s, t)
+
+    def euler(self, t):
+        return self._interp(self.d.euler_rad, t)
+
+    def rotation(self, t) -> Rotation:
+        e = self.euler(t)
+        return Rotation.from_euler("ZYX", e[:, ::-1])
+
+    def omega_b(self, t):
+        """Body rate (rad/s) from finite differences of the attitude around ``t``."""
+        h = 0.5 * self.dt
+        r0, r1 = self.rotation(np.maximum(t - h, 0.0)), self.rotation(t + h)
+        return (r0.inv() * r1).as_rotvec() / (2 * h)
+
+
+def rpm_samples(scenario: Scenario, steps: MotionSteps) -> list[RpmSample]:
+    t = sample_times(scenario.rpm.rate_hz, scenario.duration_s)
+    k = np.minimum((t / scenario.motion.step_s + 1e-9).astype(int), len(steps.rpm) - 1)
+    return [RpmSample(float(ti), float(r)) for ti, r in zip(t, steps.rpm[k])]
+
+
+def heading_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[HeadingSample]:
+    cfg = scenario.heading
+    if not cfg.enabled:
+        return []
+    t = sample_times(cfg.rate_hz, scenario.duration_s)
+    yaw = truth.euler(t)[:, 2] + math.radians(cfg.sigma_deg) * rng.standard_normal(len(t))
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    return [HeadingSample(float(a), float(b)) for a, b in zip(t, yaw)]
+
+
+def depth_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[DepthSample]:
+    cfg, env = scenario.depth, scenario.environment
+    if not cfg.enabled:
+        return []
+    t = sample_times(cfg.rate_hz, scenario.duration_s)
+    depth = truth.pos(t)[:, 2]
+    rho = np.array([scenario.density_at(ti) for ti in t]) if len(t) else np.empty(0)
+    p = (env.atmospheric_pressure_pa + rho * GRAVITY_M_S2 * depth
+         + env.density_kg_m3 * GRAVITY_M_S2 * cfg.sigma_m * rng.standard_normal(len(t)))
+    return [DepthSample(float(a), float(b)) for a, b in zip(t, p)]
+
+
+def gnss_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[GnssSample]:
+    cfg = scenario.gnss
+    t = np.array([x for x in cfg.fix_times_s if 0.0 <= x <= scenario.duration_s], dtype=float)
+    if not len(t):
+        return []
+    pos = truth.pos(t)
+    noise = cfg.sigma_m * rng.standard_normal((len(t), 2))  # drawn for all: stable streams
+    keep = pos[:, 2] <= cfg.max_depth_m
+    pos = pos.copy()
+    pos[:, :2] += noise
+    lat, lon, _ = scenario.origin.geo().to_geodetic(pos)
+    return [GnssSample(float(t[i]), float(lat[i]), float(lon[i]), cfg.sigma_m)
+            for i in range(len(t)) if keep[i]]
+
+
+def usbl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[UsblSample]:
+    cfg = scenario.usbl
+    if not cfg.enabled or cfg.period_s <= 0:
+        return []
+    end = scenario.duration_s if cfg.lost_after_s is None else min(cfg.lost_after_s, scenario.duration_s)
+    t = periodic_times(cfg.period_s, end, cfg.start_s)
+    if not len(t):
+        return []
+    pos = truth.pos(t)
+    noisy = pos + rng.standard_normal((len(t), 3)) * np.array([cfg.sigma_m, cfg.sigma_m, cfg.sigma_depth_m])
+    lat, lon, _ = scenario.origin.geo().to_geodetic(noisy)
+    return [UsblSample(float(t[i]), float(lat[i]), float(lon[i]), float(noisy[i, 2]),
+                       cfg.sigma_m, cfg.sigma_depth_m) for i in range(len(t))]
+
+
+def dvl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[DvlSample]:
+    cfg = scenario.dvl
+    if not cfg.enabled:
+        return []
+    t = sample_times(cfg.rate_hz, scenario.duration_s)
+    rot_nb = truth.rotation(t)
+    vel_b = rot_nb.inv().apply(truth.vel(t)) + np.cross(truth.omega_b(t), np.asarray(cfg.lever_arm_b_m))
+    r, p, y = np.radians(cfg.mount_rpy_deg)
+    rot_bd = Rotation.from_euler("ZYX", [y, p, r])
+    vel_d = rot_bd.inv().apply(vel_b) + cfg.sigma_m_s * rng.standard_normal((len(t), 3))
+    altitude = scenario.environment.bottom_depth_m - truth.pos(t)[:, 2]
+    valid = rng.random(len(t)) >= cfg.dropout_prob
+    valid &= altitude <= cfg.max_altitude_m
+    for start, stop in cfg.outages_s:
+        valid &= ~((t >= start) & (t < stop))
+    return [DvlSample(float(t[i]), tuple(map(float, vel_d[i])), bool(valid[i]),
+                      float(altitude[i]) if valid[i] else math.nan) for i in range(len(t))]
+
+
+def beacon_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[RangeSample]:
+    cfg = scenario.beacons
+    if not cfg.enabled or not cfg.positions_n_m:
+        return []
+    t = periodic_times(cfg.period_s, scenario.duration_s)
+    pos = truth.pos(t)
+    out = []
+    beacons = np.asarray(cfg.positions_n_m, dtype=float)
+    ranges = np.linalg.norm(pos[:, None, :] - beacons[None, :, :], axis=2)
+    ranges += cfg.sigma_m * rng.standard_normal(ranges.shape)
+    for i, ti in enumerate(t):
+        for j, b in enumerate(beacons):
+            out.append(RangeSample(float(ti), j, tuple(map(float, b)), float(ranges[i, j]), cfg.sigma_m))
+    return out
+
+
+def truth_samples(scenario: Scenario, dense: DenseTruth, steps: MotionSteps,
+                  bias_acc: np.ndarray, bias_gyro: np.ndarray) -> list[TruthSample]:
+    """Truth at ``truth.rate_hz`` on the IMU grid (nearest IMU instant at or before)."""
+    dt = dense.t_s[1] - dense.t_s[0]
+    t = sample_times(scenario.truth.rate_hz, scenario.duration_s)
+    idx = np.minimum(np.round(t / dt).astype(int), len(dense.t_s) - 1)
+    k = np.minimum((dense.t_s[idx] / scenario.motion.step_s + 1e-9).astype(int), len(steps.k_v) - 1)
+    cur = tuple(map(float, scenario.current.vel_n_m_s())) + (0.0,)
+    # biases are per IMU sample (index i−1 for instant i); instant 0 takes the first
+    bi = np.maximum(idx - 1, 0)
+    out = []
+    for j, i in enumerate(idx):
+        out.append(TruthSample(
+            float(t[j]), tuple(map(float, dense.pos_n_m[i])), tuple(map(float, dense.vel_n_m_s[i])),
+            tuple(map(float, dense.q_nb[i])), cur, float(steps.k_v[k[j]]),
+            tuple(map(float, bias_acc[bi[j]])), tuple(map(float, bias_gyro[bi[j]]))))
+    return out

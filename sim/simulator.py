@@ -1,0 +1,164 @@
+"""``simulate(scenario) -> SimResult``: truth, IMU and every aiding sensor of a scenario.
+
+Randomness: one :class:`numpy.random.SeedSequence` from ``scenario.seed`` is split into
+independent child streams in the fixed order of :data:`RNG_STREAMS`, one per sensor,
+so enabling or re-configuring one sensor never changes another's noise. Same seed ⇒
+the same output, bit for bit.
+
+The result holds the IMU as arrays (an :class:`fusion.samples.ImuBatch`) and every other
+stream as a list of samples; :meth:`SimResult.iter_samples` merges them in the
+deterministic replay order of :func:`fusion.samples.replay_order_key`, and
+:meth:`SimResult.iter_blocks` yields IMU runs as :class:`ImuBatch` between the other
+samples (the replay fast path).
+"""
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+import numpy as np
+
+from fusion.samples import SOURCE_PRIORITY, ImuBatch, ImuSample
+from sim import sensors
+from sim.imu import corrupt_imu, exact_imu
+from sim.scenario import Scenario
+from sim.vehicle import DenseTruth, MotionSteps, dense_truth, simulate_steps
+
+# Append new streams at the END only: the order fixes each stream's seed.
+RNG_STREAMS = ("motion", "imu", "heading", "depth", "gnss", "usbl", "dvl", "beacons", "sonar_seabed",
+               "sonar_ping")
+
+
+def rng_streams(seed: int) -> dict[str, np.random.Generator]:
+    """Independent generators per stream, derived from one seed."""
+    children = np.random.SeedSequence(seed).spawn(len(RNG_STREAMS))
+    return {name: np.random.default_rng(ss) for name, ss in zip(RNG_STREAMS, children)}
+
+
+@dataclass
+class SimResult:
+    """Everything a scenario produced.
+
+    Attributes
+    ----------
+    scenario : the scenario simulated
+    imu : ImuBatch, the N IMU samples (t_s (N,), specific force and rate (N, 3))
+    samples : dict kind → list of samples (non-IMU streams, including ``truth``), each
+        list sorted by time
+    steps : MotionSteps, the per-step motion-model truth (water-relative poses, controls)
+    dense : DenseTruth, truth at every IMU instant (t = 0 included)
+    bias_acc_b_m_s2, bias_gyro_b_rad_s : (N, 3) true IMU biases per IMU sample
+    """
+
+    scenario: Scenario
+    imu: ImuBatch
+    samples: dict[str, list[Any]]
+    steps: MotionSteps
+    dense: DenseTruth
+    bias_acc_b_m_s2: np.ndarray
+    bias_gyro_b_rad_s: np.ndarray
+    notes: list[str] = field(default_factory=list)
+
+    def counts(self) -> dict[str, int]:
+        """Samples per kind (the IMU included)."""
+        out = {"imu": len(self.imu)}
+        out.update({k: len(v) for k, v in self.samples.items()})
+        return out
+
+    def _others_sorted(self) -> list[Any]:
+        others = [s for kind in sorted(self.samples) for s in self.samples[kind]]
+        keyed = sorted(range(len(others)),
+                       key=lambda i: (others[i].t_s, SOURCE_PRIORITY.get(others[i].KIND, 50), i))
+        return [others[i] for i in keyed]
+
+    def iter_blocks(self) -> Iterator[Any]:
+        """ImuBatch runs and other samples in replay order.
+
+        Every IMU sample with ``t_s`` ≤ the next other sample's time comes first (IMU has
+        the lowest source priority), so the stream equals :meth:`iter_samples` with IMU
+        runs grouped.
+        """
+        t_imu = self.imu.t_s
+        start = 0
+        for s in self._others_sorted():
+            stop = int(np.searchsorted(t_imu, s.t_s, side="right"))
+            if stop > start:
+                yield self._batch(start, stop)
+                start = stop
+            yield s
+        if start < len(t_imu):
+            yield self._batch(start, len(t_imu))
+
+    def iter_samples(self) -> Iterator[Any]:
+        """All samples, IMU individually, in ``replay_order_key`` order."""
+        for item in self.iter_blocks():
+            if isinstance(item, ImuBatch):
+                yield from item.samples()
+            else:
+                yield item
+
+    def _batch(self, a: int, b: int) -> ImuBatch:
+        return ImuBatch(self.imu.t_s[a:b], self.imu.specific_force_b_m_s2[a:b], self.imu.omega_b_rad_s[a:b])
+
+    def imu_samples(self) -> Iterator[ImuSample]:
+        return self.imu.samples()
+
+
+def sonar_available() -> bool:
+    """True when the side-scan renderer modules exist (written by the sonar work)."""
+    return (importlib.util.find_spec("sim.sidescan") is not None
+            and importlib.util.find_spec("sim.seabed") is not None)
+
+
+def _sonar_pings(scenario: Scenario, truth: sensors.TruthInterpolator, dense: DenseTruth,
+                 rngs: dict[str, np.random.Generator], notes: list[str]) -> list[Any]:
+    cfg = scenario.sonar
+    if not cfg.enabled:
+        return []
+    if not sonar_available():
+        notes.append("sonar.enabled but sim/sidescan.py or sim/seabed.py is missing: no pings")
+        return []
+    from sim.seabed import Seabed  # lazy: heavy and optional
+    from sim.sidescan import SidescanRenderer
+
+    pos = dense.pos_n_m
+    margin = cfg.range_m + 50.0
+    extent = (float(pos[:, 0].min() - margin), float(pos[:, 0].max() + margin),
+              float(pos[:, 1].min() - margin), float(pos[:, 1].max() + margin))
+    seabed = Seabed.random(extent, rngs["sonar_seabed"])
+    renderer = SidescanRenderer(seabed, cfg.range_m, cfg.samples_per_side)
+    t = sensors.sample_times(cfg.ping_rate_hz, scenario.duration_s)
+    p = truth.pos(t)
+    yaw = truth.euler(t)[:, 2]
+    altitude = scenario.environment.bottom_depth_m - p[:, 2]
+    rng = rngs["sonar_ping"]
+    return [renderer.render(float(t[i]), p[i], float(yaw[i]), float(altitude[i]), rng)
+            for i in range(len(t))]
+
+
+def simulate(scenario: Scenario) -> SimResult:
+    """Simulate a scenario (see the module docstring and :mod:`sim.vehicle`)."""
+    rngs = rng_streams(scenario.seed)
+    notes: list[str] = []
+    steps = simulate_steps(scenario, rngs["motion"])
+    dense = dense_truth(scenario, steps)
+    dt = 1.0 / scenario.imu.rate_hz
+    f_true, w_true = exact_imu(dense.q_nb, dense.vel_n_m_s, dt)
+    f_meas, w_meas, bias_acc, bias_gyro = corrupt_imu(f_true, w_true, scenario.imu.grade, dt, rngs["imu"])
+    imu = ImuBatch(dense.t_s[1:].copy(), f_meas, w_meas)
+    truth = sensors.TruthInterpolator(dense)
+    samples: dict[str, list[Any]] = {
+        "rpm": sensors.rpm_samples(scenario, steps),
+        "heading": sensors.heading_samples(scenario, truth, rngs["heading"]),
+        "depth": sensors.depth_samples(scenario, truth, rngs["depth"]),
+        "gnss": sensors.gnss_samples(scenario, truth, rngs["gnss"]),
+        "usbl": sensors.usbl_samples(scenario, truth, rngs["usbl"]),
+        "dvl": sensors.dvl_samples(scenario, truth, rngs["dvl"]),
+        "range": sensors.beacon_samples(scenario, truth, rngs["beacons"]),
+        "sonar": _sonar_pings(scenario, truth, dense, rngs, notes),
+        "truth": sensors.truth_samples(scenario, dense, steps, bias_acc, bias_gyro),
+    }
+    samples = {k: v for k, v in samples.items() if v}
+    return SimResult(scenario=scenario, imu=imu, samples=samples, steps=steps, dense=dense,
+                     bias_acc_b_m_s2=bias_acc, bias_gyro_b_rad_s=bias_gyro, notes=notes)
