@@ -6,7 +6,7 @@ overrides ``--set section.key=value`` go through the same validation). Sections:
 
 - ``vehicle``   name (the ``<v>`` of every Zenoh key expression)
 - ``zenoh``     session mode, endpoints, multicast scouting
-- ``mavlink``   bridge to ArduSub: URL, on/off, output rate, thruster PWM → RPM curve
+- ``mavlink``   bridge to ArduSub (its :class:`BridgeConfig`) + on/off and output rate
 - ``origin``    mission origin of the local NED frame (degrees at the edge, converted once)
 - ``filter``    the ESKF's own config (:class:`fusion.config.FilterConfig`: lever arms,
                 noises, gates), embedded as is
@@ -28,11 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 
 from fusion.frames import GeoOrigin
 from fusion.motion_model import MotionParams, RpmSpeedTable
 from fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+
+from .mavlink_bridge import BridgeConfig
 
 try:  # the filter's config lands from the navigation-core work; embed it when present
     from fusion.config import FilterConfig
@@ -88,34 +89,17 @@ class ZenohConfig:
 
 
 @dataclass(frozen=True)
-class PwmCurve:
-    """Thruster command PWM (µs) → propeller RPM, piecewise linear, signed."""
-
-    pwm_us: tuple[float, ...] = (1100.0, 1460.0, 1500.0, 1540.0, 1900.0)
-    rpm: tuple[float, ...] = (-1500.0, 0.0, 0.0, 0.0, 1500.0)
-
-    def validate(self) -> None:
-        if len(self.pwm_us) != len(self.rpm) or len(self.pwm_us) < 2:
-            raise ValueError("pwm_to_rpm: pwm_us and rpm must be equal-length lists of >= 2 values")
-        if any(b <= a for a, b in zip(self.pwm_us, self.pwm_us[1:])):
-            raise ValueError("pwm_to_rpm.pwm_us must be strictly increasing")
-
-    def rpm_for(self, pwm_us: float) -> float:
-        return float(np.interp(pwm_us, self.pwm_us, self.rpm))
-
-
-@dataclass(frozen=True)
-class MavlinkConfig:
-    """MAVLink bridge to ArduSub (pymavlink URL: ``udpin:``, ``udpout:``, ``tcp:``, serial)."""
+class MavlinkConfig(BridgeConfig):
+    """MAVLink bridge to ArduSub: :class:`service.mavlink_bridge.BridgeConfig` (``url``,
+    identity, stream rates, ``convert`` incl. the thruster PWM → RPM curve under
+    ``convert.thrusters``, ``output``) plus ``enabled`` and the ODOMETRY
+    ``output_rate_hz`` (ArduSub wants ≥ 4 Hz)."""
 
     enabled: bool = False
-    url: str = "udpin:0.0.0.0:14550"
     output_rate_hz: float = 10.0
-    system_id: int = 1
-    component_id: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
-    pwm_to_rpm: PwmCurve = field(default_factory=PwmCurve)
 
     def validate(self) -> None:
+        super().validate()
         if not 4.0 <= self.output_rate_hz <= 100.0:
             raise ValueError("output_rate_hz must be within [4, 100] (ArduSub wants >= 4 Hz)")
 

@@ -96,6 +96,7 @@ class BusSink(Sink):
         self.latest_state: dict | None = None
         self.latest_aid: dict[str, Any] = {}
         self.nav_count = 0
+        self._next_mavlink_t = -math.inf
 
     def on_nav(self, state: Any) -> None:
         doc = state.to_dict()
@@ -103,7 +104,8 @@ class BusSink(Sink):
         self.nav_count += 1
         self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)
         bridge = self.d.bridge
-        if bridge is not None:
+        if bridge is not None and state.t_s >= self._next_mavlink_t - 1e-6:
+            self._next_mavlink_t = state.t_s + 1.0 / self.d.cfg.mavlink.output_rate_hz
             bridge.send_nav(state)
         if self.d._snapshot_due.is_set():
             self.d._take_snapshot(state.t_s)
@@ -214,8 +216,8 @@ class Daemon:
     def _start_bridge(self) -> None:
         from .mavlink_bridge import MavlinkBridge
 
-        self.bridge = MavlinkBridge.from_config(self.cfg, on_sample=self.enqueue)
-        self.bridge.start()
+        # the bridge thread converts and enqueues; nav output goes back through BusSink
+        self.bridge = MavlinkBridge(None, self.enqueue, self.cfg.origin.geo(), self.cfg.mavlink)
 
     def _run(self) -> None:
         from .runner import run
@@ -327,7 +329,7 @@ class Daemon:
         for t in self._threads:
             t.join(timeout_s)
         if self.bridge is not None:
-            self.bridge.stop()
+            self.bridge.close()
         if self.calibrator is not None:
             self.calibrator.stop()
         # the runner has ended: the estimator is ours to read
