@@ -1,0 +1,143 @@
+"""The one wire format of every message kind (Zenoh payloads and MCAP messages).
+
+A message is UTF-8 JSON: an object with ``type`` (the kind) and ``schema_version``
+plus the kind's fields — self-describing, so ``zenoh-cli`` or the ``mcap`` CLI can
+print it. Non-finite numbers travel as ``null`` (strict JSON has no NaN).
+
+- :func:`encode` ``(sample) -> bytes``
+- :func:`decode` ``(bytes) -> sample``; anything malformed (not UTF-8, not JSON, not an
+  object, unknown type, wrong field types) raises :class:`fusion.samples.SampleError`
+  and never any other exception.
+- :func:`schema_for` ``(kind) -> dict``: the JSON Schema of a kind (MCAP channels).
+- :func:`register` ``(kind, encode_fn, decode_fn, schema, topic=None)``: how other
+  packages add kinds (navigation state, aid status, parameters ...).
+
+Built in: every type of :data:`fusion.samples.SAMPLE_TYPES`, and ``sonar``
+(:class:`sonar.ping.SonarPing`, imported on first use; intensity arrays as JSON lists).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from fusion import samples as fs
+from fusion.samples import SampleError
+
+__all__ = ["SampleError", "encode", "decode", "decode_dict", "schema_for", "register", "kinds",
+           "topic_for", "kind_of"]
+
+
+@dataclass(frozen=True)
+class Codec:
+    """How one kind goes to and from its JSON dict."""
+
+    kind: str
+    to_dict: Callable[[Any], dict]
+    from_dict: Callable[[dict], Any]
+    schema: dict | Callable[[], dict]
+    topic: str
+
+
+_REGISTRY: dict[str, Codec] = {}
+
+
+def _default_topic(kind: str) -> str:
+    return "/adaptnav/truth" if kind == "truth" else f"/adaptnav/sensor/{kind}"
+
+
+def register(kind: str, encode_fn: Callable[[Any], dict], decode_fn: Callable[[dict], Any],
+             schema: dict | Callable[[], dict], topic: str | None = None) -> None:
+    """Register (or replace) a message kind.
+
+    Parameters
+    ----------
+    kind : the ``type`` string of the JSON form (and the object's ``KIND``)
+    encode_fn : object → JSON-ready dict, including ``type`` and ``schema_version``
+    decode_fn : dict → object; may raise ``ValueError``/``TypeError``/``KeyError`` on bad
+        payloads (they are turned into :class:`SampleError`)
+    schema : JSON Schema dict, or a zero-argument function returning it (lazy)
+    topic : MCAP topic for logs (default ``/adaptnav/<kind>``)
+    """
+    _REGISTRY[kind] = Codec(kind, encode_fn, decode_fn, schema, topic or f"/adaptnav/{kind}")
+
+
+for _kind, _cls in fs.SAMPLE_TYPES.items():
+    register(_kind, fs.to_dict, fs.from_dict, (lambda c=_cls: fs.json_schema(c)), _default_topic(_kind))
+
+
+def _sonar_codec() -> Codec:
+    from sonar.ping import SonarPing  # lazy: keeps numpy-only consumers light
+
+    return Codec("sonar", SonarPing.to_dict, SonarPing.from_dict, SonarPing.json_schema,
+                 _default_topic("sonar"))
+
+
+def _lookup(kind: Any) -> Codec:
+    codec = _REGISTRY.get(kind) if isinstance(kind, str) else None
+    if codec is None and kind == "sonar":
+        codec = _REGISTRY["sonar"] = _sonar_codec()
+    if codec is None:
+        raise SampleError(f"unknown message type {kind!r} (known: {', '.join(kinds())})")
+    return codec
+
+
+def kinds() -> list[str]:
+    """Every registered kind (``sonar`` included)."""
+    return sorted(set(_REGISTRY) | {"sonar"})
+
+
+def kind_of(obj: Any) -> str:
+    kind = getattr(obj, "KIND", None)
+    if not isinstance(kind, str):
+        raise TypeError(f"{type(obj).__name__} has no KIND: not a message")
+    return kind
+
+
+def encode(obj: Any) -> bytes:
+    """Message → UTF-8 JSON bytes (``allow_nan=False``: NaN must already be null)."""
+    d = _lookup(kind_of(obj)).to_dict(obj)
+    return json.dumps(d, separators=(",", ":"), allow_nan=False).encode("utf-8")
+
+
+def decode_dict(data: Any) -> Any:
+    """JSON value → message; raises :class:`SampleError` only."""
+    if not isinstance(data, dict):
+        raise SampleError(f"payload is {type(data).__name__}, expected an object")
+    codec = _lookup(data.get("type"))
+    try:
+        return codec.from_dict(data)
+    except SampleError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as e:
+        raise SampleError(f"{codec.kind}: {e}") from None
+
+
+def decode(payload: bytes | bytearray | memoryview | str) -> Any:
+    """UTF-8 JSON bytes → message; raises :class:`SampleError` on anything malformed."""
+    try:
+        if isinstance(payload, str):
+            text = payload
+        elif isinstance(payload, (bytes, bytearray, memoryview)):
+            text = bytes(payload).decode("utf-8")
+        else:
+            raise SampleError(f"payload is {type(payload).__name__}, expected bytes")
+        data = json.loads(text)
+    except SampleError:
+        raise
+    except UnicodeDecodeError as e:
+        raise SampleError(f"payload is not UTF-8: {e}") from None
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise SampleError(f"payload is not JSON: {e}") from None
+    return decode_dict(data)
+
+
+def schema_for(kind: str) -> dict:
+    """JSON Schema (draft 2020-12) of a kind."""
+    codec = _lookup(kind)
+    return codec.schema() if callable(codec.schema) else codec.schema
+
+
+def topic_for(kind: str) -> str:
+    """MCAP topic of a kind: ``/adaptnav/sensor/<kind>``, ``/adaptnav/truth``, ..."""
+    return _lookup(kind).topic

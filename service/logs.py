@@ -1,0 +1,218 @@
+"""MCAP logs of every bus message (simulated or recorded), readable by Foxglove / ``mcap``.
+
+Layout written by :func:`write_mcap`:
+
+- one channel per stream: topic ``/adaptnav/sensor/<kind>`` for sensor kinds,
+  ``/adaptnav/truth`` for ground truth (others as :func:`service.codec.topic_for` says),
+  ``message_encoding="json"``, schema encoding ``jsonschema`` with the kind's JSON Schema;
+- message log time = publish time = sample ``t_s`` in integer nanoseconds; sequence =
+  the message's index in the file;
+- metadata record ``adaptnav`` written *before* the messages (so a truncated file keeps
+  it): string values as given, other values JSON-encoded (their keys listed under
+  ``_json_keys``) — e.g. the effective scenario config.
+
+Messages are written in the order given (the replay order), and :func:`read_mcap`
+reads them back sequentially in that order, one chunk in memory at a time. A truncated
+or corrupted file yields everything before the damage and then one
+:class:`TruncatedLogError`; an undecodable message yields a :class:`SampleError` and
+reading goes on. :class:`ReadStats` counts both.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from fusion.samples import SCHEMA_VERSION, ImuBatch, SampleError
+from service import codec
+
+METADATA_NAME = "adaptnav"
+
+
+class LogError(Exception):
+    """A problem with a log file as a whole (the message says what)."""
+
+
+class TruncatedLogError(LogError):
+    """The file ends (or is corrupt) before its footer; what came before was yielded."""
+
+
+@dataclass
+class ReadStats:
+    """Counters filled while :func:`read_mcap` iterates."""
+
+    messages: int = 0
+    decoded: int = 0
+    bad_messages: int = 0
+    truncated: bool = False
+    truncation_reason: str = ""
+    per_kind: dict[str, int] = field(default_factory=dict)
+
+
+def _ns(t_s: float) -> int:
+    if not math.isfinite(t_s) or t_s < 0:
+        return 0  # MCAP times are unsigned; such a sample is judged by whoever reads it
+    return int(round(t_s * 1e9))
+
+
+def _imu_rows(batch: ImuBatch) -> Iterator[tuple[float, bytes]]:
+    """Fast encoding of an ImuBatch: the same JSON as ``codec.encode(ImuSample)``."""
+    t = np.asarray(batch.t_s, dtype=float).tolist()
+    f = np.asarray(batch.specific_force_b_m_s2, dtype=float)
+    w = np.asarray(batch.omega_b_rad_s, dtype=float)
+    finite = bool(np.isfinite(f).all() and np.isfinite(w).all())
+    fl, wl = f.tolist(), w.tolist()
+    dumps = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
+    for i, ti in enumerate(t):
+        fi, wi = fl[i], wl[i]
+        if not finite:
+            fi = [x if math.isfinite(x) else None for x in fi]
+            wi = [x if math.isfinite(x) else None for x in wi]
+        d = {"type": "imu", "schema_version": SCHEMA_VERSION, "t_s": ti,
+             "specific_force_b_m_s2": fi, "omega_b_rad_s": wi}
+        yield ti, dumps(d).encode("utf-8")
+
+
+def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict | None = None,
+               progress=None) -> dict[str, int]:
+    """Write messages to an MCAP file.
+
+    Parameters
+    ----------
+    path : output file (overwritten)
+    samples_iterable : messages in the order to store (any registered kind); an
+        :class:`ImuBatch` is written as its individual IMU messages
+    metadata : stored in the ``adaptnav`` metadata record
+    progress : optional callable ``progress(n_messages_written_since_last_call)``
+
+    Returns
+    -------
+    dict kind → number of messages written
+    """
+    counts: dict[str, int] = {}
+    channels: dict[str, int] = {}
+    seq = 0
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=512 * 1024)
+        writer.start(profile="", library="adaptnav")
+        meta = {} if metadata is None else dict(metadata)
+        json_keys = [k for k, v in meta.items() if not isinstance(v, str)]
+        record = {str(k): (v if isinstance(v, str) else json.dumps(v, sort_keys=True)) for k, v in meta.items()}
+        if json_keys:
+            record["_json_keys"] = json.dumps(json_keys)
+        writer.add_metadata(METADATA_NAME, record)
+
+        def channel(kind: str) -> int:
+            if kind not in channels:
+                schema = codec.schema_for(kind)
+                sid = writer.register_schema(name=schema.get("title", f"adaptnav.{kind}"),
+                                             encoding="jsonschema",
+                                             data=json.dumps(schema).encode("utf-8"))
+                channels[kind] = writer.register_channel(topic=codec.topic_for(kind),
+                                                         message_encoding="json", schema_id=sid)
+            return channels[kind]
+
+        for item in samples_iterable:
+            if isinstance(item, ImuBatch):
+                cid = channel("imu")
+                n = 0
+                for t, data in _imu_rows(item):
+                    ns = _ns(t)
+                    writer.add_message(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
+                    seq += 1
+                    n += 1
+                counts["imu"] = counts.get("imu", 0) + n
+            else:
+                kind = codec.kind_of(item)
+                cid = channel(kind)
+                ns = _ns(item.t_s)
+                writer.add_message(cid, log_time=ns, data=codec.encode(item), publish_time=ns, sequence=seq)
+                seq += 1
+                n = 1
+                counts[kind] = counts.get(kind, 0) + 1
+            if progress is not None:
+                progress(n)
+        writer.finish()
+    return counts
+
+
+def _decode_metadata(record: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = dict(record)
+    keys = json.loads(out.pop("_json_keys", "[]"))
+    for k in keys:
+        if k in out:
+            out[k] = json.loads(out[k])
+    return out
+
+
+def read_mcap(path: str | Path, stats: ReadStats | None = None,
+              metadata_out: dict | None = None) -> Iterator[Any]:
+    """Messages of an MCAP log, in file order; errors are yielded, not raised.
+
+    Yields
+    ------
+    a decoded message, or a :class:`SampleError` (an undecodable message, reading goes
+    on), or finally one :class:`TruncatedLogError` if the file ends early or is corrupt.
+
+    Parameters
+    ----------
+    stats : optional :class:`ReadStats` updated as messages are read
+    metadata_out : optional dict filled with the ``adaptnav`` metadata when it is met
+    """
+    stats = stats if stats is not None else ReadStats()
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as stream:
+        reader = StreamReader(stream, validate_crcs=True)
+        records = reader.records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except Exception as e:  # noqa: BLE001 — any parser failure on damaged bytes ends the file
+                stats.truncated = True
+                stats.truncation_reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+                yield TruncatedLogError(f"{path}: log ends early or is corrupt after {stats.messages} "
+                                        f"messages ({stats.truncation_reason}); kept what came before")
+                return
+            if isinstance(record, Message):
+                stats.messages += 1
+                try:
+                    if record.channel_id not in channels:
+                        raise SampleError(f"message on unknown channel {record.channel_id}")
+                    sample = codec.decode(record.data)
+                except SampleError as e:
+                    stats.bad_messages += 1
+                    yield e
+                    continue
+                stats.decoded += 1
+                kind = sample.KIND
+                stats.per_kind[kind] = stats.per_kind.get(kind, 0) + 1
+                yield sample
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata) and record.name == METADATA_NAME and metadata_out is not None:
+                metadata_out.update(_decode_metadata(record.metadata))
+            elif isinstance(record, Schema):
+                pass
+
+
+def read_mcap_metadata(path: str | Path) -> dict[str, Any]:
+    """The ``adaptnav`` metadata of a log (read from the start; works on truncated files)."""
+    with open(path, "rb") as stream:
+        try:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Metadata) and record.name == METADATA_NAME:
+                    return _decode_metadata(record.metadata)
+                if isinstance(record, Message):
+                    break
+        except Exception as e:  # noqa: BLE001 — damaged file
+            raise TruncatedLogError(f"{path}: no readable metadata ({type(e).__name__}: {e})") from None
+    return {}
