@@ -234,8 +234,8 @@ class TimeMapper:
         """
         if time_usec <= 0 or time_usec >= UNIX_EPOCH_MIN_US:
             return self.now_s
-        if not clock:
-            return time_usec / 1e6 + self.offset_s if self.now_s is not None else None
+        if not clock and self.now_s is not None:
+            return time_usec / 1e6 + self.offset_s
         return self.map_boot_s(time_usec / 1e6)
 
     def from_u32_usec(self, time_usec: int) -> float | None:

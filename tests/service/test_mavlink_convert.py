@@ -1,0 +1,178 @@
+"""MAVLink ↔ sample conversions: units, time mapping, thruster curve, ODOMETRY out."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from service.mavlink_convert import (
+    ConvertConfig,
+    MavlinkConverter,
+    OdometryConfig,
+    PwmRpmCurve,
+    TimeMapper,
+    gps_global_origin_fields,
+    mavlink2,
+    odometry_fields,
+    quality_from_sigma,
+)
+from fusion.frames import GeoOrigin, euler_to_quat
+
+
+def wire(encode_name, *args, src=(1, 1)):
+    """Encode → bytes → decode, so the message has a real header like one off the wire."""
+    mav = mavlink2.MAVLink(None, srcSystem=src[0], srcComponent=src[1])
+    buf = getattr(mav, encode_name)(*args).pack(mav)
+    return mavlink2.MAVLink(None).decode(bytearray(buf))
+
+
+def heartbeat():
+    return wire("heartbeat_encode", mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+
+
+def converter(**kw):
+    c = MavlinkConverter(ConvertConfig(**kw))
+    c.convert(heartbeat())
+    return c
+
+
+def test_raw_imu_is_mg_and_mrad_per_s():
+    c = converter()
+    (s,) = c.convert(wire("raw_imu_encode", 5_000_000, 10, -20, -1000, 15, -17, 3, 0, 0, 0))
+    assert s.t_s == pytest.approx(5.0)
+    assert s.specific_force_b_m_s2 == pytest.approx((0.0980665, -0.196133, -9.80665))
+    assert s.omega_b_rad_s == pytest.approx((0.015, -0.017, 0.003))
+
+
+def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
+    c = converter(imu_message="auto")
+    assert c.convert(wire("scaled_imu2_encode", 1000, 0, 0, 0, 0, 0, 0, 5, 6, 7)) == []
+    assert c.rejected["imu_absent"] == 1
+    # auto mode locks on the first real IMU stream, then ignores the others
+    assert len(c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))) == 1
+    assert c.convert(wire("scaled_imu2_encode", 1200, 1, 2, -1000, 0, 0, 0, 0, 0, 0)) == []
+    assert c.rejected["imu_other_stream"] == 1
+
+
+def test_highres_imu_attitude_pressure_distance():
+    c = converter(imu_message="HIGHRES_IMU")
+    (imu,) = c.convert(wire("highres_imu_encode", 2_500_000, 0.5, -0.25, -9.5, 0.01, 0.02, -0.03,
+                            0, 0, 0, 0, 0, 0, 20, 0x3F))
+    assert imu.t_s == pytest.approx(2.5)
+    assert imu.specific_force_b_m_s2 == pytest.approx((0.5, -0.25, -9.5))
+    (att,) = c.convert(wire("attitude_encode", 2600, 0.1, -0.2, 3.5, 0, 0, 0))
+    assert att.t_s == pytest.approx(2.6)
+    assert att.yaw_rad == pytest.approx(3.5 - 2 * math.pi, abs=1e-6)
+    (dep,) = c.convert(wire("scaled_pressure2_encode", 2700, 1513.25, 0.0, 1500))
+    assert dep.pressure_pa == pytest.approx(151325.0, rel=1e-6)
+    assert c.convert(wire("scaled_pressure_encode", 2700, 1013.0, 0.0, 3000)) == []  # hull barometer
+    (alt,) = c.convert(wire("distance_sensor_encode", 2800, 20, 5000, 3948, 1, 1, 25, 255))
+    assert alt.altitude_m == pytest.approx(39.48)
+    assert c.convert(wire("distance_sensor_encode", 2800, 20, 5000, 3948, 1, 1, 0, 255)) == []  # forward
+    assert c.convert(wire("distance_sensor_encode", 2800, 20, 5000, 9000, 1, 1, 25, 255)) == []  # out of range
+
+
+def test_gps_input_is_usbl_and_its_gps_raw_int_echo_is_dropped():
+    c = converter()
+    c.convert(wire("attitude_encode", 10_000, 0, 0, 0, 0, 0, 0))
+    (u,) = c.convert(wire("gps_input_encode", 0, 0, 253, 0, 0, 3, 483861418, -1246305732, 0.0, 1.6, 65535,
+                          0, 0, 0, 0, 0, 0, 21, 0, src=(1, 220)))
+    assert u.t_s == pytest.approx(10.0)  # UGPS component: stamped with the autopilot clock
+    assert u.lat_rad == pytest.approx(math.radians(48.3861418), abs=1e-12)
+    assert u.lon_rad == pytest.approx(math.radians(-124.6305732), abs=1e-12)
+    assert u.sigma_h_m == pytest.approx(1.6)  # HDOP × 1 m
+    assert math.isnan(u.depth_m)  # altitude flagged ignored: depth comes from the depth sensor
+    echo = wire("gps_raw_int_encode", 10_100_000, 3, 483861418, -1246305732, 0, 160, 65535, 0, 0, 21)
+    assert c.convert(echo) == []
+    assert c.rejected["gnss_echo_of_gps_input"] == 1
+
+
+def test_gps_raw_int_needs_a_fix_and_uses_h_acc():
+    c = converter()
+    assert c.convert(wire("gps_raw_int_encode", 1_000_000, 1, 1, 1, 0, 160, 65535, 0, 0, 0)) == []
+    (g,) = c.convert(wire("gps_raw_int_encode", 1_000_000, 3, 100_000_000, 200_000_000, 0, 160, 65535, 0, 0, 9,
+                          0, 1500, 0, 0, 0))
+    assert g.lat_rad == pytest.approx(math.radians(10.0))
+    assert g.sigma_h_m == pytest.approx(1.5)
+
+
+def test_messages_from_a_ground_station_are_ignored():
+    c = converter()
+    assert c.convert(wire("attitude_encode", 1000, 0.1, 0, 0, 0, 0, 0, src=(255, 190))) == []
+    assert c.rejected["other_system"] == 1
+
+
+def test_pwm_rpm_curve_dead_band_and_inverse():
+    curve = PwmRpmCurve()
+    assert curve.rpm_of_pwm(1500) == 0.0
+    assert curve.rpm_of_pwm(1520) == 0.0  # inside the ±25 µs dead band
+    assert curve.rpm_of_pwm(1900) == pytest.approx(3500.0)
+    assert curve.rpm_of_pwm(1100) == pytest.approx(-3500.0)
+    assert curve.rpm_of_pwm(1712.5) == pytest.approx(1750.0)
+    for rpm in (-3000.0, -10.0, 0.0, 12.0, 1750.0, 3400.0):
+        assert curve.rpm_of_pwm(curve.pwm_of_rpm(rpm)) == pytest.approx(rpm, abs=3500 / 375)
+
+
+def test_servo_output_to_rpm_uses_forward_signs():
+    c = converter()
+    # BlueROV2 vectored: motors 1, 2 push forward with PWM < 1500, motors 3, 4 with > 1500
+    (r,) = c.convert(wire("servo_output_raw_encode", 3_000_000, 0, 1287, 1287, 1713, 1713, 1500, 1500, 1500, 1500))
+    expected = 3500 * (1713 - 1525) / 375
+    assert r.rpm == pytest.approx(expected, rel=1e-3)
+
+
+def test_time_mapper_wrap_and_reboot_keep_mission_time_monotonic():
+    tm = TimeMapper(reboot_backjump_s=2.0)
+    assert tm.from_boot_ms(1000) == pytest.approx(1.0)
+    assert tm.from_boot_ms(990) == pytest.approx(0.99)  # small out-of-order: not a reboot
+    t_before = tm.from_boot_ms(500_000)
+    t_after = tm.from_boot_ms(3_000)  # autopilot rebooted
+    assert tm.reboots == 1 and t_after >= t_before
+    assert tm.from_boot_ms(4_000) == pytest.approx(t_after + 1.0)
+    tm2 = TimeMapper()
+    near_wrap = 2**32 - 500
+    t1 = tm2.from_boot_ms(near_wrap)
+    t2 = tm2.from_boot_ms(500)  # uint32 wrapped after 49.7 days
+    assert tm2.wraps == 1 and t2 - t1 == pytest.approx(1.0, abs=1e-6)
+
+
+def nav(valid=True, sigma=0.5, yaw=math.pi / 2, **kw):
+    cov = np.eye(18) * 1e-4
+    cov[0, 0] = cov[1, 1] = sigma**2
+    base = dict(t_s=12.5, pos_n_m=(10.0, -4.0, 3.0), vel_n_m_s=(0.0, 1.5, 0.1),
+                q_nb=tuple(euler_to_quat(0.0, 0.0, yaw)), cov=cov, valid=valid, reset_counter=3)
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_odometry_frames_body_velocity_and_covariance():
+    f = odometry_fields(nav())
+    assert f["frame_id"] == mavlink2.MAV_FRAME_LOCAL_FRD == 20
+    assert f["child_frame_id"] == mavlink2.MAV_FRAME_BODY_FRD == 12
+    assert (f["x"], f["y"], f["z"]) == (10.0, -4.0, 3.0)
+    # heading east (yaw 90°) moving east at 1.5 m/s = forward 1.5 m/s in body FRD
+    assert (f["vx"], f["vy"], f["vz"]) == pytest.approx((1.5, 0.0, 0.1), abs=1e-9)
+    assert f["pose_covariance"][0] == pytest.approx(0.25) and f["pose_covariance"][6] == pytest.approx(0.25)
+    assert len(f["pose_covariance"]) == 21 and len(f["velocity_covariance"]) == 21
+    assert f["reset_counter"] == 3 and f["time_usec"] == 12_500_000
+    assert f["quality"] == 100
+
+
+def test_quality_falls_with_sigma():
+    cfg = OdometryConfig(sigma_best_m=0.5, sigma_worst_m=50.0)
+    q = [quality_from_sigma(s, cfg) for s in (0.1, 0.5, 5.0, 50.0, 500.0)]
+    # log scale: σ = 5 m is half-way (in log) between 0.5 m and 50 m
+    assert q[0] == q[1] == 100 and q[2] in (50, 51) and q[3] == q[4] == 1
+
+
+@pytest.mark.parametrize("bad", [dict(valid=False), dict(pos_n_m=(math.nan, 0.0, 0.0)), dict(q_nb=(0.0, 0.0, 0.0, 0.0))])
+def test_invalid_solution_is_never_sent_as_plausible_numbers(bad):
+    assert odometry_fields(nav(**bad)) is None
+    f = odometry_fields(nav(**bad), OdometryConfig(invalid="failed"))
+    assert f["quality"] == -1 and math.isnan(f["x"]) and math.isnan(f["vx"])
+
+
+def test_origin_in_deg_e7_and_mm():
+    o = GeoOrigin(math.radians(48.5), math.radians(-124.25), 12.5)
+    f = gps_global_origin_fields(o, 1)
+    assert (f["latitude"], f["longitude"], f["altitude"]) == (485_000_000, -1_242_500_000, 12_500)
