@@ -99,6 +99,49 @@ def message(kind: str, body: dict[str, Any]) -> bytes:
     return json.dumps(doc, default=_json_default, allow_nan=False).encode()
 
 
+# The service's own message kinds, registered with the codec (schemas for MCAP channels
+# and third-party readers). Decoding gives the JSON dict back: these are read by tools,
+# not turned into objects by the service.
+SERVICE_KINDS: dict[str, tuple[str, str]] = {
+    # kind: (MCAP topic, description)
+    "nav_state": ("/adaptnav/nav/state", "navigation state with 18x18 error covariance"),
+    "aid_status": ("/adaptnav/nav/aid", "one fusion attempt of an aiding source"),
+    "motion_params": ("/adaptnav/motion_params", "motion parameters in use"),
+    "calibration_release": ("/adaptnav/calibration/params", "a calibrator release"),
+    "health": ("/adaptnav/health", "health report"),
+    "service_config": ("/adaptnav/config", "effective service configuration"),
+}
+
+
+def _schema(kind: str, description: str) -> dict:
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": f"adaptnav.{kind}",
+        "description": description,
+        "type": "object",
+        "properties": {"type": {"const": kind}, "schema_version": {"const": SCHEMA_VERSION}},
+        "required": ["type", "schema_version"],
+    }
+
+
+def _decode_as(kind: str) -> Callable[[dict], dict]:
+    def decode(data: dict) -> dict:
+        if data.get("schema_version") != SCHEMA_VERSION:
+            raise ValueError(f"{kind}: schema_version {data.get('schema_version')!r} not supported")
+        return data
+    return decode
+
+
+def _register_service_kinds() -> None:
+    from . import codec
+
+    for kind, (topic, description) in SERVICE_KINDS.items():
+        codec.register(kind, lambda d: d, _decode_as(kind), _schema(kind, description), topic)
+
+
+_register_service_kinds()
+
+
 def encode_sample(sample: Any) -> bytes:
     from . import codec
 

@@ -150,6 +150,7 @@ class Daemon:
         self.summary: Any = None
         self.latest_health: dict = {}
         self._threads: list[threading.Thread] = []
+        self._health_lock = threading.Lock()
         self._malformed_reported: Counter[str] = Counter()
         self._overflow_reported: Counter[str] = Counter()
 
@@ -199,7 +200,7 @@ class Daemon:
         self.bus.queryable("params", lambda: message("motion_params", {
             "params": self.params.to_dict(), "restored": self.restored}))
         self.bus.queryable("config", lambda: message("service_config", config_dict(cfg)))
-        self.bus.queryable("health", lambda: message("health", self.latest_health or self._health_report()))
+        self.bus.queryable("health", lambda: message("health", self._health_report()))
         if cfg.calibrator.enabled and cfg.calibrator.location == "process":
             self.calibrator = CalibratorProcess(cfg, self.params, self.enqueue)
             self.calibrator.start()
@@ -247,6 +248,10 @@ class Daemon:
             log.error("could not persist learned state to %s: %s", self.cfg.state_dir, e)
 
     def _health_report(self) -> dict:
+        with self._health_lock:  # housekeeping thread and health queries
+            return self._health_report_locked()
+
+    def _health_report_locked(self) -> dict:
         # merge counters kept outside the runner thread (bus callbacks, queue overflow)
         for source, reported in ((self.bus.malformed, self._malformed_reported),
                                  (self.overflow, self._overflow_reported)):
