@@ -1,0 +1,111 @@
+r"""Expectation–Maximisation for the motion parameters over one window (seed §3.3).
+
+Iteration k (Bishop 2006, §9.4; seed §3.1–3.3):
+
+1. E-step with θ_k: particle filter (:mod:`calibration.particle_filter`) → window
+   log-likelihood ``ℓ(θ_k)`` (the PF estimate) and M smoothed trajectories by FFBSi
+   (:mod:`calibration.smoother`, MCMC backward kernel by default, exact on request).
+2. M-step (:mod:`calibration.mstep`): θ_{k+1} = argmax of the expected complete-data
+   log-likelihood, Newton-CG on log-variances, closed-form k_V, b_W.
+3. Stop when ``|ℓ(θ_k) − ℓ(θ_{k−1})| < ll_tol · (1 + |ℓ|)`` *and* every parameter moved by
+   less than ``param_rtol`` (relative), or after ``max_iterations``.
+
+Side-scan landmark sightings (:class:`calibration.sensors.LandmarkSighting`) are handled
+by a FastSLAM forward pass with θ_0 that builds the landmark map, which is then frozen for
+all iterations (see :mod:`calibration.sensors`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.motion_model import MotionParams
+from calibration.mstep import MStepOptions, m_step
+from calibration.particle_filter import run_particle_filter
+from calibration.sensors import FixedLandmarkObservation, LandmarkSighting
+from calibration.smoother import ffbsi_exact, ffbsi_mcmc
+
+
+@dataclass(frozen=True)
+class EMOptions:
+    n_particles: int = 1000
+    n_smoothed: int = 100
+    max_iterations: int = 5
+    ll_tol: float = 1e-3
+    param_rtol: float = 0.02
+    smoother: str = "mcmc"  # "mcmc" | "exact"
+    n_mcmc: int = 2
+    mstep: MStepOptions = MStepOptions()
+
+
+@dataclass
+class EMResult:
+    params: MotionParams
+    log_likelihoods: list[float]  # ℓ(θ_k) for each E-step, k = 0..iterations-1
+    iterations: int
+    converged: bool
+    held: tuple[str, ...] = ()
+    notes: list[str] = field(default_factory=list)
+    filter_result: object = None  # the last E-step's FilterResult
+
+
+def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particles):
+    """Replace :class:`LandmarkSighting` by :class:`FixedLandmarkObservation` using a map
+    built by a FastSLAM forward pass; other observations are kept."""
+    if not any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ())):
+        return observations
+    fr = run_particle_filter(params, v, w, dt, observations, init_poses, rng, n_particles,
+                             map_landmarks=True)
+    lmap = fr.landmark_map.fixed_map(fr.log_w[-1])
+    out = []
+    for obs in observations:
+        out.append([FixedLandmarkObservation(o, *lmap[o.track_id]) if isinstance(o, LandmarkSighting) else o
+                    for o in (obs or ())])
+    return out
+
+
+def _max_rel_change(a: MotionParams, b: MotionParams) -> float:
+    da, db = a.to_dict(), b.to_dict()
+    out = 0.0
+    for key in da:
+        if key.startswith("var_"):  # compare standard deviations
+            x, y = math.sqrt(da[key]), math.sqrt(db[key])
+            out = max(out, abs(x - y) / max(abs(x), 1e-12))
+        elif key == "b_w":
+            out = max(out, abs(da[key] - db[key]) / 0.01)  # 0.01 rad/s as the scale
+        else:
+            out = max(out, abs(da[key] - db[key]) / max(abs(da[key]), 1e-12))
+    return out
+
+
+def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
+           rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None) -> EMResult:
+    """EM over one window; arguments as :func:`calibration.particle_filter.run_particle_filter`.
+
+    ``step_weights`` (T,) are forgetting weights passed to the M-step.
+    """
+    observations = freeze_landmarks(params0, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
+                                    options.n_particles)
+    smooth = ffbsi_exact if options.smoother == "exact" else ffbsi_mcmc
+    params = params0
+    lls: list[float] = []
+    converged = False
+    held: tuple[str, ...] = ()
+    notes: list[str] = []
+    fr = None
+    for it in range(options.max_iterations):
+        fr = run_particle_filter(params, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
+                                 options.n_particles)
+        lls.append(fr.log_likelihood)
+        if it > 0 and abs(lls[-1] - lls[-2]) < options.ll_tol * (1.0 + abs(lls[-1])) and moved < options.param_rtol:
+            converged = True
+            break
+        kwargs = {"n_mcmc": options.n_mcmc} if smooth is ffbsi_mcmc else {}
+        traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, **kwargs)
+        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep)
+        held, notes = ms.held, ms.notes
+        moved = _max_rel_change(params, ms.params)
+        params = ms.params
+    return EMResult(params, lls, len(lls), converged, held, notes, fr)

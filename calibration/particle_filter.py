@@ -1,0 +1,151 @@
+r"""Bootstrap particle filter over a window of T motion steps (seed §2.2, Algorithm 1).
+
+Model: ``x_{t+1} ~ p(· | x_t, v_t, w_t, δt_t)`` (:mod:`fusion.motion_model`) and observations
+``y_t`` at pose ``x_t`` for t = 0..T, each with ``log g_t(x_t)`` (:mod:`calibration.sensors`).
+
+Weights are kept in the log domain. Resampling is systematic and adaptive: before the
+move t → t+1 it happens only when ``ESS < ess_fraction · N`` (Doucet & Johansen 2009).
+The incremental log-likelihood uses the normalised weights carried into step t
+(uniform right after a resampling, the previous weights otherwise)::
+
+    log p(y_t | y_{0:t−1}) ≈ log Σ_i W_{t−1}^i g_t(x_t^i)
+
+which is the correct estimator under adaptive resampling; the window's log-likelihood is
+their sum (with ``t = 0`` relative to the prior cloud). The result stores all particles,
+normalised log-weights and ancestor indices for backward smoothing.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import logsumexp
+
+from fusion.motion_model import MotionParams, sample_poses
+from calibration.resampling import normalise_log_weights, systematic_resample
+from calibration.sensors import LandmarkSighting, ParticleLandmarkMap
+
+
+@dataclass
+class FilterResult:
+    """Particles ``poses`` (T+1, N, 3), normalised ``log_w`` (T+1, N), ``ancestors`` (T, N)
+    (``ancestors[t, j]`` is the index at t of particle j's parent at t+1), per-step
+    ``log_lik_increments`` (T+1,), ``resampled`` (T,) flags and the window's ``log_likelihood``."""
+
+    poses: np.ndarray
+    log_w: np.ndarray
+    ancestors: np.ndarray
+    log_lik_increments: np.ndarray
+    resampled: np.ndarray
+    landmark_map: ParticleLandmarkMap | None = None
+
+    @property
+    def log_likelihood(self) -> float:
+        return float(np.sum(self.log_lik_increments))
+
+    def mean_poses(self) -> np.ndarray:
+        """Filter means (T+1, 3); the heading by circular mean."""
+        w = np.exp(self.log_w)
+        xy = np.einsum("tn,tnk->tk", w, self.poses[:, :, :2])
+        th = np.arctan2(np.einsum("tn,tn->t", w, np.sin(self.poses[:, :, 2])),
+                        np.einsum("tn,tn->t", w, np.cos(self.poses[:, :, 2])))
+        return np.concatenate([xy, th[:, None]], axis=1)
+
+
+def _observation_log_lik(obs_list, poses, landmark_map):
+    g = np.zeros(poses.shape[0])
+    for ob in obs_list or ():
+        if isinstance(ob, LandmarkSighting):
+            if landmark_map is None:
+                raise ValueError("LandmarkSighting needs a landmark map (map_landmarks=True)")
+            g += landmark_map.log_likelihood_and_update(poses, ob)
+        else:
+            g += ob.log_likelihood(poses)
+    return g
+
+
+def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
+                        rng: np.random.Generator, n_particles: int | None = None,
+                        ess_fraction: float = 0.5, map_landmarks: bool = False) -> FilterResult:
+    """Run the filter over one window.
+
+    Parameters
+    ----------
+    params : motion parameters used for the moves
+    v_m_s, w_rad_s, dt_s : (T,) reported surge speed (m/s), yaw rate (rad/s), step (s)
+        carrying pose t to t+1
+    observations : sequence of length T+1; ``observations[t]`` is a list of observation
+        objects at pose t (may be empty)
+    init_poses : (N0, 3) prior particle cloud at t = 0 (equally weighted); resampled to
+        ``n_particles`` if that differs from N0
+    rng : random generator (moves and resampling)
+    n_particles : N (default N0)
+    ess_fraction : resample when ESS < ess_fraction · N
+    map_landmarks : keep a per-particle map for :class:`LandmarkSighting` (FastSLAM)
+    """
+    v = np.asarray(v_m_s, dtype=float)
+    w = np.asarray(w_rad_s, dtype=float)
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    T = v.size
+    if len(observations) != T + 1:
+        raise ValueError(f"observations: expected T+1 = {T + 1} entries, got {len(observations)}")
+    init = np.asarray(init_poses, dtype=float).reshape(-1, 3)
+    N = init.shape[0] if n_particles is None else int(n_particles)
+    if init.shape[0] != N:
+        init = init[rng.integers(0, init.shape[0], N)]
+    X = np.empty((T + 1, N, 3))
+    LW = np.empty((T + 1, N))
+    A = np.empty((T, N), dtype=np.int64)
+    inc = np.empty(T + 1)
+    resampled = np.zeros(T, dtype=bool)
+    lmap = ParticleLandmarkMap(N) if map_landmarks else None
+
+    X[0] = init
+    lw = np.full(N, -np.log(N))
+    g = _observation_log_lik(observations[0], X[0], lmap)
+    inc[0] = logsumexp(lw + g)
+    LW[0] = lw = normalise_log_weights(lw + g)
+    arange = np.arange(N)
+    threshold = ess_fraction * N
+    for t in range(T):
+        wts = np.exp(lw)
+        if 1.0 / np.sum(wts * wts) < threshold:
+            idx = systematic_resample(wts, rng)
+            lw = np.full(N, -np.log(N))
+            resampled[t] = True
+            if lmap is not None:
+                lmap.resample(idx)
+        else:
+            idx = arange
+        A[t] = idx
+        X[t + 1] = sample_poses(params, X[t, idx], v[t], w[t], dt[t], rng)
+        g = _observation_log_lik(observations[t + 1], X[t + 1], lmap)
+        inc[t + 1] = logsumexp(lw + g)  # lw is normalised: this is log Σ W g
+        LW[t + 1] = lw = normalise_log_weights(lw + g)
+    return FilterResult(X, LW, A, inc, resampled, lmap)
+
+
+def filter_step(params: MotionParams, poses: np.ndarray, log_w: np.ndarray, v: float, w: float,
+                dt: float, obs_list, rng: np.random.Generator, ess_fraction: float = 0.5):
+    """One online step of the same filter: (resample if ESS low) → move → weight.
+
+    Returns new ``(poses (N,3), normalised log_w (N,), log-likelihood increment)``.
+    """
+    N = poses.shape[0]
+    wts = np.exp(log_w)
+    if 1.0 / np.sum(wts * wts) < ess_fraction * N:
+        poses = poses[systematic_resample(wts, rng)]
+        log_w = np.full(N, -np.log(N))
+    poses = sample_poses(params, poses, v, w, dt, rng)
+    g = _observation_log_lik(obs_list, poses, None)
+    inc = float(logsumexp(log_w + g))
+    return poses, normalise_log_weights(log_w + g), inc
+
+
+def weighted_mean_pose(poses: np.ndarray, log_w: np.ndarray) -> np.ndarray:
+    """Weighted mean pose (3,), heading by circular mean."""
+    w = np.exp(log_w - log_w.max())
+    w /= w.sum()
+    return np.array([w @ poses[:, 0], w @ poses[:, 1],
+                     math.atan2(w @ np.sin(poses[:, 2]), w @ np.cos(poses[:, 2]))])
