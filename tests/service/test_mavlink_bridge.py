@@ -1,0 +1,230 @@
+"""The bridge against real pymavlink peers on UDP loopback, both directions."""
+import math
+import queue
+import socket
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fusion.frames import GeoOrigin, euler_to_quat
+from fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, UsblSample
+from service.mavlink_bridge import BridgeConfig, MavlinkBridge
+from service.mavlink_convert import mavlink2
+from service.sitl_vehicle import SitlVehicle, SitlVehicleConfig
+
+from pymavlink import mavutil
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def free_udp_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Peer:
+    """A pymavlink endpoint posing as ArduSub (system 1, component 1)."""
+
+    def __init__(self, port):
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                               source_component=1, dialect="ardupilotmega")
+        self.got = []
+
+    def heartbeat(self):
+        self.conn.mav.heartbeat_send(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+
+    def pump(self, seconds, until=None):
+        end = time.monotonic() + seconds
+        next_hb = 0.0
+        while time.monotonic() < end:
+            if time.monotonic() >= next_hb:
+                self.heartbeat()
+                next_hb = time.monotonic() + 0.2
+            while (m := self.conn.recv_msg()) is not None:
+                self.got.append(m)
+            if until is not None and until():
+                return True
+            self.conn.select(0.02)
+        return until is None
+
+    def of_type(self, t):
+        return [m for m in self.got if m.get_type() == t]
+
+    def close(self):
+        self.conn.close()
+
+
+def drain(q, until, timeout=5.0):
+    out = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            out.append(q.get(timeout=0.05))
+        except queue.Empty:
+            pass
+        if until(out):
+            break
+    return out
+
+
+@pytest.fixture
+def link():
+    port = free_udp_port()
+    q = queue.Queue()
+    cfg = BridgeConfig(link_timeout_s=0.6, reconnect_min_s=0.05)
+    bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, GeoOrigin(math.radians(48.5), math.radians(-124.25), 0.0), cfg)
+    peer = Peer(port)
+    yield bridge, peer, q, port
+    bridge.close()
+    peer.close()
+
+
+def nav(valid=True):
+    cov = np.eye(18) * 0.01
+    cov[0, 0] = cov[1, 1] = 4.0  # σ_h = 2 m
+    return SimpleNamespace(t_s=30.0, pos_n_m=(5.0, 6.0, 7.0), vel_n_m_s=(1.0, 0.0, 0.0),
+                           q_nb=tuple(euler_to_quat(0.0, 0.0, 0.0)), cov=cov, valid=valid, reset_counter=1)
+
+
+def test_peer_messages_become_samples_in_si_units(link):
+    bridge, peer, q, _ = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    mav = peer.conn.mav
+    mav.attitude_send(10_000, 0.1, -0.2, 0.3, 0.0, 0.0, 0.0)
+    mav.raw_imu_send(10_010_000, 10, -20, -1000, 15, -17, 3, 0, 0, 0)
+    mav.scaled_pressure2_send(10_020, 1513.25, 0.0, 1500)
+    mav.servo_output_raw_send(10_030_000, 0, 1287, 1287, 1713, 1713, 1500, 1500, 1500, 1500)
+    got = drain(q, lambda out: len(out) >= 4)
+    by = {s.KIND: s for s in got}
+    assert set(by) == {"attitude", "imu", "depth", "rpm"}
+    assert by["attitude"].t_s == pytest.approx(10.0) and by["attitude"].pitch_rad == pytest.approx(-0.2)
+    assert by["imu"].specific_force_b_m_s2 == pytest.approx((0.0980665, -0.196133, -9.80665))
+    assert by["imu"].omega_b_rad_s == pytest.approx((0.015, -0.017, 0.003))
+    assert by["depth"].pressure_pa == pytest.approx(151325.0, rel=1e-6)
+    assert by["rpm"].rpm == pytest.approx(3500 * (1713 - 1525) / 375, rel=1e-3)
+
+
+def test_bridge_speaks_as_onboard_component_and_requests_rates(link):
+    bridge, peer, q, _ = link
+    assert peer.pump(3.0, until=lambda: len(peer.of_type("COMMAND_LONG")) >= 6 and peer.of_type("SET_GPS_GLOBAL_ORIGIN"))
+    peer.pump(1.2)  # at least one more 1 Hz heartbeat
+    hbs = peer.of_type("HEARTBEAT")
+    assert hbs and all(h.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER for h in hbs)
+    assert hbs[0].get_srcComponent() == mavlink2.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+    cmds = {int(c.param1): c.param2 for c in peer.of_type("COMMAND_LONG")
+            if c.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL and c.target_system == 1}
+    assert cmds[mavlink2.MAVLINK_MSG_ID_RAW_IMU] == pytest.approx(20_000)  # 50 Hz
+    assert cmds[mavlink2.MAVLINK_MSG_ID_ATTITUDE] == pytest.approx(20_000)
+    assert mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE2 in cmds
+    (origin,) = peer.of_type("SET_GPS_GLOBAL_ORIGIN")  # once
+    assert (origin.latitude, origin.longitude) == (485_000_000, -1_242_500_000)
+
+
+def test_odometry_goes_out_with_frd_frames_and_quality(link):
+    bridge, peer, q, _ = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    assert bridge.send_nav(nav())
+    assert peer.pump(2.0, until=lambda: peer.of_type("ODOMETRY"))
+    (od,) = peer.of_type("ODOMETRY")
+    assert od.frame_id == 20 and od.child_frame_id == 12  # LOCAL_FRD, BODY_FRD
+    assert (od.x, od.y, od.z) == (5.0, 6.0, 7.0) and od.vx == pytest.approx(1.0)
+    assert od.pose_covariance[0] == pytest.approx(4.0)
+    # σ_h = 2 m between best 0.5 m and worst 50 m on the log scale: 100 − 99·log(4)/log(100)
+    assert od.quality == round(100 - 99 * math.log(4) / math.log(100))
+    assert od.reset_counter == 1
+
+
+def test_invalid_solution_sends_nothing(link):
+    bridge, peer, q, _ = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    assert not bridge.send_nav(nav(valid=False))
+    bridge.send_nav(nav())  # a valid one after it, as a marker
+    assert peer.pump(2.0, until=lambda: peer.of_type("ODOMETRY"))
+    peer.pump(0.3)
+    assert len(peer.of_type("ODOMETRY")) == 1 and peer.of_type("ODOMETRY")[0].quality > 0
+    assert bridge.counters["nav_silenced"] == 1
+
+
+def test_corrupt_frames_are_counted_and_the_bridge_keeps_working(link):
+    bridge, peer, q, port = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    mav = peer.conn.mav
+    good = mav.attitude_encode(20_000, 0.1, 0.2, 0.3, 0, 0, 0).pack(mav)
+    for i in range(5):
+        bad = bytearray(good)
+        bad[-1] ^= 0xFF  # CRC broken
+        peer.conn.write(bytes(bad))
+    peer.conn.write(b"\xfd\x09garbage that is no frame at all \x00\xff")
+    mav.attitude_send(21_000, 0.4, 0.5, 0.6, 0, 0, 0)
+    got = drain(q, lambda out: any(s.t_s == pytest.approx(21.0) for s in out))
+    assert [s.roll_rad for s in got] == pytest.approx([0.4])  # the corrupt ones never became samples
+    assert bridge.counters["corrupt_frames"] >= 6
+    assert bridge._thread.is_alive()
+
+
+def test_peer_restart_reconnects_and_re_requests_streams(link):
+    bridge, peer, q, port = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    n_req = bridge.counters["interval_requests"]
+    peer.close()  # autopilot gone (reboot, cable, router restart)
+    deadline = time.monotonic() + 5.0
+    while bridge.link_up.is_set() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not bridge.link_up.is_set() and bridge.counters["link_losses"] >= 1
+    peer2 = Peer(port)  # a new socket: new source port, as after a reboot
+    try:
+        assert peer2.pump(5.0, until=lambda: peer2.of_type("COMMAND_LONG") and bridge.link_up.is_set())
+        assert bridge.counters["reconnects"] >= 1
+        assert bridge.counters["interval_requests"] > n_req
+        peer2.conn.mav.attitude_send(5_000, 0.7, 0.0, 0.0, 0, 0, 0)
+        got = drain(q, lambda out: any(s.KIND == "attitude" for s in out))
+        assert any(s.KIND == "attitude" and s.roll_rad == pytest.approx(0.7) for s in got)
+    finally:
+        peer2.close()
+
+
+def test_sitl_vehicle_end_to_end_through_the_bridge():
+    port = free_udp_port()
+    q = queue.Queue()
+    samples = []
+    for i in range(300):  # 3 s at 100 Hz
+        t = i / 100
+        samples.append(ImuSample(t, (0.1, 0.2, -9.8), (0.01, -0.02, 0.03)))
+        if i % 5 == 0:
+            samples.append(AttitudeSample(t, 0.1, -0.05, 1.0))
+        if i % 10 == 0:
+            samples += [DepthSample(t, 150_000.0), RpmSample(t, 1200.0)]
+        if i % 100 == 50:
+            samples.append(UsblSample(t, 0.8, -2.1, 5.0, 1.5))
+    bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, GeoOrigin(0.8, -2.1, 0.0),
+                           BridgeConfig(request_imu_message="HIGHRES_IMU"))
+    vehicle = SitlVehicle(samples, SitlVehicleConfig(url=f"udpout:127.0.0.1:{port}", speed=3.0)).start()
+    try:
+        assert bridge.wait_connected(5.0)
+        for _ in range(5):
+            bridge.send_nav(nav())
+            time.sleep(0.1)
+        assert vehicle.done.wait(10.0) and vehicle.error is None
+        time.sleep(0.2)
+        vehicle.poll()
+    finally:
+        bridge.close()
+        vehicle.close()
+    got = []
+    while not q.empty():
+        got.append(q.get())
+    by = {}
+    for s in got:
+        by.setdefault(s.KIND, []).append(s)
+    # after the 50 Hz request the 100 Hz IMU arrives as every second sample, floats intact
+    assert 100 <= len(by["imu"]) <= 160
+    assert by["imu"][-1].specific_force_b_m_s2 == pytest.approx((0.1, 0.2, -9.8), abs=1e-6)
+    assert by["rpm"][-1].rpm == pytest.approx(1200.0, abs=3500 / 375)
+    assert by["depth"][-1].pressure_pa == pytest.approx(150_000.0, rel=1e-6)
+    assert by["usbl"][-1].lat_rad == pytest.approx(0.8, abs=1e-9) and by["usbl"][-1].depth_m == pytest.approx(5.0)
+    assert vehicle.received["odometry"] == 5 and vehicle.received["origin"] is not None
+    assert vehicle.received["interval_requests"]["HIGHRES_IMU"] == pytest.approx(20_000)
+    assert vehicle.received["onboard_heartbeats"] >= 1
