@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -68,6 +69,7 @@ class BridgeConfig:
     reconnect_max_s: float = 5.0
     request_imu_message: str = "RAW_IMU"  # ArduSub 4.x streams RAW_IMU; HIGHRES_IMU on newer builds
     rates: StreamRates = field(default_factory=StreamRates)
+    udp_rcvbuf_bytes: int = 4 * 1024 * 1024
     convert: ConvertConfig = field(default_factory=ConvertConfig)
     output: OdometryConfig = field(default_factory=OdometryConfig)
 
@@ -190,6 +192,12 @@ class MavlinkBridge:
             self.url, source_system=self.config.source_system,
             source_component=self.config.source_component, dialect="ardupilotmega", autoreconnect=False,
             retries=0)  # one TCP connect attempt: our loop owns the back-off
+        port = getattr(conn, "port", None)
+        if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
+            try:  # room for bursts (accelerated simulation, log playback into the link)
+                port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.config.udp_rcvbuf_bytes)
+            except OSError:
+                pass
         with self._lock:
             self._conn = conn
         if self._opened_once:

@@ -8,7 +8,8 @@ samples in time order) and speaks to the link as ArduSub would:
 - the sensor streams at ArduSub's default rates (IMU 2 Hz, ATTITUDE 10 Hz, ...) until
   a ``MAV_CMD_SET_MESSAGE_INTERVAL`` changes them (answered with COMMAND_ACK) —
   HIGHRES_IMU, RAW_IMU or SCALED_IMU2 from :class:`ImuSample`, ATTITUDE from
-  :class:`AttitudeSample`, SCALED_PRESSURE2 from :class:`DepthSample`,
+  :class:`AttitudeSample` (or, for a simulator that has none, truth roll/pitch with the
+  latest :class:`HeadingSample` as yaw — an AHRS's output), SCALED_PRESSURE2 from :class:`DepthSample`,
   SERVO_OUTPUT_RAW from :class:`RpmSample` through the inverse thruster curve,
   GPS_RAW_INT from :class:`GnssSample` (surface fixes), GPS_INPUT from
   :class:`UsblSample` (as the Water Linked UGPS component 220 does), DISTANCE_SENSOR
@@ -39,6 +40,7 @@ from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     ThrusterConfig,
     mavlink2,
 )
+from fusion.frames import quat_to_euler
 
 from pymavlink import mavutil  # noqa: E402
 
@@ -102,6 +104,8 @@ class SitlVehicle:
         self.sent: dict[str, Any] = {"not_sent_by_kind": {}}
         self.t_data_s: float | None = None
         self._omega_b = (0.0, 0.0, 0.0)
+        self._heading_rad: float | None = None
+        self._have_attitude_samples = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.conn = mavutil.mavlink_connection(self.config.url, source_system=self.config.system_id,
@@ -230,6 +234,12 @@ class SitlVehicle:
         self._last_sent_t[name] = t
         return True
 
+    def _send_attitude(self, t: float, roll: float, pitch: float, yaw: float) -> None:
+        if self._due("ATTITUDE", t):
+            self.conn.mav.attitude_send(self._boot_ms(t), float(roll), float(pitch), float(yaw),
+                                        *map(float, self._omega_b))
+            self._count("ATTITUDE")
+
     def _boot_ms(self, t: float) -> int:
         return int(round((t + self.config.boot_offset_s) * 1000.0))
 
@@ -258,9 +268,16 @@ class SitlVehicle:
                     mav.scaled_imu2_send(self._boot_ms(t), *acc, *gyr, 0, 0, 0)
                 self._count(name)
         elif kind == "attitude":
-            if self._due("ATTITUDE", t):
-                mav.attitude_send(self._boot_ms(t), s.roll_rad, s.pitch_rad, s.yaw_rad, *map(float, self._omega_b))
-                self._count("ATTITUDE")
+            self._have_attitude_samples = True
+            self._send_attitude(t, s.roll_rad, s.pitch_rad, s.yaw_rad)
+        elif kind == "heading":
+            self._heading_rad = s.yaw_rad
+        elif kind == "truth" and not self._have_attitude_samples:
+            # ArduSub's ATTITUDE is its AHRS output: roll/pitch are good to a fraction of
+            # a degree, heading is the compass's — so truth roll/pitch, measured heading
+            roll, pitch, yaw = quat_to_euler(np.asarray(s.q_nb, dtype=float))
+            yaw = self._heading_rad if self._heading_rad is not None else yaw
+            self._send_attitude(t, roll, pitch, yaw)
         elif kind == "depth":
             if self._due("SCALED_PRESSURE2", t):
                 mav.scaled_pressure2_send(self._boot_ms(t), s.pressure_pa / HPA_TO_PA, 0.0, 1500)
