@@ -210,6 +210,8 @@ class SonarConfig:
     ping_rate_hz: float = 4.0
     range_m: float = 50.0
     samples_per_side: int = 512
+    seabed_res_m: float = 0.1
+    objects_per_hectare: float = 25.0   # shadow-casting objects (landmarks) per 10 000 m²
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,7 @@ class SimResult:
     bias_acc_b_m_s2: np.ndarray
     bias_gyro_b_rad_s: np.ndarray
     notes: list[str] = field(default_factory=list)
+    seabed: "SeabedTruth | None" = None
 
     def counts(self) -> dict[str, int]:
         """Samples per kind (the IMU included)."""
@@ -111,30 +112,47 @@ def sonar_available() -> bool:
             and importlib.util.find_spec("sim.seabed") is not None)
 
 
+@dataclass(frozen=True)
+class SeabedTruth:
+    """The simulated seabed and where its grid origin lies in the local NED frame.
+
+    A seabed point ``(n_s, e_s)`` (e.g. ``seabed.objects_n_m``) is at NED
+    ``(n_s + origin_n_m[0], e_s + origin_n_m[1])``.
+    """
+
+    seabed: Any
+    origin_n_m: tuple[float, float]
+
+
 def _sonar_pings(scenario: Scenario, truth: sensors.TruthInterpolator, dense: DenseTruth,
-                 rngs: dict[str, np.random.Generator], notes: list[str]) -> list[Any]:
+                 rngs: dict[str, np.random.Generator], notes: list[str]):
     cfg = scenario.sonar
     if not cfg.enabled:
-        return []
+        return [], None
     if not sonar_available():
         notes.append("sonar.enabled but sim/sidescan.py or sim/seabed.py is missing: no pings")
-        return []
+        return [], None
     from sim.seabed import Seabed  # lazy: heavy and optional
     from sim.sidescan import SidescanRenderer
 
     pos = dense.pos_n_m
-    margin = cfg.range_m + 50.0
-    extent = (float(pos[:, 0].min() - margin), float(pos[:, 0].max() + margin),
-              float(pos[:, 1].min() - margin), float(pos[:, 1].max() + margin))
-    seabed = Seabed.random(extent, rngs["sonar_seabed"])
+    # the seabed grid spans [0, extent]: shift the track into it and keep the offset
+    margin = cfg.range_m + 20.0
+    offset = np.array([pos[:, 0].min() - margin, pos[:, 1].min() - margin])
+    extent = (float(pos[:, 0].max() + margin - offset[0]), float(pos[:, 1].max() + margin - offset[1]))
+    n_objects = int(round(cfg.objects_per_hectare * extent[0] * extent[1] / 1e4))
+    seabed = Seabed.random(extent, rngs["sonar_seabed"], n_objects=n_objects, res_m=cfg.seabed_res_m)
     renderer = SidescanRenderer(seabed, cfg.range_m, cfg.samples_per_side)
     t = sensors.sample_times(cfg.ping_rate_hz, scenario.duration_s)
     p = truth.pos(t)
+    p[:, :2] -= offset
     yaw = truth.euler(t)[:, 2]
     altitude = scenario.environment.bottom_depth_m - p[:, 2]
+    speed = np.linalg.norm(truth.vel(t)[:, :2], axis=1)
     rng = rngs["sonar_ping"]
-    return [renderer.render(float(t[i]), p[i], float(yaw[i]), float(altitude[i]), rng)
-            for i in range(len(t))]
+    pings = [renderer.render(float(t[i]), p[i], float(yaw[i]), float(altitude[i]), rng, float(speed[i]))
+             for i in range(len(t))]
+    return pings, SeabedTruth(seabed=seabed, origin_n_m=(float(offset[0]), float(offset[1])))
 
 
 def simulate(scenario: Scenario) -> SimResult:
@@ -148,6 +166,7 @@ def simulate(scenario: Scenario) -> SimResult:
     f_meas, w_meas, bias_acc, bias_gyro = corrupt_imu(f_true, w_true, scenario.imu.grade, dt, rngs["imu"])
     imu = ImuBatch(dense.t_s[1:].copy(), f_meas, w_meas)
     truth = sensors.TruthInterpolator(dense)
+    pings, seabed = _sonar_pings(scenario, truth, dense, rngs, notes)
     samples: dict[str, list[Any]] = {
         "rpm": sensors.rpm_samples(scenario, steps),
         "heading": sensors.heading_samples(scenario, truth, rngs["heading"]),
@@ -156,9 +175,10 @@ def simulate(scenario: Scenario) -> SimResult:
         "usbl": sensors.usbl_samples(scenario, truth, rngs["usbl"]),
         "dvl": sensors.dvl_samples(scenario, truth, rngs["dvl"]),
         "range": sensors.beacon_samples(scenario, truth, rngs["beacons"]),
-        "sonar": _sonar_pings(scenario, truth, dense, rngs, notes),
+        "sonar": pings,
         "truth": sensors.truth_samples(scenario, dense, steps, bias_acc, bias_gyro),
     }
     samples = {k: v for k, v in samples.items() if v}
     return SimResult(scenario=scenario, imu=imu, samples=samples, steps=steps, dense=dense,
-                     bias_acc_b_m_s2=bias_acc, bias_gyro_b_rad_s=bias_gyro, notes=notes)
+                     bias_acc_b_m_s2=bias_acc, bias_gyro_b_rad_s=bias_gyro, notes=notes,
+                     seabed=seabed)

@@ -1,0 +1,185 @@
+"""Simulator: exact IMU, motion-model consistency, environment change, determinism, sensors."""
+import math
+
+import numpy as np
+import pytest
+
+from fusion.frames import GRAVITY_M_S2, quat_from_rotvec, quat_mul, quat_to_dcm
+from fusion.motion_model import invert_step, velocity_variances
+from fusion.samples import ImuBatch, replay_order_key
+from sim.scenario import load_scenario
+from sim.simulator import simulate
+
+DEG = math.pi / 180
+
+
+@pytest.fixture(scope="module")
+def perfect():
+    """5 min, environment change at 150 s, perfect IMU, DVL on with an outage."""
+    return simulate(load_scenario("short", ['imu.grade="perfect"', "dvl.enabled=true",
+                                            "dvl.outages_s=[[100.0, 160.0]]"]))
+
+
+@pytest.fixture(scope="module")
+def tactical():
+    return simulate(load_scenario("short", ["dvl.enabled=true", "dvl.outages_s=[[100.0, 160.0]]"]))
+
+
+def test_perfect_imu_reproduces_the_truth(perfect):
+    # GIVEN a perfect IMU, WHEN a textbook strapdown integrates it from the true initial
+    # state for 60 s, THEN it lands on the truth to rounding error.
+    d, imu = perfect.dense, perfect.imu
+    dt = imu.t_s[1] - imu.t_s[0]
+    q, v, p = d.q_nb[0].copy(), d.vel_n_m_s[0].copy(), d.pos_n_m[0].copy()
+    g = np.array([0.0, 0.0, GRAVITY_M_S2])
+    n = 6000
+    for i in range(n):
+        dth = imu.omega_b_rad_s[i] * dt
+        q_mid = quat_mul(q, quat_from_rotvec(0.5 * dth))
+        q = quat_mul(q, quat_from_rotvec(dth))
+        v_new = v + quat_to_dcm(q_mid) @ imu.specific_force_b_m_s2[i] * dt + g * dt
+        p = p + 0.5 * (v + v_new) * dt
+        v = v_new
+    assert np.abs(p - d.pos_n_m[n]).max() < 1e-6
+    assert np.abs(v - d.vel_n_m_s[n]).max() < 1e-9
+    assert abs(abs(np.dot(q, d.q_nb[n])) - 1.0) < 1e-12
+    # and the truth moved: the check is not trivially satisfied
+    assert np.linalg.norm(d.pos_n_m[n] - d.pos_n_m[0]) > 50.0
+
+
+def _inverted_steps(result):
+    """(V̂, Ŵ, Ŝ) per step from the truth poses (ground position minus the current drift)."""
+    s, d = result.steps, result.dense
+    m = int(round(result.scenario.motion.step_s * result.scenario.imu.rate_hz))
+    idx = np.arange(len(s.t_s)) * m
+    cur = np.array(result.scenario.current.vel_n_m_s())
+    water = d.pos_n_m[idx, :2] - cur[None, :] * d.t_s[idx, None]
+    pose = np.column_stack([water, d.euler_rad[idx, 2]])
+    V, W, S, _ = invert_step(pose[:-1], pose[1:], result.scenario.motion.step_s)
+    return s.t_s[:-1], V, W, S
+
+
+def test_truth_per_step_follows_the_motion_model_moments(perfect):
+    sc = perfect.scenario
+    t, V, W, S = _inverted_steps(perfect)
+    v, w = perfect.steps.v_m_s, perfect.steps.w_rad_s
+    for params, sel in ((sc.params_before(), t < 150.0), (sc.params_after(), t >= 150.0)):
+        var_V, var_W, var_S = velocity_variances(params, v[sel], w[sel])
+        zs = [(V[sel] - params.k_v * v[sel]) / np.sqrt(var_V),
+              (W[sel] - w[sel] - params.b_w) / np.sqrt(var_W),
+              S[sel] / np.sqrt(var_S)]
+        n = sel.sum()
+        for z in zs:
+            assert abs(z.mean()) < 4.0 / math.sqrt(n)
+            # chi-square(n)/n is within ±4 sd (sd = sqrt(2/n)) of 1
+            assert abs(np.mean(z * z) - 1.0) < 4.0 * math.sqrt(2.0 / n)
+
+
+def test_environment_change_switches_k_v_at_the_right_time(perfect):
+    t, V, _, _ = _inverted_steps(perfect)
+    v = perfect.steps.v_m_s
+    before, after = (V / v)[t < 150.0], (V / v)[t >= 150.0]
+    assert abs(before.mean() - 1.0) < 0.02
+    assert abs(after.mean() - 0.9) < 0.04
+    truth = perfect.samples["truth"]
+    k = np.array([s.k_v for s in truth])
+    tt = np.array([s.t_s for s in truth])
+    assert np.all(k[tt < 150.0] == 1.0) and np.all(k[tt >= 150.0] == 0.9)
+
+
+def test_same_seed_same_output_and_streams_are_independent():
+    a = simulate(load_scenario("short", ["duration_s=30"]))
+    b = simulate(load_scenario("short", ["duration_s=30"]))
+    assert np.array_equal(a.imu.specific_force_b_m_s2, b.imu.specific_force_b_m_s2)
+    assert np.array_equal(a.imu.omega_b_rad_s, b.imu.omega_b_rad_s)
+    assert a.samples == b.samples
+    c = simulate(load_scenario("short", ["duration_s=30", "seed=8"]))
+    assert not np.array_equal(a.imu.omega_b_rad_s, c.imu.omega_b_rad_s)
+    # enabling a sensor does not change the others' noise
+    d = simulate(load_scenario("short", ["duration_s=30", "dvl.enabled=true", "beacons.enabled=true"]))
+    assert "dvl" in d.samples and "range" in d.samples
+    assert d.samples["heading"] == a.samples["heading"] and d.samples["depth"] == a.samples["depth"]
+    assert np.array_equal(d.imu.omega_b_rad_s, a.imu.omega_b_rad_s)
+
+
+@pytest.mark.parametrize("grade, gyro_white, acc_white", [
+    # datasheet-class densities (STIM300 / HG1700 class; BMI088 class), see sim/imu.py
+    ("tactical", 0.15 * DEG / 60.0, 0.06 / 60.0),
+    ("consumer", 0.014 * DEG, 175e-6 * GRAVITY_M_S2),
+])
+def test_imu_white_noise_matches_grade(perfect, grade, gyro_white, acc_white):
+    noisy = simulate(load_scenario("short", [f'imu.grade="{grade}"', "duration_s=60"]))
+    n = len(noisy.imu)
+    dt = noisy.imu.t_s[1] - noisy.imu.t_s[0]
+    err_w = noisy.imu.omega_b_rad_s - perfect.imu.omega_b_rad_s[:n]
+    err_f = noisy.imu.specific_force_b_m_s2 - perfect.imu.specific_force_b_m_s2[:n]
+    # first differences cancel the slow biases: std = sqrt(2) σ_white
+    for err, density in ((err_w, gyro_white), (err_f, acc_white)):
+        ratio = np.diff(err, axis=0).std(axis=0) / (math.sqrt(2.0) * density / math.sqrt(dt))
+        assert np.all(np.abs(ratio - 1.0) < 0.03), ratio
+
+
+def test_aiding_sensors(tactical):
+    sc, d = tactical.scenario, tactical.dense
+    usbl = tactical.samples["usbl"]
+    assert [u.t_s for u in usbl] == [30.0 * k for k in range(1, 11)]
+    gnss = tactical.samples["gnss"]
+    assert [g.t_s for g in gnss] == [0.0]  # at the surface at t = 0
+    dt = 1.0 / sc.imu.rate_hz
+    idx = lambda t: int(round(t / dt))  # noqa: E731
+    # heading error ~ N(0, 0.5°)
+    head = tactical.samples["heading"]
+    err = np.array([(h.yaw_rad - d.euler_rad[idx(h.t_s), 2] + math.pi) % (2 * math.pi) - math.pi for h in head])
+    assert abs(err.std() / (sc.heading.sigma_deg * DEG) - 1.0) < 0.06 and abs(err.mean()) < 0.001
+    # depth from pressure with the density in force
+    dep = tactical.samples["depth"]
+    depth = np.array([(s.pressure_pa - 101325.0) / (1025.0 * GRAVITY_M_S2) for s in dep])
+    derr = depth - np.array([d.pos_n_m[idx(s.t_s), 2] for s in dep])
+    assert abs(derr.std() / sc.depth.sigma_m - 1.0) < 0.06 and abs(derr.mean()) < 0.005
+    # DVL: body velocity + lever-arm term, invalid during the outage
+    dvl = tactical.samples["dvl"]
+    assert not any(s.valid for s in dvl if 100.0 <= s.t_s < 160.0)
+    ok = [s for s in dvl if s.valid and 0.0 < s.t_s < sc.duration_s]
+    assert len(ok) > 0.9 * (len(dvl) - 300)
+    lever = np.array(sc.dvl.lever_arm_b_m)
+    verr = []
+    for s in ok:
+        i = idx(s.t_s)
+        vb = quat_to_dcm(d.q_nb[i]).T @ d.vel_n_m_s[i]
+        # body rate from the truth attitudes around t (central difference)
+        dq = quat_mul(d.q_nb[i - 1] * np.array([1, -1, -1, -1]), d.q_nb[i + 1])
+        omega = 2.0 * dq[1:] / (2.0 * dt)
+        verr.append(np.array(s.vel_d_m_s) - vb - np.cross(omega, lever))
+    verr = np.array(verr)
+    assert np.all(np.abs(verr.mean(axis=0)) < 0.0015)
+    assert np.all(np.abs(verr.std(axis=0) / sc.dvl.sigma_m_s - 1.0) < 0.08)
+
+
+def test_usbl_lost_after_and_gnss_only_at_surface():
+    r = simulate(load_scenario("short", ["duration_s=200", "usbl.lost_after_s=90.0",
+                                         "gnss.fix_times_s=[0.0, 150.0]"]))
+    assert [u.t_s for u in r.samples["usbl"]] == [30.0, 60.0, 90.0]
+    assert [g.t_s for g in r.samples["gnss"]] == [0.0]  # at 150 s it is 10 m down
+
+
+def test_iteration_is_in_replay_order(tactical):
+    items = list(tactical.iter_samples())
+    keys = [replay_order_key(s, i) for i, s in enumerate(items)]
+    assert [k[:2] for k in keys] == sorted(k[:2] for k in keys)
+    assert sum(1 for s in items if s.KIND == "imu") == len(tactical.imu)
+    flat = []
+    for b in tactical.iter_blocks():
+        flat.extend(b.samples() if isinstance(b, ImuBatch) else [b])
+    assert flat == items
+    assert len(items) == sum(tactical.counts().values())
+
+
+def test_sonar_pings_when_renderer_present():
+    pytest.importorskip("sim.sidescan")
+    pytest.importorskip("sim.seabed")
+    r = simulate(load_scenario("demo", ["duration_s=20", "sonar.ping_rate_hz=2.0", "sonar.range_m=20.0",
+                                        "sonar.samples_per_side=128", "sonar.seabed_res_m=0.25"]))
+    pings = r.samples["sonar"]
+    assert [p.t_s for p in pings] == [k * 0.5 for k in range(41)]
+    assert all(p.n_samples == 128 and p.slant_range_m == 20.0 for p in pings)
+    assert r.seabed is not None and len(r.seabed.seabed.objects_n_m) > 0
