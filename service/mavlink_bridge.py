@@ -82,6 +82,10 @@ class BridgeConfig:
             raise ValueError("request_imu_message: RAW_IMU, SCALED_IMU2 or HIGHRES_IMU")
 
 
+def _raise_link_closed() -> None:
+    raise ConnectionError("link closed by peer")
+
+
 def message_intervals(config: BridgeConfig) -> dict[int, float]:
     """MAVLink message id → requested interval (µs) for SET_MESSAGE_INTERVAL."""
     r = config.rates
@@ -192,6 +196,11 @@ class MavlinkBridge:
             self.url, source_system=self.config.source_system,
             source_component=self.config.source_component, dialect="ardupilotmega", autoreconnect=False,
             retries=0)  # one TCP connect attempt: our loop owns the back-off
+        if isinstance(conn, mavutil.mavtcp):
+            # pymavlink prints and carries on at a TCP EOF/reset unless autoreconnect, which
+            # would block this thread in its own retry loop: raise instead, so the loop
+            # below counts the loss and re-opens with back-off
+            conn.handle_eof = conn.handle_disconnect = _raise_link_closed
         port = getattr(conn, "port", None)
         if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
             try:  # room for bursts (accelerated simulation, log playback into the link)

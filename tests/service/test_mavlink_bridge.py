@@ -10,7 +10,7 @@ import pytest
 
 from fusion.frames import GeoOrigin, euler_to_quat
 from fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, UsblSample
-from service.mavlink_bridge import BridgeConfig, MavlinkBridge
+from service.mavlink_bridge import BridgeConfig, MavlinkBridge, StreamRates
 from service.mavlink_convert import mavlink2
 from service.sitl_vehicle import SitlVehicle, SitlVehicleConfig
 
@@ -228,3 +228,99 @@ def test_sitl_vehicle_end_to_end_through_the_bridge():
     assert vehicle.received["odometry"] == 5 and vehicle.received["origin"] is not None
     assert vehicle.received["interval_requests"]["HIGHRES_IMU"] == pytest.approx(20_000)
     assert vehicle.received["onboard_heartbeats"] >= 1
+
+
+def free_tcp_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class TcpPeer(Peer):
+    def __init__(self, port):
+        self.conn = mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=1,
+                                               source_component=1, dialect="ardupilotmega")
+        self.got = []
+
+
+def test_tcp_link_survives_the_autopilot_side_closing_and_coming_back():
+    port = free_tcp_port()
+    peer = TcpPeer(port)
+    q = queue.Queue()
+    bridge = MavlinkBridge(f"tcp:127.0.0.1:{port}", q.put, None,
+                           BridgeConfig(link_timeout_s=5.0, reconnect_min_s=0.05, reconnect_max_s=0.2))
+    try:
+        assert peer.pump(5.0, until=lambda: peer.of_type("COMMAND_LONG") and bridge.link_up.is_set())
+        peer.close()  # server gone: EOF on the bridge's socket, then refused connects
+        deadline = time.monotonic() + 3.0
+        while bridge.counters["link_losses"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert bridge.counters["link_losses"] >= 1
+        time.sleep(0.5)  # a few refused re-connects with back-off
+        peer = TcpPeer(port)
+        assert peer.pump(5.0, until=lambda: peer.of_type("COMMAND_LONG") and bridge.link_up.is_set())
+        peer.conn.mav.attitude_send(7_000, 0.25, 0.0, 0.0, 0, 0, 0)
+        got = drain(q, lambda out: any(s.KIND == "attitude" for s in out))
+        assert any(s.roll_rad == pytest.approx(0.25) for s in got)
+        assert bridge.counters["reconnects"] >= 1 and bridge._thread.is_alive()
+    finally:
+        bridge.close()
+        peer.close()
+
+
+def test_simulated_mission_arrives_through_sitl_vehicle_and_bridge_intact():
+    from fusion.frames import quat_to_euler
+    from fusion.state import NavState
+    from sim.scenario import load_scenario
+    from sim.simulator import simulate
+
+    result = simulate(load_scenario("short", ["duration_s=40.0"]))
+    samples = list(result.iter_samples())
+    imu_by_t = {round(s.t_s, 6): s for s in samples if s.KIND == "imu"}
+    depth_by_t = {round(s.t_s, 3): s for s in samples if s.KIND == "depth"}
+    rpm_by_t = {round(s.t_s, 6): s for s in samples if s.KIND == "rpm"}
+    truth_by_t = {round(s.t_s, 3): s for s in samples if s.KIND == "truth"}
+    imu_rate_hz = (len(imu_by_t) - 1) / (max(imu_by_t) - min(imu_by_t))
+
+    port = free_udp_port()
+    q = queue.Queue()
+    bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, None,
+                           BridgeConfig(request_imu_message="HIGHRES_IMU",
+                                        rates=StreamRates(imu_hz=imu_rate_hz, pressure_hz=50.0, servo_hz=50.0)))
+    vehicle = SitlVehicle(samples, SitlVehicleConfig(url=f"udpout:127.0.0.1:{port}", speed=20.0)).start()
+    cov = np.eye(18) * 0.01
+    state = NavState(t_s=1.0, pos_n_m=np.zeros(3), vel_n_m_s=np.zeros(3), q_nb=np.array([1.0, 0, 0, 0]),
+                     bias_acc_b_m_s2=np.zeros(3), bias_gyro_b_rad_s=np.zeros(3), current_n_m_s=np.zeros(2),
+                     k_speed=1.0, cov=cov, valid=True, reset_counter=0)
+    try:
+        assert bridge.wait_connected(5.0)
+        assert bridge.send_nav(state)
+        assert vehicle.done.wait(30.0) and vehicle.error is None
+        vehicle.run(linger_s=0.3)  # serve the last ODOMETRY
+    finally:
+        bridge.close()
+        vehicle.close()
+    got = []
+    while not q.empty():
+        got.append(q.get())
+    imu = [s for s in got if s.KIND == "imu"]
+    # everything after the rate request arrives: at most the first second is at defaults
+    assert len(imu) >= len(imu_by_t) - imu_rate_hz * 1.5
+    for s in imu:
+        ref = imu_by_t[round(s.t_s, 6)]  # µs timestamps: exact
+        assert s.specific_force_b_m_s2 == pytest.approx(ref.specific_force_b_m_s2, rel=1e-6, abs=1e-6)
+        assert s.omega_b_rad_s == pytest.approx(ref.omega_b_rad_s, rel=1e-6, abs=1e-7)
+    depth = [s for s in got if s.KIND == "depth"]
+    assert len(depth) >= len(depth_by_t) - 15
+    for s in depth:
+        assert s.pressure_pa == pytest.approx(depth_by_t[round(s.t_s, 3)].pressure_pa, rel=1e-6)
+    rpm = [s for s in got if s.KIND == "rpm"]
+    assert len(rpm) >= len(rpm_by_t) - 15
+    for s in rpm:  # integer PWM µs on the wire: one step of the curve
+        assert s.rpm == pytest.approx(rpm_by_t[round(s.t_s, 6)].rpm, abs=3500 / 375)
+    att = [s for s in got if s.KIND == "attitude"]
+    assert len(att) >= len(truth_by_t) - 15
+    for s in att:
+        roll, pitch, _ = quat_to_euler(np.asarray(truth_by_t[round(s.t_s, 3)].q_nb))
+        assert (s.roll_rad, s.pitch_rad) == pytest.approx((roll, pitch), abs=1e-6)
+    assert vehicle.received["odometry"] == 1 and vehicle.received["last_quality"] == 100
