@@ -1,0 +1,34 @@
+r"""Depth from absolute pressure (hydrostatic): ``d = (p − p_atm) / (ρ g)``; ``h(x) = p_d``.
+
+Water density ρ (kg/m³) and atmospheric pressure (Pa) come from the config (sea water
+≈ 1025, fresh ≈ 1000; UNESCO 1983 gives the full equation of state, unnecessary at
+AUV depths for a 0.05 m sensor).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..frames import GRAVITY_M_S2
+from ..state import N_ERR, X_POS
+from .common import Measurement, make
+
+
+def pressure_to_depth(pressure_pa, water_density_kg_m3: float, atmospheric_pressure_pa: float):
+    """Depth (m, positive down) of an absolute pressure (Pa)."""
+    return (np.asarray(pressure_pa, dtype=float) - atmospheric_pressure_pa) / (
+        water_density_kg_m3 * GRAVITY_M_S2)
+
+
+def predict(x) -> np.ndarray:
+    return np.array([x[X_POS][2]])
+
+
+def jacobian(x) -> np.ndarray:
+    H = np.zeros((1, N_ERR))
+    H[0, 2] = 1.0
+    return H
+
+
+def measure(sample, x, sigma_m, water_density_kg_m3, atmospheric_pressure_pa) -> Measurement:
+    depth = float(pressure_to_depth(sample.pressure_pa, water_density_kg_m3, atmospheric_pressure_pa))
+    return make([depth], jacobian(x), [[sigma_m**2]], predict(x))

@@ -1,0 +1,76 @@
+r"""Learned-velocity aiding: the motion model's surge from RPM, sway/heave ≈ 0.
+
+Water-relative body velocity (DESIGN.md "Fusion"; Hegrenaes & Hallingstad 2011)::
+
+    v_b = R_nbᵀ (v_n − [c_n, c_e, 0]ᵀ)
+
+How ``k_V`` (learned) and ``k_speed`` (filter state) combine. The calibrator learns the
+motion model ``V ~ N(k_V f(n), σ_V²(v, w))`` (seed §2.1) and releases it now and then;
+the filter state ``k_speed`` is the *residual* scale error around that learned
+``k_V`` (nominal 1), so the true surge is modelled as::
+
+    V = k_speed · k_V · f(n) + ε,   ε ~ N(0, σ_V²(f(n), w))
+
+and the filter follows a change of water (density, temperature) through ``k_speed``
+while absolute fixes (USBL, GNSS, DVL) exist, between two calibrator releases. When a
+new release arrives (:meth:`fusion.eskf.Estimator.set_motion_params`) the product
+``k_speed · k_V`` is kept continuous (k_speed is rescaled by k_V_old / k_V_new).
+
+Measurement (z, h) — the observation is the model's prediction with the learned scale,
+the state-dependent rest goes into h so H stays exact::
+
+    z = (k_V u, 0, 0),   u = f(rpm)
+    h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y,  v_b,z)
+    R = diag(σ_V²(u, w), σ_S², σ_heave²)
+
+with ``w`` the yaw rate from the gyro. Jacobians (global attitude error)::
+
+    ∂v_b/∂δv = R_nbᵀ,  ∂v_b/∂δθ = R_nbᵀ [v_n − c]×,  ∂v_b/∂δc = −R_nbᵀ[:, :2]
+    ∂h_x/∂δk = −k_V u
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion_model import MotionParams
+from ..state import ATT, CUR, KS, N_ERR, VEL, X_CUR, X_KS, X_VEL
+from .common import Measurement, dcm, make, skew
+
+
+def water_velocity_b(x: np.ndarray) -> np.ndarray:
+    """``v_b`` (3,), water-relative velocity in body axes, m/s."""
+    rel = x[X_VEL].copy()
+    rel[:2] -= x[X_CUR]
+    return dcm(x).T @ rel
+
+
+def predict(x: np.ndarray, model_speed_m_s: float) -> np.ndarray:
+    """h(x) for a model speed ``k_V u`` (m/s)."""
+    v_b = water_velocity_b(x)
+    v_b[0] -= (x[X_KS] - 1.0) * model_speed_m_s
+    return v_b
+
+
+def jacobian(x: np.ndarray, model_speed_m_s: float) -> np.ndarray:
+    R = dcm(x)
+    rel = x[X_VEL].copy()
+    rel[:2] -= x[X_CUR]
+    H = np.zeros((3, N_ERR))
+    H[:, VEL] = R.T
+    H[:, ATT] = R.T @ skew(rel)
+    H[:, CUR] = -R.T[:, :2]
+    H[0, KS] = -model_speed_m_s
+    return H
+
+
+def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: MotionParams,
+            sigma_heave_m_s: float, variance_scale: float = 1.0) -> Measurement:
+    """Measurement for RPM speed ``u = f(rpm)`` (m/s) and gyro yaw rate (rad/s)."""
+    model = params.k_v * speed_m_s
+    # σ_V²(v, w) of the motion model (velocity_variances), inlined: this runs at the fusion rate
+    var_V = speed_m_s**2 * params.var_vv + yaw_rate_rad_s**2 * params.var_vw + params.var_v1
+    R = np.zeros((3, 3))
+    R[0, 0] = var_V * variance_scale
+    R[1, 1] = params.var_s * variance_scale
+    R[2, 2] = sigma_heave_m_s**2 * variance_scale
+    return make([model, 0.0, 0.0], jacobian(x, model), R, predict(x, model))

@@ -1,0 +1,149 @@
+"""Configuration of the navigation filter (one typed tree, built with :mod:`fusion.typed_config`).
+
+Every number the ESKF uses lives here with its unit in its name. Build it from TOML with
+``typed_config.load_toml(FilterConfig, text, overrides)`` (unknown keys are an error) or
+take the defaults ``FilterConfig()``.
+
+Noise conventions (continuous-time power spectral densities, as in Groves 2013, §14.2.6):
+
+- ``imu.acc_noise_m_s2_rthz`` velocity random walk density (m/s²/√Hz) → Q_vel = σ² per s,
+- ``imu.gyro_noise_rad_s_rthz`` angle random walk density (rad/s/√Hz) → Q_att = σ² per s,
+- ``imu.acc_bias_rw_m_s3_rthz`` / ``imu.gyro_bias_rw_rad_s2_rthz`` bias random walk densities,
+- ``imu.acc_bias_sigma_m_s2`` / ``imu.gyro_bias_sigma_rad_s`` initial (turn-on + instability)
+  1-σ of the biases; bias instability is folded into these and into the random walk.
+
+Defaults are a tactical-grade MEMS IMU (class of the Honeywell HG1120 / ADIS16495:
+ARW ≈ 0.1–0.2 °/√h, gyro bias instability ≈ 1–2 °/h, VRW ≈ 0.02–0.05 m/s/√h).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from scipy.stats import chi2, norm
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    acc_noise_m_s2_rthz: float = 0.0006        # ≈ 0.036 m/s/√h
+    gyro_noise_rad_s_rthz: float = 5.0e-5      # ≈ 0.17 °/√h
+    acc_bias_sigma_m_s2: float = 0.005         # ≈ 0.5 mg
+    gyro_bias_sigma_rad_s: float = 1.0e-5      # ≈ 2 °/h
+    acc_bias_rw_m_s3_rthz: float = 1.0e-5
+    gyro_bias_rw_rad_s2_rthz: float = 1.0e-7
+
+
+@dataclass(frozen=True)
+class ProcessConfig:
+    current_rw_m_s_rthz: float = 2.0e-4        # sea current random walk, (m/s)/√s
+    k_speed_rw_rthz: float = 2.0e-4            # RPM speed-scale random walk, 1/√s
+    pos_noise_m_rthz: float = 1.0e-4           # keeps P[POS] from going singular
+
+
+@dataclass(frozen=True)
+class InitialConfig:
+    sigma_pos_m: float = 10.0
+    sigma_vel_m_s: float = 1.0
+    sigma_att_rad: float = 0.02
+    sigma_yaw_rad: float = 0.05
+    sigma_current_m_s: float = 0.3
+    sigma_k_speed: float = 0.1
+
+
+@dataclass(frozen=True)
+class LearnedVelocityConfig:
+    enabled: bool = True
+    rate_hz: float = 2.0                       # fused at a fixed rate, not per IMU sample
+    rpm_hold_s: float = 1.0                    # latest RpmSample is used this long
+    sigma_heave_m_s: float = 0.05              # heave ≈ 0 pseudo-measurement
+    variance_scale: float = 1.0                # inflation of the motion model's variances
+
+
+@dataclass(frozen=True)
+class DvlConfig:
+    enabled: bool = True
+    sigma_m_s: float = 0.01
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_bd_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)  # R_bd maps d → b
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    enabled: bool = True
+    sigma_m: float = 0.05
+    water_density_kg_m3: float = 1025.0
+    atmospheric_pressure_pa: float = 101325.0
+
+
+@dataclass(frozen=True)
+class HeadingConfig:
+    enabled: bool = True
+    sigma_rad: float = math.radians(0.5)
+
+
+@dataclass(frozen=True)
+class AttitudeConfig:
+    enabled: bool = True
+    sigma_roll_pitch_rad: float = math.radians(0.5)
+    sigma_yaw_rad: float = math.radians(2.0)
+
+
+@dataclass(frozen=True)
+class GnssConfig:
+    enabled: bool = True
+    max_depth_m: float = 0.5                   # surface-only: estimated depth below this
+
+
+@dataclass(frozen=True)
+class UsblConfig:
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class VisualMotionConfig:
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class AlignmentConfig:
+    n_samples: int = 100                       # static IMU samples averaged for levelling
+    max_acc_std_m_s2: float = 0.5              # more spread than this: not at rest, keep waiting
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """The whole filter configuration (see module docstring for units)."""
+
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    process: ProcessConfig = field(default_factory=ProcessConfig)
+    initial: InitialConfig = field(default_factory=InitialConfig)
+    learned_velocity: LearnedVelocityConfig = field(default_factory=LearnedVelocityConfig)
+    dvl: DvlConfig = field(default_factory=DvlConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    heading: HeadingConfig = field(default_factory=HeadingConfig)
+    attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
+    usbl: UsblConfig = field(default_factory=UsblConfig)
+    visual_motion: VisualMotionConfig = field(default_factory=VisualMotionConfig)
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    gate_sigma: float = 5.0                    # chi-square gate ≡ this many σ per DOF
+    covariance_step_s: float = 0.1             # covariance propagated at this period
+    max_delay_s: float = 1.0                   # late measurements up to this are re-fused
+    on_time_tolerance_s: float = 0.02          # older than this: fused at its own time
+    imu_gap_s: float = 0.5                     # IMU interval longer than this: gap
+    valid_max_sigma_h_m: float = 100.0         # horizontal σ above this: position invalid
+
+    def validate(self) -> None:
+        if self.gate_sigma <= 0:
+            raise ValueError("gate_sigma must be > 0")
+        if not 0 < self.covariance_step_s <= 1.0:
+            raise ValueError("covariance_step_s must be in (0, 1] s")
+        if self.max_delay_s < 0 or self.imu_gap_s <= 0:
+            raise ValueError("max_delay_s must be ≥ 0 and imu_gap_s > 0")
+        if self.learned_velocity.rate_hz <= 0:
+            raise ValueError("learned_velocity.rate_hz must be > 0")
+
+    def gate_threshold(self, dof: int) -> float:
+        """Chi-square gate for ``dof`` dimensions at the ``gate_sigma`` two-sided level."""
+        p = 1.0 - 2.0 * norm.sf(self.gate_sigma)
+        return float(chi2.ppf(p, dof))

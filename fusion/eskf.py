@@ -1,0 +1,572 @@
+r"""Error-state Kalman filter over strapdown INS with model-aided velocity (DESIGN.md "Fusion").
+
+Nominal state, error state and injection: :mod:`fusion.state`; mechanisation and the
+covariance/update kernels: :mod:`fusion.strapdown`; measurement models: one module per
+source in :mod:`fusion.aiding`. This module does, once for every source (as PX4 EKF2's
+``estimator_aid_src_*``): chi-square gating of the normalised innovation, Joseph-form
+update, error injection and covariance reset, one :class:`~fusion.status.AidStatus`
+per attempt.
+
+Model-aided INS after Hegrenaes & Hallingstad (IEEE JOE 2011): the learned motion
+model's surge ``k_speed k_V f(rpm)`` (seed §2.1, :mod:`fusion.aiding.learned_velocity`)
+is fused at a fixed rate together with sway/heave ≈ 0 pseudo-measurements, against the
+water-relative velocity ``R_nbᵀ(v_n − c_n)``; the current ``c_n`` and ``k_speed`` are
+states, observable while absolute fixes exist.
+
+Timing. IMU samples (single or :class:`~fusion.samples.ImuBatch`) propagate the state.
+A measurement whose time of validity lies within ``on_time_tolerance_s`` of the state
+time is fused at once; an older one (up to ``max_delay_s``) is fused at its own time:
+the estimator keeps a short history of its inputs with a snapshot of its numeric state
+before each, restores the last snapshot before the measurement and re-runs the inputs
+since then with the measurement inserted ("buffer IMU and re-propagate"). Older still:
+rejected ``too_late``.
+
+Bad input never raises: non-finite samples, out-of-order or duplicate IMU timestamps
+and IMU gaps are counted in :attr:`Estimator.rejected` and the filter keeps going.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+from collections import Counter
+
+import numpy as np
+
+from . import strapdown as sd
+from .aiding import attitude as aid_attitude
+from .aiding import depth as aid_depth
+from .aiding import dvl as aid_dvl
+from .aiding import gnss as aid_gnss
+from .aiding import heading as aid_heading
+from .aiding import learned_velocity as aid_lv
+from .aiding import usbl as aid_usbl
+from .aiding import visual_motion as aid_visual
+from .aiding.common import Measurement
+from .alignment import Aligner
+from .config import FilterConfig
+from .frames import GeoOrigin, euler_to_quat
+from .motion_model import MotionParams, RpmSpeedTable
+from .samples import is_finite
+from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, VEL, X_BA, X_BG, X_CUR, X_KS, X_Q, NavState,
+                    initial_nominal)
+from .status import AidStatus, rejected
+
+IGNORED_KINDS = frozenset({"truth", "range", "altitude"})
+AID_KINDS = frozenset({"dvl", "depth", "heading", "attitude", "gnss", "usbl", "visual_motion"})
+# Velocity random walk assumed across an IMU gap or in AHRS-only mode (m/s per √s): an
+# AUV's speed changes by ~0.5 m/s within seconds when nothing measures it.
+_BLIND_VEL_RW_M_S_RTHZ = 0.3
+
+
+class _Snapshot:
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter")
+
+
+class Estimator:
+    """The navigation filter. Feed it samples in replay order with :meth:`process`.
+
+    Parameters
+    ----------
+    config : FilterConfig
+    motion_params : MotionParams
+        The learned motion model in use (replaced by :meth:`set_motion_params`).
+    rpm_table : RpmSpeedTable
+        Static RPM → surge speed lookup ``u = f(n)``.
+    origin : GeoOrigin
+        Mission origin of the local NED frame (GNSS/USBL are geodetic).
+    """
+
+    def __init__(self, config: FilterConfig, motion_params: MotionParams,
+                 rpm_table: RpmSpeedTable, origin: GeoOrigin):
+        self.config = config
+        self.motion_params = motion_params
+        self.rpm_table = rpm_table
+        self.origin = origin
+        self.rejected: Counter = Counter()
+        # one contiguous array holds all numeric state (views below): a snapshot for
+        # late-measurement re-fusion is then a single copy
+        n_x, n_p, n_a = sd.N_X, sd.N_P, sd.ACC_SIZE
+        self._core = np.zeros(sd.CORE_SIZE)
+        self._x = self._core[:n_x]
+        self._P = self._core[n_x:n_x + n_p].reshape(N_ERR, N_ERR)
+        self._acc = self._core[n_x + n_p:n_x + n_p + n_a]
+        self._clock = self._core[n_x + n_p + n_a:]
+        self._x[:] = initial_nominal()
+        self._clock[:] = -math.inf
+        self._qdiag = self._process_noise()
+        self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
+        self._mode = "none"  # "none" | "ins" | "ahrs"
+        self._reset_counter = 0
+        self._aligner = Aligner(config.alignment.n_samples, config.alignment.max_acc_std_m_s2,
+                                config.imu_gap_s)
+        self._t_imu_last = -math.inf
+        self._yaw_for_alignment: float | None = None
+        self._pending_fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
+        self._pending_depth: float | None = None
+        self._rpm: tuple[float, float] | None = None  # (t_s, speed m/s)
+        self._next_lv_t = math.nan
+        self._lv_period = 1.0 / config.learned_velocity.rate_hz
+        self._R_db = aid_dvl.rotation_db(config.dvl.rotation_bd_rpy_rad)
+        self._lever_b = np.asarray(config.dvl.lever_arm_b_m, dtype=float)
+        self._dx = np.zeros(N_ERR)
+        self._sdiag = np.zeros(3)
+        # input history for late measurements: entries (kind, payload) with the snapshot
+        # taken before each and its state time
+        self._hist_t: list[float] = []
+        self._hist: list[tuple[str, object, _Snapshot]] = []
+        self._replaying = False
+        self._restored = False
+        self._speed_cache: dict[float, float] = {}
+        self.late_fused = 0  # measurements fused at their own (past) time of validity
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def initialized(self) -> bool:
+        return self._mode != "none"
+
+    def nav_state(self) -> NavState:
+        """The current state; the covariance includes the not yet flushed propagation."""
+        x = self._x
+        if self._mode == "ins":
+            cov = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+        else:
+            cov = self._P.copy()
+        sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
+        valid = (self._mode == "ins" and sigma_h <= self.config.valid_max_sigma_h_m
+                 and bool(np.all(np.isfinite(x))))
+        return NavState(
+            t_s=float(self._clock[0]), pos_n_m=x[0:3].copy(), vel_n_m_s=x[3:6].copy(),
+            q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
+            current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
+            reset_counter=self._reset_counter)
+
+    def set_motion_params(self, params: MotionParams) -> None:
+        """Apply a calibrator release; ``k_speed · k_V`` is kept continuous."""
+        ratio = self.motion_params.k_v / params.k_v
+        self._x[X_KS] *= ratio
+        self._P[KS, :] *= ratio
+        self._P[:, KS] *= ratio
+        self.motion_params = params
+
+    def slow_states(self) -> dict:
+        """Biases, current and ``k_speed`` with their variances (for persistence)."""
+        d = np.diag(self._P)
+        return {
+            "bias_acc_b_m_s2": self._x[X_BA].tolist(), "var_bias_acc": d[BA].tolist(),
+            "bias_gyro_b_rad_s": self._x[X_BG].tolist(), "var_bias_gyro": d[BG].tolist(),
+            "current_n_m_s": self._x[X_CUR].tolist(), "var_current": d[CUR].tolist(),
+            "k_speed": float(self._x[X_KS]), "var_k_speed": float(d[KS][0]),
+        }
+
+    def restore_slow_states(self, d: dict) -> None:
+        """Inverse of :meth:`slow_states` (also before initialisation: kept through it)."""
+        for name, xs, block, var in (("bias_acc_b_m_s2", X_BA, BA, "var_bias_acc"),
+                                     ("bias_gyro_b_rad_s", X_BG, BG, "var_bias_gyro"),
+                                     ("current_n_m_s", X_CUR, CUR, "var_current")):
+            value = np.asarray(d[name], dtype=float)
+            variance = np.asarray(d[var], dtype=float)
+            if not (np.all(np.isfinite(value)) and np.all(variance > 0)):
+                raise ValueError(f"restore_slow_states: bad {name}")
+            self._x[xs] = value
+            self._P[block, :] = 0.0
+            self._P[:, block] = 0.0
+            self._P[block, block] = np.diag(variance)
+        k, vk = float(d["k_speed"]), float(d["var_k_speed"])
+        if not (math.isfinite(k) and k > 0 and vk > 0):
+            raise ValueError("restore_slow_states: bad k_speed")
+        self._x[X_KS] = k
+        self._P[KS, :] = 0.0
+        self._P[:, KS] = 0.0
+        self._P[KS, KS] = vk
+        self._restored = True
+
+    def process(self, sample) -> list[AidStatus]:
+        """Consume one sample (any type of :mod:`fusion.samples`, or an ImuBatch)."""
+        kind = sample.KIND
+        if kind in IGNORED_KINDS:
+            return []
+        if kind == "imu_batch":
+            return self._imu(np.asarray(sample.t_s, dtype=float),
+                             np.asarray(sample.specific_force_b_m_s2, dtype=float).reshape(-1, 3),
+                             np.asarray(sample.omega_b_rad_s, dtype=float).reshape(-1, 3))
+        if kind == "imu":
+            return self._imu(np.array([sample.t_s], dtype=float),
+                             np.array([sample.specific_force_b_m_s2], dtype=float),
+                             np.array([sample.omega_b_rad_s], dtype=float))
+        if not is_finite(sample):
+            self.rejected["non_finite"] += 1
+            return [rejected(sample.t_s if math.isfinite(sample.t_s) else math.nan, kind,
+                             "non_finite")]
+        if kind == "rpm":
+            self._record("sample", sample)
+            self._rpm = (sample.t_s, self._speed(sample.rpm))
+            return []
+        if kind not in AID_KINDS:
+            return []
+        if self._mode == "none":
+            return self._before_init(sample)
+        t_now = self._clock[0]
+        if self._mode == "ins" and sample.t_s < t_now - self.config.on_time_tolerance_s:
+            if sample.t_s < t_now - self.config.max_delay_s:
+                self.rejected["too_late"] += 1
+                return [rejected(sample.t_s, kind, "too_late")]
+            return self._fuse_late(sample)
+        self._record("sample", sample)
+        return self._aid(sample)
+
+    # ------------------------------------------------------------------ internals
+    def _speed(self, rpm: float) -> float:
+        """``f(rpm)`` memoised: commanded RPMs repeat and the PCHIP call is slow."""
+        u = self._speed_cache.get(rpm)
+        if u is None:
+            if len(self._speed_cache) > 4096:
+                self._speed_cache.clear()
+            u = self._speed_cache[rpm] = float(self.rpm_table.speed(rpm))
+        return u
+
+    def _process_noise(self) -> np.ndarray:
+        c = self.config
+        q = np.zeros(N_ERR)
+        q[POS] = c.process.pos_noise_m_rthz ** 2
+        q[VEL] = c.imu.acc_noise_m_s2_rthz ** 2
+        q[ATT] = c.imu.gyro_noise_rad_s_rthz ** 2
+        q[BA] = c.imu.acc_bias_rw_m_s3_rthz ** 2
+        q[BG] = c.imu.gyro_bias_rw_rad_s2_rthz ** 2
+        q[CUR] = c.process.current_rw_m_s_rthz ** 2
+        q[KS] = c.process.k_speed_rw_rthz ** 2
+        return q
+
+    def _initial_covariance(self, sigma_pos_h_m: float, sigma_depth_m: float) -> np.ndarray:
+        c = self.config
+        d = np.zeros(N_ERR)
+        d[0:2] = sigma_pos_h_m ** 2
+        d[2] = sigma_depth_m ** 2
+        d[VEL] = c.initial.sigma_vel_m_s ** 2
+        d[6:8] = c.initial.sigma_att_rad ** 2
+        d[8] = c.initial.sigma_yaw_rad ** 2
+        d[BA] = c.imu.acc_bias_sigma_m_s2 ** 2
+        d[BG] = c.imu.gyro_bias_sigma_rad_s ** 2
+        d[CUR] = c.initial.sigma_current_m_s ** 2
+        d[KS] = c.initial.sigma_k_speed ** 2
+        return np.diag(d)
+
+    def _snapshot(self) -> _Snapshot:
+        s = _Snapshot()
+        s.core = self._core.copy()
+        s.rpm = self._rpm
+        s.next_lv_t = self._next_lv_t
+        s.mode = self._mode
+        s.reset_counter = self._reset_counter
+        return s
+
+    def _restore(self, s: _Snapshot) -> None:
+        self._core[:] = s.core
+        self._rpm = s.rpm
+        self._next_lv_t = s.next_lv_t
+        self._mode = s.mode
+        self._reset_counter = s.reset_counter
+
+    def _record(self, kind: str, payload) -> None:
+        """Remember an input (and the state before it) for late-measurement re-fusion."""
+        if self._mode != "ins" or self.config.max_delay_s <= 0:
+            return
+        t = float(self._clock[0])
+        self._hist_t.append(t)
+        self._hist.append((kind, payload, self._snapshot()))
+        horizon = t - self.config.max_delay_s - 0.5
+        if self._hist_t[0] < horizon and len(self._hist_t) > 64:
+            k = bisect.bisect_left(self._hist_t, horizon)
+            del self._hist_t[:k]
+            del self._hist[:k]
+
+    def _fuse_late(self, sample) -> list[AidStatus]:
+        k = bisect.bisect_right(self._hist_t, sample.t_s) - 1
+        if k < 0:
+            self.rejected["too_late"] += 1
+            return [rejected(sample.t_s, sample.KIND, "too_late")]
+        replay = self._hist[k:]
+        del self._hist_t[k:]
+        del self._hist[k:]
+        self._restore(replay[0][2])
+        self._replaying = True
+        out: list[AidStatus] = []
+        inserted = False
+        try:
+            for kind, payload, _ in replay:
+                if not inserted:
+                    if kind == "imu":
+                        t, f, w = payload
+                        j = int(np.searchsorted(t, sample.t_s, side="right"))
+                        if j < len(t):
+                            self._imu_run(t[:j], f[:j], w[:j])
+                            self._record("sample", sample)
+                            out = self._aid(sample)
+                            inserted = True
+                            self._imu_run(t[j:], f[j:], w[j:])
+                            continue
+                    else:
+                        t_entry = payload[0] if kind == "gap" else payload.t_s
+                        if t_entry > sample.t_s:
+                            self._record("sample", sample)
+                            out = self._aid(sample)
+                            inserted = True
+                if kind == "imu":
+                    self._imu_run(*payload)
+                elif kind == "gap":
+                    self._record("gap", payload)
+                    self._imu_gap(*payload)
+                else:
+                    self._record("sample", payload)
+                    if payload.KIND == "rpm":
+                        self._rpm = (payload.t_s, self._speed(payload.rpm))
+                    else:
+                        self._aid(payload)
+            if not inserted:
+                self._record("sample", sample)
+                out = self._aid(sample)
+        finally:
+            self._replaying = False
+        self.late_fused += 1
+        return out
+
+    def _before_init(self, sample) -> list[AidStatus]:
+        kind = sample.KIND
+        if kind == "heading":
+            self._yaw_for_alignment = sample.yaw_rad
+        elif kind == "attitude":
+            self._yaw_for_alignment = sample.yaw_rad
+            if sample.t_s - self._t_imu_last > self.config.imu_gap_s and self._mode == "none":
+                return self._init_ahrs(sample)
+        elif kind in ("gnss", "usbl"):
+            ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
+            self._pending_fix = (ned[:2], sample.sigma_h_m)
+        elif kind == "depth":
+            self._pending_depth = float(aid_depth.pressure_to_depth(
+                sample.pressure_pa, self.config.depth.water_density_kg_m3,
+                self.config.depth.atmospheric_pressure_pa))
+        statuses = [rejected(sample.t_s, kind, "not_initialized")]
+        if self._mode == "none":
+            statuses += self._try_align()
+        return statuses
+
+    def _initial_position(self) -> tuple[np.ndarray, float, float]:
+        pos = np.zeros(3)
+        sigma_h = self.config.initial.sigma_pos_m
+        sigma_d = self.config.initial.sigma_pos_m
+        if self._pending_fix is not None:
+            pos[:2], sigma_h = self._pending_fix
+        if self._pending_depth is not None:
+            pos[2], sigma_d = self._pending_depth, self.config.depth.sigma_m
+        return pos, sigma_h, sigma_d
+
+    def _init_ahrs(self, sample) -> list[AidStatus]:
+        """No usable IMU: attitude from the AHRS, depth from pressure, position invalid."""
+        pos, sigma_h, sigma_d = self._initial_position()
+        q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
+        keep = self._x[10:19].copy() if self._restored else None
+        P_keep = self._P.copy() if keep is not None else None
+        self._x[:] = initial_nominal(pos, (0.0, 0.0, 0.0), q)
+        if keep is not None:
+            self._x[10:19] = keep
+        self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
+        if keep is not None:
+            self._P[9:, 9:] = P_keep[9:, 9:]
+        self._clock[:] = sample.t_s
+        self._mode = "ahrs"
+        self._reset_counter += 1
+        return self._aid(sample)
+
+    def _try_align(self) -> list[AidStatus]:
+        level = self._aligner.level()
+        if level is None or self._yaw_for_alignment is None:
+            return []
+        roll, pitch = level
+        pos, sigma_h, sigma_d = self._initial_position()
+        keep = self._x[10:19].copy() if self._restored else None
+        P_keep = self._P.copy() if keep is not None else None
+        self._x[:] = initial_nominal(pos, (0.0, 0.0, 0.0), euler_to_quat(roll, pitch, self._yaw_for_alignment))
+        self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
+        if keep is not None:
+            self._x[10:19] = keep
+            self._P[9:, 9:] = P_keep[9:, 9:]
+        self._acc[:] = 0.0
+        self._clock[:] = self._aligner.t_last_s
+        self._mode = "ins"
+        self._reset_counter += 1
+        self._next_lv_t = math.floor(self._clock[0] / self._lv_period + 1.0) * self._lv_period
+        return []
+
+    def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
+        """Validate IMU samples (vectorised), then align or propagate them."""
+        if self._mode == "ins" and sd.imu_clean(t, f, w, self._clock[0], self.config.imu_gap_s):
+            return self._imu_run(t, f, w)
+        finite = np.isfinite(t) & np.isfinite(f).all(axis=1) & np.isfinite(w).all(axis=1)
+        if not finite.all():
+            self.rejected["non_finite"] += int((~finite).sum())
+            t, f, w = t[finite], f[finite], w[finite]
+        if t.size == 0:
+            return []
+        t_last = self._clock[0] if self._mode == "ins" else self._t_imu_last
+        prev = np.maximum.accumulate(np.concatenate(([t_last], t)))[:-1]
+        keep = t > prev
+        if not keep.all():
+            self.rejected["duplicate"] += int((t == prev).sum())
+            self.rejected["out_of_order"] += int((t < prev).sum())
+            t, f, w = t[keep], f[keep], w[keep]
+            if t.size == 0:
+                return []
+        if self._mode != "ins":
+            self._aligner.add(t, f)
+            self._t_imu_last = float(t[-1])
+            was_ahrs = self._mode == "ahrs"
+            if was_ahrs:
+                self.rejected["ahrs_mode"] += int(t.size)
+                if self._aligner.level() is not None:
+                    # a usable IMU rate appeared: re-align as an INS, keeping the AHRS
+                    # heading and the depth
+                    self._yaw_for_alignment = aid_heading.predict(self._x)[0]
+                    self._pending_depth = float(self._x[2])
+                    self._mode = "none"
+            if self._mode == "none":
+                return self._try_align()
+            return []
+        dt = np.diff(np.concatenate(([t_last], t)))
+        gaps = np.nonzero(dt > self.config.imu_gap_s)[0]
+        out: list[AidStatus] = []
+        start = 0
+        for g in gaps:
+            out += self._imu_run(t[start:g], f[start:g], w[start:g])
+            self.rejected["imu_gap"] += 1
+            payload = (float(t[g]), f[g].copy(), w[g].copy())
+            self._record("gap", payload)
+            self._imu_gap(*payload)
+            start = g + 1
+        out += self._imu_run(t[start:], f[start:], w[start:])
+        self._t_imu_last = float(self._clock[0])
+        return out
+
+    def _imu_run(self, t, f, w) -> list[AidStatus]:
+        if t.size == 0:
+            return []
+        self._record("imu", (t, f, w))
+        return self._imu_clean(t, f, w)
+
+    def _imu_clean(self, t, f, w) -> list[AidStatus]:
+        """Propagate clean samples, stopping at every learned-velocity fusion time."""
+        out: list[AidStatus] = []
+        start = 0
+        n = t.size
+        while start < n:
+            stop = n
+            lv_due = False
+            if self._next_lv_t <= t[-1]:
+                stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
+                stop = max(stop, start + 1)
+                lv_due = True
+            sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
+                              self._qdiag, self.config.covariance_step_s)
+            start = stop
+            if lv_due and self._clock[0] >= self._next_lv_t:
+                status = self._learned_velocity()
+                if status is not None:
+                    out.append(status)
+                while self._next_lv_t <= self._clock[0]:
+                    self._next_lv_t += self._lv_period
+        return [] if self._replaying else out
+
+    def _imu_gap(self, t_s: float, f_b, w_b) -> None:
+        """An IMU gap: coast at constant velocity, inflate the covariance, restart at t_s."""
+        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        dt = t_s - self._clock[0]
+        self._x[0:3] += self._x[3:6] * dt
+        Phi = np.eye(N_ERR)
+        Phi[POS, VEL] = np.eye(3) * dt
+        q = _BLIND_VEL_RW_M_S_RTHZ ** 2
+        Q = np.zeros((N_ERR, N_ERR))
+        Q[POS, POS] = np.eye(3) * q * dt ** 3 / 3.0
+        Q[POS, VEL] = Q[VEL, POS] = np.eye(3) * q * dt ** 2 / 2.0
+        Q[VEL, VEL] = np.eye(3) * q * dt
+        Q[ATT, ATT] = np.eye(3) * (self._qdiag[6] * dt + (1e-3) ** 2)
+        self._P[:, :] = Phi @ self._P @ Phi.T + Q
+        self._acc[13:16] = np.asarray(w_b) - self._x[X_BG]
+        self._acc[16:19] = np.asarray(f_b) - self._x[X_BA]
+        self._clock[:] = t_s
+        self._reset_counter += 1
+        while self._next_lv_t <= t_s:
+            self._next_lv_t += self._lv_period
+
+    def _ahrs_time_update(self, t_s: float) -> None:
+        dt = t_s - self._clock[0]
+        if dt > 0:
+            q = _BLIND_VEL_RW_M_S_RTHZ ** 2
+            self._P[POS, POS] += np.eye(3) * q * dt
+            self._P[ATT, ATT] += np.eye(3) * (1e-3) ** 2 * dt
+            self._clock[:] = t_s
+
+    def _learned_velocity(self) -> AidStatus | None:
+        cfg = self.config.learned_velocity
+        if not cfg.enabled or self._rpm is None:
+            return None
+        t = float(self._clock[0])
+        if t - self._rpm[0] > cfg.rpm_hold_s:
+            return rejected(t, "learned_velocity", "stale")
+        R_nb = aid_lv.dcm(self._x)
+        yaw_rate = float(R_nb[2] @ self._acc[13:16])
+        meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
+                              cfg.sigma_heave_m_s, cfg.variance_scale)
+        return self._fuse(meas, t, "learned_velocity")
+
+    def _aid(self, sample) -> list[AidStatus]:
+        kind = sample.KIND
+        c = self.config
+        if self._mode == "ahrs":
+            if kind not in ("attitude", "depth", "heading"):
+                return [rejected(sample.t_s, kind, "no_imu")]
+            self._ahrs_time_update(sample.t_s)
+        if not getattr(c, kind).enabled:
+            return [rejected(sample.t_s, kind, "disabled")]
+        x = self._x
+        meas: Measurement | None
+        if kind == "depth":
+            meas = aid_depth.measure(sample, x, c.depth.sigma_m, c.depth.water_density_kg_m3,
+                                     c.depth.atmospheric_pressure_pa)
+        elif kind == "heading":
+            meas = aid_heading.measure(sample, x, c.heading.sigma_rad)
+        elif kind == "attitude":
+            meas = aid_attitude.measure(sample, x, c.attitude.sigma_roll_pitch_rad,
+                                        c.attitude.sigma_yaw_rad)
+        elif kind == "dvl":
+            meas = aid_dvl.measure(sample, x, self._acc[13:16], self._lever_b, self._R_db,
+                                   c.dvl.sigma_m_s)
+            if meas is None:
+                return [rejected(sample.t_s, kind, "invalid")]
+        elif kind == "gnss":
+            if not aid_gnss.at_surface(x, c.gnss.max_depth_m):
+                return [rejected(sample.t_s, kind, "surface_only")]
+            meas = aid_gnss.measure(sample, x, self.origin)
+        elif kind == "usbl":
+            meas = aid_usbl.measure(sample, x, self.origin)
+        elif kind == "visual_motion":
+            meas = aid_visual.measure(sample, x)
+            if meas is None:
+                return [rejected(sample.t_s, kind, "invalid")]
+        else:  # pragma: no cover - guarded by AID_KINDS
+            return []
+        return [self._fuse(meas, sample.t_s, kind)]
+
+    def _fuse(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
+        y = meas.innovation()
+        m = y.size
+        sdiag = self._sdiag[:m]
+        # a non-finite y, H or R gives a NaN NIS, which the gate rejects before P is touched
+        nis, fused = sd.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
+                                  self._dx, sdiag, self._mode == "ins")
+        if fused:
+            reason = ""
+        elif math.isfinite(nis):
+            reason = "gate"
+        else:
+            self.rejected["non_finite"] += 1
+            reason = "non_finite"
+        return AidStatus(float(t_s), source, tuple(meas.z.tolist()), tuple(y.tolist()),
+                         tuple(sdiag.tolist()), float(nis) / self._gate[m], bool(fused), reason)

@@ -1,0 +1,120 @@
+"""Nominal and error state layout of the ESKF, and the published :class:`NavState`.
+
+Nominal state vector ``x`` (19 floats, a plain array so the numba kernels can use it)::
+
+    pos_n (3, m) | vel_n (3, m/s) | q_nb (4, w x y z) | bias_acc_b (3, m/s²)
+    | bias_gyro_b (3, rad/s) | current_n (2, north/east m/s) | k_speed (1, –)
+
+Error state ``δx`` (18): ``δp, δv, δθ, δb_a, δb_g, δc, δk`` where the attitude error
+``δθ`` is a rotation vector in the navigation frame (global/left perturbation,
+``q_true = q(δθ) ⊗ q_nom``; Solà 2017, "Quaternion kinematics for the error-state
+Kalman filter", §7). Injection: :func:`inject`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .frames import quat_mul, quat_from_rotvec, quat_to_euler
+
+# error-state slices (never bare ints)
+POS = slice(0, 3)
+VEL = slice(3, 6)
+ATT = slice(6, 9)
+BA = slice(9, 12)
+BG = slice(12, 15)
+CUR = slice(15, 17)
+KS = slice(17, 18)
+N_ERR = 18
+
+# nominal-state slices
+X_POS = slice(0, 3)
+X_VEL = slice(3, 6)
+X_Q = slice(6, 10)
+X_BA = slice(10, 13)
+X_BG = slice(13, 16)
+X_CUR = slice(16, 18)
+X_KS = 18
+N_NOM = 19
+
+NAV_STATE_SCHEMA_VERSION = 1
+
+
+def initial_nominal(pos_n_m=(0.0, 0.0, 0.0), vel_n_m_s=(0.0, 0.0, 0.0), q_nb=(1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
+    """Nominal vector with zero biases and current and ``k_speed = 1``."""
+    x = np.zeros(N_NOM)
+    x[X_POS] = pos_n_m
+    x[X_VEL] = vel_n_m_s
+    x[X_Q] = q_nb
+    x[X_KS] = 1.0
+    return x
+
+
+def inject(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """Nominal ⊕ error: returns a new nominal vector (the reference, not the hot path)."""
+    out = x.copy()
+    out[X_POS] += dx[POS]
+    out[X_VEL] += dx[VEL]
+    q = quat_mul(quat_from_rotvec(dx[ATT]), x[X_Q])
+    out[X_Q] = q / np.linalg.norm(q)
+    out[X_BA] += dx[BA]
+    out[X_BG] += dx[BG]
+    out[X_CUR] += dx[CUR]
+    out[X_KS] += dx[KS][0]
+    return out
+
+
+@dataclass(frozen=True)
+class NavState:
+    """The estimator's published state at ``t_s``.
+
+    ``cov`` is the 18×18 error-state covariance in the order of the slices above
+    (attitude error in the navigation frame, rad). ``valid`` is False while the filter
+    is not initialised, runs without IMU (AHRS mode) or its horizontal σ is too large
+    to be used for navigation. ``reset_counter`` increments on every discontinuity
+    (alignment, IMU gap), for MAVLink ODOMETRY.
+    """
+
+    t_s: float
+    pos_n_m: np.ndarray
+    vel_n_m_s: np.ndarray
+    q_nb: np.ndarray
+    bias_acc_b_m_s2: np.ndarray
+    bias_gyro_b_rad_s: np.ndarray
+    current_n_m_s: np.ndarray
+    k_speed: float
+    cov: np.ndarray
+    valid: bool
+    reset_counter: int
+
+    def euler_rad(self) -> tuple[float, float, float]:
+        """(roll, pitch, yaw) in rad, ZYX convention."""
+        return quat_to_euler(self.q_nb)
+
+    def sigma(self, sl: slice) -> np.ndarray:
+        """1-σ of an error-state block, e.g. ``state.sigma(POS)``."""
+        return np.sqrt(np.clip(np.diag(self.cov)[sl], 0.0, None))
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (non-finite floats as None), with ``schema_version``."""
+        def arr(a):
+            return [float(v) if math.isfinite(v) else None for v in np.ravel(a)]
+        roll, pitch, yaw = self.euler_rad()
+        return {
+            "type": "nav_state",
+            "schema_version": NAV_STATE_SCHEMA_VERSION,
+            "t_s": float(self.t_s),
+            "pos_n_m": arr(self.pos_n_m),
+            "vel_n_m_s": arr(self.vel_n_m_s),
+            "q_nb": arr(self.q_nb),
+            "euler_rad": arr([roll, pitch, yaw]),
+            "bias_acc_b_m_s2": arr(self.bias_acc_b_m_s2),
+            "bias_gyro_b_rad_s": arr(self.bias_gyro_b_rad_s),
+            "current_n_m_s": arr(self.current_n_m_s),
+            "k_speed": float(self.k_speed),
+            "cov": arr(self.cov),
+            "valid": bool(self.valid),
+            "reset_counter": int(self.reset_counter),
+        }

@@ -1,0 +1,362 @@
+r"""Strapdown mechanisation and error-state propagation (numba kernels, the hot loop).
+
+Mechanisation in the local NED frame, flat non-rotating earth (the earth rate,
+7.3e-5 rad/s, is below a tactical gyro's noise over an AUV dive and is left out; Groves
+2013, §5.4 "local navigation frame", simplified), per IMU sample k held over
+``(t_{k-1}, t_k]``::
+
+    ω̂ = ω_m − b_g,  f̂ = f_m − b_a
+    q_nb ← q_nb ⊗ q(ω̂ δt)
+    a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n,   g_n = (0, 0, g)
+    p_n ← p_n + v_n δt + ½ a_n δt²,  v_n ← v_n + a_n δt
+
+Error dynamics (global attitude error δθ, see :mod:`fusion.state`)::
+
+    δṗ = δv,  δv̇ = −[R f̂]× δθ − R δb_a + w_a,  δθ̇ = −R δb_g + w_g,
+    δḃ_a = w_ba,  δḃ_g = w_bg,  δċ = w_c,  δk̇ = w_k
+
+The covariance is propagated every ``covariance_step_s`` T (as pyins and ArduPilot do),
+with F built from the step averages of ``R f̂`` and ``R`` and
+``Φ = I + F T + (F T)²/2``; ``P ← Φ (P + Q T/2) Φᵀ + Q T/2`` (trapezoidal noise).
+
+Arrays shared by the kernels (all float64, mutated in place):
+
+- ``x`` (19,) nominal state (:mod:`fusion.state`),
+- ``P`` (18, 18) covariance at time ``clock[1]``,
+- ``acc`` (19,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
+  latest bias-corrected ω̂_b (3) and f̂_b (3),
+- ``clock`` (2,) ``[t_state_s, t_cov_s]``,
+- ``qdiag`` (18,) continuous process noise PSDs per error state.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .frames import GRAVITY_M_S2
+
+ACC_SIZE = 19
+
+
+@njit(cache=True, fastmath=False)
+def _dcm(q0, q1, q2, q3, R):
+    R[0, 0] = 1 - 2 * (q2 * q2 + q3 * q3)
+    R[0, 1] = 2 * (q1 * q2 - q0 * q3)
+    R[0, 2] = 2 * (q1 * q3 + q0 * q2)
+    R[1, 0] = 2 * (q1 * q2 + q0 * q3)
+    R[1, 1] = 1 - 2 * (q1 * q1 + q3 * q3)
+    R[1, 2] = 2 * (q2 * q3 - q0 * q1)
+    R[2, 0] = 2 * (q1 * q3 - q0 * q2)
+    R[2, 1] = 2 * (q2 * q3 + q0 * q1)
+    R[2, 2] = 1 - 2 * (q1 * q1 + q2 * q2)
+
+
+@njit(cache=True)
+def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
+    """Advance the nominal state ``x`` by one IMU sample held over ``dt`` seconds."""
+    wx = w_b[0] - x[13]
+    wy = w_b[1] - x[14]
+    wz = w_b[2] - x[15]
+    fx = f_b[0] - x[10]
+    fy = f_b[1] - x[11]
+    fz = f_b[2] - x[12]
+    q0, q1, q2, q3 = x[6], x[7], x[8], x[9]
+    _dcm(q0, q1, q2, q3, R0)
+    # q ← q ⊗ q(ω̂ δt), exact rotation-vector quaternion
+    rx, ry, rz = wx * dt, wy * dt, wz * dt
+    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
+    if ang < 1e-6:
+        k = 0.5 - ang * ang / 48.0
+        c = 1.0 - ang * ang / 8.0
+    else:
+        k = np.sin(0.5 * ang) / ang
+        c = np.cos(0.5 * ang)
+    d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
+    n0 = q0 * d0 - q1 * d1 - q2 * d2 - q3 * d3
+    n1 = q0 * d1 + q1 * d0 + q2 * d3 - q3 * d2
+    n2 = q0 * d2 - q1 * d3 + q2 * d0 + q3 * d1
+    n3 = q0 * d3 + q1 * d2 - q2 * d1 + q3 * d0
+    inv = 1.0 / np.sqrt(n0 * n0 + n1 * n1 + n2 * n2 + n3 * n3)
+    if n0 < 0.0:
+        inv = -inv
+    n0 *= inv
+    n1 *= inv
+    n2 *= inv
+    n3 *= inv
+    x[6], x[7], x[8], x[9] = n0, n1, n2, n3
+    _dcm(n0, n1, n2, n3, R1)
+    ax = 0.0
+    ay = 0.0
+    az = 0.0
+    for i in range(3):
+        for j in range(3):
+            r = 0.5 * (R0[i, j] + R1[i, j])
+            acc[3 + 3 * i + j] += r * dt
+        ri0 = 0.5 * (R0[i, 0] + R1[i, 0])
+        ri1 = 0.5 * (R0[i, 1] + R1[i, 1])
+        ri2 = 0.5 * (R0[i, 2] + R1[i, 2])
+        a = ri0 * fx + ri1 * fy + ri2 * fz
+        acc[i] += a * dt
+        if i == 0:
+            ax = a
+        elif i == 1:
+            ay = a
+        else:
+            az = a
+    az += GRAVITY_M_S2
+    x[0] += x[3] * dt + 0.5 * ax * dt * dt
+    x[1] += x[4] * dt + 0.5 * ay * dt * dt
+    x[2] += x[5] * dt + 0.5 * az * dt * dt
+    x[3] += ax * dt
+    x[4] += ay * dt
+    x[5] += az * dt
+    acc[12] += dt
+    acc[13] = wx
+    acc[14] = wy
+    acc[15] = wz
+    acc[16] = fx
+    acc[17] = fy
+    acc[18] = fz
+
+
+@njit(cache=True)
+def transition(acc, T):
+    """Φ (18×18) over the accumulated step of length ``T`` (see module docstring)."""
+    F = np.zeros((18, 18))
+    a0 = acc[0] / T
+    a1 = acc[1] / T
+    a2 = acc[2] / T
+    for i in range(3):
+        F[i, 3 + i] = 1.0
+    # −[a]×
+    F[3, 7] = a2
+    F[3, 8] = -a1
+    F[4, 6] = -a2
+    F[4, 8] = a0
+    F[5, 6] = a1
+    F[5, 7] = -a0
+    for i in range(3):
+        for j in range(3):
+            r = acc[3 + 3 * i + j] / T
+            F[3 + i, 9 + j] = -r
+            F[6 + i, 12 + j] = -r
+    FT = F * T
+    Phi = np.eye(18) + FT + 0.5 * (FT @ FT)
+    return Phi
+
+
+@njit(cache=True)
+def propagated_covariance(P, acc, qdiag):
+    """Covariance after the pending accumulated step (P itself is not changed)."""
+    T = acc[12]
+    if T <= 0.0:
+        return P.copy()
+    Phi = transition(acc, T)
+    Pm = P.copy()
+    for i in range(18):
+        Pm[i, i] += 0.5 * qdiag[i] * T
+    Pn = Phi @ Pm @ Phi.T
+    for i in range(18):
+        Pn[i, i] += 0.5 * qdiag[i] * T
+    return 0.5 * (Pn + Pn.T)
+
+
+@njit(cache=True)
+def flush_covariance(P, acc, clock, qdiag):
+    """Propagate ``P`` over the accumulated step and reset the accumulators."""
+    if acc[12] > 0.0:
+        P[:, :] = propagated_covariance(P, acc, qdiag)
+        for i in range(13):
+            acc[i] = 0.0
+    clock[1] = clock[0]
+
+
+N_X = 19
+N_P = 18 * 18
+CORE_SIZE = N_X + N_P + ACC_SIZE + 2
+
+
+@njit(cache=True)
+def core_views(core):
+    """(x, P, acc, clock) views of the contiguous core array."""
+    x = core[0:19]
+    P = core[19:343].reshape((18, 18))
+    acc = core[343:362]
+    clock = core[362:364]
+    return x, P, acc, clock
+
+
+@njit(cache=True)
+def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
+    """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch)."""
+    x, P, acc, clock = core_views(core)
+    propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s)
+
+
+@njit(cache=True)
+def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
+    """Propagate over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
+
+    The caller guarantees ``t_s`` strictly increasing, after ``clock[0]``, finite and
+    without gaps (checked vectorised before). Covariance is flushed every
+    ``cov_step_s``.
+    """
+    R0 = np.empty((3, 3))
+    R1 = np.empty((3, 3))
+    for k in range(t_s.shape[0]):
+        dt = t_s[k] - clock[0]
+        strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
+        clock[0] = t_s[k]
+        if clock[0] - clock[1] >= cov_step_s - 1e-9:
+            flush_covariance(P, acc, clock, qdiag)
+
+
+@njit(cache=True)
+def inject_error(x, dx, P):
+    """x ← x ⊕ δx and the ESKF covariance reset ``P ← G P Gᵀ``."""
+    for i in range(6):
+        x[i] += dx[i]
+    rx, ry, rz = dx[6], dx[7], dx[8]
+    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
+    if ang < 1e-6:
+        k = 0.5 - ang * ang / 48.0
+        c = 1.0 - ang * ang / 8.0
+    else:
+        k = np.sin(0.5 * ang) / ang
+        c = np.cos(0.5 * ang)
+    d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
+    q0, q1, q2, q3 = x[6], x[7], x[8], x[9]
+    # q ← q(δθ) ⊗ q (global perturbation)
+    n0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
+    n1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
+    n2 = d0 * q2 - d1 * q3 + d2 * q0 + d3 * q1
+    n3 = d0 * q3 + d1 * q2 - d2 * q1 + d3 * q0
+    inv = 1.0 / np.sqrt(n0 * n0 + n1 * n1 + n2 * n2 + n3 * n3)
+    if n0 < 0.0:
+        inv = -inv
+    x[6], x[7], x[8], x[9] = n0 * inv, n1 * inv, n2 * inv, n3 * inv
+    for i in range(9, 18):
+        x[i + 1] += dx[i]
+    # reset Jacobian for the global attitude error: G_θθ = I + ½[δθ]× (Solà 2017 §7.2 for
+    # the local error has the opposite sign)
+    G = np.eye(18)
+    G[6, 7] = -0.5 * rz
+    G[6, 8] = 0.5 * ry
+    G[7, 6] = 0.5 * rz
+    G[7, 8] = -0.5 * rx
+    G[8, 6] = -0.5 * ry
+    G[8, 7] = 0.5 * rx
+    P[:, :] = G @ P @ G.T
+
+
+@njit(cache=True)
+def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
+    """Chi-square gate, then the Joseph-form update (m ≤ 3 measurements, explicit loops).
+
+    ``P ← (I−KH) P (I−KH)ᵀ + K R Kᵀ``, expanded (valid for any gain K) as
+    ``P − K (PHᵀ)ᵀ − (PHᵀ) Kᵀ + K S Kᵀ``, which costs O(n² m) instead of O(n³).
+    Returns ``(nis, fused)``: ``yᵀ S⁻¹ y`` and whether ``nis ≤ gate`` (NaN ⇒ False);
+    ``dx_out`` ← K y (zeros if rejected), ``s_diag_out`` ← diag S.
+    """
+    n = P.shape[0]
+    m = y.shape[0]
+    PHt = np.zeros((n, m))
+    for i in range(n):
+        for k in range(m):
+            acc = 0.0
+            for j in range(n):
+                acc += P[i, j] * H[k, j]
+            PHt[i, k] = acc
+    S = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            acc = R[a, b]
+            for j in range(n):
+                acc += H[a, j] * PHt[j, b]
+            S[a, b] = acc
+    for a in range(m):
+        for b in range(a + 1, m):
+            v = 0.5 * (S[a, b] + S[b, a])
+            S[a, b] = v
+            S[b, a] = v
+        s_diag_out[a] = S[a, a]
+    Sinv = np.linalg.inv(S) if m > 1 else np.array([[1.0 / S[0, 0]]])
+    nis = 0.0
+    for a in range(m):
+        for b in range(m):
+            nis += y[a] * Sinv[a, b] * y[b]
+    for i in range(n):
+        dx_out[i] = 0.0
+    if not (nis <= gate):
+        return nis, False
+    K = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHt[i, a] * Sinv[a, b]
+            K[i, b] = acc
+    KS = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += K[i, a] * S[a, b]
+            KS[i, b] = acc
+    for i in range(n):
+        acc = 0.0
+        for a in range(m):
+            acc += K[i, a] * y[a]
+        dx_out[i] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = P[i, j]
+            for a in range(m):
+                acc += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KS[i, a] * K[j, a]
+            P[i, j] = acc
+            P[j, i] = acc
+    return nis, True
+
+
+@njit(cache=True)
+def dcm_of(x):
+    """``R_nb`` (3×3) of the nominal state ``x``."""
+    R = np.empty((3, 3))
+    _dcm(x[6], x[7], x[8], x[9], R)
+    return R
+
+
+@njit(cache=True)
+def imu_clean(t_s, f_b, w_b, t_last_s, gap_s):
+    """True when every sample is finite, strictly after the previous one and gap-free."""
+    prev = t_last_s
+    for k in range(t_s.shape[0]):
+        t = t_s[k]
+        if not (t > prev and t - prev <= gap_s):
+            return False
+        for i in range(3):
+            if not (np.isfinite(f_b[k, i]) and np.isfinite(w_b[k, i])):
+                return False
+        prev = t
+    return True
+
+
+@njit(cache=True)
+def fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush):
+    """flush (INS mode) → gated Joseph update → error injection, in one call.
+
+    Returns ``(nis, fused)`` as :func:`gated_update`.
+    """
+    if flush:
+        flush_covariance(P, acc, clock, qdiag)
+    nis, fused = gated_update(P, y, H, R, gate, dx, s_diag_out)
+    if fused:
+        inject_error(x, dx, P)
+    return nis, fused
+
+
+@njit(cache=True)
+def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
+    """:func:`fuse` on the core array."""
+    x, P, acc, clock = core_views(core)
+    return fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush)
