@@ -120,12 +120,14 @@ class TrajectoryCsvSink(Sink):
         roll, pitch, yaw = state.euler_rad()
         sig = _sigma(state.cov, self._pos)
         cn, ce = _current_xy(state)
-        row = [fmt(x) for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
-                                sig[0], sig[1], sig[2], cn, ce, state.k_speed, bool(state.valid))]
+        row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
+                                                  pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
+        row.append("1" if state.valid else "0")
         if self.truth:
             tr = self._last_truth
             if tr is not None and abs(state.t_s - tr.t_s) <= self.truth_max_age_s:
-                row += [fmt(x) for x in (*tr.pos_n_m, tr.current_n_m_s[0], tr.current_n_m_s[1], tr.k_v)]
+                row += [format(float(x), ".10g") for x in (*tr.pos_n_m, tr.current_n_m_s[0],
+                                                            tr.current_n_m_s[1], tr.k_v)]
             else:
                 row += [""] * len(self.TRUTH_COLUMNS)
         self._writer.writerow(row)
@@ -164,7 +166,7 @@ class ParamsCsvSink(Sink):
     ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``.
     """
 
-    def __init__(self, path: str | Path, initial_params: Any = None, t0_s: float = math.nan) -> None:
+    def __init__(self, path: str | Path, initial_params: Any = None) -> None:
         from fusion.motion_model import MotionParams
 
         self.path = Path(path)
@@ -172,11 +174,24 @@ class ParamsCsvSink(Sink):
         self._file = open(self.path, "w", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(("t_s",) + self.names + ("log_likelihood", "accepted", "reason", "iterations"))
-        if initial_params is not None:
-            d = initial_params.to_dict()
-            self._writer.writerow([fmt(t0_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", ""])
+        self._initial = initial_params  # written with the data time of the first input
+
+    def _write_initial(self, t_s: float) -> None:
+        d = self._initial.to_dict()
+        self._initial = None
+        self._writer.writerow([fmt(t_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", ""])
+
+    def on_sample(self, sample: Any) -> None:
+        if self._initial is not None:
+            self._write_initial(sample.t_s)
+
+    def on_nav(self, state: Any) -> None:
+        if self._initial is not None:
+            self._write_initial(state.t_s)
 
     def on_release(self, release: Any) -> None:
+        if self._initial is not None:
+            self._write_initial(release.t_s)
         d = release.params.to_dict() if release.params is not None else {}
         self._writer.writerow([fmt(release.t_s)] + [fmt(d.get(n)) for n in self.names]
                               + [fmt(release.log_likelihood), fmt(bool(release.accepted)),

@@ -1,5 +1,6 @@
 """Sources of the runner loop for replay: logs and the simulator (Stone Soup style:
-readers and simulators are interchangeable as sources).
+readers and simulators are interchangeable as sources). The live queue source is
+the daemon's (``service.daemon.QueueSource``).
 
 A source is an iterable of samples (:mod:`fusion.samples`), :class:`ImuBatch` runs and,
 live, calibrator releases, in the deterministic replay order
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import heapq
 import math
-import queue as queue_mod
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator
@@ -187,10 +187,8 @@ class SimSource:
     """
 
     def __init__(self, scenario: Any, result: Any = None) -> None:
-        import sim
-
         self.scenario = scenario
-        self.result = result if result is not None else sim.simulate(scenario)
+        self.result = result if result is not None else simulate(scenario)
         self.metadata = {"scenario": scenario}
         self.counters = SourceCounters()
         self.streams = None
@@ -216,34 +214,11 @@ class SimSource:
             yield item
 
 
-class QueueSource:
-    """Live source: items from a :class:`queue.Queue` filled by bus callbacks.
+def simulate(scenario: Any) -> Any:
+    """``sim.simulate`` (the package export when present, else ``sim.simulator``)."""
+    import sim
 
-    Iteration ends when ``stop`` is set (checked every ``poll_s``) or a ``None`` item
-    (sentinel) is taken. ``qsize()`` gives the queue depth for health.
-    """
-
-    def __init__(self, q: "queue_mod.Queue[Any]", stop: Any = None, poll_s: float = 0.1) -> None:
-        self.queue = q
-        self.stop = stop
-        self.poll_s = poll_s
-        self.counters = SourceCounters()
-        self.streams = None
-        self.metadata: dict = {}
-
-    def qsize(self) -> int:
-        return self.queue.qsize()
-
-    def __iter__(self) -> Iterator[Any]:
-        while self.stop is None or not self.stop.is_set():
-            try:
-                item = self.queue.get(timeout=self.poll_s)
-            except queue_mod.Empty:
-                continue
-            if item is None:
-                return
-            self.counters.messages_read += 1
-            kind = getattr(item, "KIND", None)
-            if kind is not None:
-                self.counters.by_kind[kind] += len(item) if isinstance(item, ImuBatch) else 1
-            yield item
+    fn = getattr(sim, "simulate", None)
+    if fn is None:
+        from sim.simulator import simulate as fn
+    return fn(scenario)

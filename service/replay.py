@@ -1,0 +1,466 @@
+"""Replay harness: a recorded mission (MCAP, ``.tlog``/``.BIN``) or a scenario simulated
+in memory, through the *same* runner as the live daemon (:func:`service.runner.run`),
+with a log/simulator source, a log (or real-time) clock and file sinks.
+
+Configuration is the daemon's :class:`service.config.ServiceConfig` (one typed tree),
+built with this precedence: defaults < what a simulated log says about itself (the
+scenario: IMU grade → filter noises, sensor noises, water density, DVL mounting, RPM
+table, the *pre-change* motion parameters, origin) < ``--config FILE`` < overrides.
+
+Outputs in ``DIR``: ``trajectory.csv``, ``aid_status.csv``, ``params.csv``,
+``metrics.json`` (with truth), ``track.png``, ``params.png``, ``innovations.png``,
+``summary.json`` and the effective ``config.json`` (+ ``scenario.json`` for simulations).
+
+Comparisons (the navigation-core targets): ``aiding="none"`` is pure INS (learned
+velocity, DVL and visual motion off; the other aids stay), ``k_v_error`` a static,
+wrong motion model (``k_V·(1 + error)``, no calibrator); :func:`compare` runs pure INS /
+static wrong model / as given side by side.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+
+from .clock import LogClock, RealtimeClock
+from .health import Health
+from .runner import RunSummary, run
+from .sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
+                    TrajectoryCsvSink)
+from .sources import SampleStreamSource, SimSource, simulate
+
+log = logging.getLogger(__name__)
+
+VELOCITY_AIDS_OFF = ("filter.learned_velocity.enabled=false", "filter.dvl.enabled=false",
+                     "filter.visual_motion.enabled=false")
+
+
+# -- configuration from a scenario --------------------------------------------------------
+def _imu_filter_raw(grade: str) -> dict:
+    """Filter IMU noise densities matching a simulator IMU grade (sim/imu.py).
+
+    Bias 1-σ = sqrt(turn-on² + instability²); bias random-walk density ≥ the Gauss–Markov
+    driving density ``σ_GM·sqrt(2/τ)`` (the filter models biases as random walks).
+    Floors keep a "perfect" IMU's filter well conditioned.
+    """
+    from sim.imu import IMU_GRADES
+
+    g = IMU_GRADES[grade]
+
+    def rw(m):
+        return max(m.random_walk_density, m.instability_sigma * math.sqrt(2.0 / m.correlation_time_s))
+
+    return {
+        "acc_noise_m_s2_rthz": max(g.accel.white_density, 1e-6),
+        "gyro_noise_rad_s_rthz": max(g.gyro.white_density, 1e-8),
+        "acc_bias_sigma_m_s2": max(math.hypot(g.accel.turn_on_sigma, g.accel.instability_sigma), 1e-5),
+        "gyro_bias_sigma_rad_s": max(math.hypot(g.gyro.turn_on_sigma, g.gyro.instability_sigma), 1e-8),
+        "acc_bias_rw_m_s3_rthz": max(rw(g.accel), 1e-8),
+        "gyro_bias_rw_rad_s2_rthz": max(rw(g.gyro), 1e-10),
+    }
+
+
+def config_raw_from_scenario(scenario: Any) -> dict:
+    """ServiceConfig sections (raw dict) that a simulated mission determines."""
+    sc = scenario
+    return {
+        "origin": {"lat_deg": sc.origin.lat_deg, "lon_deg": sc.origin.lon_deg},
+        "motion": {
+            "rpm_table": {"rpm": list(sc.rpm.table_rpm), "speed_m_s": list(sc.rpm.table_speed_m_s)},
+            # the filter is given the pre-change model (learning it is the calibrator's job)
+            "params0": sc.params_before().to_dict(),
+        },
+        "filter": {
+            "imu": _imu_filter_raw(sc.imu.grade),
+            "heading": {"sigma_rad": math.radians(sc.heading.sigma_deg)},
+            "depth": {"sigma_m": sc.depth.sigma_m, "water_density_kg_m3": sc.environment.density_kg_m3,
+                      "atmospheric_pressure_pa": sc.environment.atmospheric_pressure_pa},
+            "dvl": {"sigma_m_s": sc.dvl.sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
+                    "rotation_bd_rpy_rad": [math.radians(v) for v in sc.dvl.mount_rpy_deg]},
+            "gnss": {"max_depth_m": sc.gnss.max_depth_m},
+        },
+        # the calibrator's NED frame is the filter's
+        "calibrator": {"online": {"origin_lat_deg": sc.origin.lat_deg, "origin_lon_deg": sc.origin.lon_deg}},
+    }
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for k, v in top.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def build_config(scenario: Any = None, config_path: str | Path | None = None,
+                 overrides: list[str] | tuple[str, ...] = ()) -> Any:
+    """Effective :class:`ServiceConfig` (precedence in the module docstring)."""
+    import tomllib
+
+    from .config import ServiceConfig
+
+    raw: dict = config_raw_from_scenario(scenario) if scenario is not None else {}
+    if config_path is not None:
+        try:
+            raw = _merge(raw, tomllib.loads(Path(config_path).read_text()))
+        except FileNotFoundError as e:
+            raise ConfigError(f"config file {config_path}: not found") from e
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"config file {config_path}: TOML syntax: {e}") from e
+    return build(ServiceConfig, apply_overrides(raw, list(overrides)))
+
+
+# -- inputs -------------------------------------------------------------------------------
+@dataclass
+class ReplayInput:
+    """An opened input: the source and what it says about itself."""
+
+    source: Any
+    scenario: Any = None            # sim.scenario.Scenario when the input is a simulation
+    label: str = ""
+    duration_s: float | None = None
+    reopen: Any = None              # callable → a fresh source over the same data
+
+    @property
+    def has_truth(self) -> bool:
+        return bool(getattr(self.source, "has_truth", False))
+
+
+def open_scenario(name: str, overrides: list[str] | tuple[str, ...] = ()) -> ReplayInput:
+    """Simulate scenario ``name`` (or a .toml path) in memory."""
+    from sim.scenario import load_scenario
+
+    scenario = load_scenario(name, list(overrides))
+    result = simulate(scenario)
+    return ReplayInput(SimSource(scenario, result), scenario, f"scenario {scenario.name}",
+                       scenario.duration_s, reopen=lambda: SimSource(scenario, result))
+
+
+def open_log(path: str | Path) -> ReplayInput:
+    """Open ``.mcap`` (our logs) or ``.tlog``/``.bin`` (MAVLink/DataFlash) for replay."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"log not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix in (".tlog", ".bin", ".log"):
+        return ReplayInput(_tlog_source(path), None, path.name, None, reopen=lambda: _tlog_source(path))
+    if suffix == ".mcap":
+        src = McapSource(path)
+        return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path))
+    raise ValueError(f"{path}: unknown log type {suffix!r} (expected .mcap, .tlog or .bin)")
+
+
+class _TlogWrapped(SampleStreamSource):
+    """A :class:`service.tlog_source.TlogSource` batched for the estimator; its own
+    counters (messages read, corrupt frames, what is missing) are the ones reported."""
+
+    def __init__(self, tlog: Any) -> None:
+        super().__init__(tlog)
+        self.tlog = tlog
+
+    @property
+    def missing(self) -> list[str]:
+        return list(getattr(self.tlog, "missing", []) or [])
+
+    def report_counters(self) -> dict:
+        c = self.tlog.counters
+        return {"messages_read": int(c.get("messages_read", 0)),
+                "corrupt_frames": int(c.get("corrupt_frames", 0)),
+                "rejected": dict(c.get("rejected", {})),
+                "late_samples": int(c.get("late_samples", 0))}
+
+
+def _tlog_source(path: Path) -> Any:
+    from .tlog_source import TlogSource
+
+    return _TlogWrapped(TlogSource(path))
+
+
+class McapSource(SampleStreamSource):
+    """Our MCAP logs (:func:`service.logs.read_mcap`), with the scenario from the metadata.
+
+    Undecodable messages are counted by reason (``decode:<field>``) and skipped; a
+    truncated file replays up to the damage and says so in ``truncated``.
+    """
+
+    MAX_LOGGED = 10
+
+    def __init__(self, path: Path) -> None:
+        from . import logs
+
+        self.path = Path(path)
+        self.stats = logs.ReadStats()
+        self.truncated = ""
+        try:
+            metadata = logs.read_mcap_metadata(self.path)
+        except logs.LogError as e:
+            log.warning("%s", e)
+            metadata = {}
+        self.scenario = _scenario_from_metadata(metadata)
+        streams = _mcap_streams(self.path)
+        if streams is None and self.scenario is not None:
+            streams = ["truth"]  # simulated logs carry truth; the summary is lost with truncation
+        super().__init__(self._samples(), streams=streams, metadata=metadata)
+        self.duration_s = self.scenario.duration_s if self.scenario is not None else None
+
+    def _samples(self):
+        from fusion.samples import SampleError
+
+        from . import logs
+
+        logged = 0
+        for item in logs.read_mcap(self.path, self.stats):
+            if isinstance(item, SampleError):
+                reason = str(item).split(":")[0].strip() or "malformed"
+                self.counters.decode_errors[reason] += 1
+                if logged < self.MAX_LOGGED:
+                    log.warning("%s: undecodable message skipped: %s", self.path.name, item)
+                    logged += 1
+                continue
+            if isinstance(item, logs.TruncatedLogError):
+                self.truncated = str(item)
+                self.counters.decode_errors["truncated"] += 1
+                log.warning("%s", item)
+                continue
+            yield item
+
+    def report_counters(self) -> dict:
+        c = self.counters
+        return {"messages_read": int(self.stats.messages), "corrupt_frames": int(self.stats.bad_messages),
+                "rejected": c.rejected(), "late_samples": c.late_samples, "truncated": self.truncated}
+
+
+def _scenario_from_metadata(metadata: dict) -> Any:
+    raw = metadata.get("scenario")
+    if not isinstance(raw, dict):
+        return None
+    from sim.scenario import Scenario
+
+    try:
+        return build(Scenario, raw)
+    except ConfigError as e:
+        log.warning("log metadata: scenario not usable (%s); using the config only", e)
+        return None
+
+
+def _mcap_streams(path: Path) -> list[str] | None:
+    """Sample kinds from the MCAP summary (channel topics' last segment); None if unreadable."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 — truncated/corrupt file: no summary
+        return None
+    if summary is None:
+        return None
+    return sorted({ch.topic.rstrip("/").rsplit("/", 1)[-1] for ch in summary.channels.values()})
+
+
+# -- one replay ----------------------------------------------------------------------------
+@dataclass
+class ReplayResult:
+    out_dir: Path
+    summary: dict
+    metrics: dict
+    run: RunSummary
+    files: list[str] = field(default_factory=list)
+
+
+def _progress_bar(total_s: float | None, label: str, enabled: bool):
+    if not enabled:
+        return None, None
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(total_s, 1) if total_s else None, unit="s", unit_scale=False,
+               desc=label[:30], leave=False, mininterval=0.5,
+               bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s data [{elapsed}<{remaining}]"
+               if total_s else None)
+    state = {"t0": None, "done": 0.0}
+
+    def progress(t_s: float) -> None:
+        if state["t0"] is None:
+            state["t0"] = t_s
+        done = t_s - state["t0"]
+        if done - state["done"] >= 1.0:
+            bar.update(round(done - state["done"], 1))
+            state["done"] = done
+
+    return bar, progress
+
+
+def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
+           realtime: float | None = None, progress: bool = True, title: str = "",
+           plots: bool = True) -> ReplayResult:
+    """Run one replay of ``inp`` with config ``cfg`` into ``out_dir`` (see module docstring).
+
+    Parameters
+    ----------
+    inp : ReplayInput
+    cfg : ServiceConfig
+    out_dir : path, created if needed
+    calibrate : bool
+        Run the online calibrator in-process at the same data times.
+    realtime : float, optional
+        Pace at this many times real time (``None``: as fast as possible).
+    progress : bool
+        Show a progress bar over data time.
+    plots : bool
+        Write the PNG plots.
+    """
+    from fusion.eskf import Estimator
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    params0 = cfg.motion.params0
+    estimator = Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
+    calibrator = None
+    if calibrate:
+        from .calibrator_process import make_calibrator
+
+        calibrator = make_calibrator(cfg, params0, cfg.calibrator.seed)
+    health = Health(silent_after_s=cfg.health.sensor_timeout_s)
+    truth = inp.has_truth
+    recorder = SeriesRecorder(initial_params=params0)
+    metrics_sink = MetricsSink(recorder, out / "metrics.json")
+    sinks = [TrajectoryCsvSink(out / "trajectory.csv", truth=truth,
+                               truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz),
+             AidStatusCsvSink(out / "aid_status.csv"),
+             ParamsCsvSink(out / "params.csv", params0),
+             recorder, metrics_sink]
+    if plots:
+        sinks.append(PlotSink(recorder, out, title or inp.label))
+    clock = RealtimeClock(realtime) if realtime else LogClock()
+    bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
+    wall0 = time.monotonic()
+    try:
+        summary = run(inp.source, estimator, sinks, clock, calibrator,
+                      output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog)
+    finally:
+        if bar is not None:
+            bar.close()
+    wall_s = time.monotonic() - wall0
+
+    src = inp.source
+    counters = src.report_counters() if hasattr(src, "report_counters") else {
+        "messages_read": src.counters.messages_read, "corrupt_frames": src.counters.corrupt_frames,
+        "rejected": src.counters.rejected(), "late_samples": src.counters.late_samples}
+    for reason, n in counters["rejected"].items():
+        health.on_rejected(reason, n)
+    rejected = health.rejected_by_reason()
+    duration = summary.duration_s
+    missing = list(getattr(src, "missing", []))
+    doc = {
+        "input": inp.label,
+        "messages_read": counters["messages_read"],
+        "samples_used": summary.samples_used,
+        "corrupt_frames": counters["corrupt_frames"],
+        "rejected_samples": rejected,
+        "rejected_total": int(sum(rejected.values())),
+        "late_samples": counters["late_samples"],
+        "duration_s": duration,
+        "wall_s": wall_s,
+        "realtime_factor": duration / wall_s if wall_s > 0 else None,
+        "missing_streams": missing,
+        "nav_states": summary.nav_states,
+        "imu_samples": summary.imu_samples,
+        "releases": summary.releases,
+        "releases_accepted": summary.releases_accepted,
+        "errors": dict(summary.errors),
+        "calibrate": bool(calibrate),
+        "health": health.report(),
+    }
+    if metrics_sink.metrics:
+        doc["metrics"] = metrics_sink.metrics
+    (out / "summary.json").write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default) + "\n")
+    (out / "config.json").write_text(json.dumps(as_dict(cfg), indent=2, sort_keys=True, default=_json_default) + "\n")
+    if inp.scenario is not None:
+        (out / "scenario.json").write_text(json.dumps(as_dict(inp.scenario), indent=2, sort_keys=True,
+                                                      default=_json_default) + "\n")
+    files = sorted(p.name for p in out.iterdir() if p.is_file())
+    return ReplayResult(out, doc, metrics_sink.metrics, summary, files)
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "to_dict"):
+        return o.to_dict()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    return str(o)
+
+
+# -- comparisons ----------------------------------------------------------------------------
+VARIANTS = ("pure_ins", "static_wrong", "given")
+
+
+def variant_config(cfg: Any, variant: str, k_v_error: float = 0.1) -> Any:
+    """``pure_ins`` (no velocity aiding), ``static_wrong`` (k_V × (1 + k_v_error)), ``given``."""
+    from .config import ServiceConfig
+
+    if variant == "given":
+        return cfg
+    raw = as_dict(cfg)
+    if variant == "pure_ins":
+        return build(ServiceConfig, apply_overrides(raw, list(VELOCITY_AIDS_OFF)))
+    if variant == "static_wrong":
+        return replace(cfg, motion=replace(cfg.motion, params0=replace(
+            cfg.motion.params0, k_v=cfg.motion.params0.k_v * (1.0 + k_v_error))))
+    raise ValueError(f"unknown variant {variant!r} (one of {VARIANTS})")
+
+
+TABLE_KEYS = (("final_horizontal_error_m", "final err (m)"), ("rms_horizontal_error_m", "RMS err (m)"),
+              ("drift_percent_since_fix", "% DT since fix"), ("percent_distance_travelled", "% DT"),
+              ("current_error_at_last_fix_m_s", "cur err@fix (m/s)"), ("current_error_m_s", "cur err end"),
+              ("nees_mean", "NEES mean"), ("nees_fraction_in_95", "NEES in 95%"))
+
+
+def format_table(rows: dict[str, dict]) -> str:
+    """Rows name → metrics as an aligned text table."""
+    head = ["run"] + [h for _, h in TABLE_KEYS]
+    lines = [head]
+    for name, m in rows.items():
+        cells = [name]
+        for key, _ in TABLE_KEYS:
+            v = m.get(key) if m else None
+            cells.append("–" if v is None else f"{v:.4g}")
+        lines.append(cells)
+    widths = [max(len(r[i]) for r in lines) for i in range(len(head))]
+    return "\n".join("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))
+                     for r in lines)
+
+
+def targets_text(metrics: dict) -> str:
+    """The navigation-core target figures of one run, one per line."""
+    if not metrics:
+        return "no truth in the input: no metrics"
+    lo, hi = metrics.get("nees_band_95", [math.nan, math.nan])
+
+    def f(key, unit=""):
+        v = metrics.get(key)
+        return "–" if v is None else f"{v:.4g}{unit}"
+
+    return "\n".join([
+        f"drift_percent_since_fix        {f('drift_percent_since_fix', ' %')}  "
+        f"(error at end / distance since last fused fix {f('distance_since_fix_m', ' m')})",
+        f"final_horizontal_error_m       {f('final_horizontal_error_m', ' m')}",
+        f"rms_horizontal_error_m         {f('rms_horizontal_error_m', ' m')}",
+        f"distance_travelled_m           {f('distance_travelled_m', ' m')}",
+        f"current_error at last fix      {f('current_error_at_last_fix_m_s', ' m/s')}",
+        f"current_error_m_s (end)        {f('current_error_m_s', ' m/s')}",
+        f"nees_mean (d={metrics.get('nees_dim')})            {f('nees_mean')}  (95 % band of χ²: {lo:.3g}–{hi:.3g})",
+        f"nees_fraction_in_95            {f('nees_fraction_in_95')}",
+    ])
