@@ -52,9 +52,20 @@ def release_to_dict(release: Any) -> dict[str, Any]:
     }
 
 
+def _release_type() -> type:
+    try:
+        from calibration.online import Release
+    except ImportError:  # a daemon without the calibrator package still applies remote releases
+        from dataclasses import make_dataclass
+
+        Release = make_dataclass("Release", ["t_s", "params", "log_likelihood", "accepted",
+                                             "reason", "iterations"], frozen=True)
+    return Release
+
+
 def release_from_dict(data: Any) -> Any:
     """Dict → ``calibration.online.Release``; ``ValueError`` when malformed."""
-    from calibration.online import Release
+    Release = _release_type()
 
     if not isinstance(data, dict) or data.get("type") != "calibration_release":
         raise ValueError("not a calibration_release")

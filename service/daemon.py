@@ -173,6 +173,28 @@ class Daemon:
                 self.restored = restored.params is not None
         return est
 
+    def _warm_up(self) -> None:
+        """Run a throwaway filter over a few seconds of synthetic rest data so that JIT
+        compilation (numba) happens before READY, not on the first live samples."""
+        from fusion.eskf import Estimator
+        from fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
+
+        t0 = time.monotonic()
+        est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
+        g = 9.80665
+        n = self.cfg.filter.alignment.n_samples + 400
+        for k in range(n):
+            t = k * 0.005
+            est.process(ImuSample(t, (0.0, 0.0, -g), (0.0, 0.0, 0.0)))
+            if k % 20 == 0:
+                for s in (HeadingSample(t, 0.0), DepthSample(t, 101325.0 + 1025.0 * g),
+                          RpmSample(t, 0.0), DvlSample(t, (0.0, 0.0, 0.0))):
+                    est.process(s)
+            if k % 20 == 10 and est.initialized:
+                est.nav_state().to_dict()
+        est.slow_states()
+        log.info("filter warmed up in %.1f s", time.monotonic() - t0)
+
     def enqueue(self, item: Any) -> None:
         """Non-blocking put into the runner's input queue (overflow counted)."""
         try:
@@ -190,6 +212,7 @@ class Daemon:
     def start(self) -> None:
         cfg = self.cfg
         log_effective(cfg)
+        self._warm_up()
         self.estimator = self._make_estimator()
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
         self.bus.subscribe_samples(nonblocking_enqueue(self.queue, self.overflow))

@@ -1,0 +1,93 @@
+"""`adaptnav run` as a real subprocess: SIGKILLed and restarted, it restores what it
+learned (motion params from a calibrator release and the filter's slow states)."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fusion.motion_model import MotionParams
+from service.calibrator_process import release_to_dict
+from service.persistence import load_state
+
+from .test_daemon_support import Feeder, free_port, peer, wait_until
+
+pytestmark = pytest.mark.timeout(150)
+
+ADAPTNAV = Path(sys.executable).with_name("adaptnav")
+
+
+def _start(cfg_path: Path, log_path: Path) -> subprocess.Popen:
+    log = open(log_path, "ab")
+    return subprocess.Popen([str(ADAPTNAV), "run", "--config", str(cfg_path)], stdout=log, stderr=log)
+
+
+def test_sigkill_then_restart_restores_learned_state(tmp_path):
+    port = free_port()
+    state_dir = tmp_path / "state"
+    cfg_path = tmp_path / "adaptnav.toml"
+    cfg_path.write_text(f"""
+state_dir = "{state_dir}"
+[vehicle]
+name = "testauv"
+[zenoh]
+listen = ["tcp/127.0.0.1:{port}"]
+scouting = false
+[calibrator]
+location = "remote"
+[persistence]
+period_s = 0.3
+""")
+    log_path = tmp_path / "daemon.log"
+    proc = _start(cfg_path, log_path)
+    bus = peer(port)
+    feeder = None
+    try:
+        assert wait_until(lambda: bus.get("config", timeout_s=0.5), timeout_s=60), log_path.read_text()
+        feeder = Feeder(bus)
+        feeder.start()
+        assert wait_until(lambda: (s := bus.get("state", timeout_s=0.5)) and s.get("t_s") is not None, 30)
+        learned = MotionParams(var_vv=0.004, var_ww=0.003, k_v=1.15, b_w=0.001)
+        from service.calibrator_process import _release_type
+
+        rel = _release_type()(t_s=feeder.t_s, params=learned, log_likelihood=-12.5, accepted=True,
+                              reason="", iterations=3)
+        bus.put(bus.keys.params, json.dumps(release_to_dict(rel)).encode())
+        got = wait_until(lambda: (p := bus.get("params", timeout_s=0.5)) and p["params"]["k_v"] == 1.15 and p, 5)
+        assert got, "the daemon did not apply the release"
+        # wait for a periodic write that carries the release (no clean shutdown follows)
+        assert wait_until(lambda: (st := load_state(state_dir)) and st.params == learned, 5)
+        k_speed_before = bus.get("state")["k_speed"]
+        feeder.stop()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        assert proc.returncode == -signal.SIGKILL
+
+        proc = _start(cfg_path, log_path)
+        assert wait_until(lambda: bus.get("config", timeout_s=0.5), timeout_s=60), log_path.read_text()
+        params = bus.get("params")
+        assert params["restored"] is True
+        assert MotionParams.from_dict(params["params"]) == learned
+        feeder = Feeder(bus, t0_s=1000.0)
+        feeder.start()
+        state = wait_until(lambda: (s := bus.get("state", timeout_s=0.5)) and s.get("t_s") and s, 10)
+        # the slow state k_speed survives the restart (fresh filter would start at 1.0)
+        assert state["k_speed"] == pytest.approx(k_speed_before, rel=1e-6)
+        assert abs(state["k_speed"] - 1.0) > 0.05
+    finally:
+        if feeder is not None:
+            feeder.stop()
+        bus.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    assert proc.returncode == 0, log_path.read_text()[-3000:]  # SIGTERM: clean shutdown
