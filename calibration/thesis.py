@@ -24,13 +24,12 @@ between the filter's weighted mean position and the truth.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from fusion.motion_model import MotionParams, sample_velocities, propagate
-from calibration.em import EMOptions, run_em
-from calibration.mstep import MStepOptions
+from calibration.online import CalibratorConfig, calibrate_window
 from calibration.particle_filter import filter_step, weighted_mean_pose
 from calibration.resampling import systematic_resample
 from calibration.sensors import RangeObservation
@@ -65,13 +64,12 @@ THESIS_ROWS = (
 @dataclass(frozen=True)
 class LearnerSettings:
     n_filter: int = 1000       # particles of the two localisation filters
-    n_particles: int = 500     # particles of the EM's E-step
-    n_smoothed: int = 50
-    period: int = 5            # EM every `period` steps
-    window: int = 40           # steps in the EM window
-    em_iterations: int = 3
-    forgetting: float = 0.97   # λ per step
     first_em_step: int = 10
+    calibrator: CalibratorConfig = field(default_factory=lambda: CalibratorConfig(
+        window_steps=40, step_s=10.0, period_steps=5, min_window_steps=10, em_iterations=3,
+        n_particles=500, n_smoothed=50, forgetting=0.97, prior_tau=1.0,
+        # the seed learns the six variances; k_V = 1 and b_W = 0 in its simulation
+        fit_k_v=False, fit_b_w=False, fit_var_s=False, ll_tolerance=10.0))
 
 
 @dataclass
@@ -123,32 +121,85 @@ def _init_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def run_filter(data: ThesisData, rng: np.random.Generator, settings: LearnerSettings, learn: bool):
-    """Localise over the whole run; returns (errors (T+1,), final params, params history)."""
+    """Localise over the whole run; returns (errors (T+1,), final params, [(step, Release)])."""
     T = data.v.size
     params = data.params_initial
     poses = _init_cloud(settings.n_filter, rng)
     log_w = np.full(poses.shape[0], -math.log(poses.shape[0]))
     log_w = log_w + data.observations[0][0].log_likelihood(poses)
     log_w -= np.logaddexp.reduce(log_w)
-    clouds = [poses[systematic_resample(np.exp(log_w), rng, settings.n_particles)]]
+    cfg = settings.calibrator
+    clouds = [poses[systematic_resample(np.exp(log_w), rng, cfg.n_particles)]]
     errors = np.empty(T + 1)
     errors[0] = np.hypot(*(weighted_mean_pose(poses, log_w)[:2] - data.truth[0, :2]))
-    history = [(0, params)]
-    em_opts = EMOptions(n_particles=settings.n_particles, n_smoothed=settings.n_smoothed,
-                        max_iterations=settings.em_iterations,
-                        mstep=MStepOptions(fit_k_v=False, fit_b_w=False, fit_var_s=False))
+    history = []  # (step, Release)
     for t in range(T):
         poses, log_w, _ = filter_step(params, poses, log_w, data.v[t], data.w[t], data.dt,
                                       data.observations[t + 1], rng)
         k = t + 1
         errors[k] = np.hypot(*(weighted_mean_pose(poses, log_w)[:2] - data.truth[k, :2]))
         if learn:
-            clouds.append(poses[systematic_resample(np.exp(log_w), rng, settings.n_particles)])
-            if k >= settings.first_em_step and k % settings.period == 0:
-                s = max(0, k - settings.window)
-                lam = settings.forgetting ** np.arange(k - s - 1, -1, -1, dtype=float)
-                res = run_em(params, data.v[s:k], data.w[s:k], data.dt, data.observations[s:k + 1],
-                             clouds[s], rng, em_opts, step_weights=lam)
-                params = res.params
-                history.append((k, params))
+            clouds.append(poses[systematic_resample(np.exp(log_w), rng, cfg.n_particles)])
+            if k >= settings.first_em_step and k % cfg.period_steps == 0:
+                s = max(0, k - cfg.window_steps)
+                rel = calibrate_window(params, data.v[s:k], data.w[s:k], data.dt, data.observations[s:k + 1],
+                                       clouds[s], cfg, rng, t_s=k * data.dt)
+                if rel.accepted:
+                    params = rel.params
+                history.append((k, rel))
     return errors, params, history
+
+
+@dataclass
+class RowResult:
+    row: ThesisRow
+    static_errors: np.ndarray   # (seeds, T+1) m
+    learned_errors: np.ndarray  # (seeds, T+1) m
+    learned_sigma_dd: np.ndarray  # (seeds,)
+    learned_sigma_tr: np.ndarray  # (seeds,)
+
+    def summary(self) -> dict:
+        """The row as the ``--json`` dict (means over seeds, 95 % intervals of the mean
+        per-seed errors by the t distribution)."""
+        from scipy import stats
+
+        def mean_ci(x):
+            x = np.asarray(x, dtype=float)
+            m = float(x.mean())
+            if x.size < 2:
+                return {"mean": m, "ci95": [m, m]}
+            h = float(stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
+            return {"mean": m, "ci95": [m - h, m + h]}
+
+        r = self.row
+        out = {
+            "sigma_dd_initial": r.sigma_dd_initial, "sigma_tr_initial": r.sigma_tr_initial,
+            "sigma_dd_changed": r.sigma_dd_changed, "sigma_tr_changed": r.sigma_tr_changed,
+            "sensor_noise": r.sensor_noise, "change_step": r.change_step, "steps": r.steps,
+            "landmarks": r.landmarks,
+        }
+        for key, values in (("static_error_m", self.static_errors.mean(axis=1)),
+                            ("learned_error_m", self.learned_errors.mean(axis=1)),
+                            ("learned_sigma_dd", self.learned_sigma_dd),
+                            ("learned_sigma_tr", self.learned_sigma_tr)):
+            m = mean_ci(values)
+            out[key] = m["mean"]
+            out[key + "_ci95"] = m["ci95"]
+        out["seeds"] = int(self.static_errors.shape[0])
+        return out
+
+
+def run_row(row: ThesisRow, seeds, settings: LearnerSettings = LearnerSettings(), progress=None) -> RowResult:
+    """Run ``row`` for every seed in ``seeds`` (data from seed s, filters from seed s + 10⁶)."""
+    st, le, sdd, stt = [], [], [], []
+    for seed in seeds:
+        data = simulate(row, np.random.default_rng(seed))
+        es, _, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=False)
+        el, p, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=True)
+        st.append(es)
+        le.append(el)
+        sdd.append(p.sigma_dd)
+        stt.append(p.sigma_tr)
+        if progress is not None:
+            progress.update(1)
+    return RowResult(row, np.array(st), np.array(le), np.array(sdd), np.array(stt))

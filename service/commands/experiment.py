@@ -1,10 +1,118 @@
-"""`adaptnav experiment` (being built; see the issue tracker)."""
-HELP = "experiment (not built yet)"
+"""`adaptnav experiment thesis`: the seed's §3.6 table (static vs learned motion model).
+
+See :mod:`calibration.thesis` for the simulation, the controls chosen and the learner.
+"""
+from __future__ import annotations
+
+HELP = "reproduce the thesis experiments (static vs learned motion model)"
+
+
+def _pair(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise ValueError(f"expected SDD,STR, got {text!r}")
+    return float(parts[0]), float(parts[1])
 
 
 def add_arguments(parser):
-    pass
+    parser.add_argument("name", choices=("thesis",), help="which experiment")
+    parser.add_argument("--seeds", type=int, default=20, help="seeds per row (default 20)")
+    parser.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    parser.add_argument("--plots", metavar="DIR", help="write error-vs-time plots (one per row) into DIR")
+    parser.add_argument("--initial", metavar="SDD,STR", help="custom row: initial σ_Dd,σ_Tr")
+    parser.add_argument("--changed", metavar="SDD,STR", help="custom row: changed σ*_Dd,σ*_Tr")
+    parser.add_argument("--sensor-noise", type=float, help="custom row: range noise (m)")
+    parser.add_argument("--change-step", type=int, help="custom row: step of the change (default 5)")
+    parser.add_argument("--steps", type=int, help="custom row: number of steps (default 100)")
+    parser.add_argument("--landmarks", type=int, help="custom row: number of landmarks (default 4)")
+
+
+def _rows(args):
+    from calibration.thesis import THESIS_ROWS, ThesisRow
+
+    custom = any(x is not None for x in (args.initial, args.changed, args.sensor_noise, args.change_step,
+                                          args.steps, args.landmarks))
+    if not custom:
+        return list(THESIS_ROWS)
+    base = ThesisRow()
+    ini = _pair(args.initial) if args.initial else (base.sigma_dd_initial, base.sigma_tr_initial)
+    chg = _pair(args.changed) if args.changed else (base.sigma_dd_changed, base.sigma_tr_changed)
+    row = ThesisRow(ini[0], ini[1], chg[0], chg[1],
+                    args.sensor_noise if args.sensor_noise is not None else base.sensor_noise,
+                    args.change_step if args.change_step is not None else base.change_step,
+                    args.steps if args.steps is not None else base.steps,
+                    args.landmarks if args.landmarks is not None else base.landmarks)
+    if row.steps < 2 or row.landmarks < 1 or not 0 <= row.change_step <= row.steps:
+        raise SystemExit("adaptnav experiment: need steps ≥ 2, landmarks ≥ 1, 0 ≤ change-step ≤ steps")
+    if min(ini + chg) <= 0 or row.sensor_noise <= 0:
+        raise SystemExit("adaptnav experiment: σ values and sensor noise must be > 0")
+    return [row]
+
+
+def _plot(result, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    r = result.row
+    t = np.arange(result.static_errors.shape[1])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for errs, label, colour in ((result.static_errors, "static", "tab:red"),
+                                (result.learned_errors, "learned", "tab:blue")):
+        m = errs.mean(axis=0)
+        lo, hi = np.percentile(errs, [10, 90], axis=0)
+        ax.plot(t, m, color=colour, label=f"{label} (mean {errs.mean():.2f} m)")
+        ax.fill_between(t, lo, hi, color=colour, alpha=0.15)
+    ax.axvline(r.change_step, color="k", ls=":", lw=1)
+    ax.set_xlabel("time step")
+    ax.set_ylabel("localisation error (m)")
+    ax.set_title(f"σDd {r.sigma_dd_initial}→{r.sigma_dd_changed}, σTr {r.sigma_tr_initial}→{r.sigma_tr_changed}, "
+                 f"sensor noise {r.sensor_noise} ({result.static_errors.shape[0]} seeds)", fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def run(args):
-    raise SystemExit("adaptnav experiment: not built yet")
+    import json
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from calibration.thesis import run_row
+
+    if args.seeds < 1:
+        raise SystemExit("adaptnav experiment: --seeds must be ≥ 1")
+    try:
+        rows = _rows(args)
+    except ValueError as e:
+        raise SystemExit(f"adaptnav experiment: {e}")
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    results = []
+    with tqdm(total=len(rows) * args.seeds, desc="thesis", unit="seed", disable=None) as bar:
+        for row in rows:
+            results.append(run_row(row, seeds, progress=bar))
+    summaries = [r.summary() for r in results]
+    if args.plots:
+        out = Path(args.plots)
+        out.mkdir(parents=True, exist_ok=True)
+        for i, res in enumerate(results, 1):
+            r = res.row
+            _plot(res, out / f"row{i}_dd{r.sigma_dd_changed}_tr{r.sigma_tr_changed}_noise{r.sensor_noise}.png")
+    if args.json:
+        print(json.dumps(summaries, indent=2))
+    else:
+        print(f"{'σDd':>5} {'σTr':>5} {'σ*Dd':>5} {'σ*Tr':>5} {'noise':>5} | {'static m':>18} | "
+              f"{'learned m':>18} | {'σDd learned':>11} {'σTr learned':>11}")
+        for s in summaries:
+            def fmt(key):
+                return f"{s[key]:6.2f} [{s[key + '_ci95'][0]:5.2f},{s[key + '_ci95'][1]:5.2f}]"
+            print(f"{s['sigma_dd_initial']:5.2f} {s['sigma_tr_initial']:5.2f} {s['sigma_dd_changed']:5.2f} "
+                  f"{s['sigma_tr_changed']:5.2f} {s['sensor_noise']:5.1f} | {fmt('static_error_m')} | "
+                  f"{fmt('learned_error_m')} | {s['learned_sigma_dd']:11.3f} "
+                  f"{s['learned_sigma_tr']:11.3f}")
+    return 0

@@ -1,0 +1,364 @@
+r"""Online calibrator: a sliding window of motion steps, re-calibrated by EM every K steps.
+
+Data → steps. Samples are binned on a grid of ``step_s`` seconds that starts at the first
+position fix (USBL/GNSS), the pose that anchors the filter. The controls of step k → k+1
+are the means over ``[t_k, t_{k+1})`` of the surge speed ``v = f(rpm)``
+(:class:`fusion.motion_model.RpmSpeedTable`) and of the yaw rate (IMU ``ω_z`` in body FRD,
+i.e. about down = the NED yaw rate for small roll/pitch; or heading differences when no
+IMU is seen). Observations at time t attach to pose ``round((t − t_0)/step_s)``:
+position fixes, headings, beacon ranges, side-scan landmark sightings
+(:mod:`calibration.sensors`). A pose is closed when data time passes its bin.
+
+Forward filter. A running particle filter (the same filter, step by step) carries the pose
+cloud; the cloud at each pose is kept for the last ``window_steps`` so that a window can
+start from the filter's distribution at its first pose.
+
+Calibration. Every ``period_steps`` closed steps, ``em_iterations`` of EM
+(:mod:`calibration.em`) run over the last ``window_steps`` steps, warm started from the
+current parameters, with exponential forgetting: step τ of a window ending at k has weight
+``λ^{k−1−τ}`` in the M-step, so a change of the water is followed within ~1/(1−λ) steps.
+
+Sanity gate before a release: the new parameters must be finite, within the configured
+bounds, and the window log-likelihood with them (a fresh filter run) must not be worse than
+with the current ones by more than ``ll_tolerance`` nats (the PF estimate is noisy). Every
+attempt produces a :class:`Release` with ``accepted`` and the ``reason`` when refused.
+
+Determinism: everything depends only on the samples observed and the ``rng``.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.motion_model import MotionParams, RpmSpeedTable
+from calibration.em import EMOptions, run_em
+from calibration.mstep import MStepOptions
+from calibration.particle_filter import filter_step, run_particle_filter
+from calibration.resampling import systematic_resample
+from calibration.sensors import (HeadingObservation, LandmarkAssociator, LandmarkSighting,
+                                 PositionFix, RangeObservation, sighting_from_sonar)
+
+
+@dataclass(frozen=True)
+class CalibratorConfig:
+    """Online calibrator settings (typed_config-compatible)."""
+
+    window_steps: int = 120
+    step_s: float = 5.0
+    period_steps: int = 12
+    min_window_steps: int = 24
+    em_iterations: int = 3
+    n_particles: int = 500
+    n_smoothed: int = 50
+    n_mcmc: int = 2
+    forgetting: float = 0.99
+    prior_tau: float = 1.0
+    max_condition: float = 30.0
+    fit_k_v: bool = True
+    fit_b_w: bool = True
+    fit_var_s: bool = True
+    # bounds of the sanity gate
+    max_variance: float = 25.0
+    min_variance: float = 1e-12
+    k_v_min: float = 0.5
+    k_v_max: float = 1.5
+    b_w_max_rad_s: float = 0.1
+    ll_tolerance: float = 5.0
+    # sensors without their own σ; priors
+    heading_sigma_deg: float = 0.5
+    init_pos_sigma_m: float = 3.0
+    init_yaw_sigma_deg: float = 5.0
+    # NED origin (degrees); NaN: the first fix becomes the origin
+    origin_lat_deg: float = math.nan
+    origin_lon_deg: float = math.nan
+    landmark_sigma_along_m: float = 1.0
+    landmark_sigma_across_m: float = 0.5
+
+    def validate(self) -> None:
+        if self.window_steps < 2 or self.period_steps < 1 or self.min_window_steps < 2:
+            raise ValueError("window_steps, min_window_steps ≥ 2 and period_steps ≥ 1 required")
+        if not self.step_s > 0:
+            raise ValueError("step_s must be > 0")
+        if not 0.0 < self.forgetting <= 1.0:
+            raise ValueError("forgetting must be in (0, 1]")
+        if self.n_particles < 10 or self.n_smoothed < 1 or self.em_iterations < 1:
+            raise ValueError("n_particles ≥ 10, n_smoothed ≥ 1, em_iterations ≥ 1 required")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def em_options(self) -> EMOptions:
+        return EMOptions(n_particles=self.n_particles, n_smoothed=self.n_smoothed,
+                         max_iterations=self.em_iterations, n_mcmc=self.n_mcmc,
+                         mstep=MStepOptions(max_condition=self.max_condition, prior_tau=self.prior_tau,
+                                            fit_k_v=self.fit_k_v, fit_b_w=self.fit_b_w,
+                                            fit_var_s=self.fit_var_s))
+
+
+@dataclass(frozen=True)
+class Release:
+    """One calibration attempt: the parameters, the window log-likelihood with them,
+    whether they were released and why not, and the EM iterations run."""
+
+    t_s: float
+    params: MotionParams
+    log_likelihood: float
+    accepted: bool
+    reason: str
+    iterations: int
+
+
+def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
+    """Empty string if ``params`` are within bounds, else why not."""
+    for name in MotionParams.VARIANCE_NAMES:
+        val = getattr(params, name)
+        if not (config.min_variance <= val <= config.max_variance):
+            return f"{name}={val:.3g} outside [{config.min_variance:g}, {config.max_variance:g}]"
+    if not config.k_v_min <= params.k_v <= config.k_v_max:
+        return f"k_v={params.k_v:.4g} outside [{config.k_v_min}, {config.k_v_max}]"
+    if abs(params.b_w) > config.b_w_max_rad_s:
+        return f"|b_w|={abs(params.b_w):.3g} > {config.b_w_max_rad_s}"
+    return ""
+
+
+def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
+                     rng: np.random.Generator, t_s: float = math.nan) -> Release:
+    """EM over one window + the sanity gate; returns the :class:`Release` record."""
+    T = len(v)
+    lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
+    try:
+        res = run_em(params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam)
+    except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
+        return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0)
+    new = res.params
+    reason = gate_reason(new, config)
+    if reason:
+        return Release(t_s, new, math.nan, False, reason, res.iterations)
+    ll_old = res.log_likelihoods[0]
+    try:
+        from calibration.em import freeze_landmarks
+        obs = freeze_landmarks(params, v, w, dt, observations, init_cloud, rng, config.n_particles)
+        ll_new = run_particle_filter(new, v, w, dt, obs, init_cloud, rng, config.n_particles).log_likelihood
+    except FloatingPointError as e:
+        return Release(t_s, new, -math.inf, False, f"filter failed with new parameters: {e}", res.iterations)
+    if not math.isfinite(ll_new):
+        return Release(t_s, new, ll_new, False, "log-likelihood not finite", res.iterations)
+    if ll_new < ll_old - config.ll_tolerance:
+        return Release(t_s, new, ll_new, False,
+                       f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations)
+    held = f"; held {','.join(res.held)}" if res.held else ""
+    return Release(t_s, new, ll_new, True, "ok" + held, res.iterations)
+
+
+@dataclass
+class _Bin:
+    speeds: list = field(default_factory=list)
+    yaw_rates: list = field(default_factory=list)
+
+
+class OnlineCalibrator:
+    """Feed samples with :meth:`observe`, collect releases with :meth:`poll`."""
+
+    def __init__(self, config: CalibratorConfig, params0: MotionParams, rpm_table: RpmSpeedTable,
+                 rng: np.random.Generator):
+        self.config = config
+        self.params = params0
+        self.rpm_table = rpm_table
+        self.rng = rng
+        self.rejected: dict[str, int] = {}
+        self._pending: list[Release] = []
+        self._origin = None
+        if math.isfinite(config.origin_lat_deg) and math.isfinite(config.origin_lon_deg):
+            from fusion.frames import GeoOrigin
+            self._origin = GeoOrigin(math.radians(config.origin_lat_deg), math.radians(config.origin_lon_deg))
+        self._t0: float | None = None
+        self._last_t = -math.inf
+        self._bins: dict[int, _Bin] = {}
+        self._obs: dict[int, list] = {}
+        self._last_heading: tuple[float, float] | None = None  # (t, yaw)
+        self._last_speed = 0.0
+        self._last_yaw_rate = 0.0
+        self._closed = -1  # index of the last closed pose
+        self._poses = None
+        self._log_w = None
+        maxlen = config.window_steps + 1
+        self._v: deque = deque(maxlen=config.window_steps)
+        self._w: deque = deque(maxlen=config.window_steps)
+        self._win_obs: deque = deque(maxlen=maxlen)
+        self._clouds: deque = deque(maxlen=maxlen)
+        self._since_em = 0
+        self._assoc = LandmarkAssociator()
+        self._pre_fix: list = []  # observations before the grid exists
+
+    # ---------------------------------------------------------------- input
+    def _reject(self, why: str) -> None:
+        self.rejected[why] = self.rejected.get(why, 0) + 1
+
+    def observe(self, sample) -> None:
+        """Take one sample (any kind; unusable kinds are ignored, bad ones counted)."""
+        kind = type(sample).__name__
+        if kind in ("TruthSample",):
+            return
+        if kind == "ImuBatch":
+            t = np.asarray(sample.t_s, dtype=float)
+            wz = np.asarray(sample.omega_b_rad_s, dtype=float)[:, 2]
+            ok = np.isfinite(t) & np.isfinite(wz)
+            if not np.all(ok):
+                self._reject("non-finite imu")
+            for ti, wi in zip(t[ok], wz[ok]):
+                self._add(float(ti), "yaw_rate", float(wi))
+            return
+        t = getattr(sample, "t_s", None)
+        if t is None or not isinstance(t, (int, float)) or not math.isfinite(t):
+            self._reject("bad timestamp")
+            return
+        t = float(t)
+        try:
+            if kind == "RpmSample":
+                self._add(t, "speed", float(self.rpm_table.speed(sample.rpm)), finite=sample.rpm)
+            elif kind == "ImuSample":
+                self._add(t, "yaw_rate", float(sample.omega_b_rad_s[2]))
+            elif kind in ("HeadingSample", "AttitudeSample"):
+                self._heading(t, float(sample.yaw_rad))
+            elif kind in ("UsblSample", "GnssSample"):
+                self._fix(t, sample)
+            elif kind == "RangeSample":
+                vals = [sample.range_m, sample.sigma_m, *sample.beacon_pos_n_m]
+                if not all(math.isfinite(x) for x in vals) or sample.sigma_m <= 0:
+                    return self._reject("bad range")
+                ob = RangeObservation(np.asarray(sample.beacon_pos_n_m[:2], float)[None], np.array([sample.range_m]),
+                                      float(sample.sigma_m))
+                self._add_obs(t, ob)
+            elif hasattr(sample, "ground_range_m") and hasattr(sample, "side"):
+                tid = self._assoc.assign(sample)
+                ob = sighting_from_sonar(sample, tid, self.config.landmark_sigma_along_m,
+                                         self.config.landmark_sigma_across_m)
+                self._add_obs(t, ob)
+        except (ValueError, TypeError) as e:
+            self._reject(f"{kind}: {e}")
+        self._advance(t)
+
+    def _add(self, t, what, value, finite=0.0):
+        if not (math.isfinite(value) and math.isfinite(finite)):
+            return self._reject(f"non-finite {what}")
+        if self._t0 is None:
+            if what == "speed":
+                self._last_speed = value
+            else:
+                self._last_yaw_rate = value
+            return
+        k = math.floor((t - self._t0) / self.config.step_s)
+        if k <= self._closed - 1 or k < 0:
+            return self._reject(f"late {what}")
+        b = self._bins.setdefault(k, _Bin())
+        (b.speeds if what == "speed" else b.yaw_rates).append(value)
+        if what == "speed":
+            self._last_speed = value
+        else:
+            self._last_yaw_rate = value
+
+    def _heading(self, t, yaw):
+        if not math.isfinite(yaw):
+            return self._reject("non-finite heading")
+        if self._last_heading is not None and t > self._last_heading[0]:
+            dyaw = (yaw - self._last_heading[1] + math.pi) % (2 * math.pi) - math.pi
+            self._heading_rate = dyaw / (t - self._last_heading[0])
+        self._last_heading = (t, yaw)
+        self._add_obs(t, HeadingObservation(yaw, math.radians(self.config.heading_sigma_deg)))
+
+    def _fix(self, t, sample):
+        vals = (sample.lat_rad, sample.lon_rad, sample.sigma_h_m)
+        if not all(math.isfinite(x) for x in vals) or sample.sigma_h_m <= 0:
+            return self._reject("bad position fix")
+        if self._origin is None:
+            from fusion.frames import GeoOrigin
+            self._origin = GeoOrigin(float(sample.lat_rad), float(sample.lon_rad))
+        ned = self._origin.to_ned(sample.lat_rad, sample.lon_rad)
+        fix = PositionFix((float(ned[0]), float(ned[1])), float(sample.sigma_h_m))
+        if self._t0 is None:
+            self._start(t, fix)
+        self._add_obs(t, fix)
+
+    def _add_obs(self, t, ob):
+        if self._t0 is None:
+            return
+        k = round((t - self._t0) / self.config.step_s)
+        if k <= self._closed:
+            return self._reject("late observation")
+        self._obs.setdefault(k, []).append(ob)
+
+    def _start(self, t, fix: PositionFix):
+        c, n = self.config, self.config.n_particles
+        self._t0 = t
+        xy = np.asarray(fix.pos_n_m) + max(c.init_pos_sigma_m, fix.sigma_m) * self.rng.standard_normal((n, 2))
+        if self._last_heading is not None:
+            yaw = self._last_heading[1] + math.radians(c.init_yaw_sigma_deg) * self.rng.standard_normal(n)
+        else:
+            yaw = self.rng.uniform(-math.pi, math.pi, n)
+        self._poses = np.column_stack([xy, yaw])
+        self._log_w = np.full(n, -math.log(n))
+
+    # ------------------------------------------------------------- stepping
+    def _advance(self, t):
+        if t < self._last_t:
+            self._reject("out-of-order timestamp")
+        self._last_t = max(self._last_t, t)
+        if self._t0 is None:
+            return
+        newest = math.floor((self._last_t - self._t0) / self.config.step_s - 0.5)
+        while self._closed < newest:
+            self._close_pose(self._closed + 1)
+
+    def _controls(self, k):
+        b = self._bins.pop(k, None)
+        v = float(np.mean(b.speeds)) if b and b.speeds else self._last_speed
+        if b and b.yaw_rates:
+            w = float(np.mean(b.yaw_rates))
+        else:
+            w = getattr(self, "_heading_rate", 0.0)
+        return v, w
+
+    def _close_pose(self, k):
+        c = self.config
+        obs = self._obs.pop(k, [])
+        fwd_obs = [o for o in obs if not isinstance(o, LandmarkSighting)]
+        if k == 0:
+            g = np.zeros(self._poses.shape[0])
+            for o in fwd_obs:
+                g += o.log_likelihood(self._poses)
+            self._log_w = self._log_w + g
+            self._log_w -= np.logaddexp.reduce(self._log_w)
+        else:
+            v, w = self._controls(k - 1)
+            self._v.append(v)
+            self._w.append(w)
+            self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
+                                                      fwd_obs, self.rng)
+            self._since_em += 1
+        self._closed = k
+        self._win_obs.append(obs)
+        cloud = self._poses[systematic_resample(np.exp(self._log_w), self.rng, c.n_particles)]
+        self._clouds.append(cloud)
+        n_steps = len(self._v)
+        if self._since_em >= c.period_steps and n_steps >= c.min_window_steps:
+            self._since_em = 0
+            self._calibrate(self._t0 + k * c.step_s)
+
+    def _calibrate(self, t_s):
+        v = np.array(self._v)
+        w = np.array(self._w)
+        T = v.size
+        obs = list(self._win_obs)[-(T + 1):]
+        init = self._clouds[-(T + 1)]
+        rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s)
+        if rel.accepted:
+            self.params = rel.params
+        self._pending.append(rel)
+
+    def poll(self) -> list[Release]:
+        """Releases (accepted or refused) computed since the last call, oldest first."""
+        out, self._pending = self._pending, []
+        return out
