@@ -1,10 +1,99 @@
-"""`adaptnav sonar` (being built; see the issue tracker)."""
-HELP = "sonar (not built yet)"
+"""`adaptnav sonar`: side-scan files → waterfall picture, visual motion records.
+
+    adaptnav sonar waterfall FILE.xtf --out FILE.png [--res-m 0.05]
+    adaptnav sonar motion FILE.xtf [--window PINGS --step PINGS] [--detector sift|orb] --json
+
+Files without side-scan channels, unreadable or truncated files give a one-line
+message (exit code 2), never a traceback.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+HELP = "side-scan sonar: waterfall images and visual motion from XTF files"
 
 
 def add_arguments(parser):
-    pass
+    sub = parser.add_subparsers(dest="sonar_cmd", metavar="CMD", required=True)
+    w = sub.add_parser("waterfall", help="ground-range waterfall PNG (port left, starboard right, time down)")
+    w.add_argument("file", help="XTF file")
+    w.add_argument("--out", required=True, help="output PNG")
+    w.add_argument("--res-m", type=float, default=None,
+                   help="pixel size in metres (default: the slant sample spacing)")
+    w.add_argument("--bottom", choices=("auto", "altitude", "detect"), default="auto",
+                   help="altitude source for the slant-range correction")
+    m = sub.add_parser("motion", help="visual motion between consecutive windows of pings")
+    m.add_argument("file", help="XTF file")
+    m.add_argument("--window", type=int, default=200, help="pings per window")
+    m.add_argument("--step", type=int, default=20, help="pings between window starts")
+    m.add_argument("--detector", choices=("sift", "orb"), default="sift")
+    m.add_argument("--max-keypoints", type=int, default=400)
+    m.add_argument("--json", action="store_true", help="one JSON record per line")
 
 
-def run(args):
-    raise SystemExit("adaptnav sonar: not built yet")
+def _fail(msg: str) -> int:
+    print(f"adaptnav sonar: {msg}", file=sys.stderr)
+    return 2
+
+
+def run(args) -> int:
+    from sonar.xtf import SonarFileError, read_xtf
+
+    try:
+        pings, report = read_xtf(args.file)
+    except SonarFileError as exc:
+        return _fail(str(exc))
+    if report.error or report.n_truncated:
+        print(f"adaptnav sonar: warning: {report.summary()}", file=sys.stderr)
+    if args.sonar_cmd == "waterfall":
+        return _waterfall(args, pings)
+    return _motion(args, pings)
+
+
+def _waterfall(args, pings) -> int:
+    import cv2
+
+    from sonar.waterfall import WaterfallConfig, build_waterfall, to_uint8
+
+    res = args.res_m or pings[0].sample_spacing_m
+    wf = build_waterfall(pings, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))
+    if not cv2.imwrite(args.out, to_uint8(wf.image)):
+        return _fail(f"could not write {args.out}")
+    print(f"{args.out}: {wf.image.shape[0]} rows x {wf.image.shape[1]} columns, "
+          f"{wf.ground_res_m:.3f} m/px across, "
+          f"{wf.along_res_m:.3f} m/{'px' if math.isfinite(wf.along_res_m) else 'ping'} along")
+    return 0
+
+
+def _motion(args, pings) -> int:
+    from sonar.features import make_detector
+    from sonar.motion import WindowRegistrar
+    from sonar.waterfall import WaterfallConfig, build_waterfall
+
+    if args.window < 8 or args.step < 1:
+        return _fail("--window must be ≥ 8 and --step ≥ 1")
+    if len(pings) < args.window + args.step:
+        return _fail(f"{len(pings)} pings: too few for --window {args.window} --step {args.step}")
+    # one row per ping so that --window/--step are in pings
+    wf = build_waterfall(pings, WaterfallConfig(resample_along=False))
+    if not math.isfinite(wf.along_res_m):
+        return _fail("the file has no speed: along-track distances are unknown")
+    reg = WindowRegistrar(make_detector(args.detector, max_keypoints=args.max_keypoints))
+    n_ok = 0
+    for a, b, mot in reg.register_stream(wf, args.window, args.step):
+        if mot is None:
+            rec = {"t_s": float(wf.t_s[min(b + args.window // 2, len(wf.t_s) - 1)]), "along_m": None,
+                   "across_m": None, "dheading_rad": None, "inliers": 0, "matches": 0}
+        else:
+            n_ok += 1
+            r = mot.to_record()
+            rec = {k: r[k] for k in ("t_s", "along_m", "across_m", "dheading_rad", "inliers", "matches")}
+        rec["ping_a"], rec["ping_b"] = a, b
+        if args.json:
+            print(json.dumps(rec))
+        else:
+            vals = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in rec.items())
+            print(vals)
+    return 0 if n_ok else _fail("no window pair could be registered")
