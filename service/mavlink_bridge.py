@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import socket
 import threading
 import time
@@ -36,6 +37,7 @@ from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     gps_global_origin_fields,
     mavlink2,
     odometry_fields,
+    vision_position_delta_fields,
 )
 from fusion.frames import GeoOrigin
 
@@ -80,6 +82,31 @@ class BridgeConfig:
             raise ValueError("need 0 < reconnect_min_s ≤ reconnect_max_s")
         if self.request_imu_message not in ("RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"):
             raise ValueError("request_imu_message: RAW_IMU, SCALED_IMU2 or HIGHRES_IMU")
+
+
+def link_device(url: str) -> tuple[str, int]:
+    """A bridge URL → (pymavlink device string, baud).
+
+    Accepts pymavlink's own forms (``udpin:H:P``, ``udpout:H:P``, ``tcp:H:P``,
+    ``tcpin:H:P``, ``/dev/ttyACM0`` or ``/dev/ttyACM0,115200``) and
+    ``serial:/dev/ttyACM0[:baud]``.  A path to a regular file is refused: pymavlink
+    would open it as a *log*, which is the replay's job, not the live bridge's.
+    """
+    baud = 115200
+    device = url
+    if url.startswith("serial:"):
+        device = url[len("serial:"):]
+        if ":" in device:
+            device, _, b = device.rpartition(":")
+            baud = int(b)
+    elif url.startswith("/") and "," in url:
+        device, _, b = url.rpartition(",")
+        baud = int(b)
+    if not device:
+        raise ValueError(f"MAVLink URL {url!r}: no device")
+    if os.path.isfile(device):
+        raise ValueError(f"MAVLink URL {url!r} is a file: replay logs with `adaptnav replay`, not the bridge")
+    return device, baud
 
 
 def _raise_link_closed() -> None:
@@ -138,6 +165,7 @@ class MavlinkBridge:
             "callback_errors": 0, "interval_requests": 0, "origin_sent": 0, "command_acks": 0,
         }
         self._conn: Any = None
+        self._prev_nav: Any = None
         self._lock = threading.Lock()  # pymavlink's sequence counter and socket are not thread-safe
         self._stop = threading.Event()
         self.autopilot: tuple[int, int] | None = None  # (system, component) once seen
@@ -156,7 +184,13 @@ class MavlinkBridge:
             return False
         if not self.link_up.is_set():
             return False
-        return self._send("odometry_send", **fields) and self._count("odometry_sent")
+        ok = self._send("odometry_send", **fields) and self._count("odometry_sent")
+        if self.config.output.vision_position_delta:
+            delta = None if self._prev_nav is None else vision_position_delta_fields(self._prev_nav, nav_state)
+            if delta is not None and self._send("vision_position_delta_send", **delta):
+                self._count("vision_delta_sent")
+            self._prev_nav = nav_state
+        return ok
 
     def wait_connected(self, timeout_s: float) -> bool:
         """Block until the autopilot's heartbeat has been seen (or timeout)."""
@@ -192,8 +226,9 @@ class MavlinkBridge:
                 return False
 
     def _open(self) -> None:
+        device, baud = link_device(self.url)
         conn = mavutil.mavlink_connection(
-            self.url, source_system=self.config.source_system,
+            device, baud=baud, source_system=self.config.source_system,
             source_component=self.config.source_component, dialect="ardupilotmega", autoreconnect=False,
             retries=0)  # one TCP connect attempt: our loop owns the back-off
         if isinstance(conn, mavutil.mavtcp):

@@ -182,6 +182,7 @@ class OdometryConfig:
     sigma_worst_m: float = 50.0  # ... and to quality 1
     invalid: Literal["silence", "failed"] = "silence"  # "failed": quality -1, NaN pose
     estimator_type: int = 3  # MAV_ESTIMATOR_TYPE_VIO
+    vision_position_delta: bool = False  # also send VISION_POSITION_DELTA between outputs
 
     def validate(self) -> None:
         if not 0 < self.sigma_best_m < self.sigma_worst_m:

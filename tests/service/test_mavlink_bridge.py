@@ -324,3 +324,50 @@ def test_simulated_mission_arrives_through_sitl_vehicle_and_bridge_intact():
         roll, pitch, _ = quat_to_euler(np.asarray(truth_by_t[round(s.t_s, 3)].q_nb))
         assert (s.roll_rad, s.pitch_rad) == pytest.approx((roll, pitch), abs=1e-6)
     assert vehicle.received["odometry"] == 1 and vehicle.received["last_quality"] == 100
+
+
+def test_serial_link_over_a_pseudo_terminal():
+    import os
+
+    master, slave = os.openpty()
+    os.set_blocking(master, False)
+    name = os.ttyname(slave)
+    q = queue.Queue()
+    bridge = MavlinkBridge(f"serial:{name}:57600", q.put, None, BridgeConfig())
+    peer = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    received = []
+    try:
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and not bridge.link_up.is_set():
+            os.write(master, peer.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE,
+                                                   mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4).pack(peer))
+            time.sleep(0.1)
+        assert bridge.link_up.is_set()
+        os.write(master, peer.attitude_encode(3_000, 0.0, 0.3, 0.0, 0, 0, 0).pack(peer))
+        got = drain(q, lambda out: any(s.KIND == "attitude" for s in out))
+        assert [s.pitch_rad for s in got if s.KIND == "attitude"] == pytest.approx([0.3])
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end and not any(m.get_type() == "HEARTBEAT" for m in received):
+            try:
+                received += parser.parse_buffer(os.read(master, 4096)) or []
+            except BlockingIOError:
+                time.sleep(0.05)
+        assert any(m.get_type() == "COMMAND_LONG" for m in received)
+        assert any(m.get_type() == "HEARTBEAT" and m.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER for m in received)
+    finally:
+        bridge.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_a_log_file_is_not_a_live_link(tmp_path):
+    from service.mavlink_bridge import link_device
+
+    f = tmp_path / "mission.tlog"
+    f.write_bytes(b"")
+    with pytest.raises(ValueError, match="replay"):
+        link_device(str(f))
+    assert link_device("serial:/dev/ttyACM0:921600") == ("/dev/ttyACM0", 921600)
+    assert link_device("udpin:0.0.0.0:14550") == ("udpin:0.0.0.0:14550", 115200)

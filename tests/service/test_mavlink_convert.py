@@ -176,3 +176,27 @@ def test_origin_in_deg_e7_and_mm():
     o = GeoOrigin(math.radians(48.5), math.radians(-124.25), 12.5)
     f = gps_global_origin_fields(o, 1)
     assert (f["latitude"], f["longitude"], f["altitude"]) == (485_000_000, -1_242_500_000, 12_500)
+
+
+def test_vision_position_delta_is_in_the_previous_body_frame():
+    from service.mavlink_convert import vision_position_delta_fields
+
+    a = nav(t_s=10.0, pos_n_m=(0.0, 0.0, 0.0), yaw=math.pi / 2)
+    b = nav(t_s=10.5, pos_n_m=(0.0, 2.0, 0.0), yaw=math.pi / 2 + 0.1)  # 2 m east while facing east
+    f = vision_position_delta_fields(a, b)
+    assert f["position_delta"] == pytest.approx([2.0, 0.0, 0.0], abs=1e-9)
+    assert f["angle_delta"] == pytest.approx([0.0, 0.0, 0.1], abs=1e-9)
+    assert f["time_delta_usec"] == 500_000
+    assert vision_position_delta_fields(a, nav(valid=False)) is None
+
+
+def test_odometry_from_the_filter_nav_state():
+    from fusion.state import NavState
+
+    cov = np.eye(18) * 0.04
+    s = NavState(t_s=2.0, pos_n_m=np.array([1.0, 2.0, 3.0]), vel_n_m_s=np.array([0.5, 0.0, 0.0]),
+                 q_nb=np.array([1.0, 0.0, 0.0, 0.0]), bias_acc_b_m_s2=np.zeros(3), bias_gyro_b_rad_s=np.zeros(3),
+                 current_n_m_s=np.zeros(2), k_speed=1.0, cov=cov, valid=True, reset_counter=7)
+    f = odometry_fields(s)
+    assert (f["x"], f["vx"], f["reset_counter"], f["quality"]) == (1.0, 0.5, 7, 100)
+    assert f["pose_covariance"][15] == pytest.approx(0.04)  # roll variance from the ATT block
