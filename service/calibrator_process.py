@@ -84,13 +84,22 @@ def release_from_dict(data: Any) -> Any:
 
 
 def make_calibrator(cfg: Any, params0: MotionParams, seed: int) -> Any:
-    """An :class:`OnlineCalibrator` from a :class:`service.config.ServiceConfig`."""
+    """An :class:`OnlineCalibrator` from a :class:`service.config.ServiceConfig`.
+
+    Without its own origin, the calibrator uses the service's mission origin, so its
+    poses and the filter's share one NED frame.
+    """
+    import dataclasses
+
     import numpy as np
 
     from calibration.online import OnlineCalibrator
 
-    return OnlineCalibrator(cfg.calibrator.online, params0, cfg.motion.rpm_table,
-                            np.random.default_rng(seed))
+    online = cfg.calibrator.online
+    if not (math.isfinite(online.origin_lat_deg) and math.isfinite(online.origin_lon_deg)):
+        online = dataclasses.replace(online, origin_lat_deg=cfg.origin.lat_deg,
+                                     origin_lon_deg=cfg.origin.lon_deg)
+    return OnlineCalibrator(online, params0, cfg.motion.rpm_table, np.random.default_rng(seed))
 
 
 # -- the child ----------------------------------------------------------------------

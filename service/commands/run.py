@@ -39,7 +39,9 @@ def run(args):
         print(f"adaptnav run: config error: {e}", file=sys.stderr)
         return 2
     if args.print_config:
-        print(json.dumps(config_dict(cfg), indent=2, sort_keys=True))
+        from service.bus import _strict
+
+        print(json.dumps(_strict(config_dict(cfg)), indent=2, sort_keys=True))
         return 0
     from service import daemon
 
