@@ -170,7 +170,15 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     level = np.percentile(sm, 75, axis=1)
     above = sm > (fraction * level)[:, None]
     above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
-    idx = np.argmax(above, axis=1).astype(float)
+    idx = np.argmax(above, axis=1)
+    # the 5-sample smoothing fires up to 2 samples early on a sharp onset: move to the
+    # first raw sample above the threshold within ±2 samples
+    raw = samples.astype(np.float32)
+    offs = np.arange(-2, 3)
+    cols = np.clip(idx[:, None] + offs[None, :], 0, raw.shape[1] - 1)
+    raw_above = np.take_along_axis(raw, cols, axis=1) > (fraction * level)[:, None]
+    shift = np.where(raw_above.any(axis=1), offs[np.argmax(raw_above, axis=1)], 0)
+    idx = (idx + shift).astype(float)
     idx[~above.any(axis=1) | (level <= 0)] = np.nan
     rng_m = (idx + 0.5) * sample_spacing_m
     if smooth_pings > 1 and rng_m.size >= smooth_pings:
