@@ -161,7 +161,7 @@ class MavlinkBridge:
         self.converter = MavlinkConverter(convert)
         self.counters: dict[str, Any] = {
             "messages_by_type": {}, "corrupt_frames": 0, "samples": 0, "rejected": self.converter.rejected,
-            "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0,
+            "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
             "callback_errors": 0, "interval_requests": 0, "origin_sent": 0, "command_acks": 0,
         }
         self._conn: Any = None
@@ -183,6 +183,7 @@ class MavlinkBridge:
             self.counters["nav_silenced"] += 1
             return False
         if not self.link_up.is_set():
+            self.counters["nav_no_link"] += 1
             return False
         ok = self._send("odometry_send", **fields) and self._count("odometry_sent")
         if self.config.output.vision_position_delta:

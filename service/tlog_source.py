@@ -63,8 +63,9 @@ class TlogSource:
     ----------
     counters : dict
         ``messages_read`` (decoded messages), ``corrupt_frames`` (BAD_DATA),
-        ``samples_by_kind``, ``rejected`` (by reason), ``late_samples`` (outside the
-        re-order window), ``duration_s`` (data time span of the samples).
+        ``samples_by_kind``, ``rejected`` (by reason: conversion failures, ``late``,
+        ``duplicate_time``, ``imu_too_slow``...), ``late_samples`` (outside the re-order
+        window), ``reboots`` (autopilot clock restarts), ``duration_s`` (data time span).
     missing : list of str
         What the estimator will lack, in words; complete once iteration has finished.
     """
@@ -172,10 +173,16 @@ class TlogSource:
         by_kind = self.counters["samples_by_kind"]
         window = self.config.reorder_window_s
 
+        last_t_by_kind: dict[str, float] = {}
+
         def release(upto: float):
             nonlocal released_t, t_first, t_last
             while heap and heap[0][0][0] <= upto:
                 _, sample = heapq.heappop(heap)
+                if last_t_by_kind.get(sample.KIND) == sample.t_s:
+                    self._reject("duplicate_time")  # same message logged twice (two links)
+                    continue
+                last_t_by_kind[sample.KIND] = sample.t_s
                 released_t = sample.t_s
                 t_first = sample.t_s if t_first is None else t_first
                 t_last = sample.t_s

@@ -92,3 +92,41 @@ def test_truncated_log_reads_what_is_there(tmp_path):
 def replay_path(p):
     src = TlogSource(p)
     return src, list(src)
+
+
+def write_tlog(path, frames):
+    """A .tlog is (8-byte big-endian µs wall time + one MAVLink frame) records."""
+    import struct
+
+    with open(path, "wb") as f:
+        for i, frame in enumerate(frames):
+            f.write(struct.pack(">Q", 1_700_000_000_000_000 + i * 1000) + bytes(frame))
+
+
+def test_synthetic_log_duplicates_nan_reboot_and_a_fast_imu(tmp_path):
+    from service.mavlink_convert import mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    hb = mav.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+    frames = [hb.pack(mav)]
+    for i in range(100):  # 2 s of 50 Hz HIGHRES_IMU from boot time 100 s
+        t_us = 100_000_000 + i * 20_000
+        frames.append(mav.highres_imu_encode(t_us, 0, 0, -9.8, 0, 0, 0.01, 0, 0, 0, 0, 0, 0, 20, 0x3F).pack(mav))
+        if i % 10 == 0:
+            att = mav.attitude_encode(t_us // 1000, 0.1, 0.0, 0.0, 0, 0, 0).pack(mav)
+            frames += [att, att]  # logged twice
+    frames.append(mav.attitude_encode(102_000, math.nan, 0.0, 0.0, 0, 0, 0).pack(mav))
+    frames.append(mav.attitude_encode(5_000, 0.2, 0.0, 0.0, 0, 0, 0).pack(mav))  # rebooted: boot time 5 s
+    p = tmp_path / "synthetic.tlog"
+    write_tlog(p, frames)
+    src, samples = replay_path(p)
+    kinds = src.counters["samples_by_kind"]
+    assert kinds["imu"] >= 98  # 50 Hz ≥ 20 Hz: usable (first sample has no rate yet)
+    assert kinds["attitude"] == 11  # 10 unique + the one after the reboot
+    assert src.counters["rejected"]["duplicate_time"] == 10
+    assert src.counters["rejected"]["non_finite"] == 1
+    assert src.counters["reboots"] == 1
+    assert samples[-1].KIND == "attitude" and samples[-1].roll_rad == pytest.approx(0.2) and samples[-1].t_s >= 101.98
+    ts = [s.t_s for s in samples]
+    assert ts == sorted(ts)
+    assert not any("IMU" in m for m in src.missing)
