@@ -24,6 +24,7 @@ import math
 import queue
 import threading
 from collections import Counter
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import zenoh
@@ -124,11 +125,25 @@ def _schema(kind: str, description: str) -> dict:
     }
 
 
-def _decode_as(kind: str) -> Callable[[dict], dict]:
-    def decode(data: dict) -> dict:
+@dataclass(frozen=True)
+class BusMessage:
+    """A service message as read back from the bus or a log: its kind, data time, JSON body.
+
+    It has ``KIND`` and ``t_s`` like a sample, so the codec and MCAP logs handle it;
+    the estimator ignores it.
+    """
+
+    KIND: str
+    t_s: float
+    body: dict
+
+
+def _decode_as(kind: str) -> Callable[[dict], BusMessage]:
+    def decode(data: dict) -> BusMessage:
         if data.get("schema_version") != SCHEMA_VERSION:
             raise ValueError(f"{kind}: schema_version {data.get('schema_version')!r} not supported")
-        return data
+        t_s = data.get("t_s")
+        return BusMessage(kind, float(t_s) if isinstance(t_s, (int, float)) else math.nan, data)
     return decode
 
 
@@ -136,7 +151,7 @@ def _register_service_kinds() -> None:
     from . import codec
 
     for kind, (topic, description) in SERVICE_KINDS.items():
-        codec.register(kind, lambda d: d, _decode_as(kind), _schema(kind, description), topic)
+        codec.register(kind, lambda m: m.body, _decode_as(kind), _schema(kind, description), topic)
 
 
 _register_service_kinds()

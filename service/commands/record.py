@@ -1,10 +1,108 @@
-"""`adaptnav record` (being built; see the issue tracker)."""
-HELP = "record (not built yet)"
+"""`adaptnav record --out FILE.mcap [--duration S]`: record all bus traffic of a vehicle.
+
+Subscribes to ``adaptnav/<v>/**`` (sensor samples, nav states, aid statuses, calibrator
+releases, health) as a Zenoh peer connecting to the daemon's endpoints (or ``--connect``)
+and writes every message to MCAP through :func:`service.logs.write_mcap` — the format
+``adaptnav replay`` reads. Messages that are not valid adaptnav JSON are counted and
+reported, not written. Ends after ``--duration`` seconds or on SIGINT/SIGTERM.
+"""
+from __future__ import annotations
+
+HELP = "record all Zenoh bus traffic of a vehicle to an MCAP file"
 
 
 def add_arguments(parser):
-    pass
+    parser.add_argument("--out", required=True, metavar="FILE.mcap", help="output MCAP file")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
+    parser.add_argument("--config", metavar="FILE", help="service config (vehicle name, zenoh)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key (repeatable)")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to connect to (default: the daemon's listen endpoints)")
+
+
+def recorder_zenoh(cfg, connect=()):
+    """Zenoh config of the recorder: a peer connecting to the daemon, listening nowhere."""
+    from service.config import ZenohConfig
+
+    endpoints = tuple(connect) or tuple(cfg.zenoh.connect) + tuple(cfg.zenoh.listen)
+    return ZenohConfig(mode="client" if cfg.zenoh.mode == "client" else "peer",
+                       connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
+
+
+def record(bus, out, stop, duration_s=None, metadata=None):
+    """Record ``adaptnav/<v>/**`` from ``bus`` into ``out`` until ``stop`` or the duration.
+
+    Returns ``(counts_by_kind, malformed_count)``.
+    """
+    import queue
+    import time
+
+    from fusion.samples import SampleError
+    from service import codec
+    from service.logs import write_mcap
+
+    inbox: queue.Queue = queue.Queue()
+    malformed = [0]
+
+    def on_message(key, payload):  # Zenoh thread: decode and enqueue only
+        try:
+            inbox.put(codec.decode(payload))
+        except SampleError:
+            malformed[0] += 1
+
+    bus.subscribe_raw(bus.keys.all, on_message)
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+
+    def messages():
+        while True:
+            if stop.is_set() or (deadline is not None and time.monotonic() >= deadline):
+                break
+            try:
+                yield inbox.get(timeout=0.1)
+            except queue.Empty:
+                continue
+        while True:  # what already arrived is written too
+            try:
+                yield inbox.get_nowait()
+            except queue.Empty:
+                return
+
+    counts = write_mcap(out, messages(), metadata=metadata)
+    return counts, malformed[0]
 
 
 def run(args):
-    raise SystemExit("adaptnav record: not built yet")
+    import logging
+    import signal
+    import sys
+    import threading
+
+    from fusion.typed_config import ConfigError
+    from service.bus import Bus, _strict
+    from service.config import config_dict, load_config
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = load_config(args.config, args.overrides)
+    except ConfigError as e:
+        print(f"adaptnav record: config error: {e}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    bus = Bus(recorder_zenoh(cfg, args.connect), cfg.vehicle.name)
+    try:
+        print(f"recording adaptnav/{cfg.vehicle.name}/** to {args.out} "
+              f"({'until Ctrl-C' if args.duration is None else f'{args.duration:g} s'})", file=sys.stderr)
+        counts, malformed = record(bus, args.out, stop, args.duration,
+                                   metadata={"recorded_by": "adaptnav record", "vehicle": cfg.vehicle.name,
+                                             "service_config": _strict(config_dict(cfg))})
+    finally:
+        bus.close()
+    total = sum(counts.values())
+    print(f"wrote {total} messages to {args.out}: "
+          + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
+          + (f"; {malformed} malformed messages skipped" if malformed else ""), file=sys.stderr)
+    return 0
