@@ -143,6 +143,7 @@ class SitlVehicle:
         t0: float | None = None
         next_hb_wall = 0.0
         last_hb_data = -math.inf
+        next_poll_wall = 0.0
         for sample in self.samples:
             if self._stop.is_set():
                 return
@@ -156,8 +157,9 @@ class SitlVehicle:
                     if dt <= 0:
                         break
                     self.conn.select(min(dt, 0.02))
-            else:
+            elif time.monotonic() >= next_poll_wall:  # unpaced: poll every few ms, not per sample
                 self.poll()
+                next_poll_wall = time.monotonic() + 0.005
             self.t_data_s = t
             now = time.monotonic()
             if now >= next_hb_wall or t - last_hb_data >= self.config.heartbeat_period_s:
