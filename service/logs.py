@@ -26,7 +26,8 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -152,8 +153,109 @@ def _decode_metadata(record: dict[str, str]) -> dict[str, Any]:
     return out
 
 
+class McapLog:
+    """One pass over an MCAP log: an iterator of messages and errors (see :func:`read_mcap`).
+
+    Attributes known before iterating: ``metadata`` (the ``adaptnav`` record, ``{}`` if
+    none), ``scenario`` (the simulated :class:`sim.scenario.Scenario` rebuilt from the
+    metadata, or ``None``), ``streams`` (kinds of the file's channels when its summary is
+    readable, else ``None``). Filled while iterating: ``stats`` (:class:`ReadStats`) and
+    ``counters`` (a dict: ``messages_read``, ``corrupt_frames``, ``decode_errors`` by kind).
+    """
+
+    def __init__(self, path: str | Path, stats: ReadStats | None = None) -> None:
+        self.path = Path(path)
+        self.stats = stats if stats is not None else ReadStats()
+        self.decode_errors: dict[str, int] = {}
+        try:
+            self.metadata = read_mcap_metadata(self.path)
+        except TruncatedLogError:
+            self.metadata = {}
+        self.scenario = _scenario_from(self.metadata)
+        self.streams = _summary_streams(self.path)
+        self._it: Iterator[Any] | None = None
+
+    @property
+    def counters(self) -> dict[str, Any]:
+        return {"messages_read": self.stats.messages, "corrupt_frames": int(self.stats.truncated),
+                "decode_errors": dict(self.decode_errors)}
+
+    def __iter__(self) -> "McapLog":
+        return self
+
+    def __next__(self) -> Any:
+        if self._it is None:
+            self._it = self._records()
+        return next(self._it)
+
+    def _records(self) -> Iterator[Any]:
+        stats, channels = self.stats, {}
+        with open(self.path, "rb") as stream:
+            records = StreamReader(stream, validate_crcs=True).records
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    return
+                except Exception as e:  # noqa: BLE001 — any parser failure on damaged bytes ends the file
+                    stats.truncated = True
+                    stats.truncation_reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+                    yield TruncatedLogError(f"{self.path}: log ends early or is corrupt after {stats.messages} "
+                                            f"messages ({stats.truncation_reason}); kept what came before")
+                    return
+                if isinstance(record, Message):
+                    stats.messages += 1
+                    try:
+                        if record.channel_id not in channels:
+                            raise SampleError(f"message on unknown channel {record.channel_id}")
+                        sample = codec.decode(record.data)
+                    except SampleError as e:
+                        stats.bad_messages += 1
+                        ch = channels.get(record.channel_id)
+                        kind = ch.topic.rsplit("/", 1)[-1] if ch is not None else "unknown"
+                        self.decode_errors[kind] = self.decode_errors.get(kind, 0) + 1
+                        yield e
+                        continue
+                    stats.decoded += 1
+                    kind = sample.KIND
+                    stats.per_kind[kind] = stats.per_kind.get(kind, 0) + 1
+                    yield sample
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+
+
+def _scenario_from(metadata: dict) -> Any:
+    raw = metadata.get("scenario")
+    if not isinstance(raw, dict):
+        return None
+    from fusion.typed_config import ConfigError, build
+    from sim.scenario import Scenario
+
+    try:
+        return build(Scenario, raw)
+    except ConfigError:
+        return None  # a log from another version: the samples still replay
+
+
+def _summary_streams(path: Path) -> list[str] | None:
+    """Kinds of the channels listed in the summary section (None if unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 — truncated/corrupt: the summary is simply unknown
+        return None
+    if summary is None:
+        return None
+    kinds = []
+    for ch in summary.channels.values():
+        schema = summary.schemas.get(ch.schema_id)
+        name = schema.name if schema is not None else ""
+        kinds.append(name.split(".", 1)[1] if name.startswith("adaptnav.") else ch.topic.rsplit("/", 1)[-1])
+    return sorted(set(kinds))
+
+
 def read_mcap(path: str | Path, stats: ReadStats | None = None,
-              metadata_out: dict | None = None) -> Iterator[Any]:
+              metadata_out: dict | None = None) -> McapLog:
     """Messages of an MCAP log, in file order; errors are yielded, not raised.
 
     Yields
@@ -164,44 +266,17 @@ def read_mcap(path: str | Path, stats: ReadStats | None = None,
     Parameters
     ----------
     stats : optional :class:`ReadStats` updated as messages are read
-    metadata_out : optional dict filled with the ``adaptnav`` metadata when it is met
+    metadata_out : optional dict filled with the ``adaptnav`` metadata
+
+    Returns
+    -------
+    McapLog — an iterator that also carries ``metadata``, ``scenario``, ``streams``,
+    ``stats`` and ``counters``.
     """
-    stats = stats if stats is not None else ReadStats()
-    channels: dict[int, Channel] = {}
-    with open(path, "rb") as stream:
-        reader = StreamReader(stream, validate_crcs=True)
-        records = reader.records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                return
-            except Exception as e:  # noqa: BLE001 — any parser failure on damaged bytes ends the file
-                stats.truncated = True
-                stats.truncation_reason = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
-                yield TruncatedLogError(f"{path}: log ends early or is corrupt after {stats.messages} "
-                                        f"messages ({stats.truncation_reason}); kept what came before")
-                return
-            if isinstance(record, Message):
-                stats.messages += 1
-                try:
-                    if record.channel_id not in channels:
-                        raise SampleError(f"message on unknown channel {record.channel_id}")
-                    sample = codec.decode(record.data)
-                except SampleError as e:
-                    stats.bad_messages += 1
-                    yield e
-                    continue
-                stats.decoded += 1
-                kind = sample.KIND
-                stats.per_kind[kind] = stats.per_kind.get(kind, 0) + 1
-                yield sample
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Metadata) and record.name == METADATA_NAME and metadata_out is not None:
-                metadata_out.update(_decode_metadata(record.metadata))
-            elif isinstance(record, Schema):
-                pass
+    log = McapLog(path, stats)
+    if metadata_out is not None:
+        metadata_out.update(log.metadata)
+    return log
 
 
 def read_mcap_metadata(path: str | Path) -> dict[str, Any]:
