@@ -375,6 +375,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "calibrate": bool(calibrate),
         "health": health.report(),
     }
+    if counters.get("truncated"):
+        doc["truncated"] = counters["truncated"]
     if metrics_sink.metrics:
         doc["metrics"] = metrics_sink.metrics
     (out / "summary.json").write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default) + "\n")
