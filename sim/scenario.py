@@ -50,6 +50,8 @@ class TrajectoryConfig:
     circle_radius_m: float = 100.0
     depth_m: float = 20.0               # survey depth
     start_depth_m: float = 0.0          # 0 = at the surface (GNSS possible) at t = 0
+    start_delay_s: float = 0.0          # propeller stopped (rpm 0, no steering) this long first;
+                                        # the descent starts after it (alignment at rest)
     dive_rate_m_s: float = 0.3          # peak vertical speed of the (smooth) descent
     lookahead_m: float = 20.0           # LOS guidance look-ahead distance
     yaw_gain_per_s: float = 0.5         # yaw-rate command per rad of heading error

@@ -140,16 +140,22 @@ def simulate_steps(scenario: Scenario, rng: np.random.Generator) -> MotionSteps:
     pose = np.empty((K + 1, 3))
     pose[0] = (0.0, 0.0, math.radians(tr.heading_deg))
     out = {name: np.empty(K) for name in ("w", "V", "W", "S", "k_v")}
+    rpm = np.full(K, rpm_cmd)
+    v_steps = np.full(K, v_rep)
     for k in range(K):
         params = scenario.params_at(t[k])
-        ground_n = pose[k, 0] + cur[0] * t[k]
-        ground_e = pose[k, 1] + cur[1] * t[k]
-        w = guide.command(ground_n, ground_e, pose[k, 2])
-        V, W, S = sample_velocities(params, v_rep, w, rng)
+        if t[k] < tr.start_delay_s:
+            # stopped: the model still applies (V ~ N(0, σ_V1²), W ~ N(b_W, σ_W1²))
+            rpm[k], v_steps[k], w = 0.0, float(table.speed(0.0)), 0.0
+        else:
+            ground_n = pose[k, 0] + cur[0] * t[k]
+            ground_e = pose[k, 1] + cur[1] * t[k]
+            w = guide.command(ground_n, ground_e, pose[k, 2])
+        V, W, S = sample_velocities(params, v_steps[k], w, rng)
         pose[k + 1] = propagate(pose[k], V, W, S, T)
         out["w"][k], out["V"][k], out["W"][k], out["S"][k] = w, V, W, S
         out["k_v"][k] = params.k_v
-    return MotionSteps(t_s=t, pose_water=pose, rpm=np.full(K, rpm_cmd), v_m_s=np.full(K, v_rep),
+    return MotionSteps(t_s=t, pose_water=pose, rpm=rpm, v_m_s=v_steps,
                        w_rad_s=out["w"], V_m_s=out["V"], W_rad_s=out["W"], S_m_s=out["S"],
                        k_v=out["k_v"])
 
@@ -161,8 +167,9 @@ def _depth_profile(scenario: Scenario, t: np.ndarray):
     if dd == 0.0:
         return np.full_like(t, tr.depth_m), np.zeros_like(t)
     dur = 0.5 * math.pi * abs(dd) / tr.dive_rate_m_s
-    phase = np.clip(t / dur, 0.0, 1.0)
-    vel = np.where(t < dur, 0.5 * dd * math.pi / dur * np.sin(math.pi * phase), 0.0)
+    ts = t - tr.start_delay_s
+    phase = np.clip(ts / dur, 0.0, 1.0)
+    vel = np.where((ts > 0) & (ts < dur), 0.5 * dd * math.pi / dur * np.sin(math.pi * phase), 0.0)
     return tr.start_depth_m + 0.5 * dd * (1.0 - np.cos(math.pi * phase)), vel
 
 

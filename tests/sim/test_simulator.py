@@ -183,3 +183,14 @@ def test_sonar_pings_when_renderer_present():
     assert [p.t_s for p in pings] == [k * 0.5 for k in range(41)]
     assert all(p.n_samples == 128 and p.slant_range_m == 20.0 for p in pings)
     assert r.seabed is not None and len(r.seabed.seabed.objects_n_m) > 0
+
+
+def test_start_delay_keeps_the_propeller_stopped_at_the_surface():
+    r = simulate(load_scenario("short", ["duration_s=30", "trajectory.start_delay_s=10"]))
+    rpm = {s.t_s: s.rpm for s in r.samples["rpm"]}
+    assert all(v == 0.0 for t, v in rpm.items() if t < 10.0) and rpm[10.0] > 0.0
+    d = r.dense
+    at_rest = d.t_s <= 10.0
+    # drifts with the current only (water-relative speed ~ σ_V1), still at the surface
+    ground_speed = np.linalg.norm(d.vel_n_m_s[at_rest, :2] - np.array(r.scenario.current.vel_n_m_s()), axis=1)
+    assert ground_speed.max() < 0.05 and np.abs(d.pos_n_m[at_rest, 2]).max() == 0.0
