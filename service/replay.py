@@ -196,16 +196,12 @@ class McapSource(SampleStreamSource):
         self.path = Path(path)
         self.stats = logs.ReadStats()
         self.truncated = ""
-        try:
-            metadata = logs.read_mcap_metadata(self.path)
-        except logs.LogError as e:
-            log.warning("%s", e)
-            metadata = {}
-        self.scenario = _scenario_from_metadata(metadata)
-        streams = _mcap_streams(self.path)
+        self.reader = logs.read_mcap(self.path, self.stats)
+        self.scenario = self.reader.scenario
+        streams = self.reader.streams
         if streams is None and self.scenario is not None:
             streams = ["truth"]  # simulated logs carry truth; the summary is lost with truncation
-        super().__init__(self._samples(), streams=streams, metadata=metadata)
+        super().__init__(self._samples(), streams=streams, metadata=self.reader.metadata)
         self.duration_s = self.scenario.duration_s if self.scenario is not None else None
 
     def _samples(self):
@@ -214,7 +210,7 @@ class McapSource(SampleStreamSource):
         from . import logs
 
         logged = 0
-        for item in logs.read_mcap(self.path, self.stats):
+        for item in self.reader:
             if isinstance(item, SampleError):
                 reason = str(item).split(":")[0].strip() or "malformed"
                 self.counters.decode_errors[reason] += 1
@@ -231,35 +227,9 @@ class McapSource(SampleStreamSource):
 
     def report_counters(self) -> dict:
         c = self.counters
-        return {"messages_read": int(self.stats.messages), "corrupt_frames": int(self.stats.bad_messages),
+        return {"messages_read": int(self.stats.messages),
+                "corrupt_frames": int(self.stats.bad_messages) + int(self.stats.truncated),
                 "rejected": c.rejected(), "late_samples": c.late_samples, "truncated": self.truncated}
-
-
-def _scenario_from_metadata(metadata: dict) -> Any:
-    raw = metadata.get("scenario")
-    if not isinstance(raw, dict):
-        return None
-    from sim.scenario import Scenario
-
-    try:
-        return build(Scenario, raw)
-    except ConfigError as e:
-        log.warning("log metadata: scenario not usable (%s); using the config only", e)
-        return None
-
-
-def _mcap_streams(path: Path) -> list[str] | None:
-    """Sample kinds from the MCAP summary (channel topics' last segment); None if unreadable."""
-    from mcap.reader import make_reader
-
-    try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-    except Exception:  # noqa: BLE001 — truncated/corrupt file: no summary
-        return None
-    if summary is None:
-        return None
-    return sorted({ch.topic.rstrip("/").rsplit("/", 1)[-1] for ch in summary.channels.values()})
 
 
 # -- one replay ----------------------------------------------------------------------------
