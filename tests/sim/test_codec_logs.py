@@ -67,6 +67,8 @@ def test_codec_schemas_describe_the_payloads():
     b'"imu"',
     b'{"type": "warp_drive", "schema_version": 1}',
     b'{"schema_version": 1, "t_s": 0}',
+    b'{"type": [1], "schema_version": 1}',
+    b'{"type": "imu", "schema_version": 1, "t_s": 0.5, "specific_force_b_m_s2": [0.0, 0.0, true], "omega_b_rad_s": [0.0, 0.0, 0.0]}',
     b'{"type": "imu", "schema_version": 1, "t_s": "noon", "specific_force_b_m_s2": [0,0,0], "omega_b_rad_s": [0,0,0]}',
     b'{"type": "imu", "schema_version": 1, "t_s": 0, "specific_force_b_m_s2": [0,0], "omega_b_rad_s": [0,0,0]}',
     b'{"type": "imu", "schema_version": 9, "t_s": 0, "specific_force_b_m_s2": [0,0,0], "omega_b_rad_s": [0,0,0]}',
