@@ -39,7 +39,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import minimize, nnls
 
 from fusion.motion_model import MotionParams, invert_step
 
@@ -56,7 +56,7 @@ class MStepOptions:
 
     max_condition: float = 30.0
     prior_tau: float = 3.0
-    n_alternations: int = 3
+    n_alternations: int = 2
     fit_k_v: bool = True
     fit_b_w: bool = True
     fit_var_s: bool = True
@@ -103,11 +103,17 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
         a[free] = a_free
         return a
 
+    cache: dict = {}
+
     def parts(a_free):
-        a = unpack(a_free)
-        u = design * np.exp(a)[None, :]  # (T, 3)
-        s = u.sum(axis=1)
-        return u[:, free], s
+        key = a_free.tobytes()
+        if key not in cache:  # fun, jac and hess are called at the same points
+            cache.clear()
+            a = unpack(a_free)
+            u = design * np.exp(a)[None, :]  # (T, 3)
+            s = u.sum(axis=1)
+            cache[key] = (u[:, free], s, n_traj / s - resid_sq / s**2, s)
+        return cache[key][:2]
 
     def fun(a_free):
         _, s = parts(a_free)
@@ -126,8 +132,21 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
         h = 0.5 * (u.T @ (f2[:, None] * u) + np.diag(f1 @ u))
         return h + inv_tau2 * np.eye(free.size)
 
-    res = minimize(fun, alpha0[free], method="Newton-CG", jac=jac, hess=hess,
-                   options={"xtol": 1e-6, "maxiter": 50})
+    # start from the weighted moment estimate E[r²] ≈ D σ² (non-negative least squares):
+    # Newton then converges in a few steps instead of crawling through the region where
+    # the Hessian is indefinite (R < M s / 2)
+    x_start = alpha0[free].copy()
+    held_part = design @ np.exp(alpha0) - design[:, free] @ np.exp(alpha0[free])
+    sw = np.sqrt(lam) / np.maximum(design @ np.exp(alpha0), 1e-300)
+    try:
+        lin, _ = nnls(design[:, free] * sw[:, None], (resid_sq / n_traj - held_part) * sw)
+        x_start = np.log(np.maximum(lin, 1e-3 * np.exp(alpha0[free])))
+    except (ValueError, RuntimeError):
+        pass
+    if fun(x_start) > fun(alpha0[free]):
+        x_start = alpha0[free].copy()
+    res = minimize(fun, x_start, method="Newton-CG", jac=jac, hess=hess,
+                   options={"xtol": 1e-4, "maxiter": 30})
     a = unpack(res.x)
     return a if np.all(np.isfinite(a)) else alpha0.copy()
 
@@ -158,7 +177,8 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     sum_V = V.sum(axis=0)
     sum_W = (W - w[None, :]).sum(axis=0)
     a_v, a_w = alpha_v, alpha_w
-    for _ in range(max(1, options.n_alternations)):
+    n_alt = max(1, options.n_alternations) if (options.fit_k_v or options.fit_b_w) else 1
+    for _ in range(n_alt):
         res_v = np.sum((V - k_v * v[None, :]) ** 2, axis=0)
         a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau)
         res_w = np.sum((W - w[None, :] - b_w) ** 2, axis=0)

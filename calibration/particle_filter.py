@@ -20,10 +20,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
 
-from fusion.motion_model import MotionParams, sample_poses
-from calibration.resampling import normalise_log_weights, systematic_resample
+from fusion.motion_model import MotionParams
+from calibration._kernels import move, pack, reweight
+from calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
 from calibration.sensors import LandmarkSighting, ParticleLandmarkMap
 
 
@@ -65,6 +65,14 @@ def _observation_log_lik(obs_list, poses, landmark_map):
     return g
 
 
+def _reweight(log_w, g):
+    lw, inc, ess_now = reweight(log_w, g)
+    if not np.isfinite(inc):
+        raise FloatingPointError("all particle weights are zero (or non-finite): the observations "
+                                 "are impossible under every particle")
+    return lw, inc, ess_now
+
+
 def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
                         rng: np.random.Generator, n_particles: int | None = None,
                         ess_fraction: float = 0.5, map_landmarks: bool = False) -> FilterResult:
@@ -102,16 +110,15 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     lmap = ParticleLandmarkMap(N) if map_landmarks else None
 
     X[0] = init
-    lw = np.full(N, -np.log(N))
     g = _observation_log_lik(observations[0], X[0], lmap)
-    inc[0] = logsumexp(lw + g)
-    LW[0] = lw = normalise_log_weights(lw + g)
+    lw, inc[0], ess_now = _reweight(np.full(N, -np.log(N)), g)
+    LW[0] = lw
     arange = np.arange(N)
     threshold = ess_fraction * N
+    pvec = pack(params)
     for t in range(T):
-        wts = np.exp(lw)
-        if 1.0 / np.sum(wts * wts) < threshold:
-            idx = systematic_resample(wts, rng)
+        if ess_now < threshold:
+            idx = systematic_resample(np.exp(lw), rng)
             lw = np.full(N, -np.log(N))
             resampled[t] = True
             if lmap is not None:
@@ -119,10 +126,10 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
         else:
             idx = arange
         A[t] = idx
-        X[t + 1] = sample_poses(params, X[t, idx], v[t], w[t], dt[t], rng)
+        X[t + 1] = move(X[t], idx, rng.standard_normal((3, N)), v[t], w[t], dt[t], pvec)
         g = _observation_log_lik(observations[t + 1], X[t + 1], lmap)
-        inc[t + 1] = logsumexp(lw + g)  # lw is normalised: this is log Σ W g
-        LW[t + 1] = lw = normalise_log_weights(lw + g)
+        lw, inc[t + 1], ess_now = _reweight(lw, g)  # lw is normalised: inc = log Σ W g
+        LW[t + 1] = lw
     return FilterResult(X, LW, A, inc, resampled, lmap)
 
 
@@ -134,13 +141,14 @@ def filter_step(params: MotionParams, poses: np.ndarray, log_w: np.ndarray, v: f
     """
     N = poses.shape[0]
     wts = np.exp(log_w)
+    idx = np.arange(N)
     if 1.0 / np.sum(wts * wts) < ess_fraction * N:
-        poses = poses[systematic_resample(wts, rng)]
+        idx = systematic_resample(wts, rng)
         log_w = np.full(N, -np.log(N))
-    poses = sample_poses(params, poses, v, w, dt, rng)
+    poses = move(poses, idx, rng.standard_normal((3, N)), float(v), float(w), float(dt), pack(params))
     g = _observation_log_lik(obs_list, poses, None)
-    inc = float(logsumexp(log_w + g))
-    return poses, normalise_log_weights(log_w + g), inc
+    log_w, inc, _ = _reweight(log_w, g)
+    return poses, log_w, float(inc)
 
 
 def weighted_mean_pose(poses: np.ndarray, log_w: np.ndarray) -> np.ndarray:

@@ -11,7 +11,14 @@ Effective sample size ``ESS = 1 / Σ W_i²`` of normalised weights ``W``.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import logsumexp
+
+
+def logsumexp(a: np.ndarray) -> float:
+    """``log Σ exp(a)`` of a 1-D array (numpy only: scipy's version is ~10x slower at N=1000)."""
+    m = np.max(a)
+    if not np.isfinite(m):
+        return float(m)
+    return float(m + np.log(np.sum(np.exp(a - m))))
 
 
 def normalise_log_weights(log_w: np.ndarray) -> np.ndarray:

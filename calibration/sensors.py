@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration._kernels import range_loglik
+
 LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -55,6 +57,12 @@ class RangeObservation:
     sigma_m: float
 
     def log_likelihood(self, poses: np.ndarray) -> np.ndarray:
+        lm = np.asarray(self.landmarks_m, dtype=float).reshape(-1, 2)
+        return range_loglik(np.ascontiguousarray(poses, dtype=float), lm,
+                            np.asarray(self.ranges_m, dtype=float).reshape(-1), float(self.sigma_m))
+
+    def log_likelihood_numpy(self, poses: np.ndarray) -> np.ndarray:
+        """Reference implementation (numpy) of :meth:`log_likelihood`."""
         lm = np.asarray(self.landmarks_m, dtype=float).reshape(-1, 2)
         d = np.hypot(poses[:, None, 0] - lm[None, :, 0], poses[:, None, 1] - lm[None, :, 1])
         r = (d - np.asarray(self.ranges_m, dtype=float)[None, :]) / self.sigma_m

@@ -26,6 +26,7 @@ import numpy as np
 from fusion.motion_model import MotionParams, transition_logpdf
 from calibration.particle_filter import FilterResult
 from calibration.resampling import multinomial_indices
+from calibration._kernels import backward_exact, backward_mcmc, pack
 
 
 def _sample_rows(log_p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -39,7 +40,24 @@ def _sample_rows(log_p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def ffbsi_exact(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
                 rng: np.random.Generator) -> np.ndarray:
-    """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T)."""
+    """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T) (numba)."""
+    v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
+    idx = multinomial_indices(fr.log_w[-1], n_traj, rng)
+    u = rng.random((v.size, n_traj))
+    return backward_exact(fr.poses, fr.log_w, v, w, dt, pack(params), idx, u)
+
+
+def _controls(v_m_s, w_rad_s, dt_s):
+    v = np.ascontiguousarray(v_m_s, dtype=float)
+    w = np.ascontiguousarray(w_rad_s, dtype=float)
+    dt = np.ascontiguousarray(np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape))
+    return v, w, dt
+
+
+def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Exact FFBSi written with :func:`fusion.motion_model.transition_logpdf` (the
+    independent reference for the numba kernels; O(N·M·T) memory-light numpy)."""
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
     dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
@@ -57,7 +75,20 @@ def ffbsi_exact(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_
 
 def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
                rng: np.random.Generator, n_mcmc: int = 2) -> np.ndarray:
-    """FFBSi with the MCMC backward kernel: (M, T+1, 3) trajectories in O(M·T·n_mcmc)."""
+    """FFBSi with the MCMC backward kernel: (M, T+1, 3) trajectories in O(M·T·n_mcmc) (numba)."""
+    v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
+    T = v.size
+    idx = multinomial_indices(fr.log_w[T], n_traj, rng)
+    props = np.empty((T, n_mcmc, n_traj), dtype=np.int64)
+    for t in range(T):
+        props[t] = multinomial_indices(fr.log_w[t], (n_mcmc, n_traj), rng)
+    log_u = np.log(rng.random((T, n_mcmc, n_traj)))
+    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params), idx, props, log_u)
+
+
+def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
+                     rng: np.random.Generator, n_mcmc: int = 2) -> np.ndarray:
+    """Numpy version of :func:`ffbsi_mcmc` (reference for the kernel)."""
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
     dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
