@@ -77,21 +77,33 @@ def plot_params(rec: Any, path: Path, title: str = "") -> bool:
     names = MotionParams.VARIANCE_NAMES
     fig, axes = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
     t0 = rec.nav_t[0] if rec.nav_t else rows[0][0]
-    if rec.nav_t:
-        axes[0].plot((np.asarray(rec.nav_t) - t0) / 60.0, rec.nav_k_speed, lw=1.0, label="filter k_speed")
-    if rec.truth_rows:
-        t_truth, k_true = rec.truth_k_v()
-        axes[0].plot((t_truth - t0) / 60.0, k_true, "k--", lw=1.0, label="truth k_V")
+    t_end = rec.nav_t[-1] if rec.nav_t else rows[-1][0]
     if rows:
         t = (np.asarray([r[0] for r in rows]) - t0) / 60.0
         acc = np.asarray([r[2] for r in rows])
         k_v = np.asarray([r[1].k_v for r in rows])
-        axes[0].step(t[acc], k_v[acc], where="post", label="model k_V (accepted)")
+        # accepted values hold until the next accepted release: extend the steps to the end
+        t_acc = np.append(t[acc], (t_end - t0) / 60.0)
+        axes[0].step(t_acc, np.append(k_v[acc], k_v[acc][-1]), where="post", label="model k_V (accepted)")
         if np.any(~acc):
             axes[0].plot(t[~acc], k_v[~acc], "rx", label="rejected release")
         for name in names:
             sig = np.sqrt([getattr(r[1], name) for r in rows])
-            axes[1].step(t[acc], sig[acc], where="post", label=f"σ of {name[4:]}")
+            axes[1].step(t_acc, np.append(sig[acc], sig[acc][-1]), where="post", label=f"σ of {name[4:]}")
+            if np.any(~acc):
+                axes[1].plot(t[~acc], sig[~acc], "x", color=axes[1].lines[-1].get_color(), ms=4)
+    if rec.nav_t:
+        t_nav = np.asarray(rec.nav_t)
+        scale = np.asarray(rec.nav_k_speed)
+        if rows and np.any(acc):
+            # the filter's surge scale is k_speed · k_V of the model in use at that time
+            t_rel = np.asarray([r[0] for r in rows])[acc]
+            idx = np.clip(np.searchsorted(t_rel, t_nav, side="right") - 1, 0, None)
+            scale = scale * k_v[acc][idx]
+        axes[0].plot((t_nav - t0) / 60.0, scale, lw=1.0, label="filter k_speed · model k_V")
+    if rec.truth_rows:
+        t_truth, k_true = rec.truth_k_v()
+        axes[0].plot((t_truth - t0) / 60.0, k_true, "k--", lw=1.0, label="truth k_V")
         axes[1].set_yscale("log")
         axes[1].legend(loc="best", fontsize=8, ncol=2)
     axes[0].set_ylabel("speed scale")
