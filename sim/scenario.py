@@ -151,9 +151,10 @@ class DepthConfig:
 
 @dataclass(frozen=True)
 class GnssConfig:
-    """GNSS fixes at the listed times, emitted only while at the surface."""
+    """GNSS fixes at the listed times (and at ``rate_hz`` if > 0), only while at the surface."""
 
     fix_times_s: tuple[float, ...] = (0.0,)
+    rate_hz: float = 0.0
     max_depth_m: float = 0.5
     sigma_m: float = 1.5
 

@@ -109,7 +109,9 @@ def depth_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[Dep
 
 def gnss_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[GnssSample]:
     cfg = scenario.gnss
-    t = np.array([x for x in cfg.fix_times_s if 0.0 <= x <= scenario.duration_s], dtype=float)
+    listed = [x for x in cfg.fix_times_s if 0.0 <= x <= scenario.duration_s]
+    t = np.unique(np.concatenate([np.asarray(listed, dtype=float),
+                                  sample_times(cfg.rate_hz, scenario.duration_s)]))
     if not len(t):
         return []
     pos = truth.pos(t)

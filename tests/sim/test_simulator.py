@@ -189,6 +189,10 @@ def test_start_delay_keeps_the_propeller_stopped_at_the_surface():
     r = simulate(load_scenario("short", ["duration_s=30", "trajectory.start_delay_s=10"]))
     rpm = {s.t_s: s.rpm for s in r.samples["rpm"]}
     assert all(v == 0.0 for t, v in rpm.items() if t < 10.0) and rpm[10.0] > 0.0
+    gnss = simulate(load_scenario("short", ["duration_s=30", "trajectory.start_delay_s=10",
+                                            "gnss.rate_hz=1.0"])).samples["gnss"]
+    assert [g.t_s for g in gnss][:11] == [float(k) for k in range(11)]  # at the surface while stopped
+    assert gnss[-1].t_s < 20.0  # then it dives (below 0.5 m some 7 s into the descent)
     d = r.dense
     at_rest = d.t_s <= 10.0
     # drifts with the current only (water-relative speed ~ σ_V1), still at the surface
