@@ -11,7 +11,9 @@ with ``ρ`` the ground range.  :class:`LandmarkTracker` associates observations 
 earlier tracks by a geometry gate on that position (distance ≤ ``gate_m`` from the
 track's mean position) and the descriptor distance (nearest track inside the gate,
 accepted if below ``max_descriptor_distance`` and, when two tracks compete, passing
-the ratio test); the rest start new tracks.
+the ratio test); the rest start new tracks.  The navigation error is mostly common to
+a batch (one window or pass): the offset most gated pairs agree on is removed first
+and the association made with a tighter gate.
 """
 from __future__ import annotations
 
@@ -168,11 +170,23 @@ class LandmarkTracker:
     ratio : float
         When two tracks are inside the gate, the best must be this much closer in
         descriptor space than the second.
+    hamming : bool
+        Binary (ORB) descriptors.
+    refine_gate_m : float or None
+        The batch's common navigation error — the position offset most gated
+        observation/track pairs agree on (to within this distance) — is removed and the
+        batch associated with this tighter gate.  None: one pass with ``gate_m``.
+    consensus_m : float
+        Pairs whose offsets agree to this distance support the same navigation error
+        (about the repeatability of a landmark position).
     """
 
     def __init__(self, gate_m: float = 1.5, max_descriptor_distance: float = 650.0,
-                 ratio: float = 0.95, hamming: bool = False) -> None:
+                 ratio: float = 0.95, hamming: bool = False,
+                 refine_gate_m: float | None = 0.75, consensus_m: float = 0.3) -> None:
+        self.consensus_m = float(consensus_m)
         self.gate_m = float(gate_m)
+        self.refine_gate_m = None if refine_gate_m is None else float(refine_gate_m)
         self.max_descriptor_distance = float(max_descriptor_distance)
         self.ratio = float(ratio)
         self.hamming = bool(hamming)
@@ -188,6 +202,46 @@ class LandmarkTracker:
         if self.hamming:
             return np.unpackbits(np.bitwise_xor(descs, d[None, :]), axis=1).sum(axis=1).astype(float)
         return np.linalg.norm(descs.astype(float) - d[None, :].astype(float), axis=1)
+
+    def _common_offset(self, pos: np.ndarray) -> np.ndarray | None:
+        """Consensus translation (track − observation) over all pairs within 2 gates.
+
+        The navigation error is nearly common to a batch: the offset agreed by most
+        pairs (within ``consensus_m`` of each other) is it; wrong pairs scatter.
+        """
+        tpos = np.array(self._pos)
+        diff = tpos[None, :, :] - pos[:, None, :]
+        within = np.linalg.norm(diff, axis=2) <= 2.0 * self.gate_m
+        offs = diff[within]
+        if offs.shape[0] < 3:
+            return None
+        close = np.linalg.norm(offs[:, None, :] - offs[None, :, :], axis=2) <= self.consensus_m
+        support = close.sum(axis=1)
+        best = int(np.argmax(support))
+        if support[best] < 3:
+            return None
+        return offs[close[best]].mean(axis=0)
+
+    def _candidates(self, observations, pos: np.ndarray, gate_m: float) -> list[tuple[float, int, int]]:
+        """(descriptor distance, observation index, track index) of acceptable pairs."""
+        cand: list[tuple[float, int, int]] = []
+        if not self._pos:
+            return cand
+        tpos = np.array(self._pos)
+        tdesc = np.array(self._desc)
+        for i, obs in enumerate(observations):
+            near = np.flatnonzero(np.linalg.norm(tpos - pos[i], axis=1) <= gate_m)
+            if near.size == 0:
+                continue
+            dist = self._dist(obs.descriptor, tdesc[near])
+            order = np.argsort(dist)
+            best = float(dist[order[0]])
+            if best > self.max_descriptor_distance:
+                continue
+            if near.size > 1 and best > self.ratio * float(dist[order[1]]):
+                continue
+            cand.append((best, i, int(near[order[0]])))
+        return cand
 
     def update(self, observations: Sequence[LandmarkObservation],
                positions_n_m: np.ndarray) -> list[LandmarkObservation]:
@@ -207,23 +261,12 @@ class LandmarkTracker:
             batch (greedy by descriptor distance).
         """
         pos = np.asarray(positions_n_m, float).reshape(-1, 2)
-        n_old = len(self._pos)
-        cand: list[tuple[float, int, int]] = []
-        if n_old:
-            tpos = np.array(self._pos)
-            tdesc = np.array(self._desc)
-            for i, obs in enumerate(observations):
-                near = np.flatnonzero(np.linalg.norm(tpos - pos[i], axis=1) <= self.gate_m)
-                if near.size == 0:
-                    continue
-                dist = self._dist(obs.descriptor, tdesc[near])
-                order = np.argsort(dist)
-                best = float(dist[order[0]])
-                if best > self.max_descriptor_distance:
-                    continue
-                if near.size > 1 and best > self.ratio * float(dist[order[1]]):
-                    continue
-                cand.append((best, i, int(near[order[0]])))
+        cand = self._candidates(observations, pos, self.gate_m)
+        if self.refine_gate_m is not None and self._pos and len(pos):
+            offset = self._common_offset(pos)
+            if offset is not None:
+                pos = pos + offset
+                cand = self._candidates(observations, pos, self.refine_gate_m)
         assigned: dict[int, int] = {}
         used: set[int] = set()
         for _, i, t in sorted(cand):
