@@ -96,8 +96,12 @@ def _strict(obj: Any) -> Any:
 
 def message(kind: str, body: dict[str, Any]) -> bytes:
     """A service message (nav_state, aid_status, motion_params, health, config) as JSON."""
-    doc = {"type": kind, "schema_version": SCHEMA_VERSION, **_strict(body)}
-    return json.dumps(doc, default=_json_default, allow_nan=False).encode()
+    doc = {"type": kind, "schema_version": SCHEMA_VERSION, **body}
+    try:  # fast path: bodies from to_dict() are already strict JSON
+        return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+    except (ValueError, TypeError):  # NaN/Inf or numpy values: clean up first
+        doc = {"type": kind, "schema_version": SCHEMA_VERSION, **_strict(body)}
+        return json.dumps(doc, separators=(",", ":"), default=_json_default, allow_nan=False).encode()
 
 
 # The service's own message kinds, registered with the codec (schemas for MCAP channels
