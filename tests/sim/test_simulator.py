@@ -216,3 +216,16 @@ def test_project_strapdown_follows_the_truth_with_a_perfect_imu(perfect):
     assert np.linalg.norm(x[state.X_POS] - d.pos_n_m[-1]) < 0.01       # 300 s, ~500 m travelled
     assert np.linalg.norm(x[state.X_VEL] - d.vel_n_m_s[-1]) < 1e-4
     assert abs(abs(np.dot(x[state.X_Q], d.q_nb[-1])) - 1.0) < 1e-9
+
+
+@pytest.mark.parametrize("pattern", ["straight", "circle"])
+def test_guidance_follows_the_pattern(pattern):
+    r = simulate(load_scenario("short", [f'trajectory.pattern="{pattern}"', "trajectory.heading_deg=30.0"]))
+    h = math.radians(30.0)
+    along, across = np.array([math.cos(h), math.sin(h)]), np.array([-math.sin(h), math.cos(h)])
+    p = r.dense.pos_n_m[3000:, :2]  # after the first 30 s
+    if pattern == "straight":
+        assert np.abs(p @ across).max() < 2.0 and (p[-1] @ along) > 400.0
+    else:
+        radius = np.linalg.norm(p - 100.0 * across, axis=1)
+        assert np.abs(radius - 100.0).max() < 3.0
