@@ -175,3 +175,20 @@ def test_simulate_command(tmp_path, capsys):
     assert read_mcap_metadata(out)["scenario"]["usbl"]["period_s"] == 5.0
     rc = cli_main(["simulate", "short", "--set", "usbl.nope=1", "--out", str(out)])
     assert rc == 2 and "usbl" in capsys.readouterr().err
+
+
+def test_not_an_mcap_file_is_one_clear_error(tmp_path):
+    path = tmp_path / "junk.mcap"
+    path.write_bytes(b"this is not an mcap file at all")
+    log = read_mcap(path)
+    items = list(log)
+    assert len(items) == 1 and isinstance(items[0], TruncatedLogError) and "invalid magic" in str(items[0])
+    assert log.counters["corrupt_frames"] == 1 and log.metadata == {} and log.scenario is None
+
+
+def test_log_reader_knows_scenario_and_streams(sim30, tmp_path):
+    path = tmp_path / "sim.mcap"
+    write_mcap(path, sim30.iter_blocks(), {"scenario": as_dict(sim30.scenario)})
+    log = read_mcap(path)
+    assert log.scenario == sim30.scenario
+    assert log.streams == sorted(sim30.counts())
