@@ -138,6 +138,34 @@ def _fast_decoder(cls: type) -> Callable[[dict], Any]:
 _FAST = {kind: _fast_decoder(cls) for kind, cls in fs.SAMPLE_TYPES.items()}
 
 
+def _fast_encoder(cls: type) -> Callable[[Any], dict]:
+    """:func:`fusion.samples.to_dict` with the field list computed once (log writing)."""
+    import dataclasses
+    import math
+
+    names = [f.name for f in dataclasses.fields(cls)]
+    isfinite = math.isfinite
+
+    def encode(sample: Any) -> dict:
+        out: dict[str, Any] = {"type": cls.KIND, "schema_version": fs.SCHEMA_VERSION}
+        for name in names:
+            v = getattr(sample, name)
+            if type(v) is tuple:
+                out[name] = [float(x) if isfinite(x) else None for x in v]
+            elif type(v) is float and not isfinite(v):
+                out[name] = None
+            else:
+                out[name] = v
+        return out
+
+    return encode
+
+
+for _kind, _cls in fs.SAMPLE_TYPES.items():
+    _REGISTRY[_kind] = Codec(_kind, _fast_encoder(_cls), fs.from_dict, _REGISTRY[_kind].schema,
+                             _REGISTRY[_kind].topic)
+
+
 def decode_dict(data: Any) -> Any:
     """JSON value → message; raises :class:`SampleError` only."""
     if not isinstance(data, dict):
