@@ -50,6 +50,26 @@ def fmt(value: Any) -> str:
     return ";".join(format(float(v), ".10g") if math.isfinite(v) else str(float(v)) for v in arr)
 
 
+def euler_rad(q_nb: Any) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) rad, ZYX, of a unit (w, x, y, z) quaternion — closed form.
+
+    The same angles as :meth:`fusion.state.NavState.euler_rad` (rows of ``R_nb`` as in
+    :func:`fusion.frames.dcm_to_euler`) without a scipy round trip per output row.
+    """
+    w, x, y, z = (float(v) for v in q_nb)
+    r20 = 2.0 * (x * z - w * y)
+    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    roll = math.atan2(2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+    yaw = math.atan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
+    if yaw >= math.pi:  # [-π, π) as fusion.frames.wrap_angle
+        yaw -= 2.0 * math.pi
+    return roll, pitch, yaw
+
+
+def _vec(values: Any) -> str:
+    return ";".join(format(float(v), ".10g") for v in values)
+
+
 def _state_slices():
     # imported lazily: fusion.state is the estimator's contract (DESIGN.md named slices)
     from fusion import state as st
@@ -117,7 +137,7 @@ class TrajectoryCsvSink(Sink):
     def on_nav(self, state: Any) -> None:
         p = state.pos_n_m
         v = state.vel_n_m_s
-        roll, pitch, yaw = state.euler_rad()
+        roll, pitch, yaw = euler_rad(state.q_nb)
         sig = _sigma(state.cov, self._pos)
         cn, ce = _current_xy(state)
         row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
@@ -150,9 +170,9 @@ class AidStatusCsvSink(Sink):
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
-            self._writer.writerow([fmt(s.t_s), s.source, fmt(bool(s.fused)), s.reason or "",
-                                   fmt(s.test_ratio), fmt(s.observation), fmt(s.innovation),
-                                   fmt(s.innovation_variance)])
+            self._writer.writerow([format(float(s.t_s), ".10g"), s.source, "1" if s.fused else "0",
+                                   s.reason or "", format(float(s.test_ratio), ".10g"),
+                                   _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)])
 
     def close(self) -> None:
         self._file.close()
@@ -252,13 +272,13 @@ class SeriesRecorder(Sink):
                 self.fused_counts[s.source] += 1
                 if s.source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
                     self.last_fix_t_s = float(s.t_s)
-            nu = np.atleast_1d(np.asarray(s.innovation, dtype=float)).ravel()
-            var = np.atleast_1d(np.asarray(s.innovation_variance, dtype=float))
-            var = np.diagonal(var) if var.ndim == 2 else var.ravel()
-            with np.errstate(invalid="ignore", divide="ignore"):
-                normed = tuple(nu / np.sqrt(var)) if nu.shape == var.shape else tuple(nu * math.nan)
-            self.aid_rows.append((float(s.t_s), str(s.source), bool(s.fused),
-                                  float(s.test_ratio) if s.test_ratio is not None else math.nan, normed))
+            # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component
+            nu, var = s.innovation, s.innovation_variance
+            if len(nu) == len(var):
+                normed = tuple(n / math.sqrt(v) if v > 0 else math.nan for n, v in zip(nu, var))
+            else:
+                normed = (math.nan,) * len(nu)
+            self.aid_rows.append((float(s.t_s), s.source, bool(s.fused), float(s.test_ratio), normed))
 
     def on_release(self, release: Any) -> None:
         self.releases.append(release)

@@ -171,3 +171,13 @@ def test_order_and_batch_counts_samples_later_than_the_horizon():
     out = list(order_and_batch(samples, c, horizon_s=2.0))
     assert c.late_samples == 1
     assert sum(len(o) if isinstance(o, ImuBatch) else 1 for o in out) == 11
+
+
+def test_closed_form_euler_of_the_csv_matches_scipy():
+    from fusion.frames import euler_to_quat, quat_to_euler
+    from service.sinks import euler_rad
+
+    rng = np.random.default_rng(3)
+    for _ in range(500):
+        q = euler_to_quat(rng.uniform(-3.1, 3.1), rng.uniform(-1.5, 1.5), rng.uniform(-3.14, 3.14))
+        assert np.allclose(euler_rad(q), quat_to_euler(q), atol=1e-9)
