@@ -85,6 +85,15 @@ def _stop_requested(stop: Any) -> bool:
     return bool(is_set() if callable(is_set) else stop())
 
 
+def _bound(sinks: list, name: str) -> list:
+    """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
+    from .sinks import Sink
+
+    base = getattr(Sink, name)
+    return [getattr(s, name) for s in sinks
+            if hasattr(s, name) and getattr(type(s), name, None) is not base]
+
+
 class _Loop:
     """State of one :func:`run` call (kept out of the function for readability)."""
 
@@ -99,10 +108,10 @@ class _Loop:
         self.summary = RunSummary()
         self.next_k: int | None = None     # index of the next output epoch k / rate
         self.last_emitted_t = -math.inf
-        self._on_nav = [s.on_nav for s in self.sinks]
-        self._on_aid = [s.on_aid for s in self.sinks]
-        self._on_release = [s.on_release for s in self.sinks]
-        self._on_sample = [s.on_sample for s in self.sinks]
+        self._on_nav = _bound(self.sinks, "on_nav")
+        self._on_aid = _bound(self.sinks, "on_aid")
+        self._on_release = _bound(self.sinks, "on_release")
+        self._on_sample = _bound(self.sinks, "on_sample")
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -284,7 +293,9 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         if close_sinks:
             for s in loop.sinks:
                 try:
-                    s.close()
+                    close = getattr(s, "close", None)
+                    if close is not None:
+                        close()
                 except Exception:
                     log.exception("runner: closing sink %r failed", s)
     return loop.summary
