@@ -1,0 +1,131 @@
+"""Streaming side-scan front end on synthetic pings (sim.sidescan) along straight tracks."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sim.seabed import Seabed
+from sim.sidescan import SidescanRenderer
+from sonar.landmarks import LandmarkObservation
+from sonar.motion import VisualMotion
+from sonar.ping import SonarPing
+from sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
+
+SPEED = 1.5
+RATE_HZ = 4.0
+DS = SPEED / RATE_HZ  # 0.375 m between pings, as in the demo scenario
+
+
+def _pass(renderer, rng, start, yaw, n, t0):
+    f = np.array([math.cos(yaw), math.sin(yaw)])
+    pos = np.asarray(start, float) + np.outer(np.arange(n) * DS, f)
+    t = t0 + np.arange(n) / RATE_HZ
+    return renderer.render_track(t, pos, yaw, 8.0, rng, SPEED), pos, t
+
+
+@pytest.fixture(scope="module")
+def world():
+    rng = np.random.default_rng(21)
+    seabed = Seabed.random((200.0, 80.0), rng, n_objects=90)
+    return seabed, SidescanRenderer(seabed, 25.0, 512)
+
+
+def _true_obs_pos(o, t, pos, yaw):
+    p = np.array([np.interp(o.t_s, t, pos[:, 0]), np.interp(o.t_s, t, pos[:, 1])])
+    return o.position_n_m(p, yaw)
+
+
+def _two_passes(ren, seed):
+    """Two northbound passes 3 m apart through one front end; the second with a nav error."""
+    rng = np.random.default_rng(seed)
+    fe = SonarFrontEnd(FrontEndConfig())
+    nav_error = np.array([0.6, -0.4])
+    by_pass = []
+    t0 = 0.0
+    for start in ((10.0, 38.0), (10.0, 41.0)):
+        pings, pos, t = _pass(ren, rng, start, 0.0, 420, t0)
+        err = np.zeros(2) if not by_pass else nav_error
+        out = []
+        for p, x in zip(pings, pos):
+            out += fe.push(p, x + err)
+        obs = [o for o in out if isinstance(o, LandmarkObservation)]
+        by_pass.append([(o, _true_obs_pos(o, t, pos, 0.0)) for o in obs])
+        t0 = t[-1] + 60.0
+    return by_pass
+
+
+def test_reobserved_landmarks_keep_their_track_ids(world):
+    _, ren = world
+    again = same = false_links = second = 0
+    for seed in (4, 5, 6):
+        pass1, pass2 = _two_passes(ren, seed)
+        # about one sighting per landmark and pass: windows overlap but each ping is
+        # reported once (an object straddling two windows' emission ranges may give two)
+        ids1 = [o.track_id for o, _ in pass1]
+        assert None not in ids1 and len(ids1) >= 15 and len(set(ids1)) >= 0.93 * len(ids1)
+        true1 = np.array([p for _, p in pass1])
+        first = {o.track_id: p for o, p in pass1}
+        second += len(pass2)
+        for o, p in pass2:
+            seen_before = np.min(np.linalg.norm(true1 - p, axis=1)) < 0.7
+            linked = o.track_id in first
+            if seen_before:
+                again += 1
+                same += linked and np.linalg.norm(first[o.track_id] - p) < 0.7
+            elif linked:
+                false_links += 1
+    assert again >= 25
+    assert same / again >= 0.7
+    assert false_links <= 0.1 * second
+
+
+def test_dead_reckoned_landmarks_and_visual_motion_along_a_straight_track(world):
+    seabed, ren = world
+    rng = np.random.default_rng(9)
+    yaw = math.radians(2.0)
+    start = np.array([12.0, 40.0])
+    pings, pos, t = _pass(ren, rng, start, yaw, 500, 100.0)
+    cfg = FrontEndConfig()
+    fe = SonarFrontEnd(cfg)
+    fe_start = start.copy()
+    out = []
+    out += fe.push(pings[0], fe_start)  # the start position; dead reckoning afterwards
+    for p in pings[1:]:
+        out += fe.push(p)
+    obs = [o for o in out if isinstance(o, LandmarkObservation)]
+    motions = [m for m in out if isinstance(m, VisualMotion)]
+    assert fe.windows == (500 - cfg.window_pings) // cfg.step_pings + 1
+    assert len(obs) >= 15 and len({o.track_id for o in obs}) >= 0.93 * len(obs)
+    # dead reckoning from the pings' speed and heading ends where the vehicle is
+    assert np.linalg.norm(fe.pos_n_m - pos[-1]) < 0.05
+    # every window pair overlaps by half: the next window sits S pings ahead, not across
+    assert len(motions) >= 0.8 * (fe.windows - 1)
+    along = np.array([m.along_m for m in motions])
+    across = np.array([m.across_m for m in motions])
+    true_along = cfg.step_pings * DS
+    assert np.median(np.abs(along - true_along)) < 0.1 * true_along
+    assert np.median(np.abs(across)) < 0.3
+    assert all(m.t_s > m.t0_s for m in motions)
+    # each sighting is reported once, with the latency the front end announces
+    assert fe.latency_s == pytest.approx(0.5 * (cfg.window_pings + cfg.step_pings) / RATE_HZ)
+
+
+def test_bad_pings_are_counted_and_skipped():
+    fe = SonarFrontEnd(FrontEndConfig(window_pings=8, step_pings=4, register=False))
+    ok = SonarPing(1.0, np.ones(64), np.ones(64), 20.0, altitude_m=5.0, speed_m_s=1.0)
+    assert fe.push(ok) == []
+    fe.push(SonarPing(math.nan, np.ones(64), np.ones(64), 20.0))
+    fe.push(SonarPing(0.5, np.ones(64), np.ones(64), 20.0))          # goes back in time
+    fe.push(SonarPing(2.0, np.ones(32), np.ones(32), 20.0))          # other sample count
+    assert dict(fe.rejected) == {"non-finite time": 1, "non-increasing time": 1,
+                                 "sample count or range changed": 1}
+    with pytest.raises(ValueError):
+        FrontEndConfig(window_pings=16, step_pings=32)
+
+
+def test_reference_landmark_moves_the_sighting_to_a_grid_pose():
+    o = LandmarkObservation(10.0, "port", 7.0, 3.0, np.zeros(128), 5)
+    r = reference_landmark(o, 8.0, 1.5)
+    assert r.along_track_m == pytest.approx(3.0) and r.track_id == 5 and r.ground_range_m == 7.0
