@@ -67,7 +67,7 @@ class WaterfallConfig:
     along_res_m: float | None = None
     resample_along: bool = True
     bottom: str = "auto"
-    bottom_fraction: float = 0.2
+    bottom_fraction: float = 0.35
     blanking_m: float = 0.5
     altitude_tolerance: float = 0.2
     gain_normalise: bool = True
@@ -144,7 +144,7 @@ def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
-                        fraction: float = 0.2, blanking_m: float = 0.5,
+                        fraction: float = 0.35, blanking_m: float = 0.5,
                         smooth_pings: int = 5) -> np.ndarray:
     """Slant range of the first strong return per ping (the altitude on a flat seabed).
 

@@ -1,0 +1,36 @@
+import json
+
+import cv2
+import numpy as np
+
+from service.cli import main
+from tests.sonar.conftest import SCOTSMAN, need
+
+
+def test_waterfall_png_port_left_starboard_right(tmp_path, capsys):
+    out = tmp_path / "wf.png"
+    rc = main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(out), "--res-m", "0.1"])
+    assert rc == 0 and out.is_file()
+    img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    # ~105 m of track at 0.1 m/px down, 2 × 30 m across
+    assert img.shape[1] == 600 and 900 < img.shape[0] < 1200
+    # the wreck's long acoustic shadow runs across the starboard (right) half only
+    dark = 0.4 * np.median(img[img > 0])
+    right, left = img[:, 320:].astype(float), img[:, :280].astype(float)
+    dark_right = ((right > 0) & (right < dark)).mean(axis=1)  # 0 = no data, not shadow
+    dark_left = ((left > 0) & (left < dark)).mean(axis=1)
+    assert dark_right.max() > 0.5 and dark_left.max() < 0.25
+
+
+def test_motion_json_records(capsys):
+    rc = main(["sonar", "motion", str(need(SCOTSMAN)), "--window", "150", "--step", "40", "--json"])
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) == (461 - 150) // 40
+    for rec in lines:
+        assert {"t_s", "along_m", "across_m", "dheading_rad", "inliers", "matches"} <= set(rec)
+        # 40 pings at ~1.8–2.2 m/s and ~0.11 s per ping
+        assert 7.0 < rec["along_m"] < 11.5 and abs(rec["across_m"]) < 0.3
+        assert rec["inliers"] <= rec["matches"]
+    t = np.array([r["t_s"] for r in lines])
+    assert np.all(np.diff(t) > 0)
