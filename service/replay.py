@@ -18,6 +18,7 @@ static wrong model / as given side by side.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -287,6 +288,17 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    items: Any = iter(inp.source)
+    origin_note = None
+    if inp.scenario is None and cfg.origin.lat_deg == 0.0 and cfg.origin.lon_deg == 0.0:
+        # no origin configured (real logs): the first position fix is the NED origin
+        head, fix = _read_until_fix(items)
+        items = itertools.chain(head, items)
+        if fix is not None:
+            cfg = replace(cfg, origin=replace(cfg.origin, lat_deg=math.degrees(fix.lat_rad),
+                                              lon_deg=math.degrees(fix.lon_rad)))
+            origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
+            log.info("NED origin from the %s", origin_note)
     params0 = cfg.motion.params0
     estimator = Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
     calibrator = None
@@ -309,7 +321,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()
     try:
-        summary = run(inp.source, estimator, sinks, clock, calibrator,
+        summary = run(items, estimator, sinks, clock, calibrator,
                       output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog)
     finally:
         if bar is not None:
@@ -343,6 +355,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "releases_accepted": summary.releases_accepted,
         "errors": dict(summary.errors),
         "calibrate": bool(calibrate),
+        "origin": {"lat_deg": cfg.origin.lat_deg, "lon_deg": cfg.origin.lon_deg,
+                   "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
         "health": health.report(),
     }
     if counters.get("truncated"):
@@ -356,6 +370,29 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                                       default=_json_default) + "\n")
     files = sorted(p.name for p in out.iterdir() if p.is_file())
     return ReplayResult(out, doc, metrics_sink.metrics, summary, files)
+
+
+def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):
+    """Items read until the first finite GNSS/USBL fix (included), at most ``max_data_s``
+    of data or ``max_items``; returns (items read, the fix or None)."""
+    head: list = []
+    t0 = None
+    for item in items:
+        head.append(item)
+        kind = getattr(item, "KIND", None)
+        if kind in ("gnss", "usbl") and math.isfinite(item.lat_rad) and math.isfinite(item.lon_rad) \
+                and (item.lat_rad != 0.0 or item.lon_rad != 0.0):
+            return head, item
+        t = getattr(item, "t_s", None)
+        if kind == "imu_batch":
+            t = float(item.t_s[-1]) if len(item) else None
+        if t is not None and math.isfinite(t):
+            t0 = t if t0 is None else t0
+            if t - t0 > max_data_s:
+                break
+        if len(head) >= max_items:
+            break
+    return head, None
 
 
 def _json_default(o: Any) -> Any:
