@@ -130,7 +130,7 @@ class FilterConfig:
     covariance_step_s: float = 0.1             # covariance propagated at this period
     max_delay_s: float = 1.0                   # late measurements up to this are re-fused
     on_time_tolerance_s: float = 0.02          # older than this: fused at its own time
-    imu_gap_s: float = 0.5                     # IMU interval longer than this: gap
+    imu_gap_s: float = 0.2                     # IMU interval longer than this: gap (≤ 5 Hz is no INS)
     valid_max_sigma_h_m: float = 100.0         # horizontal σ above this: position invalid
 
     def validate(self) -> None:

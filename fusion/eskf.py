@@ -56,6 +56,10 @@ AID_KINDS = frozenset({"dvl", "depth", "heading", "attitude", "gnss", "usbl", "v
 # Velocity random walk assumed across an IMU gap or in AHRS-only mode (m/s per √s): an
 # AUV's speed changes by ~0.5 m/s within seconds when nothing measures it.
 _BLIND_VEL_RW_M_S_RTHZ = 0.3
+# Attitude random walk without a gyro (AHRS-only mode), rad/√s.
+_BLIND_ATT_RW_RAD_RTHZ = 0.3
+# Roll/pitch random walk across an IMU gap (AUVs stay near level), rad/√s.
+_BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 
 class _Snapshot:
@@ -100,6 +104,7 @@ class Estimator:
         self._aligner = Aligner(config.alignment.n_samples, config.alignment.max_acc_std_m_s2,
                                 config.imu_gap_s)
         self._t_imu_last = -math.inf
+        self._imu_interval_s = math.inf  # latest IMU sample interval seen before INS mode
         self._yaw_for_alignment: float | None = None
         self._pending_fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
         self._pending_depth: float | None = None
@@ -335,7 +340,10 @@ class Estimator:
             self._yaw_for_alignment = sample.yaw_rad
         elif kind == "attitude":
             self._yaw_for_alignment = sample.yaw_rad
-            if sample.t_s - self._t_imu_last > self.config.imu_gap_s and self._mode == "none":
+            # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz): AHRS mode
+            slow_imu = (sample.t_s - self._t_imu_last > self.config.imu_gap_s
+                        or self._imu_interval_s > self.config.imu_gap_s)
+            if slow_imu and self._mode == "none":
                 return self._init_ahrs(sample)
         elif kind in ("gnss", "usbl"):
             ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
@@ -416,6 +424,8 @@ class Estimator:
             if t.size == 0:
                 return []
         if self._mode != "ins":
+            prev_t = self._t_imu_last if t.size == 1 else float(t[-2])
+            self._imu_interval_s = float(t[-1]) - prev_t
             self._aligner.add(t, f)
             self._t_imu_last = float(t[-1])
             was_ahrs = self._mode == "ahrs"
@@ -486,7 +496,9 @@ class Estimator:
         Q[POS, POS] = np.eye(3) * q * dt ** 3 / 3.0
         Q[POS, VEL] = Q[VEL, POS] = np.eye(3) * q * dt ** 2 / 2.0
         Q[VEL, VEL] = np.eye(3) * q * dt
-        Q[ATT, ATT] = np.eye(3) * (self._qdiag[6] * dt + (1e-3) ** 2)
+        # no gyro across the gap: the vehicle may have turned (yaw) and, less, pitched/rolled
+        Q[ATT, ATT] = np.diag([_BLIND_LEVEL_RW_RAD_RTHZ ** 2, _BLIND_LEVEL_RW_RAD_RTHZ ** 2,
+                               _BLIND_ATT_RW_RAD_RTHZ ** 2]) * dt
         self._P[:, :] = Phi @ self._P @ Phi.T + Q
         self._acc[13:16] = np.asarray(w_b) - self._x[X_BG]
         self._acc[16:19] = np.asarray(f_b) - self._x[X_BA]
@@ -500,7 +512,8 @@ class Estimator:
         if dt > 0:
             q = _BLIND_VEL_RW_M_S_RTHZ ** 2
             self._P[POS, POS] += np.eye(3) * q * dt
-            self._P[ATT, ATT] += np.eye(3) * (1e-3) ** 2 * dt
+            # no gyro: the attitude may turn at vehicle rates, so the AHRS leads
+            self._P[ATT, ATT] += np.eye(3) * _BLIND_ATT_RW_RAD_RTHZ ** 2 * dt
             self._clock[:] = t_s
 
     def _learned_velocity(self) -> AidStatus | None:

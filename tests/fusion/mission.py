@@ -68,19 +68,21 @@ def make_mission(rng: np.random.Generator, duration_s: float = 300.0, *, rate_hz
     var_V, _, _ = velocity_variances(params, speed_m_s, psid_k)
     V_knots = k_v_true * speed_m_s + np.sqrt(var_V) * rng.standard_normal(t_knots.size)
     V_knots[t_knots <= static_s] = 0.0
+    S_knots = np.sqrt(params.var_s) * rng.standard_normal(t_knots.size) * (t_knots > static_s)
     V = np.interp(tf, t_knots, V_knots)
-    Vd = np.gradient(V, tf)  # exact piecewise-constant slope except at knots (measure zero)
+    S = np.interp(tf, t_knots, S_knots)
     seg = np.clip(np.searchsorted(t_knots, tf, side="right") - 1, 0, t_knots.size - 2)
     Vd = (V_knots[seg + 1] - V_knots[seg]) / (t_knots[seg + 1] - t_knots[seg])
-    c = np.asarray(current_n, dtype=float) * moving[:, None]
+    Sd = (S_knots[seg + 1] - S_knots[seg]) / (t_knots[seg + 1] - t_knots[seg])
+    # the current carries the vehicle from the start (a vehicle at rest in the water drifts)
+    c = np.broadcast_to(np.asarray(current_n, dtype=float), (tf.size, 2))
     cpsi, spsi = np.cos(psi), np.sin(psi)
     vel = np.zeros((tf.size, 3))
-    vel[:, 0] = V * cpsi + c[:, 0]
-    vel[:, 1] = V * spsi + c[:, 1]
+    vel[:, 0] = V * cpsi - S * spsi + c[:, 0]
+    vel[:, 1] = V * spsi + S * cpsi + c[:, 1]
     acc = np.zeros((tf.size, 3))
-    acc[:, 0] = Vd * cpsi - V * psid * spsi
-    acc[:, 1] = Vd * spsi + V * psid * cpsi
-    # current switches on at static_s: a step, i.e. an impulse the IMU sees in one sample
+    acc[:, 0] = Vd * cpsi - V * psid * spsi - Sd * spsi - S * psid * cpsi
+    acc[:, 1] = Vd * spsi + V * psid * cpsi + Sd * cpsi - S * psid * spsi
     pos = np.zeros((tf.size, 3))
     pos[1:] = np.cumsum(0.5 * (vel[1:] + vel[:-1]) * np.diff(tf)[:, None], axis=0)
     pos[:, 2] = depth_m
@@ -88,10 +90,6 @@ def make_mission(rng: np.random.Generator, duration_s: float = 300.0, *, rate_hz
     mid = 0.5 * (tf[1:] + tf[:-1])
     psi_m = np.interp(mid, tf, psi)
     acc_m = 0.5 * (acc[1:] + acc[:-1])
-    if static_s > 0:
-        # the current step: its Δv lands in the sub-interval where it switches on
-        k0 = int(np.searchsorted(tf, static_s, side="right"))
-        acc_m[k0 - 1, :2] += np.asarray(current_n) / (dt / sub)
     f_n = acc_m.copy()
     f_n[:, 2] -= GRAVITY_M_S2
     cm, sm = np.cos(psi_m), np.sin(psi_m)
@@ -113,7 +111,7 @@ def make_mission(rng: np.random.Generator, duration_s: float = 300.0, *, rate_hz
                 k_v_true / params.k_v, b_a, b_g)
     aids = []
     rpm = float(table.rpm_for_speed(speed_m_s))
-    for t in np.arange(0.5, duration_s, 1.0):
+    for t in np.arange(0.25, duration_s, 1.0):  # not on a fusion tick: no RPM/LV tie
         aids.append(RpmSample(float(t), rpm if t > static_s else 0.0))
     for t in np.arange(heading_period_s, duration_s, heading_period_s):
         y = np.interp(t, tf, psi) + config.heading.sigma_rad * rng.standard_normal()
@@ -169,7 +167,8 @@ def run(est, m: Mission, probe_times=(), drop=lambda s: False):
             statuses += est.process(ImuBatch(m.t_imu[k0:k1], m.f_b[k0:k1], m.w_b[k0:k1]))
             k0 = k1
         if kind == 1:
-            statuses += est.process(s)
+            # a "delayed" stand-in hands its sample over late, as a slow transport would
+            statuses += est.process(s.sample if s.KIND == "delayed" else s)
         else:
             states.append((k1 - 1, est.nav_state()))
     if k0 < m.t_imu.size:

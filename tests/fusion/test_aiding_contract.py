@@ -1,0 +1,110 @@
+"""Contract of every aiding source: shapes, units, and H = ∂h/∂δx by finite differences."""
+import math
+
+import numpy as np
+import pytest
+
+from fusion.aiding import attitude, depth, dvl, gnss, heading, learned_velocity, usbl, visual_motion
+from fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, wrap_angle
+from fusion.motion_model import MotionParams
+from fusion.samples import (AttitudeSample, DepthSample, DvlSample, GnssSample, HeadingSample, UsblSample,
+                            VisualMotionSample)
+from fusion.state import N_ERR, inject, initial_nominal
+
+ORIGIN = GeoOrigin(math.radians(43.0), math.radians(5.0))
+
+
+def _state(seed=0):
+    rng = np.random.default_rng(seed)
+    x = initial_nominal(rng.normal(size=3) * 10, rng.normal(size=3), euler_to_quat(0.1, -0.2, 2.5))
+    x[10:13] = rng.normal(size=3) * 0.01
+    x[13:16] = rng.normal(size=3) * 1e-3
+    x[16:18] = (0.2, -0.1)
+    x[18] = 1.05
+    return x
+
+
+OMEGA = np.array([0.01, -0.02, 0.1])
+LEVER = np.array([0.5, 0.1, 0.3])
+R_DB = dvl.rotation_db((0.0, 0.02, math.pi / 4))
+PARAMS = MotionParams()
+
+# (name, h(x), measurement(x), angular) — h must not reuse the code under test's Jacobian
+CASES = {
+    "learned_velocity": (lambda x: learned_velocity.predict(x, 1.5),
+                         lambda x: learned_velocity.measure(x, 1.5, 0.05, PARAMS, 0.05)),
+    "dvl": (lambda x: dvl.predict(x, OMEGA - (x[13:16] - _state()[13:16]), LEVER, R_DB),
+            lambda x: dvl.measure(DvlSample(0.0, (1.0, 0.0, 0.1)), x, OMEGA, LEVER, R_DB, 0.01)),
+    "depth": (depth.predict, lambda x: depth.measure(DepthSample(0.0, 2e5), x, 0.05, 1025.0, 101325.0)),
+    "heading": (heading.predict, lambda x: heading.measure(HeadingSample(0.0, 2.4), x, 0.01)),
+    "attitude": (attitude.predict, lambda x: attitude.measure(AttitudeSample(0.0, 0.1, -0.2, 2.5), x, 0.01, 0.03)),
+    "gnss": (gnss.predict, lambda x: gnss.measure(GnssSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 3.0), x, ORIGIN)),
+    "usbl": (lambda x: usbl.predict(x, True),
+             lambda x: usbl.measure(UsblSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 10.0, 2.0, 0.5), x, ORIGIN)),
+    "usbl_h": (lambda x: usbl.predict(x, False),
+               lambda x: usbl.measure(UsblSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 10.0, 2.0), x, ORIGIN)),
+    "visual_motion": (visual_motion.predict,
+                      lambda x: visual_motion.measure(VisualMotionSample(2.0, 1.0, 1.4, 0.1, 0.0, (0.01, 0, 0, 0, 0.01, 0, 0, 0, 1e-4)), x)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_shapes_and_covariance(name):
+    h, meas = CASES[name]
+    x = _state()
+    m = meas(x)
+    z, H, R = m[:3]
+    k = z.size
+    assert z.shape == (k,) and H.shape == (k, N_ERR) and R.shape == (k, k) and m.h.shape == (k,)
+    assert np.allclose(R, R.T) and np.all(np.linalg.eigvalsh(R) > 0)
+    np.testing.assert_allclose(m.h, h(x), atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_jacobian_equals_finite_difference_through_injection(name):
+    h, meas = CASES[name]
+    x = _state()
+    H = meas(x).H
+    eps = 1e-6
+    H_fd = np.zeros_like(H)
+    for i in range(N_ERR):
+        d = np.zeros(N_ERR)
+        d[i] = eps
+        dh = h(inject(x, d)) - h(inject(x, -d))
+        ang = meas(x).angular
+        dh = np.where(ang, wrap_angle(dh), dh)
+        H_fd[:, i] = dh / (2 * eps)
+    np.testing.assert_allclose(H, H_fd, atol=1e-6)
+
+
+def test_units_depth_from_pressure_10_m_sea_water():
+    p = 101325.0 + 1025.0 * GRAVITY_M_S2 * 10.0
+    assert depth.pressure_to_depth(p, 1025.0, 101325.0) == pytest.approx(10.0, abs=1e-9)
+    # fresh water: the same pressure reads deeper
+    assert depth.pressure_to_depth(p, 1000.0, 101325.0) == pytest.approx(10.25, abs=1e-9)
+
+
+def test_units_gnss_one_arcminute_north_is_about_1852_m():
+    x = _state()
+    m = gnss.measure(GnssSample(0.0, ORIGIN.lat_rad + math.radians(1 / 60), ORIGIN.lon_rad, 3.0), x, ORIGIN)
+    assert m.z[0] == pytest.approx(1852.0, rel=0.01) and abs(m.z[1]) < 1e-6
+    assert m.R[0, 0] == pytest.approx(9.0)
+
+
+def test_learned_velocity_variance_follows_motion_model():
+    x = _state()
+    p = MotionParams(var_vv=0.04**2, var_vw=0.2**2, var_v1=0.01**2, var_s=0.02**2)
+    m = learned_velocity.measure(x, 1.5, 0.1, p, 0.05)
+    assert m.R[0, 0] == pytest.approx(1.5**2 * 0.04**2 + 0.1**2 * 0.2**2 + 0.01**2)
+    assert m.R[1, 1] == pytest.approx(0.02**2) and m.R[2, 2] == pytest.approx(0.05**2)
+    assert m.z[0] == pytest.approx(p.k_v * 1.5)
+
+
+def test_heading_innovation_wraps():
+    x = initial_nominal(q_nb=euler_to_quat(0.0, 0.0, math.pi - 0.01))
+    m = heading.measure(HeadingSample(0.0, -math.pi + 0.01), x, 0.01)
+    assert m.innovation()[0] == pytest.approx(0.02, abs=1e-9)
+
+
+def test_dvl_invalid_gives_none():
+    assert dvl.measure(DvlSample(0.0, (0, 0, 0), valid=False), _state(), OMEGA, LEVER, R_DB, 0.01) is None

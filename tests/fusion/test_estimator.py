@@ -1,0 +1,195 @@
+"""Estimator behaviour: alignment, bad input, late measurements, AHRS-only mode, persistence."""
+import copy
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusion.config import FilterConfig
+from fusion.eskf import Estimator
+from fusion.frames import GRAVITY_M_S2
+from fusion.motion_model import MotionParams, RpmSpeedTable
+from fusion.samples import (AttitudeSample, DepthSample, HeadingSample, ImuBatch, ImuSample, TruthSample,
+                            UsblSample)
+from fusion.state import KS
+
+from .mission import ATM_PA, ORIGIN, RHO, make_mission, run
+
+
+def _est(cfg=None):
+    return Estimator(cfg or FilterConfig(), MotionParams(), RpmSpeedTable(), ORIGIN)
+
+
+def _static_batch(t0, n, rate=100.0):
+    t = t0 + np.arange(1, n + 1) / rate
+    f = np.tile([0.0, 0.0, -GRAVITY_M_S2], (n, 1))
+    return ImuBatch(t, f, np.zeros((n, 3)))
+
+
+def _aligned():
+    est = _est()
+    est.process(_static_batch(0.0, 100))
+    est.process(HeadingSample(1.0, 0.5))
+    assert est.initialized
+    return est
+
+
+def test_aids_before_alignment_are_reported_not_initialized():
+    est = _est()
+    out = est.process(HeadingSample(0.1, 0.3))
+    assert [a.reason for a in out] == ["not_initialized"] and not est.initialized
+    est.process(_static_batch(0.0, 100))
+    assert est.initialized  # levelled from the accelerometers, heading from the held sample
+    roll, pitch, yaw = est.nav_state().euler_rad()
+    assert abs(roll) < 1e-9 and abs(pitch) < 1e-9 and yaw == pytest.approx(0.3)
+
+
+def test_first_position_fix_before_alignment_sets_the_initial_position():
+    est = _est()
+    lat, lon, _ = ORIGIN.to_geodetic(np.array([100.0, -50.0, 0.0]))
+    est.process(UsblSample(0.5, float(lat), float(lon), 5.0, 2.0))
+    est.process(_static_batch(0.0, 100))
+    est.process(HeadingSample(1.0, 0.0))
+    s = est.nav_state()
+    np.testing.assert_allclose(s.pos_n_m[:2], [100.0, -50.0], atol=1e-6)
+    assert s.cov[0, 0] == pytest.approx(4.0)
+
+
+def test_unused_sample_types_are_ignored():
+    est = _aligned()
+    assert est.process(TruthSample(1.0, (0, 0, 0), (0, 0, 0), (1, 0, 0, 0), (0, 0, 0), 1.0)) == []
+
+
+def test_non_finite_imu_samples_are_rejected_counted_and_the_state_stays_finite():
+    est = _aligned()
+    b = _static_batch(1.0, 200)
+    f = b.specific_force_b_m_s2.copy()
+    f[50, 1] = np.nan
+    f[120, 2] = np.inf
+    est.process(ImuBatch(b.t_s, f, b.omega_b_rad_s))
+    est.process(ImuSample(4.0, (math.nan, 0.0, -9.8), (0.0, 0.0, 0.0)))
+    assert est.rejected["non_finite"] == 3
+    s = est.nav_state()
+    assert np.all(np.isfinite(s.pos_n_m)) and np.all(np.isfinite(s.cov))
+    assert s.t_s == pytest.approx(3.0)
+    np.testing.assert_allclose(s.vel_n_m_s, 0.0, atol=1e-6)
+
+
+def test_out_of_order_and_duplicate_imu_timestamps_are_rejected_and_counted():
+    est = _aligned()
+    est.process(_static_batch(1.0, 100))          # up to t = 2.0
+    est.process(ImuSample(2.0, (0, 0, -GRAVITY_M_S2), (0, 0, 0)))   # duplicate
+    est.process(ImuSample(1.5, (0, 0, -GRAVITY_M_S2), (0, 0, 0)))   # out of order
+    t = np.array([2.01, 2.02, 2.02, 2.015, 2.03])
+    est.process(ImuBatch(t, np.tile([0, 0, -GRAVITY_M_S2], (5, 1)), np.zeros((5, 3))))
+    assert est.rejected["duplicate"] == 2
+    assert est.rejected["out_of_order"] == 2
+    assert est.nav_state().t_s == pytest.approx(2.03)
+
+
+def test_a_10_s_imu_gap_is_counted_reset_and_the_filter_keeps_fusing():
+    m = make_mission(np.random.default_rng(5), 120.0, usbl_period_s=5.0)
+    keep = (m.t_imu < 50.0) | (m.t_imu >= 60.0)
+    m.t_imu, m.f_b, m.w_b, m.pos_n = m.t_imu[keep], m.f_b[keep], m.w_b[keep], m.pos_n[keep]
+    est = _est()
+    states, statuses = run(est, m, probe_times=[49.0, 61.0, 119.0])
+    assert est.rejected["imu_gap"] == 1
+    (s0, s1, s2) = [s for _, s in states]
+    assert s1.reset_counter == s0.reset_counter + 1
+    for s in (s1, s2):
+        assert np.all(np.isfinite(s.cov)) and np.all(np.isfinite(s.pos_n_m))
+    # the gap inflated the uncertainty, later fixes bring it back
+    assert s1.cov[0, 0] > s0.cov[0, 0] and s2.cov[0, 0] < s1.cov[0, 0]
+    assert all(a.fused for a in statuses if a.source == "usbl" and a.t_s > 70)
+    k = int(np.searchsorted(m.t_imu, 119.0)) - 1
+    assert np.linalg.norm(s2.pos_n_m[:2] - m.pos_n[k, :2]) < 3 * math.sqrt(s2.cov[0, 0] + s2.cov[1, 1])
+
+
+def test_non_finite_aid_is_rejected_with_its_reason():
+    est = _aligned()
+    out = est.process(DepthSample(1.0, math.nan))
+    assert out[0].reason == "non_finite" and not out[0].fused
+    assert est.rejected["non_finite"] == 1
+
+
+def test_an_outlier_is_gated():
+    est = _aligned()
+    out = est.process(HeadingSample(1.0, 0.5 + 1.0))  # 1 rad off with σ 0.05 prior + 0.5° aid
+    assert out[0].reason == "gate" and out[0].test_ratio > 1.0
+
+
+def test_a_late_measurement_is_fused_at_its_time_of_validity():
+    # GIVEN the same mission fed in order, and with one USBL fix arriving 0.6 s late
+    m = make_mission(np.random.default_rng(11), 60.0, usbl_period_s=20.0)
+    fix = next(a for a in m.aids if a.KIND == "usbl" and a.t_s == 40.0)
+    on_time = _est()
+    run(on_time, m)
+    late = _est()
+    late_m = copy.copy(m)
+    # deliver it when the IMU has reached 40.6 s
+    late_m.aids = sorted([a for a in m.aids if a is not fix] + [_Delayed(fix, 40.6)], key=lambda a: a.t_s)
+    run(late, late_m)
+    # THEN the result equals the in-order run
+    a, b = on_time.nav_state(), late.nav_state()
+    np.testing.assert_allclose(b.pos_n_m, a.pos_n_m, atol=1e-6)
+    np.testing.assert_allclose(b.cov, a.cov, atol=1e-9)
+    assert late.late_fused == 1
+
+
+class _Delayed:
+    """Stands in for the transport: hands over ``sample`` when the stream reaches ``t_s``."""
+
+    KIND = "delayed"
+
+    def __init__(self, sample, t_s):
+        self.sample, self.t_s = sample, t_s
+
+
+def test_too_late_measurement_is_rejected():
+    est = _aligned()
+    est.process(_static_batch(1.0, 300))  # t = 4
+    out = est.process(DepthSample(2.5, ATM_PA))
+    assert out[0].reason == "too_late" and est.rejected["too_late"] == 1
+
+
+def test_ahrs_only_log_gives_attitude_and_depth_and_says_position_invalid():
+    # GIVEN real-ArduSub-like telemetry: ATTITUDE at 20 Hz, pressure at 2 Hz, IMU at 2 Hz
+    est = _est()
+    for k in range(400):
+        t = k * 0.05
+        if k % 10 == 0:
+            est.process(ImuSample(t + 0.001, (0.0, 0.0, -GRAVITY_M_S2), (0.0, 0.0, 0.0)))
+            est.process(DepthSample(t, ATM_PA + RHO * GRAVITY_M_S2 * 3.0))
+        est.process(AttitudeSample(t, 0.05, -0.1, 1.2 + 0.01 * t))
+    s = est.nav_state()
+    # THEN attitude follows the AHRS, depth the pressure, and the horizontal position is invalid
+    assert est.initialized and not s.valid
+    roll, pitch, yaw = s.euler_rad()
+    assert roll == pytest.approx(0.05, abs=0.01) and pitch == pytest.approx(-0.1, abs=0.01)
+    assert yaw == pytest.approx(1.2 + 0.01 * 19.95, abs=0.02)
+    assert s.pos_n_m[2] == pytest.approx(3.0, abs=0.05)
+    assert np.all(np.isfinite(s.cov))
+
+
+def test_slow_states_survive_a_restart():
+    m = make_mission(np.random.default_rng(3), 120.0, current_n=(0.2, 0.1))
+    est = _est()
+    run(est, m)
+    saved = est.slow_states()
+    fresh = _est()
+    fresh.restore_slow_states(saved)
+    fresh.process(_static_batch(0.0, 100))
+    fresh.process(HeadingSample(1.0, 0.0))
+    s = fresh.nav_state()
+    np.testing.assert_allclose(s.current_n_m_s, saved["current_n_m_s"])
+    assert s.cov[KS, KS][0] == pytest.approx(saved["var_k_speed"])
+    with pytest.raises(ValueError):
+        fresh.restore_slow_states({**saved, "k_speed": -1.0})
+
+
+def test_a_calibrator_release_keeps_the_modelled_speed_continuous():
+    est = _aligned()
+    before = est.nav_state().k_speed * est.motion_params.k_v
+    est.set_motion_params(replace(MotionParams(), k_v=1.1))
+    assert est.nav_state().k_speed * 1.1 == pytest.approx(before)
