@@ -66,30 +66,35 @@ class SidescanRenderer:
         self._r = ((np.arange(self.samples_per_side) + 0.5) * self.range_m
                    / self.samples_per_side).astype(np.float64)
 
-    def _side(self, pos: np.ndarray, u: np.ndarray, altitude_m: float, rng: np.random.Generator,
-              gain: float) -> np.ndarray:
+    def _sides(self, pos: np.ndarray, u: np.ndarray, altitude_m: float,
+               rng: np.random.Generator, gain: float) -> np.ndarray:
+        """Both sides at once: ``u`` (2, 2) unit vectors (port, starboard) → (2, N)."""
         st = self.settings
-        r = self._r
+        r = self._r[None, :]
         h = altitude_m
-        ground = r > h
-        g = np.sqrt(np.maximum(r * r - h * h, 0.0))
-        pn = pos[0] + g * u[0]
-        pe = pos[1] + g * u[1]
-        coords = np.vstack([pn / self.seabed.res_m, pe / self.seabed.res_m])
-        refl = map_coordinates(self.seabed.reflectivity, coords, order=1, mode="constant", cval=0.0)
-        z = map_coordinates(self.seabed.height_m, coords, order=1, mode="constant", cval=0.0)
+        ground = np.broadcast_to(r > h, (2, r.size))
+        g1 = np.sqrt(np.maximum(self._r * self._r - h * h, 0.0))
+        g = np.broadcast_to(g1, (2, r.size))
+        pn = pos[0] + g * u[:, 0:1]
+        pe = pos[1] + g * u[:, 1:2]
+        coords = np.stack([pn.ravel(), pe.ravel()]) / self.seabed.res_m
+        refl = map_coordinates(self.seabed.reflectivity, coords, order=1, mode="constant",
+                               cval=0.0).reshape(2, -1)
+        z = map_coordinates(self.seabed.height_m, coords, order=1, mode="constant",
+                            cval=0.0).reshape(2, -1)
         z = np.minimum(z, 0.95 * h)
-        dz, dg = np.gradient(z), np.gradient(g)
+        dz, dg = np.gradient(z, axis=1), np.gradient(g1)[None, :]
         slope = np.divide(dz, dg, out=np.zeros_like(z), where=dg > 1e-9)
         cos_inc = (g * slope + (h - z)) / (r * np.sqrt(1.0 + slope * slope))
         q = np.where(ground, (h - z) / np.maximum(g, 1e-6), np.inf)
-        prev_min = np.concatenate([[np.inf], np.minimum.accumulate(q)[:-1]])
+        run_min = np.minimum.accumulate(q, axis=1)
+        prev_min = np.concatenate([np.full((2, 1), np.inf), run_min[:, :-1]], axis=1)
         lit = ground & (prev_min >= q * (1.0 - 1e-6))
         depression = np.arctan2(h - z, np.maximum(g, 1e-6))
         beam = np.exp(-0.5 * ((depression - st.beam_depression_rad) / st.beam_width_rad) ** 2)
-        speckle = rng.gamma(st.speckle_looks, 1.0 / st.speckle_looks, r.size)
+        speckle = rng.gamma(st.speckle_looks, 1.0 / st.speckle_looks, z.shape)
         echo = refl * np.maximum(cos_inc, 0.0) * beam * speckle * gain
-        noise = rng.exponential(st.noise_level, r.size)
+        noise = rng.exponential(st.noise_level, z.shape)
         return np.where(lit, echo, 0.0) + noise
 
     def render(self, t_s: float, pos_n_m, yaw_rad: float, altitude_m: float,
@@ -119,8 +124,7 @@ class SidescanRenderer:
         stbd_u = np.array([-s, c])
         gain = math.exp(rng.normal(0.0, st.line_gain_sigma))
         line = rng.random() < st.line_probability
-        stbd = self._side(pos, stbd_u, altitude_m, rng, gain)
-        port = self._side(pos, -stbd_u, altitude_m, rng, gain)
+        port, stbd = self._sides(pos, np.stack([-stbd_u, stbd_u]), altitude_m, rng, gain)
         if line:
             stbd = stbd + st.line_strength
             port = port + st.line_strength

@@ -46,5 +46,5 @@ def test_renders_fast_enough_to_be_vectorised():
     import inspect
 
     from sim import sidescan
-    src = inspect.getsource(sidescan.SidescanRenderer._side)
+    src = inspect.getsource(sidescan.SidescanRenderer._sides)
     assert "for " not in src
