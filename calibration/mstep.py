@@ -6,7 +6,7 @@ recovered exactly (:func:`fusion.motion_model.invert_step`; this replaces the se
 DESIGN.md errata): ``V̂_tj, Ŵ_tj, Ŝ_tj``. With step weights λ_t (exponential forgetting,
 λ = 1 for plain EM) the objective for the surge channel is (seed §3.3, as a maximisation)::
 
-    L_V(α, k) = −½ Σ_t λ_t Σ_j [ log s_t + (V̂_tj − k v_t)² / s_t ],
+    L_V(α, k) = −½ Σ_t λ_t (1/M) Σ_j [ log s_t + (V̂_tj − k v_t)² / s_t ],
     s_t = v_t² e^{α_1} + w_t² e^{α_2} + e^{α_3},   α = log(σ_Vv², σ_Vw², σ_V1²)
 
 and likewise for the yaw-rate channel (mean ``w_t + b_W``, terms σ_Wv², σ_Ww², σ_W1²).
@@ -17,7 +17,8 @@ with ``u_k = d_tk e^{α_k}`` (``d_t = (v_t², w_t², 1)``), ``f = log s + R/s``:
     ∂f/∂α_k = (1/s − R/s²) u_k
     ∂²f/∂α_k∂α_l = (−1/s² + 2R/s³) u_k u_l + (1/s − R/s²) δ_kl u_k
 
-A weak Gaussian prior ``(α − α_0)²/(2τ²)`` around the current parameters keeps
+The objective averages over the M trajectories (they are draws from one posterior, not M
+data sets), so a weak Gaussian prior ``(α − α_0)²/(2τ²)`` around the current parameters keeps
 weakly-informed terms from wandering (``prior_tau = inf`` disables it). The means have
 closed forms given the variances (weighted least squares)::
 
@@ -110,25 +111,25 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
         if key not in cache:  # fun, jac and hess are called at the same points
             cache.clear()
             a = unpack(a_free)
-            u = design * np.exp(a)[None, :]  # (T, 3)
+            u = design * np.exp(np.clip(a, -60.0, 20.0))[None, :]  # (T, 3); clip: line-search probes
             s = u.sum(axis=1)
-            cache[key] = (u[:, free], s, n_traj / s - resid_sq / s**2, s)
+            cache[key] = (u[:, free], s)
         return cache[key][:2]
 
     def fun(a_free):
         _, s = parts(a_free)
-        val = 0.5 * np.sum(lam * (n_traj * np.log(s) + resid_sq / s))
+        val = 0.5 * np.sum(lam * (np.log(s) + resid_sq / s))
         return val + 0.5 * inv_tau2 * np.sum((a_free - alpha0[free]) ** 2)
 
     def jac(a_free):
         u, s = parts(a_free)
-        f1 = lam * (n_traj / s - resid_sq / s**2)
+        f1 = lam * (1.0 / s - resid_sq / s**2)
         return 0.5 * (f1 @ u) + inv_tau2 * (a_free - alpha0[free])
 
     def hess(a_free):
         u, s = parts(a_free)
-        f1 = lam * (n_traj / s - resid_sq / s**2)
-        f2 = lam * (-n_traj / s**2 + 2.0 * resid_sq / s**3)
+        f1 = lam * (1.0 / s - resid_sq / s**2)
+        f2 = lam * (-1.0 / s**2 + 2.0 * resid_sq / s**3)
         h = 0.5 * (u.T @ (f2[:, None] * u) + np.diag(f1 @ u))
         return h + inv_tau2 * np.eye(free.size)
 
@@ -139,7 +140,7 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
     held_part = design @ np.exp(alpha0) - design[:, free] @ np.exp(alpha0[free])
     sw = np.sqrt(lam) / np.maximum(design @ np.exp(alpha0), 1e-300)
     try:
-        lin, _ = nnls(design[:, free] * sw[:, None], (resid_sq / n_traj - held_part) * sw)
+        lin, _ = nnls(design[:, free] * sw[:, None], (resid_sq - held_part) * sw)
         x_start = np.log(np.maximum(lin, 1e-3 * np.exp(alpha0[free])))
     except (ValueError, RuntimeError):
         pass
@@ -179,9 +180,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     a_v, a_w = alpha_v, alpha_w
     n_alt = max(1, options.n_alternations) if (options.fit_k_v or options.fit_b_w) else 1
     for _ in range(n_alt):
-        res_v = np.sum((V - k_v * v[None, :]) ** 2, axis=0)
+        res_v = np.mean((V - k_v * v[None, :]) ** 2, axis=0)
         a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau)
-        res_w = np.sum((W - w[None, :] - b_w) ** 2, axis=0)
+        res_w = np.mean((W - w[None, :] - b_w) ** 2, axis=0)
         a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau)
         s_v = design @ np.exp(a_v)
         s_w = design @ np.exp(a_w)

@@ -192,6 +192,8 @@ class OnlineCalibrator:
         self._since_em = 0
         self._assoc = LandmarkAssociator()
         self._pre_fix: list = []  # observations before the grid exists
+        self.sonar_front_end = None  # sonar.stream.SonarFrontEnd, created on the first ping
+        self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
 
     # ---------------------------------------------------------------- input
     def _reject(self, why: str) -> None:
@@ -232,6 +234,8 @@ class OnlineCalibrator:
                 ob = RangeObservation(np.asarray(sample.beacon_pos_n_m[:2], float)[None], np.array([sample.range_m]),
                                       float(sample.sigma_m))
                 self._add_obs(t, ob)
+            elif kind == "SonarPing":
+                self._sonar(sample)
             elif hasattr(sample, "ground_range_m") and hasattr(sample, "side"):
                 tid = self._assoc.assign(sample)
                 ob = sighting_from_sonar(sample, tid, self.config.landmark_sigma_along_m,
@@ -240,6 +244,29 @@ class OnlineCalibrator:
         except (ValueError, TypeError) as e:
             self._reject(f"{kind}: {e}")
         self._advance(t)
+
+    def _sonar(self, ping):
+        """Side-scan ping → landmark sightings via the front end owned here (sonar.stream).
+
+        A sighting is abeam of the vehicle at its ping time; its along-track offset is
+        re-referenced to the grid pose it attaches to. Poses are kept open for the front
+        end's latency (+ one step) so that its sightings are not late.
+        """
+        from sonar.stream import SonarFrontEnd, reference_landmark
+
+        if self.sonar_front_end is None:
+            self.sonar_front_end = SonarFrontEnd()
+        fe = self.sonar_front_end
+        speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else self.params.k_v * self._last_speed
+        for ob in fe.push(ping):
+            if not hasattr(ob, "ground_range_m") or self._t0 is None:
+                continue  # visual motion is not used by the calibrator
+            t_k = self._t0 + round((ob.t_s - self._t0) / self.config.step_s) * self.config.step_s
+            ob = reference_landmark(ob, t_k, speed)
+            self._add_obs(ob.t_s, sighting_from_sonar(ob, self._assoc.assign(ob), self.config.landmark_sigma_along_m,
+                                                      self.config.landmark_sigma_across_m))
+        if math.isfinite(fe.latency_s):
+            self._lag_s = max(self._lag_s, fe.latency_s + self.config.step_s)
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):
@@ -308,7 +335,7 @@ class OnlineCalibrator:
         self._last_t = max(self._last_t, t)
         if self._t0 is None:
             return
-        newest = math.floor((self._last_t - self._t0) / self.config.step_s - 0.5)
+        newest = math.floor((self._last_t - self._lag_s - self._t0) / self.config.step_s - 0.5)
         while self._closed < newest:
             self._close_pose(self._closed + 1)
 

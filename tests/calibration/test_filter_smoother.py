@@ -1,0 +1,163 @@
+"""Particle filter and FFBSi against exact answers (Kalman / RTS) and against each other."""
+import math
+
+import numpy as np
+import pytest
+
+from fusion.motion_model import MotionParams, propagate, transition_logpdf
+from calibration._kernels import move, pack, transition_logpdf_scalar
+from calibration.particle_filter import run_particle_filter
+from calibration.resampling import ess, systematic_resample
+from calibration.sensors import PositionFix, RangeObservation
+from calibration.smoother import ffbsi_exact, ffbsi_exact_numpy, ffbsi_mcmc
+from calibration.thesis import ThesisRow, _init_cloud, simulate
+
+
+def test_systematic_resample_round_off_guard():
+    # weights whose float cumsum ends below 1: an unguarded inverse CDF can return N
+    rng = np.random.default_rng(0)
+    w = np.full(10, 0.1)
+    w[-1] = 0.1 - 1e-16
+    for _ in range(200):
+        idx = systematic_resample(w, rng)
+        assert idx.max() < w.size
+    # systematic: every index appears floor(N w_i) or ceil(N w_i) times
+    w = rng.random(50)
+    w /= w.sum()
+    counts = np.bincount(systematic_resample(w, rng), minlength=50)
+    assert np.all(np.abs(counts - 50 * w) < 1.0 + 1e-9)
+
+
+def test_ess_of_uniform_and_degenerate_weights():
+    assert ess(np.zeros(100)) == pytest.approx(100.0)
+    lw = np.full(100, -1e3)
+    lw[3] = 0.0
+    assert ess(lw) == pytest.approx(1.0)
+
+
+def test_kernels_match_motion_model():
+    rng = np.random.default_rng(1)
+    p = MotionParams(var_vv=0.03, var_vw=0.01, var_v1=0.02, var_wv=0.001, var_ww=0.04, var_w1=0.002,
+                     var_s=0.01, k_v=1.1, b_w=0.02)
+    x0 = rng.normal(size=(50, 3))
+    z = rng.standard_normal((3, 50))
+    out = move(x0, np.arange(50), z, 1.3, 0.4, 2.0, pack(p))
+    var_V = 1.3**2 * p.var_vv + 0.4**2 * p.var_vw + p.var_v1
+    var_W = 1.3**2 * p.var_wv + 0.4**2 * p.var_ww + p.var_w1
+    V = p.k_v * 1.3 + math.sqrt(var_V) * z[0]
+    W = 0.4 + p.b_w + math.sqrt(var_W) * z[1]
+    S = math.sqrt(p.var_s) * z[2]
+    np.testing.assert_allclose(out, propagate(x0, V, W, S, 2.0), atol=1e-12)
+    ref = transition_logpdf(p, x0, out, 1.3, 0.4, 2.0)
+    got = [transition_logpdf_scalar(*x0[i], *out[i], 1.3, 0.4, 2.0, pack(p)) for i in range(50)]
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9)
+    lm = rng.normal(scale=20, size=(4, 2))
+    ob = RangeObservation(lm, rng.uniform(5, 30, 4), 2.0)
+    np.testing.assert_allclose(ob.log_likelihood(x0), ob.log_likelihood_numpy(x0), rtol=1e-12)
+
+
+def _linear_gaussian_problem(rng, T=30):
+    """Heading fixed at 0 (yaw-rate noise ~0): x' = x + δt V, y' = y + δt S — linear Gaussian."""
+    p = MotionParams(var_vv=0.0, var_vw=0.0, var_v1=0.25, var_wv=0.0, var_ww=0.0, var_w1=1e-14,
+                     var_s=0.09, k_v=1.0, b_w=0.0) if False else None
+    p = MotionParams(var_vv=1e-14, var_vw=1e-14, var_v1=0.25, var_wv=1e-14, var_ww=1e-14, var_w1=1e-14,
+                     var_s=0.09)
+    v = 1.0 + 0.5 * np.sin(np.arange(T) / 3.0)
+    w = np.zeros(T)
+    dt = 1.0
+    truth = np.zeros((T + 1, 2))
+    for t in range(T):
+        truth[t + 1] = truth[t] + dt * np.array([v[t] + 0.5 * rng.standard_normal(), 0.3 * rng.standard_normal()])
+    sig = 1.0
+    fixes = truth + sig * rng.standard_normal(truth.shape)
+    obs = [[PositionFix(tuple(fixes[t]), sig)] for t in range(T + 1)]
+    prior_sd = 2.0
+    return p, v, w, dt, fixes, sig, prior_sd, obs
+
+
+def _kalman_rts_1d(u, q, z, r, m0, p0):
+    """Random walk x' = x + u + N(0, q), z = x + N(0, r): filter log-lik, RTS means/vars."""
+    T = len(u)
+    mf, pf = np.empty(T + 1), np.empty(T + 1)
+    mp, pp = np.empty(T + 1), np.empty(T + 1)
+    ll = 0.0
+    mp[0], pp[0] = m0, p0
+    for t in range(T + 1):
+        if t > 0:
+            mp[t], pp[t] = mf[t - 1] + u[t - 1], pf[t - 1] + q
+        s = pp[t] + r
+        ll += -0.5 * (math.log(2 * math.pi * s) + (z[t] - mp[t]) ** 2 / s)
+        k = pp[t] / s
+        mf[t], pf[t] = mp[t] + k * (z[t] - mp[t]), (1 - k) * pp[t]
+    ms, ps = mf.copy(), pf.copy()
+    for t in range(T - 1, -1, -1):
+        c = pf[t] / pp[t + 1]
+        ms[t] = mf[t] + c * (ms[t + 1] - mp[t + 1])
+        ps[t] = pf[t] + c * c * (ps[t + 1] - pp[t + 1])
+    return ll, ms, ps
+
+
+def test_pf_and_smoothers_match_kalman_rts_on_linear_gaussian_model():
+    rng = np.random.default_rng(42)
+    p, v, w, dt, fixes, sig, prior_sd, obs = _linear_gaussian_problem(rng)
+    T = v.size
+    ll_x, ms_x, ps_x = _kalman_rts_1d(v * dt, 0.25 * dt**2, fixes[:, 0], sig**2, 0.0, prior_sd**2)
+    ll_y, ms_y, ps_y = _kalman_rts_1d(np.zeros(T), 0.09 * dt**2, fixes[:, 1], sig**2, 0.0, prior_sd**2)
+    N = 3000
+    init = np.column_stack([prior_sd * rng.standard_normal((N, 2)), np.zeros(N)])
+    lls = []
+    for rep in range(4):
+        fr = run_particle_filter(p, v, w, dt, obs, init, np.random.default_rng(100 + rep), N)
+        lls.append(fr.log_likelihood)
+    # the PF likelihood is unbiased in p, slightly biased low in log p; MC sd ~0.1 here
+    assert abs(np.mean(lls) - (ll_x + ll_y)) < 0.5
+    M = 400
+    for smoother in (ffbsi_exact, ffbsi_mcmc):
+        traj = smoother(fr, p, v, w, dt, M, np.random.default_rng(7))
+        for got, ms, ps in ((traj[:, :, 0], ms_x, ps_x), (traj[:, :, 1], ms_y, ps_y)):
+            # means: within 5 standard errors (correlation between trajectories inflates
+            # the error; allow a factor 2 on M)
+            se = np.sqrt(ps / (M / 2))
+            assert np.all(np.abs(got.mean(axis=0) - ms) < 5 * se), smoother.__name__
+            ratio = got.var(axis=0).mean() / ps.mean()
+            assert 0.75 < ratio < 1.25, (smoother.__name__, ratio)
+
+
+def test_exact_and_mcmc_smoothers_give_the_same_moments():
+    """Over independent particle systems, the mean smoothed pose and its spread from the
+    MCMC backward kernel match the exact FFBSi (both numba), and the numba exact matches
+    the numpy reference. Differences are tested against their spread across replicates
+    (trajectories from one particle system share genealogy, so within-system standard
+    errors would be wrong)."""
+    row = ThesisRow(0.05, 0.05, 0.3, 0.1, 2.0, steps=30)
+    data = simulate(row, np.random.default_rng(3))
+    p = data.params_changed
+    times = [0, 8, 15, 22, 30]
+    diffs = {"mcmc": [], "numpy": []}
+    spread = {"mcmc": [], "numpy": []}
+    M = 200
+    for rep in range(8):
+        rng = np.random.default_rng(100 + rep)
+        fr = run_particle_filter(p, data.v, data.w, data.dt, data.observations, _init_cloud(500, rng), rng, 500)
+        a = ffbsi_exact(fr, p, data.v, data.w, data.dt, M, rng)
+        for name, other in (("mcmc", ffbsi_mcmc(fr, p, data.v, data.w, data.dt, M, rng)),
+                            ("numpy", ffbsi_exact_numpy(fr, p, data.v, data.w, data.dt, M, rng))):
+            diffs[name].append(other[:, times, :2].mean(0) - a[:, times, :2].mean(0))
+            spread[name].append(other[:, times, :2].std(0).mean() / a[:, times, :2].std(0).mean())
+    for name in diffs:
+        d = np.array(diffs[name])  # (reps, times, 2)
+        t_stat = d.mean(0) / (d.std(0, ddof=1) / math.sqrt(d.shape[0]))
+        assert np.max(np.abs(t_stat)) < 5.4, (name, t_stat)  # t(7): P(|t| > 5.4) ≈ 0.001
+        assert 0.75 < np.mean(spread[name]) < 1.33, (name, spread[name])
+
+
+def test_filter_is_deterministic_given_the_seed():
+    data = simulate(ThesisRow(steps=10), np.random.default_rng(9))
+    outs = []
+    for _ in range(2):
+        rng = np.random.default_rng(10)
+        fr = run_particle_filter(data.params_initial, data.v, data.w, data.dt, data.observations,
+                                 _init_cloud(200, rng), rng, 200)
+        outs.append((fr.poses.copy(), ffbsi_mcmc(fr, data.params_initial, data.v, data.w, data.dt, 20, rng)))
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
