@@ -229,3 +229,20 @@ def test_guidance_follows_the_pattern(pattern):
     else:
         radius = np.linalg.norm(p - 100.0 * across, axis=1)
         assert np.abs(radius - 100.0).max() < 3.0
+
+
+def test_survey_scenario_streams():
+    # the reference survey of issue 2, simulated in full (a few seconds)
+    r = simulate(load_scenario("survey"))
+    c = r.counts()
+    assert c["imu"] == 360_000 and c["truth"] == 36_001 and "dvl" not in c
+    usbl = [u.t_s for u in r.samples["usbl"]]
+    assert usbl[0] == 60.0 and usbl[-1] == 2400.0 and len(usbl) == 40
+    assert [g.t_s for g in r.samples["gnss"]] == [0.0]
+    k = {s.t_s: s.k_v for s in r.samples["truth"]}
+    assert k[1799.9] == 1.0 and k[1800.0] == 0.9
+    # lawnmower legs 500 m apart by 50 m, at 20 m depth after the descent
+    p = r.dense.pos_n_m
+    assert 450.0 < p[:, 0].max() < 600.0 and np.abs(p[36_000:, 2] - 20.0).max() < 1e-3
+    east_per_leg = 50.0
+    assert p[-1, 1] > 5 * east_per_leg
