@@ -25,7 +25,7 @@ from fusion import samples as fs
 from fusion.samples import SampleError
 
 __all__ = ["SampleError", "encode", "decode", "decode_dict", "schema_for", "register", "kinds",
-           "topic_for", "kind_of"]
+           "topic_for", "kind_of", "time_of"]
 
 
 @dataclass(frozen=True)
@@ -88,10 +88,17 @@ def kinds() -> list[str]:
 
 
 def kind_of(obj: Any) -> str:
-    kind = getattr(obj, "KIND", None)
+    """A message's kind: ``obj.KIND``, or ``obj["type"]`` for kinds carried as dicts."""
+    kind = obj.get("type") if isinstance(obj, dict) else getattr(obj, "KIND", None)
     if not isinstance(kind, str):
-        raise TypeError(f"{type(obj).__name__} has no KIND: not a message")
+        raise TypeError(f"{type(obj).__name__} has no KIND (or 'type'): not a message")
     return kind
+
+
+def time_of(obj: Any) -> float:
+    """A message's ``t_s`` (NaN when it has none)."""
+    t = obj.get("t_s") if isinstance(obj, dict) else getattr(obj, "t_s", None)
+    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) else float("nan")
 
 
 def encode(obj: Any) -> bytes:

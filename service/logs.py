@@ -133,7 +133,7 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
             else:
                 kind = codec.kind_of(item)
                 cid = channel(kind)
-                ns = _ns(item.t_s)
+                ns = _ns(codec.time_of(item))
                 writer.add_message(cid, log_time=ns, data=codec.encode(item), publish_time=ns, sequence=seq)
                 seq += 1
                 n = 1
@@ -217,7 +217,7 @@ class McapLog:
                         yield e
                         continue
                     stats.decoded += 1
-                    kind = sample.KIND
+                    kind = codec.kind_of(sample)
                     stats.per_kind[kind] = stats.per_kind.get(kind, 0) + 1
                     yield sample
                 elif isinstance(record, Channel):

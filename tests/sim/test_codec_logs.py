@@ -192,3 +192,19 @@ def test_log_reader_knows_scenario_and_streams(sim30, tmp_path):
     log = read_mcap(path)
     assert log.scenario == sim30.scenario
     assert log.streams == sorted(sim30.counts())
+
+
+def test_kinds_carried_as_dicts_go_through_logs(tmp_path):
+    # service kinds (nav state, health ...) are registered with dict in / dict out
+    codec.register("test_state", lambda d: d, lambda d: d,
+                   {"type": "object", "title": "adaptnav.test_state"}, topic="/adaptnav/test/state")
+    msgs = [{"type": "test_state", "schema_version": 1, "t_s": 0.5, "x": [1.0, None]},
+            ImuSample(0.6, (0.0, 0.0, -9.8), (0.0, 0.0, 0.0))]
+    path = tmp_path / "state.mcap"
+    assert write_mcap(path, msgs, {}) == {"test_state": 1, "imu": 1}
+    log = read_mcap(path)
+    back = list(log)
+    assert back == msgs and log.stats.per_kind == {"test_state": 1, "imu": 1}
+    with open(path, "rb") as f:
+        first = next(make_reader(f).iter_messages(topics=["/adaptnav/test/state"]))
+    assert first[2].log_time == 500_000_000
