@@ -31,7 +31,7 @@ def test_deploy_config_loads_and_matches_defaults():
     got, want = _flat(config_dict(cfg)), _flat(config_dict(ServiceConfig()))
     assert got.keys() == want.keys()
     for key, value in want.items():
-        assert got[key] == (pytest.approx(value, rel=1e-12) if isinstance(value, float) else value), key
+        assert got[key] == (pytest.approx(value, rel=1e-12, nan_ok=True) if isinstance(value, float) else value), key
     assert cfg.outputs.nav_rate_hz == 10.0 and cfg.outputs.health_rate_hz == 1.0
     assert cfg.zenoh.mode == "peer" and cfg.zenoh.scouting is False
     assert isinstance(cfg.motion.params0, MotionParams)

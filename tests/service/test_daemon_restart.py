@@ -91,3 +91,35 @@ period_s = 0.3
             except subprocess.TimeoutExpired:
                 proc.kill()
     assert proc.returncode == 0, log_path.read_text()[-3000:]  # SIGTERM: clean shutdown
+
+
+def test_systemd_notify_ready_watchdog_stopping(tmp_path):
+    """With NOTIFY_SOCKET set (as systemd Type=notify does), the daemon says READY=1,
+    feeds the watchdog while it runs and says STOPPING=1 on SIGTERM."""
+    import socket
+
+    sock_path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(sock_path)
+    srv.settimeout(60)
+    port = free_port()
+    env = dict(os.environ, NOTIFY_SOCKET=sock_path, WATCHDOG_USEC="400000")
+    proc = subprocess.Popen([str(ADAPTNAV), "run", "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]',
+                             "--set", f'state_dir="{tmp_path}/state"', "--set", "calibrator.enabled=false"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    got: list[str] = []
+    try:
+        while not any("READY=1" in m for m in got):
+            got.append(srv.recv(4096).decode())
+        srv.settimeout(5)
+        while sum("WATCHDOG=1" in m for m in got) < 2:
+            got.append(srv.recv(4096).decode())
+        proc.send_signal(signal.SIGTERM)
+        while not any("STOPPING=1" in m for m in got):
+            got.append(srv.recv(4096).decode())
+        assert proc.wait(20) == 0, proc.stderr.read().decode()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        srv.close()
+    assert (tmp_path / "state" / "learned_state.json").exists()  # written at shutdown
