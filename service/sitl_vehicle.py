@@ -28,7 +28,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -82,6 +82,11 @@ class SitlVehicle:
     samples : iterable
         Samples in non-decreasing ``t_s`` order.
     config : SitlVehicleConfig, optional
+    on_other_sample : callable, optional
+        Called (in the vehicle thread, at the data pace) with every sample that has no
+        ArduSub MAVLink message, e.g. side-scan pings that a sonar driver on the
+        companion computer publishes itself; such samples are still counted in
+        ``sent["not_sent_by_kind"]``.
 
     Attributes
     ----------
@@ -93,8 +98,10 @@ class SitlVehicle:
         Messages sent by type; ``not_sent_by_kind`` for samples with no ArduSub message.
     """
 
-    def __init__(self, samples: Iterable[Any], config: SitlVehicleConfig | None = None):
+    def __init__(self, samples: Iterable[Any], config: SitlVehicleConfig | None = None,
+                 on_other_sample: Callable[[Any], None] | None = None):
         self.config = config or SitlVehicleConfig()
+        self.on_other_sample = on_other_sample
         self.samples = samples
         self.interval_s = {k: (1.0 / v if v > 0 else math.inf) for k, v in ARDUSUB_DEFAULT_RATES_HZ.items()}
         self._last_sent_t: dict[str, float] = {}
@@ -327,3 +334,5 @@ class SitlVehicle:
         else:
             nk = self.sent["not_sent_by_kind"]
             nk[kind] = nk.get(kind, 0) + 1
+            if self.on_other_sample is not None:
+                self.on_other_sample(s)
