@@ -170,9 +170,12 @@ class _TlogWrapped(SampleStreamSource):
 
     def report_counters(self) -> dict:
         c = self.tlog.counters
+        rejected = dict(c.get("rejected", {}))
+        if c.get("corrupt_frames"):
+            rejected["corrupt_frame"] = rejected.get("corrupt_frame", 0) + int(c["corrupt_frames"])
         return {"messages_read": int(c.get("messages_read", 0)),
                 "corrupt_frames": int(c.get("corrupt_frames", 0)),
-                "rejected": dict(c.get("rejected", {})),
+                "rejected": rejected,
                 "late_samples": int(c.get("late_samples", 0))}
 
 

@@ -202,6 +202,7 @@ def test_real_tlog_with_corrupt_frames_replays_with_counters(tmp_path):
     assert cli_main(["replay", str(path), "--out", str(out), "--no-progress", "--no-plots"]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["corrupt_frames"] == 1967                  # known from the file's README
+    assert s["rejected_samples"]["corrupt_frame"] == 1967
     assert s["messages_read"] > 10000
     assert s["samples_used"] > 0 and s["duration_s"] > 300.0
     assert s["missing_streams"]                         # no strapdown-rate IMU, no position fixes
