@@ -128,6 +128,52 @@ class Waterfall:
                          self.altitude_m)
 
 
+def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, int]]:
+    """Pings fit for a waterfall: time-ordered, one per time, one geometry.
+
+    Drops (and counts by reason) pings with a non-finite time, a duplicate time, or a
+    sample count / slant range different from the most common one; sorts the rest by
+    time (stable, so equal-time duplicates keep the first received).
+
+    Returns
+    -------
+    pings : list of SonarPing
+    dropped : dict[str, int]
+        Reason → count (empty when nothing was dropped); ``"reordered"`` counts pings
+        that arrived before an earlier-stamped one (kept, sorted).
+    """
+    from collections import Counter
+
+    dropped: Counter[str] = Counter()
+    finite = []
+    for p in pings:
+        if math.isfinite(p.t_s):
+            finite.append(p)
+        else:
+            dropped["non-finite time"] += 1
+    if not finite:
+        return [], dict(dropped)
+    geom = Counter((p.n_samples, p.slant_range_m) for p in finite).most_common(1)[0][0]
+    same = []
+    for p in finite:
+        if (p.n_samples, p.slant_range_m) == geom:
+            same.append(p)
+        else:
+            dropped["other sample count or range"] += 1
+    t = np.array([p.t_s for p in same])
+    n_back = int(np.sum(t[1:] < np.maximum.accumulate(t)[:-1])) if t.size > 1 else 0
+    if n_back:
+        dropped["reordered"] = n_back
+    order = np.argsort(t, kind="stable")
+    out: list[SonarPing] = []
+    for i in order:
+        if out and same[i].t_s == out[-1].t_s:
+            dropped["duplicate time"] += 1
+            continue
+        out.append(same[i])
+    return out, dict(dropped)
+
+
 def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     """Port and starboard samples as (P, N) float32 arrays (sample 0 nearest)."""
     if not pings:

@@ -47,6 +47,13 @@ def run(args) -> int:
         return _fail(str(exc))
     if report.error or report.n_truncated:
         print(f"adaptnav sonar: warning: {report.summary()}", file=sys.stderr)
+    from sonar.waterfall import clean_pings
+
+    pings, dropped = clean_pings(pings)
+    if dropped:
+        print(f"adaptnav sonar: warning: pings set aside/reordered: {dropped}", file=sys.stderr)
+    if len(pings) < 2:
+        return _fail(f"{args.file}: fewer than 2 usable pings")
     if args.sonar_cmd == "waterfall":
         return _waterfall(args, pings)
     return _motion(args, pings)

@@ -106,3 +106,23 @@ def test_scotsman_wreck_is_the_strongest_structure_near_the_annotated_hit(scotsm
     stbd = sd[rows, w + 20: w + 160].mean()
     port = sd[rows, w - 160: w - 20].mean()
     assert stbd > 1.5 * port
+
+
+def test_clean_pings_sorts_and_counts_bad_ones():
+    from sonar.waterfall import clean_pings
+
+    def ping(t, n=16, rng_m=20.0):
+        return SonarPing(t_s=t, port=np.ones(n), starboard=np.ones(n), slant_range_m=rng_m)
+
+    raw = [ping(0.0), ping(2.0), ping(1.0), ping(math.nan), ping(2.0), ping(3.0, n=8),
+           ping(4.0, rng_m=30.0), ping(5.0)]
+    kept, dropped = clean_pings(raw)
+    assert [p.t_s for p in kept] == [0.0, 1.0, 2.0, 5.0]
+    assert dropped == {"non-finite time": 1, "other sample count or range": 2,
+                       "duplicate time": 1, "reordered": 1}
+    # non-finite samples do not poison the image
+    bad = [SonarPing(t_s=float(i), port=np.full(64, np.inf if i == 3 else 1.0),
+                     starboard=np.full(64, np.nan if i == 4 else 1.0), slant_range_m=10.0,
+                     altitude_m=2.0) for i in range(10)]
+    wf = build_waterfall(bad, WaterfallConfig(bottom="altitude"))
+    assert np.all(np.isfinite(wf.image))
