@@ -208,3 +208,27 @@ def test_kinds_carried_as_dicts_go_through_logs(tmp_path):
     with open(path, "rb") as f:
         first = next(make_reader(f).iter_messages(topics=["/adaptnav/test/state"]))
     assert first[2].log_time == 500_000_000
+
+
+def test_every_logged_message_validates_against_its_channel_schema(sim30, tmp_path):
+    # what Foxglove / third-party tools rely on: the channel schema describes the payloads
+    jsonschema = pytest.importorskip("jsonschema")
+    path = tmp_path / "sim.mcap"
+    ping = SonarPing(1.0, np.array([0.0, math.nan], np.float32), np.array([1.0, 2.0], np.float32), 30.0)
+    write_mcap(path, list(sim30.iter_samples())[::7] + [ping], {})
+    validators = {}
+    n = 0
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.id not in validators:
+                doc = json.loads(schema.data)
+                jsonschema.Draft202012Validator.check_schema(doc)
+                validators[channel.id] = jsonschema.Draft202012Validator(doc)
+            validators[channel.id].validate(json.loads(message.data))
+            n += 1
+    assert n > 600 and len(validators) >= 8
+    # and a payload that breaks the contract does not validate
+    bad = json.loads(codec.encode(_examples()[0]))
+    bad["omega_b_rad_s"] = [0.0, 0.0]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, codec.schema_for("imu"))
