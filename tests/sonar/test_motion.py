@@ -46,8 +46,10 @@ def test_two_passes_register_to_true_relative_pose(world, seed):
     assert abs(m.along_m - along) < tol
     assert abs(m.across_m - across) < 0.3
     assert abs(math.degrees(m.dheading_rad - (yaw_b - yaw_a))) < 1.0
-    # the covariance is a real covariance and not absurdly small against the error
+    # the covariance is a real covariance, consistent with the actual error (|z| < 6)
     assert np.all(np.linalg.eigvalsh(m.cov) > 0)
+    err = np.array([m.along_m - along, m.across_m - across, m.dheading_rad - (yaw_b - yaw_a)])
+    assert np.all(np.abs(err) < 6.0 * np.sqrt(np.diag(m.cov)))
 
 
 def test_orb_option_registers_too(world):
