@@ -202,6 +202,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     new = replace(params, var_vv=float(ev[0]), var_vw=float(ev[1]), var_v1=float(ev[2]),
                   var_wv=float(ew[0]), var_ww=float(ew[1]), var_w1=float(ew[2]),
                   var_s=max(var_s, floor), k_v=k_v if k_v > 0 else params.k_v, b_w=b_w)
+    new = replace(new, **{name: getattr(params, name) for name in held})  # exactly, not exp(log(x))
     s_v, s_w = design @ ev, design @ ew
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
     notes = [f"held {name} (controls do not separate it)" for name in held]

@@ -1,0 +1,75 @@
+"""M-step recovery, identifiability, EM on the thesis simulation."""
+import math
+
+import numpy as np
+
+from fusion.motion_model import MotionParams, propagate, sample_velocities
+from calibration.em import EMOptions, run_em
+from calibration.mstep import MStepOptions, m_step, identifiable_terms, V_PRIORITY
+from calibration.thesis import ThesisRow, _init_cloud, simulate
+
+
+def _exact_trajectories(params, v, w, dt, n_traj, rng):
+    """Trajectories drawn from the motion model itself (a perfect E-step)."""
+    T = v.size
+    traj = np.zeros((n_traj, T + 1, 3))
+    for t in range(T):
+        V, W, S = sample_velocities(params, v[t], w[t], rng, size=n_traj)
+        traj[:, t + 1] = propagate(traj[:, t], V, W, S, dt)
+    return traj
+
+
+def test_m_step_recovers_known_parameters():
+    rng = np.random.default_rng(0)
+    T = 400
+    t = np.arange(T)
+    v = 1.0 + 0.8 * np.sin(t / 7.0)
+    w = 0.3 * np.sin(t / 5.0 + 1.0)
+    truth = MotionParams(var_vv=0.2**2, var_vw=0.3**2, var_v1=0.05**2, var_wv=0.02**2, var_ww=0.15**2,
+                         var_w1=0.01**2, var_s=0.03**2, k_v=0.9, b_w=0.01)
+    traj = _exact_trajectories(truth, v, w, 1.0, 50, rng)
+    start = MotionParams()  # defaults far from the truth
+    res = m_step(traj, v, w, 1.0, start, options=MStepOptions(prior_tau=math.inf, max_condition=100))
+    assert res.held == ()
+    got = res.params
+    assert abs(got.k_v - 0.9) < 0.01
+    assert abs(got.b_w - 0.01) < 0.003
+    for name in ("var_vv", "var_ww", "var_s"):
+        assert abs(math.sqrt(getattr(got, name)) / math.sqrt(getattr(truth, name)) - 1) < 0.1, name
+    for name in ("var_vw", "var_wv", "var_v1", "var_w1"):  # weaker terms
+        assert abs(math.sqrt(getattr(got, name)) / math.sqrt(getattr(truth, name)) - 1) < 0.35, name
+
+
+def test_m_step_holds_terms_the_controls_cannot_separate():
+    rng = np.random.default_rng(1)
+    T = 200
+    v = np.full(T, 1.5)  # constant speed: v² and 1 are the same column
+    w = np.zeros(T)      # no turning: the w² column is zero
+    truth = MotionParams(var_vv=0.1**2)
+    traj = _exact_trajectories(truth, v, w, 1.0, 30, rng)
+    start = MotionParams(var_vv=0.05**2)
+    res = m_step(traj, v, w, 1.0, start)
+    assert set(res.held) == {"var_vw", "var_v1", "var_ww", "var_wv"}
+    for name in res.held:
+        assert getattr(res.params, name) == getattr(start, name)
+    # the admitted V term absorbs the whole channel variance: v² σ_Vv² + σ_V1²(held)
+    total = 1.5**2 * res.params.var_vv + start.var_v1 + 0.0
+    expect = 1.5**2 * truth.var_vv + truth.var_v1
+    assert abs(total / expect - 1) < 0.2
+    # and the design check itself
+    design = np.stack([v * v, w * w, np.ones(T)], axis=1)
+    kept, _ = identifiable_terms(design, V_PRIORITY, 30.0)
+    assert kept == [0]
+
+
+def test_em_recovers_changed_sigma_dd_on_thesis_simulation():
+    row = ThesisRow(0.3, 0.05, 0.3, 0.05, 2.0, change_step=0, steps=60)
+    data = simulate(row, np.random.default_rng(5))
+    start = MotionParams().with_sigmas(0.1, 0.05)
+    rng = np.random.default_rng(6)
+    opts = EMOptions(n_particles=800, n_smoothed=60, max_iterations=12,
+                     mstep=MStepOptions(fit_k_v=False, fit_b_w=False, fit_var_s=False, prior_tau=math.inf))
+    res = run_em(start, data.v, data.w, data.dt, data.observations, _init_cloud(800, rng), rng, opts)
+    assert abs(res.params.sigma_dd / 0.3 - 1) < 0.25, res.params
+    # the log-likelihood improved from the wrong start
+    assert res.log_likelihoods[-1] > res.log_likelihoods[0] + 5
