@@ -11,8 +11,9 @@ Iteration k (Bishop 2006, §9.4; seed §3.1–3.3):
    less than ``param_rtol`` (relative), or after ``max_iterations``.
 
 Side-scan landmark sightings (:class:`calibration.sensors.LandmarkSighting`) are handled
-by a FastSLAM forward pass with θ_0 that builds the landmark map, which is then frozen for
-all iterations (see :mod:`calibration.sensors`).
+by a FastSLAM forward pass with θ_k that builds the landmark map, which is then frozen for
+that iteration's filter + smoother (see :mod:`calibration.sensors`); the map is rebuilt at
+every iteration because a map built with wrong parameters (e.g. k_V) is distorted by them.
 """
 from __future__ import annotations
 
@@ -86,8 +87,8 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
 
     ``step_weights`` (T,) are forgetting weights passed to the M-step.
     """
-    observations = freeze_landmarks(params0, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
-                                    options.n_particles)
+    raw_observations = observations
+    has_landmarks = any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ()))
     smooth = ffbsi_exact if options.smoother == "exact" else ffbsi_mcmc
     params = params0
     lls: list[float] = []
@@ -96,6 +97,9 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
     notes: list[str] = []
     fr = None
     for it in range(options.max_iterations):
+        if has_landmarks or it == 0:  # the map follows the parameters (it is built with them)
+            observations = freeze_landmarks(params, v_m_s, w_rad_s, dt_s, raw_observations, init_poses, rng,
+                                            options.n_particles)
         fr = run_particle_filter(params, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
                                  options.n_particles)
         lls.append(fr.log_likelihood)
