@@ -4,9 +4,9 @@ XTF (Triton eXtended Triton Format) stores one packet per ping with the samples 
 channel and the navigation/attitude valid at the ping: ``SensorYcoordinate`` /
 ``SensorXcoordinate`` (latitude/longitude in degrees when ``NavUnits == 3``),
 ``SensorHeading``/``SensorPitch``/``SensorRoll`` (deg), ``SensorDepth``,
-``SensorPrimaryAltitude`` (m) and ``SensorSpeed`` (knots in the spec; m/s in some
-recorders — we pass the value as recorded, converting only when the file says knots is
-not known reliably, see :func:`read_xtf`).  The port channel is stored far-to-near
+``SensorPrimaryAltitude`` (m) and ``SensorSpeed`` (knots, as the XTF spec says: on the
+Scotsman Iver2 file speed × time integrates to the 55 m the lat/lon track covers, not to
+twice that as m/s would).  The port channel is stored far-to-near
 (so that a plain row of port+starboard is the picture); we reverse it so sample 0 is
 nearest the vehicle on both sides.
 
@@ -94,7 +94,7 @@ def _channel_sides(file_header) -> tuple[int, int] | None:
     return port, stbd
 
 
-def read_xtf(path: str | Path, *, speed_in_knots: bool = False) -> tuple[list[SonarPing], XtfReadReport]:
+def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[SonarPing], XtfReadReport]:
     """Read every side-scan ping of an XTF file.
 
     Parameters
@@ -102,8 +102,8 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = False) -> tuple[list[So
     path : str or Path
         The XTF file.
     speed_in_knots : bool
-        Treat ``SensorSpeed`` as knots (the XTF spec) and convert to m/s.  Default False:
-        many AUV recorders (e.g. Iver2/SeaScan) write m/s there.
+        ``SensorSpeed`` is in knots (the XTF spec; default) and converted to m/s; False
+        for recorders known to write m/s.
 
     Returns
     -------

@@ -12,8 +12,8 @@ def test_waterfall_png_port_left_starboard_right(tmp_path, capsys):
     rc = main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(out), "--res-m", "0.1"])
     assert rc == 0 and out.is_file()
     img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
-    # ~105 m of track at 0.1 m/px down, 2 × 30 m across
-    assert img.shape[1] == 600 and 900 < img.shape[0] < 1200
+    # ~55 m of track (speed in knots × time) at 0.1 m/px down, 2 × 30 m across
+    assert img.shape[1] == 600 and 450 < img.shape[0] < 650
     # the wreck's long acoustic shadow runs across the starboard (right) half only
     dark = 0.4 * np.median(img[img > 0])
     right, left = img[:, 320:].astype(float), img[:, :280].astype(float)
@@ -27,10 +27,20 @@ def test_motion_json_records(capsys):
     assert rc == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert len(lines) == (461 - 150) // 40
+    # independent truth: the distance the lat/lon fixes cover between the window centres
+    from sonar.xtf import read_xtf
+
+    pings, _ = read_xtf(SCOTSMAN)
+    lat = np.array([p.lat_rad for p in pings])
+    lon = np.array([p.lon_rad for p in pings])
+    ok = np.isfinite(lat)
+    north = (lat - lat[ok][0]) * 6_371_000.0
+    east = (lon - lon[ok][0]) * 6_371_000.0 * np.cos(lat[ok][0])
     for rec in lines:
         assert {"t_s", "along_m", "across_m", "dheading_rad", "inliers", "matches"} <= set(rec)
-        # 40 pings at ~1.8–2.2 m/s and ~0.11 s per ping
-        assert 7.0 < rec["along_m"] < 11.5 and abs(rec["across_m"]) < 0.3
+        a, b = rec["ping_a"] + 75, rec["ping_b"] + 75
+        nav_m = np.hypot(north[b] - north[a], east[b] - east[a])
+        assert abs(rec["along_m"] - nav_m) < 0.2 * nav_m and abs(rec["across_m"]) < 0.3
         assert rec["inliers"] <= rec["matches"]
     t = np.array([r["t_s"] for r in lines])
     assert np.all(np.diff(t) > 0)
