@@ -84,12 +84,19 @@ class Health:
         stats = self._sensors.get(kind)
         if stats is None:
             stats = self._sensors[kind] = _SensorStats()
-        if math.isfinite(t_s):
+        # fast path (the common case): in order, same 1-s bucket as the last sample
+        b = stats.buckets
+        if b and t_s >= stats.last_t_s and t_s < b[-1][0] + 1:
+            stats.count += n
+            stats.last_t_s = t_s
+            b[-1][1] += n
+        elif math.isfinite(t_s):
             stats.add(t_s, n, self.rate_window_s + 1)
-            if not (t_s <= self.t_s):
-                self.t_s = t_s
         else:
             stats.count += n
+            return
+        if not (t_s <= self.t_s):
+            self.t_s = t_s
 
     def on_rejected(self, reason: str, n: int = 1) -> None:
         """Count ``n`` inputs the service itself refused (decode error, corrupt frame, ...)."""

@@ -100,10 +100,6 @@ def _current_xy(state: Any) -> tuple[float, float]:
     return float(c[0]), float(c[1])
 
 
-def _sigma(cov: np.ndarray, sl: Any) -> np.ndarray:
-    return np.sqrt(np.clip(np.diagonal(cov)[sl], 0.0, None))
-
-
 class TrajectoryCsvSink(Sink):
     """``trajectory.csv``: one row per nav state.
 
@@ -138,7 +134,9 @@ class TrajectoryCsvSink(Sink):
         p = state.pos_n_m
         v = state.vel_n_m_s
         roll, pitch, yaw = euler_rad(state.q_nb)
-        sig = _sigma(state.cov, self._pos)
+        cov = state.cov
+        i0 = self._pos.start
+        sig = [math.sqrt(max(float(cov[i, i]), 0.0)) for i in (i0, i0 + 1, i0 + 2)]
         cn, ce = _current_xy(state)
         row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
                                                   pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
