@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,15 +46,15 @@ from calibration.sensors import (HeadingObservation, LandmarkAssociator, Landmar
 class CalibratorConfig:
     """Online calibrator settings (typed_config-compatible)."""
 
-    window_steps: int = 120
+    window_steps: int = 96        # 8 min of 5 s steps: ~8 USBL fixes at one per minute
     step_s: float = 5.0
-    period_steps: int = 12
+    period_steps: int = 12        # EM once a minute
     min_window_steps: int = 24
     em_iterations: int = 3
     n_particles: int = 500
     n_smoothed: int = 50
     n_mcmc: int = 2
-    forgetting: float = 0.99
+    forgetting: float = 0.985     # λ per step: a ~5.5 min memory, follows a change within 10 min
     prior_tau: float = 1.0
     max_condition: float = 30.0
     fit_k_v: bool = True
@@ -157,8 +157,12 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
 
 @dataclass
 class _Bin:
-    speeds: list = field(default_factory=list)
-    yaw_rates: list = field(default_factory=list)
+    """Running sums of the controls inside one step."""
+
+    speed_sum: float = 0.0
+    speed_n: int = 0
+    yaw_rate_sum: float = 0.0
+    yaw_rate_n: int = 0
 
 
 class OnlineCalibrator:
@@ -213,8 +217,23 @@ class OnlineCalibrator:
             ok = np.isfinite(t) & np.isfinite(wz)
             if not np.all(ok):
                 self._reject("non-finite imu")
-            for ti, wi in zip(t[ok], wz[ok]):
-                self._add(float(ti), "yaw_rate", float(wi))
+            t, wz = t[ok], wz[ok]
+            if t.size == 0:
+                return
+            if self._t0 is None:
+                self._last_yaw_rate = float(wz[-1])
+            else:  # vectorised binning: replay feeds thousands of IMU samples per batch
+                k = np.floor((t - self._t0) / self.config.step_s).astype(np.int64)
+                late = k < max(self._closed, 0)
+                if np.any(late):
+                    self.rejected["late yaw_rate"] = self.rejected.get("late yaw_rate", 0) + int(late.sum())
+                for kk in np.unique(k[~late]):
+                    sel = k == kk
+                    b = self._bins.setdefault(int(kk), _Bin())
+                    b.yaw_rate_sum += float(wz[sel].sum())
+                    b.yaw_rate_n += int(sel.sum())
+                self._last_yaw_rate = float(wz[-1])
+            self._advance(float(t[-1]))
             return
         t = getattr(sample, "t_s", None)
         if t is None or not isinstance(t, (int, float)) or not math.isfinite(t):
@@ -281,10 +300,15 @@ class OnlineCalibrator:
                 self._last_yaw_rate = value
             return
         k = math.floor((t - self._t0) / self.config.step_s)
-        if k <= self._closed - 1 or k < 0:
+        if k < max(self._closed, 0):
             return self._reject(f"late {what}")
         b = self._bins.setdefault(k, _Bin())
-        (b.speeds if what == "speed" else b.yaw_rates).append(value)
+        if what == "speed":
+            b.speed_sum += value
+            b.speed_n += 1
+        else:
+            b.yaw_rate_sum += value
+            b.yaw_rate_n += 1
         if what == "speed":
             self._last_speed = value
         else:
@@ -363,9 +387,9 @@ class OnlineCalibrator:
 
     def _controls(self, k):
         b = self._bins.pop(k, None)
-        v = float(np.mean(b.speeds)) if b and b.speeds else self._last_speed
-        if b and b.yaw_rates:
-            w = float(np.mean(b.yaw_rates))
+        v = b.speed_sum / b.speed_n if b and b.speed_n else self._last_speed
+        if b and b.yaw_rate_n:
+            w = b.yaw_rate_sum / b.yaw_rate_n
         else:
             w = getattr(self, "_heading_rate", 0.0)
         return v, w
