@@ -1,3 +1,4 @@
+import functools
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ from tests.sonar.conftest import straight_pass
 CFG = WaterfallConfig(ground_res_m=0.1, along_res_m=0.1)
 
 
+@functools.lru_cache(maxsize=None)  # the two tests share their surveys
 def _survey(seed):
     """Two passes over one seabed; observations with true and (noisy) estimated positions."""
     rng = np.random.default_rng(seed)
