@@ -178,7 +178,8 @@ class _Loop:
             self.health.on_sample("imu", float(t[-1]), n)
 
     def sample(self, sample: Any) -> None:
-        self.flush_epochs_before(sample.t_s)
+        if math.isfinite(sample.t_s):  # a NaN time goes to the estimator, which rejects it
+            self.flush_epochs_before(sample.t_s)
         if self.health is not None:
             self.health.on_sample(sample.KIND, sample.t_s)
         if sample.KIND != "truth":
@@ -198,12 +199,12 @@ class _Loop:
         if _is_release(item):
             self.release(item)
             return
+        if isinstance(item, ImuBatch) and len(item) == 0:
+            return
         t_s = float(item.t_s[0]) if isinstance(item, ImuBatch) else float(item.t_s)
         if math.isfinite(t_s):
             self.clock.wait_until(t_s)
         if isinstance(item, ImuBatch):
-            if len(item) == 0:
-                return
             self.imu_batch(item)
             cal = self.calibrator
             if cal is not None:

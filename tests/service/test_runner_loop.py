@@ -12,7 +12,7 @@ import pytest
 
 from calibration.online import Release
 from fusion.eskf import Estimator
-from fusion.samples import ImuBatch, ImuSample
+from fusion.samples import DepthSample, ImuBatch, ImuSample
 from service.clock import LogClock
 from service.health import Health
 from service.replay import build_config
@@ -152,13 +152,16 @@ def test_health_sees_rates_and_estimator_rejections(sim60):
             if not done and isinstance(item, ImuBatch) and item.t_s[-1] >= 20.0:
                 done = True
                 yield ImuBatch(item.t_s[-1:] + 0.0005, *nan_imu[1:])
+                yield DepthSample(math.nan, 2.0e5)       # no usable time at all
 
     health = Health(silent_after_s=5.0)
-    run(stream(), est, [], LogClock(), health=health)
+    summary = run(stream(), est, [], LogClock(), health=health)
+    assert summary.errors == {}
     rep = health.report()
     assert rep["sensors"]["imu"]["rate_hz"] == pytest.approx(scenario.imu.rate_hz, rel=0.02)
     assert rep["sensors"]["depth"]["rate_hz"] == pytest.approx(scenario.depth.rate_hz, rel=0.05)
     assert rep["sensors"]["gnss"]["silent"]          # one fix at the start only
     assert not rep["sensors"]["imu"]["silent"]
-    assert sum(rep["rejected"].values()) >= 1         # the NaN IMU sample, by the estimator's reason
-    assert sum(est.rejected.values()) >= 1
+    # the NaN IMU sample and the NaN-time depth sample, by the estimator's reason
+    assert rep["rejected"].get("non_finite", 0) >= 2
+    assert sum(rep["rejected"].values()) == sum(est.rejected.values())
