@@ -35,8 +35,10 @@ class ImuConfig:
 
 @dataclass(frozen=True)
 class ProcessConfig:
-    current_rw_m_s_rthz: float = 2.0e-4        # sea current random walk, (m/s)/√s
-    k_speed_rw_rthz: float = 2.0e-4            # RPM speed-scale random walk, 1/√s
+    current_rw_m_s_rthz: float = 1.0e-4        # sea current random walk, (m/s)/√s
+    # RPM speed-scale random walk, 1/√s: large enough to follow a change of water
+    # (k_V −10 %) within minutes while absolute fixes exist
+    k_speed_rw_rthz: float = 1.5e-3
     pos_noise_m_rthz: float = 1.0e-4           # keeps P[POS] from going singular
 
 
@@ -53,10 +55,16 @@ class InitialConfig:
 @dataclass(frozen=True)
 class LearnedVelocityConfig:
     enabled: bool = True
-    rate_hz: float = 2.0                       # fused at a fixed rate, not per IMU sample
+    # fused at a fixed rate, not per IMU sample; 1 Hz matches the motion model's step
+    # (its variances are per step: faster fusion would count the same error twice)
+    rate_hz: float = 1.0
     rpm_hold_s: float = 1.0                    # latest RpmSample is used this long
     sigma_heave_m_s: float = 0.05              # heave ≈ 0 pseudo-measurement
     variance_scale: float = 1.0                # inflation of the motion model's variances
+    # innovation-based adaptive surge variance (Mehra 1972): R̂ = E[y²] − H P Hᵀ over this
+    # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
+    adaptive_window_s: float = 120.0
+    adaptive_max_scale: float = 25.0
 
 
 @dataclass(frozen=True)
@@ -132,6 +140,9 @@ class FilterConfig:
     on_time_tolerance_s: float = 0.02          # older than this: fused at its own time
     imu_gap_s: float = 0.2                     # IMU interval longer than this: gap (≤ 5 Hz is no INS)
     valid_max_sigma_h_m: float = 100.0         # horizontal σ above this: position invalid
+    # a position source (GNSS/USBL) gated this many times in a row is trusted again: the
+    # filter, not the fixes, is then wrong (PX4 EKF2 resets to the measurement likewise)
+    position_reset_after_rejections: int = 3
 
     def validate(self) -> None:
         if self.gate_sigma <= 0:

@@ -63,7 +63,7 @@ _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 
 class _Snapshot:
-    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter")
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak")
 
 
 class Estimator:
@@ -122,6 +122,8 @@ class Estimator:
         self._replaying = False
         self._restored = False
         self._speed_cache: dict[float, float] = {}
+        self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
+        self._gate_streak: dict[str, int] = {}
         self.late_fused = 0  # measurements fused at their own (past) time of validity
 
     # ------------------------------------------------------------------ public API
@@ -262,6 +264,8 @@ class Estimator:
         s.next_lv_t = self._next_lv_t
         s.mode = self._mode
         s.reset_counter = self._reset_counter
+        s.lv_r_hat = self._lv_r_hat
+        s.gate_streak = dict(self._gate_streak)
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -270,6 +274,8 @@ class Estimator:
         self._next_lv_t = s.next_lv_t
         self._mode = s.mode
         self._reset_counter = s.reset_counter
+        self._lv_r_hat = s.lv_r_hat
+        self._gate_streak = dict(s.gate_streak)
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -527,7 +533,33 @@ class Estimator:
         yaw_rate = float(R_nb[2] @ self._acc[13:16])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale)
+        if cfg.adaptive_window_s > 0:
+            meas = self._adapt_surge(meas)
         return self._fuse(meas, t, "learned_velocity")
+
+    def _adapt_surge(self, meas: Measurement) -> Measurement:
+        """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``.
+
+        Gated innovations count too: after a change of water every surge innovation may
+        exceed the gate, and those are exactly the ones that say the model is too tight.
+        """
+        cfg = self.config.learned_velocity
+        P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+        h = meas.H[0]
+        hph = float(h @ P @ h)
+        y0 = float(meas.z[0] - meas.h[0])
+        r_model = float(meas.R[0, 0])
+        if not (math.isfinite(y0) and math.isfinite(hph)):
+            return meas
+        alpha = min(1.0, self._lv_period / cfg.adaptive_window_s)
+        sample = min(y0 * y0 - hph, 100.0 * r_model * cfg.adaptive_max_scale)
+        self._lv_r_hat = sample if self._lv_r_hat is None else (1 - alpha) * self._lv_r_hat + alpha * sample
+        scale = min(max(self._lv_r_hat / r_model, 1.0), cfg.adaptive_max_scale)
+        if scale == 1.0:
+            return meas
+        R = meas.R.copy()
+        R[0, 0] *= scale
+        return meas._replace(R=R)
 
     def _aid(self, sample) -> list[AidStatus]:
         kind = sample.KIND
@@ -565,7 +597,31 @@ class Estimator:
                 return [rejected(sample.t_s, kind, "invalid")]
         else:  # pragma: no cover - guarded by AID_KINDS
             return []
+        if kind in ("gnss", "usbl"):
+            return [self._fuse_position(meas, sample.t_s, kind)]
         return [self._fuse(meas, sample.t_s, kind)]
+
+    def _fuse_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
+        """Fuse an absolute position; after repeated gate rejections, trust it again.
+
+        The reset inflates the position covariance by the innovation's outer product
+        (plus R), so the fix pulls the state and the velocity-related states follow.
+        """
+        status = self._fuse(meas, t_s, source)
+        if status.fused or status.reason != "gate":
+            self._gate_streak[source] = 0
+            return status
+        streak = self._gate_streak.get(source, 0) + 1
+        self._gate_streak[source] = streak
+        if streak < self.config.position_reset_after_rejections:
+            return status
+        y = meas.innovation()
+        idx = np.arange(y.size)  # position rows: POS is the first block
+        self._P[np.ix_(idx, idx)] += np.outer(y, y) + meas.R
+        self._reset_counter += 1
+        self.rejected["position_reset"] += 1
+        self._gate_streak[source] = 0
+        return self._fuse(meas, t_s, source)
 
     def _fuse(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         y = meas.innovation()
