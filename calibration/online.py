@@ -409,8 +409,15 @@ class OnlineCalibrator:
             v, w = self._controls(k - 1)
             self._v.append(v)
             self._w.append(w)
-            self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
-                                                      fwd_obs, self.rng)
+            try:
+                self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
+                                                          fwd_obs, self.rng)
+            except FloatingPointError:
+                # no particle explains this step's observations (e.g. a wild fix): move
+                # without them rather than stop calibrating; counted
+                self._reject("observations impossible under every particle (dropped)")
+                self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
+                                                          [], self.rng)
             self._since_em += 1
         self._closed = k
         self._win_obs.append(obs)

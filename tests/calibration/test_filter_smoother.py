@@ -109,6 +109,7 @@ def test_pf_and_smoothers_match_kalman_rts_on_linear_gaussian_model():
     for rep in range(4):
         fr = run_particle_filter(p, v, w, dt, obs, init, np.random.default_rng(100 + rep), N)
         lls.append(fr.log_likelihood)
+    assert fr.resampled.any() and not fr.resampled.all()  # the adaptive path is exercised
     # the PF likelihood is unbiased in p, slightly biased low in log p; MC sd ~0.1 here
     assert abs(np.mean(lls) - (ll_x + ll_y)) < 0.5
     M = 400
