@@ -183,7 +183,7 @@ def test_slow_states_survive_a_restart():
     fresh.process(HeadingSample(1.0, 0.0))
     s = fresh.nav_state()
     np.testing.assert_allclose(s.current_n_m_s, saved["current_n_m_s"])
-    assert s.cov[KS, KS][0] == pytest.approx(saved["var_k_speed"])
+    assert float(s.sigma(KS)[0]) ** 2 == pytest.approx(saved["var_k_speed"])
     with pytest.raises(ValueError):
         fresh.restore_slow_states({**saved, "k_speed": -1.0})
 
@@ -193,3 +193,30 @@ def test_a_calibrator_release_keeps_the_modelled_speed_continuous():
     before = est.nav_state().k_speed * est.motion_params.k_v
     est.set_motion_params(replace(MotionParams(), k_v=1.1))
     assert est.nav_state().k_speed * 1.1 == pytest.approx(before)
+
+
+def test_a_filter_that_gated_the_fixes_repeatedly_trusts_them_again():
+    # GIVEN an aligned filter that believes it is at the origin within 1.5 m
+    est = _aligned()
+    assert est.nav_state().cov[0, 0] < 150.0
+    lat, lon, _ = ORIGIN.to_geodetic(np.array([200.0, 0.0, 0.0]))
+    fixes = []
+    # WHEN consecutive fixes, all 200 m away, arrive
+    for k in range(4):
+        est.process(_static_batch(1.0 + k, 100))
+        fixes += est.process(UsblSample(2.0 + k, float(lat), float(lon), 0.0, 2.0))
+    # THEN the first ones are gated, then the filter resets onto them
+    assert [f.reason for f in fixes[:2]] == ["gate", "gate"]
+    assert fixes[2].fused and est.rejected["position_reset"] == 1
+    assert est.nav_state().pos_n_m[0] == pytest.approx(200.0, abs=5.0)
+
+
+def test_k_speed_is_learned_from_position_fixes():
+    # GIVEN water where the vehicle makes 8 % less speed per RPM than the model says
+    m = make_mission(np.random.default_rng(21), 600.0, k_v_true=0.92, usbl_period_s=10.0)
+    est = _est()
+    states, _ = run(est, m, probe_times=[590.0])
+    s = states[0][1]
+    # THEN k_speed converges to the ratio within its 3σ, and that σ is small
+    sigma = float(s.sigma(KS)[0])
+    assert abs(s.k_speed - 0.92) < 3 * sigma and sigma < 0.03
