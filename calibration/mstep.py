@@ -92,46 +92,56 @@ def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tu
     return kept, cond
 
 
+class VarianceObjective:
+    """Negative expected log-likelihood of one channel over its free log-variances, with
+    the analytic gradient and Hessian (module docstring). ``resid_sq`` (T,) are the
+    per-step residuals squared averaged over trajectories; ``lam`` (T,) step weights."""
+
+    def __init__(self, design, lam, resid_sq, alpha0, free, prior_tau):
+        self.design, self.lam, self.resid_sq = design, lam, resid_sq
+        self.alpha0 = np.asarray(alpha0, dtype=float)
+        self.free = np.asarray(free, dtype=int)
+        self.inv_tau2 = 0.0 if not math.isfinite(prior_tau) else 1.0 / prior_tau**2
+        self._key = None
+
+    def unpack(self, a_free):
+        a = self.alpha0.copy()
+        a[self.free] = a_free
+        return a
+
+    def _parts(self, a_free):
+        key = a_free.tobytes()
+        if key != self._key:  # fun, jac and hess are called at the same points
+            # clip: the line search may probe far-off points; exp must not overflow
+            u = self.design * np.exp(np.clip(self.unpack(a_free), -60.0, 20.0))[None, :]
+            self._key, self._u, self._s = key, u[:, self.free], u.sum(axis=1)
+        return self._u, self._s
+
+    def fun(self, a_free):
+        _, s = self._parts(a_free)
+        val = 0.5 * np.sum(self.lam * (np.log(s) + self.resid_sq / s))
+        return val + 0.5 * self.inv_tau2 * np.sum((a_free - self.alpha0[self.free]) ** 2)
+
+    def jac(self, a_free):
+        u, s = self._parts(a_free)
+        f1 = self.lam * (1.0 / s - self.resid_sq / s**2)
+        return 0.5 * (f1 @ u) + self.inv_tau2 * (a_free - self.alpha0[self.free])
+
+    def hess(self, a_free):
+        u, s = self._parts(a_free)
+        f1 = self.lam * (1.0 / s - self.resid_sq / s**2)
+        f2 = self.lam * (-1.0 / s**2 + 2.0 * self.resid_sq / s**3)
+        h = 0.5 * (u.T @ (f2[:, None] * u) + np.diag(f1 @ u))
+        return h + self.inv_tau2 * np.eye(self.free.size)
+
+
 def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
     """Newton-CG over the free log-variances; returns the full α vector."""
     free = np.asarray(free, dtype=int)
     if free.size == 0:
         return alpha0.copy()
-    inv_tau2 = 0.0 if not math.isfinite(prior_tau) else 1.0 / prior_tau**2
-
-    def unpack(a_free):
-        a = alpha0.copy()
-        a[free] = a_free
-        return a
-
-    cache: dict = {}
-
-    def parts(a_free):
-        key = a_free.tobytes()
-        if key not in cache:  # fun, jac and hess are called at the same points
-            cache.clear()
-            a = unpack(a_free)
-            u = design * np.exp(np.clip(a, -60.0, 20.0))[None, :]  # (T, 3); clip: line-search probes
-            s = u.sum(axis=1)
-            cache[key] = (u[:, free], s)
-        return cache[key][:2]
-
-    def fun(a_free):
-        _, s = parts(a_free)
-        val = 0.5 * np.sum(lam * (np.log(s) + resid_sq / s))
-        return val + 0.5 * inv_tau2 * np.sum((a_free - alpha0[free]) ** 2)
-
-    def jac(a_free):
-        u, s = parts(a_free)
-        f1 = lam * (1.0 / s - resid_sq / s**2)
-        return 0.5 * (f1 @ u) + inv_tau2 * (a_free - alpha0[free])
-
-    def hess(a_free):
-        u, s = parts(a_free)
-        f1 = lam * (1.0 / s - resid_sq / s**2)
-        f2 = lam * (-1.0 / s**2 + 2.0 * resid_sq / s**3)
-        h = 0.5 * (u.T @ (f2[:, None] * u) + np.diag(f1 @ u))
-        return h + inv_tau2 * np.eye(free.size)
+    obj = VarianceObjective(design, lam, resid_sq, alpha0, free, prior_tau)
+    fun, jac, hess, unpack = obj.fun, obj.jac, obj.hess, obj.unpack
 
     # start from the weighted moment estimate E[r²] ≈ D σ² (non-negative least squares):
     # Newton then converges in a few steps instead of crawling through the region where

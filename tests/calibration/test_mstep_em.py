@@ -73,3 +73,19 @@ def test_em_recovers_changed_sigma_dd_on_thesis_simulation():
     assert abs(res.params.sigma_dd / 0.3 - 1) < 0.25, res.params
     # the log-likelihood improved from the wrong start
     assert res.log_likelihoods[-1] > res.log_likelihoods[0] + 5
+
+
+def test_variance_objective_gradient_and_hessian_match_finite_differences():
+    from scipy.optimize import approx_fprime
+    from calibration.mstep import VarianceObjective
+
+    rng = np.random.default_rng(3)
+    T = 50
+    v, w = 1 + rng.random(T), rng.normal(scale=0.3, size=T)
+    design = np.stack([v * v, w * w, np.ones(T)], axis=1)
+    resid_sq = rng.gamma(2.0, 0.01, T)
+    obj = VarianceObjective(design, rng.random(T), resid_sq, np.log([0.01, 0.02, 0.003]), [0, 1, 2], 1.5)
+    for a in (np.log([0.01, 0.02, 0.003]), np.log([0.1, 0.001, 0.05])):
+        np.testing.assert_allclose(obj.jac(a), approx_fprime(a, obj.fun, 1e-7), rtol=1e-4, atol=1e-6)
+        num_h = np.array([approx_fprime(a, lambda x, i=i: obj.jac(x)[i], 1e-7) for i in range(3)])
+        np.testing.assert_allclose(obj.hess(a), num_h, rtol=1e-4, atol=1e-5)
