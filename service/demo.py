@@ -373,6 +373,10 @@ def run_demo(overrides: list[str] | tuple[str, ...] = (), out_dir: str | Path = 
         "learned": row(rows_metrics["learned"], releases=len(live.releases), releases_accepted=len(accepted),
                        odometry_received_by_vehicle=live.odometry_received,
                        nav_states_received=len(live.nav), sonar_pings_published=live.sonar_published,
+                       samples_at_daemon={k: v.get("count") for k, v in
+                                          live.daemon_health.get("sensors", {}).items()},
+                       rejected_at_daemon=live.daemon_health.get("rejected", {}),
+                       calibrator_dropped_samples=live.daemon_health.get("calibrator", {}).get("dropped_samples"),
                        final_params=accepted[-1]["params"] if accepted else None,
                        live_wall_s=live.wall_s),
         "scenario": {"name": scenario.name, "duration_s": scenario.duration_s, "seed": scenario.seed,
