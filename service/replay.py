@@ -34,7 +34,7 @@ from .health import Health
 from .runner import RunSummary, run
 from .sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
                     TrajectoryCsvSink)
-from .sources import SampleStreamSource, SimSource, simulate
+from .sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -149,91 +149,11 @@ def open_log(path: str | Path) -> ReplayInput:
         raise FileNotFoundError(f"log not found: {path}")
     suffix = path.suffix.lower()
     if suffix in (".tlog", ".bin", ".log"):
-        return ReplayInput(_tlog_source(path), None, path.name, None, reopen=lambda: _tlog_source(path))
+        return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path))
     if suffix == ".mcap":
         src = McapSource(path)
         return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path))
     raise ValueError(f"{path}: unknown log type {suffix!r} (expected .mcap, .tlog or .bin)")
-
-
-class _TlogWrapped(SampleStreamSource):
-    """A :class:`service.tlog_source.TlogSource` batched for the estimator; its own
-    counters (messages read, corrupt frames, what is missing) are the ones reported."""
-
-    def __init__(self, tlog: Any) -> None:
-        super().__init__(tlog)
-        self.tlog = tlog
-
-    @property
-    def missing(self) -> list[str]:
-        return list(getattr(self.tlog, "missing", []) or [])
-
-    def report_counters(self) -> dict:
-        c = self.tlog.counters
-        rejected = dict(c.get("rejected", {}))
-        if c.get("corrupt_frames"):
-            rejected["corrupt_frame"] = rejected.get("corrupt_frame", 0) + int(c["corrupt_frames"])
-        return {"messages_read": int(c.get("messages_read", 0)),
-                "corrupt_frames": int(c.get("corrupt_frames", 0)),
-                "rejected": rejected,
-                "late_samples": int(c.get("late_samples", 0))}
-
-
-def _tlog_source(path: Path) -> Any:
-    from .tlog_source import TlogSource
-
-    return _TlogWrapped(TlogSource(path))
-
-
-class McapSource(SampleStreamSource):
-    """Our MCAP logs (:func:`service.logs.read_mcap`), with the scenario from the metadata.
-
-    Undecodable messages are counted by reason (``decode:<field>``) and skipped; a
-    truncated file replays up to the damage and says so in ``truncated``.
-    """
-
-    MAX_LOGGED = 10
-
-    def __init__(self, path: Path) -> None:
-        from . import logs
-
-        self.path = Path(path)
-        self.stats = logs.ReadStats()
-        self.truncated = ""
-        self.reader = logs.read_mcap(self.path, self.stats)
-        self.scenario = self.reader.scenario
-        streams = self.reader.streams
-        if streams is None and self.scenario is not None:
-            streams = ["truth"]  # simulated logs carry truth; the summary is lost with truncation
-        super().__init__(self._samples(), streams=streams, metadata=self.reader.metadata)
-        self.duration_s = self.scenario.duration_s if self.scenario is not None else None
-
-    def _samples(self):
-        from fusion.samples import SampleError
-
-        from . import logs
-
-        logged = 0
-        for item in self.reader:
-            if isinstance(item, SampleError):
-                reason = str(item).split(":")[0].strip() or "malformed"
-                self.counters.decode_errors[reason] += 1
-                if logged < self.MAX_LOGGED:
-                    log.warning("%s: undecodable message skipped: %s", self.path.name, item)
-                    logged += 1
-                continue
-            if isinstance(item, logs.TruncatedLogError):
-                self.truncated = str(item)
-                self.counters.decode_errors["truncated"] += 1
-                log.warning("%s", item)
-                continue
-            yield item
-
-    def report_counters(self) -> dict:
-        c = self.counters
-        return {"messages_read": int(self.stats.messages),
-                "corrupt_frames": int(self.stats.bad_messages) + int(self.stats.truncated),
-                "rejected": c.rejected(), "late_samples": c.late_samples, "truncated": self.truncated}
 
 
 # -- one replay ----------------------------------------------------------------------------
@@ -332,9 +252,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     wall_s = time.monotonic() - wall0
 
     src = inp.source
-    counters = src.report_counters() if hasattr(src, "report_counters") else {
-        "messages_read": src.counters.messages_read, "corrupt_frames": src.counters.corrupt_frames,
-        "rejected": src.counters.rejected(), "late_samples": src.counters.late_samples}
+    counters = src.report_counters()
     for reason, n in counters["rejected"].items():
         health.on_rejected(reason, n)
     rejected = health.rejected_by_reason()

@@ -10,7 +10,14 @@ live, calibrator releases, in the deterministic replay order
   frames, samples with an unusable timestamp, late samples, ...),
 - ``streams`` — the sample kinds the input holds (known up front where possible),
 - ``missing`` — the streams a navigation run would want but the input lacks,
-- ``metadata`` — what the input says about itself (e.g. the simulated scenario).
+- ``metadata`` — what the input says about itself (e.g. the simulated scenario),
+- ``report_counters()`` — the figures ``summary.json`` reports (messages read, corrupt
+  frames, rejections by reason, late samples).
+
+Sources here: :class:`SimSource` (a scenario simulated in memory), :class:`McapSource`
+(our MCAP logs, scenario from the metadata), :class:`TlogReplaySource` (MAVLink
+``.tlog``/DataFlash ``.bin`` through :class:`service.tlog_source.TlogSource`) and
+:class:`SampleStreamSource` (any iterable of samples).
 
 :func:`order_and_batch` is the common core: a bounded re-ordering heap (``horizon_s`` of
 data time — logs are nearly ordered; a global sort of a 1-h log would hold every sample
@@ -23,9 +30,11 @@ counted (``bad_timestamp``).
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
@@ -33,6 +42,8 @@ import numpy as np
 from fusion.samples import ImuBatch, ImuSample, replay_order_key
 
 # streams navigation uses; a log lacking one of these is reported in ``missing``
+log = logging.getLogger(__name__)
+
 NAV_STREAMS = ("imu", "rpm", "heading", "depth", "dvl", "gnss", "usbl")
 
 
@@ -178,6 +189,11 @@ class SampleStreamSource:
     def __iter__(self) -> Iterator[Any]:
         return order_and_batch(self._samples, self.counters, self.horizon_s)
 
+    def report_counters(self) -> dict:
+        c = self.counters
+        return {"messages_read": c.messages_read or c.samples, "corrupt_frames": c.corrupt_frames,
+                "rejected": c.rejected(), "late_samples": c.late_samples}
+
 
 class SimSource:
     """A scenario simulated in memory as a source (``sim.simulate(scenario).iter_blocks()``).
@@ -198,6 +214,10 @@ class SimSource:
         return [k for k in NAV_STREAMS if k not in self.counters.by_kind]
 
     has_truth = True
+
+    def report_counters(self) -> dict:
+        return {"messages_read": self.counters.messages_read, "corrupt_frames": 0, "rejected": {},
+                "late_samples": 0}
 
     def __iter__(self) -> Iterator[Any]:
         c = self.counters
@@ -222,3 +242,84 @@ def simulate(scenario: Any) -> Any:
     if fn is None:
         from sim.simulator import simulate as fn
     return fn(scenario)
+
+
+class TlogReplaySource(SampleStreamSource):
+    """A :class:`service.tlog_source.TlogSource` batched for the estimator; its own
+    counters (messages read, corrupt frames, what is missing) are the ones reported."""
+
+    def __init__(self, tlog: Any) -> None:
+        super().__init__(tlog)
+        self.tlog = tlog
+
+    @property
+    def missing(self) -> list[str]:
+        return list(getattr(self.tlog, "missing", []) or [])
+
+    def report_counters(self) -> dict:
+        c = self.tlog.counters
+        rejected = dict(c.get("rejected", {}))
+        if c.get("corrupt_frames"):
+            rejected["corrupt_frame"] = rejected.get("corrupt_frame", 0) + int(c["corrupt_frames"])
+        return {"messages_read": int(c.get("messages_read", 0)),
+                "corrupt_frames": int(c.get("corrupt_frames", 0)),
+                "rejected": rejected,
+                "late_samples": int(c.get("late_samples", 0))}
+
+
+def tlog_source(path: Path) -> Any:
+    """A ``.tlog``/``.bin`` file as a replay source."""
+    from service.tlog_source import TlogSource
+
+    return TlogReplaySource(TlogSource(path))
+
+
+class McapSource(SampleStreamSource):
+    """Our MCAP logs (:func:`service.logs.read_mcap`), with the scenario from the metadata.
+
+    Undecodable messages are counted by reason (``decode:<field>``) and skipped; a
+    truncated file replays up to the damage and says so in ``truncated``.
+    """
+
+    MAX_LOGGED = 10
+
+    def __init__(self, path: Path) -> None:
+        from service import logs
+
+        self.path = Path(path)
+        self.stats = logs.ReadStats()
+        self.truncated = ""
+        self.reader = logs.read_mcap(self.path, self.stats)
+        self.scenario = self.reader.scenario
+        streams = self.reader.streams
+        if streams is None and self.scenario is not None:
+            streams = ["truth"]  # simulated logs carry truth; the summary is lost with truncation
+        super().__init__(self._samples(), streams=streams, metadata=self.reader.metadata)
+        self.duration_s = self.scenario.duration_s if self.scenario is not None else None
+
+    def _samples(self):
+        from fusion.samples import SampleError
+
+        from service import logs
+
+        logged = 0
+        for item in self.reader:
+            if isinstance(item, SampleError):
+                reason = str(item).split(":")[0].strip() or "malformed"
+                self.counters.decode_errors[reason] += 1
+                if logged < self.MAX_LOGGED:
+                    log.warning("%s: undecodable message skipped: %s", self.path.name, item)
+                    logged += 1
+                continue
+            if isinstance(item, logs.TruncatedLogError):
+                self.truncated = str(item)
+                self.counters.decode_errors["truncated"] += 1
+                log.warning("%s", item)
+                continue
+            yield item
+
+    def report_counters(self) -> dict:
+        c = self.counters
+        return {"messages_read": int(self.stats.messages),
+                "corrupt_frames": int(self.stats.bad_messages) + int(self.stats.truncated),
+                "rejected": c.rejected(), "late_samples": c.late_samples, "truncated": self.truncated}
