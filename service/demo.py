@@ -106,6 +106,32 @@ class _Collector:
             return float(self.nav[-1]["t_s"]) if self.nav else -math.inf
 
 
+def _backpressure(samples: Any, vehicle: Any, collector: _Collector, max_lag_s: float = 3.0,
+                  max_wait_s: float = 10.0) -> Any:
+    """``samples``, held back while the daemon's nav output lags the vehicle by more than
+    ``max_lag_s`` of data time: the vehicle never runs ahead of what the daemon digests
+    (no queue overflow, no UDP loss on a loaded machine). Runs in the vehicle's thread,
+    which keeps serving its link (heartbeats, ODOMETRY) while it waits; a daemon that
+    stops answering is waited for at most ``max_wait_s`` per stall."""
+    for s in samples:
+        v = vehicle()
+        if v is not None and v.t_data_s is not None:
+            waited = time.monotonic()
+            next_hb = waited + 0.5
+            while v.t_data_s - collector.last_t() > max_lag_s and math.isfinite(collector.last_t()):
+                now = time.monotonic()
+                if now - waited > max_wait_s:
+                    log.warning("demo: daemon %.1f s of data behind for %.0f s; going on",
+                                v.t_data_s - collector.last_t(), max_wait_s)
+                    break
+                if now >= next_hb:
+                    v.heartbeat()
+                    next_hb = now + 0.5
+                v.poll()
+                time.sleep(0.005)
+        yield s
+
+
 @dataclass
 class LiveResult:
     """What the live run produced."""
@@ -156,7 +182,7 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
                 sonar_count[0] += 1
 
         time.sleep(0.3)  # let the sessions connect and the declarations propagate
-        vehicle = SitlVehicle(result.iter_samples(),
+        vehicle = SitlVehicle(_backpressure(result.iter_samples(), lambda: vehicle, collector),
                               SitlVehicleConfig(url=f"udpout:127.0.0.1:{uport}", speed=speed),
                               on_other_sample=publish_sonar)
         vehicle.start()
@@ -178,8 +204,7 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
         end_t = vehicle.t_data_s or duration
         deadline = time.monotonic() + 30.0
         while collector.last_t() < end_t - 0.5 and time.monotonic() < deadline:
-            vehicle.poll()
-            time.sleep(0.05)
+            vehicle.run(linger_s=0.25)  # the samples are exhausted: heartbeats + ODOMETRY only
         vehicle.run(linger_s=0.3)
         health = daemon._health_report() if daemon.bus is not None else {}
         bridge_counters = dict(getattr(daemon.bridge, "counters", {}) or {})
