@@ -161,13 +161,14 @@ class _Loop:
         n = len(t)
         start = 0
         while start < n:
-            if self.next_k is None:
-                self.next_k = math.ceil(t[start] * self.rate - 1e-9)
-            # emit epochs the first remaining sample is past
-            self.flush_epochs_before(float(t[start]))
-            # samples with t <= next epoch go in this piece
-            stop = int(np.searchsorted(t, self.epoch(self.next_k), side="right"))
-            stop = max(stop, start + 1)
+            if math.isfinite(t[start]):
+                # emit epochs the first remaining sample is past
+                self.flush_epochs_before(float(t[start]))
+                # samples with t <= next epoch go in this piece
+                stop = int(np.searchsorted(t, self.epoch(self.next_k), side="right"))
+                stop = max(stop, start + 1)
+            else:  # not a batch of a well-behaved source: the estimator judges the rest
+                stop = n
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
                 t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop])
             self.aid(self.estimator.process(piece))
