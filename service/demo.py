@@ -402,6 +402,7 @@ def run_demo(overrides: list[str] | tuple[str, ...] = (), out_dir: str | Path = 
                                           live.daemon_health.get("sensors", {}).items()},
                        rejected_at_daemon=live.daemon_health.get("rejected", {}),
                        calibrator_dropped_samples=live.daemon_health.get("calibrator", {}).get("dropped_samples"),
+                       calibrator_restarts=live.daemon_health.get("calibrator", {}).get("restarts"),
                        final_params=accepted[-1]["params"] if accepted else None,
                        live_wall_s=live.wall_s),
         "scenario": {"name": scenario.name, "duration_s": scenario.duration_s, "seed": scenario.seed,
