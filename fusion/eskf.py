@@ -62,6 +62,14 @@ _BLIND_ATT_RW_RAD_RTHZ = 0.3
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 
+def _finite(sample) -> bool:
+    """Every number the estimator will use is finite (a USBL fix without a vertical σ
+    needs no depth: underwater-GPS receivers report none)."""
+    if sample.KIND == "usbl" and not math.isfinite(sample.sigma_v_m):
+        return all(math.isfinite(v) for v in (sample.t_s, sample.lat_rad, sample.lon_rad, sample.sigma_h_m))
+    return is_finite(sample)
+
+
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak")
 
@@ -200,7 +208,7 @@ class Estimator:
             return self._imu(np.array([sample.t_s], dtype=float),
                              np.array([sample.specific_force_b_m_s2], dtype=float),
                              np.array([sample.omega_b_rad_s], dtype=float))
-        if not is_finite(sample):
+        if not _finite(sample):
             self.rejected["non_finite"] += 1
             return [rejected(sample.t_s if math.isfinite(sample.t_s) else math.nan, kind,
                              "non_finite")]
@@ -565,7 +573,9 @@ class Estimator:
         kind = sample.KIND
         c = self.config
         if self._mode == "ahrs":
-            if kind not in ("attitude", "depth", "heading"):
+            # no dead reckoning: attitude, depth and absolute fixes only (position is a
+            # random walk between fixes and never reported valid)
+            if kind not in ("attitude", "depth", "heading", "usbl", "gnss"):
                 return [rejected(sample.t_s, kind, "no_imu")]
             self._ahrs_time_update(sample.t_s)
         if not getattr(c, kind).enabled:
