@@ -21,6 +21,18 @@ before each, restores the last snapshot before the measurement and re-runs the i
 since then with the measurement inserted ("buffer IMU and re-propagate"). Older still:
 rejected ``too_late``.
 
+Robustness. The surge variance adapts upwards to the innovations (a change of water
+makes the released model too tight, see :mod:`fusion.aiding.learned_velocity`); an
+absolute position source gated ``position_reset_after_rejections`` times in a row is
+trusted again by inflating the position covariance (as PX4 EKF2 resets to GNSS).
+
+Modes. ``"none"`` until aligned (aids answered ``not_initialized``; the latest
+position fix and depth become the initial position); ``"ins"`` after levelling from a
+static accelerometer window and a heading aid; ``"ahrs"`` when attitude samples arrive
+and the IMU is absent or too slow to integrate (real ArduSub telemetry): attitude from
+the AHRS, depth from pressure, position a random walk pinned by fixes, never valid. A
+fast IMU appearing later re-aligns into ``"ins"``.
+
 Bad input never raises: non-finite samples, out-of-order or duplicate IMU timestamps
 and IMU gaps are counted in :attr:`Estimator.rejected` and the filter keeps going.
 """

@@ -23,7 +23,11 @@ the state-dependent rest goes into h so H stays exact::
     h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y,  v_b,z)
     R = diag(σ_V²(u, w), σ_S², σ_heave²)
 
-with ``w`` the yaw rate from the gyro. Jacobians (global attitude error)::
+with ``w`` the yaw rate from the gyro, fused at the motion model's step rate (1 Hz by
+default: its variances are per step). When the water changes, the released variances
+are too tight until the calibrator catches up; the estimator then scales σ_V² up to the
+innovation-based estimate ``E[y²] − H P Hᵀ`` (Mehra 1972, IEEE TAC 17(5); see
+:meth:`fusion.eskf.Estimator._adapt_surge`), never down. Jacobians (global attitude error)::
 
     ∂v_b/∂δv = R_nbᵀ,  ∂v_b/∂δθ = R_nbᵀ [v_n − c]×,  ∂v_b/∂δc = −R_nbᵀ[:, :2]
     ∂h_x/∂δk = −k_V u
