@@ -195,3 +195,26 @@ def reweight(log_w, g):
         e = math.exp(out[i])
         s2 += e * e
     return out, inc, 1.0 / s2
+
+
+@nb.njit(cache=True)
+def systematic_from_log(log_w, u):
+    """Systematic resampling indices from normalised ``log_w`` and one uniform ``u`` ∈ [0, 1);
+    the cumulative sum's last element is forced to 1 (the round-off guard)."""
+    n = log_w.shape[0]
+    cdf = np.empty(n)
+    acc = 0.0
+    for i in range(n):
+        acc += math.exp(log_w[i])
+        cdf[i] = acc
+    for i in range(n):
+        cdf[i] /= acc
+    cdf[n - 1] = 1.0
+    out = np.empty(n, dtype=np.int64)
+    j = 0
+    for i in range(n):
+        p = (u + i) / n
+        while cdf[j] <= p and j < n - 1:
+            j += 1
+        out[i] = j
+    return out

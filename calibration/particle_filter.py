@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.motion_model import MotionParams
-from calibration._kernels import move, pack, reweight
+from calibration._kernels import move, pack, reweight, systematic_from_log
 from calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
 from calibration.sensors import LandmarkSighting, ParticleLandmarkMap
 
@@ -54,6 +54,8 @@ class FilterResult:
 
 
 def _observation_log_lik(obs_list, poses, landmark_map):
+    if obs_list is not None and len(obs_list) == 1 and not isinstance(obs_list[0], LandmarkSighting):
+        return obs_list[0].log_likelihood(poses)
     g = np.zeros(poses.shape[0])
     for ob in obs_list or ():
         if isinstance(ob, LandmarkSighting):
@@ -118,7 +120,7 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     pvec = pack(params)
     for t in range(T):
         if ess_now < threshold:
-            idx = systematic_resample(np.exp(lw), rng)
+            idx = systematic_from_log(lw, rng.random())
             lw = np.full(N, -np.log(N))
             resampled[t] = True
             if lmap is not None:

@@ -162,3 +162,15 @@ def test_filter_is_deterministic_given_the_seed():
         outs.append((fr.poses.copy(), ffbsi_mcmc(fr, data.params_initial, data.v, data.w, data.dt, 20, rng)))
     np.testing.assert_array_equal(outs[0][0], outs[1][0])
     np.testing.assert_array_equal(outs[0][1], outs[1][1])
+
+
+def test_numba_systematic_resampling_matches_the_reference():
+    from calibration._kernels import systematic_from_log
+
+    rng = np.random.default_rng(12)
+    for _ in range(20):
+        w = rng.random(300) ** 4
+        w /= w.sum()
+        u = rng.random()
+        ref = np.searchsorted(np.concatenate([np.cumsum(w)[:-1], [1.0]]), (u + np.arange(300)) / 300, side="right")
+        np.testing.assert_array_equal(systematic_from_log(np.log(w), u), ref)
