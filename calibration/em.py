@@ -82,10 +82,12 @@ def _max_rel_change(a: MotionParams, b: MotionParams) -> float:
 
 
 def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
-           rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None) -> EMResult:
+           rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None,
+           prior_params: MotionParams | None = None) -> EMResult:
     """EM over one window; arguments as :func:`calibration.particle_filter.run_particle_filter`.
 
-    ``step_weights`` (T,) are forgetting weights passed to the M-step.
+    ``step_weights`` (T,) are forgetting weights passed to the M-step; ``prior_params``
+    the centre of its log-variance prior (default: the current iterate).
     """
     raw_observations = observations
     has_landmarks = any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ()))
@@ -108,7 +110,7 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
             break
         kwargs = {"n_mcmc": options.n_mcmc} if smooth is ffbsi_mcmc else {}
         traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, **kwargs)
-        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep)
+        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params)
         held, notes = ms.held, ms.notes
         moved = _max_rel_change(params, ms.params)
         params = ms.params

@@ -97,10 +97,11 @@ class VarianceObjective:
     the analytic gradient and Hessian (module docstring). ``resid_sq`` (T,) are the
     per-step residuals squared averaged over trajectories; ``lam`` (T,) step weights."""
 
-    def __init__(self, design, lam, resid_sq, alpha0, free, prior_tau):
+    def __init__(self, design, lam, resid_sq, alpha0, free, prior_tau, prior_center=None):
         self.design, self.lam, self.resid_sq = design, lam, resid_sq
         self.alpha0 = np.asarray(alpha0, dtype=float)
         self.free = np.asarray(free, dtype=int)
+        self.center = self.alpha0 if prior_center is None else np.asarray(prior_center, dtype=float)
         self.inv_tau2 = 0.0 if not math.isfinite(prior_tau) else 1.0 / prior_tau**2
         self._key = None
 
@@ -120,12 +121,12 @@ class VarianceObjective:
     def fun(self, a_free):
         _, s = self._parts(a_free)
         val = 0.5 * np.sum(self.lam * (np.log(s) + self.resid_sq / s))
-        return val + 0.5 * self.inv_tau2 * np.sum((a_free - self.alpha0[self.free]) ** 2)
+        return val + 0.5 * self.inv_tau2 * np.sum((a_free - self.center[self.free]) ** 2)
 
     def jac(self, a_free):
         u, s = self._parts(a_free)
         f1 = self.lam * (1.0 / s - self.resid_sq / s**2)
-        return 0.5 * (f1 @ u) + self.inv_tau2 * (a_free - self.alpha0[self.free])
+        return 0.5 * (f1 @ u) + self.inv_tau2 * (a_free - self.center[self.free])
 
     def hess(self, a_free):
         u, s = self._parts(a_free)
@@ -135,12 +136,12 @@ class VarianceObjective:
         return h + self.inv_tau2 * np.eye(self.free.size)
 
 
-def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
+def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, prior_center=None):
     """Newton-CG over the free log-variances; returns the full α vector."""
     free = np.asarray(free, dtype=int)
     if free.size == 0:
         return alpha0.copy()
-    obj = VarianceObjective(design, lam, resid_sq, alpha0, free, prior_tau)
+    obj = VarianceObjective(design, lam, resid_sq, alpha0, free, prior_tau, prior_center)
     fun, jac, hess, unpack = obj.fun, obj.jac, obj.hess, obj.unpack
 
     # start from the weighted moment estimate E[r²] ≈ D σ² (non-negative least squares):
@@ -163,10 +164,13 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau):
 
 
 def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
-           step_weights=None, options: MStepOptions = MStepOptions()) -> MStepResult:
+           step_weights=None, options: MStepOptions = MStepOptions(),
+           prior_params: MotionParams | None = None) -> MStepResult:
     """New :class:`MotionParams` from smoothed trajectories (M, T+1, 3).
 
-    ``step_weights`` (T,) are the forgetting weights λ_t (default 1).
+    ``step_weights`` (T,) are the forgetting weights λ_t (default 1). ``prior_params``
+    centres the log-variance prior (default: ``params``, the current values; a fixed
+    centre such as the initial calibration makes EM a MAP-EM with one fixed prior).
     """
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
@@ -184,6 +188,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
 
     alpha_v = np.log([params.var_vv, params.var_vw, params.var_v1])
     alpha_w = np.log([params.var_wv, params.var_ww, params.var_w1])
+    pp = params if prior_params is None else prior_params
+    center_v = np.log([pp.var_vv, pp.var_vw, pp.var_v1])
+    center_w = np.log([pp.var_wv, pp.var_ww, pp.var_w1])
     k_v, b_w = params.k_v, params.b_w
     sum_V = V.sum(axis=0)
     sum_W = (W - w[None, :]).sum(axis=0)
@@ -191,9 +198,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     n_alt = max(1, options.n_alternations) if (options.fit_k_v or options.fit_b_w) else 1
     for _ in range(n_alt):
         res_v = np.mean((V - k_v * v[None, :]) ** 2, axis=0)
-        a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau)
+        a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau, center_v)
         res_w = np.mean((W - w[None, :] - b_w) ** 2, axis=0)
-        a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau)
+        a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau, center_w)
         s_v = design @ np.exp(a_v)
         s_w = design @ np.exp(a_w)
         if options.fit_k_v:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -56,6 +57,9 @@ class CalibratorConfig:
     n_mcmc: int = 2
     forgetting: float = 0.985     # λ per step: a ~5.5 min memory, follows a change within 10 min
     prior_tau: float = 1.0
+    # centre of the log-variance prior: the current parameters (a step-size limit that
+    # follows any change) or the initial ones (MAP-EM: unchanged terms stay put)
+    prior_anchor: Literal["current", "initial"] = "current"
     max_condition: float = 30.0
     fit_k_v: bool = True
     fit_b_w: bool = True
@@ -127,12 +131,18 @@ def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
 
 
 def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
-                     rng: np.random.Generator, t_s: float = math.nan) -> Release:
-    """EM over one window + the sanity gate; returns the :class:`Release` record."""
+                     rng: np.random.Generator, t_s: float = math.nan,
+                     initial_params: MotionParams | None = None) -> Release:
+    """EM over one window + the sanity gate; returns the :class:`Release` record.
+
+    ``initial_params`` is the prior centre when ``config.prior_anchor == "initial"``.
+    """
     T = len(v)
     lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
     try:
-        res = run_em(params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam)
+        anchor = initial_params if config.prior_anchor == "initial" else None
+        res = run_em(params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam,
+                     prior_params=anchor)
     except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
         return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0)
     new = res.params
@@ -172,6 +182,7 @@ class OnlineCalibrator:
                  rng: np.random.Generator):
         self.config = config
         self.params = params0
+        self.params0 = params0
         self.rpm_table = rpm_table
         self.rng = rng
         self.rejected: dict[str, int] = {}
@@ -434,7 +445,8 @@ class OnlineCalibrator:
         T = v.size
         obs = list(self._win_obs)[-(T + 1):]
         init = self._clouds[-(T + 1)]
-        rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s)
+        rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
+                               initial_params=self.params0)
         if rel.accepted:
             self.params = rel.params
         self._pending.append(rel)

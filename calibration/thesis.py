@@ -148,7 +148,7 @@ def run_filter(data: ThesisData, rng: np.random.Generator, settings: LearnerSett
             if k >= settings.first_em_step and k % cfg.period_steps == 0:
                 s = max(0, k - cfg.window_steps)
                 rel = calibrate_window(params, data.v[s:k], data.w[s:k], data.dt, data.observations[s:k + 1],
-                                       clouds[s], cfg, rng, t_s=k * data.dt)
+                                       clouds[s], cfg, rng, t_s=k * data.dt, initial_params=data.params_initial)
                 if rel.accepted:
                     params = rel.params
                 history.append((k, rel))
