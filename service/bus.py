@@ -64,7 +64,10 @@ def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     """Our :class:`ZenohConfig` → a ``zenoh.Config`` (JSON5 of the zenoh config schema)."""
     doc: dict[str, Any] = {
         "mode": cfg.mode,
-        "connect": {"endpoints": list(cfg.connect)},
+        "connect": {"endpoints": list(cfg.connect),
+                    # a client waits (retrying) for its router/daemon instead of failing at once
+                    "timeout_ms": {"client": -1 if cfg.connect_timeout_s < 0 else int(cfg.connect_timeout_s * 1000)},
+                    "retry": {"period_init_ms": 200, "period_max_ms": 2000, "period_increase_factor": 2}},
         "listen": {"endpoints": list(cfg.listen)},
         # gossip too: with scouting off, peers must only talk to the endpoints given
         "scouting": {"multicast": {"enabled": bool(cfg.scouting)},

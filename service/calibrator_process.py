@@ -281,6 +281,7 @@ class CalibratorProcess:
 # -- standalone bus node ------------------------------------------------------------------
 def run_node(cfg: Any, stop: threading.Event) -> int:
     """``adaptnav run --calibrator-only``: calibrate from the bus, publish releases."""
+    import dataclasses
     import json
 
     from .bus import Bus, nonblocking_enqueue
@@ -289,7 +290,12 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     restored = load_state(cfg.state_dir)
     params0 = restored.params if restored and restored.params else cfg.motion.params0
     calibrator = make_calibrator(cfg, params0, cfg.calibrator.seed)
-    bus = Bus(cfg.zenoh, cfg.vehicle.name)
+    # a node, not a second daemon: a Zenoh *client* of the router, or of the daemon's peer
+    # (which then routes between it and the other programs: peers behind one peer do not
+    # see each other without gossip), listening nowhere, so it can share the config file
+    zcfg = dataclasses.replace(cfg.zenoh, mode="client",
+                               connect=tuple(cfg.zenoh.connect) or tuple(cfg.zenoh.listen), listen=())
+    bus = Bus(zcfg, cfg.vehicle.name)
     inbox: queue.Queue = queue.Queue(maxsize=cfg.calibrator.queue_size)
     overflow: Counter[str] = Counter()
     bus.subscribe_samples(nonblocking_enqueue(inbox, overflow))

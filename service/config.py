@@ -73,12 +73,15 @@ class ZenohConfig:
     ``mode`` peer (embedded, default) | client (through a router) | router.
     ``connect``/``listen``: endpoint lists such as ``"tcp/127.0.0.1:7447"``.
     ``scouting``: multicast scouting on/off (off on a vehicle LAN you do not own).
+    ``connect_timeout_s``: in client mode, how long opening the session waits for a
+    ``connect`` endpoint to answer (the daemon or router may start later); -1 = forever.
     """
 
     mode: Literal["peer", "client", "router"] = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     scouting: bool = False
+    connect_timeout_s: float = 30.0
 
     def validate(self) -> None:
         if self.mode == "client" and not self.connect:

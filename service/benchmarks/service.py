@@ -170,7 +170,7 @@ def live(latency_s: float, rss_sim_s: float) -> dict:
     port = _free_port()
     tmp = tempfile.mkdtemp(prefix="adaptnav-bench-")
     proc = _start_daemon(scenario, port, tmp)
-    bus = Bus(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
+    bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
     recv: dict[float, float] = {}
     bus.subscribe_raw(bus.keys.nav_state,
                       lambda k, p: recv.setdefault(json.loads(p)["t_s"], time.perf_counter()))

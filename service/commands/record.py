@@ -23,12 +23,13 @@ def add_arguments(parser):
 
 
 def recorder_zenoh(cfg, connect=()):
-    """Zenoh config of the recorder: a peer connecting to the daemon, listening nowhere."""
+    """Zenoh config of the recorder: a *client* of the daemon's peer (or of the router),
+    listening nowhere — the daemon routes every program's traffic to its clients, so the
+    recorder sees what other nodes publish too (a plain peer would only see the daemon's)."""
     from service.config import ZenohConfig
 
-    endpoints = tuple(connect) or tuple(cfg.zenoh.connect) + tuple(cfg.zenoh.listen)
-    return ZenohConfig(mode="client" if cfg.zenoh.mode == "client" else "peer",
-                       connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
+    endpoints = tuple(connect) or tuple(cfg.zenoh.connect) or tuple(cfg.zenoh.listen)
+    return ZenohConfig(mode="client", connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
 
 
 def record(bus, out, stop, duration_s=None, metadata=None):

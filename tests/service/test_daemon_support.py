@@ -33,8 +33,8 @@ def daemon_config(port: int, state_dir, *extra: str):
 
 
 def peer(port: int, vehicle: str = "testauv") -> Bus:
-    """A second Zenoh peer connected to the daemon's endpoint (no listen, no scouting)."""
-    return Bus(ZenohConfig(mode="peer", connect=(f"tcp/127.0.0.1:{port}",), listen=(), scouting=False),
+    """A program attached to the daemon: a Zenoh client of its peer (no listen, no scouting)."""
+    return Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=(), scouting=False),
                vehicle)
 
 

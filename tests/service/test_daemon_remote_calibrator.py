@@ -1,0 +1,64 @@
+"""The calibrator as its own bus node (`adaptnav run --calibrator-only`): it learns from
+the sensor topics and the daemon (calibrator.location = "remote") applies its releases."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from service.calibrator_process import run_node
+from service.daemon import Daemon
+from service.replay import build_config
+from service.sources import simulate
+
+from .test_daemon_support import Collector, free_port, peer, wait_until
+
+pytestmark = pytest.mark.timeout(170)
+
+
+def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
+    from fusion.samples import ImuBatch
+    from sim.scenario import load_scenario
+
+    scenario = load_scenario("short", ["duration_s=200"])
+    port = free_port()
+    common = [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false", "vehicle.name=testauv",
+              "calibrator.online.step_s=2.0", "calibrator.online.min_window_steps=20",
+              "calibrator.online.period_steps=10", "calibrator.online.n_particles=200",
+              "calibrator.online.em_iterations=2"]
+    cfg = build_config(scenario, None, common + [f'state_dir="{tmp_path}/d"', 'calibrator.location="remote"'])
+    node_cfg = build_config(scenario, None, common + [f'state_dir="{tmp_path}/n"'])
+    daemon = Daemon(cfg)
+    daemon.start()
+    stop = threading.Event()
+    node = threading.Thread(target=run_node, args=(node_cfg, stop), daemon=True)
+    node.start()
+    bus = peer(port)
+    col = Collector(bus)
+    try:
+        time.sleep(0.5)
+        n = 0
+        for item in simulate(scenario).iter_blocks():
+            samples = item.samples() if isinstance(item, ImuBatch) else [item]
+            for s in samples:
+                if s.KIND != "truth":
+                    bus.publish_sample(s)
+                    n += 1
+                    if n % 1000 == 0:  # flow control on the daemon's queue
+                        wait_until(lambda: (h := bus.get("health", 1.0)) and h["queue_depth"] < 3000, 10)
+        releases = col.wait_for(bus.keys.params, timeout_s=60)
+        assert releases, "the calibrator node published no release"
+        assert releases[0]["type"] == "calibration_release"
+        accepted = [r for r in releases if r["accepted"]]
+        health = wait_until(lambda: (h := bus.get("health", 1.0)) and h["calibrator"]["releases"] >= len(releases) and h, 10)
+    finally:
+        stop.set()
+        node.join(10)
+        bus.close()
+        daemon.stop()
+    assert health, "the daemon did not count the node's releases"
+    assert health["calibrator"]["state"] == "remote"
+    assert health["calibrator"]["last_release"]["t_s"] == releases[-1]["t_s"]
+    if accepted:  # the daemon now uses what the node learned
+        assert daemon.params.to_dict() == pytest.approx(accepted[-1]["params"])
