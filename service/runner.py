@@ -12,7 +12,9 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
 1. output epochs ``t_k = k / output_rate_hz`` that the item's time passes are emitted
    first: the nav state after all data with ``t ≤ t_k`` goes to every sink's ``on_nav``
    (an :class:`~fusion.samples.ImuBatch` is split at the epochs, so the rate is exact;
-   a state is not re-emitted while it has not advanced, e.g. in a data gap);
+   a state is not re-emitted while it has not advanced, e.g. in a data gap); an IMU
+   sample that lands exactly on ``t_k`` emits at once — live, the state must not wait
+   for the next sample to learn the epoch is complete (one IMU period of latency);
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
 3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
@@ -140,6 +142,13 @@ class _Loop:
             while self.epoch(self.next_k) < t_s:
                 self.next_k += 1
 
+    def emit_if_at_epoch(self, t_s: float) -> None:
+        """Emit now when the IMU has just reached the next epoch (live latency: do not wait
+        for the sample after the epoch to learn that the epoch is complete)."""
+        if self.next_k is not None and t_s >= self.epoch(self.next_k) - 1e-9:
+            self.emit()
+            self.next_k = math.floor(t_s * self.rate + 1e-9) + 1
+
     # -- items ------------------------------------------------------------------------------
     def aid(self, statuses) -> None:
         if statuses:
@@ -172,6 +181,8 @@ class _Loop:
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
                 t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop])
             self.aid(self.estimator.process(piece))
+            if math.isfinite(t[stop - 1]):
+                self.emit_if_at_epoch(float(t[stop - 1]))
             self.summary.imu_samples += stop - start
             self.summary.samples_used += stop - start
             start = stop
@@ -188,6 +199,8 @@ class _Loop:
             self.summary.samples_used += 1
             if sample.KIND == "imu":
                 self.summary.imu_samples += 1
+                if math.isfinite(sample.t_s):
+                    self.emit_if_at_epoch(sample.t_s)
         for f in self._on_sample:
             f(sample)
         cal = self.calibrator
