@@ -211,6 +211,8 @@ class OnlineCalibrator:
         self._assoc = LandmarkAssociator()
         self._pre_fix: list = []  # observations before the grid exists
         self.sonar_front_end = None  # sonar.stream.SonarFrontEnd, created on the first ping
+        from sonar.stream import AnchoredDeadReckoning
+        self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
 
     # ---------------------------------------------------------------- input
@@ -284,6 +286,14 @@ class OnlineCalibrator:
         A sighting is abeam of the vehicle at its ping time; its along-track offset is
         re-referenced to the grid pose it attaches to. Poses are kept open for the front
         end's latency (+ one step) so that its sightings are not late.
+
+        The front end associates sightings by position: the vehicle position at a ping is
+        dead-reckoned from the pings and tied to the position fixes by a small Kalman
+        filter that also tracks the drift (the current; :class:`sonar.stream.AnchoredDeadReckoning`),
+        whose σ widens the gate. Pure ping dead reckoning ignores the current: a landmark
+        seen again a leg later is tens of metres off and never (or wrongly) re-associated.
+        (The particle filter here is no substitute while its model has no current: its
+        mean lags the fixes.)
         """
         from sonar.stream import SonarFrontEnd, reference_landmark
 
@@ -291,7 +301,8 @@ class OnlineCalibrator:
             self.sonar_front_end = SonarFrontEnd()
         fe = self.sonar_front_end
         speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else self.params.k_v * self._last_speed
-        for ob in fe.push(ping):
+        pos, sigma = self.sonar_nav.push(ping)
+        for ob in fe.push(ping, pos if math.isfinite(sigma) else None, sigma if math.isfinite(sigma) else None):
             if not hasattr(ob, "ground_range_m") or self._t0 is None:
                 continue  # visual motion is not used by the calibrator
             t_k = self._t0 + round((ob.t_s - self._t0) / self.config.step_s) * self.config.step_s
@@ -346,6 +357,7 @@ class OnlineCalibrator:
         if self._t0 is None:
             self._start(t, fix)
         self._add_obs(t, fix)
+        self.sonar_nav.fix(t, fix.pos_n_m, fix.sigma_m)  # ties the sonar's ping positions
 
     def _add_obs(self, t, ob):
         if self._t0 is None:

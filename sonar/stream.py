@@ -72,6 +72,11 @@ class FrontEndConfig:
     registration_min_inliers : int
     registration_threshold_m : float
         RANSAC inlier threshold (m).
+    gate_sigmas, max_gate_m : float
+        With a navigation σ given to :meth:`SonarFrontEnd.push`, the tracker's gate is
+        ``clip(gate_sigmas · √2 · σ, gate_m, max_gate_m)`` (√2: the error of the track's
+        first sighting and of the new one, both about σ); the tracker's consensus on the
+        batch's common offset then tightens it again.
     """
 
     window_pings: int = 128
@@ -89,6 +94,8 @@ class FrontEndConfig:
     register: bool = True
     registration_min_inliers: int = 8
     registration_threshold_m: float = 0.3
+    gate_sigmas: float = 3.0
+    max_gate_m: float = 4.0
 
     def validate(self) -> None:
         if self.window_pings < 8 or not 1 <= self.step_pings <= self.window_pings:
@@ -99,6 +106,8 @@ class FrontEndConfig:
             raise ValueError("median_ksize must be odd and ≥ 1")
         if self.detector not in ("sift", "orb"):
             raise ValueError("detector must be 'sift' or 'orb'")
+        if not (self.gate_sigmas >= 0 and self.max_gate_m >= self.gate_m > 0):
+            raise ValueError("need gate_sigmas ≥ 0 and 0 < gate_m ≤ max_gate_m")
 
     def __post_init__(self) -> None:
         self.validate()
@@ -133,6 +142,7 @@ class SonarFrontEnd:
         self.windows = 0
         self.emitted_landmarks = 0
         self.emitted_motions = 0
+        self.reassociated_landmarks = 0  # sightings given an existing track id
         self.tracker = LandmarkTracker(gate_m=c.gate_m, max_descriptor_distance=c.max_descriptor_distance,
                                        ratio=c.tracker_ratio, hamming=c.detector == "orb")
         make = SiftDetector if c.detector == "sift" else OrbDetector
@@ -153,6 +163,7 @@ class SonarFrontEnd:
         self._pos = np.zeros(2)
         self._last: tuple[float, float, float] | None = None  # t, speed, yaw
         self._dt_s: deque[float] = deque(maxlen=64)
+        self._sigma: deque[float] = deque(maxlen=c.window_pings)  # nav σ of the buffered pings
 
     # ------------------------------------------------------------------ input
     @property
@@ -167,7 +178,7 @@ class SonarFrontEnd:
         dt = float(np.median(self._dt_s)) if self._dt_s else math.nan
         return 0.5 * (c.window_pings + c.step_pings) * dt
 
-    def push(self, ping: SonarPing, pos_n_m=None) -> list:
+    def push(self, ping: SonarPing, pos_n_m=None, pos_sigma_m: float | None = None) -> list:
         """Take one ping; return what became available (possibly nothing).
 
         Parameters
@@ -176,6 +187,9 @@ class SonarFrontEnd:
         pos_n_m : (2,) array-like, optional
             Vehicle (north, east) at the ping (m), e.g. from the navigation; by default
             dead-reckoned from the pings' speed and heading.
+        pos_sigma_m : float, optional
+            Horizontal 1-σ of ``pos_n_m`` (m): widens the association gate
+            (``FrontEndConfig.gate_sigmas``); default: the fixed ``gate_m``.
 
         Returns
         -------
@@ -189,6 +203,8 @@ class SonarFrontEnd:
             self.rejected[reason] += 1
             return []
         self._dead_reckon(ping, pos_n_m)
+        sig = math.nan if pos_sigma_m is None else float(pos_sigma_m)
+        self._sigma.append(sig if math.isfinite(sig) and sig >= 0 else math.nan)
         self._pings.append(ping)
         self._nav.append((self._n, ping.t_s, float(self._pos[0]), float(self._pos[1]), ping.heading_rad))
         self._n += 1
@@ -271,7 +287,14 @@ class SonarFrontEnd:
         if not kept:
             return []
         self.emitted_landmarks += len(kept)
-        return self.tracker.update(kept, np.array(pos))
+        sig = np.array(self._sigma, dtype=float)
+        sig = sig[np.isfinite(sig)]
+        gate = c.gate_m if sig.size == 0 else c.gate_sigmas * math.sqrt(2.0) * float(sig.max())
+        self.tracker.gate_m = min(max(gate, c.gate_m), c.max_gate_m)
+        n_before = self.tracker.n_tracks
+        out = self.tracker.update(kept, np.array(pos))
+        self.reassociated_landmarks += len(kept) - (self.tracker.n_tracks - n_before)
+        return out
 
     def _motion(self, wf: Waterfall, img: np.ndarray) -> VisualMotion | None:
         if not self.config.register or not (math.isfinite(wf.along_res_m) and wf.along_res_m > 0):
@@ -295,3 +318,100 @@ def reference_landmark(obs: LandmarkObservation, t_ref_s: float, speed_m_s: floa
     (straight track at speed ``v`` between the two times).
     """
     return replace(obs, along_track_m=float(speed_m_s) * (obs.t_s - float(t_ref_s)))
+
+
+class AnchoredDeadReckoning:
+    r"""Ping-to-ping dead reckoning tied to position fixes (USBL/GNSS) by a small Kalman filter.
+
+    Between pings the position is dead-reckoned from the pings' speed over ground and
+    heading (as in :class:`SonarFrontEnd`), ``p_DR``. Its error ``o = p − p_DR`` is an
+    offset that drifts at a nearly constant rate ``d`` (the current across the track,
+    which a speed log does not see), so a linear Kalman filter on ``x = (o, d)`` (4
+    states, north/east) tracks it from the fixes:
+
+    .. math:: o_{k+1} = o_k + d_k\,Δt + w_o,\quad d_{k+1} = d_k + w_d,\qquad
+              z = p_{fix} − p_{DR}(t_{fix}) = o + v,\; v ∼ N(0, σ_{fix}^2 I)
+
+    with random walks of densities ``q_offset`` (m²/s) and ``q_drift`` ((m/s)²/s). The
+    position at a ping is ``p_DR + ô`` with σ the RMS per axis of ``P_o``; NaN σ before
+    the first fix. A fix is applied once the pings have passed its time (its DR is
+    interpolated between the two pings around it).
+
+    Parameters
+    ----------
+    drift_sigma_m_s : float
+        Prior σ of the drift rate per axis (m/s).
+    q_offset_m2_s, q_drift_m2_s3 : float
+        Random-walk densities of the offset and of the drift.
+    """
+
+    def __init__(self, drift_sigma_m_s: float = 0.3, q_offset_m2_s: float = 0.01,
+                 q_drift_m2_s3: float = 1e-6) -> None:
+        self.q_offset = float(q_offset_m2_s)
+        self.q_drift = float(q_drift_m2_s3)
+        self._last: tuple[float, float, float] | None = None  # t, speed, yaw
+        self._dr = np.zeros(2)
+        self._x = np.zeros(4)
+        self._P = np.diag([1e12, 1e12, drift_sigma_m_s ** 2, drift_sigma_m_s ** 2])
+        self._t_kf = math.nan
+        self._pending: list[tuple[float, np.ndarray, float]] = []
+        self.fixes_used = 0
+
+    def _predict(self, t_s: float) -> None:
+        if math.isfinite(self._t_kf) and t_s > self._t_kf:
+            dt = t_s - self._t_kf
+            F = np.eye(4)
+            F[0, 2] = F[1, 3] = dt
+            self._x = F @ self._x
+            self._P = F @ self._P @ F.T + np.diag([self.q_offset, self.q_offset, self.q_drift, self.q_drift]) * dt
+        self._t_kf = t_s if not math.isfinite(self._t_kf) else max(self._t_kf, t_s)
+
+    def fix(self, t_s: float, pos_n_m, sigma_m: float) -> None:
+        """A position fix (north, east; m) ± ``sigma_m`` at ``t_s``; applied by a later ping."""
+        p = np.asarray(pos_n_m, dtype=float).reshape(-1)[:2]
+        if np.all(np.isfinite(p)) and math.isfinite(t_s) and math.isfinite(sigma_m) and sigma_m > 0:
+            self._pending.append((float(t_s), p, float(sigma_m)))
+
+    def _update(self, t_s: float, dr: np.ndarray, p: np.ndarray, sigma_m: float) -> None:
+        self._predict(t_s)
+        H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        S = H @ self._P @ H.T + sigma_m ** 2 * np.eye(2)
+        K = self._P @ H.T @ np.linalg.inv(S)
+        self._x = self._x + K @ (p - dr - self._x[:2])
+        self._P = (np.eye(4) - K @ H) @ self._P
+        self._P = 0.5 * (self._P + self._P.T)
+        self.fixes_used += 1
+
+    def push(self, ping: SonarPing) -> tuple[np.ndarray, float]:
+        """Dead-reckon to ``ping``; return its (north, east) (m) and σ per axis (m).
+
+        Pings with a non-finite or non-increasing time do not move the estimate.
+        """
+        t = float(ping.t_s)
+        if not math.isfinite(t) or (self._last is not None and not t > self._last[0]):
+            return self._dr + self._x[:2], self.sigma()
+        speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else (self._last[1] if self._last else 0.0)
+        yaw = ping.heading_rad if math.isfinite(ping.heading_rad) else (self._last[2] if self._last else 0.0)
+        dr0 = self._dr
+        if self._last is not None:
+            t0, v0, yaw0 = self._last
+            mid = yaw0 + 0.5 * math.remainder(yaw - yaw0, 2.0 * math.pi)
+            self._dr = self._dr + 0.5 * (v0 + speed) * (t - t0) * np.array([math.cos(mid), math.sin(mid)])
+        t_prev = self._last[0] if self._last is not None else t
+        self._last = (t, speed, yaw)
+        keep = []
+        for tf, p, sig in sorted(self._pending, key=lambda f: f[0]):
+            if tf > t:
+                keep.append((tf, p, sig))
+                continue
+            a = 0.0 if t <= t_prev else min(max((tf - t_prev) / (t - t_prev), 0.0), 1.0)
+            self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, dr0 + a * (self._dr - dr0), p, sig)
+        self._pending = keep
+        self._predict(t)
+        return self._dr + self._x[:2], self.sigma()
+
+    def sigma(self) -> float:
+        """σ per axis of the current position (m); NaN before the first fix."""
+        if not self.fixes_used:
+            return math.nan
+        return math.sqrt(max(0.5 * (self._P[0, 0] + self._P[1, 1]), 0.0))
