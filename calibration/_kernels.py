@@ -9,8 +9,9 @@ r"""numba kernels for the calibrator's hot loops (same equations as :mod:`fusion
 * :func:`backward_mcmc`, :func:`backward_exact` — the FFBSi backward passes of
   :mod:`calibration.smoother` given pre-drawn random numbers.
 
-``pvec`` packs :class:`MotionParams` as ``(var_vv, var_vw, var_v1, var_wv, var_ww, var_w1,
-var_s, k_v, b_w)`` (:func:`pack`).
+``pvec`` packs :class:`MotionParams` and the sea current as ``(var_vv, var_vw, var_v1, var_wv,
+var_ww, var_w1, var_s, k_v, b_w, u_n, u_e)`` (:func:`pack`); the current (m/s) adds
+``u δt`` to each step's ground displacement.
 """
 from __future__ import annotations
 
@@ -22,9 +23,11 @@ import numpy as np
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def pack(params) -> np.ndarray:
+def pack(params, current_n_m_s=None) -> np.ndarray:
+    """(11,) parameter vector of the kernels; ``current_n_m_s`` (2,) m/s, default zero."""
+    un, ue = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
     return np.array([params.var_vv, params.var_vw, params.var_v1, params.var_wv, params.var_ww,
-                     params.var_w1, params.var_s, params.k_v, params.b_w])
+                     params.var_w1, params.var_s, params.k_v, params.b_w, un, ue])
 
 
 @nb.njit(cache=True, inline="always")
@@ -41,8 +44,8 @@ def transition_logpdf_scalar(x0, y0, th0, x1, y1, th1, v, w, dt, p):
     W = dth / dt
     phi = th0 + 0.5 * dth
     c = _chord(W, dt)
-    dx = x1 - x0
-    dy = y1 - y0
+    dx = x1 - x0 - p[9] * dt
+    dy = y1 - y0 - p[10] * dt
     cp = math.cos(phi)
     sp = math.sin(phi)
     V = (cp * dx + sp * dy) / c
@@ -70,6 +73,8 @@ def move(poses, idx, z, v, w, dt, p):
     sdS = math.sqrt(p[6])
     mV = p[7] * v
     mW = w + p[8]
+    dxc = p[9] * dt
+    dyc = p[10] * dt
     for i in range(n):
         j = idx[i]
         V = mV + sdV * z[0, i]
@@ -80,8 +85,8 @@ def move(poses, idx, z, v, w, dt, p):
         c = _chord(W, dt)
         cp = math.cos(phi)
         sp = math.sin(phi)
-        out[i, 0] = poses[j, 0] + c * (cp * V - sp * S)
-        out[i, 1] = poses[j, 1] + c * (sp * V + cp * S)
+        out[i, 0] = poses[j, 0] + c * (cp * V - sp * S) + dxc
+        out[i, 1] = poses[j, 1] + c * (sp * V + cp * S) + dyc
         out[i, 2] = th + W * dt
     return out
 

@@ -50,15 +50,16 @@ class EMResult:
     held: tuple[str, ...] = ()
     notes: list[str] = field(default_factory=list)
     filter_result: object = None  # the last E-step's FilterResult
+    current_n_m_s: tuple[float, float] = (0.0, 0.0)  # sea current (north, east), m/s
 
 
-def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particles):
+def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particles, current_n_m_s=None):
     """Replace :class:`LandmarkSighting` by :class:`FixedLandmarkObservation` using a map
     built by a FastSLAM forward pass; other observations are kept."""
     if not any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ())):
         return observations
     fr = run_particle_filter(params, v, w, dt, observations, init_poses, rng, n_particles,
-                             map_landmarks=True)
+                             map_landmarks=True, current_n_m_s=current_n_m_s)
     lmap = fr.landmark_map.fixed_map(fr.log_w[-1])
     out = []
     for obs in observations:
@@ -83,16 +84,19 @@ def _max_rel_change(a: MotionParams, b: MotionParams) -> float:
 
 def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
            rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None,
-           prior_params: MotionParams | None = None) -> EMResult:
+           prior_params: MotionParams | None = None, current_n_m_s=None) -> EMResult:
     """EM over one window; arguments as :func:`calibration.particle_filter.run_particle_filter`.
 
     ``step_weights`` (T,) are forgetting weights passed to the M-step; ``prior_params``
-    the centre of its log-variance prior (default: the current iterate).
+    the centre of its log-variance prior (default: the current iterate). ``current_n_m_s``
+    (2,) m/s is the sea current to start from (default zero); re-estimated by the M-step
+    when ``options.mstep.fit_current``, returned in :attr:`EMResult.current_n_m_s`.
     """
     raw_observations = observations
     has_landmarks = any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ()))
     smooth = ffbsi_exact if options.smoother == "exact" else ffbsi_mcmc
     params = params0
+    current = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
     lls: list[float] = []
     converged = False
     held: tuple[str, ...] = ()
@@ -101,17 +105,19 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
     for it in range(options.max_iterations):
         if has_landmarks or it == 0:  # the map follows the parameters (it is built with them)
             observations = freeze_landmarks(params, v_m_s, w_rad_s, dt_s, raw_observations, init_poses, rng,
-                                            options.n_particles)
+                                            options.n_particles, current)
         fr = run_particle_filter(params, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
-                                 options.n_particles)
+                                 options.n_particles, current_n_m_s=current)
         lls.append(fr.log_likelihood)
         if it > 0 and abs(lls[-1] - lls[-2]) < options.ll_tol * (1.0 + abs(lls[-1])) and moved < options.param_rtol:
             converged = True
             break
         kwargs = {"n_mcmc": options.n_mcmc} if smooth is ffbsi_mcmc else {}
-        traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, **kwargs)
-        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params)
+        traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, current_n_m_s=current, **kwargs)
+        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params, current)
         held, notes = ms.held, ms.notes
-        moved = _max_rel_change(params, ms.params)
-        params = ms.params
-    return EMResult(params, lls, len(lls), converged, held, notes, fr)
+        # current: 0.01 m/s as the scale of a relevant change
+        moved = max(_max_rel_change(params, ms.params),
+                    max(abs(a - b) for a, b in zip(current, ms.current_n_m_s)) / 0.01)
+        params, current = ms.params, ms.current_n_m_s
+    return EMResult(params, lls, len(lls), converged, held, notes, fr, current)

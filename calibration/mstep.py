@@ -27,12 +27,27 @@ closed forms given the variances (weighted least squares)::
 and the two are alternated (``n_alternations``). The sway variance is ``σ_S² =
 Σ λ_t Σ_j Ŝ_tj² / (M Σ λ_t)``.
 
+Sea current (``fit_current``). Positions are ground-referenced, so the step displacement
+is ``c R(φ) [V, S]ᵀ + u δt`` (:mod:`fusion.motion_model`). Given the variances, k_V and
+``u = (u_n, u_e)`` enter linearly: with ``g = δt/c``,
+``V̂⁰ = k v + g (cos φ u_n + sin φ u_e) + e_V`` and ``Ŝ⁰ = g (−sin φ u_n + cos φ u_e) + e_S``
+(``V̂⁰, Ŝ⁰`` inverted without current), so (k_V, u_n, u_e) is one weighted least-squares
+problem (weights λ_t/s_t and λ_t/σ_S²), alternated with the variances like k_V alone
+(:func:`fit_means`). A lawnmower separates k_V from the along-track current through the
+alternating legs; where the window cannot (one straight leg at constant speed), the
+inseparable column is held.
+
 Identifiability: the columns of the design ``D = (v², w², 1)`` (weighted by √λ) are
 scaled to unit norm; terms are admitted in priority order (the proportional term first:
 σ_Vv for V, σ_Ww for W, then the constant, then the cross term) while the condition
 number of the admitted columns stays below ``max_condition``; a term whose column is
 (numerically) zero or would push the condition number over the limit is *held* at its
 current value and reported.
+
+Surge terms at constant speed. A survey at constant speed has ``v² ≈ const`` so the columns
+``v²`` and ``1`` are collinear: σ_Vv² v² and σ_V1² cannot be told apart. The priority order
+then admits σ_Vv (the term the targets and the seed's σ_Dd are about) and holds σ_V1 at its
+prior value, i.e. the surge variance seen at that speed is attributed to σ_Vv.
 """
 from __future__ import annotations
 
@@ -61,6 +76,7 @@ class MStepOptions:
     fit_k_v: bool = True
     fit_b_w: bool = True
     fit_var_s: bool = True
+    fit_current: bool = False  # estimate the sea current with k_V (positions are ground-referenced)
     var_floor: float = 1e-10
 
 
@@ -72,6 +88,7 @@ class MStepResult:
     condition_w: float
     q_value: float
     notes: list[str] = field(default_factory=list)
+    current_n_m_s: tuple[float, float] = (0.0, 0.0)
 
 
 def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tuple[list[int], float]:
@@ -163,14 +180,70 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, p
     return a if np.all(np.isfinite(a)) else alpha0.copy()
 
 
+def _mean_design(trajectories, dt):
+    """Regressors of the mean model for every (trajectory, step).
+
+    With zero-current inversions ``V̂⁰, Ŝ⁰`` (:func:`fusion.motion_model.invert_step`) and
+    ``g = δt / c``, the water-relative velocities are ``V̂ = V̂⁰ − g (cos φ u_n + sin φ u_e)``,
+    ``Ŝ = Ŝ⁰ − g (−sin φ u_n + cos φ u_e)``. Returns ``V0, W, S0`` (M, T) and the current's
+    columns ``gv = g (cos φ, sin φ)``, ``gs = g (−sin φ, cos φ)`` as (M, T, 2).
+    """
+    th0, th1 = trajectories[:, :-1, 2], trajectories[:, 1:, 2]
+    V0, W, S0, c = invert_step(trajectories[:, :-1], trajectories[:, 1:], dt[None, :])
+    dtheta = (th1 - th0 + np.pi) % (2.0 * np.pi) - np.pi
+    phi = th0 + 0.5 * dtheta
+    g = dt[None, :] / c
+    cp, sp = np.cos(phi) * g, np.sin(phi) * g
+    return V0, W, S0, np.stack([cp, sp], axis=-1), np.stack([-sp, cp], axis=-1)
+
+
+def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_current, max_condition):
+    """Weighted least squares for (k_V, u_n, u_e) given the variances (closed form).
+
+    Rows ``V̂⁰_tj = k v_t + gv_tj · u + e``, weight ``λ_t / s_V,t``, and ``Ŝ⁰_tj = gs_tj · u + e``,
+    weight ``λ_t / σ_S²``, summed over the M trajectories. Columns the rows cannot separate
+    (e.g. k_V and the along-track current on a single straight leg at constant speed) are
+    held at their current values (:func:`identifiable_terms`, priority k_V, u_n, u_e).
+
+    Returns ``(k_v, current (2,), held names)``.
+    """
+    M, T = V0.shape
+    wv = np.broadcast_to(lam / s_v, (M, T)).ravel()
+    ws = np.broadcast_to(lam / var_s, (M, T)).ravel()
+    Xv = np.concatenate([np.broadcast_to(v, (M, T))[..., None], gv], axis=-1).reshape(-1, 3)
+    Xs = np.concatenate([np.zeros((M, T, 1)), gs], axis=-1).reshape(-1, 3)
+    X = np.concatenate([Xv, Xs])
+    y = np.concatenate([V0.ravel(), S0.ravel()])
+    wt = np.concatenate([wv, ws])
+    theta = np.array([k_v, current[0], current[1]], dtype=float)
+    want = [k for k, on in ((0, fit_k_v), (1, fit_current), (2, fit_current)) if on]
+    if not want:
+        return k_v, np.asarray(current, float), ()
+    sw = np.sqrt(wt)
+    # condition test on the per-step design (trajectory-averaged), not the M-fold copy
+    kept, _ = identifiable_terms((X * sw[:, None])[:, want], list(range(len(want))), max_condition)
+    free = [want[i] for i in kept]
+    fixed = [k for k in range(3) if k not in free]
+    held = tuple(("k_v", "current_n", "current_e")[k] for k in want if k not in free)
+    if free:
+        r = y - X[:, fixed] @ theta[fixed]
+        A = X[:, free] * sw[:, None]
+        sol, *_ = np.linalg.lstsq(A, r * sw, rcond=None)
+        if np.all(np.isfinite(sol)):
+            theta[free] = sol
+    return float(theta[0]), theta[1:].copy(), held
+
+
 def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
            step_weights=None, options: MStepOptions = MStepOptions(),
-           prior_params: MotionParams | None = None) -> MStepResult:
-    """New :class:`MotionParams` from smoothed trajectories (M, T+1, 3).
+           prior_params: MotionParams | None = None, current_n_m_s=None) -> MStepResult:
+    """New :class:`MotionParams` (and sea current) from smoothed trajectories (M, T+1, 3).
 
     ``step_weights`` (T,) are the forgetting weights λ_t (default 1). ``prior_params``
     centres the log-variance prior (default: ``params``, the current values; a fixed
     centre such as the initial calibration makes EM a MAP-EM with one fixed prior).
+    ``current_n_m_s`` (2,) m/s is the current of the E-step (default zero); it is
+    re-estimated with k_V when ``options.fit_current`` (:func:`fit_means`), else kept.
     """
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
@@ -178,7 +251,13 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     T = v.size
     lam = np.ones(T) if step_weights is None else np.asarray(step_weights, dtype=float)
     n_traj = trajectories.shape[0]
-    V, W, S, _ = invert_step(trajectories[:, :-1], trajectories[:, 1:], dt[None, :])  # (M, T)
+    current = np.zeros(2) if current_n_m_s is None else np.asarray(current_n_m_s, dtype=float).copy()
+    V0, W, S0, gv, gs = _mean_design(trajectories, dt)
+
+    def water_relative(cur):
+        return V0 - gv @ cur, S0 - gs @ cur
+
+    V, S = water_relative(current)
     design = np.stack([v * v, w * w, np.ones(T)], axis=1)
     sq_lam = np.sqrt(lam)[:, None]
     kept_v, cond_v = identifiable_terms(design * sq_lam, V_PRIORITY, options.max_condition)
@@ -192,28 +271,32 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     center_v = np.log([pp.var_vv, pp.var_vw, pp.var_v1])
     center_w = np.log([pp.var_wv, pp.var_ww, pp.var_w1])
     k_v, b_w = params.k_v, params.b_w
-    sum_V = V.sum(axis=0)
+    var_s = params.var_s
     sum_W = (W - w[None, :]).sum(axis=0)
     a_v, a_w = alpha_v, alpha_w
-    n_alt = max(1, options.n_alternations) if (options.fit_k_v or options.fit_b_w) else 1
+    held_means: tuple[str, ...] = ()
+    fit_means_any = options.fit_k_v or options.fit_current
+    n_alt = max(1, options.n_alternations) if (fit_means_any or options.fit_b_w) else 1
     for _ in range(n_alt):
+        # means given the variances (the first pass uses the E-step's, which are close)
+        s_v = design @ np.exp(a_v)
+        s_w = design @ np.exp(a_w)
+        if fit_means_any:
+            k_new, current, held_means = fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current,
+                                                   options.fit_k_v, options.fit_current, options.max_condition)
+            k_v = k_new if k_new > 0 else k_v
+            V, S = water_relative(current)
+        if options.fit_b_w:
+            b_w = float(np.sum(lam * sum_W / s_w) / (n_traj * np.sum(lam / s_w)))
+        # variances given the means
         res_v = np.mean((V - k_v * v[None, :]) ** 2, axis=0)
         a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau, center_v)
         res_w = np.mean((W - w[None, :] - b_w) ** 2, axis=0)
         a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau, center_w)
-        s_v = design @ np.exp(a_v)
-        s_w = design @ np.exp(a_w)
-        if options.fit_k_v:
-            den = n_traj * np.sum(lam * v * v / s_v)
-            if den > 0:
-                k_v = float(np.sum(lam * v * sum_V / s_v) / den)
-        if options.fit_b_w:
-            b_w = float(np.sum(lam * sum_W / s_w) / (n_traj * np.sum(lam / s_w)))
+        if options.fit_var_s:
+            var_s = max(float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum())), options.var_floor)
     res_v = np.sum((V - k_v * v[None, :]) ** 2, axis=0)
     res_w = np.sum((W - w[None, :] - b_w) ** 2, axis=0)
-    var_s = params.var_s
-    if options.fit_var_s:
-        var_s = float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum()))
     floor = options.var_floor
     ev, ew = np.maximum(np.exp(a_v), floor), np.maximum(np.exp(a_w), floor)
     new = replace(params, var_vv=float(ev[0]), var_vw=float(ev[1]), var_v1=float(ev[2]),
@@ -222,5 +305,5 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     new = replace(new, **{name: getattr(params, name) for name in held})  # exactly, not exp(log(x))
     s_v, s_w = design @ ev, design @ ew
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
-    notes = [f"held {name} (controls do not separate it)" for name in held]
-    return MStepResult(new, held, cond_v, cond_w, float(q), notes)
+    notes = [f"held {name} (controls do not separate it)" for name in held + held_means]
+    return MStepResult(new, held + held_means, cond_v, cond_w, float(q), notes, (float(current[0]), float(current[1])))

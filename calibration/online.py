@@ -18,6 +18,17 @@ Calibration. Every ``period_steps`` closed steps, ``em_iterations`` of EM
 current parameters, with exponential forgetting: step τ of a window ending at k has weight
 ``λ^{k−1−τ}`` in the M-step, so a change of the water is followed within ~1/(1−λ) steps.
 
+Sea current. Positions are ground-referenced while (V, S) are water-relative, so the
+window's model carries a horizontal current (:mod:`fusion.motion_model`), estimated by the
+M-step with k_V (:func:`calibration.mstep.fit_means`), warm-started from the last accepted
+value and released with the parameters (:attr:`Release.current_n_m_s`).
+
+Step length. :class:`MotionParams` are defined for the model's reference step
+``model_step_s`` (1 s); the window's steps are ``step_s`` long, so the filter and EM run with
+``rescale_step(params, model_step_s, step_s)`` (variances × model_step_s/step_s) and the
+released parameters are converted back (× step_s/model_step_s)
+(:func:`fusion.motion_model.rescale_step`).
+
 Sanity gate before a release: the new parameters must be finite, within the configured
 bounds, and the window log-likelihood with them (a fresh filter run) must not be worse than
 with the current ones by more than ``ll_tolerance`` nats (the PF estimate is noisy). Every
@@ -34,7 +45,7 @@ from typing import Literal
 
 import numpy as np
 
-from fusion.motion_model import MotionParams, RpmSpeedTable
+from fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
 from calibration.em import EMOptions, run_em
 from calibration.mstep import MStepOptions
 from calibration.particle_filter import filter_step, run_particle_filter
@@ -49,6 +60,8 @@ class CalibratorConfig:
 
     window_steps: int = 96        # 8 min of 5 s steps: ~8 USBL fixes at one per minute
     step_s: float = 5.0
+    # reference step of MotionParams (s): the variances released are for this step
+    model_step_s: float = 1.0
     period_steps: int = 12        # EM once a minute
     min_window_steps: int = 24
     em_iterations: int = 3
@@ -64,12 +77,14 @@ class CalibratorConfig:
     fit_k_v: bool = True
     fit_b_w: bool = True
     fit_var_s: bool = True
+    fit_current: bool = True      # estimate the sea current (USBL/GNSS are ground-referenced)
     # bounds of the sanity gate
     max_variance: float = 25.0
     min_variance: float = 1e-12
     k_v_min: float = 0.5
     k_v_max: float = 1.5
     b_w_max_rad_s: float = 0.1
+    max_current_m_s: float = 3.0
     ll_tolerance: float = 5.0
     # sensors without their own σ; priors
     heading_sigma_deg: float = 0.5
@@ -86,8 +101,8 @@ class CalibratorConfig:
     def validate(self) -> None:
         if self.window_steps < 2 or self.period_steps < 1 or self.min_window_steps < 2:
             raise ValueError("window_steps, min_window_steps ≥ 2 and period_steps ≥ 1 required")
-        if not self.step_s > 0:
-            raise ValueError("step_s must be > 0")
+        if not self.step_s > 0 or not self.model_step_s > 0:
+            raise ValueError("step_s and model_step_s must be > 0")
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError("forgetting must be in (0, 1]")
         if self.n_particles < 10 or self.n_smoothed < 1 or self.em_iterations < 1:
@@ -101,13 +116,14 @@ class CalibratorConfig:
                          max_iterations=self.em_iterations, n_mcmc=self.n_mcmc,
                          mstep=MStepOptions(max_condition=self.max_condition, prior_tau=self.prior_tau,
                                             fit_k_v=self.fit_k_v, fit_b_w=self.fit_b_w,
-                                            fit_var_s=self.fit_var_s))
+                                            fit_var_s=self.fit_var_s, fit_current=self.fit_current))
 
 
 @dataclass(frozen=True)
 class Release:
-    """One calibration attempt: the parameters, the window log-likelihood with them,
-    whether they were released and why not, and the EM iterations run."""
+    """One calibration attempt: the parameters (for the model step ``model_step_s``), the
+    window log-likelihood with them, whether they were released and why not, the EM
+    iterations run, and the estimated sea current (north, east; m/s)."""
 
     t_s: float
     params: MotionParams
@@ -115,6 +131,7 @@ class Release:
     accepted: bool
     reason: str
     iterations: int
+    current_n_m_s: tuple[float, float] = (0.0, 0.0)
 
 
 def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
@@ -132,37 +149,49 @@ def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
 
 def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
                      rng: np.random.Generator, t_s: float = math.nan,
-                     initial_params: MotionParams | None = None) -> Release:
+                     initial_params: MotionParams | None = None, current_n_m_s=None) -> Release:
     """EM over one window + the sanity gate; returns the :class:`Release` record.
 
-    ``initial_params`` is the prior centre when ``config.prior_anchor == "initial"``.
+    ``params`` (and ``initial_params``, the prior centre when ``config.prior_anchor ==
+    "initial"``) are for the model step ``config.model_step_s``; the window's steps are
+    ``dt = config.step_s`` long and EM runs with the rescaled variances. ``current_n_m_s``
+    (2,) m/s warm-starts the current. The release carries model-step parameters.
     """
     T = len(v)
     lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
+    to_window = lambda p: rescale_step(p, config.model_step_s, config.step_s)  # noqa: E731
+    to_model = lambda p: rescale_step(p, config.step_s, config.model_step_s)  # noqa: E731
+    cur0 = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
+    win_params = to_window(params)
     try:
-        anchor = initial_params if config.prior_anchor == "initial" else None
-        res = run_em(params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam,
-                     prior_params=anchor)
+        anchor = to_window(initial_params) if config.prior_anchor == "initial" and initial_params is not None else None
+        res = run_em(win_params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam,
+                     prior_params=anchor, current_n_m_s=cur0)
+        new = to_model(res.params)
     except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
-        return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0)
-    new = res.params
+        return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0, cur0)
+    cur = tuple(float(x) for x in res.current_n_m_s)
     reason = gate_reason(new, config)
+    if not reason and not all(math.isfinite(x) and abs(x) <= config.max_current_m_s for x in cur):
+        reason = f"current {cur} outside ±{config.max_current_m_s} m/s"
     if reason:
-        return Release(t_s, new, math.nan, False, reason, res.iterations)
+        return Release(t_s, new, math.nan, False, reason, res.iterations, cur)
     ll_old = res.log_likelihoods[0]
     try:
         from calibration.em import freeze_landmarks
-        obs = freeze_landmarks(params, v, w, dt, observations, init_cloud, rng, config.n_particles)
-        ll_new = run_particle_filter(new, v, w, dt, obs, init_cloud, rng, config.n_particles).log_likelihood
+        obs = freeze_landmarks(win_params, v, w, dt, observations, init_cloud, rng, config.n_particles, cur0)
+        ll_new = run_particle_filter(res.params, v, w, dt, obs, init_cloud, rng, config.n_particles,
+                                     current_n_m_s=cur).log_likelihood
     except FloatingPointError as e:
-        return Release(t_s, new, -math.inf, False, f"filter failed with new parameters: {e}", res.iterations)
+        return Release(t_s, new, -math.inf, False, f"filter failed with new parameters: {e}", res.iterations, cur)
     if not math.isfinite(ll_new):
-        return Release(t_s, new, ll_new, False, "log-likelihood not finite", res.iterations)
+        return Release(t_s, new, ll_new, False, "log-likelihood not finite", res.iterations, cur)
     if ll_new < ll_old - config.ll_tolerance:
         return Release(t_s, new, ll_new, False,
-                       f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations)
+                       f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations,
+                       cur)
     held = f"; held {','.join(res.held)}" if res.held else ""
-    return Release(t_s, new, ll_new, True, "ok" + held, res.iterations)
+    return Release(t_s, new, ll_new, True, "ok" + held, res.iterations, cur)
 
 
 @dataclass
@@ -181,8 +210,10 @@ class OnlineCalibrator:
     def __init__(self, config: CalibratorConfig, params0: MotionParams, rpm_table: RpmSpeedTable,
                  rng: np.random.Generator):
         self.config = config
-        self.params = params0
+        self.params = params0  # for the model step (config.model_step_s)
         self.params0 = params0
+        self.current_n_m_s = (0.0, 0.0)  # sea current (north, east), m/s
+        self._win_params = rescale_step(params0, config.model_step_s, config.step_s)  # for step_s steps
         self.rpm_table = rpm_table
         self.rng = rng
         self.rejected: dict[str, int] = {}
@@ -433,14 +464,14 @@ class OnlineCalibrator:
             self._v.append(v)
             self._w.append(w)
             try:
-                self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
-                                                          fwd_obs, self.rng)
+                self._poses, self._log_w, _ = filter_step(self._win_params, self._poses, self._log_w, v, w, c.step_s,
+                                                          fwd_obs, self.rng, current_n_m_s=self.current_n_m_s)
             except FloatingPointError:
                 # no particle explains this step's observations (e.g. a wild fix): move
                 # without them rather than stop calibrating; counted
                 self._reject("observations impossible under every particle (dropped)")
-                self._poses, self._log_w, _ = filter_step(self.params, self._poses, self._log_w, v, w, c.step_s,
-                                                          [], self.rng)
+                self._poses, self._log_w, _ = filter_step(self._win_params, self._poses, self._log_w, v, w, c.step_s,
+                                                          [], self.rng, current_n_m_s=self.current_n_m_s)
             self._since_em += 1
         self._closed = k
         self._win_obs.append(obs)
@@ -458,9 +489,11 @@ class OnlineCalibrator:
         obs = list(self._win_obs)[-(T + 1):]
         init = self._clouds[-(T + 1)]
         rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
-                               initial_params=self.params0)
+                               initial_params=self.params0, current_n_m_s=self.current_n_m_s)
         if rel.accepted:
             self.params = rel.params
+            self.current_n_m_s = rel.current_n_m_s
+            self._win_params = rescale_step(rel.params, self.config.model_step_s, self.config.step_s)
         self._pending.append(rel)
 
     def poll(self) -> list[Release]:

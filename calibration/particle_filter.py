@@ -77,7 +77,8 @@ def _reweight(log_w, g):
 
 def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
                         rng: np.random.Generator, n_particles: int | None = None,
-                        ess_fraction: float = 0.5, map_landmarks: bool = False) -> FilterResult:
+                        ess_fraction: float = 0.5, map_landmarks: bool = False,
+                        current_n_m_s=None) -> FilterResult:
     """Run the filter over one window.
 
     Parameters
@@ -93,6 +94,7 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     n_particles : N (default N0)
     ess_fraction : resample when ESS < ess_fraction · N
     map_landmarks : keep a per-particle map for :class:`LandmarkSighting` (FastSLAM)
+    current_n_m_s : optional (2,) sea current (north, east) in m/s added to every move
     """
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
@@ -117,7 +119,7 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     LW[0] = lw
     arange = np.arange(N)
     threshold = ess_fraction * N
-    pvec = pack(params)
+    pvec = pack(params, current_n_m_s)
     for t in range(T):
         if ess_now < threshold:
             idx = systematic_from_log(lw, rng.random())
@@ -136,7 +138,8 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
 
 
 def filter_step(params: MotionParams, poses: np.ndarray, log_w: np.ndarray, v: float, w: float,
-                dt: float, obs_list, rng: np.random.Generator, ess_fraction: float = 0.5):
+                dt: float, obs_list, rng: np.random.Generator, ess_fraction: float = 0.5,
+                current_n_m_s=None):
     """One online step of the same filter: (resample if ESS low) → move → weight.
 
     Returns new ``(poses (N,3), normalised log_w (N,), log-likelihood increment)``.
@@ -147,7 +150,7 @@ def filter_step(params: MotionParams, poses: np.ndarray, log_w: np.ndarray, v: f
     if 1.0 / np.sum(wts * wts) < ess_fraction * N:
         idx = systematic_resample(wts, rng)
         log_w = np.full(N, -np.log(N))
-    poses = move(poses, idx, rng.standard_normal((3, N)), float(v), float(w), float(dt), pack(params))
+    poses = move(poses, idx, rng.standard_normal((3, N)), float(v), float(w), float(dt), pack(params, current_n_m_s))
     g = _observation_log_lik(obs_list, poses, None)
     log_w, inc, _ = _reweight(log_w, g)
     return poses, log_w, float(inc)

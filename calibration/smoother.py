@@ -39,12 +39,12 @@ def _sample_rows(log_p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def ffbsi_exact(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, current_n_m_s=None) -> np.ndarray:
     """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T) (numba)."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     idx = multinomial_indices(fr.log_w[-1], n_traj, rng)
     u = rng.random((v.size, n_traj))
-    return backward_exact(fr.poses, fr.log_w, v, w, dt, pack(params), idx, u)
+    return backward_exact(fr.poses, fr.log_w, v, w, dt, pack(params, current_n_m_s), idx, u)
 
 
 def _controls(v_m_s, w_rad_s, dt_s):
@@ -55,7 +55,7 @@ def _controls(v_m_s, w_rad_s, dt_s):
 
 
 def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-                      rng: np.random.Generator) -> np.ndarray:
+                      rng: np.random.Generator, current_n_m_s=None) -> np.ndarray:
     """Exact FFBSi written with :func:`fusion.motion_model.transition_logpdf` (the
     independent reference for the numba kernels; O(N·M·T) memory-light numpy)."""
     v = np.asarray(v_m_s, dtype=float)
@@ -67,14 +67,14 @@ def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt
     out[:, T] = fr.poses[T, idx]
     for t in range(T - 1, -1, -1):
         lp = fr.log_w[t][None, :] + transition_logpdf(
-            params, fr.poses[t][None, :, :], out[:, t + 1][:, None, :], v[t], w[t], dt[t])
+            params, fr.poses[t][None, :, :], out[:, t + 1][:, None, :], v[t], w[t], dt[t], current_n_m_s)
         idx = _sample_rows(lp, rng)
         out[:, t] = fr.poses[t, idx]
     return out
 
 
 def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-               rng: np.random.Generator, n_mcmc: int = 2) -> np.ndarray:
+               rng: np.random.Generator, n_mcmc: int = 2, current_n_m_s=None) -> np.ndarray:
     """FFBSi with the MCMC backward kernel: (M, T+1, 3) trajectories in O(M·T·n_mcmc) (numba)."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size
@@ -83,11 +83,11 @@ def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_t
     for t in range(T):
         props[t] = multinomial_indices(fr.log_w[t], (n_mcmc, n_traj), rng)
     log_u = np.log(rng.random((T, n_mcmc, n_traj)))
-    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params), idx, props, log_u)
+    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params, current_n_m_s), idx, props, log_u)
 
 
 def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-                     rng: np.random.Generator, n_mcmc: int = 2) -> np.ndarray:
+                     rng: np.random.Generator, n_mcmc: int = 2, current_n_m_s=None) -> np.ndarray:
     """Numpy version of :func:`ffbsi_mcmc` (reference for the kernel)."""
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
@@ -99,12 +99,12 @@ def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_
     for t in range(T - 1, -1, -1):
         nxt = out[:, t + 1]
         cur = fr.ancestors[t, idx]
-        lp_cur = transition_logpdf(params, fr.poses[t, cur], nxt, v[t], w[t], dt[t])
+        lp_cur = transition_logpdf(params, fr.poses[t, cur], nxt, v[t], w[t], dt[t], current_n_m_s)
         props = multinomial_indices(fr.log_w[t], (n_mcmc, n_traj), rng)
         log_u = np.log(rng.random((n_mcmc, n_traj)))
         for k in range(n_mcmc):
             prop = props[k]
-            lp_prop = transition_logpdf(params, fr.poses[t, prop], nxt, v[t], w[t], dt[t])
+            lp_prop = transition_logpdf(params, fr.poses[t, prop], nxt, v[t], w[t], dt[t], current_n_m_s)
             accept = log_u[k] < lp_prop - lp_cur
             cur = np.where(accept, prop, cur)
             lp_cur = np.where(accept, lp_prop, lp_cur)

@@ -22,6 +22,17 @@ the sway term)::
 the straight-line limit is exact and smooth). Expanding gives the errata's
 ``x' = x − V/W sin θ + V/W sin(θ + W δt)``.
 
+Sea current. (V, S) are water-relative; a horizontal current ``u_c = (u_n, u_e)`` (m/s, NED)
+adds ``u_c δt`` to the ground displacement (optional ``current_n_m_s`` argument of
+:func:`propagate`, :func:`sample_poses`, :func:`invert_step`, :func:`step_errors`,
+:func:`transition_logpdf`; default zero, the water-relative model above). Positions
+(USBL, GNSS) are ground-referenced, so a calibrator that ignores the current sees it as
+surge and sway noise.
+
+Step length. The variances are defined for the *reference step* of the model (1 s: the
+simulator's ``motion.step_s`` and the filter's 1 Hz learned-velocity aid). A model run at a
+longer step uses :func:`rescale_step` (white-noise averaging).
+
 Transition density. The map (V, S, W) → (x', y', θ') is invertible:
 ``Ŵ = wrap(θ' − θ)/δt``, ``[V̂, Ŝ] = R(−φ) d / c``, with Jacobian ``|∂(x',y',θ')/∂(V,S,W)| =
 c² δt``, so ``log p(x' | x) = log N(V̂) + log N(Ŝ) + log N(Ŵ) − log(c² δt)``.
@@ -139,7 +150,41 @@ def _chord(W, dt):
     return dt * np.sinc(np.asarray(W) * dt / (2.0 * np.pi))
 
 
-def propagate(pose, V, W, S, dt):
+def rescale_step(params: MotionParams, from_step_s: float, to_step_s: float) -> MotionParams:
+    """The same water expressed for a model step of ``to_step_s`` instead of ``from_step_s``.
+
+    Assumption (white-noise averaging): the true velocities are drawn independently every
+    ``from_step_s`` seconds (the simulator's ``motion.step_s``; a 1 Hz velocity aid sees
+    the same). A step of ``to_step_s = n · from_step_s`` moves with the *mean* of n such
+    draws, whose variance is 1/n of one draw's, so every variance is multiplied by
+    ``from_step_s / to_step_s``. The means (``k_v``, ``b_w``) do not change.
+
+    Parameters
+    ----------
+    params : parameters valid for a step of ``from_step_s`` (s)
+    from_step_s, to_step_s : step lengths (s), > 0
+
+    Returns
+    -------
+    MotionParams with the variances scaled by ``from_step_s / to_step_s``.
+    """
+    if not (from_step_s > 0 and to_step_s > 0 and math.isfinite(from_step_s) and math.isfinite(to_step_s)):
+        raise ValueError(f"rescale_step: steps must be finite and > 0, got {from_step_s}, {to_step_s}")
+    f = from_step_s / to_step_s
+    if f == 1.0:
+        return params
+    return replace(params, **{name: getattr(params, name) * f for name in MotionParams.VARIANCE_NAMES})
+
+
+def _current(current_n_m_s):
+    """(u_n, u_e) as two arrays (m/s); ``None`` means no current."""
+    if current_n_m_s is None:
+        return 0.0, 0.0
+    c = np.asarray(current_n_m_s, dtype=float)
+    return c[..., 0], c[..., 1]
+
+
+def propagate(pose, V, W, S, dt, current_n_m_s=None):
     """Exact pose update for body velocity (V, S) and yaw rate W over ``dt``.
 
     Parameters
@@ -147,6 +192,8 @@ def propagate(pose, V, W, S, dt):
     pose : (..., 3) array of (x_m, y_m, theta_rad)
     V, W, S : arrays broadcastable to ``pose[..., 0]`` (m/s, rad/s, m/s)
     dt : float or array (s)
+    current_n_m_s : optional (2,) horizontal current (north, east) in m/s; adds
+        ``current · dt`` to the displacement
 
     Returns
     -------
@@ -158,26 +205,29 @@ def propagate(pose, V, W, S, dt):
     c = _chord(W, dt)
     cos_phi, sin_phi = np.cos(phi), np.sin(phi)
     out = np.empty(np.broadcast(pose[..., 0], V, W, S).shape + (3,))
-    out[..., 0] = pose[..., 0] + c * (cos_phi * V - sin_phi * S)
-    out[..., 1] = pose[..., 1] + c * (sin_phi * V + cos_phi * S)
+    un, ue = _current(current_n_m_s)
+    out[..., 0] = pose[..., 0] + c * (cos_phi * V - sin_phi * S) + un * dt
+    out[..., 1] = pose[..., 1] + c * (sin_phi * V + cos_phi * S) + ue * dt
     out[..., 2] = theta + W * dt
     return out
 
 
-def sample_poses(params: MotionParams, poses, v, w, dt, rng: np.random.Generator):
+def sample_poses(params: MotionParams, poses, v, w, dt, rng: np.random.Generator, current_n_m_s=None):
     """Propagate many particles one step with velocities drawn from the model.
 
-    ``poses`` is (N, 3); returns the (N, 3) new poses.
+    ``poses`` is (N, 3); returns the (N, 3) new poses. ``current_n_m_s`` as :func:`propagate`.
     """
     poses = np.asarray(poses, dtype=float)
     V, W, S = sample_velocities(params, v, w, rng, size=poses.shape[0])
-    return propagate(poses, V, W, S, dt)
+    return propagate(poses, V, W, S, dt, current_n_m_s)
 
 
-def invert_step(pose0, pose1, dt):
+def invert_step(pose0, pose1, dt, current_n_m_s=None):
     """Velocities (V̂, Ŵ, Ŝ) that carry ``pose0`` to ``pose1`` in ``dt``; broadcasts.
 
-    Also returns ``c`` (the chord factor) for the Jacobian of the transition density.
+    The water-relative (V̂, Ŝ) after removing ``current_n_m_s · dt`` (optional (2,), m/s)
+    from the displacement. Also returns ``c`` (the chord factor) for the Jacobian of the
+    transition density.
     """
     pose0 = np.asarray(pose0, dtype=float)
     pose1 = np.asarray(pose1, dtype=float)
@@ -185,27 +235,29 @@ def invert_step(pose0, pose1, dt):
     W = dtheta / dt
     phi = pose0[..., 2] + 0.5 * dtheta
     c = _chord(W, dt)
-    dx = pose1[..., 0] - pose0[..., 0]
-    dy = pose1[..., 1] - pose0[..., 1]
+    un, ue = _current(current_n_m_s)
+    dx = pose1[..., 0] - pose0[..., 0] - un * dt
+    dy = pose1[..., 1] - pose0[..., 1] - ue * dt
     cos_phi, sin_phi = np.cos(phi), np.sin(phi)
     V = (cos_phi * dx + sin_phi * dy) / c
     S = (-sin_phi * dx + cos_phi * dy) / c
     return V, W, S, c
 
 
-def step_errors(pose0, pose1, v, w, dt):
-    """The M-step's per-step errors ``(ε_V, ε_W, ε_S) = (V̂ − v, Ŵ − w, Ŝ)``."""
-    V, W, S, _ = invert_step(pose0, pose1, dt)
+def step_errors(pose0, pose1, v, w, dt, current_n_m_s=None):
+    """The M-step's per-step errors ``(ε_V, ε_W, ε_S) = (V̂ − v, Ŵ − w, Ŝ)`` (current removed)."""
+    V, W, S, _ = invert_step(pose0, pose1, dt, current_n_m_s)
     return V - np.asarray(v, dtype=float), W - np.asarray(w, dtype=float), S
 
 
-def transition_logpdf(params: MotionParams, pose0, pose1, v, w, dt):
+def transition_logpdf(params: MotionParams, pose0, pose1, v, w, dt, current_n_m_s=None):
     """``log p(pose1 | pose0, v, w)`` in (x, y, θ) coordinates; broadcasts.
 
     Includes the Jacobian ``log(c² δt)`` of the change of variables, so densities of
-    different pose pairs are comparable (the backward smoother needs that).
+    different pose pairs are comparable (the backward smoother needs that). The current
+    (optional (2,), m/s) shifts the displacement and leaves the Jacobian unchanged.
     """
-    V, W, S, c = invert_step(pose0, pose1, dt)
+    V, W, S, c = invert_step(pose0, pose1, dt, current_n_m_s)
     mean_V, mean_W = velocity_means(params, v, w)
     var_V, var_W, var_S = velocity_variances(params, v, w)
     ll = -0.5 * ((V - mean_V) ** 2 / var_V + np.log(var_V) + LOG_2PI)

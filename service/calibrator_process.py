@@ -49,6 +49,7 @@ def release_to_dict(release: Any) -> dict[str, Any]:
         "accepted": bool(release.accepted),
         "reason": str(getattr(release, "reason", "") or ""),
         "iterations": int(getattr(release, "iterations", 0) or 0),
+        "current_n_m_s": [float(x) for x in getattr(release, "current_n_m_s", (0.0, 0.0))],
     }
 
 
@@ -56,11 +57,22 @@ def _release_type() -> type:
     try:
         from calibration.online import Release
     except ImportError:  # a daemon without the calibrator package still applies remote releases
+        import dataclasses
         from dataclasses import make_dataclass
 
         Release = make_dataclass("Release", ["t_s", "params", "log_likelihood", "accepted",
-                                             "reason", "iterations"], frozen=True)
+                                             "reason", "iterations",
+                                             ("current_n_m_s", tuple, dataclasses.field(default=(0.0, 0.0)))],
+                                 frozen=True)
     return Release
+
+
+def _current_from(value: Any) -> tuple[float, float]:
+    """Optional ``current_n_m_s`` (north, east, m/s) of a release; absent → (0, 0)."""
+    if value is None:
+        return (0.0, 0.0)
+    n, e = (float(x) for x in value)
+    return (n, e)
 
 
 def release_from_dict(data: Any) -> Any:
@@ -78,8 +90,9 @@ def release_from_dict(data: Any) -> Any:
         return Release(t_s=t_s, params=params,
                        log_likelihood=math.nan if ll is None else float(ll),
                        accepted=bool(data["accepted"]), reason=str(data.get("reason", "")),
-                       iterations=int(data.get("iterations", 0)))
-    except (KeyError, TypeError) as e:
+                       iterations=int(data.get("iterations", 0)),
+                       current_n_m_s=_current_from(data.get("current_n_m_s")))
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"calibration_release: {e}") from e
 
 

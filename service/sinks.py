@@ -181,7 +181,8 @@ class ParamsCsvSink(Sink):
 
     A first row ``initial`` with the parameters the filter started with, then one row per
     release: ``t_s``, every :class:`~fusion.motion_model.MotionParams` field,
-    ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``.
+    ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``,
+    and the calibrator's sea current ``current_n_m_s``, ``current_e_m_s`` (empty if unknown).
     """
 
     def __init__(self, path: str | Path, initial_params: Any = None) -> None:
@@ -191,13 +192,14 @@ class ParamsCsvSink(Sink):
         self.names = tuple(MotionParams().to_dict())
         self._file = open(self.path, "w", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
-        self._writer.writerow(("t_s",) + self.names + ("log_likelihood", "accepted", "reason", "iterations"))
+        self._writer.writerow(("t_s",) + self.names + ("log_likelihood", "accepted", "reason", "iterations",
+                                                             "current_n_m_s", "current_e_m_s"))
         self._initial = initial_params  # written with the data time of the first input
 
     def _write_initial(self, t_s: float) -> None:
         d = self._initial.to_dict()
         self._initial = None
-        self._writer.writerow([fmt(t_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", ""])
+        self._writer.writerow([fmt(t_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", "", "", ""])
 
     def on_sample(self, sample: Any) -> None:
         if self._initial is not None:
@@ -213,7 +215,8 @@ class ParamsCsvSink(Sink):
         d = release.params.to_dict() if release.params is not None else {}
         self._writer.writerow([fmt(release.t_s)] + [fmt(d.get(n)) for n in self.names]
                               + [fmt(release.log_likelihood), fmt(bool(release.accepted)),
-                                 str(release.reason or ""), fmt(getattr(release, "iterations", None))])
+                                 str(release.reason or ""), fmt(getattr(release, "iterations", None))]
+                              + [fmt(x) for x in (getattr(release, "current_n_m_s", None) or (None, None))])
 
     def close(self) -> None:
         self._file.close()

@@ -51,7 +51,7 @@ def survey_stream(rng, minutes=24.0, change_min=8.0, k_before=1.0, k_after=0.85,
 
 CONFIG = CalibratorConfig(window_steps=96, step_s=STEP, period_steps=12, min_window_steps=24,
                           em_iterations=3, n_particles=400, n_smoothed=40, forgetting=0.985,
-                          origin_lat_deg=43.0, origin_lon_deg=5.0)
+                          origin_lat_deg=43.0, origin_lon_deg=5.0, model_step_s=STEP)
 
 
 def _run(seed, stream):
