@@ -222,16 +222,23 @@ def sample_poses(params: MotionParams, poses, v, w, dt, rng: np.random.Generator
     return propagate(poses, V, W, S, dt, current_n_m_s)
 
 
-def invert_step(pose0, pose1, dt, current_n_m_s=None):
+def invert_step(pose0, pose1, dt, current_n_m_s=None, turn_ref_rad=None):
     """Velocities (V̂, Ŵ, Ŝ) that carry ``pose0`` to ``pose1`` in ``dt``; broadcasts.
 
     The water-relative (V̂, Ŝ) after removing ``current_n_m_s · dt`` (optional (2,), m/s)
     from the displacement. Also returns ``c`` (the chord factor) for the Jacobian of the
     transition density.
+
+    The heading change is known modulo 2π; by default the branch in (−π, π] is taken.
+    ``turn_ref_rad`` (optional, broadcastable, rad) takes the branch nearest to it instead,
+    e.g. the expected turn ``(w + b_W) δt``: when turns per step can exceed π (large
+    ``w δt`` or σ_Ww), the branch about 0 inverts such a step to the opposite turn and a
+    flipped surge (V̂ ≈ −V), which inflates the learned surge variance.
     """
     pose0 = np.asarray(pose0, dtype=float)
     pose1 = np.asarray(pose1, dtype=float)
-    dtheta = (pose1[..., 2] - pose0[..., 2] + np.pi) % (2.0 * np.pi) - np.pi
+    ref = 0.0 if turn_ref_rad is None else np.asarray(turn_ref_rad, dtype=float)
+    dtheta = (pose1[..., 2] - pose0[..., 2] - ref + np.pi) % (2.0 * np.pi) - np.pi + ref
     W = dtheta / dt
     phi = pose0[..., 2] + 0.5 * dtheta
     c = _chord(W, dt)
