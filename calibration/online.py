@@ -21,7 +21,10 @@ current parameters, with exponential forgetting: step τ of a window ending at k
 Sea current. Positions are ground-referenced while (V, S) are water-relative, so the
 window's model carries a horizontal current (:mod:`fusion.motion_model`), estimated by the
 M-step with k_V (:func:`calibration.mstep.fit_means`), warm-started from the last accepted
-value and released with the parameters (:attr:`Release.current_n_m_s`).
+value and released with the parameters (:attr:`Release.current_n_m_s`). Before EM, k_V and the
+current are warm-started by the closed-form fit of the window's fixes against dead reckoning
+(:mod:`calibration.fix_regression`, an ECME step): the smoother alone barely shows a
+cross-track current because the sway prior is tight, so EM would follow it far too slowly.
 
 Step length. :class:`MotionParams` are defined for the model's reference step
 ``model_step_s`` (1 s); the window's steps are ``step_s`` long, so the filter and EM run with
@@ -40,7 +43,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -78,6 +81,10 @@ class CalibratorConfig:
     fit_b_w: bool = True
     fit_var_s: bool = True
     fit_current: bool = True      # estimate the sea current (USBL/GNSS are ground-referenced)
+    fix_regression: bool = True   # warm-start k_V and the current from fixes vs dead reckoning
+    # poses with absolute position information (fixes, ranges, landmarks) a window needs:
+    # without them k_V and the current are not observable and EM would only wander
+    min_position_poses: int = 3
     # bounds of the sanity gate
     max_variance: float = 25.0
     min_variance: float = 1e-12
@@ -149,24 +156,42 @@ def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
 
 def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
                      rng: np.random.Generator, t_s: float = math.nan,
-                     initial_params: MotionParams | None = None, current_n_m_s=None) -> Release:
+                     initial_params: MotionParams | None = None, current_n_m_s=None,
+                     headings_rad=None) -> Release:
     """EM over one window + the sanity gate; returns the :class:`Release` record.
 
     ``params`` (and ``initial_params``, the prior centre when ``config.prior_anchor ==
     "initial"``) are for the model step ``config.model_step_s``; the window's steps are
     ``dt = config.step_s`` long and EM runs with the rescaled variances. ``current_n_m_s``
-    (2,) m/s warm-starts the current. The release carries model-step parameters.
+    (2,) m/s warm-starts the current. With ``headings_rad`` (T+1,) at the poses and
+    ``config.fix_regression``, k_V and the current are first fitted to the window's fixes
+    (:func:`calibration.fix_regression.fix_regression`). The release carries model-step
+    parameters; the gate compares with the window log-likelihood of the current ones.
     """
     T = len(v)
     lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
     to_window = lambda p: rescale_step(p, config.model_step_s, config.step_s)  # noqa: E731
     to_model = lambda p: rescale_step(p, config.step_s, config.model_step_s)  # noqa: E731
     cur0 = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
+    n_pos = sum(1 for obs in observations
+                if any(not isinstance(o, HeadingObservation) for o in (obs or ())))
+    if n_pos < config.min_position_poses:
+        return Release(t_s, params, math.nan, False,
+                       f"too little position information: {n_pos} pose(s) with fixes/ranges/landmarks "
+                       f"< {config.min_position_poses}", 0, cur0)
     win_params = to_window(params)
+    start_params, start_cur = win_params, cur0
+    if headings_rad is not None and config.fix_regression:
+        from calibration.fix_regression import fix_regression
+        k_fix, cur_fix, _ = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
+                                           lam, config.max_condition)
+        if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
+            start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
+            start_cur = cur_fix if config.fit_current else cur0
     try:
         anchor = to_window(initial_params) if config.prior_anchor == "initial" and initial_params is not None else None
-        res = run_em(win_params, v, w, dt, observations, init_cloud, rng, config.em_options(), step_weights=lam,
-                     prior_params=anchor, current_n_m_s=cur0)
+        res = run_em(start_params, v, w, dt, observations, init_cloud, rng, config.em_options(),
+                     step_weights=lam, prior_params=anchor, current_n_m_s=start_cur)
         new = to_model(res.params)
     except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
         return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0, cur0)
@@ -180,6 +205,9 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     try:
         from calibration.em import freeze_landmarks
         obs = freeze_landmarks(win_params, v, w, dt, observations, init_cloud, rng, config.n_particles, cur0)
+        if start_params is not win_params or start_cur is not cur0:  # EM started elsewhere: the reference
+            ll_old = run_particle_filter(win_params, v, w, dt, obs, init_cloud, rng, config.n_particles,
+                                         current_n_m_s=cur0).log_likelihood
         ll_new = run_particle_filter(res.params, v, w, dt, obs, init_cloud, rng, config.n_particles,
                                      current_n_m_s=cur).log_likelihood
     except FloatingPointError as e:
@@ -487,9 +515,12 @@ class OnlineCalibrator:
         w = np.array(self._w)
         T = v.size
         obs = list(self._win_obs)[-(T + 1):]
-        init = self._clouds[-(T + 1)]
+        clouds = list(self._clouds)[-(T + 1):]
+        init = clouds[0]
+        from calibration.fix_regression import circular_mean_headings
         rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
-                               initial_params=self.params0, current_n_m_s=self.current_n_m_s)
+                               initial_params=self.params0, current_n_m_s=self.current_n_m_s,
+                               headings_rad=circular_mean_headings(clouds))
         if rel.accepted:
             self.params = rel.params
             self.current_n_m_s = rel.current_n_m_s

@@ -1,0 +1,111 @@
+r"""Speed scale and sea current from position fixes vs dead reckoning (a closed-form CM step).
+
+Why. In EM the sea current ``u`` is a parameter of the motion model (:mod:`fusion.motion_model`)
+and the M-step re-estimates it from smoothed trajectories (:func:`calibration.mstep.fit_means`).
+But the smoother's trajectories can only show what the motion prior lets them: a cross-track
+current of 0.07 m/s drifts ~4 m per minute, while the sway noise σ_S (~0.01 m/s) allows
+centimetres, so the smoothed sway barely shows the current and EM's update of it moves by a
+tiny fraction of the way per iteration (EM's rate → 1 when the latent prior is tight;
+Dempster, Laird & Rubin 1977; Meng & Rubin 1993). An ECME step (Liu & Rubin 1994) instead
+maximises the *observed-data* likelihood for some parameters: here that of the fixes for
+(k_V, u) under the linear-Gaussian approximation of dead reckoning between fixes.
+
+Model. Fixes ``p_a`` at poses a (σ_a, isotropic), headings ``θ_t`` at the poses (the forward
+filter's circular means; the heading aid makes them precise), reported surge ``v_t``. The
+water-relative dead-reckoned displacement of step t at unit speed scale is
+``d_t = c_t v_t (cos φ_t, sin φ_t)``, ``φ_t = θ_t + Δθ_t/2``, ``c_t = 2 sin(Δθ_t/2)/(Δθ_t/δt_t)``
+(:mod:`fusion.motion_model`). For consecutive fixes a < b::
+
+    p_b − p_a = k_V Σ_{t=a}^{b−1} d_t + u Σ_{t=a}^{b−1} δt_t + e,   Cov e ≈ (σ_a² + σ_b² + q_ab) I
+
+with ``q_ab = Σ_t δt_t² (v_t² σ_Vv² + σ_V1² + σ_S²)`` the dead-reckoning noise. This is a
+weighted least-squares problem in (k_V, u_n, u_e), weights λ (forgetting at the later fix).
+Columns the pairs cannot separate (k_V and the along-track current on one straight leg at
+constant speed) are held (:func:`calibration.mstep.identifiable_terms`, priority u_n, u_e, k_V:
+the current is what EM cannot find by itself).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.mstep import identifiable_terms
+from calibration.sensors import PositionFix
+
+
+def fix_pairs(observations) -> list[tuple[int, PositionFix]]:
+    """``(pose index, first PositionFix)`` for every pose with a fix, in order."""
+    out = []
+    for t, obs in enumerate(observations):
+        for o in obs or ():
+            if isinstance(o, PositionFix):
+                out.append((t, o))
+                break
+    return out
+
+
+def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, current_n_m_s,
+                   step_weights=None, max_condition: float = 30.0):
+    """(k_V, current (2,), held names) from fixes vs dead reckoning (module docstring).
+
+    Parameters
+    ----------
+    v_m_s : (T,) reported surge (m/s) of steps t → t+1
+    dt_s : float or (T,) step lengths (s)
+    headings_rad : (T+1,) headings at the poses (rad)
+    observations : length T+1 lists; :class:`PositionFix` entries are used
+    params : :class:`fusion.motion_model.MotionParams` for the step ``dt_s`` (the noise weights)
+    k_v, current_n_m_s : the values held where the fixes do not separate a term
+    step_weights : (T,) forgetting weights λ_t (default 1)
+
+    Returns
+    -------
+    (k_v, (u_n, u_e), held) — the inputs unchanged (all held) with fewer than two fixes.
+    """
+    v = np.asarray(v_m_s, dtype=float)
+    T = v.size
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), (T,))
+    th = np.asarray(headings_rad, dtype=float)
+    lam = np.ones(T) if step_weights is None else np.asarray(step_weights, dtype=float)
+    theta0 = np.array([k_v, float(current_n_m_s[0]), float(current_n_m_s[1])])
+    fixes = fix_pairs(observations)
+    if len(fixes) < 2:
+        return k_v, (theta0[1], theta0[2]), ("k_v", "current_n", "current_e")
+    dth = (np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi
+    phi = th[:-1] + 0.5 * dth
+    c = dt * np.sinc(dth / (2.0 * np.pi))  # 2 sin(Δθ/2)/(Δθ/δt)
+    d = (c * v)[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
+    cum_d = np.vstack([np.zeros(2), np.cumsum(d, axis=0)])
+    cum_t = np.concatenate([[0.0], np.cumsum(dt)])
+    q_step = dt**2 * (v**2 * params.var_vv + params.var_v1 + params.var_s)
+    cum_q = np.concatenate([[0.0], np.cumsum(q_step)])
+    rows, ys, ws = [], [], []
+    for (a, fa), (b, fb) in zip(fixes[:-1], fixes[1:]):
+        D = cum_d[b] - cum_d[a]
+        tau = cum_t[b] - cum_t[a]
+        var = fa.sigma_m**2 + fb.sigma_m**2 + (cum_q[b] - cum_q[a])
+        w = lam[b - 1] / var
+        rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
+        ys += [fb.pos_n_m[0] - fa.pos_n_m[0], fb.pos_n_m[1] - fa.pos_n_m[1]]
+        ws += [w, w]
+    X, y, sw = np.array(rows), np.array(ys), np.sqrt(np.array(ws))
+    order = (1, 2, 0)  # current first, then k_V
+    kept, _ = identifiable_terms(X * sw[:, None], order, max_condition)
+    free = sorted(kept)
+    fixed = [k for k in range(3) if k not in free]
+    theta = theta0.copy()
+    if free:
+        r = y - X[:, fixed] @ theta0[fixed]
+        sol, *_ = np.linalg.lstsq(X[:, free] * sw[:, None], r * sw, rcond=None)
+        if np.all(np.isfinite(sol)):
+            theta[free] = sol
+    held = tuple(("k_v", "current_n", "current_e")[k] for k in fixed)
+    return float(theta[0]), (float(theta[1]), float(theta[2])), held
+
+
+def circular_mean_headings(clouds) -> np.ndarray:
+    """(T+1,) circular mean heading of each equally weighted (N, 3) pose cloud."""
+    th = np.stack([cl[:, 2] for cl in clouds])
+    return np.arctan2(np.sin(th).mean(axis=1), np.cos(th).mean(axis=1))
+
+
+__all__ = ["fix_regression", "fix_pairs", "circular_mean_headings"]
