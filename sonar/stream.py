@@ -95,7 +95,7 @@ class FrontEndConfig:
     registration_min_inliers: int = 8
     registration_threshold_m: float = 0.3
     gate_sigmas: float = 3.0
-    max_gate_m: float = 4.0
+    max_gate_m: float = 3.0
 
     def validate(self) -> None:
         if self.window_pings < 8 or not 1 <= self.step_pings <= self.window_pings:
@@ -345,14 +345,15 @@ class AnchoredDeadReckoning:
         Random-walk densities of the offset and of the drift.
     """
 
-    def __init__(self, drift_sigma_m_s: float = 0.3, q_offset_m2_s: float = 0.01,
-                 q_drift_m2_s3: float = 1e-6) -> None:
+    def __init__(self, drift_sigma_m_s: float = 0.3, q_offset_m2_s: float = 1e-4,
+                 q_drift_m2_s3: float = 1e-7) -> None:
         self.q_offset = float(q_offset_m2_s)
         self.q_drift = float(q_drift_m2_s3)
         self._last: tuple[float, float, float] | None = None  # t, speed, yaw
         self._dr = np.zeros(2)
         self._x = np.zeros(4)
-        self._P = np.diag([1e12, 1e12, drift_sigma_m_s ** 2, drift_sigma_m_s ** 2])
+        # offset prior: vague but finite (1 km σ: an infinite one loses the covariance to round-off)
+        self._P = np.diag([1e6, 1e6, drift_sigma_m_s ** 2, drift_sigma_m_s ** 2])
         self._t_kf = math.nan
         self._pending: list[tuple[float, np.ndarray, float]] = []
         self.fixes_used = 0
@@ -378,8 +379,8 @@ class AnchoredDeadReckoning:
         S = H @ self._P @ H.T + sigma_m ** 2 * np.eye(2)
         K = self._P @ H.T @ np.linalg.inv(S)
         self._x = self._x + K @ (p - dr - self._x[:2])
-        self._P = (np.eye(4) - K @ H) @ self._P
-        self._P = 0.5 * (self._P + self._P.T)
+        A = np.eye(4) - K @ H
+        self._P = A @ self._P @ A.T + sigma_m ** 2 * K @ K.T  # Joseph form: stays symmetric PSD
         self.fixes_used += 1
 
     def push(self, ping: SonarPing) -> tuple[np.ndarray, float]:
