@@ -10,7 +10,7 @@ r"""numba kernels for the calibrator's hot loops (same equations as :mod:`fusion
   :mod:`calibration.smoother` given pre-drawn random numbers.
 
 ``pvec`` packs :class:`MotionParams` and the sea current as ``(var_vv, var_vw, var_v1, var_wv,
-var_ww, var_w1, var_s, k_v, b_w, u_n, u_e)`` (:func:`pack`); the current (m/s) adds
+var_ww, var_w1, var_s, k_v, b_w, u_n, u_e, turn_about_mean)`` (:func:`pack`); the current (m/s) adds
 ``u δt`` to each step's ground displacement.
 """
 from __future__ import annotations
@@ -23,11 +23,17 @@ import numpy as np
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def pack(params, current_n_m_s=None) -> np.ndarray:
-    """(11,) parameter vector of the kernels; ``current_n_m_s`` (2,) m/s, default zero."""
+def pack(params, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarray:
+    """(12,) parameter vector of the kernels; ``current_n_m_s`` (2,) m/s, default zero.
+
+    ``turn_about_mean``: the transition density takes the heading change on the branch
+    nearest the expected turn ``(w + b_W) δt`` instead of (−π, π] (see
+    :func:`fusion.motion_model.invert_step`'s ``turn_ref_rad``); element 11 is the flag.
+    """
     un, ue = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
     return np.array([params.var_vv, params.var_vw, params.var_v1, params.var_wv, params.var_ww,
-                     params.var_w1, params.var_s, params.k_v, params.b_w, un, ue])
+                     params.var_w1, params.var_s, params.k_v, params.b_w, un, ue,
+                     1.0 if turn_about_mean else 0.0])
 
 
 @nb.njit(cache=True, inline="always")
@@ -40,7 +46,8 @@ def _chord(W, dt):
 
 @nb.njit(cache=True)
 def transition_logpdf_scalar(x0, y0, th0, x1, y1, th1, v, w, dt, p):
-    dth = (th1 - th0 + math.pi) % (2.0 * math.pi) - math.pi
+    ref = p[11] * (w + p[8]) * dt if p.shape[0] > 11 else 0.0  # branch centre (pack)
+    dth = (th1 - th0 - ref + math.pi) % (2.0 * math.pi) - math.pi + ref
     W = dth / dt
     phi = th0 + 0.5 * dth
     c = _chord(W, dt)

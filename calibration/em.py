@@ -113,6 +113,7 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
             converged = True
             break
         kwargs = {"n_mcmc": options.n_mcmc} if smooth is ffbsi_mcmc else {}
+        kwargs["turn_about_mean"] = options.mstep.turn_about_mean  # same branch as the M-step
         traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, current_n_m_s=current, **kwargs)
         ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params, current)
         held, notes = ms.held, ms.notes

@@ -77,6 +77,9 @@ class MStepOptions:
     fit_b_w: bool = True
     fit_var_s: bool = True
     fit_current: bool = False  # estimate the sea current with k_V (positions are ground-referenced)
+    # invert each step on the heading-change branch nearest the expected turn (w + b_W) δt
+    # instead of (−π, π]: needed when turns per step can exceed π (fusion.motion_model.invert_step)
+    turn_about_mean: bool = False
     var_floor: float = 1e-10
 
 
@@ -180,7 +183,7 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, p
     return a if np.all(np.isfinite(a)) else alpha0.copy()
 
 
-def _mean_design(trajectories, dt):
+def _mean_design(trajectories, dt, turn_ref_rad=None):
     """Regressors of the mean model for every (trajectory, step).
 
     With zero-current inversions ``V̂⁰, Ŝ⁰`` (:func:`fusion.motion_model.invert_step`) and
@@ -188,9 +191,9 @@ def _mean_design(trajectories, dt):
     ``Ŝ = Ŝ⁰ − g (−sin φ u_n + cos φ u_e)``. Returns ``V0, W, S0`` (M, T) and the current's
     columns ``gv = g (cos φ, sin φ)``, ``gs = g (−sin φ, cos φ)`` as (M, T, 2).
     """
-    th0, th1 = trajectories[:, :-1, 2], trajectories[:, 1:, 2]
-    V0, W, S0, c = invert_step(trajectories[:, :-1], trajectories[:, 1:], dt[None, :])
-    dtheta = (th1 - th0 + np.pi) % (2.0 * np.pi) - np.pi
+    th0 = trajectories[:, :-1, 2]
+    V0, W, S0, c = invert_step(trajectories[:, :-1], trajectories[:, 1:], dt[None, :], turn_ref_rad=turn_ref_rad)
+    dtheta = W * dt[None, :]  # the branch invert_step chose
     phi = th0 + 0.5 * dtheta
     g = dt[None, :] / c
     cp, sp = np.cos(phi) * g, np.sin(phi) * g
@@ -252,7 +255,8 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     lam = np.ones(T) if step_weights is None else np.asarray(step_weights, dtype=float)
     n_traj = trajectories.shape[0]
     current = np.zeros(2) if current_n_m_s is None else np.asarray(current_n_m_s, dtype=float).copy()
-    V0, W, S0, gv, gs = _mean_design(trajectories, dt)
+    turn_ref = (w + params.b_w)[None, :] * dt[None, :] if options.turn_about_mean else None
+    V0, W, S0, gv, gs = _mean_design(trajectories, dt, turn_ref)
 
     def water_relative(cur):
         return V0 - gv @ cur, S0 - gs @ cur

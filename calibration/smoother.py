@@ -39,12 +39,14 @@ def _sample_rows(log_p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def ffbsi_exact(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-                rng: np.random.Generator, current_n_m_s=None) -> np.ndarray:
-    """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T) (numba)."""
+                rng: np.random.Generator, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarray:
+    """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T) (numba).
+
+    ``turn_about_mean``: heading-change branch nearest the expected turn (:func:`calibration._kernels.pack`)."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     idx = multinomial_indices(fr.log_w[-1], n_traj, rng)
     u = rng.random((v.size, n_traj))
-    return backward_exact(fr.poses, fr.log_w, v, w, dt, pack(params, current_n_m_s), idx, u)
+    return backward_exact(fr.poses, fr.log_w, v, w, dt, pack(params, current_n_m_s, turn_about_mean), idx, u)
 
 
 def _controls(v_m_s, w_rad_s, dt_s):
@@ -74,8 +76,10 @@ def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt
 
 
 def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
-               rng: np.random.Generator, n_mcmc: int = 2, current_n_m_s=None) -> np.ndarray:
-    """FFBSi with the MCMC backward kernel: (M, T+1, 3) trajectories in O(M·T·n_mcmc) (numba)."""
+               rng: np.random.Generator, n_mcmc: int = 2, current_n_m_s=None,
+               turn_about_mean: bool = False) -> np.ndarray:
+    """FFBSi with the MCMC backward kernel: (M, T+1, 3) trajectories in O(M·T·n_mcmc) (numba);
+    ``turn_about_mean`` as :func:`ffbsi_exact`."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size
     idx = multinomial_indices(fr.log_w[T], n_traj, rng)
@@ -83,7 +87,7 @@ def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_t
     for t in range(T):
         props[t] = multinomial_indices(fr.log_w[t], (n_mcmc, n_traj), rng)
     log_u = np.log(rng.random((T, n_mcmc, n_traj)))
-    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params, current_n_m_s), idx, props, log_u)
+    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params, current_n_m_s, turn_about_mean), idx, props, log_u)
 
 
 def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
