@@ -65,11 +65,29 @@ THESIS_ROWS = (
 
 
 @dataclass(frozen=True)
+class ThesisCalibratorConfig(CalibratorConfig):
+    """The online calibrator's settings with the heading-change branch taken about the
+    expected turn (``MStepOptions.turn_about_mean``, used by the smoother and the M-step).
+
+    Why: a thesis step turns by ``w δt`` = 0.5–1.5 rad with σ up to 0.5 · w δt, so the true
+    turn exceeds π in ~1 % of the steps of a σ*_Tr = 0.5 row. Inverted on the branch in
+    (−π, π], such a step reads as the opposite turn with a flipped surge (V̂ ≈ −V, an error
+    of ~2v = 12 m/s against σ_V ≈ 0.3 m/s): one such step in a 40-step window inflated the
+    learned σ_Dd from 0.05 to 0.1–0.3 in that seed.
+    """
+
+    def em_options(self):
+        opts = super().em_options()
+        return replace(opts, mstep=replace(opts.mstep, turn_about_mean=True))
+
+
+@dataclass(frozen=True)
 class LearnerSettings:
     n_filter: int = 1000       # particles of the two localisation filters
     first_em_step: int = 10
-    calibrator: CalibratorConfig = field(default_factory=lambda: CalibratorConfig(
-        window_steps=40, step_s=10.0, period_steps=5, min_window_steps=10, em_iterations=3,
+    calibrator: CalibratorConfig = field(default_factory=lambda: ThesisCalibratorConfig(
+        # model_step_s = step_s: the thesis' σ are per 10 s step (no rescaling); no sea current
+        window_steps=40, step_s=10.0, model_step_s=10.0, fit_current=False, period_steps=5, min_window_steps=10, em_iterations=3,
         # n_mcmc 6: with 0.5 rad of heading noise per step the backward kernel needs more
         # moves, else the smoothed along-track errors (and σ_Dd) come out inflated
         n_particles=1000, n_smoothed=100, n_mcmc=6, forgetting=0.97, prior_tau=1.0,
