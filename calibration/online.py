@@ -32,6 +32,14 @@ Step length. :class:`MotionParams` are defined for the model's reference step
 released parameters are converted back (× step_s/model_step_s)
 (:func:`fusion.motion_model.rescale_step`).
 
+Observability of σ_Vv. With USBL fixes (σ 2 m, one a minute) the only information on the
+surge noise is the fix-to-fix residual: 60 s of white surge noise σ_V = σ_Vv·v adds
+``60 σ_V²`` to the ``2·σ_fix² = 8 m²`` variance of a fix difference — 0.3 m² at σ_Vv = 0.05,
+3 m² at 0.15 (v = 1.5 m/s). Ten fixes (10 min) pin σ_Vv² down to about ±160 % (Fisher), and
+EM creeps from a small σ_Vv (its rate is the observed fraction of that variance). So σ_Vv
+follows a change of the water only slowly here; the IMU's velocity increments (not used
+yet) would be the informative source.
+
 Sanity gate before a release: the new parameters must be finite, within the configured
 bounds, and the window log-likelihood with them (a fresh filter run) must not be worse than
 with the current ones by more than ``ll_tolerance`` nats (the PF estimate is noisy). Every
