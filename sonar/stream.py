@@ -77,6 +77,9 @@ class FrontEndConfig:
         ``clip(gate_sigmas · √2 · σ, gate_m, max_gate_m)`` (√2: the error of the track's
         first sighting and of the new one, both about σ); the tracker's consensus on the
         batch's common offset then tightens it again.
+    wide_gate_ratio, wide_gate_max_descriptor_distance : float
+        Stricter descriptor tests while the gate is wider than ``gate_m`` (more
+        similar-looking landmarks lie inside a wide gate).
     """
 
     window_pings: int = 128
@@ -96,6 +99,8 @@ class FrontEndConfig:
     registration_threshold_m: float = 0.3
     gate_sigmas: float = 3.0
     max_gate_m: float = 3.0
+    wide_gate_ratio: float = 0.8
+    wide_gate_max_descriptor_distance: float = 650.0
 
     def validate(self) -> None:
         if self.window_pings < 8 or not 1 <= self.step_pings <= self.window_pings:
@@ -287,12 +292,20 @@ class SonarFrontEnd:
         if not kept:
             return []
         self.emitted_landmarks += len(kept)
+        pos = np.array(pos)
         sig = np.array(self._sigma, dtype=float)
         sig = sig[np.isfinite(sig)]
-        gate = c.gate_m if sig.size == 0 else c.gate_sigmas * math.sqrt(2.0) * float(sig.max())
-        self.tracker.gate_m = min(max(gate, c.gate_m), c.max_gate_m)
-        n_before = self.tracker.n_tracks
-        out = self.tracker.update(kept, np.array(pos))
+        wide = c.gate_m if sig.size == 0 else c.gate_sigmas * math.sqrt(2.0) * float(sig.max())
+        wide = min(max(wide, c.gate_m), c.max_gate_m)
+        tr = self.tracker
+        # an uncertain navigation: a gate as wide as its error, but a stricter descriptor
+        # test there (more similar-looking landmarks lie inside a wide gate)
+        tr.gate_m = wide
+        tr.ratio = c.tracker_ratio if wide <= c.gate_m else min(c.tracker_ratio, c.wide_gate_ratio)
+        tr.max_descriptor_distance = (c.max_descriptor_distance if wide <= c.gate_m
+                                      else min(c.max_descriptor_distance, c.wide_gate_max_descriptor_distance))
+        n_before = tr.n_tracks
+        out = tr.update(kept, pos)
         self.reassociated_landmarks += len(kept) - (self.tracker.n_tracks - n_before)
         return out
 

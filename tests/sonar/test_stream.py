@@ -11,7 +11,7 @@ from sim.sidescan import SidescanRenderer
 from sonar.landmarks import LandmarkObservation
 from sonar.motion import VisualMotion
 from sonar.ping import SonarPing
-from sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
+from sonar.stream import AnchoredDeadReckoning, FrontEndConfig, SonarFrontEnd, reference_landmark
 
 SPEED = 1.5
 RATE_HZ = 4.0
@@ -37,11 +37,12 @@ def _true_obs_pos(o, t, pos, yaw):
     return o.position_n_m(p, yaw)
 
 
-def _two_passes(ren, seed):
-    """Two northbound passes 3 m apart through one front end; the second with a nav error."""
+def _two_passes(ren, seed, nav_error=(0.6, -0.4), sigma_m=None):
+    """Two northbound passes 3 m apart through one front end; the second with a nav error
+    (of σ ``sigma_m`` per axis when given to the front end)."""
     rng = np.random.default_rng(seed)
     fe = SonarFrontEnd(FrontEndConfig())
-    nav_error = np.array([0.6, -0.4])
+    nav_error = np.asarray(nav_error, float)
     by_pass = []
     t0 = 0.0
     for start in ((10.0, 38.0), (10.0, 41.0)):
@@ -49,7 +50,7 @@ def _two_passes(ren, seed):
         err = np.zeros(2) if not by_pass else nav_error
         out = []
         for p, x in zip(pings, pos):
-            out += fe.push(p, x + err)
+            out += fe.push(p, x + err, sigma_m)
         obs = [o for o in out if isinstance(o, LandmarkObservation)]
         by_pass.append([(o, _true_obs_pos(o, t, pos, 0.0)) for o in obs])
         t0 = t[-1] + 60.0
@@ -79,6 +80,85 @@ def test_reobserved_landmarks_keep_their_track_ids(world):
     assert again >= 25
     assert same / again >= 0.7
     assert false_links <= 0.1 * second
+
+
+def _relinked(pass1, pass2):
+    """(re-observed sightings, those linked to the right track, links to a track ≥ 2 m away)."""
+    true1 = np.array([p for _, p in pass1])
+    first = {o.track_id: p for o, p in pass1}
+    again = same = wrong = 0
+    for o, p in pass2:
+        if np.min(np.linalg.norm(true1 - p, axis=1)) < 0.7:
+            again += 1
+            same += o.track_id in first and np.linalg.norm(first[o.track_id] - p) < 0.7
+        wrong += o.track_id in first and np.linalg.norm(first[o.track_id] - p) >= 2.0
+    return again, same, wrong
+
+
+def test_navigation_sigma_widens_the_association_gate(world):
+    # a 2.4 m navigation error between the passes: outside the fixed 1.5 m gate, inside
+    # the gate a 0.7 m σ per axis opens (3·√2·0.7 ≈ 3 m). The price of the wider gate:
+    # a few more links to a similar-looking landmark nearby (bounded here).
+    _, ren = world
+    err = (2.2, -1.0)
+    again, same_fixed, _ = _relinked(*_two_passes(ren, 7, err))
+    pass1, pass2 = _two_passes(ren, 7, err, sigma_m=0.7)
+    again2, same_sigma, wrong = _relinked(pass1, pass2)
+    assert again == again2 >= 8
+    assert same_fixed <= 0.5 * again
+    assert same_sigma >= 0.75 * again
+    assert wrong <= 0.2 * len(pass2)
+
+
+def _ping(t_s, speed_m_s, yaw_rad):
+    z = np.zeros(16, np.float32)
+    return SonarPing(t_s=t_s, port=z, starboard=z, slant_range_m=20.0, altitude_m=5.0, heading_rad=yaw_rad,
+                     pitch_rad=0.0, roll_rad=0.0, sensor_depth_m=10.0, speed_m_s=speed_m_s)
+
+
+def test_anchored_dead_reckoning_follows_fixes_through_a_current():
+    # lawnmower legs north/south at 1.5 m/s through the water, 0.1 m/s current at 45°;
+    # the pings carry the ground speed and the *heading* (not the course): pure dead
+    # reckoning drifts ~0.07 m/s across the track. USBL-like fixes (σ 2 m) once a minute.
+    rng = np.random.default_rng(11)
+    cur = 0.1 * np.array([math.cos(math.pi / 4), math.sin(math.pi / 4)])
+    nav = AnchoredDeadReckoning()
+    pos = np.zeros(2)
+    errs, z_scores, dr_err = [], [], []
+    t, dt = 0.0, 0.25
+    dr = np.zeros(2)
+    for k in range(int(1500 / dt)):
+        t = k * dt
+        yaw = 0.0 if int(t // 200) % 2 == 0 else math.pi
+        v_g = 1.5 * np.array([math.cos(yaw), math.sin(yaw)]) + cur
+        if k:
+            pos = pos + v_g * dt
+            dr = dr + np.linalg.norm(v_g) * dt * np.array([math.cos(yaw), math.sin(yaw)])
+        if k and k % int(60 / dt) == 0:
+            nav.fix(t, pos + 2.0 * rng.standard_normal(2), 2.0)
+        p, sigma = nav.push(_ping(t, float(np.linalg.norm(v_g)), yaw))
+        if t > 600:  # after ten fixes
+            errs.append(np.linalg.norm(p - pos))
+            z_scores.append(np.abs(p - pos) / sigma)
+            dr_err.append(np.linalg.norm(dr - pos))
+    assert nav.fixes_used == 24
+    assert np.sqrt(np.mean(np.square(errs))) < 2.0 < 0.1 * np.mean(dr_err)  # fixes alone: σ 2 m
+    assert np.mean(np.array(z_scores) < 3.0) > 0.95  # σ covers the error
+
+
+def test_anchored_dead_reckoning_before_a_fix_and_bad_pings():
+    nav = AnchoredDeadReckoning()
+    p, sigma = nav.push(_ping(0.0, 1.0, 0.0))
+    assert math.isnan(sigma)
+    p, _ = nav.push(_ping(10.0, 1.0, 0.0))
+    assert np.allclose(p, [10.0, 0.0])
+    p2, _ = nav.push(_ping(5.0, 1.0, 0.0))  # out of order: ignored
+    assert np.allclose(p2, p)
+    nav.fix(10.0, [math.nan, 0.0], 1.0)  # non-finite fix: ignored
+    nav.fix(12.0, [20.0, 3.0], 1.0)
+    p, sigma = nav.push(_ping(14.0, 1.0, 0.0))
+    assert nav.fixes_used == 1 and 0.9 < sigma < 2.0
+    assert np.allclose(p, [22.0, 3.0], atol=0.5)
 
 
 def test_dead_reckoned_landmarks_and_visual_motion_along_a_straight_track(world):
