@@ -23,6 +23,12 @@ parameters; *learned* is re-calibrated online by EM (:mod:`calibration.online`'s
 logic: every ``period`` steps, a few EM iterations over the last ``window`` steps, warm
 started, with exponential forgetting). The localisation error at step t is the distance
 between the filter's weighted mean position and the truth.
+
+Turns larger than π per step. With σ*_Tr = 0.5 a step's true turn ``W δt`` exceeds π in
+~1 % of the steps. The heading change between two poses is only known modulo 2π; the
+smoother's transition density and the M-step's inversion take it on the branch nearest
+the expected turn ``w δt`` (:class:`ThesisCalibratorConfig`), not in (−π, π], which would
+read such a step as the opposite turn with a flipped surge and inflate σ_Dd.
 """
 from __future__ import annotations
 
@@ -88,8 +94,9 @@ class LearnerSettings:
     calibrator: CalibratorConfig = field(default_factory=lambda: ThesisCalibratorConfig(
         # model_step_s = step_s: the thesis' σ are per 10 s step (no rescaling); no sea current
         window_steps=40, step_s=10.0, model_step_s=10.0, fit_current=False, period_steps=5, min_window_steps=10, em_iterations=3,
-        # n_mcmc 6: with 0.5 rad of heading noise per step the backward kernel needs more
-        # moves, else the smoothed along-track errors (and σ_Dd) come out inflated
+        # n_mcmc 6: with 0.5 rad of heading noise per step the genealogy is degenerate;
+        # more backward moves de-correlate the M trajectories (the σ_Dd inflation seen with
+        # σ*_Tr = 0.5 was the heading-change branch, see ThesisCalibratorConfig)
         n_particles=1000, n_smoothed=100, n_mcmc=6, forgetting=0.97, prior_tau=1.0,
         # the seed learns the six variances; k_V = 1 and b_W = 0 in its simulation
         fit_k_v=False, fit_b_w=False, fit_var_s=False, ll_tolerance=10.0))
