@@ -56,6 +56,13 @@ def test_short_demo_end_to_end_json(tmp_path):
     # there the calibrator, whose front end turns them into landmark sightings)
     assert learned["samples_at_daemon"]["sonar"] == learned["sonar_pings_published"]
     assert learned["samples_at_daemon"]["usbl"] >= 3
+    # the calibrator process keeps up: samples are batched across the process boundary
+    # (dropped ones would be counted here, never lost silently)
+    assert learned["calibrator_dropped_samples"] == 0
+    # error at the end of each USBL gap after the change (fixes at 120 and 180 s)
+    for name, r in rows.items():
+        assert r["gaps"] == 2 and math.isfinite(r["gap_end_error_m"]), (name, r)
+    assert rows["pure_ins"]["gap_end_error_m"] > rows["static"]["gap_end_error_m"]
     # velocity aiding beats pure INS between fixes, for the static and the learned model
     assert rows["pure_ins"]["rms_error_m"] > 2.0 * rows["static"]["rms_error_m"]
     assert rows["pure_ins"]["rms_error_m"] > 2.0 * learned["rms_error_m"]
