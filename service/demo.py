@@ -18,7 +18,9 @@ nav states and the calibrator's releases.  The *learned* row is that live run.  
 *static* (pre-change motion model, no calibrator) and *pure INS* (no velocity aiding)
 rows replay the same simulated mission (same seed) through the same runner with
 :func:`service.replay.replay`.  Metrics are :mod:`service.metrics` (horizontal error
-against truth, % of distance travelled).
+against truth, % of distance travelled), plus the error at the end of each USBL gap after
+the change (:func:`gap_end_errors`): the mission ends on a fix, so the final error alone
+says little about the motion model.
 
 Everything started here is stopped here (daemon, calibrator child, sessions, sockets),
 also on errors and Ctrl-C.
