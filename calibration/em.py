@@ -55,8 +55,23 @@ class EMResult:
 
 def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particles, current_n_m_s=None):
     """Replace :class:`LandmarkSighting` by :class:`FixedLandmarkObservation` using a map
-    built by a FastSLAM forward pass; other observations are kept."""
-    if not any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ())):
+    built by a FastSLAM forward pass; other observations are kept.
+
+    A landmark sighted only once in the window says nothing about the motion (its position
+    is free), but its frozen map position is where the *current* parameters put it, so
+    keeping it would bias both the E-step and the sanity gate's likelihood comparison
+    toward the current parameters: such sightings are dropped.
+    """
+    counts: dict[int, int] = {}
+    for obs in observations:
+        for o in (obs or ()):
+            if isinstance(o, LandmarkSighting):
+                counts[o.track_id] = counts.get(o.track_id, 0) + 1
+    if not counts:
+        return observations
+    observations = [[o for o in (obs or ()) if not (isinstance(o, LandmarkSighting) and counts[o.track_id] < 2)]
+                    for obs in observations]
+    if not any(isinstance(o, LandmarkSighting) for obs in observations for o in obs):
         return observations
     fr = run_particle_filter(params, v, w, dt, observations, init_poses, rng, n_particles,
                              map_landmarks=True, current_n_m_s=current_n_m_s)
