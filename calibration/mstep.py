@@ -80,6 +80,9 @@ class MStepOptions:
     # invert each step on the heading-change branch nearest the expected turn (w + b_W) δt
     # instead of (−π, π]: needed when turns per step can exceed π (fusion.motion_model.invert_step)
     turn_about_mean: bool = False
+    # variance terms always held at their current values (e.g. ("var_vw", "var_wv")): terms
+    # the controls separate on paper (condition number) but the data barely inform
+    hold_terms: tuple[str, ...] = ()
     var_floor: float = 1e-10
 
 
@@ -266,6 +269,8 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     sq_lam = np.sqrt(lam)[:, None]
     kept_v, cond_v = identifiable_terms(design * sq_lam, V_PRIORITY, options.max_condition)
     kept_w, cond_w = identifiable_terms(design * sq_lam, W_PRIORITY, options.max_condition)
+    kept_v = [k for k in kept_v if V_TERMS[k] not in options.hold_terms]
+    kept_w = [k for k in kept_w if W_TERMS[k] not in options.hold_terms]
     held = tuple(V_TERMS[k] for k in range(3) if k not in kept_v) + \
         tuple(W_TERMS[k] for k in range(3) if k not in kept_w)
 
