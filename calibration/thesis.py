@@ -108,6 +108,9 @@ class LearnerSettings:
         # more backward moves de-correlate the M trajectories (the σ_Dd inflation seen with
         # σ*_Tr = 0.5 was the heading-change branch, see ThesisCalibratorConfig)
         n_particles=1000, n_smoothed=100, n_mcmc=6, forgetting=0.97, prior_tau=1.0,
+        # prior centred at the current parameters: a step-size limit that follows the 10-fold
+        # change (an initial-anchored prior would pull the changed σ back towards 0.05)
+        prior_anchor="current",
         # the seed learns the six variances; k_V = 1 and b_W = 0 in its simulation
         fit_k_v=False, fit_b_w=False, fit_var_s=False, ll_tolerance=10.0))
 
