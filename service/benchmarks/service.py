@@ -6,11 +6,11 @@ Figures (``--quick``: shorter missions, same code):
   published on Zenoh in real time by this process; the daemon (``adaptnav run`` in a
   subprocess, calibrator child process on) publishes nav states at 10 Hz; latency is
   the wall time from publishing a sample to receiving the nav state it produced.
-  The runner emits the state of output epoch ``t_k`` when the first sample past
-  ``t_k`` arrives, so two figures: ``trigger`` (from that sample, i.e. the service's
-  own processing + 2 Zenoh hops) and ``data_age`` (from the last sample the state
-  contains, = trigger + one IMU period). Peer: the bare Zenoh pub→sub latency between
-  two sessions on the same loopback (``zenoh_floor_*``).
+  The runner emits the state of output epoch ``t_k`` as soon as the IMU sample at
+  ``t_k`` is processed, so the figure is ``latency_ms``: from publishing the IMU sample
+  at ``t_k`` to receiving the state of ``t_k`` (the service's own processing + 2 Zenoh
+  hops). Peer: the bare Zenoh pub→sub latency between two sessions on the same
+  loopback (``zenoh_floor_*``).
 - ``replay_*``: a 1 h simulated survey with all sensors (IMU, DVL, depth, heading,
   RPM, USBL, side-scan sonar) replayed through the runner with the calibrator
   in-process (:func:`service.replay.replay`), as fast as possible; peer: the same
@@ -201,16 +201,14 @@ def live(latency_s: float, rss_sim_s: float) -> dict:
                 break
         time.sleep(0.5)
         t_arr = np.array(imu_t)
-        trig, age = [], []
+        lat = []
         for t_state, w in list(recv.items()):
             j = int(np.searchsorted(t_arr, t_state, side="left"))
-            if j + 1 < len(t_arr) and abs(t_arr[j] - t_state) < 1e-9 and t_state - t0 > 5.0:
-                trig.append(w - imu_pub[j + 1])
-                age.append(w - imu_pub[j])
-        trig_ms, age_ms = np.array(trig) * 1e3, np.array(age) * 1e3
-        out.update({"latency_trigger_ms_p50": _pct(trig_ms, 50), "latency_trigger_ms_p99": _pct(trig_ms, 99),
-                    "latency_data_age_ms_p50": _pct(age_ms, 50), "latency_data_age_ms_p99": _pct(age_ms, 99),
-                    "latency_samples": len(trig), "latency_imu_rate_hz": 200.0})
+            if j < len(t_arr) and abs(t_arr[j] - t_state) < 1e-9 and t_state - t0 > 5.0:
+                lat.append(w - imu_pub[j])
+        lat_ms = np.array(lat) * 1e3
+        out.update({"latency_ms_p50": _pct(lat_ms, 50), "latency_ms_p99": _pct(lat_ms, 99),
+                    "latency_samples": len(lat), "latency_imu_rate_hz": 200.0})
         h = bus.get("health")
         out["latency_calibrator_state"] = h["calibrator"]["state"]
         # 2) full speed with flow control: memory
