@@ -82,26 +82,19 @@ class _Collector:
         self.releases: list[dict] = []
         self.malformed = 0
         self._lock = threading.Lock()
-        bus.subscribe_raw(bus.keys.nav_state, self._on_nav)
-        bus.subscribe_raw(bus.keys.params, self._on_release)
+        bus.subscribe_raw(bus.keys.nav_state, self._appender(self.nav))
+        bus.subscribe_raw(bus.keys.params, self._appender(self.releases))
 
-    def _on_nav(self, key: str, payload: bytes) -> None:  # noqa: ARG002
-        try:
-            doc = json.loads(payload)
-        except ValueError:
-            self.malformed += 1
-            return
-        with self._lock:
-            self.nav.append(doc)
-
-    def _on_release(self, key: str, payload: bytes) -> None:  # noqa: ARG002
-        try:
-            doc = json.loads(payload)
-        except ValueError:
-            self.malformed += 1
-            return
-        with self._lock:
-            self.releases.append(doc)
+    def _appender(self, into: list):
+        def on_payload(key: str, payload: bytes) -> None:  # noqa: ARG001
+            try:
+                doc = json.loads(payload)
+            except ValueError:
+                self.malformed += 1
+                return
+            with self._lock:
+                into.append(doc)
+        return on_payload
 
     def last_t(self) -> float:
         with self._lock:
