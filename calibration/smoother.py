@@ -60,9 +60,7 @@ def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt
                       rng: np.random.Generator, current_n_m_s=None) -> np.ndarray:
     """Exact FFBSi written with :func:`fusion.motion_model.transition_logpdf` (the
     independent reference for the numba kernels; O(N·M·T) memory-light numpy)."""
-    v = np.asarray(v_m_s, dtype=float)
-    w = np.asarray(w_rad_s, dtype=float)
-    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size
     out = np.empty((n_traj, T + 1, 3))
     idx = multinomial_indices(fr.log_w[T], n_traj, rng)
@@ -93,9 +91,7 @@ def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_t
 def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
                      rng: np.random.Generator, n_mcmc: int = 2, current_n_m_s=None) -> np.ndarray:
     """Numpy version of :func:`ffbsi_mcmc` (reference for the kernel)."""
-    v = np.asarray(v_m_s, dtype=float)
-    w = np.asarray(w_rad_s, dtype=float)
-    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size
     out = np.empty((n_traj, T + 1, 3))
     idx = multinomial_indices(fr.log_w[T], n_traj, rng)
