@@ -165,3 +165,30 @@ def test_health_sees_rates_and_estimator_rejections(sim60):
     # the NaN IMU sample and the NaN-time depth sample, by the estimator's reason
     assert rep["rejected"].get("non_finite", 0) >= 2
     assert sum(rep["rejected"].values()) == sum(est.rejected.values())
+
+
+def test_state_of_an_epoch_goes_out_with_the_imu_sample_at_that_epoch(sim60):
+    """Live latency: the state of t_k must not wait for the first sample after t_k."""
+    scenario, result = sim60
+    cfg, est = _estimator(scenario)
+    imu_t = [s.t_s for s in result.iter_samples() if s.KIND == "imu"]
+    times = _NavTimes()
+    seen_at_emit: list[float] = []  # time of the last item the source handed out
+
+    def source():
+        for s in result.iter_samples():
+            seen_at_emit.append(s.t_s)
+            yield s
+
+    late: list[tuple[float, float]] = []  # (state time, time of the sample that released it)
+
+    class _Probe(Sink):
+        def on_nav(self, state):
+            times.on_nav(state)
+            if abs(seen_at_emit[-1] - state.t_s) > 1e-9:
+                late.append((state.t_s, seen_at_emit[-1]))
+
+    run(source(), est, [_Probe()], LogClock(), output_rate_hz=5.0)
+    assert times.t and not late, late[:3]
+    on_grid = [t for t in times.t if abs(t * 5.0 - round(t * 5.0)) < 1e-9]
+    assert len(on_grid) > 0.9 * len(times.t) and max(imu_t) >= times.t[-1]
