@@ -58,7 +58,7 @@ from .alignment import Aligner
 from .config import FilterConfig
 from .frames import GeoOrigin, euler_to_quat
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import is_finite
+from .samples import InertialVelocitySample, is_finite
 from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, VEL, X_BA, X_BG, X_CUR, X_KS, X_Q, NavState,
                     initial_nominal)
 from .status import AidStatus, rejected
@@ -83,7 +83,7 @@ def _finite(sample) -> bool:
 
 
 class _Snapshot:
-    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak")
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak", "vel_inertial_n")
 
 
 class Estimator:
@@ -144,6 +144,11 @@ class Estimator:
         self._speed_cache: dict[float, float] = {}
         self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
         self._gate_streak: dict[str, int] = {}
+        # free-inertial velocity: the strapdown's velocity increments summed without the
+        # aiding corrections — what the IMU alone says about velocity *changes* (the
+        # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
+        # very motion model being calibrated)
+        self._vel_inertial_n = np.zeros(3)
         self.late_fused = 0  # measurements fused at their own (past) time of validity
 
     # ------------------------------------------------------------------ public API
@@ -166,6 +171,20 @@ class Estimator:
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
             current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter)
+
+    def inertial_velocity(self) -> InertialVelocitySample | None:
+        """The free-inertial velocity at the state time (INS mode only, else ``None``).
+
+        Its value drifts (it is never corrected) but its changes over seconds are the
+        IMU's, attitude-compensated with the filter's attitude and bias estimates; an IMU
+        gap (coasting, no increments) bumps ``reset_counter``.
+        """
+        if self._mode != "ins":
+            return None
+        yaw = aid_heading.predict(self._x)[0]
+        v = self._vel_inertial_n
+        return InertialVelocitySample(float(self._clock[0]), (float(v[0]), float(v[1]), float(v[2])),
+                                      float(yaw), int(self._reset_counter))
 
     def set_motion_params(self, params: MotionParams) -> None:
         """Apply a calibrator release; ``k_speed · k_V`` is kept continuous."""
@@ -286,6 +305,7 @@ class Estimator:
         s.reset_counter = self._reset_counter
         s.lv_r_hat = self._lv_r_hat
         s.gate_streak = dict(self._gate_streak)
+        s.vel_inertial_n = self._vel_inertial_n.copy()
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -296,6 +316,7 @@ class Estimator:
         self._reset_counter = s.reset_counter
         self._lv_r_hat = s.lv_r_hat
         self._gate_streak = dict(s.gate_streak)
+        self._vel_inertial_n[:] = s.vel_inertial_n
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -499,8 +520,10 @@ class Estimator:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
+            vel0 = self._x[3:6].copy()
             sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                               self._qdiag, self.config.covariance_step_s)
+            self._vel_inertial_n += self._x[3:6] - vel0
             start = stop
             if lv_due and self._clock[0] >= self._next_lv_t:
                 status = self._learned_velocity()

@@ -155,6 +155,23 @@ class VisualMotionSample:
 
 
 @dataclass(frozen=True, slots=True)
+class InertialVelocitySample:
+    """The estimator's free-inertial velocity (NED, m/s) and yaw at ``t_s`` (a filter output).
+
+    The strapdown's velocity increments summed without aiding corrections: the value
+    drifts, its changes over seconds are the IMU's. ``reset_counter`` changes across an
+    IMU gap (no increments while coasting). The calibrator's surge-noise evidence
+    (:mod:`calibration.inertial`).
+    """
+
+    KIND: ClassVar[str] = "inertial_velocity"
+    t_s: float
+    vel_n_m_s: Vec3
+    yaw_rad: float
+    reset_counter: int = 0
+
+
+@dataclass(frozen=True, slots=True)
 class TruthSample:
     """Simulator ground truth (never used by the estimator, only by metrics)."""
 
@@ -173,14 +190,14 @@ SAMPLE_TYPES: dict[str, type] = {
     cls.KIND: cls
     for cls in (ImuSample, RpmSample, DvlSample, DepthSample, HeadingSample, AttitudeSample,
                 GnssSample, UsblSample, RangeSample, AltitudeSample, VisualMotionSample,
-                TruthSample)
+                InertialVelocitySample, TruthSample)
 }
 
 # Lower runs first among samples with equal t_s: the IMU propagates to t before aiding
 # at t is fused; truth last so metrics see the state after every update at t.
 SOURCE_PRIORITY: dict[str, int] = {
     "imu": 0, "rpm": 1, "attitude": 2, "heading": 3, "depth": 4, "dvl": 5, "altitude": 6,
-    "gnss": 7, "usbl": 8, "range": 9, "visual_motion": 10, "truth": 99,
+    "gnss": 7, "usbl": 8, "range": 9, "visual_motion": 10, "inertial_velocity": 11, "truth": 99,
 }
 
 

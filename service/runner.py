@@ -15,6 +15,8 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
    a state is not re-emitted while it has not advanced, e.g. in a data gap); an IMU
    sample that lands exactly on ``t_k`` emits at once — live, the state must not wait
    for the next sample to learn the epoch is complete (one IMU period of latency);
+   with a calibrator, the estimator's free-inertial velocity at the epoch goes to
+   ``calibrator.observe`` (its surge-noise evidence, :mod:`calibration.inertial`);
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
 3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
@@ -130,6 +132,12 @@ class _Loop:
         self.summary.nav_states += 1
         for f in self._on_nav:
             f(state)
+        cal = self.calibrator
+        if cal is not None:
+            # the calibrator's surge-noise evidence (calibration.inertial), at the nav rate
+            inertial = est.inertial_velocity()
+            if inertial is not None:
+                cal.observe(inertial)
 
     def flush_epochs_before(self, t_s: float) -> None:
         """Emit every epoch ``t_k < t_s`` not yet emitted (the state is the same for all)."""
