@@ -20,6 +20,7 @@ Threads and processes::
 """
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import math
@@ -32,7 +33,10 @@ import time
 from collections import Counter
 from typing import Any
 
+import numpy as np
+
 from fusion.motion_model import MotionParams
+from fusion.samples import SOURCE_PRIORITY
 
 from .bus import Bus, message, nonblocking_enqueue
 from .calibrator_process import CalibratorProcess, release_from_dict
@@ -68,21 +72,75 @@ def sd_notify(state: str) -> bool:
 
 
 class QueueSource:
-    """Iterable over the input queue until ``stop`` is set (``qsize`` for health)."""
+    """Iterable over the input queue until ``stop`` is set, in data order across transports
+    (``qsize`` for health).
 
-    def __init__(self, q: "queue.Queue[Any]", stop: threading.Event) -> None:
+    Samples reach the queue over paths of different latency (the MAVLink bridge thread,
+    Zenoh callbacks of other drivers): a side-scan ping or a USBL fix can overtake the IMU
+    samples before it. The runner assumes data order — a later sample completes an output
+    epoch — so such an overtaking sample would emit the epoch with a state short of it and
+    the epochs in between would be lost. A sample *ahead* of the IMU clock is therefore
+    held until the IMU passes it (replay order, ``fusion.samples.replay_order_key``), or
+    for at most ``max_hold_s`` of wall time (an IMU-less configuration, a stalled link).
+    Late samples pass at once (the estimator fuses or rejects them). ``counters``:
+    ``held`` (samples reordered), ``released_on_timeout``.
+    """
+
+    IMU_KINDS = ("imu", "imu_batch")
+
+    def __init__(self, q: "queue.Queue[Any]", stop: threading.Event, max_hold_s: float = 0.5) -> None:
         self.q = q
         self.stop = stop
+        self.max_hold_s = max_hold_s
+        self.counters: Counter[str] = Counter()
+        self._held: list[tuple] = []  # heap of (t_s, priority, seq, wall_in, sample)
+        self._seq = 0
+        self._imu_t = -math.inf
+        self._imu_wall = -math.inf
 
     def qsize(self) -> int:
-        return self.q.qsize()
+        return self.q.qsize() + len(self._held)
+
+    def _pop_held_before(self, t_s: float):
+        while self._held and self._held[0][0] < t_s:
+            yield heapq.heappop(self._held)[-1]
+
+    def _expired(self, now: float):
+        while self._held and now - self._held[0][3] > self.max_hold_s:
+            self.counters["released_on_timeout"] += 1
+            yield heapq.heappop(self._held)[-1]
+
+    def _order(self, item: Any, now: float):
+        kind = getattr(item, "KIND", None)
+        if kind in self.IMU_KINDS:
+            t = np.asarray(item.t_s, dtype=float).ravel()
+            t = t[np.isfinite(t)]
+            if t.size:
+                yield from self._pop_held_before(float(t[0]))
+                self._imu_t = max(self._imu_t, float(t[-1]))
+                self._imu_wall = now
+            yield item
+            return
+        t_s = getattr(item, "t_s", None)
+        if (kind is not None and isinstance(t_s, (int, float)) and math.isfinite(t_s) and t_s > self._imu_t
+                and now - self._imu_wall <= self.max_hold_s):
+            self.counters["held"] += 1
+            self._seq += 1
+            heapq.heappush(self._held, (t_s, SOURCE_PRIORITY.get(kind, 50), self._seq, now, item))
+            return
+        yield item  # releases, late or on-time samples, NaN times (the estimator rejects them)
 
     def __iter__(self):
         while not self.stop.is_set():
             try:
-                yield self.q.get(timeout=0.1)
+                item = self.q.get(timeout=0.05 if self._held else 0.1)
             except queue.Empty:
+                yield from self._expired(time.monotonic())
                 continue
+            now = time.monotonic()
+            yield from self._order(item, now)
+            if self._held:
+                yield from self._expired(now)
 
 
 class BusSink(Sink):
@@ -138,6 +196,7 @@ class Daemon:
         self._snapshot_due = threading.Event()
         self._snapshot: tuple[float, MotionParams, dict] | None = None
         self.queue: queue.Queue = queue.Queue(maxsize=cfg.health.queue_size)
+        self.source = QueueSource(self.queue, self.stop_event)
         self.overflow: Counter[str] = Counter()
         self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
         self.clock = LiveClock()
@@ -246,7 +305,7 @@ class Daemon:
     def _run(self) -> None:
         from .runner import run
 
-        self.summary = run(QueueSource(self.queue, self.stop_event), self.estimator, [self.sink],
+        self.summary = run(self.source, self.estimator, [self.sink],
                            self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
                            stop=self.stop_event, health=self.health, close_sinks=False)
 
@@ -292,7 +351,8 @@ class Daemon:
                 continue
         else:
             return self.latest_health
-        rep["queue_depth"] = self.queue.qsize()
+        rep["queue_depth"] = self.source.qsize()
+        rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
         rep["nav_states"] = self.sink.nav_count
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         cal = self.calibrator
