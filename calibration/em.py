@@ -99,13 +99,16 @@ def _max_rel_change(a: MotionParams, b: MotionParams) -> float:
 
 def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
            rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None,
-           prior_params: MotionParams | None = None, current_n_m_s=None) -> EMResult:
+           prior_params: MotionParams | None = None, current_n_m_s=None,
+           surge_increments=None) -> EMResult:
     """EM over one window; arguments as :func:`calibration.particle_filter.run_particle_filter`.
 
     ``step_weights`` (T,) are forgetting weights passed to the M-step; ``prior_params``
     the centre of its log-variance prior (default: the current iterate). ``current_n_m_s``
     (2,) m/s is the sea current to start from (default zero); re-estimated by the M-step
     when ``options.mstep.fit_current``, returned in :attr:`EMResult.current_n_m_s`.
+    ``surge_increments`` (:mod:`calibration.inertial`) go to every M-step, and their
+    composite log-likelihood is part of ℓ.
     """
     raw_observations = observations
     has_landmarks = any(isinstance(o, LandmarkSighting) for obs in observations for o in (obs or ()))
@@ -123,14 +126,16 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
                                             options.n_particles, current)
         fr = run_particle_filter(params, v_m_s, w_rad_s, dt_s, observations, init_poses, rng,
                                  options.n_particles, current_n_m_s=current)
-        lls.append(fr.log_likelihood)
+        lls.append(fr.log_likelihood + (surge_increments.log_likelihood(params) if surge_increments is not None
+                                        else 0.0))
         if it > 0 and abs(lls[-1] - lls[-2]) < options.ll_tol * (1.0 + abs(lls[-1])) and moved < options.param_rtol:
             converged = True
             break
         kwargs = {"n_mcmc": options.n_mcmc} if smooth is ffbsi_mcmc else {}
         kwargs["turn_about_mean"] = options.mstep.turn_about_mean  # same branch as the M-step
         traj = smooth(fr, params, v_m_s, w_rad_s, dt_s, options.n_smoothed, rng, current_n_m_s=current, **kwargs)
-        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params, current)
+        ms = m_step(traj, v_m_s, w_rad_s, dt_s, params, step_weights, options.mstep, prior_params, current,
+                    surge_increments)
         held, notes = ms.held, ms.notes
         # current: 0.01 m/s as the scale of a relevant change
         moved = max(_max_rel_change(params, ms.params),

@@ -242,7 +242,8 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
 
 def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
            step_weights=None, options: MStepOptions = MStepOptions(),
-           prior_params: MotionParams | None = None, current_n_m_s=None) -> MStepResult:
+           prior_params: MotionParams | None = None, current_n_m_s=None,
+           surge_increments=None) -> MStepResult:
     """New :class:`MotionParams` (and sea current) from smoothed trajectories (M, T+1, 3).
 
     ``step_weights`` (T,) are the forgetting weights λ_t (default 1). ``prior_params``
@@ -250,6 +251,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     centre such as the initial calibration makes EM a MAP-EM with one fixed prior).
     ``current_n_m_s`` (2,) m/s is the current of the E-step (default zero); it is
     re-estimated with k_V when ``options.fit_current`` (:func:`fit_means`), else kept.
+    ``surge_increments`` (:class:`calibration.inertial.SurgeIncrements`, window-step units)
+    are extra rows of the surge-variance objective: the IMU's velocity changes between
+    model steps, observed directly rather than smoothed (same design, own weights).
     """
     v = np.asarray(v_m_s, dtype=float)
     w = np.asarray(w_rad_s, dtype=float)
@@ -299,7 +303,13 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
             b_w = float(np.sum(lam * sum_W / s_w) / (n_traj * np.sum(lam / s_w)))
         # variances given the means
         res_v = np.mean((V - k_v * v[None, :]) ** 2, axis=0)
-        a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau, center_v)
+        if surge_increments is not None and len(surge_increments):
+            inc = surge_increments
+            a_v = _fit_log_variances(np.concatenate([design, inc.design]), np.concatenate([lam, inc.weight]),
+                                     np.concatenate([res_v, inc.residual_sq(k_v)]), n_traj, alpha_v, kept_v,
+                                     options.prior_tau, center_v)
+        else:
+            a_v = _fit_log_variances(design, lam, res_v, n_traj, alpha_v, kept_v, options.prior_tau, center_v)
         res_w = np.mean((W - w[None, :] - b_w) ** 2, axis=0)
         a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau, center_w)
         if options.fit_var_s:

@@ -36,9 +36,12 @@ Observability of σ_Vv. With USBL fixes (σ 2 m, one a minute) the only informat
 surge noise is the fix-to-fix residual: 60 s of white surge noise σ_V = σ_Vv·v adds
 ``60 σ_V²`` to the ``2·σ_fix² = 8 m²`` variance of a fix difference — 0.3 m² at σ_Vv = 0.05,
 3 m² at 0.15 (v = 1.5 m/s). Ten fixes (10 min) pin σ_Vv² down to about ±160 % (Fisher), and
-EM creeps from a small σ_Vv (its rate is the observed fraction of that variance). So σ_Vv
-follows a change of the water only slowly here; the IMU's velocity increments (not used
-yet) would be the informative source.
+EM creeps from a small σ_Vv (its rate is the observed fraction of that variance). The IMU
+is the informative source: the navigation filter hands the calibrator its free-inertial
+velocity (``InertialVelocitySample``, at the nav rate) and the differences of its means
+over consecutive model steps join the M-step's surge objective
+(:mod:`calibration.inertial`; ``use_inertial``). Without them (a remote calibrator node,
+the thesis) σ_Vv rests on the fixes as above.
 
 Sanity gate before a release: the new parameters must be finite, within the configured
 bounds, and the window log-likelihood with them (a fresh filter run) must not be worse than
@@ -60,6 +63,7 @@ from fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
 from calibration.em import EMOptions, run_em
 from calibration.mstep import MStepOptions
 from calibration.particle_filter import filter_step, run_particle_filter
+from calibration.inertial import InertialTrack, surge_increments
 from calibration.resampling import systematic_resample
 from calibration.sensors import (HeadingObservation, LandmarkAssociator, LandmarkSighting,
                                  PositionFix, RangeObservation, sighting_from_sonar)
@@ -93,6 +97,8 @@ class CalibratorConfig:
     fit_var_s: bool = True
     fit_current: bool = True      # estimate the sea current (USBL/GNSS are ground-referenced)
     fix_regression: bool = True   # warm-start k_V and the current from fixes vs dead reckoning
+    # the filter's free-inertial velocity as surge-noise evidence (calibration.inertial)
+    use_inertial: bool = True
     # poses with absolute position information (fixes, ranges, landmarks) a window needs:
     # without them k_V and the current are not observable and EM would only wander
     min_position_poses: int = 3
@@ -168,7 +174,7 @@ def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
 def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
                      rng: np.random.Generator, t_s: float = math.nan,
                      initial_params: MotionParams | None = None, current_n_m_s=None,
-                     headings_rad=None) -> Release:
+                     headings_rad=None, inertial: InertialTrack | None = None) -> Release:
     """EM over one window + the sanity gate; returns the :class:`Release` record.
 
     ``params`` (and ``initial_params``, the prior centre when ``config.prior_anchor ==
@@ -176,8 +182,11 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     ``dt = config.step_s`` long and EM runs with the rescaled variances. ``current_n_m_s``
     (2,) m/s warm-starts the current. With ``headings_rad`` (T+1,) at the poses and
     ``config.fix_regression``, k_V and the current are first fitted to the window's fixes
-    (:func:`calibration.fix_regression.fix_regression`). The release carries model-step
-    parameters; the gate compares with the window log-likelihood of the current ones.
+    (:func:`calibration.fix_regression.fix_regression`). With ``inertial`` (the filter's
+    free-inertial velocity over the window; the window starts at ``t_s − T·step_s``) the
+    IMU's surge increments join the M-step and the log-likelihood
+    (:mod:`calibration.inertial`). The release carries model-step parameters; the gate
+    compares with the window log-likelihood of the current ones.
     """
     T = len(v)
     lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
@@ -199,10 +208,13 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
             start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
             start_cur = cur_fix if config.fit_current else cur0
+    inc = None
+    if inertial is not None and config.use_inertial and len(inertial) and math.isfinite(t_s):
+        inc = surge_increments(inertial, t_s - T * dt, dt, v, w, lam, config.model_step_s, start_cur)
     try:
         anchor = to_window(initial_params) if config.prior_anchor == "initial" and initial_params is not None else None
         res = run_em(start_params, v, w, dt, observations, init_cloud, rng, config.em_options(),
-                     step_weights=lam, prior_params=anchor, current_n_m_s=start_cur)
+                     step_weights=lam, prior_params=anchor, current_n_m_s=start_cur, surge_increments=inc)
         new = to_model(res.params)
     except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
         return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0, cur0)
@@ -216,21 +228,36 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     try:
         from calibration.em import freeze_landmarks
         obs = freeze_landmarks(win_params, v, w, dt, observations, init_cloud, rng, config.n_particles, cur0)
+        imu_ll = inc.log_likelihood if inc is not None else (lambda p: 0.0)
         if start_params is not win_params or start_cur is not cur0:  # EM started elsewhere: the reference
             ll_old = run_particle_filter(win_params, v, w, dt, obs, init_cloud, rng, config.n_particles,
-                                         current_n_m_s=cur0).log_likelihood
+                                         current_n_m_s=cur0).log_likelihood + imu_ll(win_params)
         ll_new = run_particle_filter(res.params, v, w, dt, obs, init_cloud, rng, config.n_particles,
-                                     current_n_m_s=cur).log_likelihood
+                                     current_n_m_s=cur).log_likelihood + imu_ll(res.params)
     except FloatingPointError as e:
         return Release(t_s, new, -math.inf, False, f"filter failed with new parameters: {e}", res.iterations, cur)
     if not math.isfinite(ll_new):
         return Release(t_s, new, ll_new, False, "log-likelihood not finite", res.iterations, cur)
+    note = ""
+    if ll_new < ll_old - config.ll_tolerance and (start_params is not win_params or start_cur is not cur0):
+        # EM's means (k_V and the current, from smoothed tracks whose sway prior is tight)
+        # can fit the fixes worse than the closed-form fix regression EM started from: a
+        # few mm/s of current are metres over a window. Try EM's variances with those means.
+        alt = replace(res.params, k_v=start_params.k_v)
+        try:
+            ll_alt = run_particle_filter(alt, v, w, dt, obs, init_cloud, rng, config.n_particles,
+                                         current_n_m_s=start_cur).log_likelihood + imu_ll(alt)
+        except FloatingPointError:
+            ll_alt = -math.inf
+        if ll_alt >= ll_old - config.ll_tolerance:
+            note = f"; means from the fix regression (EM's: log-likelihood {ll_new:.2f})"
+            new, cur, ll_new = to_model(alt), tuple(float(x) for x in start_cur), ll_alt
     if ll_new < ll_old - config.ll_tolerance:
         return Release(t_s, new, ll_new, False,
                        f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations,
                        cur)
     held = f"; held {','.join(res.held)}" if res.held else ""
-    return Release(t_s, new, ll_new, True, "ok" + held, res.iterations, cur)
+    return Release(t_s, new, ll_new, True, "ok" + held + note, res.iterations, cur)
 
 
 @dataclass
@@ -284,6 +311,8 @@ class OnlineCalibrator:
         from sonar.stream import AnchoredDeadReckoning
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
+        # free-inertial velocity samples (t, v_n, v_e, yaw, reset) over the window
+        self._inertial_buf: deque = deque()
 
     # ---------------------------------------------------------------- input
     def _reject(self, why: str) -> None:
@@ -294,6 +323,8 @@ class OnlineCalibrator:
         kind = type(sample).__name__
         if kind in ("TruthSample",):
             return
+        if kind == "InertialVelocitySample":
+            return self._inertial(sample)
         if kind == "ImuBatch":
             t = np.asarray(sample.t_s, dtype=float)
             wz = np.asarray(sample.omega_b_rad_s, dtype=float)[:, 2]
@@ -381,6 +412,21 @@ class OnlineCalibrator:
                                                       self.config.landmark_sigma_across_m))
         if math.isfinite(fe.latency_s):
             self._lag_s = max(self._lag_s, fe.latency_s + self.config.step_s)
+
+    def _inertial(self, sample) -> None:
+        """Buffer the filter's free-inertial velocity (no stepping: it is a filter output at
+        the nav epoch, which may trail the latest sensor time)."""
+        t, yaw = float(sample.t_s), float(sample.yaw_rad)
+        vn, ve = float(sample.vel_n_m_s[0]), float(sample.vel_n_m_s[1])
+        if not all(math.isfinite(x) for x in (t, yaw, vn, ve)):
+            return self._reject("non-finite inertial_velocity")
+        buf = self._inertial_buf
+        if buf and t <= buf[-1][0]:
+            return self._reject("out-of-order inertial_velocity")
+        buf.append((t, vn, ve, yaw, int(sample.reset_counter)))
+        keep_s = (self.config.window_steps + 2) * self.config.step_s + self._lag_s
+        while buf and buf[0][0] < t - keep_s:
+            buf.popleft()
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):
@@ -529,9 +575,13 @@ class OnlineCalibrator:
         clouds = list(self._clouds)[-(T + 1):]
         init = clouds[0]
         from calibration.fix_regression import circular_mean_headings
+        inertial = None
+        if len(self._inertial_buf) >= 3:
+            a = np.array(self._inertial_buf)
+            inertial = InertialTrack(a[:, 0], a[:, 1:3], a[:, 3], a[:, 4])
         rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
                                initial_params=self.params0, current_n_m_s=self.current_n_m_s,
-                               headings_rad=circular_mean_headings(clouds))
+                               headings_rad=circular_mean_headings(clouds), inertial=inertial)
         if rel.accepted:
             self.params = rel.params
             self.current_n_m_s = rel.current_n_m_s
