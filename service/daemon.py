@@ -353,6 +353,10 @@ class Daemon:
             return self.latest_health
         rep["queue_depth"] = self.source.qsize()
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
+        if self.bridge is not None:  # what the MAVLink link lost or refused, counted
+            c = self.bridge.counters
+            rep["mavlink"] = {k: c.get(k, 0) for k in ("packets_lost", "corrupt_frames", "link_losses",
+                                                       "reconnects", "callback_errors", "odometry_sent")}
         rep["nav_states"] = self.sink.nav_count
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         cal = self.calibrator

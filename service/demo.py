@@ -198,7 +198,9 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
         # the daemon drains its queue; then serve the last ODOMETRY messages
         end_t = vehicle.t_data_s or duration
         deadline = time.monotonic() + 30.0
-        while collector.last_t() < end_t - 0.5 and time.monotonic() < deadline:
+        # until the last epoch is out and the daemon's input is empty (a sample held for
+        # data order is released within its hold time): the counts below are final
+        while (collector.last_t() < end_t - 0.5 or daemon.source.qsize() > 0) and time.monotonic() < deadline:
             vehicle.run(linger_s=0.25)  # the samples are exhausted: heartbeats + ODOMETRY only
         vehicle.run(linger_s=0.3)
         health = daemon._health_report() if daemon.bus is not None else {}
@@ -216,6 +218,22 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
     return LiveResult(collector.nav, collector.releases, int(vehicle.received["odometry"]),
                       {k: v for k, v in vehicle.sent.items()}, sonar_count[0], health,
                       time.monotonic() - wall0, bridge_counters)
+
+
+def nav_epoch_counts(nav: list[dict], result: Any, duration_s: float, published: int | None,
+                     rate_hz: float = 10.0) -> dict:
+    """Where nav epochs went: ``expected`` (epochs ``k / rate`` from the first state to the
+    last IMU sample: the epoch after the last sample is never complete live), ``published``
+    by the daemon, ``received`` over Zenoh (distinct epochs), ``missing`` = expected −
+    received."""
+    t_imu = np.asarray(result.imu.t_s, dtype=float) if getattr(result, "imu", None) is not None else np.array([])
+    t_end = float(t_imu[-1]) if t_imu.size else float(duration_s)
+    t = sorted({round(float(d["t_s"]) * rate_hz) for d in nav if d.get("t_s") is not None})
+    if not t:
+        return {"expected": None, "published": published, "received": 0, "missing": None}
+    expected = int(math.floor(t_end * rate_hz + 1e-9)) - t[0] + 1
+    return {"expected": expected, "published": published, "received": len(t),
+            "missing": expected - len(t)}
 
 
 def live_recorder(live: LiveResult, result: Any, params0: Any) -> Any:
@@ -423,7 +441,11 @@ def run_demo(overrides: list[str] | tuple[str, ...] = (), out_dir: str | Path = 
         "static": row(rows_metrics["static"], **gaps["static"]),
         "learned": row(rows_metrics["learned"], **gaps["learned"], releases=len(live.releases), releases_accepted=len(accepted),
                        odometry_received_by_vehicle=live.odometry_received,
+                       nav_epochs=nav_epoch_counts(live.nav, result, scenario.duration_s,
+                                                   live.daemon_health.get("nav_states")),
                        nav_states_received=len(live.nav), sonar_pings_published=live.sonar_published,
+                       reordered_at_daemon=live.daemon_health.get("reordered", {}),
+                       mavlink_at_daemon=live.daemon_health.get("mavlink", {}),
                        samples_at_daemon={k: v.get("count") for k, v in
                                           live.daemon_health.get("sensors", {}).items()},
                        rejected_at_daemon=live.daemon_health.get("rejected", {}),

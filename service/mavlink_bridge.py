@@ -146,7 +146,9 @@ class MavlinkBridge:
         ``messages_by_type``, ``corrupt_frames``, ``samples``, ``rejected`` (by reason),
         ``send_errors``, ``reconnects``, ``link_losses``, ``odometry_sent``,
         ``nav_silenced`` (invalid solutions not sent), ``callback_errors``,
-        ``interval_requests``, ``origin_sent``.
+        ``interval_requests``, ``origin_sent``, ``packets_lost`` (gaps in the MAVLink
+        sequence numbers per sender, pymavlink's ``mav_loss``: frames lost on the link,
+        e.g. a full UDP receive buffer, are counted, never silent).
     """
 
     def __init__(self, url: str | None, on_sample: Callable[[Any], None],
@@ -163,7 +165,9 @@ class MavlinkBridge:
             "messages_by_type": {}, "corrupt_frames": 0, "samples": 0, "rejected": self.converter.rejected,
             "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
             "callback_errors": 0, "interval_requests": 0, "origin_sent": 0, "command_acks": 0,
+            "packets_lost": 0,
         }
+        self._lost_closed = 0  # packets lost on links closed since
         self._conn: Any = None
         self._prev_nav: Any = None
         self._lock = threading.Lock()  # pymavlink's sequence counter and socket are not thread-safe
@@ -254,6 +258,7 @@ class MavlinkBridge:
 
     def _close_conn(self) -> None:
         if self._conn is not None:
+            self._lost_closed += int(getattr(self._conn, "mav_loss", 0))
             try:
                 self._conn.close()
             except Exception:
@@ -327,6 +332,8 @@ class MavlinkBridge:
                         break
                     got += 1
                     self._handle(msg)
+                if got:
+                    self.counters["packets_lost"] = self._lost_closed + int(getattr(self._conn, "mav_loss", 0))
                 if got == 0:
                     self._conn.select(0.02)
             except Exception as e:  # socket closed by peer, serial gone, parser blew up

@@ -113,6 +113,7 @@ class SitlVehicle:
         self._omega_b = (0.0, 0.0, 0.0)
         self._heading_rad: float | None = None
         self._have_attitude_samples = False
+        self._ugps_seq = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.conn = mavutil.mavlink_connection(self.config.url, source_system=self.config.system_id,
@@ -313,6 +314,9 @@ class SitlVehicle:
                 flags |= 128
             alt = -s.depth_m if math.isfinite(s.depth_m) else 0.0
             sv = s.sigma_v_m if math.isfinite(s.sigma_v_m) else 0.0
+            # the UGPS is its own component with its own sequence numbers (the receiver
+            # counts gaps per sender as lost packets)
+            vehicle_seq, mav.seq = mav.seq, self._ugps_seq
             self.conn.mav.srcComponent = self.config.ugps_component_id
             try:
                 mav.gps_input_send(0, 0, flags, 0, 0, 3, int(round(s.lat_rad / DEG_E7_TO_RAD)),
@@ -320,6 +324,7 @@ class SitlVehicle:
                                    0.0, float(s.sigma_h_m), sv, 0)
             finally:
                 self.conn.mav.srcComponent = self.config.component_id
+                self._ugps_seq, mav.seq = mav.seq, vehicle_seq
             self._count("GPS_INPUT")
         elif kind in ("altitude", "dvl"):
             alt_m = s.altitude_m

@@ -47,12 +47,18 @@ def test_short_demo_end_to_end_json(tmp_path):
         for key in ("final_error_m", "rms_error_m", "percent_dt"):
             assert r[key] is not None and math.isfinite(r[key]), (name, key, r)
     learned = rows["learned"]
-    # the live path really ran: nav states over Zenoh at 10 Hz of data time, ODOMETRY back
-    # over MAVLink at the bridge's output rate, pings over the sonar driver's session
-    # (half of the epochs at least: alignment takes the first seconds, and on a loaded
-    # 2-core CI machine the demo's subscriber sees ~65 % of them; idle it sees ~90 %)
-    assert learned["nav_states_received"] >= 0.5 * DURATION_S * 10
-    assert learned["odometry_received_by_vehicle"] >= 0.5 * DURATION_S * 10
+    # the live path delivers every nav epoch (10 Hz of data time) over Zenoh: the first
+    # second is alignment, nothing else may be missing — the daemon holds samples that
+    # overtake the IMU across transports (side-scan pings on Zenoh vs MAVLink) so the
+    # runner sees data order, and nothing is dropped on the way
+    assert learned["nav_states_received"] >= DURATION_S * 10 - 10
+    assert learned["nav_epochs"]["received"] == learned["nav_states_received"]  # no duplicates
+    assert learned["nav_epochs"]["published"] == learned["nav_states_received"]  # Zenoh lost none
+    assert learned["reordered_at_daemon"].get("held", 0) > 0  # pings did overtake: the case is exercised
+    assert learned["mavlink_at_daemon"]["packets_lost"] == 0
+    assert "queue_overflow" not in learned["rejected_at_daemon"]
+    # ODOMETRY back over MAVLink at the bridge's 10 Hz (quality-0 states during alignment are not sent)
+    assert learned["odometry_received_by_vehicle"] >= DURATION_S * 10 - 20
     assert learned["sonar_pings_published"] >= DURATION_S * 4
     # every ping published by the sonar driver's session reached the daemon (and from
     # there the calibrator, whose front end turns them into landmark sightings)
