@@ -165,6 +165,7 @@ class UsblConfig:
     period_s: float = 60.0
     start_s: float = 60.0
     lost_after_s: float | None = None   # no fixes after this time (None = never lost)
+    outages_s: tuple[tuple[float, float], ...] = ()   # [start, end) intervals without fixes
     sigma_m: float = 2.0
     sigma_depth_m: float = 1.0
 

@@ -5,7 +5,8 @@ r"""Aiding-sensor models on top of the dense truth (vectorised over sample times
   changes with the environment, so a filter that keeps the old ρ sees a small depth bias.
 - GNSS: only while the true depth ≤ ``max_depth_m``; horizontal noise σ per axis.
 - USBL: geodetic position + depth with σ_h per horizontal axis and σ_v, every
-  ``period_s`` from ``start_s`` until ``lost_after_s`` (inclusive).
+  ``period_s`` from ``start_s`` until ``lost_after_s`` (inclusive), none within
+  ``outages_s`` intervals ``[start, end)``.
 - DVL bottom track: ``v_d = R_db (R_bn v_n + ω_b × r_b) + N(0, σ²)`` with lever arm
   ``r_b`` and mounting ``R_bd``; ``valid`` false during outages, random drop-outs, or
   when the altitude exceeds the bottom-lock range.
@@ -135,8 +136,12 @@ def usbl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[Usbl
     pos = truth.pos(t)
     noisy = pos + rng.standard_normal((len(t), 3)) * np.array([cfg.sigma_m, cfg.sigma_m, cfg.sigma_depth_m])
     lat, lon, _ = scenario.origin.geo().to_geodetic(noisy)
+    # outages drop fixes after the noise is drawn: the other fixes stay the same draws
+    keep = np.ones(len(t), dtype=bool)
+    for start, stop in cfg.outages_s:
+        keep &= ~((t >= start) & (t < stop))
     return [UsblSample(float(t[i]), float(lat[i]), float(lon[i]), float(noisy[i, 2]),
-                       cfg.sigma_m, cfg.sigma_depth_m) for i in range(len(t))]
+                       cfg.sigma_m, cfg.sigma_depth_m) for i in range(len(t)) if keep[i]]
 
 
 def dvl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[DvlSample]:
