@@ -396,10 +396,12 @@ class OnlineCalibrator:
         (The particle filter here is no substitute while its model has no current: its
         mean lags the fixes.)
         """
-        from sonar.stream import SonarFrontEnd, reference_landmark
+        from sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
 
         if self.sonar_front_end is None:
-            self.sonar_front_end = SonarFrontEnd()
+            # no window registration: the calibrator does not use visual motion (it was
+            # a second SIFT pass per window)
+            self.sonar_front_end = SonarFrontEnd(FrontEndConfig(register=False))
         fe = self.sonar_front_end
         speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else self.params.k_v * self._last_speed
         pos, sigma = self.sonar_nav.push(ping)
