@@ -31,6 +31,7 @@ time, a sample count or slant range different from the stream's) are counted in
 from __future__ import annotations
 
 import math
+import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -168,6 +169,7 @@ class SonarFrontEnd:
         self._pos = np.zeros(2)
         self._last: tuple[float, float, float] | None = None  # t, speed, yaw
         self._dt_s: deque[float] = deque(maxlen=64)
+        self._latency_s: float | None = None
         self._sigma: deque[float] = deque(maxlen=c.window_pings)  # nav σ of the buffered pings
 
     # ------------------------------------------------------------------ input
@@ -179,9 +181,12 @@ class SonarFrontEnd:
     @property
     def latency_s(self) -> float:
         """Largest delay between a ping and the emission of its sightings (data s)."""
-        c = self.config
-        dt = float(np.median(self._dt_s)) if self._dt_s else math.nan
-        return 0.5 * (c.window_pings + c.step_pings) * dt
+        if self._latency_s is None:  # cached until the next ping (asked once or twice per ping)
+            c = self.config
+            # statistics.median: the same value as np.median, ~20x cheaper on 64 floats
+            dt = float(statistics.median(self._dt_s)) if self._dt_s else math.nan
+            self._latency_s = 0.5 * (c.window_pings + c.step_pings) * dt
+        return self._latency_s
 
     def push(self, ping: SonarPing, pos_n_m=None, pos_sigma_m: float | None = None) -> list:
         """Take one ping; return what became available (possibly nothing).
@@ -246,6 +251,7 @@ class SonarFrontEnd:
             self._pos = self._pos + 0.5 * (v0 + speed) * dt * np.array([math.cos(mid), math.sin(mid)])
         if self._last is not None:
             self._dt_s.append(ping.t_s - self._last[0])
+            self._latency_s = None
         self._last = (ping.t_s, speed, yaw)
 
     # ------------------------------------------------------------------ windows

@@ -22,7 +22,6 @@ Image layout: ``image[row, col]``, ``2 W`` columns; column ``c`` is at across-tr
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -310,20 +309,33 @@ def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
 
 
+def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
+    """Median of ``image`` over the ``data`` pixels along ``axis``; NaN where none.
+
+    Equal to ``np.nanmedian(np.where(data, image, nan), axis)`` (the mean of the two
+    middle values for an even count), vectorised: one sort along ``axis`` with the
+    non-data pixels sorted last (``nanmedian`` loops over the other axis in Python, which
+    made it most of a streaming window's cost).
+    """
+    s = np.sort(np.where(data, image, np.inf), axis=axis)
+    n = np.count_nonzero(data, axis=axis)
+    lo = np.expand_dims(np.maximum(n - 1, 0) // 2, axis)
+    hi = np.expand_dims(n // 2, axis)
+    a = np.take_along_axis(s, lo, axis=axis).squeeze(axis)
+    b = np.take_along_axis(s, hi, axis=axis).squeeze(axis)
+    with np.errstate(invalid="ignore"):
+        med = (a + b) / s.dtype.type(2)
+    return np.where(n > 0, med, np.nan)
+
+
 def normalise_gain(image: np.ndarray) -> np.ndarray:
     """Divide columns then rows by their median over data pixels (>0); float32."""
     img = image.astype(np.float32, copy=True)
     data = img > 0
-    masked = np.where(data, img, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        col = np.nanmedian(masked, axis=0)
+    col = masked_median(img, data, axis=0)
     col = np.where(np.isfinite(col) & (col > 0), col, 1.0).astype(np.float32)
     img /= col[None, :]
-    masked = np.where(data, img, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        row = np.nanmedian(masked, axis=1)
+    row = masked_median(img, data, axis=1)
     row = np.where(np.isfinite(row) & (row > 0), row, 1.0).astype(np.float32)
     img /= row[:, None]
     img[~data] = 0.0
