@@ -326,3 +326,29 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
     notes = [f"held {name} (controls do not separate it)" for name in held + held_means]
     return MStepResult(new, held + held_means, cond_v, cond_w, float(q), notes, (float(current[0]), float(current[1])))
+
+
+def surge_variances_from_increments(params: MotionParams, increments, options: MStepOptions = MStepOptions(),
+                                    prior_params: MotionParams | None = None) -> MStepResult:
+    """Surge variances from the IMU's increments alone (no trajectories: no position information).
+
+    The means (k_V, b_W, the current) and the other channels are not observable from the
+    increments and stay as they are; the surge terms are fitted by the same Newton-CG
+    objective over the increment rows only, with the same identifiability test and prior.
+    ``increments`` is a :class:`calibration.inertial.SurgeIncrements` in window-step units.
+    """
+    inc = increments
+    design, lam = inc.design, inc.weight
+    kept, cond = identifiable_terms(design * np.sqrt(lam)[:, None], V_PRIORITY, options.max_condition)
+    kept = [k for k in kept if V_TERMS[k] not in options.hold_terms]
+    alpha = np.log([params.var_vv, params.var_vw, params.var_v1])
+    pp = params if prior_params is None else prior_params
+    center = np.log([pp.var_vv, pp.var_vw, pp.var_v1])
+    a = _fit_log_variances(design, lam, inc.residual_sq(params.k_v), 1, alpha, kept, options.prior_tau, center)
+    ev = np.maximum(np.exp(a), options.var_floor)
+    held = tuple(V_TERMS[k] for k in range(3) if k not in kept)
+    new = replace(params, var_vv=float(ev[0]), var_vw=float(ev[1]), var_v1=float(ev[2]))
+    new = replace(new, **{name: getattr(params, name) for name in held})
+    s_v = design @ np.array([new.var_vv, new.var_vw, new.var_v1])
+    q = -0.5 * float(np.sum(lam * (np.log(s_v) + inc.residual_sq(params.k_v) / s_v)))
+    return MStepResult(new, held, cond, math.nan, q, [f"held {n} (controls do not separate it)" for n in held])

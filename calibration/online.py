@@ -99,6 +99,8 @@ class CalibratorConfig:
     fix_regression: bool = True   # warm-start k_V and the current from fixes vs dead reckoning
     # the filter's free-inertial velocity as surge-noise evidence (calibration.inertial)
     use_inertial: bool = True
+    # IMU increments a window needs to update the surge variances on its own (no fixes)
+    min_inertial_rows: int = 120
     # poses with absolute position information (fixes, ranges, landmarks) a window needs:
     # without them k_V and the current are not observable and EM would only wander
     min_position_poses: int = 3
@@ -196,9 +198,14 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     n_pos = sum(1 for obs in observations
                 if any(not isinstance(o, HeadingObservation) for o in (obs or ())))
     if n_pos < config.min_position_poses:
-        return Release(t_s, params, math.nan, False,
-                       f"too little position information: {n_pos} pose(s) with fixes/ranges/landmarks "
-                       f"< {config.min_position_poses}", 0, cur0)
+        why = (f"too little position information: {n_pos} pose(s) with fixes/ranges/landmarks "
+               f"< {config.min_position_poses}")
+        inc = None
+        if inertial is not None and config.use_inertial and len(inertial) and math.isfinite(t_s):
+            inc = surge_increments(inertial, t_s - T * dt, dt, v, w, lam, config.model_step_s, cur0)
+        if inc is None or len(inc) < config.min_inertial_rows:
+            return Release(t_s, params, math.nan, False, why, 0, cur0)
+        return _inertial_only(params, inc, config, t_s, initial_params, cur0, why)
     win_params = to_window(params)
     start_params, start_cur = win_params, cur0
     if headings_rad is not None and config.fix_regression:
@@ -258,6 +265,27 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
                        cur)
     held = f"; held {','.join(res.held)}" if res.held else ""
     return Release(t_s, new, ll_new, True, "ok" + held + note, res.iterations, cur)
+
+
+def _inertial_only(params, inc, config: CalibratorConfig, t_s, initial_params, cur, why) -> Release:
+    """Without position information k_V and the current are not observable, but the surge
+    noise still is, from the IMU (:func:`calibration.mstep.surge_variances_from_increments`):
+    release new surge variances if their likelihood is not worse, everything else kept."""
+    from calibration.mstep import surge_variances_from_increments
+
+    win = rescale_step(params, config.model_step_s, config.step_s)
+    anchor = (rescale_step(initial_params, config.model_step_s, config.step_s)
+              if config.prior_anchor == "initial" and initial_params is not None else None)
+    res = surge_variances_from_increments(win, inc, config.em_options().mstep, anchor)
+    new = rescale_step(res.params, config.step_s, config.model_step_s)
+    reason = gate_reason(new, config)
+    if reason:
+        return Release(t_s, new, math.nan, False, reason, 1, cur)
+    ll_old, ll_new = inc.log_likelihood(win), inc.log_likelihood(res.params)
+    if ll_new < ll_old - config.ll_tolerance:
+        return Release(t_s, new, ll_new, False, f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - "
+                       f"{config.ll_tolerance} (IMU only)", 1, cur)
+    return Release(t_s, new, ll_new, True, f"ok; surge variances from the IMU only ({why})", 1, cur)
 
 
 @dataclass

@@ -38,3 +38,20 @@ def test_sigma_vv_and_k_v_follow_the_change_within_10_min(tmp_path, seed):
     t, sigma_vv, k_v = after[-1]
     assert abs(sigma_vv / 0.15 - 1) < 0.3, after
     assert abs(k_v / 0.9 - 1) < 0.10, after
+
+
+def test_without_fixes_the_surge_noise_still_follows_a_change_from_the_imu_alone(tmp_path):
+    # GIVEN USBL lost after 5 min and the water changing at 10 min
+    inp = open_scenario("survey", [f"duration_s={DURATION_S}", f"environment.change_at_s={CHANGE_S}",
+                                   "usbl.lost_after_s=300", "seed=3"])
+    res = replay(inp, build_config(inp.scenario), tmp_path, calibrate=True, progress=False, plots=False)
+    with open(res.out_dir / "params.csv") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["accepted"] == "1" and float(r["t_s"]) > 0]
+    imu_only = [r for r in rows if "IMU only" in r["reason"]]
+    assert imu_only, [r["reason"] for r in rows]
+    last = imu_only[-1]
+    # THEN σ_Vv reaches the new truth within 30 % by the end (10 min after the change) ...
+    assert abs(math.sqrt(float(last["var_vv"])) / 0.15 - 1) < 0.3, last
+    # ... while k_V, unobservable without position information, is left as it was
+    before = [r for r in rows if "IMU only" not in r["reason"]][-1]
+    assert float(last["k_v"]) == float(before["k_v"])
