@@ -4,6 +4,7 @@ Key expressions (``<v>`` = vehicle name, DESIGN.md "Service")::
 
     adaptnav/<v>/sensor/<kind>         samples (imu, dvl, depth, heading, gnss, usbl, rpm, ...)
     adaptnav/<v>/nav/state             NavState with covariance (10 Hz)
+    adaptnav/<v>/nav/inertial          free-inertial velocity (10 Hz; for a remote calibrator)
     adaptnav/<v>/nav/aid/<source>      AidStatus per aiding source (1 Hz, latest)
     adaptnav/<v>/calibration/params    calibrator releases
     adaptnav/<v>/health                health report (1 Hz)
@@ -47,6 +48,7 @@ class Keys:
         self.all = f"{self.root}/**"
         self.sensors = f"{self.root}/sensor/*"
         self.nav_state = f"{self.root}/nav/state"
+        self.nav_inertial = f"{self.root}/nav/inertial"
         self.params = f"{self.root}/calibration/params"
         self.health = f"{self.root}/health"
 

@@ -349,9 +349,12 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     inbox: queue.Queue = queue.Queue(maxsize=cfg.calibrator.queue_size)
     overflow: Counter[str] = Counter()
     bus.subscribe_samples(nonblocking_enqueue(inbox, overflow))
+    # the daemon's free-inertial velocity: the surge-noise evidence (calibration.inertial)
+    bus.subscribe_samples(nonblocking_enqueue(inbox, overflow), key=bus.keys.nav_inertial)
     last: dict[str, Any] = {"params": params0.to_dict()}
+    received: Counter[str] = Counter()  # samples taken, by kind
     bus.queryable("calibrator", lambda: json.dumps(
-        {"type": "calibrator_status", "schema_version": 1, **last,
+        {"type": "calibrator_status", "schema_version": 1, **last, "received": dict(received),
          "overflow": dict(overflow), "malformed": dict(bus.malformed)}).encode())
     log.info("calibrator node up for vehicle %s", cfg.vehicle.name)
     try:
@@ -361,6 +364,7 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
             except queue.Empty:
                 sample = None
             if sample is not None:
+                received[getattr(sample, "KIND", type(sample).__name__)] += 1
                 calibrator.observe(sample)
             for release in calibrator.poll():
                 body = release_to_dict(release)

@@ -38,7 +38,7 @@ import numpy as np
 from fusion.motion_model import MotionParams
 from fusion.samples import SOURCE_PRIORITY
 
-from .bus import Bus, message, nonblocking_enqueue
+from .bus import Bus, encode_sample, message, nonblocking_enqueue
 from .calibrator_process import CalibratorProcess, release_from_dict
 from .clock import LiveClock
 from .config import ServiceConfig, config_dict, log_effective
@@ -167,6 +167,13 @@ class BusSink(Sink):
             bridge.send_nav(state)
         if self.d._snapshot_due.is_set():
             self.d._take_snapshot(state.t_s)
+
+    def on_inertial(self, sample: Any) -> None:
+        """A remote calibrator node gets the filter's free-inertial velocity over the bus
+        (its surge-noise evidence, :mod:`calibration.inertial`)."""
+        cal = self.d.cfg.calibrator
+        if cal.enabled and cal.location == "remote":
+            self.d.bus.put(self.d.bus.keys.nav_inertial, encode_sample(sample))
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:

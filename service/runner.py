@@ -16,7 +16,8 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
    sample that lands exactly on ``t_k`` emits at once — live, the state must not wait
    for the next sample to learn the epoch is complete (one IMU period of latency);
    with a calibrator, the estimator's free-inertial velocity at the epoch goes to
-   ``calibrator.observe`` (its surge-noise evidence, :mod:`calibration.inertial`);
+   ``calibrator.observe`` (its surge-noise evidence, :mod:`calibration.inertial`) and to
+   the sinks' ``on_inertial`` (the daemon publishes it for a remote calibrator);
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
 3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
@@ -116,6 +117,7 @@ class _Loop:
         self._on_aid = _bound(self.sinks, "on_aid")
         self._on_release = _bound(self.sinks, "on_release")
         self._on_sample = _bound(self.sinks, "on_sample")
+        self._on_inertial = _bound(self.sinks, "on_inertial")
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -133,11 +135,14 @@ class _Loop:
         for f in self._on_nav:
             f(state)
         cal = self.calibrator
-        if cal is not None:
+        if cal is not None or self._on_inertial:
             # the calibrator's surge-noise evidence (calibration.inertial), at the nav rate
             inertial = est.inertial_velocity()
             if inertial is not None:
-                cal.observe(inertial)
+                if cal is not None:
+                    cal.observe(inertial)
+                for f in self._on_inertial:
+                    f(inertial)
 
     def flush_epochs_before(self, t_s: float) -> None:
         """Emit every epoch ``t_k < t_s`` not yet emitted (the state is the same for all)."""

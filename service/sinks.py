@@ -91,6 +91,10 @@ class Sink:
     def on_sample(self, sample: Any) -> None:
         pass
 
+    def on_inertial(self, sample: Any) -> None:
+        """The estimator's free-inertial velocity at a nav epoch (InertialVelocitySample)."""
+        pass
+
     def close(self) -> None:
         pass
 

@@ -52,6 +52,8 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
         assert releases[0]["type"] == "calibration_release"
         accepted = [r for r in releases if r["accepted"]]
         health = wait_until(lambda: (h := bus.get("health", 1.0)) and h["calibrator"]["releases"] >= len(releases) and h, 10)
+        node_status = bus.get("calibrator", 2.0)
+        inertial = col.get(bus.keys.nav_inertial)
     finally:
         stop.set()
         node.join(10)
@@ -62,3 +64,8 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
     assert health["calibrator"]["last_release"]["t_s"] == releases[-1]["t_s"]
     if accepted:  # the daemon now uses what the node learned
         assert daemon.params.to_dict() == pytest.approx(accepted[-1]["params"])
+    # the daemon hands the node its free-inertial velocity (the surge-noise evidence) over the bus
+    assert len(inertial) > 100 and inertial[0]["type"] == "inertial_velocity"
+    times = [d["t_s"] for d in inertial]
+    assert all(b > a for a, b in zip(times, times[1:]))
+    assert node_status and node_status["received"].get("inertial_velocity", 0) > 100, node_status
