@@ -354,6 +354,15 @@ class ImuBatch:
     specific_force_b_m_s2: Any
     omega_b_rad_s: Any
 
+    def __post_init__(self) -> None:
+        # the propagation kernels index the three arrays together: mismatched shapes would
+        # read past an array's end, so they are refused at construction
+        n = len(self.t_s)
+        for name in ("specific_force_b_m_s2", "omega_b_rad_s"):
+            shape = getattr(getattr(self, name), "shape", None) or (len(getattr(self, name)),)
+            if shape[0] != n or (len(shape) > 1 and shape[1:] != (3,)):
+                raise SampleError(f"imu_batch: {name} has shape {tuple(shape)}, expected ({n}, 3)")
+
     def __len__(self) -> int:
         return len(self.t_s)
 

@@ -41,3 +41,15 @@ def test_every_type_has_a_schema_that_requires_its_fields():
         schema = json_schema(cls)
         assert schema["properties"]["type"]["const"] == kind
         assert "t_s" in schema["required"]
+
+
+def test_an_imu_batch_with_mismatched_arrays_is_refused_with_a_clear_error():
+    import numpy as np
+
+    from fusion.samples import ImuBatch, SampleError
+
+    ImuBatch(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))  # consistent: fine
+    with pytest.raises(SampleError, match="specific_force_b_m_s2 has shape"):
+        ImuBatch(np.arange(3.0), np.zeros((2, 3)), np.zeros((3, 3)))
+    with pytest.raises(SampleError, match="omega_b_rad_s has shape"):
+        ImuBatch(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 2)))
