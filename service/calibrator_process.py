@@ -16,6 +16,20 @@ DESIGN.md "Service": fusion must never wait for EM (2 cores). The daemon therefo
   sensor topics and publishing releases on ``adaptnav/<v>/calibration/params``.
 
 Releases travel as JSON (:func:`release_to_dict` / :func:`release_from_dict`).
+
+Deterministic application (replay; :class:`LaggedCalibrator`). A release computed by the
+calibrator once it has observed data up to data time ``τ`` (the latest sample time it
+has seen) is applied by the runner at data time ``τ + L``, ``L`` =
+``calibrator.latency_s``: it goes to the runner just before the first item whose time
+``t`` satisfies ``t ≥ τ + L``. In replay the runner, before passing an item of time
+``t``, waits until the calibrator has reported that it processed every sample up to
+``t − L`` (a progress message on the return queue) — so every release due before ``t``
+is known — and the output does not depend on wall-clock timing: same data and seed ⇒
+the same trajectory and parameter history, whether the calibrator runs in a child
+process (``location="process"``, on the second core) or in-process (``"inline"``), at
+any machine load. ``L`` is what the runner may run ahead of the calibrator: it should
+exceed the calibrator's bursts (an EM window) in data time at the replay speed.
+Releases still pending at the end of the data are passed after the last item.
 """
 from __future__ import annotations
 
@@ -146,6 +160,275 @@ def compact_imu(batch: list[Any]) -> list[Any]:
             out.append(s)
     close()
     return out
+
+
+# -- deterministic (lagged) application ------------------------------------------------
+def data_time(sample: Any) -> float:
+    """Latest finite time of a sample or :class:`~fusion.samples.ImuBatch` (s); NaN if none."""
+    t = getattr(sample, "t_s", None)
+    if t is None:
+        return math.nan
+    if isinstance(t, (int, float)):
+        return float(t)
+    try:
+        n = len(t)
+    except TypeError:
+        return math.nan
+    for i in range(n - 1, -1, -1):  # the last finite entry (a bad batch may end in NaN)
+        v = float(t[i])
+        if math.isfinite(v):
+            return v
+    return math.nan
+
+
+def _first_time(item: Any) -> float:
+    """Time at which the runner handles ``item`` (first entry of a batch); NaN if none."""
+    t = getattr(item, "t_s", None)
+    if t is None or isinstance(t, (int, float)):
+        return math.nan if t is None else float(t)
+    return float(t[0]) if len(t) else math.nan
+
+
+class _DataClock:
+    """Running maximum of the sample times observed (the calibrator's data time τ)."""
+
+    def __init__(self) -> None:
+        self.tau = -math.inf
+
+    def advance(self, sample: Any) -> float:
+        t = data_time(sample)
+        if t > self.tau:  # False for NaN
+            self.tau = t
+        return self.tau
+
+
+class InlineBackend:
+    """The calibrator in this process (same rule, no second core)."""
+
+    def __init__(self, calibrator: Any) -> None:
+        self.calibrator = calibrator
+        self.clock = _DataClock()
+        self.ready: list[tuple[float, Any]] = []   # (τ, release), oldest first
+
+    def send(self, sample: Any) -> None:
+        self.calibrator.observe(sample)
+        tau = self.clock.advance(sample)
+        for rel in self.calibrator.poll():
+            self.ready.append((tau, rel))
+
+    def sync(self, t_s: float) -> None:
+        """Every release with ``τ ≤ t_s`` is in :attr:`ready` (always, in-process)."""
+
+    def finish(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any) -> None:
+    """Child of :class:`ProcessBackend`: per sample observe → poll, releases stamped with
+    τ; after each batch a progress message ``(seq of the last sample, τ)``."""
+    try:
+        try:
+            import cv2
+
+            # the parent runs the filter on the other core: OpenCV's worker threads would
+            # only compete with it (and with each other) for the second one
+            cv2.setNumThreads(1)
+        except ImportError:  # pragma: no cover - OpenCV is a dependency
+            pass
+        calibrator = make_calibrator(cfg, params0, seed)
+        clock = _DataClock()
+        out_q.put(("ready", None, None))
+        while True:
+            msg = in_q.get()
+            if isinstance(msg, str) and msg == _STOP:
+                return
+            seq, batch = msg
+            for sample in batch:
+                calibrator.observe(sample)
+                tau = clock.advance(sample)
+                for rel in calibrator.poll():
+                    out_q.put(("release", release_to_dict(rel), tau))
+            out_q.put(("progress", seq + len(batch), clock.tau))
+    except BaseException as e:  # the parent must not wait forever for a dead child
+        import traceback
+
+        out_q.put(("error", f"{type(e).__name__}: {e}\n{traceback.format_exc()}", None))
+        raise
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (s) from /proc; NaN elsewhere."""
+    import os
+
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return math.nan
+
+
+class ProcessBackend:
+    """The calibrator in a spawn child process (the second core), flow-controlled by
+    :meth:`sync`: samples go in batches of ``batch_size``; the parent blocks only when it
+    needs a progress the child has not reported yet."""
+
+    def __init__(self, cfg: Any, params0: MotionParams, seed: int, batch_size: int = 256,
+                 start_method: str | None = None) -> None:
+        if start_method is None:
+            # fork starts in milliseconds with everything imported (spawn re-imports numpy,
+            # scipy, numba, OpenCV: ~1.5 s, 10 % of a 1 h replay at 200×); it is safe only
+            # in a process without other Python threads (the daemon's calibrator spawns)
+            start_method = ("fork" if "fork" in mp.get_all_start_methods()
+                            and threading.active_count() == 1 else "spawn")
+        ctx = mp.get_context(start_method)
+        self.start_method = start_method
+        self.batch_size = int(batch_size)
+        self.ready: list[tuple[float, Any]] = []
+        self._in_q = ctx.Queue()
+        self._out_q = ctx.Queue()
+        self._proc = ctx.Process(target=_lagged_child_main, name="adaptnav-calibrator", daemon=True,
+                                 args=(cfg, params0, seed, self._in_q, self._out_q))
+        self._proc.start()
+        self._batch: list[Any] = []
+        self._sent = 0          # samples sent (sequence number of the next one)
+        self._done = 0          # samples the child reported processed
+        self._child_tau = -math.inf
+        self.wait_s = 0.0       # wall time spent waiting for the child
+        self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
+
+    def send(self, sample: Any) -> None:
+        self._batch.append(sample)
+        if len(self._batch) >= self.batch_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._batch:
+            self._in_q.put((self._sent, compact_imu(self._batch)))
+            self._sent += len(self._batch)
+            self._batch = []
+
+    def _observed(self) -> int:
+        return self._sent + len(self._batch)
+
+    def _read(self, block: bool) -> bool:
+        """Handle one message from the child; False when none (non-blocking)."""
+        try:
+            kind, body, tau = self._out_q.get(timeout=1.0) if block else self._out_q.get_nowait()
+        except queue.Empty:
+            if block and not self._proc.is_alive():
+                raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})") from None
+            return False
+        if kind == "release":
+            self.ready.append((float(tau), release_from_dict(body)))
+        elif kind == "progress":
+            self._done, self._child_tau = int(body), float(tau)
+        elif kind == "error":
+            raise RuntimeError(f"calibrator process failed: {body}")
+        return True
+
+    def sync(self, t_s: float) -> None:
+        """Block until every release with ``τ ≤ t_s`` is in :attr:`ready`: the child has
+        processed a sample later than ``t_s`` (τ is non-decreasing and messages are in
+        order) or every sample observed so far."""
+        if self._child_tau > t_s or self._done >= self._observed():
+            return
+        self._flush()
+        t0 = time.monotonic()
+        while not (self._child_tau > t_s or self._done >= self._sent):
+            self._read(block=True)
+        self.wait_s += time.monotonic() - t0
+
+    def finish(self) -> None:
+        """Wait for the child to process everything observed."""
+        self._flush()
+        t0 = time.monotonic()
+        while self._done < self._sent:
+            self._read(block=True)
+        self.wait_s += time.monotonic() - t0
+        self.child_cpu_s = _cpu_s(self._proc.pid)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        proc = self._proc
+        if proc.is_alive():
+            try:
+                self._in_q.put(_STOP)
+            except (ValueError, OSError):
+                pass
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(1.0)
+        for q in (self._in_q, self._out_q):
+            q.cancel_join_thread()
+            q.close()
+
+
+class LaggedCalibrator:
+    """The runner's calibrator with deterministic application (module docstring).
+
+    Use as ``run(lagged.schedule(source), ..., calibrator=lagged)``: :meth:`observe`
+    forwards samples to the backend, :meth:`poll` returns nothing, and
+    :meth:`schedule` puts each release into the item stream at data time ``τ + L``.
+
+    Parameters
+    ----------
+    backend : InlineBackend or ProcessBackend
+    latency_s : float
+        ``L`` (data seconds, ≥ 0).
+    """
+
+    def __init__(self, backend: Any, latency_s: float) -> None:
+        if not (math.isfinite(latency_s) and latency_s >= 0):
+            raise ValueError(f"calibrator latency_s must be a finite number ≥ 0, got {latency_s}")
+        self.backend = backend
+        self.latency_s = float(latency_s)
+        self.released = 0
+
+    def observe(self, sample: Any) -> None:
+        self.backend.send(sample)
+
+    def poll(self) -> list:
+        return []  # releases go into the stream by schedule()
+
+    def schedule(self, source: Any):
+        """``source``'s items, with each release inserted before the first item at or
+        after its data time ``τ + L``."""
+        ready = self.backend.ready
+        lag = self.latency_s
+        for item in source:
+            t = _first_time(item)
+            if t == t:  # finite or ±inf; NaN items (rejected by the estimator) just pass
+                self.backend.sync(t - lag)
+                while ready and ready[0][0] + lag <= t:
+                    self.released += 1
+                    yield ready.pop(0)[1]
+            yield item
+        self.backend.finish()
+        while ready:
+            self.released += 1
+            yield ready.pop(0)[1]
+
+    def close(self) -> None:
+        self.backend.close()
+
+
+def make_lagged_calibrator(cfg: Any, params0: MotionParams, location: str = "process",
+                           latency_s: float | None = None) -> LaggedCalibrator:
+    """:class:`LaggedCalibrator` from a ServiceConfig: ``location`` ``"process"`` (child
+    process) or ``"inline"``; ``latency_s`` default ``cfg.calibrator.latency_s``."""
+    lag = getattr(cfg.calibrator, "latency_s", 30.0) if latency_s is None else latency_s
+    seed = cfg.calibrator.seed
+    if location == "inline":
+        backend: Any = InlineBackend(make_calibrator(cfg, params0, seed))
+    elif location == "process":
+        backend = ProcessBackend(cfg, params0, seed)
+    else:
+        raise ValueError(f"calibrator location {location!r}: expected 'process' or 'inline'")
+    return LaggedCalibrator(backend, lag)
 
 
 # -- the child ----------------------------------------------------------------------

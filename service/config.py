@@ -140,7 +140,10 @@ class CalibratorSection:
     releases on ``adaptnav/<v>/calibration/params``). ``restart_backoff_s``: first
     restart delay after a crash, doubled up to ``restart_backoff_max_s``.
     ``queue_size``: samples buffered towards the process before new ones are dropped
-    (counted) — fusion never waits for EM. ``seed``: its RNG seed.
+    (counted) — fusion never waits for EM. ``seed``: its RNG seed. ``latency_s``: a
+    release computed from data up to data time τ is applied at data time τ + latency_s
+    (replay waits for the calibrator's progress, so its output is deterministic; see
+    :mod:`service.calibrator_process`).
     """
 
     enabled: bool = True
@@ -149,7 +152,12 @@ class CalibratorSection:
     restart_backoff_max_s: float = 30.0
     queue_size: int = 20000
     seed: int = 0
+    latency_s: float = 30.0
     online: CalibratorConfig = field(default_factory=CalibratorConfig)
+
+    def validate(self) -> None:
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0.0):
+            raise ValueError("latency_s must be a finite number ≥ 0")
 
 
 @dataclass(frozen=True)

@@ -190,7 +190,7 @@ def _progress_bar(total_s: float | None, label: str, enabled: bool):
 
 def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
            realtime: float | None = None, progress: bool = True, title: str = "",
-           plots: bool = True) -> ReplayResult:
+           plots: bool = True, calibrator_location: str = "process") -> ReplayResult:
     """Run one replay of ``inp`` with config ``cfg`` into ``out_dir`` (see module docstring).
 
     Parameters
@@ -199,7 +199,11 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     cfg : ServiceConfig
     out_dir : path, created if needed
     calibrate : bool
-        Run the online calibrator in-process at the same data times.
+        Run the online calibrator; its releases are applied at data time τ +
+        ``cfg.calibrator.latency_s`` (deterministic: :class:`service.calibrator_process.LaggedCalibrator`).
+    calibrator_location : {"process", "inline"}
+        The calibrator in a child process (the second core) or in this process; both
+        give the same output.
     realtime : float, optional
         Pace at this many times real time (``None``: as fast as possible).
     progress : bool
@@ -226,9 +230,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     estimator = Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
     calibrator = None
     if calibrate:
-        from .calibrator_process import make_calibrator
+        from .calibrator_process import make_lagged_calibrator
 
-        calibrator = make_calibrator(cfg, params0, cfg.calibrator.seed)
+        calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
+        items = calibrator.schedule(items)
     health = Health(silent_after_s=cfg.health.sensor_timeout_s)
     truth = inp.has_truth
     recorder = SeriesRecorder(initial_params=params0)
@@ -249,6 +254,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     finally:
         if bar is not None:
             bar.close()
+        if calibrator is not None:
+            calibrator.close()
     wall_s = time.monotonic() - wall0
 
     src = inp.source
@@ -276,6 +283,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "releases_accepted": summary.releases_accepted,
         "errors": dict(summary.errors),
         "calibrate": bool(calibrate),
+        "calibrator": ({"location": calibrator_location, "latency_s": calibrator.latency_s,
+                        "wait_s": getattr(calibrator.backend, "wait_s", 0.0),
+                        "process_cpu_s": getattr(calibrator.backend, "child_cpu_s", None)}
+                       if calibrator is not None else None),
         "origin": {"lat_deg": cfg.origin.lat_deg, "lon_deg": cfg.origin.lon_deg,
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
         "health": health.report(),

@@ -19,7 +19,12 @@ def add_arguments(parser):
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--realtime", nargs="?", const=1.0, type=float, metavar="SPEED",
                         help="pace the replay at SPEED × real time (default 1)")
-    parser.add_argument("--calibrate", action="store_true", help="run the online calibrator in-process")
+    parser.add_argument("--calibrate", action="store_true",
+                        help="run the online calibrator; a release computed from data up to τ is applied at "
+                             "τ + calibrator.latency_s (deterministic)")
+    parser.add_argument("--calibrator-location", choices=("process", "inline"), default="process",
+                        help="with --calibrate: a child process (default, the second core) or this process "
+                             "(same output)")
     parser.add_argument("--config", metavar="FILE", help="service config TOML (as for `adaptnav run`)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override: a scenario key with --scenario, else a config key (repeatable)")
@@ -74,7 +79,7 @@ def run(args):
             name = "learned" if (variant == "given" and args.calibrate) else variant
             res = rp.replay(source_inp, vcfg, out / name, calibrate=args.calibrate and variant == "given",
                             realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
-                            plots=not args.no_plots)
+                            plots=not args.no_plots, calibrator_location=args.calibrator_location)
             rows[name] = res.metrics
         if args.json:
             print(json.dumps(rows, indent=2, sort_keys=True))
@@ -87,7 +92,7 @@ def run(args):
     if args.motion_k_v_error is not None:
         cfg = rp.variant_config(cfg, "static_wrong", args.motion_k_v_error)
     res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
-                    progress=progress, plots=not args.no_plots)
+                    progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location)
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))
