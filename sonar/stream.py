@@ -81,6 +81,13 @@ class FrontEndConfig:
     wide_gate_ratio, wide_gate_max_descriptor_distance : float
         Stricter descriptor tests while the gate is wider than ``gate_m`` (more
         similar-looking landmarks lie inside a wide gate).
+    detect_margin_pings : int
+        ``-1``: landmarks are detected on the whole window. ``m ≥ 0``: only on the rows of
+        the window's emission part ± ``m`` pings (the other sightings are not emitted
+        anyway), with ``max_landmarks`` scaled by ``step_pings / window_pings`` (the
+        share of a window's landmarks its emission part holds on average): SIFT costs in
+        proportion to the rows. The margin keeps keypoints near the emission part's
+        edges away from the crop's.
     """
 
     window_pings: int = 128
@@ -102,6 +109,7 @@ class FrontEndConfig:
     max_gate_m: float = 3.0
     wide_gate_ratio: float = 0.8
     wide_gate_max_descriptor_distance: float = 650.0
+    detect_margin_pings: int = -1
 
     def validate(self) -> None:
         if self.window_pings < 8 or not 1 <= self.step_pings <= self.window_pings:
@@ -114,6 +122,8 @@ class FrontEndConfig:
             raise ValueError("detector must be 'sift' or 'orb'")
         if not (self.gate_sigmas >= 0 and self.max_gate_m >= self.gate_m > 0):
             raise ValueError("need gate_sigmas ≥ 0 and 0 < gate_m ≤ max_gate_m")
+        if self.detect_margin_pings < -1:
+            raise ValueError("detect_margin_pings must be -1 (whole window) or ≥ 0")
 
     def __post_init__(self) -> None:
         self.validate()
@@ -152,7 +162,9 @@ class SonarFrontEnd:
         self.tracker = LandmarkTracker(gate_m=c.gate_m, max_descriptor_distance=c.max_descriptor_distance,
                                        ratio=c.tracker_ratio, hamming=c.detector == "orb")
         make = SiftDetector if c.detector == "sift" else OrbDetector
+        self._make = make
         self._lm_detector = make(max_keypoints=4 * c.max_landmarks)
+        self._lm_detectors: dict[int, object] = {c.max_landmarks: self._lm_detector}
         self._registrar = WindowRegistrar(make(max_keypoints=400, downsample=2) if c.detector == "sift"
                                           else make(max_keypoints=1500),
                                           ransac_threshold_m=c.registration_threshold_m,
@@ -282,7 +294,20 @@ class SonarFrontEnd:
         hi = start + 0.5 * (c.window_pings + c.step_pings)
         lo = self._emit_from
         self._emit_from = int(math.ceil(hi))
-        obs = extract_landmarks(wf, self._lm_detector, max_landmarks=c.max_landmarks,
+        max_lm = c.max_landmarks
+        if c.detect_margin_pings >= 0:
+            m = c.detect_margin_pings
+            sel = np.flatnonzero((wf.ping_index >= lo - start - m) & (wf.ping_index < hi - start + m))
+            n_rows = wf.image.shape[0]
+            if sel.size and sel.size < n_rows:
+                r0, r1 = int(sel[0]), int(sel[-1]) + 1
+                # as many as the whole window gave in its emission part on average
+                max_lm = max(1, round(c.max_landmarks * c.step_pings / c.window_pings))
+                wf, img = wf.rows(r0, r1), img[r0:r1]
+        det = self._lm_detectors.get(max_lm)
+        if det is None:
+            det = self._lm_detectors[max_lm] = self._make(max_keypoints=4 * max_lm)
+        obs = extract_landmarks(wf, det, max_landmarks=max_lm,
                                 min_ground_range_m=c.min_ground_range_m, image_u8=img,
                                 min_edge_contrast=c.min_edge_contrast)
         idx_g, t_p = nav[:, 0], nav[:, 1]

@@ -37,11 +37,11 @@ def _true_obs_pos(o, t, pos, yaw):
     return o.position_n_m(p, yaw)
 
 
-def _two_passes(ren, seed, nav_error=(0.6, -0.4), sigma_m=None):
+def _two_passes(ren, seed, nav_error=(0.6, -0.4), sigma_m=None, config=FrontEndConfig()):
     """Two northbound passes 3 m apart through one front end; the second with a nav error
     (of σ ``sigma_m`` per axis when given to the front end)."""
     rng = np.random.default_rng(seed)
-    fe = SonarFrontEnd(FrontEndConfig())
+    fe = SonarFrontEnd(config)
     nav_error = np.asarray(nav_error, float)
     by_pass = []
     t0 = 0.0
@@ -80,6 +80,28 @@ def test_reobserved_landmarks_keep_their_track_ids(world):
     assert again >= 25
     assert same / again >= 0.7
     assert false_links <= 0.1 * second
+
+
+def test_detecting_on_the_emission_rows_only_finds_and_relinks_the_same_landmarks(world):
+    # GIVEN the calibrator's cheaper front end: SIFT on the emission part ± 8 pings only
+    _, ren = world
+    cheap = FrontEndConfig(register=False, detect_margin_pings=8)
+    for seed in (4, 5):
+        full1, full2 = _two_passes(ren, seed)
+        crop1, crop2 = _two_passes(ren, seed, config=cheap)
+        # THEN the sightings are those of the whole-window detection (same ping time and
+        # range), most of them: the strongest of each emission part ...
+        for full, crop in ((full1, crop1), (full2, crop2)):
+            ref = np.array([(o.t_s, o.ground_range_m) for o, _ in full])
+            got = np.array([(o.t_s, o.ground_range_m) for o, _ in crop])
+            assert len(got) >= 0.7 * len(ref)
+            common = sum(np.any((np.abs(ref[:, 0] - t) < 0.05) & (np.abs(ref[:, 1] - r) < 0.2)) for t, r in got)
+            assert common >= 0.9 * len(got)
+        # ... and the second pass relinks about as many to their first-pass tracks, no
+        # more wrongly
+        again_f, same_f, wrong_f = _relinked(full1, full2)
+        again_c, same_c, wrong_c = _relinked(crop1, crop2)
+        assert same_c >= 0.8 * same_f and wrong_c <= wrong_f
 
 
 def _relinked(pass1, pass2):

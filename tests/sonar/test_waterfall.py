@@ -126,3 +126,23 @@ def test_clean_pings_sorts_and_counts_bad_ones():
                      altitude_m=2.0) for i in range(10)]
     wf = build_waterfall(bad, WaterfallConfig(bottom="altitude"))
     assert np.all(np.isfinite(wf.image))
+
+
+def test_masked_median_equals_numpy_nanmedian_on_the_data_pixels():
+    import warnings
+
+    from sonar.waterfall import masked_median
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        h, w = rng.integers(1, 60), rng.integers(1, 90)
+        img = (rng.gamma(1.0, 1.0, (h, w)) * (rng.random((h, w)) > rng.random())).astype(np.float32)
+        img[:, rng.integers(0, w)] = 0.0  # a column without data
+        data = img > 0
+        for axis in (0, 1):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ref = np.nanmedian(np.where(data, img, np.nan), axis=axis)
+            got = masked_median(img, data, axis)
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
