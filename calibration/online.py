@@ -428,8 +428,8 @@ class OnlineCalibrator:
 
         if self.sonar_front_end is None:
             # no window registration: the calibrator does not use visual motion (it was
-            # a second SIFT pass per window)
-            self.sonar_front_end = SonarFrontEnd(FrontEndConfig(register=False))
+            # a second SIFT pass per window); landmarks detected on the emitted rows only
+            self.sonar_front_end = SonarFrontEnd(FrontEndConfig(register=False, detect_margin_pings=8))
         fe = self.sonar_front_end
         speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else self.params.k_v * self._last_speed
         pos, sigma = self.sonar_nav.push(ping)
