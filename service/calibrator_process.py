@@ -17,19 +17,26 @@ DESIGN.md "Service": fusion must never wait for EM (2 cores). The daemon therefo
 
 Releases travel as JSON (:func:`release_to_dict` / :func:`release_from_dict`).
 
-Deterministic application (replay; :class:`LaggedCalibrator`). A release computed by the
-calibrator once it has observed data up to data time ``τ`` (the latest sample time it
-has seen) is applied by the runner at data time ``τ + L``, ``L`` =
-``calibrator.latency_s``: it goes to the runner just before the first item whose time
-``t`` satisfies ``t ≥ τ + L``. In replay the runner, before passing an item of time
-``t``, waits until the calibrator has reported that it processed every sample up to
-``t − L`` (a progress message on the return queue) — so every release due before ``t``
-is known — and the output does not depend on wall-clock timing: same data and seed ⇒
-the same trajectory and parameter history, whether the calibrator runs in a child
-process (``location="process"``, on the second core) or in-process (``"inline"``), at
-any machine load. ``L`` is what the runner may run ahead of the calibrator: it should
-exceed the calibrator's bursts (an EM window) in data time at the replay speed.
-Releases still pending at the end of the data are passed after the last item.
+The release rule, live and in replay. Data time is the latest sample time seen (a
+running maximum; a batch counts with its last sample). A release computed by the
+calibrator once its data time was ``τ`` is applied by the runner right after the item
+that brings the runner's data time to ``τ + L`` or beyond, ``L`` = ``calibrator.latency_s``.
+
+- Live (:class:`CalibratorProcess`): releases wait in the parent until the data time
+  passed to :meth:`CalibratorProcess.observe` reaches ``τ + L``, then
+  :meth:`CalibratorProcess.poll` hands them to the runner. The runner never waits: a
+  release that comes back later than ``τ + L`` (EM slower than real time) is applied at
+  the first poll after it arrives.
+- Replay (:class:`LaggedCalibrator`): the runner, after an item that brings its data
+  time to ``t``, waits until the calibrator (child process or in-process) has reported
+  that it processed every sample up to ``t − L`` (a progress message on the return
+  queue), so every release due by ``t`` is known. The output does not depend on
+  wall-clock timing: same data and seed ⇒ the same trajectory and parameter history,
+  whether the calibrator runs in a child process (``location="process"``, the second
+  core) or in-process (``"inline"``), at any machine load. ``L`` is how far the runner
+  may run ahead of the calibrator: it should exceed the calibrator's bursts (one EM
+  window) in data time at the replay speed. Releases still pending at the end of the
+  data are passed after the last item.
 """
 from __future__ import annotations
 
@@ -39,7 +46,7 @@ import multiprocessing as mp
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from typing import Any, Callable
 
 import numpy as np
@@ -181,14 +188,6 @@ def data_time(sample: Any) -> float:
         if math.isfinite(v):
             return v
     return math.nan
-
-
-def _first_time(item: Any) -> float:
-    """Time at which the runner handles ``item`` (first entry of a batch); NaN if none."""
-    t = getattr(item, "t_s", None)
-    if t is None or isinstance(t, (int, float)):
-        return math.nan if t is None else float(t)
-    return float(t[0]) if len(t) else math.nan
 
 
 class _DataClock:
@@ -433,18 +432,20 @@ class LaggedCalibrator:
         return []  # releases go into the stream by schedule()
 
     def schedule(self, source: Any):
-        """``source``'s items, with each release inserted before the first item at or
-        after its data time ``τ + L``."""
+        """``source``'s items, each release inserted right after the item that brings the
+        data time to its ``τ + L`` (module docstring)."""
         ready = self.backend.ready
         lag = self.latency_s
+        clock = _DataClock()
         for item in source:
-            t = _first_time(item)
-            if t == t:  # finite or ±inf; NaN items (rejected by the estimator) just pass
-                self.backend.sync(t - lag)
-                while ready and ready[0][0] + lag <= t:
-                    self.released += 1
-                    yield ready.pop(0)[1]
             yield item
+            if getattr(item, "KIND", None) in (None, "truth"):
+                continue  # releases, truth: not calibrator data (live, they do not exist)
+            t = clock.advance(item)
+            self.backend.sync(t - lag)
+            while ready and ready[0][0] + lag <= t:
+                self.released += 1
+                yield ready.pop(0)[1]
         self.backend.finish()
         while ready:
             self.released += 1
@@ -473,7 +474,8 @@ def make_lagged_calibrator(cfg: Any, params0: MotionParams, location: str = "pro
 def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any) -> None:
     """Child process: observe samples, send releases back; exits on ``_STOP``."""
     calibrator = make_calibrator(cfg, params0, seed)
-    out_q.put(("ready", None))
+    clock = _DataClock()
+    out_q.put(("ready", None, None))
     while True:
         try:
             batch = in_q.get(timeout=0.5)
@@ -483,8 +485,9 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
             return
         for sample in batch:
             calibrator.observe(sample)
-        for release in calibrator.poll():
-            out_q.put(("release", release_to_dict(release)))
+            tau = clock.advance(sample)
+            for release in calibrator.poll():  # stamped with the data time it was computed at
+                out_q.put(("release", release_to_dict(release), tau))
 
 
 class CalibratorProcess:
@@ -496,18 +499,22 @@ class CalibratorProcess:
         Whole config (the child needs ``calibrator`` and ``motion``).
     params0 : MotionParams
         Warm start.
-    deliver : callable
-        ``deliver(release)`` puts a release into the runner's input queue (non-blocking).
+    deliver : callable or None
+        Not called any more (kept for callers): releases come back through :meth:`poll`
+        once due (the release rule in the module docstring).
     batch_s : float
         Samples are sent to the child in batches at most this old (wall seconds), which
         keeps inter-process overhead off the fusion thread.
     """
 
-    def __init__(self, cfg: Any, params0: MotionParams, deliver: Callable[[Any], None],
+    def __init__(self, cfg: Any, params0: MotionParams, deliver: Callable[[Any], None] | None = None,
                  batch_s: float = 0.05) -> None:
         self.cfg = cfg
         self.params = params0
         self.deliver = deliver
+        self.latency_s = float(getattr(cfg.calibrator, "latency_s", 0.0))
+        self._held: deque = deque()   # (τ, release) from the reader thread, oldest first
+        self._clock = _DataClock()    # the runner's data time, from observe()
         self.batch_s = batch_s
         self.dropped = 0
         self.restarts = 0
@@ -548,7 +555,8 @@ class CalibratorProcess:
     def _read(self, out_q: Any, proc: Any) -> None:
         while not self._closed:
             try:
-                kind, body = out_q.get(timeout=0.2)
+                msg = out_q.get(timeout=0.2)
+                kind, body = msg[0], msg[1]
             except queue.Empty:
                 if not proc.is_alive():
                     return
@@ -566,7 +574,8 @@ class CalibratorProcess:
                     continue
                 if release.accepted and release.params is not None:
                     self.params = release.params  # warm start of a restart
-                self.deliver(release)
+                tau = msg[2] if len(msg) > 2 and msg[2] is not None else -math.inf
+                self._held.append((float(tau), release))  # deque.append: thread-safe
 
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None
@@ -606,6 +615,7 @@ class CalibratorProcess:
     # -- runner interface -----------------------------------------------------------------
     def observe(self, sample: Any) -> None:
         """Forward ``sample`` to the child (batched, never blocking)."""
+        self._clock.advance(sample)  # the runner's data time: when held releases are due
         if self._in_q is None:
             self.dropped += 1
             return
@@ -630,7 +640,11 @@ class CalibratorProcess:
         # the queue filled and samples were dropped); only a batch older than batch_s goes
         if self._batch and time.monotonic() - self._batch_t0 >= self.batch_s:
             self.flush()
-        return []  # releases arrive through the runner's input queue
+        held, due = self._held, []
+        limit = self._clock.tau - self.latency_s
+        while held and held[0][0] <= limit:  # the release rule (module docstring)
+            due.append(held.popleft()[1])
+        return due
 
     def stop(self, timeout_s: float = 3.0) -> None:
         self._closed = True

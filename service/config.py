@@ -141,9 +141,9 @@ class CalibratorSection:
     restart delay after a crash, doubled up to ``restart_backoff_max_s``.
     ``queue_size``: samples buffered towards the process before new ones are dropped
     (counted) — fusion never waits for EM. ``seed``: its RNG seed. ``latency_s``: a
-    release computed from data up to data time τ is applied at data time τ + latency_s
-    (replay waits for the calibrator's progress, so its output is deterministic; see
-    :mod:`service.calibrator_process`).
+    release computed from data up to data time τ is applied once the runner's data time
+    reaches τ + latency_s, live and in replay (replay waits for the calibrator's
+    progress, so its output is deterministic; see :mod:`service.calibrator_process`).
     """
 
     enabled: bool = True

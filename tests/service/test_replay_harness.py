@@ -249,28 +249,26 @@ def test_a_release_is_applied_at_the_data_time_it_was_computed_at_plus_the_laten
     items = [it for it in rp.SimSource(scenario, result) if getattr(it, "KIND", None) != "truth"]
 
     def t_last(it):
-        t = np.atleast_1d(np.asarray(it.t_s, dtype=float))
-        return float(t[-1])
+        return float(np.atleast_1d(np.asarray(it.t_s, dtype=float))[-1])
 
-    # reference: the data time after which a plain calibrator (same seed) produced each release
+    # reference: the data time (latest sample time) at which a plain calibrator with the
+    # same seed produced each release
     ref_cal = make_calibrator(cfg, cfg.motion.params0, cfg.calibrator.seed)
-    tau = []
+    tau, now = [], -math.inf
     for it in items:
         ref_cal.observe(it)
-        tau += [t_last(it)] * len(ref_cal.poll())
+        now = max(now, t_last(it))
+        tau += [now] * len(ref_cal.poll())
     assert len(tau) >= 2
     lag = 17.0
     lagged = LaggedCalibrator(InlineBackend(make_calibrator(cfg, cfg.motion.params0, cfg.calibrator.seed)), lag)
-    stream = []
+    # THEN each release comes right after the item that brings the data time to τ + L
+    k, now, before = 0, -math.inf, -math.inf
     for it in lagged.schedule(iter(items)):
-        stream.append(it)
-        if getattr(it, "KIND", None) is not None:
-            lagged.observe(it)            # what the runner does after handling an item
-    pos = [i for i, it in enumerate(stream) if getattr(it, "KIND", None) is None]
-    assert len(pos) == len(tau)
-    for k, i in enumerate(pos):
-        t_first = lambda it: float(np.atleast_1d(np.asarray(it.t_s, dtype=float))[0])  # noqa: E731
-        nxt = next((stream[j] for j in range(i + 1, len(stream)) if getattr(stream[j], "KIND", None)), None)
-        prev = next(stream[j] for j in range(i - 1, -1, -1) if getattr(stream[j], "KIND", None))
-        assert t_first(prev) < tau[k] + lag          # not before it is due ...
-        assert nxt is None or t_first(nxt) >= tau[k] + lag   # ... and before the first item at/after it
+        if getattr(it, "KIND", None) is None:   # a release
+            assert before < tau[k] + lag <= now, (k, tau[k], before, now)
+            k += 1
+            continue
+        lagged.observe(it)                     # what the runner does after handling an item
+        before, now = now, max(now, t_last(it))
+    assert k == len(tau)
