@@ -308,6 +308,25 @@ def _cpu_s(pid: int) -> float:
         return math.nan
 
 
+def _forkserver_context() -> Any:
+    ctx = mp.get_context("forkserver")
+    # what the children need, imported (and numba's kernels loaded) once in the server
+    ctx.set_forkserver_preload(["__main__", "service.calibrator_process", "service._calibrator_preload"])
+    return ctx
+
+
+def prestart() -> None:
+    """Start the calibrator's forkserver in a background thread, so that its ~1.5 s of
+    imports overlap other work (opening or simulating the input); a no-op where there is
+    no forkserver. :class:`ProcessBackend` waits for it if it is not up yet."""
+    if "forkserver" not in mp.get_all_start_methods():
+        return
+    from multiprocessing import forkserver
+
+    _forkserver_context()
+    threading.Thread(target=forkserver.ensure_running, name="forkserver-start", daemon=True).start()
+
+
 class ProcessBackend:
     """The calibrator in a spawn child process (the second core), flow-controlled by
     :meth:`sync`: samples go in batches of ``batch_size``; the parent blocks only when it
@@ -316,12 +335,13 @@ class ProcessBackend:
     def __init__(self, cfg: Any, params0: MotionParams, seed: int, batch_size: int = 256,
                  start_method: str | None = None) -> None:
         if start_method is None:
-            # fork starts in milliseconds with everything imported (spawn re-imports numpy,
-            # scipy, numba, OpenCV: ~1.5 s, 10 % of a 1 h replay at 200×); it is safe only
-            # in a process without other Python threads (the daemon's calibrator spawns)
-            start_method = ("fork" if "fork" in mp.get_all_start_methods()
-                            and threading.active_count() == 1 else "spawn")
-        ctx = mp.get_context(start_method)
+            # a spawned child re-imports numpy, scipy, numba and OpenCV (~1.5 s, 10 % of a
+            # 1 h replay at 200×); the forkserver pays that once per parent process and
+            # then forks children from its clean single-threaded state. Plain fork is not
+            # safe here: a parent that has used OpenCV's thread pool (an in-process
+            # calibrator, the sonar tools) hands the child a pool it deadlocks on.
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        ctx = _forkserver_context() if start_method == "forkserver" else mp.get_context(start_method)
         self.start_method = start_method
         self.batch_size = int(batch_size)
         self.ready: list[tuple[float, Any]] = []

@@ -269,8 +269,10 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     ``replay_calibrator_process_cpu_s`` is that child's CPU time, ``replay_calibrator_wait_s``
     the wall time the runner waited for it.
     """
+    from service.calibrator_process import prestart
     from service.replay import build_config, open_scenario, replay
 
+    prestart()  # as `adaptnav replay --calibrate` does: while the mission is simulated
     inp = open_scenario(LIVE_SCENARIO, REPLAY_OVERRIDES + [f"duration_s={duration_s}"])
     cfg = build_config(inp.scenario)
     out: dict[str, Any] = {"replay_sim_s": duration_s, "replay_repeats": repeats}
@@ -303,8 +305,6 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
 def run(args) -> dict:
     quick = bool(getattr(args, "quick", False))
     figures: dict[str, Any] = {}
-    # replay first: with no Zenoh threads in this process yet, the calibrator child is
-    # forked (instant) rather than spawned (~1.5 s of imports)
     figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
     figures.update(zenoh_floor(200 if quick else 1000))
     figures.update(live(latency_s=15.0 if quick else 60.0, rss_sim_s=600.0 if quick else 3600.0))

@@ -53,6 +53,10 @@ def run(args):
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
         return 2
+    if args.calibrate and args.calibrator_location == "process":
+        from service.calibrator_process import prestart
+
+        prestart()  # the calibrator's process server starts while the input is opened
     try:
         if args.scenario:
             inp = rp.open_scenario(args.scenario, args.set)
