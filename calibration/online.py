@@ -324,6 +324,7 @@ class OnlineCalibrator:
         self._last_heading: tuple[float, float] | None = None  # (t, yaw)
         self._last_speed = 0.0
         self._last_yaw_rate = 0.0
+        self._rpm_cache: tuple[float, float] = (math.nan, math.nan)  # (rpm, speed)
         self._closed = -1  # index of the last closed pose
         self._poses = None
         self._log_w = None
@@ -364,6 +365,13 @@ class OnlineCalibrator:
                 return
             if self._t0 is None:
                 self._last_yaw_rate = float(wz[-1])
+            elif (k0 := math.floor((t[0] - self._t0) / self.config.step_s)) == \
+                    math.floor((t[-1] - self._t0) / self.config.step_s) and k0 >= max(self._closed, 0):
+                # the usual batch (a few samples between two other samples): one bin
+                b = self._bins.setdefault(k0, _Bin())
+                b.yaw_rate_sum += float(wz.sum())
+                b.yaw_rate_n += int(wz.size)
+                self._last_yaw_rate = float(wz[-1])
             else:  # vectorised binning: replay feeds thousands of IMU samples per batch
                 k = np.floor((t - self._t0) / self.config.step_s).astype(np.int64)
                 late = k < max(self._closed, 0)
@@ -384,7 +392,9 @@ class OnlineCalibrator:
         t = float(t)
         try:
             if kind == "RpmSample":
-                self._add(t, "speed", float(self.rpm_table.speed(sample.rpm)), finite=sample.rpm)
+                if sample.rpm != self._rpm_cache[0]:  # RPM repeats (integer PWM): one PCHIP call per value
+                    self._rpm_cache = (sample.rpm, float(self.rpm_table.speed(sample.rpm)))
+                self._add(t, "speed", self._rpm_cache[1], finite=sample.rpm)
             elif kind == "ImuSample":
                 self._add(t, "yaw_rate", float(sample.omega_b_rad_s[2]))
             elif kind in ("HeadingSample", "AttitudeSample"):
