@@ -328,9 +328,11 @@ def prestart() -> None:
 
 
 class ProcessBackend:
-    """The calibrator in a spawn child process (the second core), flow-controlled by
-    :meth:`sync`: samples go in batches of ``batch_size``; the parent blocks only when it
-    needs a progress the child has not reported yet."""
+    """The calibrator in a child process (the second core; forked from a preloaded
+    forkserver, or spawned), flow-controlled by :meth:`sync`: samples go in batches of
+    ``batch_size``; the parent blocks only when it needs a progress the child has not
+    reported yet. A child that dies raises ``RuntimeError`` in the parent (replay must not
+    silently go on without it: its output would no longer be the deterministic one)."""
 
     def __init__(self, cfg: Any, params0: MotionParams, seed: int, batch_size: int = 256,
                  start_method: str | None = None) -> None:
@@ -368,9 +370,6 @@ class ProcessBackend:
             self._sent += len(self._batch)
             self._batch = []
 
-    def _observed(self) -> int:
-        return self._sent + len(self._batch)
-
     def _read(self, block: bool) -> bool:
         """Handle one message from the child; False when none (non-blocking)."""
         try:
@@ -391,7 +390,7 @@ class ProcessBackend:
         """Block until every release with ``τ ≤ t_s`` is in :attr:`ready`: the child has
         processed a sample later than ``t_s`` (τ is non-decreasing and messages are in
         order) or every sample observed so far."""
-        if self._child_tau > t_s or self._done >= self._observed():
+        if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
             return
         self._flush()
         t0 = time.monotonic()
@@ -429,7 +428,8 @@ class LaggedCalibrator:
 
     Use as ``run(lagged.schedule(source), ..., calibrator=lagged)``: :meth:`observe`
     forwards samples to the backend, :meth:`poll` returns nothing, and
-    :meth:`schedule` puts each release into the item stream at data time ``τ + L``.
+    :meth:`schedule` puts each release into the item stream once the data time has
+    reached its ``τ + L``.
 
     Parameters
     ----------
@@ -444,8 +444,9 @@ class LaggedCalibrator:
         self.backend = backend
         self.latency_s = float(latency_s)
         self.released = 0
+        self.observe = backend.send  # the runner calls it for every sample: no extra frame
 
-    def observe(self, sample: Any) -> None:
+    def observe(self, sample: Any) -> None:  # replaced per instance by backend.send (__init__)
         self.backend.send(sample)
 
     def poll(self) -> list:
@@ -456,14 +457,18 @@ class LaggedCalibrator:
         data time to its ``τ + L`` (module docstring)."""
         ready = self.backend.ready
         lag = self.latency_s
-        clock = _DataClock()
+        sync = self.backend.sync
+        now = -math.inf  # the runner's data time (as _DataClock, inlined: once per item)
         for item in source:
             yield item
-            if getattr(item, "KIND", None) in (None, "truth"):
+            kind = getattr(item, "KIND", None)
+            if kind is None or kind == "truth":
                 continue  # releases, truth: not calibrator data (live, they do not exist)
-            t = clock.advance(item)
-            self.backend.sync(t - lag)
-            while ready and ready[0][0] + lag <= t:
+            t = item.t_s if kind != "imu_batch" else data_time(item)
+            if t > now:  # False for NaN
+                now = t
+            sync(now - lag)
+            while ready and ready[0][0] + lag <= now:
                 self.released += 1
                 yield ready.pop(0)[1]
         self.backend.finish()
