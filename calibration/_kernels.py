@@ -6,6 +6,7 @@ r"""numba kernels for the calibrator's hot loops (same equations as :mod:`fusion
   velocities built from given standard normals (the normals come from the caller's
   ``numpy.random.Generator``, so results stay reproducible and generator-driven).
 * :func:`range_loglik` — :class:`calibration.sensors.RangeObservation`.
+* :func:`heading_loglik` — :class:`calibration.sensors.HeadingObservation`.
 * :func:`backward_mcmc`, :func:`backward_exact` — the FFBSi backward passes of
   :mod:`calibration.smoother` given pre-drawn random numbers.
 
@@ -182,6 +183,20 @@ def backward_exact(poses, log_w, v, w, dt, p, idx_T, u):
             out[m, t, 0] = poses[t, j, 0]
             out[m, t, 1] = poses[t, j, 1]
             out[m, t, 2] = poses[t, j, 2]
+    return out
+
+
+@nb.njit(cache=True)
+def heading_loglik(poses, yaw, sigma, log_sigma, half_log_2pi):
+    """:meth:`calibration.sensors.HeadingObservation.log_likelihood` (same operations in
+    the same order, so the same floats) without numpy's temporaries: the observation of
+    almost every pose, evaluated once per particle filter step."""
+    n = poses.shape[0]
+    out = np.empty(n)
+    two_pi = 2.0 * math.pi
+    for i in range(n):
+        e = ((poses[i, 2] - yaw + math.pi) % two_pi - math.pi) / sigma
+        out[i] = -0.5 * e * e - log_sigma - half_log_2pi
     return out
 
 

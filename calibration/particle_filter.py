@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.motion_model import MotionParams
-from calibration._kernels import move, pack, reweight, systematic_from_log
+from calibration._kernels import heading_loglik, move, pack, reweight, systematic_from_log
 from calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
-from calibration.sensors import LandmarkSighting, ParticleLandmarkMap
+from calibration.sensors import HeadingObservation, LandmarkSighting, ParticleLandmarkMap
 
 
 @dataclass
@@ -53,9 +53,15 @@ class FilterResult:
         return np.concatenate([xy, th[:, None]], axis=1)
 
 
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
 def _observation_log_lik(obs_list, poses, landmark_map):
     if obs_list is not None and len(obs_list) == 1 and not isinstance(obs_list[0], LandmarkSighting):
-        return obs_list[0].log_likelihood(poses)
+        ob = obs_list[0]
+        if type(ob) is HeadingObservation:  # most poses: one heading (numba, same floats)
+            return heading_loglik(poses, ob.yaw_rad, ob.sigma_rad, math.log(ob.sigma_rad), _HALF_LOG_2PI)
+        return ob.log_likelihood(poses)
     g = np.zeros(poses.shape[0])
     for ob in obs_list or ():
         if isinstance(ob, LandmarkSighting):
