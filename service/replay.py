@@ -11,6 +11,12 @@ Outputs in ``DIR``: ``trajectory.csv``, ``aid_status.csv``, ``params.csv``,
 ``metrics.json`` (with truth), ``track.png``, ``params.png``, ``innovations.png``,
 ``summary.json`` and the effective ``config.json`` (+ ``scenario.json`` for simulations).
 
+With ``calibrate=True`` the online calibrator runs in a child process (the second core;
+``calibrator_location="inline"``: in this process, same output) and a release it computed
+at data time τ is applied once the runner's data time reaches τ + ``calibrator.latency_s``,
+the runner waiting for the child's progress: the output is deterministic
+(:class:`service.calibrator_process.LaggedCalibrator`).
+
 Comparisons (the navigation-core targets): ``aiding="none"`` is pure INS (learned
 velocity, DVL and visual motion off; the other aids stay), ``k_v_error`` a static,
 wrong motion model (``k_V·(1 + error)``, no calibrator); :func:`compare` runs pure INS /
@@ -285,7 +291,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "calibrate": bool(calibrate),
         "calibrator": ({"location": calibrator_location, "latency_s": calibrator.latency_s,
                         "wait_s": getattr(calibrator.backend, "wait_s", 0.0),
-                        "process_cpu_s": getattr(calibrator.backend, "child_cpu_s", None)}
+                        "process_cpu_s": _finite_or_none(getattr(calibrator.backend, "child_cpu_s", None))}
                        if calibrator is not None else None),
         "origin": {"lat_deg": cfg.origin.lat_deg, "lon_deg": cfg.origin.lon_deg,
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
@@ -325,6 +331,10 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
         if len(head) >= max_items:
             break
     return head, None
+
+
+def _finite_or_none(x: Any) -> float | None:
+    return float(x) if isinstance(x, (int, float)) and math.isfinite(x) else None
 
 
 def _json_default(o: Any) -> Any:
