@@ -8,7 +8,8 @@ to mm/s over a second. The navigation filter hands the calibrator its free-inert
 aiding corrections — the value drifts, its changes are the IMU's, attitude-compensated).
 
 Model. Sub-steps ``j`` of the model step ``δ`` (``model_step_s``) on the absolute grid
-``t = j δ``. With ``P(t)`` the trapezoid integral of the free-inertial velocity, the mean
+``t = j δ``. With ``P(t)`` the time integral of the free-inertial velocity (kept by the
+filter, sampled about once a second and interpolated linearly to the grid edges), the mean
 velocity over sub-step j is ``ū_j = (P(t_{j+1}) − P(t_j)) / δ`` and, along the chord heading
 ``φ_j`` (the yaw at the sub-step's midpoint; the chord of an arc is at ``θ + W δ/2``),
 
@@ -54,11 +55,12 @@ DIFFERENCE_WEIGHT = 2.0 / 3.0
 
 @dataclass(frozen=True)
 class InertialTrack:
-    """Free-inertial velocity samples: ``t_s`` (N,) increasing, ``vel_ne_m_s`` (N, 2) north,
-    east, ``yaw_rad`` (N,), ``reset_counter`` (N,) (changes across an IMU gap)."""
+    """Free-inertial samples: ``t_s`` (N,) increasing, ``pos_ne_m`` (N, 2) the time integral of
+    the free-inertial velocity (north, east), ``yaw_rad`` (N,), ``reset_counter`` (N,)
+    (changes across an IMU gap)."""
 
     t_s: np.ndarray
-    vel_ne_m_s: np.ndarray
+    pos_ne_m: np.ndarray
     yaw_rad: np.ndarray
     reset_counter: np.ndarray
 
@@ -98,7 +100,7 @@ class SurgeIncrements:
 
 def surge_increments(track: InertialTrack, t_start_s: float, step_s: float, v_m_s, w_rad_s,
                      step_weights=None, model_step_s: float = 1.0, current_n_m_s=(0.0, 0.0),
-                     max_gap_s: float = 0.5) -> SurgeIncrements:
+                     max_gap_s: float = 1.5) -> SurgeIncrements:
     """IMU surge increments over a window of ``T`` steps starting at ``t_start_s``.
 
     Parameters
@@ -116,7 +118,8 @@ def surge_increments(track: InertialTrack, t_start_s: float, step_s: float, v_m_
     current_n_m_s : (2,)
         Sea current (north, east) removed before the projection.
     max_gap_s : float
-        A sub-step whose samples are further apart than this is not used.
+        A sub-step whose samples are further apart than this is not used (the runner sends
+        one a second).
 
     Returns
     -------
@@ -138,10 +141,9 @@ def surge_increments(track: InertialTrack, t_start_s: float, step_s: float, v_m_
     if j1 - j0 < 2:
         return empty
     edges = np.arange(j0, j1 + 1) * d  # (K+1,)
-    vel = np.asarray(track.vel_ne_m_s, dtype=float)
-    # cumulative trapezoid integral of the velocity at the samples, interpolated at the edges
+    P = np.asarray(track.pos_ne_m, dtype=float)
+    P = P - P[0]  # only differences matter; keeps the interpolation well-conditioned
     dt = np.diff(t)
-    P = np.concatenate([np.zeros((1, 2)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dt[:, None], axis=0)])
     P_edges = np.column_stack([np.interp(edges, t, P[:, 0]), np.interp(edges, t, P[:, 1])])
     u_mean = np.diff(P_edges, axis=0) / d  # (K, 2)
     mid = edges[:-1] + 0.5 * d

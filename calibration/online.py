@@ -340,7 +340,7 @@ class OnlineCalibrator:
         from sonar.stream import AnchoredDeadReckoning
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
-        # free-inertial velocity samples (t, v_n, v_e, yaw, reset) over the window
+        # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
 
     # ---------------------------------------------------------------- input
@@ -457,13 +457,13 @@ class OnlineCalibrator:
         """Buffer the filter's free-inertial velocity (no stepping: it is a filter output at
         the nav epoch, which may trail the latest sensor time)."""
         t, yaw = float(sample.t_s), float(sample.yaw_rad)
-        vn, ve = float(sample.vel_n_m_s[0]), float(sample.vel_n_m_s[1])
-        if not all(math.isfinite(x) for x in (t, yaw, vn, ve)):
+        pn, pe = float(sample.pos_n_m[0]), float(sample.pos_n_m[1])
+        if not all(math.isfinite(x) for x in (t, yaw, pn, pe)):
             return self._reject("non-finite inertial_velocity")
         buf = self._inertial_buf
         if buf and t <= buf[-1][0]:
             return self._reject("out-of-order inertial_velocity")
-        buf.append((t, vn, ve, yaw, int(sample.reset_counter)))
+        buf.append((t, pn, pe, yaw, int(sample.reset_counter)))
         keep_s = (self.config.window_steps + 2) * self.config.step_s + self._lag_s
         while buf and buf[0][0] < t - keep_s:
             buf.popleft()

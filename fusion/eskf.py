@@ -83,7 +83,8 @@ def _finite(sample) -> bool:
 
 
 class _Snapshot:
-    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak", "vel_inertial_n")
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak", "vel_inertial_n",
+                 "pos_inertial_n")
 
 
 class Estimator:
@@ -149,6 +150,7 @@ class Estimator:
         # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
         # very motion model being calibrated)
         self._vel_inertial_n = np.zeros(3)
+        self._pos_inertial_n = np.zeros(3)  # its integral (m): exact step means for the calibrator
         self.late_fused = 0  # measurements fused at their own (past) time of validity
 
     # ------------------------------------------------------------------ public API
@@ -182,9 +184,10 @@ class Estimator:
         if self._mode != "ins":
             return None
         yaw = aid_heading.predict(self._x)[0]
-        v = self._vel_inertial_n
+        v, p = self._vel_inertial_n, self._pos_inertial_n
         return InertialVelocitySample(float(self._clock[0]), (float(v[0]), float(v[1]), float(v[2])),
-                                      float(yaw), int(self._reset_counter))
+                                      (float(p[0]), float(p[1]), float(p[2])), float(yaw),
+                                      int(self._reset_counter))
 
     def set_motion_params(self, params: MotionParams) -> None:
         """Apply a calibrator release; ``k_speed · k_V`` is kept continuous."""
@@ -306,6 +309,7 @@ class Estimator:
         s.lv_r_hat = self._lv_r_hat
         s.gate_streak = dict(self._gate_streak)
         s.vel_inertial_n = self._vel_inertial_n.copy()
+        s.pos_inertial_n = self._pos_inertial_n.copy()
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -317,6 +321,7 @@ class Estimator:
         self._lv_r_hat = s.lv_r_hat
         self._gate_streak = dict(s.gate_streak)
         self._vel_inertial_n[:] = s.vel_inertial_n
+        self._pos_inertial_n[:] = s.pos_inertial_n
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -520,9 +525,12 @@ class Estimator:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
-            vel0 = self._x[3:6].copy()
+            t0, pos0, vel0 = self._clock[0], self._x[0:3].copy(), self._x[3:6].copy()
             sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                               self._qdiag, self.config.covariance_step_s)
+            # free-inertial = corrected + an offset constant between updates: its integral is
+            # the strapdown's position change plus offset × Δt
+            self._pos_inertial_n += (self._x[0:3] - pos0) + (self._vel_inertial_n - vel0) * (self._clock[0] - t0)
             self._vel_inertial_n += self._x[3:6] - vel0
             start = stop
             if lv_due and self._clock[0] >= self._next_lv_t:

@@ -156,17 +156,19 @@ class VisualMotionSample:
 
 @dataclass(frozen=True, slots=True)
 class InertialVelocitySample:
-    """The estimator's free-inertial velocity (NED, m/s) and yaw at ``t_s`` (a filter output).
+    """The estimator's free-inertial velocity (NED, m/s), its time integral ``pos_n_m`` (m)
+    and the yaw at ``t_s`` (a filter output).
 
     The strapdown's velocity increments summed without aiding corrections: the value
     drifts, its changes over seconds are the IMU's. ``reset_counter`` changes across an
     IMU gap (no increments while coasting). The calibrator's surge-noise evidence
-    (:mod:`calibration.inertial`).
+    (:mod:`calibration.inertial`): mean velocities over steps are differences of ``pos_n_m``.
     """
 
     KIND: ClassVar[str] = "inertial_velocity"
     t_s: float
     vel_n_m_s: Vec3
+    pos_n_m: Vec3
     yaw_rad: float
     reset_counter: int = 0
 

@@ -15,9 +15,10 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
    a state is not re-emitted while it has not advanced, e.g. in a data gap); an IMU
    sample that lands exactly on ``t_k`` emits at once — live, the state must not wait
    for the next sample to learn the epoch is complete (one IMU period of latency);
-   with a calibrator, the estimator's free-inertial velocity at the epoch goes to
-   ``calibrator.observe`` (its surge-noise evidence, :mod:`calibration.inertial`) and to
-   the sinks' ``on_inertial`` (the daemon publishes it for a remote calibrator);
+   with a calibrator, the estimator's free-inertial velocity (and its integral) at the
+   first epoch of every second goes to ``calibrator.observe`` (its surge-noise evidence,
+   :mod:`calibration.inertial`) and to the sinks' ``on_inertial`` (the daemon publishes it
+   for a remote calibrator);
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
 3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
@@ -118,6 +119,7 @@ class _Loop:
         self._on_release = _bound(self.sinks, "on_release")
         self._on_sample = _bound(self.sinks, "on_sample")
         self._on_inertial = _bound(self.sinks, "on_inertial")
+        self._next_inertial_t = -math.inf
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -135,8 +137,10 @@ class _Loop:
         for f in self._on_nav:
             f(state)
         cal = self.calibrator
-        if cal is not None or self._on_inertial:
-            # the calibrator's surge-noise evidence (calibration.inertial), at the nav rate
+        if (cal is not None or self._on_inertial) and state.t_s >= self._next_inertial_t - 1e-6:
+            # the calibrator's surge-noise evidence (calibration.inertial), once a second: it
+            # carries the integral, so step means need nothing in between
+            self._next_inertial_t = math.floor(state.t_s + 1e-6) + 1.0
             inertial = est.inertial_velocity()
             if inertial is not None:
                 if cal is not None:

@@ -13,18 +13,22 @@ STEP_S, T, SPEED = 5.0, 96, 1.5
 TRUE = replace(MotionParams(), var_vv=0.15 ** 2, var_v1=1e-4, k_v=0.9)
 
 
-def _track(rng, params=TRUE, t0=1000.0, rate_hz=10.0, offset=(0.3, -0.2), drift=(1e-3, -5e-4),
+def _track(rng, params=TRUE, t0=1000.0, lag_s=0.005, offset=(0.3, -0.2), drift=(1e-3, -5e-4),
            current=(0.07, 0.07)):
-    """A free-inertial track: per-second surge draws along a slowly turning heading, plus the
-    current, an unknown offset and a slow drift (what the filter hands over)."""
+    """A free-inertial track as the runner hands it over (once a second, an IMU period after
+    the second): the integral of per-second surge draws along a slowly turning heading, plus
+    the current, an unknown velocity offset and a slow drift."""
     n_sub = int(T * STEP_S)
     V = params.k_v * SPEED + math.sqrt(params.var_vv * SPEED ** 2 + params.var_v1) * rng.standard_normal(n_sub)
-    t = t0 + np.arange(0.0, n_sub, 1.0 / rate_hz)
-    j = np.floor(t - t0 + 1e-9).astype(int)
-    yaw = 0.3 + 0.002 * (t - t0)
-    vel = (V[j][:, None] * np.column_stack([np.cos(yaw), np.sin(yaw)]) + np.asarray(current)
-           + np.asarray(offset) + np.outer(t - t0, drift))
-    return InertialTrack(t, vel, yaw, np.zeros(t.size, dtype=int)), V
+    fine = t0 + np.arange(0.0, n_sub + 1e-9, 0.001)  # integrate on a fine grid
+    j = np.minimum(np.floor(fine - t0 + 1e-9).astype(int), n_sub - 1)
+    yaw_f = 0.3 + 0.002 * (fine - t0)
+    vel = (V[j][:, None] * np.column_stack([np.cos(yaw_f), np.sin(yaw_f)]) + np.asarray(current)
+           + np.asarray(offset) + np.outer(fine - t0, drift))
+    pos = np.concatenate([np.zeros((1, 2)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * 0.001, axis=0)])
+    t = t0 + np.arange(0, n_sub) + lag_s
+    idx = np.round((t - t0) / 0.001).astype(int)
+    return InertialTrack(t, pos[idx], yaw_f[idx], np.zeros(t.size, dtype=int)), V
 
 
 def _window_ll(inc, sigma_vv):
@@ -36,7 +40,7 @@ def test_the_increments_likelihood_peaks_at_the_true_surge_noise():
     track, _ = _track(rng)
     v, w = np.full(T, SPEED), np.zeros(T)
     inc = surge_increments(track, 1000.0, STEP_S, v, w, current_n_m_s=(0.07, 0.07))
-    # every pair of consecutive 1 s sub-steps inside the window (the last edge needs a sample after it)
+    # every pair of consecutive 1 s sub-steps inside the window (the last edges need samples after them)
     assert len(inc) >= T * STEP_S - 3
     grid = np.linspace(0.05, 0.3, 51)
     best = grid[np.argmax([_window_ll(inc, s) for s in grid])]
@@ -48,13 +52,14 @@ def test_gaps_and_resets_remove_the_sub_steps_they_touch():
     track, _ = _track(rng)
     v, w = np.full(T, SPEED), np.zeros(T)
     full = len(surge_increments(track, 1000.0, STEP_S, v, w))
-    # a 2 s hole in the samples and a filter reset (IMU gap) 100 s later
-    keep = ~((track.t_s > 1100.2) & (track.t_s < 1102.2))
-    reset = np.where(track.t_s >= 1200.05, 1, 0)
-    holed = InertialTrack(track.t_s[keep], track.vel_ne_m_s[keep], track.yaw_rad[keep], reset[keep])
+    # two samples missing (a 3 s hole) and a filter reset (IMU gap) 100 s later
+    keep = ~((track.t_s > 1101.0) & (track.t_s < 1103.0))
+    reset = np.where(track.t_s >= 1200.5, 1, 0)
+    holed = InertialTrack(track.t_s[keep], track.pos_ne_m[keep], track.yaw_rad[keep], reset[keep])
     inc = surge_increments(holed, 1000.0, STEP_S, v, w)
-    # the hole spoils sub-steps 100..102 (3 sub-steps → 4 pairs), the reset one sub-step (2 pairs)
-    assert full - len(inc) == 6
+    # the hole spoils sub-steps 1100..1103 (4 sub-steps → 5 pairs); the reset at 1200.5 s spoils
+    # sub-steps 1200 and 1201 (the edge at 1201 s is interpolated across it: 3 pairs)
+    assert full - len(inc) == 8
     assert np.all(np.isfinite(inc.dv_obs))
 
 

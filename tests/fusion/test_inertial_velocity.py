@@ -43,6 +43,10 @@ def test_free_inertial_velocity_changes_are_the_true_changes_not_the_corrected_e
     assert np.sqrt(np.mean(d10_err ** 2)) < 0.05
     # while the true surge changes per second are an order larger (the signal the calibrator wants)
     assert np.sqrt(np.mean(np.diff(v_true, axis=0) ** 2)) > 5 * np.sqrt(np.mean(d_err ** 2))
+    # AND its integral gives the per-second mean velocities whose changes are the truth's
+    mean_in = np.diff(np.array([s.pos_n_m[:2] for _, s in got]), axis=0)
+    mean_true = np.diff(m.pos_n[k, :2], axis=0)
+    assert np.sqrt(np.mean((np.diff(mean_in, axis=0) - np.diff(mean_true, axis=0)) ** 2)) < 0.01
     # AND the samples carry the time of the state and a yaw near the truth
     assert got[0][1].t_s == m.t_imu[k[0]]
     yaw_err = np.angle(np.exp(1j * (np.array([s.yaw_rad for _, s in got]) - m.yaw[k])))
