@@ -2,10 +2,12 @@
 "Service": ``run(source, estimator, calibrator, sinks, clock)``).
 
 Live: a Zenoh/MAVLink queue source, :class:`~service.clock.LiveClock`, Zenoh and MAVLink
-sinks, and releases arriving from the calibrator process through the queue. Replay: a
-log or simulator source, :class:`~service.clock.LogClock` (or
-:class:`~service.clock.RealtimeClock`), file sinks, and the calibrator in-process at the
-same data times. Nothing else differs.
+sinks. Replay: a log or simulator source, :class:`~service.clock.LogClock` (or
+:class:`~service.clock.RealtimeClock`), file sinks. Both hand the runner the calibrator
+of :mod:`service.calibrator_process` (a child process): a release computed at data time τ
+comes back from ``calibrator.poll()`` once the runner's data time reaches τ + latency
+(replay waits for the child, so its output does not depend on wall-clock timing).
+Nothing else differs.
 
 Per item, in the source's deterministic order (``fusion.samples.replay_order_key``):
 
@@ -22,7 +24,7 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
 3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
-   ``on_aid``, then, with an in-process calibrator, ``calibrator.observe(sample)`` and
+   ``on_aid``, then, with a calibrator, ``calibrator.observe(sample)`` and
    ``calibrator.poll()`` whose releases are handled as in 2.
 
 A bad sample never stops the loop: the estimator rejects and counts it; an exception
