@@ -69,6 +69,13 @@ from calibration.sensors import (HeadingObservation, LandmarkAssociator, Landmar
                                  PositionFix, RangeObservation, sighting_from_sonar)
 
 
+# Sample kinds (``KIND``) the calibrator has no use for: senders skip them (they would
+# only cost pickling across the process boundary) and :meth:`OnlineCalibrator.observe`
+# ignores them. Depth and DVL aid the filter; the calibrator's model is horizontal and
+# learns from position information, IMU, RPM and headings.
+UNUSED_KINDS = frozenset({"truth", "depth", "dvl", "altitude", "visual_motion"})
+
+
 @dataclass(frozen=True)
 class CalibratorConfig:
     """Online calibrator settings (typed_config-compatible)."""
@@ -349,9 +356,9 @@ class OnlineCalibrator:
 
     def observe(self, sample) -> None:
         """Take one sample (any kind; unusable kinds are ignored, bad ones counted)."""
-        kind = type(sample).__name__
-        if kind in ("TruthSample",):
+        if getattr(sample, "KIND", None) in UNUSED_KINDS:
             return
+        kind = type(sample).__name__
         if kind == "InertialVelocitySample":
             return self._inertial(sample)
         if kind == "ImuBatch":

@@ -44,6 +44,11 @@ import numpy as np
 
 from fusion.samples import ImuBatch
 
+try:  # what the calibrator has no use for is not sent to it
+    from calibration.online import UNUSED_KINDS as _CALIBRATOR_UNUSED
+except ImportError:  # a daemon without the calibrator package (remote calibrator)
+    _CALIBRATOR_UNUSED = frozenset({"truth"})
+
 from .health import Health
 
 log = logging.getLogger(__name__)
@@ -223,7 +228,7 @@ class _Loop:
         for f in self._on_sample:
             f(sample)
         cal = self.calibrator
-        if cal is not None and sample.KIND != "truth":
+        if cal is not None and sample.KIND not in _CALIBRATOR_UNUSED:
             cal.observe(sample)
             for rel in cal.poll():
                 self.release(rel)
