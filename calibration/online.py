@@ -38,7 +38,7 @@ surge noise is the fix-to-fix residual: 60 s of white surge noise σ_V = σ_Vv·
 3 m² at 0.15 (v = 1.5 m/s). Ten fixes (10 min) pin σ_Vv² down to about ±160 % (Fisher), and
 EM creeps from a small σ_Vv (its rate is the observed fraction of that variance). The IMU
 is the informative source: the navigation filter hands the calibrator its free-inertial
-velocity (``InertialVelocitySample``, at the nav rate) and the differences of its means
+velocity and its integral (``InertialVelocitySample``, once a second) and the differences of its means
 over consecutive model steps join the M-step's surge objective
 (:mod:`calibration.inertial`; ``use_inertial``). Without them (a remote calibrator node,
 the thesis) σ_Vv rests on the fixes as above.
@@ -61,7 +61,7 @@ import numpy as np
 
 from fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
 from calibration.em import EMOptions, run_em
-from calibration.mstep import MStepOptions
+from calibration.mstep import MStepOptions, surge_variances_from_increments
 from calibration.particle_filter import filter_step, run_particle_filter
 from calibration.inertial import InertialTrack, surge_increments
 from calibration.resampling import systematic_resample
@@ -202,14 +202,17 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     to_window = lambda p: rescale_step(p, config.model_step_s, config.step_s)  # noqa: E731
     to_model = lambda p: rescale_step(p, config.step_s, config.model_step_s)  # noqa: E731
     cur0 = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
+    use_imu = inertial is not None and config.use_inertial and len(inertial) and math.isfinite(t_s)
+
+    def increments(cur):  # the IMU's surge rows for this window (calibration.inertial)
+        return surge_increments(inertial, t_s - T * dt, dt, v, w, lam, config.model_step_s, cur) if use_imu else None
+
     n_pos = sum(1 for obs in observations
                 if any(not isinstance(o, HeadingObservation) for o in (obs or ())))
     if n_pos < config.min_position_poses:
         why = (f"too little position information: {n_pos} pose(s) with fixes/ranges/landmarks "
                f"< {config.min_position_poses}")
-        inc = None
-        if inertial is not None and config.use_inertial and len(inertial) and math.isfinite(t_s):
-            inc = surge_increments(inertial, t_s - T * dt, dt, v, w, lam, config.model_step_s, cur0)
+        inc = increments(cur0)
         if inc is None or len(inc) < config.min_inertial_rows:
             return Release(t_s, params, math.nan, False, why, 0, cur0)
         return _inertial_only(params, inc, config, t_s, initial_params, cur0, why)
@@ -222,9 +225,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
             start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
             start_cur = cur_fix if config.fit_current else cur0
-    inc = None
-    if inertial is not None and config.use_inertial and len(inertial) and math.isfinite(t_s):
-        inc = surge_increments(inertial, t_s - T * dt, dt, v, w, lam, config.model_step_s, start_cur)
+    inc = increments(start_cur)
     try:
         anchor = to_window(initial_params) if config.prior_anchor == "initial" and initial_params is not None else None
         res = run_em(start_params, v, w, dt, observations, init_cloud, rng, config.em_options(),
@@ -278,8 +279,6 @@ def _inertial_only(params, inc, config: CalibratorConfig, t_s, initial_params, c
     """Without position information k_V and the current are not observable, but the surge
     noise still is, from the IMU (:func:`calibration.mstep.surge_variances_from_increments`):
     release new surge variances if their likelihood is not worse, everything else kept."""
-    from calibration.mstep import surge_variances_from_increments
-
     win = rescale_step(params, config.model_step_s, config.step_s)
     anchor = (rescale_step(initial_params, config.model_step_s, config.step_s)
               if config.prior_anchor == "initial" and initial_params is not None else None)
