@@ -27,6 +27,22 @@ closed forms given the variances (weighted least squares)::
 and the two are alternated (``n_alternations``). The sway variance is ``σ_S² =
 Σ λ_t Σ_j Ŝ_tj² / (M Σ λ_t)``.
 
+Sway variance and missing information. The sway is never observed directly: fixes a
+minute apart at σ 2 m say almost nothing about a 0.01 m/s lateral noise (60 s of it moves
+the vehicle ~8 cm). The smoothed Ŝ are then draws from the prior, and EM's update of σ_S²
+moves by a fraction ``1 − f`` of the way per iteration, where ``f`` is the fraction of
+missing information (Dempster, Laird & Rubin 1977; Meng & Rubin 1991). With f ≈ 1 the update
+is Monte-Carlo noise plus the smoother's own shrinkage (resampled trajectories share
+ancestors, so their spread understates the posterior's): on the survey it drifted ~30 %
+low and the filter, trusting a too-tight non-holonomic constraint, drifted more. ``f`` is
+estimated from the trajectories themselves::
+
+    f = Σ λ_t Var_j(Ŝ_tj) / Σ λ_t (1/M) Σ_j Ŝ_tj²
+
+(across-trajectory spread over the total second moment: 1 when the data leave the sway
+where the prior put it, 0 when they pin it). When ``f > max_missing_information_s`` σ_S² is
+held and reported.
+
 Sea current (``fit_current``). Positions are ground-referenced, so the step displacement
 is ``c R(φ) [V, S]ᵀ + u δt`` (:mod:`fusion.motion_model`). Given the variances, k_V and
 ``u = (u_n, u_e)`` enter linearly: with ``g = δt/c``,
@@ -83,6 +99,8 @@ class MStepOptions:
     # variance terms always held at their current values (e.g. ("var_vw", "var_wv")): terms
     # the controls separate on paper (condition number) but the data barely inform
     hold_terms: tuple[str, ...] = ()
+    # σ_S² is held when the fraction of missing information on the sway exceeds this (module docstring)
+    max_missing_information_s: float = 0.5
     var_floor: float = 1e-10
 
 
@@ -95,6 +113,7 @@ class MStepResult:
     q_value: float
     notes: list[str] = field(default_factory=list)
     current_n_m_s: tuple[float, float] = (0.0, 0.0)
+    missing_information_s: float = math.nan   # f of the sway channel (module docstring)
 
 
 def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tuple[list[int], float]:
@@ -288,6 +307,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     sum_W = (W - w[None, :]).sum(axis=0)
     a_v, a_w = alpha_v, alpha_w
     held_means: tuple[str, ...] = ()
+    missing_s = math.nan
     fit_means_any = options.fit_k_v or options.fit_current
     n_alt = max(1, options.n_alternations) if (fit_means_any or options.fit_b_w) else 1
     for _ in range(n_alt):
@@ -313,7 +333,11 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
         res_w = np.mean((W - w[None, :] - b_w) ** 2, axis=0)
         a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau, center_w)
         if options.fit_var_s:
-            var_s = max(float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum())), options.var_floor)
+            missing_s = sway_missing_information(S, lam)
+            if not missing_s > options.max_missing_information_s:  # NaN (one trajectory): fit
+                var_s = max(float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum())), options.var_floor)
+            else:
+                var_s = params.var_s
     res_v = np.sum((V - k_v * v[None, :]) ** 2, axis=0)
     res_w = np.sum((W - w[None, :] - b_w) ** 2, axis=0)
     floor = options.var_floor
@@ -325,7 +349,28 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     s_v, s_w = design @ ev, design @ ew
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
     notes = [f"held {name} (controls do not separate it)" for name in held + held_means]
-    return MStepResult(new, held + held_means, cond_v, cond_w, float(q), notes, (float(current[0]), float(current[1])))
+    held_s: tuple[str, ...] = ()
+    if options.fit_var_s and missing_s > options.max_missing_information_s:
+        held_s = ("var_s",)
+        notes.append(f"held var_s (the data carry little information on the sway: missing-information "
+                     f"fraction {missing_s:.2f} > {options.max_missing_information_s:g})")
+    return MStepResult(new, held + held_means + held_s, cond_v, cond_w, float(q), notes,
+                       (float(current[0]), float(current[1])), missing_s)
+
+
+def sway_missing_information(S: np.ndarray, lam: np.ndarray) -> float:
+    """Fraction of missing information on the sway, ``f`` of the module docstring.
+
+    ``S`` (M, T) smoothed sway velocities (m/s), ``lam`` (T,) step weights. 1 when the
+    trajectories scatter as the prior does, 0 when the data pin every step's sway; NaN
+    for fewer than two trajectories (no spread to measure).
+    """
+    if S.shape[0] < 2:
+        return math.nan
+    total = float(np.sum(lam * np.mean(S * S, axis=0)))
+    if not total > 0.0:
+        return math.nan
+    return float(np.sum(lam * np.var(S, axis=0))) / total
 
 
 def surge_variances_from_increments(params: MotionParams, increments, options: MStepOptions = MStepOptions(),

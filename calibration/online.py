@@ -102,6 +102,8 @@ class CalibratorConfig:
     fit_k_v: bool = True
     fit_b_w: bool = True
     fit_var_s: bool = True
+    # σ_S² is held when the smoothed sway is mostly prior (calibration.mstep, missing information)
+    max_missing_information_s: float = 0.5
     fit_current: bool = True      # estimate the sea current (USBL/GNSS are ground-referenced)
     fix_regression: bool = True   # warm-start k_V and the current from fixes vs dead reckoning
     # the filter's free-inertial velocity as surge-noise evidence (calibration.inertial)
@@ -149,7 +151,8 @@ class CalibratorConfig:
                          max_iterations=self.em_iterations, n_mcmc=self.n_mcmc,
                          mstep=MStepOptions(max_condition=self.max_condition, prior_tau=self.prior_tau,
                                             fit_k_v=self.fit_k_v, fit_b_w=self.fit_b_w,
-                                            fit_var_s=self.fit_var_s, fit_current=self.fit_current))
+                                            fit_var_s=self.fit_var_s, fit_current=self.fit_current,
+                                            max_missing_information_s=self.max_missing_information_s))
 
 
 @dataclass(frozen=True)

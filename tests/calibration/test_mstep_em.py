@@ -1,5 +1,6 @@
 """M-step recovery, identifiability, EM on the thesis simulation."""
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -29,7 +30,9 @@ def test_m_step_recovers_known_parameters():
                          var_w1=0.01**2, var_s=0.03**2, k_v=0.9, b_w=0.01)
     traj = _exact_trajectories(truth, v, w, 1.0, 50, rng)
     start = MotionParams()  # defaults far from the truth
-    res = m_step(traj, v, w, 1.0, start, options=MStepOptions(prior_tau=math.inf, max_condition=100))
+    # independent draws of the complete data: the sway's missing-information hold is off here
+    res = m_step(traj, v, w, 1.0, start, options=MStepOptions(prior_tau=math.inf, max_condition=100,
+                                                              max_missing_information_s=math.inf))
     assert res.held == ()
     got = res.params
     assert abs(got.k_v - 0.9) < 0.01
@@ -48,7 +51,7 @@ def test_m_step_holds_terms_the_controls_cannot_separate():
     truth = MotionParams(var_vv=0.1**2)
     traj = _exact_trajectories(truth, v, w, 1.0, 30, rng)
     start = MotionParams(var_vv=0.05**2)
-    res = m_step(traj, v, w, 1.0, start)
+    res = m_step(traj, v, w, 1.0, start, options=MStepOptions(max_missing_information_s=math.inf))
     assert set(res.held) == {"var_vw", "var_v1", "var_ww", "var_wv"}
     for name in res.held:
         assert getattr(res.params, name) == getattr(start, name)
@@ -60,6 +63,40 @@ def test_m_step_holds_terms_the_controls_cannot_separate():
     design = np.stack([v * v, w * w, np.ones(T)], axis=1)
     kept, _ = identifiable_terms(design, V_PRIORITY, 30.0)
     assert kept == [0]
+
+
+def _pinned_sway_trajectories(params, v, w, dt, n_traj, rng):
+    """Trajectories that agree on every step's sway (data that pin it) and scatter in V, W."""
+    T = v.size
+    traj = np.zeros((n_traj, T + 1, 3))
+    for t in range(T):
+        V, W, S = sample_velocities(params, v[t], w[t], rng, size=1)
+        jitter_V = V + 0.01 * rng.standard_normal(n_traj)
+        jitter_W = W + 0.001 * rng.standard_normal(n_traj)
+        traj[:, t + 1] = propagate(traj[:, t], jitter_V, jitter_W, np.full(n_traj, S[0]), dt)
+    return traj
+
+
+def test_m_step_holds_the_sway_variance_when_the_data_do_not_inform_it():
+    rng = np.random.default_rng(5)
+    T = 300
+    t = np.arange(T)
+    v = 1.0 + 0.5 * np.sin(t / 9.0)
+    w = 0.2 * np.sin(t / 4.0)
+    start = MotionParams(var_s=0.01**2)
+    truth = replace(start, var_s=0.03**2)
+    # sway drawn independently per trajectory, as the prior does: the data said nothing
+    prior_like = _exact_trajectories(truth, v, w, 1.0, 40, rng)
+    res = m_step(prior_like, v, w, 1.0, start)
+    assert res.missing_information_s > 0.9
+    assert "var_s" in res.held and res.params.var_s == start.var_s
+    assert any("var_s" in note and "missing-information" in note for note in res.notes)
+    # the same sway on every trajectory: the data pinned it, so σ_S² is learned
+    pinned = _pinned_sway_trajectories(truth, v, w, 1.0, 40, rng)
+    res = m_step(pinned, v, w, 1.0, start)
+    assert res.missing_information_s < 0.05
+    assert "var_s" not in res.held
+    assert abs(math.sqrt(res.params.var_s) / 0.03 - 1) < 0.15
 
 
 def test_em_recovers_changed_sigma_dd_on_thesis_simulation():
