@@ -331,15 +331,23 @@ def is_finite(sample: Any) -> bool:
 
     Fields whose default is NaN (e.g. ``DvlSample.altitude_m``) mean "not reported".
     """
-    for f in dataclasses.fields(sample):
-        v = getattr(sample, f.name)
-        optional_nan = isinstance(f.default, float) and math.isnan(f.default)
+    spec = _FINITE_SPEC.get(type(sample))
+    if spec is None:  # (name, optional NaN) per field, once per class (every sample is checked)
+        spec = _FINITE_SPEC[type(sample)] = tuple(
+            (f.name, isinstance(f.default, float) and math.isnan(f.default)) for f in dataclasses.fields(sample))
+    isfinite = math.isfinite
+    for name, optional_nan in spec:
+        v = getattr(sample, name)
         if isinstance(v, tuple):
-            if not all(math.isfinite(x) for x in v):
-                return False
-        elif isinstance(v, float) and not math.isfinite(v) and not optional_nan:
+            for x in v:
+                if not isfinite(x):
+                    return False
+        elif isinstance(v, float) and not optional_nan and not isfinite(v):
             return False
     return True
+
+
+_FINITE_SPEC: dict[type, tuple[tuple[str, bool], ...]] = {}
 
 
 @dataclass(frozen=True)

@@ -40,5 +40,17 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s) -> Measure
     if not sample.valid:
         return None
     lever = np.asarray(lever_arm_b_m, dtype=float)
-    return make(sample.vel_d_m_s, jacobian(x, lever, R_db), np.eye(3) * sigma_m_s**2,
-                predict(x, omega_b_rad_s, lever, R_db))
+    # jacobian() and predict() from one R_nb, with the same operations on the same floats
+    # (R_db R_nbᵀ once; ω × l written out as np.cross computes it: a product difference per
+    # component — np.cross on two 3-vectors costs more than the rest of this function)
+    R = dcm(x)
+    vel = x[X_VEL]
+    A = R_db @ R.T
+    H = np.zeros((3, N_ERR))
+    H[:, VEL] = A
+    H[:, ATT] = A @ skew(vel)
+    H[:, BG] = R_db @ skew(lever)
+    o0, o1, o2 = np.asarray(omega_b_rad_s, dtype=float).tolist()
+    l0, l1, l2 = lever.tolist()
+    v_b = R.T @ vel + np.array([o1 * l2 - o2 * l1, o2 * l0 - o0 * l2, o0 * l1 - o1 * l0])
+    return make(sample.vel_d_m_s, H, np.eye(3) * sigma_m_s**2, R_db @ v_b)
