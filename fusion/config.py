@@ -65,6 +65,11 @@ class LearnedVelocityConfig:
     # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
     adaptive_window_s: float = 120.0
     adaptive_max_scale: float = 25.0
+    # after a calibrator release the released surge variance is used as it is for this
+    # long (s): it replaces the innovation estimate, which is noisy and only ever scales
+    # up (survey, 8 seeds: drift since the last fix 0.05 points lower on average); a
+    # calibrator that stops releasing hands the surge variance back to it. 0: always adaptive.
+    adaptive_suspend_after_release_s: float = 600.0
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,7 @@ def _finite(sample) -> bool:
 
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak", "vel_inertial_n",
-                 "pos_inertial_n")
+                 "pos_inertial_n", "motion_params", "t_release")
 
 
 class Estimator:
@@ -144,6 +144,7 @@ class Estimator:
         self._restored = False
         self._speed_cache: dict[float, float] = {}
         self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
+        self._t_release = -math.inf  # state time of the latest calibrator release applied
         self._gate_streak: dict[str, int] = {}
         # free-inertial velocity: the strapdown's velocity increments summed without the
         # aiding corrections — what the IMU alone says about velocity *changes* (the
@@ -190,12 +191,23 @@ class Estimator:
                                       int(self._reset_counter))
 
     def set_motion_params(self, params: MotionParams) -> None:
-        """Apply a calibrator release; ``k_speed · k_V`` is kept continuous."""
+        """Apply a calibrator release; ``k_speed · k_V`` is kept continuous.
+
+        The release is part of the input history: a late measurement older than it is
+        re-fused before it and the release re-applied after, as it came. For
+        ``learned_velocity.adaptive_suspend_after_release_s`` after it, the released surge
+        variance is used as it is (:meth:`_learned_velocity`).
+        """
+        self._record("params", (float(self._clock[0]), params))
+        self._apply_motion_params(params)
+
+    def _apply_motion_params(self, params: MotionParams) -> None:
         ratio = self.motion_params.k_v / params.k_v
         self._x[X_KS] *= ratio
         self._P[KS, :] *= ratio
         self._P[:, KS] *= ratio
         self.motion_params = params
+        self._t_release = float(self._clock[0])
 
     def slow_states(self) -> dict:
         """Biases, current and ``k_speed`` with their variances (for persistence)."""
@@ -310,6 +322,8 @@ class Estimator:
         s.gate_streak = dict(self._gate_streak)
         s.vel_inertial_n = self._vel_inertial_n.copy()
         s.pos_inertial_n = self._pos_inertial_n.copy()
+        s.motion_params = self.motion_params
+        s.t_release = self._t_release
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -322,6 +336,8 @@ class Estimator:
         self._gate_streak = dict(s.gate_streak)
         self._vel_inertial_n[:] = s.vel_inertial_n
         self._pos_inertial_n[:] = s.pos_inertial_n
+        self.motion_params = s.motion_params
+        self._t_release = s.t_release
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -362,7 +378,7 @@ class Estimator:
                             self._imu_run(t[j:], f[j:], w[j:])
                             continue
                     else:
-                        t_entry = payload[0] if kind == "gap" else payload.t_s
+                        t_entry = payload[0] if kind in ("gap", "params") else payload.t_s
                         if t_entry > sample.t_s:
                             self._record("sample", sample)
                             out = self._aid(sample)
@@ -372,6 +388,9 @@ class Estimator:
                 elif kind == "gap":
                     self._record("gap", payload)
                     self._imu_gap(*payload)
+                elif kind == "params":
+                    self._record("params", payload)
+                    self._apply_motion_params(payload[1])
                 else:
                     self._record("sample", payload)
                     if payload.KIND == "rpm":
@@ -585,7 +604,9 @@ class Estimator:
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale)
         if cfg.adaptive_window_s > 0:
-            meas = self._adapt_surge(meas)
+            adapted = self._adapt_surge(meas)  # the estimate is kept current either way
+            if t - self._t_release >= cfg.adaptive_suspend_after_release_s:
+                meas = adapted
         return self._fuse(meas, t, "learned_velocity")
 
     def _adapt_surge(self, meas: Measurement) -> Measurement:
