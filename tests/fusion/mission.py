@@ -168,7 +168,10 @@ def run(est, m: Mission, probe_times=(), drop=lambda s: False):
             k0 = k1
         if kind == 1:
             # a "delayed" stand-in hands its sample over late, as a slow transport would
-            statuses += est.process(s.sample if s.KIND == "delayed" else s)
+            if s.KIND == "release":  # a calibrator release applied at this point of the stream
+                est.set_motion_params(s.params)
+            else:
+                statuses += est.process(s.sample if s.KIND == "delayed" else s)
         else:
             states.append((k1 - 1, est.nav_state()))
     if k0 < m.t_imu.size:

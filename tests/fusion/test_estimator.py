@@ -146,6 +146,60 @@ class _Delayed:
         self.sample, self.t_s = sample, t_s
 
 
+class _Release:
+    """A calibrator release applied when the stream reaches ``t_s``."""
+
+    KIND = "release"
+
+    def __init__(self, params, t_s):
+        self.params, self.t_s = params, t_s
+
+
+def test_a_release_between_a_late_measurement_and_its_time_is_reapplied_in_place():
+    # GIVEN a release (k_V 1 → 0.9) at 40.3 s, and a USBL fix of 40.0 s that arrives at 40.6 s
+    m = make_mission(np.random.default_rng(12), 60.0, usbl_period_s=20.0, k_v_true=0.9)
+    fix = next(a for a in m.aids if a.KIND == "usbl" and a.t_s == 40.0)
+    release = _Release(replace(MotionParams(), k_v=0.9, var_vv=0.1**2), 40.3)
+    on_time = _est()
+    m_on = copy.copy(m)
+    m_on.aids = sorted(m.aids + [release], key=lambda a: a.t_s)
+    run(on_time, m_on)
+    late = _est()
+    late_m = copy.copy(m)
+    late_m.aids = sorted([a for a in m.aids if a is not fix] + [_Delayed(fix, 40.6), release],
+                         key=lambda a: a.t_s)
+    run(late, late_m)
+    # THEN re-fusing the fix before the release gives the in-order result, k_speed included
+    a, b = on_time.nav_state(), late.nav_state()
+    assert late.late_fused == 1 and late.motion_params.k_v == 0.9
+    assert b.k_speed == pytest.approx(a.k_speed, abs=1e-9)
+    np.testing.assert_allclose(b.pos_n_m, a.pos_n_m, atol=1e-6)
+
+
+def _surge_variances(statuses, t0, t1):
+    return [s.innovation_variance[0] for s in statuses
+            if s.source == "learned_velocity" and s.fused and t0 <= s.t_s < t1]
+
+
+def test_the_adaptive_surge_scale_is_suspended_after_a_release_and_resumes_without_releases():
+    # GIVEN water 4x noisier in surge than the filter's model, which the adaptive scale follows
+    noisy = replace(MotionParams(), var_vv=0.2**2)
+    cfg = replace(FilterConfig(), learned_velocity=replace(FilterConfig().learned_velocity,
+                                                           adaptive_suspend_after_release_s=100.0))
+    model_var = 1.5**2 * MotionParams().var_vv
+    medians = {}
+    for label, releases in (("none", []), ("release", [_Release(MotionParams(), 300.0)])):
+        m = make_mission(np.random.default_rng(13), 600.0, params=noisy, usbl_period_s=10.0)
+        m.aids = sorted(m.aids + releases, key=lambda a: a.t_s)
+        _, statuses = run(_est(cfg), m)
+        medians[label] = [np.median(_surge_variances(statuses, t0, t0 + 100.0)) for t0 in (300.0, 450.0)]
+    # THEN without a release the scale is up after 300 s; with a release at 300 s (keeping
+    # the too-tight model) it is off for the 100 s after it, and back once releases stop
+    assert medians["none"][0] > 5 * model_var
+    assert medians["release"][0] < 2 * model_var
+    assert medians["release"][1] > 5 * model_var
+
+
 def test_too_late_measurement_is_rejected():
     est = _aligned()
     est.process(_static_batch(1.0, 300))  # t = 4
