@@ -492,7 +492,12 @@ class LaggedCalibrator:
             kind = getattr(item, "KIND", None)
             if kind is None or kind == "truth":
                 continue  # releases, truth: not calibrator data (live, they do not exist)
-            t = item.t_s if kind != "imu_batch" else data_time(item)
+            if kind != "imu_batch":
+                t = item.t_s
+            else:  # its last time, unless not finite (then data_time looks further back)
+                t = float(item.t_s[-1]) if len(item) else math.nan
+                if not math.isfinite(t):
+                    t = data_time(item)
             if t > now:  # False for NaN
                 now = t
             sync(now - lag)

@@ -234,15 +234,17 @@ class _Loop:
                 self.release(rel)
 
     def item(self, item: Any) -> None:
-        if _is_release(item):
+        kind = getattr(item, "KIND", None)  # every sample has one; a release has none
+        if kind is None and _is_release(item):
             self.release(item)
             return
-        if isinstance(item, ImuBatch) and len(item) == 0:
+        is_batch = kind == "imu_batch" and isinstance(item, ImuBatch)
+        if is_batch and len(item) == 0:
             return
-        t_s = float(item.t_s[0]) if isinstance(item, ImuBatch) else float(item.t_s)
+        t_s = float(item.t_s[0]) if is_batch else float(item.t_s)
         if math.isfinite(t_s):
             self.clock.wait_until(t_s)
-        if isinstance(item, ImuBatch):
+        if is_batch:
             self.imu_batch(item)
             cal = self.calibrator
             if cal is not None:

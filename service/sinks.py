@@ -241,6 +241,7 @@ class SeriesRecorder(Sink):
         st = _state_slices()
         idx = np.arange(st.N_ERR)
         self._pva = np.r_[idx[st.POS], idx[st.VEL], idx[st.ATT]]
+        self._pva_ix = np.ix_(self._pva, self._pva)  # built once: np.ix_ per state cost more than the copy
         self.nav_t: list[float] = []
         self.nav_pos: list[np.ndarray] = []
         self.nav_vel: list[np.ndarray] = []
@@ -261,7 +262,7 @@ class SeriesRecorder(Sink):
         self.nav_vel.append(np.array(state.vel_n_m_s, dtype=float))
         self.nav_q.append(np.array(state.q_nb, dtype=float))
         cov = np.asarray(state.cov)
-        self.nav_cov_pva.append(cov[np.ix_(self._pva, self._pva)])
+        self.nav_cov_pva.append(cov[self._pva_ix])
         self.nav_current.append(_current_xy(state))
         self.nav_k_speed.append(float(state.k_speed))
 

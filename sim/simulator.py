@@ -81,9 +81,11 @@ class SimResult:
         runs grouped.
         """
         t_imu = self.imu.t_s
+        others = self._others_sorted()
+        # every sample's IMU run end in one call (was a searchsorted per sample)
+        stops = np.searchsorted(t_imu, np.array([s.t_s for s in others], dtype=float), side="right").tolist()
         start = 0
-        for s in self._others_sorted():
-            stop = int(np.searchsorted(t_imu, s.t_s, side="right"))
+        for s, stop in zip(others, stops):
             if stop > start:
                 yield self._batch(start, stop)
                 start = stop

@@ -28,12 +28,15 @@ class Measurement(NamedTuple):
 
     def innovation(self) -> np.ndarray:
         y = self.z - self.h
-        if self.angular.any():
+        ang = self.angular
+        if ang is not _NOT_ANGULAR.get(ang.size) and ang.any():  # make()'s shared all-False masks
             y = np.where(self.angular, wrap_angle(y), y)
         return y
 
 
 _NOT_ANGULAR = {m: np.zeros(m, bool) for m in (1, 2, 3)}
+for _a in _NOT_ANGULAR.values():
+    _a.setflags(write=False)  # shared by every Measurement without angular components
 
 
 def make(z, H, R, h, angular=None) -> Measurement:
