@@ -10,12 +10,20 @@ from calibration.mstep import MStepOptions, m_step, identifiable_terms, V_PRIORI
 from calibration.thesis import ThesisRow, _init_cloud, simulate
 
 
-def _exact_trajectories(params, v, w, dt, n_traj, rng):
-    """Trajectories drawn from the motion model itself (a perfect E-step)."""
+def _exact_trajectories(params, v, w, dt, n_traj, rng, pin_sway=False):
+    """Trajectories drawn from the motion model itself (a perfect E-step).
+
+    ``pin_sway``: one sway per step shared by every trajectory (data that pin it), and V, W
+    of that one draw with a small scatter.
+    """
     T = v.size
     traj = np.zeros((n_traj, T + 1, 3))
     for t in range(T):
-        V, W, S = sample_velocities(params, v[t], w[t], rng, size=n_traj)
+        V, W, S = sample_velocities(params, v[t], w[t], rng, size=1 if pin_sway else n_traj)
+        if pin_sway:
+            V = V + 0.01 * rng.standard_normal(n_traj)
+            W = W + 0.001 * rng.standard_normal(n_traj)
+            S = np.full(n_traj, S[0])
         traj[:, t + 1] = propagate(traj[:, t], V, W, S, dt)
     return traj
 
@@ -65,18 +73,6 @@ def test_m_step_holds_terms_the_controls_cannot_separate():
     assert kept == [0]
 
 
-def _pinned_sway_trajectories(params, v, w, dt, n_traj, rng):
-    """Trajectories that agree on every step's sway (data that pin it) and scatter in V, W."""
-    T = v.size
-    traj = np.zeros((n_traj, T + 1, 3))
-    for t in range(T):
-        V, W, S = sample_velocities(params, v[t], w[t], rng, size=1)
-        jitter_V = V + 0.01 * rng.standard_normal(n_traj)
-        jitter_W = W + 0.001 * rng.standard_normal(n_traj)
-        traj[:, t + 1] = propagate(traj[:, t], jitter_V, jitter_W, np.full(n_traj, S[0]), dt)
-    return traj
-
-
 def test_m_step_holds_the_sway_variance_when_the_data_do_not_inform_it():
     rng = np.random.default_rng(5)
     T = 300
@@ -92,7 +88,7 @@ def test_m_step_holds_the_sway_variance_when_the_data_do_not_inform_it():
     assert "var_s" in res.held and res.params.var_s == start.var_s
     assert any("var_s" in note and "missing-information" in note for note in res.notes)
     # the same sway on every trajectory: the data pinned it, so σ_S² is learned
-    pinned = _pinned_sway_trajectories(truth, v, w, 1.0, 40, rng)
+    pinned = _exact_trajectories(truth, v, w, 1.0, 40, rng, pin_sway=True)
     res = m_step(pinned, v, w, 1.0, start)
     assert res.missing_information_s < 0.05
     assert "var_s" not in res.held
