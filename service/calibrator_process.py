@@ -287,11 +287,17 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
             if isinstance(msg, str) and msg == _STOP:
                 return
             seq, n, packed = msg
+            tau = clock.tau
             for sample in unpack_batch(packed):
                 calibrator.observe(sample)
-                tau = clock.advance(sample)
+                t = sample.t_s  # _DataClock.advance inlined (once per sample)
+                if type(t) is not float:
+                    t = data_time(sample)
+                if t > tau:  # False for NaN
+                    tau = t
                 for rel in calibrator.poll():
                     out_q.send(("release", release_to_dict(rel), tau))
+            clock.tau = tau
             out_q.send(("progress", seq + n, clock.tau))
     except BaseException as e:  # the parent must not wait forever for a dead child
         import traceback
