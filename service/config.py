@@ -152,7 +152,7 @@ class CalibratorSection:
     restart_backoff_max_s: float = 30.0
     queue_size: int = 20000
     seed: int = 0
-    latency_s: float = 30.0
+    latency_s: float = 60.0  # > one EM window's run time × the replay speed-up (deploy/adaptnav.toml)
     online: CalibratorConfig = field(default_factory=CalibratorConfig)
 
     def validate(self) -> None:
