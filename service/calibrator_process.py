@@ -40,6 +40,7 @@ that brings the runner's data time to ``τ + L`` or beyond, ``L`` = ``calibrator
 """
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import multiprocessing as mp
@@ -278,6 +279,9 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
             pass
         calibrator = make_calibrator(cfg, params0, seed)
         clock = _DataClock()
+        # the modules forked from the server (numpy, scipy, numba, OpenCV: ~10⁵ objects)
+        # stay out of the garbage collector's full passes
+        gc.freeze()
         out_q.send(("ready", None, None))
         while True:
             try:
