@@ -308,6 +308,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     a_v, a_w = alpha_v, alpha_w
     held_means: tuple[str, ...] = ()
     missing_s = math.nan
+    hold_s = False  # σ_S² held: the data carry little information on the sway
     fit_means_any = options.fit_k_v or options.fit_current
     n_alt = max(1, options.n_alternations) if (fit_means_any or options.fit_b_w) else 1
     for _ in range(n_alt):
@@ -334,10 +335,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
         a_w = _fit_log_variances(design, lam, res_w, n_traj, alpha_w, kept_w, options.prior_tau, center_w)
         if options.fit_var_s:
             missing_s = sway_missing_information(S, lam)
-            if not missing_s > options.max_missing_information_s:  # NaN (one trajectory): fit
-                var_s = max(float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum())), options.var_floor)
-            else:
-                var_s = params.var_s
+            hold_s = missing_s > options.max_missing_information_s  # NaN (one trajectory): fit
+            var_s = params.var_s if hold_s else \
+                max(float(np.sum(lam * np.sum(S * S, axis=0)) / (n_traj * lam.sum())), options.var_floor)
     res_v = np.sum((V - k_v * v[None, :]) ** 2, axis=0)
     res_w = np.sum((W - w[None, :] - b_w) ** 2, axis=0)
     floor = options.var_floor
@@ -350,7 +350,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
     notes = [f"held {name} (controls do not separate it)" for name in held + held_means]
     held_s: tuple[str, ...] = ()
-    if options.fit_var_s and missing_s > options.max_missing_information_s:
+    if hold_s:
         held_s = ("var_s",)
         notes.append(f"held var_s (the data carry little information on the sway: missing-information "
                      f"fraction {missing_s:.2f} > {options.max_missing_information_s:g})")

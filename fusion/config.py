@@ -67,7 +67,7 @@ class LearnedVelocityConfig:
     adaptive_max_scale: float = 25.0
     # after a calibrator release the released surge variance is used as it is for this
     # long (s): it replaces the innovation estimate, which is noisy and only ever scales
-    # up (survey, 8 seeds: drift since the last fix 0.05 points lower on average); a
+    # up (survey, 8 seeds: drift since the last fix 0.07 points lower on average); a
     # calibrator that stops releasing hands the surge variance back to it. 0: always adaptive.
     adaptive_suspend_after_release_s: float = 600.0
 
