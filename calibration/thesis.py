@@ -241,17 +241,26 @@ class RowResult:
         return out
 
 
+def run_seed(row: ThesisRow, seed: int, settings: LearnerSettings = LearnerSettings()):
+    """One seed of ``row`` (data from seed s, filters from seed s + 10⁶): static errors (T+1,),
+    learned errors (T+1,), the learned σ_Dd and σ_Tr at the end."""
+    data = simulate(row, np.random.default_rng(seed))
+    es, _, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=False)
+    el, p, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=True)
+    return es, el, p.sigma_dd, p.sigma_tr
+
+
+def row_result(row: ThesisRow, per_seed) -> RowResult:
+    """Collect :func:`run_seed` outputs (in seed order) into a :class:`RowResult`."""
+    st, le, sdd, stt = zip(*per_seed)
+    return RowResult(row, np.array(st), np.array(le), np.array(sdd), np.array(stt))
+
+
 def run_row(row: ThesisRow, seeds, settings: LearnerSettings = LearnerSettings(), progress=None) -> RowResult:
-    """Run ``row`` for every seed in ``seeds`` (data from seed s, filters from seed s + 10⁶)."""
-    st, le, sdd, stt = [], [], [], []
+    """Run ``row`` for every seed in ``seeds``, one after the other."""
+    out = []
     for seed in seeds:
-        data = simulate(row, np.random.default_rng(seed))
-        es, _, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=False)
-        el, p, _ = run_filter(data, np.random.default_rng(seed + 1_000_000), settings, learn=True)
-        st.append(es)
-        le.append(el)
-        sdd.append(p.sigma_dd)
-        stt.append(p.sigma_tr)
+        out.append(run_seed(row, seed, settings))
         if progress is not None:
             progress.update(1)
-    return RowResult(row, np.array(st), np.array(le), np.array(sdd), np.array(stt))
+    return row_result(row, out)

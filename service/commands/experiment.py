@@ -18,6 +18,8 @@ def add_arguments(parser):
     parser.add_argument("name", choices=("thesis",), help="which experiment")
     parser.add_argument("--seeds", type=int, default=20, help="seeds per row (default 20)")
     parser.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    parser.add_argument("--jobs", type=int, default=0,
+                        help="worker processes (default: the CPUs this process may use); same output for any number")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write error-vs-time plots (one per row) into DIR")
     parser.add_argument("--initial", metavar="SDD,STR", help="custom row: initial σ_Dd,σ_Tr")
@@ -79,23 +81,42 @@ def _plot(result, path):
 
 def run(args):
     import json
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
     from pathlib import Path
 
     from tqdm import tqdm
 
-    from calibration.thesis import run_row
+    from calibration.thesis import row_result, run_seed
 
     if args.seeds < 1:
         raise SystemExit("adaptnav experiment: --seeds must be ≥ 1")
+    if args.jobs < 0:
+        raise SystemExit("adaptnav experiment: --jobs must be ≥ 0 (0: one per CPU)")
     try:
         rows = _rows(args)
     except ValueError as e:
         raise SystemExit(f"adaptnav experiment: {e}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
-    results = []
-    with tqdm(total=len(rows) * args.seeds, desc="thesis", unit="seed", disable=None) as bar:
-        for row in rows:
-            results.append(run_row(row, seeds, progress=bar))
+    jobs = args.jobs if args.jobs > 0 else len(os.sched_getaffinity(0))
+    tasks = [(row, seed) for row in rows for seed in seeds]
+    with tqdm(total=len(tasks), desc="thesis", unit="seed", disable=None) as bar:
+        if jobs == 1:
+            per_task = []
+            for row, seed in tasks:
+                per_task.append(run_seed(row, seed))
+                bar.update(1)
+        else:
+            # every (row, seed) owns its generators (calibration.thesis.run_seed): the
+            # result does not depend on which worker ran it or when
+            with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures = [pool.submit(run_seed, row, seed) for row, seed in tasks]
+                for f in as_completed(futures):
+                    bar.update(1)
+                per_task = [f.result() for f in futures]
+    n = len(seeds)
+    results = [row_result(row, per_task[i * n:(i + 1) * n]) for i, row in enumerate(rows)]
     summaries = [r.summary() for r in results]
     if args.plots:
         out = Path(args.plots)

@@ -29,6 +29,15 @@ def test_experiment_custom_row_json_and_plot(tmp_path):
     assert list(tmp_path.glob("*.png"))
 
 
+def test_experiment_output_does_not_depend_on_the_worker_count():
+    row = ("--initial", "0.05,0.05", "--changed", "0.2,0.05", "--sensor-noise", "3.0", "--steps", "20")
+    serial = json.loads(_adaptnav("experiment", "thesis", "--seeds", "3", "--first-seed", "11", *row, "--jobs", "1",
+                                  "--json"))
+    parallel = json.loads(_adaptnav("experiment", "thesis", "--seeds", "3", "--first-seed", "11", *row, "--jobs", "2",
+                                    "--json"))
+    assert serial == parallel and serial[0]["seeds"] == 3
+
+
 def test_experiment_rejects_bad_custom_row():
     out = subprocess.run([sys.executable, "-m", "service.cli", "experiment", "thesis", "--changed", "0.5"],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
