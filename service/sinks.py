@@ -128,13 +128,33 @@ class TrajectoryCsvSink(Sink):
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS + (self.TRUTH_COLUMNS if truth else ()))
         self._last_truth = None
+        self._pending: tuple[float, list] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
 
     def on_sample(self, sample: Any) -> None:
         if sample.KIND == "truth":
             self._last_truth = sample
+            pending = self._pending
+            if pending is not None and self._truth_matches(pending[0], sample):
+                self._write(pending[1], sample)
+                self._pending = None
+
+    def _truth_matches(self, t_s: float, truth: Any) -> bool:
+        return truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s
+
+    def _write(self, row: list, truth: Any) -> None:
+        if self.truth:
+            if truth is not None:
+                row += [format(float(x), ".10g") for x in (*truth.pos_n_m, truth.current_n_m_s[0],
+                                                           truth.current_n_m_s[1], truth.k_v)]
+            else:
+                row += [""] * len(self.TRUTH_COLUMNS)
+        self._writer.writerow(row)
 
     def on_nav(self, state: Any) -> None:
+        if self._pending is not None:  # its truth did not come before the next state: none
+            self._write(self._pending[1], None)
+            self._pending = None
         p = state.pos_n_m
         v = state.vel_n_m_s
         roll, pitch, yaw = euler_rad(state.q_nb)
@@ -145,16 +165,18 @@ class TrajectoryCsvSink(Sink):
         row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
                                                   pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
         row.append("1" if state.valid else "0")
-        if self.truth:
-            tr = self._last_truth
-            if tr is not None and abs(state.t_s - tr.t_s) <= self.truth_max_age_s:
-                row += [format(float(x), ".10g") for x in (*tr.pos_n_m, tr.current_n_m_s[0],
-                                                            tr.current_n_m_s[1], tr.k_v)]
-            else:
-                row += [""] * len(self.TRUTH_COLUMNS)
-        self._writer.writerow(row)
+        t_s = float(state.t_s)
+        if not self.truth or self._truth_matches(t_s, self._last_truth):
+            self._write(row, self._last_truth)
+        else:
+            # the runner emits the state of epoch t_k as soon as the IMU reaches t_k, before
+            # the truth sample of t_k arrives: hold the row for it
+            self._pending = (t_s, row)
 
     def close(self) -> None:
+        if self._pending is not None:
+            self._write(self._pending[1], None)
+            self._pending = None
         self._file.close()
 
 
