@@ -21,7 +21,8 @@ on a circle of radius 90 m around the loop's centre (L = 4: a square).
 Two particle filters localise the robot from the same data: *static* keeps the initial
 parameters; *learned* is re-calibrated online by EM (:mod:`calibration.online`'s window
 logic: every ``period`` steps, a few EM iterations over the last ``window`` steps, warm
-started, with exponential forgetting). The localisation error at step t is the distance
+started, with exponential forgetting and a wide log-variance prior at the initial
+parameters, :class:`LearnerSettings`). The localisation error at step t is the distance
 between the filter's weighted mean position and the truth.
 
 Turns larger than π per step. With σ*_Tr = 0.5 a step's true turn ``W δt`` exceeds π in
