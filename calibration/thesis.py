@@ -256,12 +256,3 @@ def row_result(row: ThesisRow, per_seed) -> RowResult:
     st, le, sdd, stt = zip(*per_seed)
     return RowResult(row, np.array(st), np.array(le), np.array(sdd), np.array(stt))
 
-
-def run_row(row: ThesisRow, seeds, settings: LearnerSettings = LearnerSettings(), progress=None) -> RowResult:
-    """Run ``row`` for every seed in ``seeds``, one after the other."""
-    out = []
-    for seed in seeds:
-        out.append(run_seed(row, seed, settings))
-        if progress is not None:
-            progress.update(1)
-    return row_result(row, out)
