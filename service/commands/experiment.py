@@ -99,8 +99,8 @@ def run(args):
     except ValueError as e:
         raise SystemExit(f"adaptnav experiment: {e}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
-    jobs = args.jobs if args.jobs > 0 else len(os.sched_getaffinity(0))
     tasks = [(row, seed) for row in rows for seed in seeds]
+    jobs = min(args.jobs if args.jobs > 0 else len(os.sched_getaffinity(0)), len(tasks))
     with tqdm(total=len(tasks), desc="thesis", unit="seed", disable=None) as bar:
         if jobs == 1:
             per_task = []
