@@ -26,9 +26,11 @@ the current is what EM cannot find by itself).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from calibration.mstep import identifiable_terms
+from calibration.mstep import identifiable_terms, k_v_informed
 from calibration.sensors import PositionFix
 
 
@@ -44,7 +46,7 @@ def fix_pairs(observations) -> list[tuple[int, PositionFix]]:
 
 
 def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, current_n_m_s,
-                   step_weights=None, max_condition: float = 30.0):
+                   step_weights=None, max_condition: float = 30.0, max_k_v_sigma: float = math.inf):
     """(k_V, current (2,), held names) from fixes vs dead reckoning (module docstring).
 
     Parameters
@@ -56,6 +58,8 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     params : :class:`fusion.motion_model.MotionParams` for the step ``dt_s`` (the noise weights)
     k_v, current_n_m_s : the values held where the fixes do not separate a term
     step_weights : (T,) forgetting weights λ_t (default 1)
+    max_k_v_sigma : k_V is held when its standard error exceeds this
+        (:func:`calibration.mstep.k_v_informed`)
 
     Returns
     -------
@@ -91,6 +95,8 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     order = (1, 2, 0)  # current first, then k_V
     kept, _ = identifiable_terms(X * sw[:, None], order, max_condition)
     free = sorted(kept)
+    if not k_v_informed(X * sw[:, None], free, max_k_v_sigma)[0] and 0 in free:
+        free.remove(0)
     fixed = [k for k in range(3) if k not in free]
     theta = theta0.copy()
     if free:

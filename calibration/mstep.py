@@ -60,6 +60,13 @@ number of the admitted columns stays below ``max_condition``; a term whose colum
 (numerically) zero or would push the condition number over the limit is *held* at its
 current value and reported.
 
+Information on k_V. The condition test compares columns with each other; it does not see
+that a column carries no information at all. A vehicle at rest with a blip of thrust has a
+well-conditioned, nearly empty k_V column, and the least-squares k_V then follows the
+blip's noise (a real BlueROV2 log: 1.0 → 0.61 from one window). k_V is held when its
+standard error exceeds ``max_k_v_sigma`` (0.05; a survey window of 8 fixes at 1.5 m/s gives
+~0.01) (:func:`k_v_informed`).
+
 Surge terms at constant speed. A survey at constant speed has ``v² ≈ const`` so the columns
 ``v²`` and ``1`` are collinear: σ_Vv² v² and σ_V1² cannot be told apart. The priority order
 then admits σ_Vv (the term the targets and the seed's σ_Dd are about) and holds σ_V1 at its
@@ -101,6 +108,8 @@ class MStepOptions:
     hold_terms: tuple[str, ...] = ()
     # σ_S² is held when the fraction of missing information on the sway exceeds this (module docstring)
     max_missing_information_s: float = 0.5
+    # k_V is held when its standard error over the window exceeds this (module docstring)
+    max_k_v_sigma: float = 0.05
     var_floor: float = 1e-10
 
 
@@ -132,6 +141,32 @@ def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tu
         if c <= max_condition:
             kept, cond = trial, c
     return kept, cond
+
+
+def least_squares_sigmas(weighted_design: np.ndarray) -> np.ndarray:
+    """Standard errors of the coefficients of a weighted least-squares problem whose rows are
+    already scaled by √weight (weights = inverse variances): √diag((AᵀA)⁻¹); inf for a
+    column the rows do not inform."""
+    info = weighted_design.T @ weighted_design
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full(info.shape[0], math.inf)
+    d = np.diag(cov)
+    return np.where(d > 0, np.sqrt(np.abs(d)), math.inf)
+
+
+def k_v_informed(weighted_design: np.ndarray, free: list[int], max_sigma: float, n_copies: int = 1) -> tuple[bool, float]:
+    """Whether k_V (column 0 of ``weighted_design``) is pinned to ``max_sigma`` by the rows,
+    with the other ``free`` columns estimated alongside; and its standard error.
+
+    ``n_copies``: the rows are that many draws of the same data (M smoothed trajectories),
+    so the information per data set is 1/n_copies of the rows'.
+    """
+    if 0 not in free:
+        return False, math.nan
+    sig = least_squares_sigmas(weighted_design[:, free])[free.index(0)] * math.sqrt(n_copies)
+    return bool(sig <= max_sigma), float(sig)
 
 
 class VarianceObjective:
@@ -222,7 +257,8 @@ def _mean_design(trajectories, dt, turn_ref_rad=None):
     return V0, W, S0, np.stack([cp, sp], axis=-1), np.stack([-sp, cp], axis=-1)
 
 
-def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_current, max_condition):
+def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_current, max_condition,
+              max_k_v_sigma: float = math.inf):
     """Weighted least squares for (k_V, u_n, u_e) given the variances (closed form).
 
     Rows ``V̂⁰_tj = k v_t + gv_tj · u + e``, weight ``λ_t / s_V,t``, and ``Ŝ⁰_tj = gs_tj · u + e``,
@@ -230,7 +266,12 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
     (e.g. k_V and the along-track current on a single straight leg at constant speed) are
     held at their current values (:func:`identifiable_terms`, priority k_V, u_n, u_e).
 
-    Returns ``(k_v, current (2,), held names)``.
+    k_V is also held when its standard error exceeds ``max_k_v_sigma`` (:func:`k_v_informed`;
+    the complete-data error, which is smaller than the observed-data one: when even that is
+    too large the window's speeds do not inform k_V, e.g. a vehicle at rest with a blip of
+    thrust).
+
+    Returns ``(k_v, current (2,), held names, σ of k_V)``.
     """
     M, T = V0.shape
     wv = np.broadcast_to(lam / s_v, (M, T)).ravel()
@@ -243,11 +284,14 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
     theta = np.array([k_v, current[0], current[1]], dtype=float)
     want = [k for k, on in ((0, fit_k_v), (1, fit_current), (2, fit_current)) if on]
     if not want:
-        return k_v, np.asarray(current, float), ()
+        return k_v, np.asarray(current, float), (), math.nan
     sw = np.sqrt(wt)
     # condition test on the per-step design (trajectory-averaged), not the M-fold copy
     kept, _ = identifiable_terms((X * sw[:, None])[:, want], list(range(len(want))), max_condition)
     free = [want[i] for i in kept]
+    ok, sigma_k = k_v_informed(X * sw[:, None], free, max_k_v_sigma, n_copies=M)
+    if not ok and 0 in free:
+        free.remove(0)
     fixed = [k for k in range(3) if k not in free]
     held = tuple(("k_v", "current_n", "current_e")[k] for k in want if k not in free)
     if free:
@@ -256,7 +300,7 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
         sol, *_ = np.linalg.lstsq(A, r * sw, rcond=None)
         if np.all(np.isfinite(sol)):
             theta[free] = sol
-    return float(theta[0]), theta[1:].copy(), held
+    return float(theta[0]), theta[1:].copy(), held, sigma_k
 
 
 def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
@@ -307,6 +351,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     sum_W = (W - w[None, :]).sum(axis=0)
     a_v, a_w = alpha_v, alpha_w
     held_means: tuple[str, ...] = ()
+    sigma_k = math.nan
     missing_s = math.nan
     hold_s = False  # σ_S² held: the data carry little information on the sway
     fit_means_any = options.fit_k_v or options.fit_current
@@ -316,8 +361,9 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
         s_v = design @ np.exp(a_v)
         s_w = design @ np.exp(a_w)
         if fit_means_any:
-            k_new, current, held_means = fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current,
-                                                   options.fit_k_v, options.fit_current, options.max_condition)
+            k_new, current, held_means, sigma_k = fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current,
+                                                            options.fit_k_v, options.fit_current,
+                                                            options.max_condition, options.max_k_v_sigma)
             k_v = k_new if k_new > 0 else k_v
             V, S = water_relative(current)
         if options.fit_b_w:
@@ -348,7 +394,10 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     new = replace(new, **{name: getattr(params, name) for name in held})  # exactly, not exp(log(x))
     s_v, s_w = design @ ev, design @ ew
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
-    notes = [f"held {name} (controls do not separate it)" for name in held + held_means]
+    notes = [f"held {name} (controls do not separate it)" for name in held + held_means
+             if not (name == "k_v" and sigma_k > options.max_k_v_sigma)]
+    if "k_v" in held_means and sigma_k > options.max_k_v_sigma:
+        notes.append(f"held k_v (the window's speeds do not inform it: σ {sigma_k:.3g} > {options.max_k_v_sigma:g})")
     held_s: tuple[str, ...] = ()
     if hold_s:
         held_s = ("var_s",)

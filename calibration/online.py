@@ -99,6 +99,9 @@ class CalibratorConfig:
     # drift 0.52 % with "current" vs 0.36 % with "initial", 0.39 % with the static model)
     prior_anchor: Literal["current", "initial"] = "initial"
     max_condition: float = 30.0
+    # k_V is held when the window's speeds pin it to no better than this (standard error,
+    # calibration.mstep "Information on k_V"): a vehicle at rest says nothing about it
+    max_k_v_sigma: float = 0.05
     fit_k_v: bool = True
     fit_b_w: bool = True
     fit_var_s: bool = True
@@ -152,7 +155,8 @@ class CalibratorConfig:
                          mstep=MStepOptions(max_condition=self.max_condition, prior_tau=self.prior_tau,
                                             fit_k_v=self.fit_k_v, fit_b_w=self.fit_b_w,
                                             fit_var_s=self.fit_var_s, fit_current=self.fit_current,
-                                            max_missing_information_s=self.max_missing_information_s))
+                                            max_missing_information_s=self.max_missing_information_s,
+                                            max_k_v_sigma=self.max_k_v_sigma))
 
 
 @dataclass(frozen=True)
@@ -224,7 +228,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     if headings_rad is not None and config.fix_regression:
         from calibration.fix_regression import fix_regression
         k_fix, cur_fix, _ = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
-                                           lam, config.max_condition)
+                                           lam, config.max_condition, config.max_k_v_sigma)
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
             start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
             start_cur = cur_fix if config.fit_current else cur0

@@ -79,11 +79,45 @@ def test_fix_regression_finds_the_current_from_noisy_fixes():
     obs = [[PositionFix(tuple(poses[t, :2] + rng.normal(0, 2.0, 2)), 2.0)] if t % 12 == 0 else []
            for t in range(poses.shape[0])]
     headings = poses[:, 2] + np.radians(0.3) * rng.standard_normal(poses.shape[0])
-    k, cur, held = fix_regression(v, 5.0, headings, obs, truth, 1.0, (0.0, 0.0))
-    assert held == ()
+    k, cur, held = fix_regression(v, 5.0, headings, obs, truth, 1.0, (0.0, 0.0), max_k_v_sigma=0.05)
+    assert held == ()  # a survey leg informs k_V well within the calibrator's 0.05
     assert k == pytest.approx(0.95, abs=0.02)
     np.testing.assert_allclose(cur, CURRENT, atol=0.02)
     # one fix: nothing to fit, inputs returned as held
     one = [o if t < 5 else [] for t, o in enumerate(obs)]
     assert fix_regression(v, 5.0, headings, one, truth, 1.0, (0.1, 0.2)) == (1.0, (0.1, 0.2),
                                                                              ("k_v", "current_n", "current_e"))
+
+
+def _at_rest_with_a_blip(rng, params, n_steps=96, dt=5.0, current=CURRENT):
+    """A vehicle holding station (surge 0) but for 15 s of 0.05 m/s: k_V is not informed."""
+    v = np.zeros(n_steps)
+    v[40:43] = 0.05
+    w = np.zeros(n_steps)
+    poses = np.zeros((n_steps + 1, 3))
+    for t in range(n_steps):
+        V, W, S = sample_velocities(params, v[t], w[t], rng)
+        poses[t + 1] = propagate(poses[t], V, W, S, dt, current)
+    return v, w, poses
+
+
+def test_k_v_is_held_when_the_speeds_do_not_inform_it():
+    # GIVEN a window at rest with a blip of thrust, moved by a speed scale of 0.6
+    rng = np.random.default_rng(8)
+    truth = MotionParams(var_vv=0.04**2, k_v=0.6, var_s=0.01**2)
+    v, w, poses = _at_rest_with_a_blip(rng, truth)
+    start = MotionParams(var_vv=0.04**2, var_s=0.01**2)
+    # THEN the M-step holds k_V and says why ...
+    res = m_step(poses[None], v, w, 5.0, start, options=MStepOptions(fit_current=True, prior_tau=math.inf))
+    assert res.params.k_v == 1.0 and "k_v" in res.held
+    assert any("do not inform" in n for n in res.notes), res.notes
+    # ... where plain least squares would have taken the blip's noise for a 40 % change
+    loose = m_step(poses[None], v, w, 5.0, start,
+                   options=MStepOptions(fit_current=True, prior_tau=math.inf, max_k_v_sigma=math.inf))
+    assert abs(loose.params.k_v - 1.0) > 0.1
+    # AND the fix regression (fixes every minute, σ 2 m) holds it too, while fitting the current
+    obs = [[PositionFix(tuple(poses[t, :2] + rng.normal(0, 2.0, 2)), 2.0)] if t % 12 == 0 else []
+           for t in range(poses.shape[0])]
+    k, cur, held = fix_regression(v, 5.0, poses[:, 2], obs, truth, 1.0, (0.0, 0.0), max_k_v_sigma=0.05)
+    assert k == 1.0 and held == ("k_v",)
+    np.testing.assert_allclose(cur, CURRENT, atol=0.02)
