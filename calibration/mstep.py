@@ -394,10 +394,19 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     new = replace(new, **{name: getattr(params, name) for name in held})  # exactly, not exp(log(x))
     s_v, s_w = design @ ev, design @ ew
     q = -0.5 * np.sum(lam * (n_traj * (np.log(s_v) + np.log(s_w)) + res_v / s_v + res_w / s_w)) / n_traj
-    notes = [f"held {name} (controls do not separate it)" for name in held + held_means
-             if not (name == "k_v" and sigma_k > options.max_k_v_sigma)]
-    if "k_v" in held_means and sigma_k > options.max_k_v_sigma:
-        notes.append(f"held k_v (the window's speeds do not inform it: σ {sigma_k:.3g} > {options.max_k_v_sigma:g})")
+    # why each term was held, one clause per reason (it goes into the release record)
+    k_v_uninformed = "k_v" in held_means and sigma_k > options.max_k_v_sigma
+    configured = [name for name in held if name in options.hold_terms]
+    by_controls = [name for name in held + held_means
+                   if name not in configured and not (name == "k_v" and k_v_uninformed)]
+    notes = []
+    if by_controls:
+        notes.append(f"held {','.join(by_controls)} (the controls do not separate "
+                     f"{'it' if len(by_controls) == 1 else 'them'})")
+    if configured:
+        notes.append(f"held {','.join(configured)} (configured)")
+    if k_v_uninformed:
+        notes.append(f"held k_v (the speeds do not inform it: σ {sigma_k:.2g} > {options.max_k_v_sigma:g})")
     held_s: tuple[str, ...] = ()
     if hold_s:
         held_s = ("var_s",)

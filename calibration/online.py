@@ -278,7 +278,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         return Release(t_s, new, ll_new, False,
                        f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations,
                        cur)
-    held = f"; held {','.join(res.held)}" if res.held else ""
+    held = "".join(f"; {n}" for n in res.notes)  # what was held and why (calibration.mstep)
     return Release(t_s, new, ll_new, True, "ok" + held + note, res.iterations, cur)
 
 

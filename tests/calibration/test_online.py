@@ -14,8 +14,8 @@ STEP = 5.0
 
 
 def survey_stream(rng, minutes=24.0, change_min=8.0, k_before=1.0, k_after=0.85,
-                  sigma_vv_before=0.05, sigma_vv_after=0.1):
-    """Samples of a lawnmower at ~1.5 m/s; the water changes (k_V, σ_Vv) at ``change_min``."""
+                  sigma_vv_before=0.05, sigma_vv_after=0.1, speed=lambda t0: 1.5 + 0.3 * math.sin(t0 / 47.0)):
+    """Samples of a lawnmower at ``speed(t)`` (~1.5 m/s); the water changes (k_V, σ_Vv) at ``change_min``."""
     n = int(minutes * 60 / STEP)
     pose = np.zeros(3)
     out = []
@@ -24,7 +24,7 @@ def survey_stream(rng, minutes=24.0, change_min=8.0, k_before=1.0, k_after=0.85,
         leg = (t0 // 200) % 2
         turning = (t0 % 200) >= 170
         w_cmd = (math.pi / 30.0) * (1 if leg == 0 else -1) if turning else 0.0
-        v_cmd = 1.5 + 0.3 * math.sin(t0 / 47.0)
+        v_cmd = speed(t0)
         rpm = float(TABLE.rpm_for_speed(v_cmd))
         v_rep = TABLE.speed(rpm)
         after = t0 >= change_min * 60
@@ -80,6 +80,20 @@ def test_online_calibrator_follows_a_change_of_k_v_and_is_deterministic():
     # deterministic: same data + seed → the same releases
     _, again = _run(3, stream)
     assert [(r.t_s, r.params, r.accepted) for r in again] == [(r.t_s, r.params, r.accepted) for r in releases]
+
+
+def test_a_vehicle_at_rest_does_not_move_k_v_and_the_release_says_why():
+    # GIVEN station keeping (surge 0) with 15 s of 0.05 m/s thrust, in water where k_V is 0.6
+    stream = survey_stream(np.random.default_rng(12), minutes=12.0, change_min=99.0, k_before=0.6,
+                           speed=lambda t0: 0.05 if 300.0 <= t0 < 315.0 else 0.0)
+    _, releases = _run(4, stream)
+    accepted = [r for r in releases if r.accepted]
+    assert accepted, [(r.t_s, r.reason) for r in releases]
+    # THEN k_V stays at its prior 1.0: 15 s at 0.05 m/s against 2 m fixes say nothing about it
+    assert all(r.params.k_v == 1.0 for r in accepted), [(r.t_s, r.params.k_v) for r in accepted]
+    # AND the record says which terms were held and why
+    assert any("held k_v (the speeds do not inform it" in r.reason for r in accepted), [r.reason for r in accepted]
+    assert all("k_v (the " in r.reason for r in accepted)  # no speed at all, then a blip too small
 
 
 def test_online_calibrator_counts_bad_input_and_keeps_going():
