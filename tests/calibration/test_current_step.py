@@ -52,11 +52,16 @@ def _lawnmower(rng, params, n_steps=240, dt=5.0, current=CURRENT):
     leg = (np.arange(n_steps) // 40) % 2
     turn = (np.arange(n_steps) % 40) >= 36
     w[turn] = np.where(leg[turn] == 0, 1, -1) * math.pi / (4 * dt)
-    poses = np.zeros((n_steps + 1, 3))
-    for t in range(n_steps):
+    return v, w, _ground_poses(rng, params, v, w, dt, current)
+
+
+def _ground_poses(rng, params, v, w, dt, current):
+    """Poses driven by the motion model from the controls (v, w), moved by the current."""
+    poses = np.zeros((v.size + 1, 3))
+    for t in range(v.size):
         V, W, S = sample_velocities(params, v[t], w[t], rng)
         poses[t + 1] = propagate(poses[t], V, W, S, dt, current)
-    return v, w, poses
+    return poses
 
 
 def test_m_step_recovers_the_current_and_k_v_from_trajectories():
@@ -94,11 +99,7 @@ def _at_rest_with_a_blip(rng, params, n_steps=96, dt=5.0, current=CURRENT):
     v = np.zeros(n_steps)
     v[40:43] = 0.05
     w = np.zeros(n_steps)
-    poses = np.zeros((n_steps + 1, 3))
-    for t in range(n_steps):
-        V, W, S = sample_velocities(params, v[t], w[t], rng)
-        poses[t + 1] = propagate(poses[t], V, W, S, dt, current)
-    return v, w, poses
+    return v, w, _ground_poses(rng, params, v, w, dt, current)
 
 
 def test_k_v_is_held_when_the_speeds_do_not_inform_it():
