@@ -156,7 +156,8 @@ def least_squares_sigmas(weighted_design: np.ndarray) -> np.ndarray:
     return np.where(d > 0, np.sqrt(np.abs(d)), math.inf)
 
 
-def k_v_informed(weighted_design: np.ndarray, free: list[int], max_sigma: float, n_copies: int = 1) -> tuple[bool, float]:
+def k_v_informed(weighted_design: np.ndarray, free: list[int], max_sigma: float,
+                 n_copies: int = 1) -> tuple[bool, float]:
     """Whether k_V (column 0 of ``weighted_design``) is pinned to ``max_sigma`` by the rows,
     with the other ``free`` columns estimated alongside; and its standard error.
 
