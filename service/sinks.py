@@ -111,7 +111,9 @@ class TrajectoryCsvSink(Sink):
     pitch_rad, yaw_rad, sigma_north_m, sigma_east_m, sigma_down_m, current_n_m_s,
     current_e_m_s, k_speed, valid`` and, with ``truth=True``, ``truth_north_m,
     truth_east_m, truth_down_m, truth_current_n_m_s, truth_current_e_m_s, truth_k_v`` from
-    the latest truth sample no older than ``truth_max_age_s`` (empty otherwise).
+    the truth sample within ``truth_max_age_s`` of the state: the latest one, or the one
+    that arrives before the next state (the runner emits an epoch's state when the IMU
+    reaches it, before that epoch's truth sample); empty when there is none.
     """
 
     COLUMNS = ("t_s", "north_m", "east_m", "down_m", "vel_n_m_s", "vel_e_m_s", "vel_d_m_s",
