@@ -1,14 +1,14 @@
-r"""numba kernels for the calibrator's hot loops (same equations as :mod:`fusion.motion_model`).
+r"""numba kernels for the calibrator's hot loops (same equations as :mod:`adaptnav.fusion.motion_model`).
 
 * :func:`transition_logpdf_scalar` — ``log p(x' | x)`` of the motion model with the lateral
-  term and the Jacobian ``log(c² δt)`` (see :func:`fusion.motion_model.transition_logpdf`).
-* :func:`move` — :func:`fusion.motion_model.propagate` of resampled particles with
+  term and the Jacobian ``log(c² δt)`` (see :func:`adaptnav.fusion.motion_model.transition_logpdf`).
+* :func:`move` — :func:`adaptnav.fusion.motion_model.propagate` of resampled particles with
   velocities built from given standard normals (the normals come from the caller's
   ``numpy.random.Generator``, so results stay reproducible and generator-driven).
-* :func:`range_loglik` — :class:`calibration.sensors.RangeObservation`.
-* :func:`heading_loglik` — :class:`calibration.sensors.HeadingObservation`.
+* :func:`range_loglik` — :class:`adaptnav.calibration.sensors.RangeObservation`.
+* :func:`heading_loglik` — :class:`adaptnav.calibration.sensors.HeadingObservation`.
 * :func:`backward_mcmc`, :func:`backward_exact` — the FFBSi backward passes of
-  :mod:`calibration.smoother` given pre-drawn random numbers.
+  :mod:`adaptnav.calibration.smoother` given pre-drawn random numbers.
 
 ``pvec`` packs :class:`MotionParams` and the sea current as ``(var_vv, var_vw, var_v1, var_wv,
 var_ww, var_w1, var_s, k_v, b_w, u_n, u_e, turn_about_mean)`` (:func:`pack`); the current (m/s) adds
@@ -29,7 +29,7 @@ def pack(params, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarra
 
     ``turn_about_mean``: the transition density takes the heading change on the branch
     nearest the expected turn ``(w + b_W) δt`` instead of (−π, π] (see
-    :func:`fusion.motion_model.invert_step`'s ``turn_ref_rad``); element 11 is the flag.
+    :func:`adaptnav.fusion.motion_model.invert_step`'s ``turn_ref_rad``); element 11 is the flag.
     """
     un, ue = (0.0, 0.0) if current_n_m_s is None else (float(current_n_m_s[0]), float(current_n_m_s[1]))
     return np.array([params.var_vv, params.var_vw, params.var_v1, params.var_wv, params.var_ww,
@@ -188,7 +188,7 @@ def backward_exact(poses, log_w, v, w, dt, p, idx_T, u):
 
 @nb.njit(cache=True)
 def heading_loglik(poses, yaw, sigma, log_sigma, half_log_2pi):
-    """:meth:`calibration.sensors.HeadingObservation.log_likelihood` (same operations in
+    """:meth:`adaptnav.calibration.sensors.HeadingObservation.log_likelihood` (same operations in
     the same order, so the same floats) without numpy's temporaries: the observation of
     almost every pose, evaluated once per particle filter step."""
     n = poses.shape[0]

@@ -2,17 +2,17 @@ r"""Expectation–Maximisation for the motion parameters over one window (seed �
 
 Iteration k (Bishop 2006, §9.4; seed §3.1–3.3):
 
-1. E-step with θ_k: particle filter (:mod:`calibration.particle_filter`) → window
+1. E-step with θ_k: particle filter (:mod:`adaptnav.calibration.particle_filter`) → window
    log-likelihood ``ℓ(θ_k)`` (the PF estimate) and M smoothed trajectories by FFBSi
-   (:mod:`calibration.smoother`, MCMC backward kernel by default, exact on request).
-2. M-step (:mod:`calibration.mstep`): θ_{k+1} = argmax of the expected complete-data
+   (:mod:`adaptnav.calibration.smoother`, MCMC backward kernel by default, exact on request).
+2. M-step (:mod:`adaptnav.calibration.mstep`): θ_{k+1} = argmax of the expected complete-data
    log-likelihood, Newton-CG on log-variances, closed-form k_V, b_W.
 3. Stop when ``|ℓ(θ_k) − ℓ(θ_{k−1})| < ll_tol · (1 + |ℓ|)`` *and* every parameter moved by
    less than ``param_rtol`` (relative), or after ``max_iterations``.
 
-Side-scan landmark sightings (:class:`calibration.sensors.LandmarkSighting`) are handled
+Side-scan landmark sightings (:class:`adaptnav.calibration.sensors.LandmarkSighting`) are handled
 by a FastSLAM forward pass with θ_k that builds the landmark map, which is then frozen for
-that iteration's filter + smoother (see :mod:`calibration.sensors`); the map is rebuilt at
+that iteration's filter + smoother (see :mod:`adaptnav.calibration.sensors`); the map is rebuilt at
 every iteration because a map built with wrong parameters (e.g. k_V) is distorted by them.
 """
 from __future__ import annotations
@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.motion_model import MotionParams
-from calibration.mstep import MStepOptions, m_step
-from calibration.particle_filter import run_particle_filter
-from calibration.sensors import FixedLandmarkObservation, LandmarkSighting
-from calibration.smoother import ffbsi_exact, ffbsi_mcmc
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.calibration.mstep import MStepOptions, m_step
+from adaptnav.calibration.particle_filter import run_particle_filter
+from adaptnav.calibration.sensors import FixedLandmarkObservation, LandmarkSighting
+from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_mcmc
 
 
 @dataclass(frozen=True)
@@ -101,13 +101,13 @@ def run_em(params0: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses
            rng: np.random.Generator, options: EMOptions = EMOptions(), step_weights=None,
            prior_params: MotionParams | None = None, current_n_m_s=None,
            surge_increments=None) -> EMResult:
-    """EM over one window; arguments as :func:`calibration.particle_filter.run_particle_filter`.
+    """EM over one window; arguments as :func:`adaptnav.calibration.particle_filter.run_particle_filter`.
 
     ``step_weights`` (T,) are forgetting weights passed to the M-step; ``prior_params``
     the centre of its log-variance prior (default: the current iterate). ``current_n_m_s``
     (2,) m/s is the sea current to start from (default zero); re-estimated by the M-step
     when ``options.mstep.fit_current``, returned in :attr:`EMResult.current_n_m_s`.
-    ``surge_increments`` (:mod:`calibration.inertial`) go to every M-step, and their
+    ``surge_increments`` (:mod:`adaptnav.calibration.inertial`) go to every M-step, and their
     composite log-likelihood is part of ℓ.
     """
     raw_observations = observations

@@ -1,7 +1,7 @@
 r"""Speed scale and sea current from position fixes vs dead reckoning (a closed-form CM step).
 
-Why. In EM the sea current ``u`` is a parameter of the motion model (:mod:`fusion.motion_model`)
-and the M-step re-estimates it from smoothed trajectories (:func:`calibration.mstep.fit_means`).
+Why. In EM the sea current ``u`` is a parameter of the motion model (:mod:`adaptnav.fusion.motion_model`)
+and the M-step re-estimates it from smoothed trajectories (:func:`adaptnav.calibration.mstep.fit_means`).
 But the smoother's trajectories can only show what the motion prior lets them: a cross-track
 current of 0.07 m/s drifts ~4 m per minute, while the sway noise σ_S (~0.01 m/s) allows
 centimetres, so the smoothed sway barely shows the current and EM's update of it moves by a
@@ -14,14 +14,14 @@ Model. Fixes ``p_a`` at poses a (σ_a, isotropic), headings ``θ_t`` at the pose
 filter's circular means; the heading aid makes them precise), reported surge ``v_t``. The
 water-relative dead-reckoned displacement of step t at unit speed scale is
 ``d_t = c_t v_t (cos φ_t, sin φ_t)``, ``φ_t = θ_t + Δθ_t/2``, ``c_t = 2 sin(Δθ_t/2)/(Δθ_t/δt_t)``
-(:mod:`fusion.motion_model`). For consecutive fixes a < b::
+(:mod:`adaptnav.fusion.motion_model`). For consecutive fixes a < b::
 
     p_b − p_a = k_V Σ_{t=a}^{b−1} d_t + u Σ_{t=a}^{b−1} δt_t + e,   Cov e ≈ (σ_a² + σ_b² + q_ab) I
 
 with ``q_ab = Σ_t δt_t² (v_t² σ_Vv² + σ_V1² + σ_S²)`` the dead-reckoning noise. This is a
 weighted least-squares problem in (k_V, u_n, u_e), weights λ (forgetting at the later fix).
 Columns the pairs cannot separate (k_V and the along-track current on one straight leg at
-constant speed) are held (:func:`calibration.mstep.identifiable_terms`, priority u_n, u_e, k_V:
+constant speed) are held (:func:`adaptnav.calibration.mstep.identifiable_terms`, priority u_n, u_e, k_V:
 the current is what EM cannot find by itself).
 """
 from __future__ import annotations
@@ -30,8 +30,8 @@ import math
 
 import numpy as np
 
-from calibration.mstep import identifiable_terms, k_v_informed
-from calibration.sensors import PositionFix
+from adaptnav.calibration.mstep import identifiable_terms, k_v_informed
+from adaptnav.calibration.sensors import PositionFix
 
 
 def fix_pairs(observations) -> list[tuple[int, PositionFix]]:
@@ -55,11 +55,11 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     dt_s : float or (T,) step lengths (s)
     headings_rad : (T+1,) headings at the poses (rad)
     observations : length T+1 lists; :class:`PositionFix` entries are used
-    params : :class:`fusion.motion_model.MotionParams` for the step ``dt_s`` (the noise weights)
+    params : :class:`adaptnav.fusion.motion_model.MotionParams` for the step ``dt_s`` (the noise weights)
     k_v, current_n_m_s : the values held where the fixes do not separate a term
     step_weights : (T,) forgetting weights λ_t (default 1)
     max_k_v_sigma : k_V is held when its standard error exceeds this
-        (:func:`calibration.mstep.k_v_informed`)
+        (:func:`adaptnav.calibration.mstep.k_v_informed`)
 
     Returns
     -------

@@ -2,9 +2,9 @@ r"""Surge-noise evidence from the IMU: velocity increments between consecutive m
 
 Why. With position fixes alone the surge noise σ_Vv is barely observable: USBL fixes of σ 2 m
 one a minute see 60 s of white surge noise only as a few m² added to an 8 m² fix-difference
-variance (:mod:`calibration.online`). The IMU, on the other hand, measures velocity *changes*
+variance (:mod:`adaptnav.calibration.online`). The IMU, on the other hand, measures velocity *changes*
 to mm/s over a second. The navigation filter hands the calibrator its free-inertial velocity
-(:class:`fusion.samples.InertialVelocitySample`: the strapdown's increments summed without
+(:class:`adaptnav.fusion.samples.InertialVelocitySample`: the strapdown's increments summed without
 aiding corrections — the value drifts, its changes are the IMU's, attitude-compensated).
 
 Model. Sub-steps ``j`` of the model step ``δ`` (``model_step_s``) on the absolute grid
@@ -24,7 +24,7 @@ with ``c`` the sea current (ground vs water velocity) and ``V_j = k_V v_j + e_j`
 are free of the unknown offset and of slow drifts (accelerometer bias, attitude error) and
 nearly free of the current (only through the heading change). They are linear in the
 variances, so they enter the M-step's surge objective as extra rows with design
-``d_j + d_{j−1}`` (:func:`calibration.mstep.m_step`).
+``d_j + d_{j−1}`` (:func:`adaptnav.calibration.mstep.m_step`).
 
 Composite likelihood. Each ``e_j`` enters two differences, so the differences are not
 independent (correlation −½). They are treated as independent with weight 2/3: for equal
@@ -33,7 +33,7 @@ naive likelihood claims, so the weight makes the curvature honest next to the pa
 smoother's rows and the prior.
 
 Step length. EM runs with the variances of the window step ``Δ = step_s``
-(``× δ/Δ``, :func:`fusion.motion_model.rescale_step`); the rows are scaled by ``√(δ/Δ)``
+(``× δ/Δ``, :func:`adaptnav.fusion.motion_model.rescale_step`); the rows are scaled by ``√(δ/Δ)``
 so that their variance is ``(d_j + d_{j−1}) · σ²_Δ``.
 
 What the rows do not use: k_V and the current come from the position information (the
@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.motion_model import MotionParams
+from adaptnav.fusion.motion_model import MotionParams
 
 # weight of one difference row (module docstring: composite likelihood)
 DIFFERENCE_WEIGHT = 2.0 / 3.0

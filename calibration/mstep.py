@@ -1,7 +1,7 @@
 r"""M-step: maximise the expected complete-data log-likelihood over the motion parameters.
 
 From M smoothed trajectories ``x̃^{[j]}_{0:T}`` the velocities that carry each step are
-recovered exactly (:func:`fusion.motion_model.invert_step`; this replaces the seed's
+recovered exactly (:func:`adaptnav.fusion.motion_model.invert_step`; this replaces the seed's
 ε_T, ε_D formulas, which are the first-order version of the same inversion, see
 DESIGN.md errata): ``V̂_tj, Ŵ_tj, Ŝ_tj``. With step weights λ_t (exponential forgetting,
 λ = 1 for plain EM) the objective for the surge channel is (seed §3.3, as a maximisation)::
@@ -44,7 +44,7 @@ where the prior put it, 0 when they pin it). When ``f > max_missing_information_
 held and reported.
 
 Sea current (``fit_current``). Positions are ground-referenced, so the step displacement
-is ``c R(φ) [V, S]ᵀ + u δt`` (:mod:`fusion.motion_model`). Given the variances, k_V and
+is ``c R(φ) [V, S]ᵀ + u δt`` (:mod:`adaptnav.fusion.motion_model`). Given the variances, k_V and
 ``u = (u_n, u_e)`` enter linearly: with ``g = δt/c``,
 ``V̂⁰ = k v + g (cos φ u_n + sin φ u_e) + e_V`` and ``Ŝ⁰ = g (−sin φ u_n + cos φ u_e) + e_S``
 (``V̂⁰, Ŝ⁰`` inverted without current), so (k_V, u_n, u_e) is one weighted least-squares
@@ -80,7 +80,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import minimize, nnls
 
-from fusion.motion_model import MotionParams, invert_step
+from adaptnav.fusion.motion_model import MotionParams, invert_step
 
 V_TERMS = ("var_vv", "var_vw", "var_v1")
 W_TERMS = ("var_wv", "var_ww", "var_w1")
@@ -244,7 +244,7 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, p
 def _mean_design(trajectories, dt, turn_ref_rad=None):
     """Regressors of the mean model for every (trajectory, step).
 
-    With zero-current inversions ``V̂⁰, Ŝ⁰`` (:func:`fusion.motion_model.invert_step`) and
+    With zero-current inversions ``V̂⁰, Ŝ⁰`` (:func:`adaptnav.fusion.motion_model.invert_step`) and
     ``g = δt / c``, the water-relative velocities are ``V̂ = V̂⁰ − g (cos φ u_n + sin φ u_e)``,
     ``Ŝ = Ŝ⁰ − g (−sin φ u_n + cos φ u_e)``. Returns ``V0, W, S0`` (M, T) and the current's
     columns ``gv = g (cos φ, sin φ)``, ``gs = g (−sin φ, cos φ)`` as (M, T, 2).
@@ -315,7 +315,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     centre such as the initial calibration makes EM a MAP-EM with one fixed prior).
     ``current_n_m_s`` (2,) m/s is the current of the E-step (default zero); it is
     re-estimated with k_V when ``options.fit_current`` (:func:`fit_means`), else kept.
-    ``surge_increments`` (:class:`calibration.inertial.SurgeIncrements`, window-step units)
+    ``surge_increments`` (:class:`adaptnav.calibration.inertial.SurgeIncrements`, window-step units)
     are extra rows of the surge-variance objective: the IMU's velocity changes between
     model steps, observed directly rather than smoothed (same design, own weights).
     """
@@ -439,7 +439,7 @@ def surge_variances_from_increments(params: MotionParams, increments, options: M
     The means (k_V, b_W, the current) and the other channels are not observable from the
     increments and stay as they are; the surge terms are fitted by the same Newton-CG
     objective over the increment rows only, with the same identifiability test and prior.
-    ``increments`` is a :class:`calibration.inertial.SurgeIncrements` in window-step units.
+    ``increments`` is a :class:`adaptnav.calibration.inertial.SurgeIncrements` in window-step units.
     """
     inc = increments
     design, lam = inc.design, inc.weight

@@ -3,34 +3,34 @@ r"""Online calibrator: a sliding window of motion steps, re-calibrated by EM eve
 Data → steps. Samples are binned on a grid of ``step_s`` seconds that starts at the first
 position fix (USBL/GNSS), the pose that anchors the filter. The controls of step k → k+1
 are the means over ``[t_k, t_{k+1})`` of the surge speed ``v = f(rpm)``
-(:class:`fusion.motion_model.RpmSpeedTable`) and of the yaw rate (IMU ``ω_z`` in body FRD,
+(:class:`adaptnav.fusion.motion_model.RpmSpeedTable`) and of the yaw rate (IMU ``ω_z`` in body FRD,
 i.e. about down = the NED yaw rate for small roll/pitch; or heading differences when no
 IMU is seen). Observations at time t attach to pose ``round((t − t_0)/step_s)``:
 position fixes, headings, beacon ranges, side-scan landmark sightings
-(:mod:`calibration.sensors`). A pose is closed when data time passes its bin.
+(:mod:`adaptnav.calibration.sensors`). A pose is closed when data time passes its bin.
 
 Forward filter. A running particle filter (the same filter, step by step) carries the pose
 cloud; the cloud at each pose is kept for the last ``window_steps`` so that a window can
 start from the filter's distribution at its first pose.
 
 Calibration. Every ``period_steps`` closed steps, ``em_iterations`` of EM
-(:mod:`calibration.em`) run over the last ``window_steps`` steps, warm started from the
+(:mod:`adaptnav.calibration.em`) run over the last ``window_steps`` steps, warm started from the
 current parameters, with exponential forgetting: step τ of a window ending at k has weight
 ``λ^{k−1−τ}`` in the M-step, so a change of the water is followed within ~1/(1−λ) steps.
 
 Sea current. Positions are ground-referenced while (V, S) are water-relative, so the
-window's model carries a horizontal current (:mod:`fusion.motion_model`), estimated by the
-M-step with k_V (:func:`calibration.mstep.fit_means`), warm-started from the last accepted
+window's model carries a horizontal current (:mod:`adaptnav.fusion.motion_model`), estimated by the
+M-step with k_V (:func:`adaptnav.calibration.mstep.fit_means`), warm-started from the last accepted
 value and released with the parameters (:attr:`Release.current_n_m_s`). Before EM, k_V and the
 current are warm-started by the closed-form fit of the window's fixes against dead reckoning
-(:mod:`calibration.fix_regression`, an ECME step): the smoother alone barely shows a
+(:mod:`adaptnav.calibration.fix_regression`, an ECME step): the smoother alone barely shows a
 cross-track current because the sway prior is tight, so EM would follow it far too slowly.
 
 Step length. :class:`MotionParams` are defined for the model's reference step
 ``model_step_s`` (1 s); the window's steps are ``step_s`` long, so the filter and EM run with
 ``rescale_step(params, model_step_s, step_s)`` (variances × model_step_s/step_s) and the
 released parameters are converted back (× step_s/model_step_s)
-(:func:`fusion.motion_model.rescale_step`).
+(:func:`adaptnav.fusion.motion_model.rescale_step`).
 
 Observability of σ_Vv. With USBL fixes (σ 2 m, one a minute) the only information on the
 surge noise is the fix-to-fix residual: 60 s of white surge noise σ_V = σ_Vv·v adds
@@ -40,7 +40,7 @@ EM creeps from a small σ_Vv (its rate is the observed fraction of that variance
 is the informative source: the navigation filter hands the calibrator its free-inertial
 velocity and its integral (``InertialVelocitySample``, once a second) and the differences of its means
 over consecutive model steps join the M-step's surge objective
-(:mod:`calibration.inertial`; ``use_inertial``). Without them (a remote calibrator node,
+(:mod:`adaptnav.calibration.inertial`; ``use_inertial``). Without them (a remote calibrator node,
 the thesis) σ_Vv rests on the fixes as above.
 
 Sanity gate before a release: the new parameters must be finite, within the configured
@@ -59,13 +59,13 @@ from typing import Literal
 
 import numpy as np
 
-from fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
-from calibration.em import EMOptions, run_em
-from calibration.mstep import MStepOptions, surge_variances_from_increments
-from calibration.particle_filter import filter_step, run_particle_filter
-from calibration.inertial import InertialTrack, surge_increments
-from calibration.resampling import systematic_resample
-from calibration.sensors import (HeadingObservation, LandmarkAssociator, LandmarkSighting,
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
+from adaptnav.calibration.em import EMOptions, run_em
+from adaptnav.calibration.mstep import MStepOptions, surge_variances_from_increments
+from adaptnav.calibration.particle_filter import filter_step, run_particle_filter
+from adaptnav.calibration.inertial import InertialTrack, surge_increments
+from adaptnav.calibration.resampling import systematic_resample
+from adaptnav.calibration.sensors import (HeadingObservation, LandmarkAssociator, LandmarkSighting,
                                  PositionFix, RangeObservation, sighting_from_sonar)
 
 
@@ -198,10 +198,10 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     ``dt = config.step_s`` long and EM runs with the rescaled variances. ``current_n_m_s``
     (2,) m/s warm-starts the current. With ``headings_rad`` (T+1,) at the poses and
     ``config.fix_regression``, k_V and the current are first fitted to the window's fixes
-    (:func:`calibration.fix_regression.fix_regression`). With ``inertial`` (the filter's
+    (:func:`adaptnav.calibration.fix_regression.fix_regression`). With ``inertial`` (the filter's
     free-inertial velocity over the window; the window starts at ``t_s − T·step_s``) the
     IMU's surge increments join the M-step and the log-likelihood
-    (:mod:`calibration.inertial`). The release carries model-step parameters; the gate
+    (:mod:`adaptnav.calibration.inertial`). The release carries model-step parameters; the gate
     compares with the window log-likelihood of the current ones.
     """
     T = len(v)
@@ -226,7 +226,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     win_params = to_window(params)
     start_params, start_cur = win_params, cur0
     if headings_rad is not None and config.fix_regression:
-        from calibration.fix_regression import fix_regression
+        from adaptnav.calibration.fix_regression import fix_regression
         k_fix, cur_fix, _ = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
                                            lam, config.max_condition, config.max_k_v_sigma)
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
@@ -248,7 +248,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         return Release(t_s, new, math.nan, False, reason, res.iterations, cur)
     ll_old = res.log_likelihoods[0]
     try:
-        from calibration.em import freeze_landmarks
+        from adaptnav.calibration.em import freeze_landmarks
         obs = freeze_landmarks(win_params, v, w, dt, observations, init_cloud, rng, config.n_particles, cur0)
         imu_ll = inc.log_likelihood if inc is not None else (lambda p: 0.0)
         if start_params is not win_params or start_cur is not cur0:  # EM started elsewhere: the reference
@@ -284,7 +284,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
 
 def _inertial_only(params, inc, config: CalibratorConfig, t_s, initial_params, cur, why) -> Release:
     """Without position information k_V and the current are not observable, but the surge
-    noise still is, from the IMU (:func:`calibration.mstep.surge_variances_from_increments`):
+    noise still is, from the IMU (:func:`adaptnav.calibration.mstep.surge_variances_from_increments`):
     release new surge variances if their likelihood is not worse, everything else kept."""
     win = rescale_step(params, config.model_step_s, config.step_s)
     anchor = (rescale_step(initial_params, config.model_step_s, config.step_s)
@@ -327,7 +327,7 @@ class OnlineCalibrator:
         self._pending: list[Release] = []
         self._origin = None
         if math.isfinite(config.origin_lat_deg) and math.isfinite(config.origin_lon_deg):
-            from fusion.frames import GeoOrigin
+            from adaptnav.fusion.frames import GeoOrigin
             self._origin = GeoOrigin(math.radians(config.origin_lat_deg), math.radians(config.origin_lon_deg))
         self._t0: float | None = None
         self._last_t = -math.inf
@@ -350,7 +350,7 @@ class OnlineCalibrator:
         self._assoc = LandmarkAssociator()
         self._pre_fix: list = []  # observations before the grid exists
         self.sonar_front_end = None  # sonar.stream.SonarFrontEnd, created on the first ping
-        from sonar.stream import AnchoredDeadReckoning
+        from adaptnav.sonar.stream import AnchoredDeadReckoning
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
@@ -444,13 +444,13 @@ class OnlineCalibrator:
 
         The front end associates sightings by position: the vehicle position at a ping is
         dead-reckoned from the pings and tied to the position fixes by a small Kalman
-        filter that also tracks the drift (the current; :class:`sonar.stream.AnchoredDeadReckoning`),
+        filter that also tracks the drift (the current; :class:`adaptnav.sonar.stream.AnchoredDeadReckoning`),
         whose σ widens the gate. Pure ping dead reckoning ignores the current: a landmark
         seen again a leg later is tens of metres off and never (or wrongly) re-associated.
         (The particle filter here is no substitute while its model has no current: its
         mean lags the fixes.)
         """
-        from sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
+        from adaptnav.sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
 
         if self.sonar_front_end is None:
             # no window registration: the calibrator does not use visual motion (it was
@@ -522,7 +522,7 @@ class OnlineCalibrator:
         if not all(math.isfinite(x) for x in vals) or sample.sigma_h_m <= 0:
             return self._reject("bad position fix")
         if self._origin is None:
-            from fusion.frames import GeoOrigin
+            from adaptnav.fusion.frames import GeoOrigin
             self._origin = GeoOrigin(float(sample.lat_rad), float(sample.lon_rad))
         ned = self._origin.to_ned(sample.lat_rad, sample.lon_rad)
         fix = PositionFix((float(ned[0]), float(ned[1])), float(sample.sigma_h_m))
@@ -630,7 +630,7 @@ class OnlineCalibrator:
         obs = list(self._win_obs)[-(T + 1):]
         clouds = list(self._clouds)[-(T + 1):]
         init = clouds[0]
-        from calibration.fix_regression import circular_mean_headings
+        from adaptnav.calibration.fix_regression import circular_mean_headings
         inertial = None
         if len(self._inertial_buf) >= 3:
             a = np.array(self._inertial_buf)

@@ -1,7 +1,7 @@
 r"""Bootstrap particle filter over a window of T motion steps (seed §2.2, Algorithm 1).
 
-Model: ``x_{t+1} ~ p(· | x_t, v_t, w_t, δt_t)`` (:mod:`fusion.motion_model`) and observations
-``y_t`` at pose ``x_t`` for t = 0..T, each with ``log g_t(x_t)`` (:mod:`calibration.sensors`).
+Model: ``x_{t+1} ~ p(· | x_t, v_t, w_t, δt_t)`` (:mod:`adaptnav.fusion.motion_model`) and observations
+``y_t`` at pose ``x_t`` for t = 0..T, each with ``log g_t(x_t)`` (:mod:`adaptnav.calibration.sensors`).
 
 Weights are kept in the log domain. Resampling is systematic and adaptive: before the
 move t → t+1 it happens only when ``ESS < ess_fraction · N`` (Doucet & Johansen 2009).
@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.motion_model import MotionParams
-from calibration._kernels import heading_loglik, move, pack, reweight, systematic_from_log
-from calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
-from calibration.sensors import HeadingObservation, LandmarkSighting, ParticleLandmarkMap
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.calibration._kernels import heading_loglik, move, pack, reweight, systematic_from_log
+from adaptnav.calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
+from adaptnav.calibration.sensors import HeadingObservation, LandmarkSighting, ParticleLandmarkMap
 
 
 @dataclass

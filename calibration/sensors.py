@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration._kernels import range_loglik
+from adaptnav.calibration._kernels import range_loglik
 
 LOG_2PI = math.log(2.0 * math.pi)
 

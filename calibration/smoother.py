@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.motion_model import MotionParams, transition_logpdf
-from calibration.particle_filter import FilterResult
-from calibration.resampling import multinomial_indices
-from calibration._kernels import backward_exact, backward_mcmc, pack
+from adaptnav.fusion.motion_model import MotionParams, transition_logpdf
+from adaptnav.calibration.particle_filter import FilterResult
+from adaptnav.calibration.resampling import multinomial_indices
+from adaptnav.calibration._kernels import backward_exact, backward_mcmc, pack
 
 
 def _sample_rows(log_p: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -42,7 +42,7 @@ def ffbsi_exact(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_
                 rng: np.random.Generator, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarray:
     """Exact FFBSi: ``n_traj`` trajectories (M, T+1, 3) in O(N·M·T) (numba).
 
-    ``turn_about_mean``: heading-change branch nearest the expected turn (:func:`calibration._kernels.pack`)."""
+    ``turn_about_mean``: heading-change branch nearest the expected turn (:func:`adaptnav.calibration._kernels.pack`)."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     idx = multinomial_indices(fr.log_w[-1], n_traj, rng)
     u = rng.random((v.size, n_traj))
@@ -58,7 +58,7 @@ def _controls(v_m_s, w_rad_s, dt_s):
 
 def ffbsi_exact_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,
                       rng: np.random.Generator, current_n_m_s=None) -> np.ndarray:
-    """Exact FFBSi written with :func:`fusion.motion_model.transition_logpdf` (the
+    """Exact FFBSi written with :func:`adaptnav.fusion.motion_model.transition_logpdf` (the
     independent reference for the numba kernels; O(N·M·T) memory-light numpy)."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size

@@ -1,7 +1,7 @@
 r"""The seed's §3.6 experiment: a robot with a changing motion model, 4 landmarks, ranges.
 
 Simulation (seed §3.6, made reproducible): T steps of δt = 10 s. The true motion follows
-:mod:`fusion.motion_model` with σ_Dd ≡ σ_Vv and σ_Tr ≡ σ_Ww set to the *initial* values
+:mod:`adaptnav.fusion.motion_model` with σ_Dd ≡ σ_Vv and σ_Tr ≡ σ_Ww set to the *initial* values
 for steps < ``change_step`` and to the *changed* values from then on (other terms at their
 :class:`MotionParams` defaults, k_V = 1, b_W = 0). Each pose is observed through ranges to
 L static landmarks with Gaussian noise ``sensor_noise`` (m).
@@ -19,7 +19,7 @@ learning can show in the error. The robot loops (radius ≈ v/w ≈ 60 m) inside
 on a circle of radius 90 m around the loop's centre (L = 4: a square).
 
 Two particle filters localise the robot from the same data: *static* keeps the initial
-parameters; *learned* is re-calibrated online by EM (:mod:`calibration.online`'s window
+parameters; *learned* is re-calibrated online by EM (:mod:`adaptnav.calibration.online`'s window
 logic: every ``period`` steps, a few EM iterations over the last ``window`` steps, warm
 started, with exponential forgetting and a wide log-variance prior at the initial
 parameters, :class:`LearnerSettings`). The localisation error at step t is the distance
@@ -38,11 +38,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from fusion.motion_model import MotionParams, sample_velocities, propagate
-from calibration.online import CalibratorConfig, calibrate_window
-from calibration.particle_filter import filter_step, weighted_mean_pose
-from calibration.resampling import systematic_resample
-from calibration.sensors import RangeObservation
+from adaptnav.fusion.motion_model import MotionParams, sample_velocities, propagate
+from adaptnav.calibration.online import CalibratorConfig, calibrate_window
+from adaptnav.calibration.particle_filter import filter_step, weighted_mean_pose
+from adaptnav.calibration.resampling import systematic_resample
+from adaptnav.calibration.sensors import RangeObservation
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Configuration of the navigation filter (one typed tree, built with :mod:`fusion.typed_config`).
+"""Configuration of the navigation filter (one typed tree, built with :mod:`adaptnav.fusion.typed_config`).
 
 Every number the ESKF uses lives here with its unit in its name. Build it from TOML with
 ``typed_config.load_toml(FilterConfig, text, overrides)`` (unknown keys are an error) or

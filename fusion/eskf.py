@@ -1,14 +1,14 @@
 r"""Error-state Kalman filter over strapdown INS with model-aided velocity (DESIGN.md "Fusion").
 
-Nominal state, error state and injection: :mod:`fusion.state`; mechanisation and the
-covariance/update kernels: :mod:`fusion.strapdown`; measurement models: one module per
-source in :mod:`fusion.aiding`. This module does, once for every source (as PX4 EKF2's
+Nominal state, error state and injection: :mod:`adaptnav.fusion.state`; mechanisation and the
+covariance/update kernels: :mod:`adaptnav.fusion.strapdown`; measurement models: one module per
+source in :mod:`adaptnav.fusion.aiding`. This module does, once for every source (as PX4 EKF2's
 ``estimator_aid_src_*``): chi-square gating of the normalised innovation, Joseph-form
 update, error injection and covariance reset, one :class:`~fusion.status.AidStatus`
 per attempt.
 
 Model-aided INS after Hegrenaes & Hallingstad (IEEE JOE 2011): the learned motion
-model's surge ``k_speed k_V f(rpm)`` (seed §2.1, :mod:`fusion.aiding.learned_velocity`)
+model's surge ``k_speed k_V f(rpm)`` (seed §2.1, :mod:`adaptnav.fusion.aiding.learned_velocity`)
 is fused at a fixed rate together with sway/heave ≈ 0 pseudo-measurements, against the
 water-relative velocity ``R_nbᵀ(v_n − c_n)``; the current ``c_n`` and ``k_speed`` are
 states, observable while absolute fixes exist.
@@ -22,7 +22,7 @@ since then with the measurement inserted ("buffer IMU and re-propagate"). Older 
 rejected ``too_late``.
 
 Robustness. The surge variance adapts upwards to the innovations (a change of water
-makes the released model too tight, see :mod:`fusion.aiding.learned_velocity`); an
+makes the released model too tight, see :mod:`adaptnav.fusion.aiding.learned_velocity`); an
 absolute position source gated ``position_reset_after_rejections`` times in a row is
 trusted again by inflating the position covariance (as PX4 EKF2 resets to GNSS).
 
@@ -242,7 +242,7 @@ class Estimator:
         self._restored = True
 
     def process(self, sample) -> list[AidStatus]:
-        """Consume one sample (any type of :mod:`fusion.samples`, or an ImuBatch)."""
+        """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch)."""
         kind = sample.KIND
         if kind in IGNORED_KINDS:
             return []

@@ -162,7 +162,7 @@ class InertialVelocitySample:
     The strapdown's velocity increments summed without aiding corrections: the value
     drifts, its changes over seconds are the IMU's. ``reset_counter`` changes across an
     IMU gap (no increments while coasting). The calibrator's surge-noise evidence
-    (:mod:`calibration.inertial`): mean velocities over steps are differences of ``pos_n_m``.
+    (:mod:`adaptnav.calibration.inertial`): mean velocities over steps are differences of ``pos_n_m``.
     """
 
     KIND: ClassVar[str] = "inertial_velocity"

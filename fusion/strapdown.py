@@ -10,7 +10,7 @@ Mechanisation in the local NED frame, flat non-rotating earth (the earth rate,
     a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n,   g_n = (0, 0, g)
     p_n ← p_n + v_n δt + ½ a_n δt²,  v_n ← v_n + a_n δt
 
-Error dynamics (global attitude error δθ, see :mod:`fusion.state`)::
+Error dynamics (global attitude error δθ, see :mod:`adaptnav.fusion.state`)::
 
     δṗ = δv,  δv̇ = −[R f̂]× δθ − R δb_a + w_a,  δθ̇ = −R δb_g + w_g,
     δḃ_a = w_ba,  δḃ_g = w_bg,  δċ = w_c,  δk̇ = w_k
@@ -21,7 +21,7 @@ with F built from the step averages of ``R f̂`` and ``R`` and
 
 Arrays shared by the kernels (all float64, mutated in place):
 
-- ``x`` (19,) nominal state (:mod:`fusion.state`),
+- ``x`` (19,) nominal state (:mod:`adaptnav.fusion.state`),
 - ``P`` (18, 18) covariance at time ``clock[1]``,
 - ``acc`` (19,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
   latest bias-corrected ω̂_b (3) and f̂_b (3),

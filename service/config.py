@@ -1,18 +1,18 @@
 """The live service's configuration: one typed tree loaded from TOML.
 
 ``ServiceConfig`` is a tree of frozen dataclasses built strictly by
-:mod:`fusion.typed_config` (unknown keys are errors naming their dotted path; CLI
+:mod:`adaptnav.fusion.typed_config` (unknown keys are errors naming their dotted path; CLI
 overrides ``--set section.key=value`` go through the same validation). Sections:
 
 - ``vehicle``   name (the ``<v>`` of every Zenoh key expression)
 - ``zenoh``     session mode, endpoints, multicast scouting
 - ``mavlink``   bridge to ArduSub (its :class:`BridgeConfig`) + on/off and output rate
 - ``origin``    mission origin of the local NED frame (degrees at the edge, converted once)
-- ``filter``    the ESKF's own config (:class:`fusion.config.FilterConfig`: lever arms,
+- ``filter``    the ESKF's own config (:class:`adaptnav.fusion.config.FilterConfig`: lever arms,
                 noises, gates), embedded as is
 - ``motion``    static RPM → speed table and the initial :class:`MotionParams`
 - ``calibrator`` where the EM calibrator runs, restart backoff, and its own
-                :class:`calibration.online.CalibratorConfig` under ``[calibrator.online]``
+                :class:`adaptnav.calibration.online.CalibratorConfig` under ``[calibrator.online]``
 - ``outputs``   publication rates
 - ``health``    silence thresholds
 - ``state_dir`` where learned parameters and slow filter states persist
@@ -29,25 +29,25 @@ from pathlib import Path
 from typing import Literal
 
 
-from fusion.frames import GeoOrigin
-from fusion.motion_model import MotionParams, RpmSpeedTable
-from fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+from adaptnav.fusion.frames import GeoOrigin
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
 
-from .mavlink_bridge import BridgeConfig
+from adaptnav.service.transport.mavlink_bridge import BridgeConfig
 
 try:  # the filter's config lands from the navigation-core work; embed it when present
-    from fusion.config import FilterConfig
+    from adaptnav.fusion.config import FilterConfig
 except ImportError:  # pragma: no cover - only while fusion/config.py does not exist yet
     @dataclass(frozen=True)
     class FilterConfig:  # type: ignore[no-redef]
-        """Placeholder until ``fusion.config.FilterConfig`` exists (no keys accepted)."""
+        """Placeholder until ``adaptnav.fusion.config.FilterConfig`` exists (no keys accepted)."""
 
 try:
-    from calibration.online import CalibratorConfig
+    from adaptnav.calibration.online import CalibratorConfig
 except ImportError:  # pragma: no cover
     @dataclass(frozen=True)
     class CalibratorConfig:  # type: ignore[no-redef]
-        """Placeholder until ``calibration.online.CalibratorConfig`` exists."""
+        """Placeholder until ``adaptnav.calibration.online.CalibratorConfig`` exists."""
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class ZenohConfig:
 
 @dataclass(frozen=True)
 class MavlinkConfig(BridgeConfig):
-    """MAVLink bridge to ArduSub: :class:`service.mavlink_bridge.BridgeConfig` (``url``,
+    """MAVLink bridge to ArduSub: :class:`adaptnav.service.transport.mavlink_bridge.BridgeConfig` (``url``,
     identity, stream rates, ``convert`` incl. the thruster PWM → RPM curve under
     ``convert.thrusters``, ``output``) plus ``enabled`` and the ODOMETRY
     ``output_rate_hz`` (ArduSub wants ≥ 4 Hz)."""
@@ -143,7 +143,7 @@ class CalibratorSection:
     (counted) — fusion never waits for EM. ``seed``: its RNG seed. ``latency_s``: a
     release computed from data up to data time τ is applied once the runner's data time
     reaches τ + latency_s, live and in replay (replay waits for the calibrator's
-    progress, so its output is deterministic; see :mod:`service.calibrator_process`).
+    progress, so its output is deterministic; see :mod:`adaptnav.service.calibrator.process`).
     """
 
     enabled: bool = True

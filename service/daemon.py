@@ -9,12 +9,12 @@ Threads and processes::
     housekeeping thread (1 Hz): health + aid statuses published, calibrator supervised
     (restart with backoff), learned state persisted, systemd watchdog fed.
 
-- The runner is :func:`service.runner.run` with a queue source and a
+- The runner is :func:`adaptnav.service.runtime.runner.run` with a queue source and a
   :class:`~service.clock.LiveClock` — the same loop as replay.
 - Releases are applied between samples in data order (stamped with their data time).
 - Learned params + slow filter states are snapshotted *in the runner thread* (the
   estimator is not shared) and written by the housekeeping thread atomically
-  (:mod:`service.persistence`), periodically and on shutdown; restored on start.
+  (:mod:`adaptnav.service.runtime.persistence`), periodically and on shutdown; restored on start.
 - SIGTERM/SIGINT → clean shutdown. With ``NOTIFY_SOCKET`` set (systemd ``Type=notify``)
   READY/WATCHDOG/STOPPING are sent on a plain datagram socket.
 """
@@ -35,16 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from fusion.motion_model import MotionParams
-from fusion.samples import SOURCE_PRIORITY
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.fusion.samples import SOURCE_PRIORITY
 
-from .bus import Bus, encode_sample, message, nonblocking_enqueue
-from .calibrator_process import CalibratorProcess, release_from_dict
-from .clock import LiveClock
-from .config import ServiceConfig, config_dict, log_effective
-from .health import Health
-from .persistence import load_state, save_state
-from .sinks import Sink
+from adaptnav.service.transport.bus import Bus, encode_sample, message, nonblocking_enqueue
+from adaptnav.service.calibrator.process import CalibratorProcess, release_from_dict
+from adaptnav.service.runtime.clock import LiveClock
+from adaptnav.service.config import ServiceConfig, config_dict, log_effective
+from adaptnav.service.runtime.health import Health
+from adaptnav.service.runtime.persistence import load_state, save_state
+from adaptnav.service.runtime.sinks import Sink
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class QueueSource:
     samples before it. The runner assumes data order — a later sample completes an output
     epoch — so such an overtaking sample would emit the epoch with a state short of it and
     the epochs in between would be lost. A sample *ahead* of the IMU clock is therefore
-    held until the IMU passes it (replay order, ``fusion.samples.replay_order_key``), or
+    held until the IMU passes it (replay order, ``adaptnav.fusion.samples.replay_order_key``), or
     for at most ``max_hold_s`` of wall time (an IMU-less configuration, a stalled link).
     Late samples pass at once (the estimator fuses or rejects them). ``counters``:
     ``held`` (samples reordered), ``released_on_timeout``.
@@ -170,7 +170,7 @@ class BusSink(Sink):
 
     def on_inertial(self, sample: Any) -> None:
         """A remote calibrator node gets the filter's free-inertial velocity over the bus
-        (its surge-noise evidence, :mod:`calibration.inertial`)."""
+        (its surge-noise evidence, :mod:`adaptnav.calibration.inertial`)."""
         cal = self.d.cfg.calibrator
         if cal.enabled and cal.location == "remote":
             self.d.bus.put(self.d.bus.keys.nav_inertial, encode_sample(sample))
@@ -184,7 +184,7 @@ class BusSink(Sink):
             self.d.params = release.params
             self.d._snapshot_due.set()  # persist what was learned soon
         if self.d.cfg.calibrator.location == "process":  # remote: the node publishes
-            from .calibrator_process import release_to_dict
+            from adaptnav.service.calibrator.process import release_to_dict
 
             self.d.bus.put(self.d.bus.keys.params, json.dumps(release_to_dict(release)).encode())
 
@@ -222,7 +222,7 @@ class Daemon:
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
-        from fusion.eskf import Estimator
+        from adaptnav.fusion.eskf import Estimator
 
         restored = load_state(self.cfg.state_dir)
         if restored is not None and restored.params is not None:
@@ -242,8 +242,8 @@ class Daemon:
     def _warm_up(self) -> None:
         """Run a throwaway filter over a few seconds of synthetic rest data so that JIT
         compilation (numba) happens before READY, not on the first live samples."""
-        from fusion.eskf import Estimator
-        from fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
+        from adaptnav.fusion.eskf import Estimator
+        from adaptnav.fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
 
         t0 = time.monotonic()
         est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
@@ -304,13 +304,13 @@ class Daemon:
         log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
 
     def _start_bridge(self) -> None:
-        from .mavlink_bridge import MavlinkBridge
+        from adaptnav.service.transport.mavlink_bridge import MavlinkBridge
 
         # the bridge thread converts and enqueues; nav output goes back through BusSink
         self.bridge = MavlinkBridge(None, self.enqueue, self.cfg.origin.geo(), self.cfg.mavlink)
 
     def _run(self) -> None:
-        from .runner import run
+        from adaptnav.service.runtime.runner import run
 
         self.summary = run(self.source, self.estimator, [self.sink],
                            self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
@@ -376,7 +376,7 @@ class Daemon:
 
     def _aid_statuses(self, report: dict) -> dict[str, dict]:
         """Latest status per aid source; a silent sensor's source says ``stale`` and why."""
-        from fusion.status import AidStatus
+        from adaptnav.fusion.status import AidStatus
 
         out = {src: s.to_dict() for src, s in list(self.sink.latest_aid.items())}
         now = report.get("t_s")
@@ -475,7 +475,7 @@ def serve(cfg: ServiceConfig) -> int:
 
 def serve_calibrator(cfg: ServiceConfig) -> int:
     """``--calibrator-only``: the calibrator as its own bus node until SIGTERM/SIGINT."""
-    from .calibrator_process import run_node
+    from adaptnav.service.calibrator.process import run_node
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

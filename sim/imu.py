@@ -14,7 +14,7 @@ integrator ``q_i = q_{i-1} ⊗ exp(ω_i Δt)``, ``v_i = v_{i-1} + R_mid f_i Δt 
 (the simulator builds positions with that trapezoid rule). Integrators that use
 ``R_{i-1}(I + ½[ω Δt]×)`` instead of ``R_mid`` differ by O((ω Δt)²) ≈ 1e-7 relative.
 Earth rate and gravity variation are not modelled (flat, non-rotating NED; gravity
-:data:`fusion.frames.GRAVITY_M_S2`).
+:data:`adaptnav.fusion.frames.GRAVITY_M_S2`).
 
 Errors (per axis, independent)
 ------------------------------
@@ -47,7 +47,7 @@ import numpy as np
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
-from fusion.frames import GRAVITY_M_S2
+from adaptnav.fusion.frames import GRAVITY_M_S2
 
 DEG = math.pi / 180.0
 HOUR = 3600.0

@@ -3,12 +3,12 @@
 A scenario fixes everything the simulator draws from: the seed, the trajectory
 pattern, the true motion-model parameters before and after an *environment change*
 (DESIGN.md "Motion model"), the sea current, and every sensor's rate and noise.
-It is loaded strictly with :mod:`fusion.typed_config` (unknown keys are errors) from
+It is loaded strictly with :mod:`adaptnav.fusion.typed_config` (unknown keys are errors) from
 ``sim/scenarios/<name>.toml`` (package data) or a path, with ``--set a.b=v`` overrides.
 
 Motion parameters are given as standard deviations (``sigma_*``) because that is how
 people think about them; :meth:`MotionConfig.params_before` / :meth:`Scenario.params_after`
-turn them into :class:`fusion.motion_model.MotionParams` variances.  After
+turn them into :class:`adaptnav.fusion.motion_model.MotionParams` variances.  After
 ``environment.change_at_s`` the true ``k_V`` becomes ``environment.k_v_after`` and
 σ_Vv becomes ``motion.sigma_vv_after``; the other ``environment.*_after`` keys change
 the remaining sigmas and the water density (``None`` keeps the value before).
@@ -20,9 +20,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from fusion.frames import GeoOrigin
-from fusion.motion_model import MotionParams, RpmSpeedTable
-from fusion.typed_config import ConfigError, load_toml
+from adaptnav.fusion.frames import GeoOrigin
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.typed_config import ConfigError, load_toml
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 

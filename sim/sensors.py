@@ -20,11 +20,11 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusion.frames import GRAVITY_M_S2
-from fusion.samples import (DepthSample, DvlSample, GnssSample, HeadingSample, RangeSample,
+from adaptnav.fusion.frames import GRAVITY_M_S2
+from adaptnav.fusion.samples import (DepthSample, DvlSample, GnssSample, HeadingSample, RangeSample,
                             RpmSample, TruthSample, UsblSample)
-from sim.scenario import Scenario
-from sim.vehicle import DenseTruth, MotionSteps
+from adaptnav.sim.scenario import Scenario
+from adaptnav.sim.vehicle import DenseTruth, MotionSteps
 
 
 def sample_times(rate_hz: float, duration_s: float, start_s: float = 0.0) -> np.ndarray:

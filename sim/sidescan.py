@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from sim.seabed import Seabed
-from sonar.ping import SonarPing
+from adaptnav.sim.seabed import Seabed
+from adaptnav.sonar.ping import SonarPing
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,9 @@ independent child streams in the fixed order of :data:`RNG_STREAMS`, one per sen
 so enabling or re-configuring one sensor never changes another's noise. Same seed ⇒
 the same output, bit for bit.
 
-The result holds the IMU as arrays (an :class:`fusion.samples.ImuBatch`) and every other
+The result holds the IMU as arrays (an :class:`adaptnav.fusion.samples.ImuBatch`) and every other
 stream as a list of samples; :meth:`SimResult.iter_samples` merges them in the
-deterministic replay order of :func:`fusion.samples.replay_order_key`, and
+deterministic replay order of :func:`adaptnav.fusion.samples.replay_order_key`, and
 :meth:`SimResult.iter_blocks` yields IMU runs as :class:`ImuBatch` between the other
 samples (the replay fast path).
 """
@@ -19,11 +19,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from fusion.samples import SOURCE_PRIORITY, ImuBatch, ImuSample
-from sim import sensors
-from sim.imu import corrupt_imu, exact_imu
-from sim.scenario import Scenario
-from sim.vehicle import DenseTruth, MotionSteps, dense_truth, simulate_steps
+from adaptnav.fusion.samples import SOURCE_PRIORITY, ImuBatch, ImuSample
+from adaptnav.sim import sensors
+from adaptnav.sim.imu import corrupt_imu, exact_imu
+from adaptnav.sim.scenario import Scenario
+from adaptnav.sim.vehicle import DenseTruth, MotionSteps, dense_truth, simulate_steps
 
 # Append new streams at the END only: the order fixes each stream's seed.
 RNG_STREAMS = ("motion", "imu", "heading", "depth", "gnss", "usbl", "dvl", "beacons", "sonar_seabed",
@@ -110,8 +110,8 @@ class SimResult:
 
 def sonar_available() -> bool:
     """True when the side-scan renderer modules exist (written by the sonar work)."""
-    return (importlib.util.find_spec("sim.sidescan") is not None
-            and importlib.util.find_spec("sim.seabed") is not None)
+    return (importlib.util.find_spec("adaptnav.sim.sidescan") is not None
+            and importlib.util.find_spec("adaptnav.sim.seabed") is not None)
 
 
 @dataclass(frozen=True)
@@ -134,8 +134,8 @@ def _sonar_pings(scenario: Scenario, truth: sensors.TruthInterpolator, dense: De
     if not sonar_available():
         notes.append("sonar.enabled but sim/sidescan.py or sim/seabed.py is missing: no pings")
         return [], None
-    from sim.seabed import Seabed  # lazy: heavy and optional
-    from sim.sidescan import SidescanRenderer
+    from adaptnav.sim.seabed import Seabed  # lazy: heavy and optional
+    from adaptnav.sim.sidescan import SidescanRenderer
 
     pos = dense.pos_n_m
     # the seabed grid spans [0, extent]: shift the track into it and keep the offset
@@ -158,7 +158,7 @@ def _sonar_pings(scenario: Scenario, truth: sensors.TruthInterpolator, dense: De
 
 
 def simulate(scenario: Scenario) -> SimResult:
-    """Simulate a scenario (see the module docstring and :mod:`sim.vehicle`)."""
+    """Simulate a scenario (see the module docstring and :mod:`adaptnav.sim.vehicle`)."""
     rngs = rng_streams(scenario.seed)
     notes: list[str] = []
     steps = simulate_steps(scenario, rngs["motion"])

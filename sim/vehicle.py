@@ -7,7 +7,7 @@ Per motion step ``k`` (length ``T = motion.step_s``), from the *water-relative* 
    command ``w_k``; the commanded speed gives the propeller RPM ``n_k``
    (:meth:`RpmSpeedTable.rpm_for_speed`) and the reported surge ``v_k = f(n_k)``;
 2. truth: ``(V_k, W_k, S_k)`` ~ the motion model with the parameters in force at
-   ``t_k`` (:func:`fusion.motion_model.sample_velocities`), and
+   ``t_k`` (:func:`adaptnav.fusion.motion_model.sample_velocities`), and
    ``pose_{k+1} = propagate(pose_k, V_k, W_k, S_k, T)`` — so the water-relative poses at
    the step instants follow the model *exactly* and :func:`invert_step` recovers
    ``(V_k, W_k, S_k)``;
@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusion.motion_model import propagate, sample_velocities
-from sim.scenario import Scenario
+from adaptnav.fusion.motion_model import propagate, sample_velocities
+from adaptnav.sim.scenario import Scenario
 
 
 @dataclass(frozen=True)

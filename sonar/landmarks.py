@@ -23,8 +23,8 @@ from typing import Sequence
 
 import numpy as np
 
-from sonar.features import Detector, SiftDetector
-from sonar.waterfall import Waterfall, to_uint8
+from adaptnav.sonar.features import Detector, SiftDetector
+from adaptnav.sonar.waterfall import Waterfall, to_uint8
 
 
 @dataclass(frozen=True, eq=False)

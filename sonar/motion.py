@@ -9,7 +9,7 @@ point seen in windows A and B satisfies, if frame B sits at ``d = (dx, dy)`` wit
     p_B = R(−dψ) (p_A − d)
 
 so the similarity ``p_B = s R(θ) p_A + t`` fitted to matched keypoints (SIFT, KNN ratio
-test, RANSAC; :mod:`sonar.matching`) gives ``dψ = −θ`` and ``d = −R(dψ) t``.  The
+test, RANSAC; :mod:`adaptnav.sonar.matching`) gives ``dψ = −θ`` and ``d = −R(dψ) t``.  The
 covariance of ``(dx, dy, dψ)`` is the fit covariance pushed through this map
 (numerical Jacobian).  ``s`` should be 1 (both windows are in metres); it is reported.
 
@@ -27,9 +27,9 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from sonar.features import Detector, Features, SiftDetector
-from sonar.matching import Similarity, fit_similarity, match_descriptors
-from sonar.waterfall import Waterfall, to_uint8
+from adaptnav.sonar.features import Detector, Features, SiftDetector
+from adaptnav.sonar.matching import Similarity, fit_similarity, match_descriptors
+from adaptnav.sonar.waterfall import Waterfall, to_uint8
 
 
 @dataclass(frozen=True, eq=False)

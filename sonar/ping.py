@@ -4,7 +4,7 @@ A ping holds the echo intensity of the port and starboard channels as functions 
 slant range, ``r_k = (k + 0.5) * slant_range_m / N`` for sample ``k`` (sample 0 nearest
 the vehicle on both sides), and the navigation/attitude valid at the ping time.
 
-JSON form (for the Zenoh bus and logs), like :mod:`fusion.samples` but with arrays::
+JSON form (for the Zenoh bus and logs), like :mod:`adaptnav.fusion.samples` but with arrays::
 
     {"type": "sonar", "schema_version": 1, "t_s": ..., "port": [...], "starboard": [...], ...}
 

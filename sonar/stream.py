@@ -5,10 +5,10 @@ and 3.4; DESIGN.md "Sonar") work on a whole waterfall.  A vehicle produces pings
 one, so :class:`SonarFrontEnd` cuts the ping stream into overlapping windows of ``W``
 pings with step ``S`` (``S ≤ W``) and processes each window exactly once:
 
-1. ground-range waterfall of the window (:func:`sonar.waterfall.build_waterfall`), rows
+1. ground-range waterfall of the window (:func:`adaptnav.sonar.waterfall.build_waterfall`), rows
    resampled by distance travelled at one along-track resolution for the whole stream
    (fixed from the first window, so consecutive windows register at scale 1);
-2. landmarks (:func:`sonar.landmarks.extract_landmarks`).  Window ``k`` starting at ping
+2. landmarks (:func:`adaptnav.sonar.landmarks.extract_landmarks`).  Window ``k`` starting at ping
    ``s_k`` only *emits* the sightings whose ping index lies in its central part
    ``[s_k + (W − S)/2, s_k + (W + S)/2)`` (the first window from its first ping): these
    parts tile the ping stream, so a sighting is reported once, never twice from the
@@ -16,12 +16,12 @@ pings with step ``S`` (``S ≤ W``) and processes each window exactly once:
    report of the same ping would be counted by the calibrator as independent evidence),
    and away from the window edges where keypoints are unreliable.  The latency of a
    sighting is therefore at most ``(W + S)/2`` pings (:attr:`SonarFrontEnd.latency_s`);
-3. track ids (:class:`sonar.landmarks.LandmarkTracker`) from the sighting's estimated
+3. track ids (:class:`adaptnav.sonar.landmarks.LandmarkTracker`) from the sighting's estimated
    position ``p = (n, e) + ρ u_side(ψ)``, with ``(n, e)`` the vehicle position at the
    ping: given by the caller (``push(ping, pos_n_m)``, e.g. from the navigation) or
    dead-reckoned from the pings' own speed over ground and heading,
    ``p_i = p_{i−1} + ½ (v_{i−1} + v_i)(t_i − t_{i−1}) (cos ψ̄, sin ψ̄)``;
-4. visual motion between consecutive windows (:class:`sonar.motion.WindowRegistrar`),
+4. visual motion between consecutive windows (:class:`adaptnav.sonar.motion.WindowRegistrar`),
    each window's keypoints detected once and kept for the next registration.
 
 Pure: no clock, no transport, no randomness.  Bad pings (non-finite or non-increasing
@@ -38,11 +38,11 @@ from typing import Literal
 
 import numpy as np
 
-from sonar.features import Features, OrbDetector, SiftDetector
-from sonar.landmarks import LandmarkObservation, LandmarkTracker, extract_landmarks
-from sonar.motion import VisualMotion, WindowRegistrar
-from sonar.ping import SonarPing
-from sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall, to_uint8
+from adaptnav.sonar.features import Features, OrbDetector, SiftDetector
+from adaptnav.sonar.landmarks import LandmarkObservation, LandmarkTracker, extract_landmarks
+from adaptnav.sonar.motion import VisualMotion, WindowRegistrar
+from adaptnav.sonar.ping import SonarPing
+from adaptnav.sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall, to_uint8
 
 
 @dataclass(frozen=True)

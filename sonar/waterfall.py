@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 
-from sonar.ping import SonarPing
+from adaptnav.sonar.ping import SonarPing
 
 
 @dataclass(frozen=True)

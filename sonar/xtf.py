@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sonar.ping import SonarPing
+from adaptnav.sonar.ping import SonarPing
 
 KNOT_M_S = 1852.0 / 3600.0
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from fusion.motion_model import (MotionParams, RpmSpeedTable, invert_step, propagate,
+from adaptnav.fusion.motion_model import (MotionParams, RpmSpeedTable, invert_step, propagate,
                                  sample_poses, step_errors, transition_logpdf)
 
 

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from fusion.samples import (SAMPLE_TYPES, DvlSample, ImuSample, SampleError, from_dict,
+from adaptnav.fusion.samples import (SAMPLE_TYPES, DvlSample, ImuSample, SampleError, from_dict,
                             is_finite, json_schema, to_dict)
 
 
@@ -46,7 +46,7 @@ def test_every_type_has_a_schema_that_requires_its_fields():
 def test_an_imu_batch_with_mismatched_arrays_is_refused_with_a_clear_error():
     import numpy as np
 
-    from fusion.samples import ImuBatch, SampleError
+    from adaptnav.fusion.samples import ImuBatch, SampleError
 
     ImuBatch(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))  # consistent: fine
     with pytest.raises(SampleError, match="specific_force_b_m_s2 has shape"):

@@ -3,7 +3,7 @@ from typing import Literal
 
 import pytest
 
-from fusion.typed_config import ConfigError, as_dict, load_toml
+from adaptnav.fusion.typed_config import ConfigError, as_dict, load_toml
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 r"""External AHRS attitude (ArduSub ATTITUDE): ``h(x) = (φ, θ, ψ)`` ZYX, angles wrapped.
 
 Used when logs carry ATTITUDE but no usable IMU rate (real ArduSub telemetry: IMU at
-2 Hz, ATTITUDE at 20 Hz). ``H_att = M⁻¹`` (:func:`fusion.aiding.common.euler_jacobian`).
+2 Hz, ATTITUDE at 20 Hz). ``H_att = M⁻¹`` (:func:`adaptnav.fusion.aiding.common.euler_jacobian`).
 """
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
 """What every aiding source returns, and small helpers they share.
 
 Each source module provides ``predict(x, ...) -> h`` (the measurement model on the
-nominal state, :mod:`fusion.state` layout) and ``measure(sample, x, ...) ->
+nominal state, :mod:`adaptnav.fusion.state` layout) and ``measure(sample, x, ...) ->
 Measurement | None`` giving ``(z, H, R)`` plus ``h`` so the estimator can form the
 innovation ``y = z ⊖ h`` (angles wrapped). ``H`` is the Jacobian of ``h`` with respect
-to the 18-dim error state (attitude error global, see :mod:`fusion.state`); the
-contract test checks it against finite differences through :func:`fusion.state.inject`.
+to the 18-dim error state (attitude error global, see :mod:`adaptnav.fusion.state`); the
+contract test checks it against finite differences through :func:`adaptnav.fusion.state.inject`.
 """
 from __future__ import annotations
 

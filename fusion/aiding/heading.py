@@ -1,6 +1,6 @@
 r"""Heading (compass/AHRS yaw): ``h(x) = ψ = atan2(R₁₀, R₀₀)``, innovation wrapped to [−π, π).
 
-``∂ψ/∂δθ`` is the last row of the Euler Jacobian (:func:`fusion.aiding.common.euler_jacobian`):
+``∂ψ/∂δθ`` is the last row of the Euler Jacobian (:func:`adaptnav.fusion.aiding.common.euler_jacobian`):
 ``(−R₀₀R₂₀, −R₁₀R₂₀, R₀₀² + R₁₀²) / (R₀₀² + R₁₀²)``.
 """
 from __future__ import annotations

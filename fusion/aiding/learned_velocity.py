@@ -13,7 +13,7 @@ the filter state ``k_speed`` is the *residual* scale error around that learned
 
 and the filter follows a change of water (density, temperature) through ``k_speed``
 while absolute fixes (USBL, GNSS, DVL) exist, between two calibrator releases. When a
-new release arrives (:meth:`fusion.eskf.Estimator.set_motion_params`) the product
+new release arrives (:meth:`adaptnav.fusion.eskf.Estimator.set_motion_params`) the product
 ``k_speed · k_V`` is kept continuous (k_speed is rescaled by k_V_old / k_V_new).
 
 Measurement (z, h) — the observation is the model's prediction with the learned scale,
@@ -27,7 +27,7 @@ with ``w`` the yaw rate from the gyro, fused at the motion model's step rate (1 
 default: its variances are per step). When the water changes, the released variances
 are too tight until the calibrator catches up; the estimator then scales σ_V² up to the
 innovation-based estimate ``E[y²] − H P Hᵀ`` (Mehra 1972, IEEE TAC 17(5); see
-:meth:`fusion.eskf.Estimator._adapt_surge`), never down — except for
+:meth:`adaptnav.fusion.eskf.Estimator._adapt_surge`), never down — except for
 ``adaptive_suspend_after_release_s`` after a release, when the released variance is used as it
 is (the calibrator has caught up). Jacobians (global attitude error)::
 

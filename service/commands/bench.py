@@ -20,7 +20,7 @@ def add_arguments(parser):
 
 
 def run(args):
-    module = importlib.import_module(f"service.benchmarks.{args.target}")
+    module = importlib.import_module(f"adaptnav.service.tools.benchmarks.{args.target}")
     figures = module.run(args)
     if args.json:
         print(json.dumps(figures, indent=2, sort_keys=True))

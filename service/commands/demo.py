@@ -1,5 +1,5 @@
 """``adaptnav demo``: simulated ArduSub vehicle → MAVLink/Zenoh → daemon + calibrator →
-ODOMETRY back; then pure INS / static model / learned model compared (service/demo.py)."""
+ODOMETRY back; then pure INS / static model / learned model compared (service/tools/demo.py)."""
 from __future__ import annotations
 
 HELP = "the whole system on this machine against a simulated 20-min mission; table + plots"
@@ -23,9 +23,9 @@ def run(args):
     import math
     import sys
 
-    from fusion.typed_config import ConfigError
+    from adaptnav.fusion.typed_config import ConfigError
 
-    from service.demo import format_demo_table, run_demo, scenario_overrides
+    from adaptnav.service.tools.demo import format_demo_table, run_demo, scenario_overrides
 
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")

@@ -1,6 +1,6 @@
 """`adaptnav experiment thesis`: the seed's §3.6 table (static vs learned motion model).
 
-See :mod:`calibration.thesis` for the simulation, the controls chosen and the learner.
+See :mod:`adaptnav.calibration.thesis` for the simulation, the controls chosen and the learner.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def add_arguments(parser):
 
 
 def _rows(args):
-    from calibration.thesis import THESIS_ROWS, ThesisRow
+    from adaptnav.calibration.thesis import THESIS_ROWS, ThesisRow
 
     custom = any(x is not None for x in (args.initial, args.changed, args.sensor_noise, args.change_step,
                                           args.steps, args.landmarks))
@@ -88,7 +88,7 @@ def run(args):
 
     from tqdm import tqdm
 
-    from calibration.thesis import row_result, run_seed
+    from adaptnav.calibration.thesis import row_result, run_seed
 
     if args.seeds < 1:
         raise SystemExit("adaptnav experiment: --seeds must be ≥ 1")

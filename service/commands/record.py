@@ -2,7 +2,7 @@
 
 Subscribes to ``adaptnav/<v>/**`` (sensor samples, nav states, aid statuses, calibrator
 releases, health) as a Zenoh peer connecting to the daemon's endpoints (or ``--connect``)
-and writes every message to MCAP through :func:`service.logs.write_mcap` — the format
+and writes every message to MCAP through :func:`adaptnav.service.transport.logs.write_mcap` — the format
 ``adaptnav replay`` reads. Messages that are not valid adaptnav JSON are counted and
 reported, not written. Ends after ``--duration`` seconds or on SIGINT/SIGTERM.
 """
@@ -26,7 +26,7 @@ def recorder_zenoh(cfg, connect=()):
     """Zenoh config of the recorder: a *client* of the daemon's peer (or of the router),
     listening nowhere — the daemon routes every program's traffic to its clients, so the
     recorder sees what other nodes publish too (a plain peer would only see the daemon's)."""
-    from service.config import ZenohConfig
+    from adaptnav.service.config import ZenohConfig
 
     endpoints = tuple(connect) or tuple(cfg.zenoh.connect) or tuple(cfg.zenoh.listen)
     return ZenohConfig(mode="client", connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
@@ -40,9 +40,9 @@ def record(bus, out, stop, duration_s=None, metadata=None):
     import queue
     import time
 
-    from fusion.samples import SampleError
-    from service import codec
-    from service.logs import write_mcap
+    from adaptnav.fusion.samples import SampleError
+    from adaptnav.service.transport import codec
+    from adaptnav.service.transport.logs import write_mcap
 
     inbox: queue.Queue = queue.Queue()
     malformed = [0]
@@ -80,9 +80,9 @@ def run(args):
     import sys
     import threading
 
-    from fusion.typed_config import ConfigError
-    from service.bus import Bus, _strict
-    from service.config import config_dict, load_config
+    from adaptnav.fusion.typed_config import ConfigError
+    from adaptnav.service.transport.bus import Bus, _strict
+    from adaptnav.service.config import config_dict, load_config
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

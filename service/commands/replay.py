@@ -47,14 +47,14 @@ def run(args):
     import sys
     from pathlib import Path
 
-    from fusion.typed_config import ConfigError
-    from service import replay as rp
+    from adaptnav.fusion.typed_config import ConfigError
+    from adaptnav.service.runtime import replay as rp
 
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
         return 2
     if args.calibrate and args.calibrator_location == "process":
-        from service.calibrator_process import prestart
+        from adaptnav.service.calibrator.process import prestart
 
         prestart()  # the calibrator's process server starts while the input is opened
     try:

@@ -28,8 +28,8 @@ def run(args):
     import logging
     import sys
 
-    from fusion.typed_config import ConfigError
-    from service.config import config_dict, load_config
+    from adaptnav.fusion.typed_config import ConfigError
+    from adaptnav.service.config import config_dict, load_config
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
@@ -39,11 +39,11 @@ def run(args):
         print(f"adaptnav run: config error: {e}", file=sys.stderr)
         return 2
     if args.print_config:
-        from service.bus import _strict
+        from adaptnav.service.transport.bus import _strict
 
         print(json.dumps(_strict(config_dict(cfg)), indent=2, sort_keys=True))
         return 0
-    from service import daemon
+    from adaptnav.service import daemon
 
     if args.calibrator_only:
         return daemon.serve_calibrator(cfg)

@@ -1,6 +1,6 @@
 """`adaptnav simulate SCENARIO [--set k=v ...] --out FILE.mcap`: a scenario to an MCAP log.
 
-Writes every sensor sample and the ground truth (see :mod:`service.logs`) with the
+Writes every sensor sample and the ground truth (see :mod:`adaptnav.service.transport.logs`) with the
 effective scenario config in the file's metadata, shows a progress bar, and prints a
 one-line summary (samples per kind, duration).
 """
@@ -23,10 +23,10 @@ def run(args):
 
     from tqdm import tqdm
 
-    from fusion.typed_config import ConfigError, as_dict
-    from service.logs import write_mcap
-    from sim.scenario import load_scenario
-    from sim.simulator import simulate
+    from adaptnav.fusion.typed_config import ConfigError, as_dict
+    from adaptnav.service.transport.logs import write_mcap
+    from adaptnav.sim.scenario import load_scenario
+    from adaptnav.sim.simulator import simulate
 
     try:
         scenario = load_scenario(args.scenario, args.overrides)

@@ -39,7 +39,7 @@ def _fail(msg: str) -> int:
 
 
 def run(args) -> int:
-    from sonar.xtf import SonarFileError, read_xtf
+    from adaptnav.sonar.xtf import SonarFileError, read_xtf
 
     try:
         pings, report = read_xtf(args.file)
@@ -47,7 +47,7 @@ def run(args) -> int:
         return _fail(str(exc))
     if report.error or report.n_truncated:
         print(f"adaptnav sonar: warning: {report.summary()}", file=sys.stderr)
-    from sonar.waterfall import clean_pings
+    from adaptnav.sonar.waterfall import clean_pings
 
     pings, dropped = clean_pings(pings)
     if dropped:
@@ -62,7 +62,7 @@ def run(args) -> int:
 def _waterfall(args, pings) -> int:
     import cv2
 
-    from sonar.waterfall import WaterfallConfig, build_waterfall, to_uint8
+    from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall, to_uint8
 
     res = args.res_m or pings[0].sample_spacing_m
     wf = build_waterfall(pings, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))
@@ -75,9 +75,9 @@ def _waterfall(args, pings) -> int:
 
 
 def _motion(args, pings) -> int:
-    from sonar.features import make_detector
-    from sonar.motion import WindowRegistrar
-    from sonar.waterfall import WaterfallConfig, build_waterfall
+    from adaptnav.sonar.features import make_detector
+    from adaptnav.sonar.motion import WindowRegistrar
+    from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
 
     if args.window < 8 or args.step < 1:
         return _fail("--window must be ≥ 8 and --step ≥ 1")

@@ -10,7 +10,7 @@ KEYS = {"sigma_dd_initial", "sigma_tr_initial", "sigma_dd_changed", "sigma_tr_ch
 
 
 def _adaptnav(*args):
-    out = subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "adaptnav.service.cli", *args], cwd=ROOT, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     return out.stdout
@@ -39,7 +39,7 @@ def test_experiment_output_does_not_depend_on_the_worker_count():
 
 
 def test_experiment_rejects_bad_custom_row():
-    out = subprocess.run([sys.executable, "-m", "service.cli", "experiment", "thesis", "--changed", "0.5"],
+    out = subprocess.run([sys.executable, "-m", "adaptnav.service.cli", "experiment", "thesis", "--changed", "0.5"],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode != 0 and "SDD,STR" in (out.stderr + out.stdout)
 

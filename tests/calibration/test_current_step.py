@@ -4,11 +4,11 @@ import math
 import numpy as np
 import pytest
 
-from fusion.motion_model import (MotionParams, invert_step, propagate, rescale_step, sample_velocities,
+from adaptnav.fusion.motion_model import (MotionParams, invert_step, propagate, rescale_step, sample_velocities,
                                  transition_logpdf)
-from calibration.fix_regression import fix_regression
-from calibration.mstep import MStepOptions, m_step
-from calibration.sensors import PositionFix
+from adaptnav.calibration.fix_regression import fix_regression
+from adaptnav.calibration.mstep import MStepOptions, m_step
+from adaptnav.calibration.sensors import PositionFix
 
 CURRENT = (0.06, -0.08)
 

@@ -4,13 +4,13 @@ import math
 import numpy as np
 import pytest
 
-from fusion.motion_model import MotionParams, propagate, transition_logpdf
-from calibration._kernels import move, pack, transition_logpdf_scalar
-from calibration.particle_filter import run_particle_filter
-from calibration.resampling import ess, systematic_resample
-from calibration.sensors import PositionFix, RangeObservation
-from calibration.smoother import ffbsi_exact, ffbsi_exact_numpy, ffbsi_mcmc
-from calibration.thesis import ThesisRow, _init_cloud, simulate
+from adaptnav.fusion.motion_model import MotionParams, propagate, transition_logpdf
+from adaptnav.calibration._kernels import move, pack, transition_logpdf_scalar
+from adaptnav.calibration.particle_filter import run_particle_filter
+from adaptnav.calibration.resampling import ess, systematic_resample
+from adaptnav.calibration.sensors import PositionFix, RangeObservation
+from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_exact_numpy, ffbsi_mcmc
+from adaptnav.calibration.thesis import ThesisRow, _init_cloud, simulate
 
 
 def test_systematic_resample_round_off_guard():
@@ -165,7 +165,7 @@ def test_filter_is_deterministic_given_the_seed():
 
 
 def test_numba_systematic_resampling_matches_the_reference():
-    from calibration._kernels import systematic_from_log
+    from adaptnav.calibration._kernels import systematic_from_log
 
     rng = np.random.default_rng(12)
     for _ in range(20):

@@ -1,9 +1,9 @@
 """freeze_landmarks: landmarks sighted once carry no motion information and are dropped."""
 import numpy as np
 
-from calibration.em import freeze_landmarks
-from calibration.sensors import FixedLandmarkObservation, LandmarkSighting
-from fusion.motion_model import MotionParams
+from adaptnav.calibration.em import freeze_landmarks
+from adaptnav.calibration.sensors import FixedLandmarkObservation, LandmarkSighting
+from adaptnav.fusion.motion_model import MotionParams
 
 
 def test_singletons_dropped_repeats_frozen():

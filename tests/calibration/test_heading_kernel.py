@@ -1,12 +1,12 @@
 """The numba heading log-likelihood of the particle filter's fast path gives the same
-floats as :meth:`calibration.sensors.HeadingObservation.log_likelihood` (the reference)."""
+floats as :meth:`adaptnav.calibration.sensors.HeadingObservation.log_likelihood` (the reference)."""
 import math
 
 import numpy as np
 
-from calibration._kernels import heading_loglik
-from calibration.particle_filter import _observation_log_lik
-from calibration.sensors import HeadingObservation, PositionFix
+from adaptnav.calibration._kernels import heading_loglik
+from adaptnav.calibration.particle_filter import _observation_log_lik
+from adaptnav.calibration.sensors import HeadingObservation, PositionFix
 
 
 def test_heading_kernel_equals_the_observation_model_bit_for_bit():

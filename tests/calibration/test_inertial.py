@@ -5,9 +5,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.inertial import InertialTrack, surge_increments
-from calibration.mstep import MStepOptions, m_step
-from fusion.motion_model import MotionParams, rescale_step, sample_poses
+from adaptnav.calibration.inertial import InertialTrack, surge_increments
+from adaptnav.calibration.mstep import MStepOptions, m_step
+from adaptnav.fusion.motion_model import MotionParams, rescale_step, sample_poses
 
 STEP_S, T, SPEED = 5.0, 96, 1.5
 TRUE = replace(MotionParams(), var_vv=0.15 ** 2, var_v1=1e-4, k_v=0.9)

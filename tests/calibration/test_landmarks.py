@@ -5,11 +5,11 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from fusion.motion_model import MotionParams, propagate, sample_velocities
-from calibration.em import EMOptions, freeze_landmarks, run_em
-from calibration.mstep import MStepOptions
-from calibration.particle_filter import run_particle_filter
-from calibration.sensors import (FixedLandmarkObservation, HeadingObservation, LandmarkAssociator,
+from adaptnav.fusion.motion_model import MotionParams, propagate, sample_velocities
+from adaptnav.calibration.em import EMOptions, freeze_landmarks, run_em
+from adaptnav.calibration.mstep import MStepOptions
+from adaptnav.calibration.particle_filter import run_particle_filter
+from adaptnav.calibration.sensors import (FixedLandmarkObservation, HeadingObservation, LandmarkAssociator,
                                  LandmarkSighting, sighting_from_sonar)
 
 

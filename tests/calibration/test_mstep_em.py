@@ -4,10 +4,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from fusion.motion_model import MotionParams, propagate, sample_velocities
-from calibration.em import EMOptions, run_em
-from calibration.mstep import MStepOptions, m_step, identifiable_terms, V_PRIORITY
-from calibration.thesis import ThesisRow, _init_cloud, simulate
+from adaptnav.fusion.motion_model import MotionParams, propagate, sample_velocities
+from adaptnav.calibration.em import EMOptions, run_em
+from adaptnav.calibration.mstep import MStepOptions, m_step, identifiable_terms, V_PRIORITY
+from adaptnav.calibration.thesis import ThesisRow, _init_cloud, simulate
 
 
 def _exact_trajectories(params, v, w, dt, n_traj, rng, pin_sway=False):
@@ -110,7 +110,7 @@ def test_em_recovers_changed_sigma_dd_on_thesis_simulation():
 
 def test_variance_objective_gradient_and_hessian_match_finite_differences():
     from scipy.optimize import approx_fprime
-    from calibration.mstep import VarianceObjective
+    from adaptnav.calibration.mstep import VarianceObjective
 
     rng = np.random.default_rng(3)
     T = 50

@@ -3,10 +3,10 @@ import math
 
 import numpy as np
 
-from fusion.frames import GeoOrigin
-from fusion.motion_model import MotionParams, RpmSpeedTable, propagate, sample_velocities
-from fusion.samples import HeadingSample, ImuSample, RpmSample, TruthSample, UsblSample
-from calibration.online import CalibratorConfig, OnlineCalibrator, Release
+from adaptnav.fusion.frames import GeoOrigin
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable, propagate, sample_velocities
+from adaptnav.fusion.samples import HeadingSample, ImuSample, RpmSample, TruthSample, UsblSample
+from adaptnav.calibration.online import CalibratorConfig, OnlineCalibrator, Release
 
 ORIGIN = GeoOrigin(math.radians(43.0), math.radians(5.0))
 TABLE = RpmSpeedTable()

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from fusion.motion_model import RpmSpeedTable
-from calibration.online import CalibratorConfig, OnlineCalibrator
-from sim.scenario import load_scenario
-from sim.simulator import simulate
+from adaptnav.fusion.motion_model import RpmSpeedTable
+from adaptnav.calibration.online import CalibratorConfig, OnlineCalibrator
+from adaptnav.sim.scenario import load_scenario
+from adaptnav.sim.simulator import simulate
 
 CHANGE_S = 600.0
 DURATION_S = 1260.0

@@ -7,9 +7,9 @@ flipped surge; ``turn_about_mean`` takes the branch nearest the expected turn.
 import numpy as np
 import pytest
 
-from calibration.mstep import MStepOptions, m_step
-from calibration.thesis import LearnerSettings, controls
-from fusion.motion_model import MotionParams, invert_step, propagate, sample_velocities, velocity_variances
+from adaptnav.calibration.mstep import MStepOptions, m_step
+from adaptnav.calibration.thesis import LearnerSettings, controls
+from adaptnav.fusion.motion_model import MotionParams, invert_step, propagate, sample_velocities, velocity_variances
 
 
 def test_invert_step_on_the_branch_of_the_expected_turn():

@@ -9,7 +9,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from calibration.thesis import LearnerSettings, ThesisRow, run_filter, simulate
+from adaptnav.calibration.thesis import LearnerSettings, ThesisRow, run_filter, simulate
 
 ROW = ThesisRow(0.05, 0.05, 0.2, 0.05, 5.0)
 SEEDS = range(3000, 3008)

@@ -2,7 +2,7 @@ from dataclasses import replace
 
 import pytest
 
-from fusion.config import FilterConfig, InitialConfig, LearnedVelocityConfig, ProcessConfig
+from adaptnav.fusion.config import FilterConfig, InitialConfig, LearnedVelocityConfig, ProcessConfig
 
 
 @pytest.fixture

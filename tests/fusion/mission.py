@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.config import FilterConfig
-from fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat
-from fusion.motion_model import MotionParams, RpmSpeedTable, velocity_variances
-from fusion.samples import (DepthSample, DvlSample, HeadingSample, ImuBatch, RpmSample, UsblSample,
+from adaptnav.fusion.config import FilterConfig
+from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable, velocity_variances
+from adaptnav.fusion.samples import (DepthSample, DvlSample, HeadingSample, ImuBatch, RpmSample, UsblSample,
                             replay_order_key)
 
 ORIGIN = GeoOrigin(np.radians(43.0), np.radians(5.0), 0.0)
@@ -141,7 +141,7 @@ def true_error(m: Mission, state, k: int) -> np.ndarray:
     """18-dim error truth ⊖ estimate (attitude as a global rotation vector)."""
     from scipy.spatial.transform import Rotation
 
-    from fusion.frames import quat_to_scipy
+    from adaptnav.fusion.frames import quat_to_scipy
     e = np.zeros(18)
     e[0:3] = m.pos_n[k] - state.pos_n_m
     e[3:6] = m.vel_n[k] - state.vel_n_m_s

@@ -4,12 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from fusion.aiding import attitude, depth, dvl, gnss, heading, learned_velocity, usbl, visual_motion
-from fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, wrap_angle
-from fusion.motion_model import MotionParams
-from fusion.samples import (AttitudeSample, DepthSample, DvlSample, GnssSample, HeadingSample, UsblSample,
+from adaptnav.fusion.aiding import attitude, depth, dvl, gnss, heading, learned_velocity, usbl, visual_motion
+from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, wrap_angle
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.fusion.samples import (AttitudeSample, DepthSample, DvlSample, GnssSample, HeadingSample, UsblSample,
                             VisualMotionSample)
-from fusion.state import N_ERR, inject, initial_nominal
+from adaptnav.fusion.state import N_ERR, inject, initial_nominal
 
 ORIGIN = GeoOrigin(math.radians(43.0), math.radians(5.0))
 

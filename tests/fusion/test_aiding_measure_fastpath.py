@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from fusion.aiding import dvl, heading
-from fusion.frames import euler_to_quat
-from fusion.samples import DvlSample, HeadingSample
-from fusion.state import N_ERR, initial_nominal
+from adaptnav.fusion.aiding import dvl, heading
+from adaptnav.fusion.frames import euler_to_quat
+from adaptnav.fusion.samples import DvlSample, HeadingSample
+from adaptnav.fusion.state import N_ERR, initial_nominal
 
 OMEGA = np.array([0.013, -0.021, 0.1037])
 LEVER = np.array([0.51, 0.12, 0.33])

@@ -1,8 +1,8 @@
 """The filter configuration is a strict typed tree."""
 import pytest
 
-from fusion.config import FilterConfig
-from fusion.typed_config import ConfigError, as_dict, build, load_toml
+from adaptnav.fusion.config import FilterConfig
+from adaptnav.fusion.typed_config import ConfigError, as_dict, build, load_toml
 
 TOML = """
 gate_sigma = 4.0

@@ -7,8 +7,8 @@ number of independent runs as its sample size (the conservative, wider band).
 import numpy as np
 from scipy.stats import chi2
 
-from fusion.eskf import Estimator
-from fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 
 from .mission import ORIGIN, make_mission, run, true_error
 

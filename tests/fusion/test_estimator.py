@@ -6,13 +6,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fusion.config import FilterConfig
-from fusion.eskf import Estimator
-from fusion.frames import GRAVITY_M_S2
-from fusion.motion_model import MotionParams, RpmSpeedTable
-from fusion.samples import (AttitudeSample, DepthSample, HeadingSample, ImuBatch, ImuSample, TruthSample,
+from adaptnav.fusion.config import FilterConfig
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.frames import GRAVITY_M_S2
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.samples import (AttitudeSample, DepthSample, HeadingSample, ImuBatch, ImuSample, TruthSample,
                             UsblSample)
-from fusion.state import KS
+from adaptnav.fusion.state import KS
 
 from .mission import ATM_PA, ORIGIN, RHO, make_mission, run
 

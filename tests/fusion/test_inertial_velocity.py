@@ -1,7 +1,7 @@
 """The estimator's free-inertial velocity: the IMU's velocity changes, without aiding corrections."""
 import numpy as np
 
-from fusion.samples import ImuBatch
+from adaptnav.fusion.samples import ImuBatch
 
 from .mission import make_mission
 from .test_estimator import _est

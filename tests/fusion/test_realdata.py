@@ -4,10 +4,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.config import FilterConfig
-from fusion.eskf import Estimator
-from fusion.frames import GeoOrigin
-from fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.config import FilterConfig
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.frames import GeoOrigin
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 
 TLOG = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mavlink" / "ardusub-4.1.1-bluerov2-ugps.tlog"
 
@@ -16,7 +16,7 @@ TLOG = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mavlink
 def test_real_ardusub_log_gives_ahrs_attitude_depth_and_invalid_position():
     if not TLOG.is_file():
         pytest.skip(f"real data absent: {TLOG}")
-    from service.tlog_source import TlogSource
+    from adaptnav.service.transport.tlog_source import TlogSource
 
     est = None
     attitudes, states = [], []

@@ -3,9 +3,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from fusion.config import LearnedVelocityConfig
-from fusion.eskf import Estimator
-from fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.config import LearnedVelocityConfig
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 
 from .mission import ORIGIN, make_mission, run, true_error
 

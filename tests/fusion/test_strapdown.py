@@ -2,9 +2,9 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusion import strapdown as sd
-from fusion.frames import GRAVITY_M_S2, euler_to_quat, quat_to_scipy
-from fusion.state import N_ERR, inject, initial_nominal
+from adaptnav.fusion import strapdown as sd
+from adaptnav.fusion.frames import GRAVITY_M_S2, euler_to_quat, quat_to_scipy
+from adaptnav.fusion.state import N_ERR, inject, initial_nominal
 
 
 def _propagate(x, t, f, w, qdiag=None, P=None, cov_step=0.1):

@@ -8,11 +8,11 @@ from collections import Counter
 
 import pytest
 
-from fusion.samples import DepthSample, ImuSample, RpmSample
-from service.bus import Bus, message
-from service.commands.record import record
-from service.config import ZenohConfig
-from service.logs import ReadStats, read_mcap
+from adaptnav.fusion.samples import DepthSample, ImuSample, RpmSample
+from adaptnav.service.transport.bus import Bus, message
+from adaptnav.service.commands.record import record
+from adaptnav.service.config import ZenohConfig
+from adaptnav.service.transport.logs import ReadStats, read_mcap
 
 from .test_daemon_support import free_port, wait_until
 

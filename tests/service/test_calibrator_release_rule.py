@@ -1,4 +1,4 @@
-"""The calibrator release rule live (service.calibrator_process.CalibratorProcess): a
+"""The calibrator release rule live (adaptnav.service.calibrator.process.CalibratorProcess): a
 release computed at data time τ reaches the runner (``poll()``) only once the runner's
 data time has reached τ + calibrator.latency_s — real spawn child, real calibrator."""
 from __future__ import annotations
@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from service import replay as rp
-from service.calibrator_process import CalibratorProcess, make_calibrator
-from service.sources import simulate
-from sim.scenario import load_scenario
+from adaptnav.service.runtime import replay as rp
+from adaptnav.service.calibrator.process import CalibratorProcess, make_calibrator
+from adaptnav.service.runtime.sources import simulate
+from adaptnav.sim.scenario import load_scenario
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import pytest
 
-from fusion.motion_model import MotionParams
-from fusion.typed_config import ConfigError
-from service.config import ServiceConfig, config_dict, load_config
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.fusion.typed_config import ConfigError
+from adaptnav.service.config import ServiceConfig, config_dict, load_config
 
 DEPLOY_TOML = Path(__file__).resolve().parents[2] / "deploy" / "adaptnav.toml"
 

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from service.daemon import Daemon
+from adaptnav.service.daemon import Daemon
 
 from .test_daemon_support import Collector, Feeder, daemon_config, free_port, peer, wait_until
 

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-from service.daemon import Daemon
-from service.replay import build_config
+from adaptnav.service.daemon import Daemon
+from adaptnav.service.runtime.replay import build_config
 
 from .test_daemon_support import Collector, free_port, peer, wait_until
 
@@ -24,10 +24,10 @@ def _free_udp_port() -> int:
 
 def test_sitl_vehicle_through_daemon_and_back(tmp_path):
     from pymavlink.dialects.v20 import ardupilotmega as mav
-    from sim.scenario import load_scenario
+    from adaptnav.sim.scenario import load_scenario
 
-    from service.sitl_vehicle import SitlVehicle, SitlVehicleConfig
-    from service.sources import simulate
+    from adaptnav.service.tools.sitl_vehicle import SitlVehicle, SitlVehicleConfig
+    from adaptnav.service.runtime.sources import simulate
 
     scenario = load_scenario("short", ["duration_s=40"])
     zport, uport = free_port(), _free_udp_port()

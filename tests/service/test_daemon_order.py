@@ -5,7 +5,7 @@ import queue
 import threading
 import time
 
-from fusion.samples import DepthSample, ImuSample
+from adaptnav.fusion.samples import DepthSample, ImuSample
 
 
 def _imu(t):
@@ -20,7 +20,7 @@ def _drain(src, n, timeout_s=3.0):
 
 
 def test_a_sample_ahead_of_the_imu_waits_for_it():
-    from service.daemon import QueueSource
+    from adaptnav.service.daemon import QueueSource
 
     q, stop = queue.Queue(), threading.Event()
     src = QueueSource(q, stop, max_hold_s=5.0)
@@ -37,7 +37,7 @@ def test_a_sample_ahead_of_the_imu_waits_for_it():
 
 
 def test_held_samples_go_out_when_the_imu_stalls():
-    from service.daemon import QueueSource
+    from adaptnav.service.daemon import QueueSource
 
     q, stop = queue.Queue(), threading.Event()
     src = QueueSource(q, stop, max_hold_s=0.2)

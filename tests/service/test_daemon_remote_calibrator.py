@@ -7,10 +7,10 @@ import time
 
 import pytest
 
-from service.calibrator_process import run_node
-from service.daemon import Daemon
-from service.replay import build_config
-from service.sources import simulate
+from adaptnav.service.calibrator.process import run_node
+from adaptnav.service.daemon import Daemon
+from adaptnav.service.runtime.replay import build_config
+from adaptnav.service.runtime.sources import simulate
 
 from .test_daemon_support import Collector, free_port, peer, wait_until
 
@@ -18,8 +18,8 @@ pytestmark = pytest.mark.timeout(170)
 
 
 def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
-    from fusion.samples import ImuBatch
-    from sim.scenario import load_scenario
+    from adaptnav.fusion.samples import ImuBatch
+    from adaptnav.sim.scenario import load_scenario
 
     scenario = load_scenario("short", ["duration_s=200"])
     port = free_port()

@@ -9,9 +9,9 @@ import threading
 import time
 from collections import defaultdict
 
-from fusion.samples import DepthSample, HeadingSample, ImuSample, RpmSample
-from service.bus import Bus
-from service.config import ZenohConfig, load_config
+from adaptnav.fusion.samples import DepthSample, HeadingSample, ImuSample, RpmSample
+from adaptnav.service.transport.bus import Bus
+from adaptnav.service.config import ZenohConfig, load_config
 
 G_M_S2 = 9.80665
 

@@ -36,7 +36,7 @@ def _children(pid: int) -> set[int]:
 
 
 def test_short_demo_end_to_end_json(tmp_path):
-    from service.demo import run_demo
+    from adaptnav.service.tools.demo import run_demo
 
     before = _children(os.getpid())
     # 3 min with the change at 60 s: USBL fixes at 60, 120, 180 s, side-scan throughout
@@ -81,7 +81,7 @@ def test_short_demo_end_to_end_json(tmp_path):
 
 
 def test_cli_rejects_bad_scenario_key(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "demo", "--json", "--no-progress",
+    proc = subprocess.run([sys.executable, "-m", "adaptnav.service.cli", "demo", "--json", "--no-progress",
                            "--out", str(tmp_path), "--set", "no_such_key=1"],
                           capture_output=True, text=True, cwd=REPO, timeout=60)
     assert proc.returncode == 2

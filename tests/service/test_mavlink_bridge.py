@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fusion.frames import GeoOrigin, euler_to_quat
-from fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, UsblSample
-from service.mavlink_bridge import BridgeConfig, MavlinkBridge, StreamRates
-from service.mavlink_convert import mavlink2
-from service.sitl_vehicle import SitlVehicle, SitlVehicleConfig
+from adaptnav.fusion.frames import GeoOrigin, euler_to_quat
+from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, UsblSample
+from adaptnav.service.transport.mavlink_bridge import BridgeConfig, MavlinkBridge, StreamRates
+from adaptnav.service.transport.mavlink_convert import mavlink2
+from adaptnav.service.tools.sitl_vehicle import SitlVehicle, SitlVehicleConfig
 
 from pymavlink import mavutil
 
@@ -269,10 +269,10 @@ def test_tcp_link_survives_the_autopilot_side_closing_and_coming_back():
 
 
 def test_simulated_mission_arrives_through_sitl_vehicle_and_bridge_intact():
-    from fusion.frames import quat_to_euler
-    from fusion.state import NavState
-    from sim.scenario import load_scenario
-    from sim.simulator import simulate
+    from adaptnav.fusion.frames import quat_to_euler
+    from adaptnav.fusion.state import NavState
+    from adaptnav.sim.scenario import load_scenario
+    from adaptnav.sim.simulator import simulate
 
     result = simulate(load_scenario("short", ["duration_s=40.0"]))
     samples = list(result.iter_samples())
@@ -363,7 +363,7 @@ def test_serial_link_over_a_pseudo_terminal():
 
 
 def test_a_log_file_is_not_a_live_link(tmp_path):
-    from service.mavlink_bridge import link_device
+    from adaptnav.service.transport.mavlink_bridge import link_device
 
     f = tmp_path / "mission.tlog"
     f.write_bytes(b"")

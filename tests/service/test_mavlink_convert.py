@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.mavlink_convert import (
+from adaptnav.service.transport.mavlink_convert import (
     ConvertConfig,
     MavlinkConverter,
     OdometryConfig,
@@ -16,7 +16,7 @@ from service.mavlink_convert import (
     odometry_fields,
     quality_from_sigma,
 )
-from fusion.frames import GeoOrigin, euler_to_quat
+from adaptnav.fusion.frames import GeoOrigin, euler_to_quat
 
 
 def wire(encode_name, *args, src=(1, 1)):
@@ -179,7 +179,7 @@ def test_origin_in_deg_e7_and_mm():
 
 
 def test_vision_position_delta_is_in_the_previous_body_frame():
-    from service.mavlink_convert import vision_position_delta_fields
+    from adaptnav.service.transport.mavlink_convert import vision_position_delta_fields
 
     a = nav(t_s=10.0, pos_n_m=(0.0, 0.0, 0.0), yaw=math.pi / 2)
     b = nav(t_s=10.5, pos_n_m=(0.0, 2.0, 0.0), yaw=math.pi / 2 + 0.1)  # 2 m east while facing east
@@ -191,7 +191,7 @@ def test_vision_position_delta_is_in_the_previous_body_frame():
 
 
 def test_odometry_from_the_filter_nav_state():
-    from fusion.state import NavState
+    from adaptnav.fusion.state import NavState
 
     cov = np.eye(18) * 0.04
     s = NavState(t_s=2.0, pos_n_m=np.array([1.0, 2.0, 3.0]), vel_n_m_s=np.array([0.5, 0.0, 0.0]),

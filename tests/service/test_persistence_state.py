@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from fusion.motion_model import MotionParams
-from service.persistence import FILENAME, load_state, save_state
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.runtime.persistence import FILENAME, load_state, save_state
 
 SLOW = {"bias_acc_b_m_s2": [0.01, -0.02, 0.003], "var_bias_acc": [1e-6, 1e-6, 1e-6],
         "current_n_m_s": [0.1, -0.05], "var_current": [1e-3, 1e-3], "k_speed": 1.07,

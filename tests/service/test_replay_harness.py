@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fusion.samples import DepthSample, ImuSample
-from fusion.typed_config import as_dict
-from service import replay as rp
-from service.cli import main as cli_main
-from service.logs import write_mcap
-from service.sources import simulate
-from sim.scenario import load_scenario
+from adaptnav.fusion.samples import DepthSample, ImuSample
+from adaptnav.fusion.typed_config import as_dict
+from adaptnav.service.runtime import replay as rp
+from adaptnav.service.cli import main as cli_main
+from adaptnav.service.transport.logs import write_mcap
+from adaptnav.service.runtime.sources import simulate
+from adaptnav.sim.scenario import load_scenario
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 DURATION_S = 60.0
@@ -217,7 +217,7 @@ def test_real_tlog_with_corrupt_frames_replays_with_counters(tmp_path):
     assert len(_rows(out / "trajectory.csv")) > 100
 
 
-# -- deterministic calibrator application (service.calibrator_process.LaggedCalibrator) -----
+# -- deterministic calibrator application (adaptnav.service.calibrator.process.LaggedCalibrator) -----
 CAL_S = 260.0   # 24 five-second steps before the first EM window, then one a minute
 
 
@@ -249,7 +249,7 @@ def test_calibrated_replay_is_deterministic_and_the_same_in_a_child_process_or_i
 
 
 def test_a_release_is_applied_at_the_data_time_it_was_computed_at_plus_the_latency(sim_cal):
-    from service.calibrator_process import InlineBackend, LaggedCalibrator, make_calibrator
+    from adaptnav.service.calibrator.process import InlineBackend, LaggedCalibrator, make_calibrator
 
     scenario, result = sim_cal
     cfg = rp.build_config(scenario)

@@ -10,16 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.online import Release
-from fusion.eskf import Estimator
-from fusion.samples import DepthSample, ImuBatch, ImuSample
-from service.clock import LogClock
-from service.health import Health
-from service.replay import build_config
-from service.runner import run
-from service.sinks import ParamsCsvSink, Sink, TrajectoryCsvSink
-from service.sources import simulate
-from sim.scenario import load_scenario
+from adaptnav.calibration.online import Release
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.samples import DepthSample, ImuBatch, ImuSample
+from adaptnav.service.runtime.clock import LogClock
+from adaptnav.service.runtime.health import Health
+from adaptnav.service.runtime.replay import build_config
+from adaptnav.service.runtime.runner import run
+from adaptnav.service.runtime.sinks import ParamsCsvSink, Sink, TrajectoryCsvSink
+from adaptnav.service.runtime.sources import simulate
+from adaptnav.sim.scenario import load_scenario
 
 DURATION_S = 60.0
 

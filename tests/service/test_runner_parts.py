@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.samples import DepthSample, ImuBatch, ImuSample, RpmSample, TruthSample
-from service.clock import LiveClock, LogClock, RealtimeClock
-from service.health import Health
-from service.metrics import TrackArrays, TruthArrays, compute_metrics, horizontal_path_length_m, nees
-from service.sources import SourceCounters, order_and_batch
+from adaptnav.fusion.samples import DepthSample, ImuBatch, ImuSample, RpmSample, TruthSample
+from adaptnav.service.runtime.clock import LiveClock, LogClock, RealtimeClock
+from adaptnav.service.runtime.health import Health
+from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, horizontal_path_length_m, nees
+from adaptnav.service.runtime.sources import SourceCounters, order_and_batch
 
 
 # -- clocks ----------------------------------------------------------------------------
@@ -174,8 +174,8 @@ def test_order_and_batch_counts_samples_later_than_the_horizon():
 
 
 def test_closed_form_euler_of_the_csv_matches_scipy():
-    from fusion.frames import euler_to_quat, quat_to_euler
-    from service.sinks import euler_rad
+    from adaptnav.fusion.frames import euler_to_quat, quat_to_euler
+    from adaptnav.service.runtime.sinks import euler_rad
 
     rng = np.random.default_rng(3)
     for _ in range(500):

@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from service.replay import build_config, open_scenario, replay
+from adaptnav.service.runtime.replay import build_config, open_scenario, replay
 
 CHANGE_S = 600.0
 DURATION_S = 1260.0

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from service.tlog_source import TlogConfig, TlogSource
+from adaptnav.service.transport.tlog_source import TlogConfig, TlogSource
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "mavlink"
 pytestmark = pytest.mark.realdata
@@ -104,7 +104,7 @@ def write_tlog(path, frames):
 
 
 def test_synthetic_log_duplicates_nan_reboot_and_a_fast_imu(tmp_path):
-    from service.mavlink_convert import mavlink2
+    from adaptnav.service.transport.mavlink_convert import mavlink2
 
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     hb = mav.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from fusion.samples import (SAMPLE_TYPES, DvlSample, ImuBatch, ImuSample, RangeSample, SampleError,
+from adaptnav.fusion.samples import (SAMPLE_TYPES, DvlSample, ImuBatch, ImuSample, RangeSample, SampleError,
                             TruthSample, UsblSample, VisualMotionSample)
-from fusion.typed_config import as_dict
-from service import codec
-from service.cli import main as cli_main
-from service.logs import ReadStats, TruncatedLogError, read_mcap, read_mcap_metadata, write_mcap
-from sim.scenario import load_scenario
-from sim.simulator import simulate
-from sonar.ping import SonarPing
+from adaptnav.fusion.typed_config import as_dict
+from adaptnav.service.transport import codec
+from adaptnav.service.cli import main as cli_main
+from adaptnav.service.transport.logs import ReadStats, TruncatedLogError, read_mcap, read_mcap_metadata, write_mcap
+from adaptnav.sim.scenario import load_scenario
+from adaptnav.sim.simulator import simulate
+from adaptnav.sonar.ping import SonarPing
 
 
 @pytest.fixture(scope="module")

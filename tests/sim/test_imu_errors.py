@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 
-from sim.imu import IMU_GRADES, SensorErrorModel, triad_errors
+from adaptnav.sim.imu import IMU_GRADES, SensorErrorModel, triad_errors
 
 
 def test_gauss_markov_bias_instability_statistics():

@@ -3,8 +3,8 @@ import math
 
 import pytest
 
-from fusion.typed_config import ConfigError
-from sim.scenario import available_scenarios, load_scenario
+from adaptnav.fusion.typed_config import ConfigError
+from adaptnav.sim.scenario import available_scenarios, load_scenario
 
 REQUIRED_KEYS = {
     "seed": "5", "duration_s": "600.0", "imu.grade": '"consumer"', "imu.rate_hz": "50.0",

@@ -4,11 +4,11 @@ import math
 import numpy as np
 import pytest
 
-from fusion.frames import GRAVITY_M_S2, quat_from_rotvec, quat_mul, quat_to_dcm
-from fusion.motion_model import invert_step, velocity_variances
-from fusion.samples import ImuBatch, replay_order_key
-from sim.scenario import load_scenario
-from sim.simulator import simulate
+from adaptnav.fusion.frames import GRAVITY_M_S2, quat_from_rotvec, quat_mul, quat_to_dcm
+from adaptnav.fusion.motion_model import invert_step, velocity_variances
+from adaptnav.fusion.samples import ImuBatch, replay_order_key
+from adaptnav.sim.scenario import load_scenario
+from adaptnav.sim.simulator import simulate
 
 DEG = math.pi / 180
 
@@ -175,8 +175,8 @@ def test_iteration_is_in_replay_order(tactical):
 
 
 def test_sonar_pings_when_renderer_present():
-    pytest.importorskip("sim.sidescan")
-    pytest.importorskip("sim.seabed")
+    pytest.importorskip("adaptnav.sim.sidescan")
+    pytest.importorskip("adaptnav.sim.seabed")
     r = simulate(load_scenario("demo", ["duration_s=20", "sonar.ping_rate_hz=2.0", "sonar.range_m=20.0",
                                         "sonar.samples_per_side=128", "sonar.seabed_res_m=0.25"]))
     pings = r.samples["sonar"]
@@ -203,8 +203,8 @@ def test_start_delay_keeps_the_propeller_stopped_at_the_surface():
 def test_project_strapdown_follows_the_truth_with_a_perfect_imu(perfect):
     # the filter's own mechanisation (½(R⁻+R⁺) rotation, flat earth) agrees with the
     # simulator to its second-order discretisation error, far below any IMU grade's noise
-    sd = pytest.importorskip("fusion.strapdown")
-    state = pytest.importorskip("fusion.state")
+    sd = pytest.importorskip("adaptnav.fusion.strapdown")
+    state = pytest.importorskip("adaptnav.fusion.state")
     d = perfect.dense
     x = state.initial_nominal(d.pos_n_m[0], d.vel_n_m_s[0], d.q_nb[0])
     acc, r0, r1 = np.zeros(sd.ACC_SIZE), np.zeros((3, 3)), np.zeros((3, 3))

@@ -20,7 +20,7 @@ def need(path: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def scotsman_pings():
-    from sonar.xtf import read_xtf
+    from adaptnav.sonar.xtf import read_xtf
 
     pings, report = read_xtf(need(SCOTSMAN))
     return pings, report

@@ -3,7 +3,7 @@ import json
 import cv2
 import numpy as np
 
-from service.cli import main
+from adaptnav.service.cli import main
 from tests.sonar.conftest import SCOTSMAN, need
 
 
@@ -28,7 +28,7 @@ def test_motion_json_records(capsys):
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert len(lines) == (461 - 150) // 40
     # independent truth: the distance the lat/lon fixes cover between the window centres
-    from sonar.xtf import read_xtf
+    from adaptnav.sonar.xtf import read_xtf
 
     pings, _ = read_xtf(SCOTSMAN)
     lat = np.array([p.lat_rad for p in pings])

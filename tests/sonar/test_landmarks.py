@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from sim.seabed import Seabed
-from sim.sidescan import SidescanRenderer
-from sonar.landmarks import LandmarkTracker, extract_landmarks
-from sonar.waterfall import WaterfallConfig, build_waterfall
+from adaptnav.sim.seabed import Seabed
+from adaptnav.sim.sidescan import SidescanRenderer
+from adaptnav.sonar.landmarks import LandmarkTracker, extract_landmarks
+from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
 from tests.sonar.conftest import straight_pass
 
 CFG = WaterfallConfig(ground_res_m=0.1, along_res_m=0.1)

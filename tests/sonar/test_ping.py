@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from sonar.ping import PingError, SonarPing
+from adaptnav.sonar.ping import PingError, SonarPing
 
 
 def _ping():

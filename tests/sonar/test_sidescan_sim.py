@@ -2,8 +2,8 @@ import math
 
 import numpy as np
 
-from sim.seabed import Seabed
-from sim.sidescan import SidescanRenderer, SidescanSettings
+from adaptnav.sim.seabed import Seabed
+from adaptnav.sim.sidescan import SidescanRenderer, SidescanSettings
 
 
 def test_same_seed_same_ping():
@@ -45,6 +45,6 @@ def test_renders_fast_enough_to_be_vectorised():
     # not a timing test: the renderer must not loop in Python over samples
     import inspect
 
-    from sim import sidescan
+    from adaptnav.sim import sidescan
     src = inspect.getsource(sidescan.SidescanRenderer._sides)
     assert "for " not in src

@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from sim.seabed import Seabed
-from sim.sidescan import SidescanRenderer
-from sonar.landmarks import LandmarkObservation
-from sonar.motion import VisualMotion
-from sonar.ping import SonarPing
-from sonar.stream import AnchoredDeadReckoning, FrontEndConfig, SonarFrontEnd, reference_landmark
+from adaptnav.sim.seabed import Seabed
+from adaptnav.sim.sidescan import SidescanRenderer
+from adaptnav.sonar.landmarks import LandmarkObservation
+from adaptnav.sonar.motion import VisualMotion
+from adaptnav.sonar.ping import SonarPing
+from adaptnav.sonar.stream import AnchoredDeadReckoning, FrontEndConfig, SonarFrontEnd, reference_landmark
 
 SPEED = 1.5
 RATE_HZ = 4.0

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import uniform_filter
 
-from sonar.ping import SonarPing
-from sonar.waterfall import WaterfallConfig, build_waterfall, detect_first_return, slant_to_ground
+from adaptnav.sonar.ping import SonarPing
+from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall, detect_first_return, slant_to_ground
 
 
 def _flat_pings(n_pings, altitude_m, target_ground_m, side="starboard", speed=1.0):
@@ -109,7 +109,7 @@ def test_scotsman_wreck_is_the_strongest_structure_near_the_annotated_hit(scotsm
 
 
 def test_clean_pings_sorts_and_counts_bad_ones():
-    from sonar.waterfall import clean_pings
+    from adaptnav.sonar.waterfall import clean_pings
 
     def ping(t, n=16, rng_m=20.0):
         return SonarPing(t_s=t, port=np.ones(n), starboard=np.ones(n), slant_range_m=rng_m)
@@ -131,7 +131,7 @@ def test_clean_pings_sorts_and_counts_bad_ones():
 def test_masked_median_equals_numpy_nanmedian_on_the_data_pixels():
     import warnings
 
-    from sonar.waterfall import masked_median
+    from adaptnav.sonar.waterfall import masked_median
 
     rng = np.random.default_rng(3)
     for _ in range(20):

@@ -3,7 +3,7 @@ import shutil
 import numpy as np
 import pytest
 
-from sonar.xtf import SonarFileError, read_xtf
+from adaptnav.sonar.xtf import SonarFileError, read_xtf
 from tests.sonar.conftest import MBES, SCOTSMAN, need
 
 
@@ -52,7 +52,7 @@ def test_mbes_file_without_sonar_channels_is_a_clear_error(tmp_path):
 
 
 def test_cli_mbes_exit_code_2_without_traceback(capsys):
-    from service.cli import main
+    from adaptnav.service.cli import main
 
     rc = main(["sonar", "motion", str(need(MBES)), "--json"])
     err = capsys.readouterr().err

@@ -4,12 +4,12 @@
 Live: a Zenoh/MAVLink queue source, :class:`~service.clock.LiveClock`, Zenoh and MAVLink
 sinks. Replay: a log or simulator source, :class:`~service.clock.LogClock` (or
 :class:`~service.clock.RealtimeClock`), file sinks. Both hand the runner the calibrator
-of :mod:`service.calibrator_process` (a child process): a release computed at data time τ
+of :mod:`adaptnav.service.calibrator.process` (a child process): a release computed at data time τ
 comes back from ``calibrator.poll()`` once the runner's data time reaches τ + latency
 (replay waits for the child, so its output does not depend on wall-clock timing).
 Nothing else differs.
 
-Per item, in the source's deterministic order (``fusion.samples.replay_order_key``):
+Per item, in the source's deterministic order (``adaptnav.fusion.samples.replay_order_key``):
 
 1. output epochs ``t_k = k / output_rate_hz`` that the item's time passes are emitted
    first: the nav state after all data with ``t ≤ t_k`` goes to every sink's ``on_nav``
@@ -19,7 +19,7 @@ Per item, in the source's deterministic order (``fusion.samples.replay_order_key
    for the next sample to learn the epoch is complete (one IMU period of latency);
    with a calibrator, the estimator's free-inertial velocity (and its integral) at the
    first epoch of every second goes to ``calibrator.observe`` (its surge-noise evidence,
-   :mod:`calibration.inertial`) and to the sinks' ``on_inertial`` (the daemon publishes it
+   :mod:`adaptnav.calibration.inertial`) and to the sinks' ``on_inertial`` (the daemon publishes it
    for a remote calibrator);
 2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
    and goes to every sink either way;
@@ -42,14 +42,14 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fusion.samples import ImuBatch
+from adaptnav.fusion.samples import ImuBatch
 
 try:  # what the calibrator has no use for is not sent to it
-    from calibration.online import UNUSED_KINDS as _CALIBRATOR_UNUSED
+    from adaptnav.calibration.online import UNUSED_KINDS as _CALIBRATOR_UNUSED
 except ImportError:  # a daemon without the calibrator package (remote calibrator)
     _CALIBRATOR_UNUSED = frozenset({"truth"})
 
-from .health import Health
+from adaptnav.service.runtime.health import Health
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def _stop_requested(stop: Any) -> bool:
 
 def _bound(sinks: list, name: str) -> list:
     """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
-    from .sinks import Sink
+    from adaptnav.service.runtime.sinks import Sink
 
     base = getattr(Sink, name)
     return [getattr(s, name) for s in sinks
@@ -273,13 +273,13 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
     Parameters
     ----------
     source : iterable
-        Samples (``fusion.samples``), :class:`~fusion.samples.ImuBatch` runs and
+        Samples (``adaptnav.fusion.samples``), :class:`~fusion.samples.ImuBatch` runs and
         calibrator releases, in replay order. Optional ``qsize()`` gives the queue depth.
     estimator : fusion.eskf.Estimator
         ``process(sample) -> list[AidStatus]``, ``set_motion_params``, ``nav_state()``,
         ``initialized``, ``rejected`` (Counter by reason).
-    sinks : sequence of :class:`service.sinks.Sink`
-    clock : :class:`service.clock.Clock`
+    sinks : sequence of :class:`adaptnav.service.runtime.sinks.Sink`
+    clock : :class:`adaptnav.service.runtime.clock.Clock`
     calibrator : calibration.online.OnlineCalibrator, optional
         In-process calibrator (replay): ``observe(sample)`` then ``poll() -> [Release]``.
     output_rate_hz : float

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fusion.motion_model import MotionParams
+from adaptnav.fusion.motion_model import MotionParams
 
 log = logging.getLogger(__name__)
 

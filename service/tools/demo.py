@@ -17,7 +17,7 @@ port>`` (multicast scouting off); the demo's own session connects to it and coll
 nav states and the calibrator's releases.  The *learned* row is that live run.  The
 *static* (pre-change motion model, no calibrator) and *pure INS* (no velocity aiding)
 rows replay the same simulated mission (same seed) through the same runner with
-:func:`service.replay.replay`.  Metrics are :mod:`service.metrics` (horizontal error
+:func:`adaptnav.service.runtime.replay.replay`.  Metrics are :mod:`service.metrics` (horizontal error
 against truth, % of distance travelled), plus the error at the end of each USBL gap after
 the change (:func:`gap_end_errors`): the mission ends on a fix, so the final error alone
 says little about the motion model; ``demo.toml`` loses USBL for the last 390 s so that
@@ -68,8 +68,8 @@ def scenario_overrides(sets: list[str] | tuple[str, ...]) -> list[str]:
 
 
 def nav_state_from_dict(doc: dict) -> Any:
-    """A ``nav_state`` JSON document (bus payload) → :class:`fusion.state.NavState`."""
-    from fusion.state import NavState
+    """A ``nav_state`` JSON document (bus payload) → :class:`adaptnav.fusion.state.NavState`."""
+    from adaptnav.fusion.state import NavState
 
     def arr(key, shape=None):
         a = np.array([math.nan if v is None else v for v in doc[key]], dtype=float)
@@ -151,11 +151,11 @@ class LiveResult:
 
 def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) -> LiveResult:
     """The live part: daemon + calibrator process + SITL vehicle + sonar publisher."""
-    from .bus import Bus
-    from .config import ZenohConfig
-    from .daemon import Daemon
-    from .replay import build_config
-    from .sitl_vehicle import SitlVehicle, SitlVehicleConfig
+    from adaptnav.service.transport.bus import Bus
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.daemon import Daemon
+    from adaptnav.service.runtime.replay import build_config
+    from adaptnav.service.tools.sitl_vehicle import SitlVehicle, SitlVehicleConfig
 
     zport, uport = free_port(), free_port(socket.SOCK_DGRAM)
     vehicle_name = "demo"
@@ -245,9 +245,9 @@ def nav_epoch_counts(nav: list[dict], result: Any, duration_s: float, published:
 
 
 def live_recorder(live: LiveResult, result: Any, params0: Any) -> Any:
-    """A :class:`service.sinks.SeriesRecorder` filled with the live run and the truth."""
-    from .calibrator_process import release_from_dict
-    from .sinks import SeriesRecorder
+    """A :class:`adaptnav.service.runtime.sinks.SeriesRecorder` filled with the live run and the truth."""
+    from adaptnav.service.calibrator.process import release_from_dict
+    from adaptnav.service.runtime.sinks import SeriesRecorder
 
     rec = SeriesRecorder(initial_params=params0)
     for s in result.samples.get("truth", []):
@@ -407,10 +407,10 @@ def run_demo(overrides: list[str] | tuple[str, ...] = (), out_dir: str | Path = 
         Data seconds per wall second of the live run.
     progress, plots : bool
     """
-    from sim.scenario import load_scenario
+    from adaptnav.sim.scenario import load_scenario
 
-    from .replay import ReplayInput, build_config, replay, variant_config
-    from .sources import SimSource, simulate
+    from adaptnav.service.runtime.replay import ReplayInput, build_config, replay, variant_config
+    from adaptnav.service.runtime.sources import SimSource, simulate
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

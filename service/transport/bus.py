@@ -11,7 +11,7 @@ Key expressions (``<v>`` = vehicle name, DESIGN.md "Service")::
     adaptnav/<v>/query/{state,params,config,health}   queryables
 
 Payloads are JSON objects carrying ``type`` and ``schema_version`` (samples through
-:mod:`service.codec`; the service's own messages likewise, registered there), so a
+:mod:`adaptnav.service.transport.codec`; the service's own messages likewise, registered there), so a
 third-party subscriber (``zenoh-cli``, a Python one-liner) can read them.
 
 Zenoh runs subscriber callbacks on its own threads and forbids blocking there: the
@@ -30,9 +30,9 @@ from typing import Any, Callable
 
 import zenoh
 
-from fusion.samples import SampleError
+from adaptnav.fusion.samples import SampleError
 
-from .config import ZenohConfig
+from adaptnav.service.config import ZenohConfig
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def _decode_as(kind: str) -> Callable[[dict], BusMessage]:
 
 
 def _register_service_kinds() -> None:
-    from . import codec
+    from adaptnav.service.transport import codec
 
     for kind, (topic, description) in SERVICE_KINDS.items():
         codec.register(kind, lambda m: m.body, _decode_as(kind), _schema(kind, description), topic)
@@ -167,14 +167,14 @@ _register_service_kinds()
 
 
 def encode_sample(sample: Any) -> bytes:
-    from . import codec
+    from adaptnav.service.transport import codec
 
     return codec.encode(sample)
 
 
 def decode_sample(payload: bytes) -> Any:
     """Bytes → sample; :class:`SampleError` on anything malformed."""
-    from . import codec
+    from adaptnav.service.transport import codec
 
     try:
         return codec.decode(payload)

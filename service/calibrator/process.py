@@ -1,7 +1,7 @@
 """The EM calibrator outside the fusion thread: a supervised child process, or a bus node.
 
 DESIGN.md "Service": fusion must never wait for EM (2 cores). The daemon therefore runs
-:class:`calibration.online.OnlineCalibrator` in a ``multiprocessing`` *spawn* child:
+:class:`adaptnav.calibration.online.OnlineCalibrator` in a ``multiprocessing`` *spawn* child:
 
 - :class:`CalibratorProcess` is what the runner sees as its ``calibrator``:
   ``observe(sample)`` forwards the sample to the child without blocking (a full queue
@@ -52,7 +52,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fusion.motion_model import MotionParams
+from adaptnav.fusion.motion_model import MotionParams
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,7 @@ def release_to_dict(release: Any) -> dict[str, Any]:
 
 def _release_type() -> type:
     try:
-        from calibration.online import Release
+        from adaptnav.calibration.online import Release
     except ImportError:  # a daemon without the calibrator package still applies remote releases
         import dataclasses
         from dataclasses import make_dataclass
@@ -100,7 +100,7 @@ def _current_from(value: Any) -> tuple[float, float]:
 
 
 def release_from_dict(data: Any) -> Any:
-    """Dict → ``calibration.online.Release``; ``ValueError`` when malformed."""
+    """Dict → ``adaptnav.calibration.online.Release``; ``ValueError`` when malformed."""
     Release = _release_type()
 
     if not isinstance(data, dict) or data.get("type") != "calibration_release":
@@ -130,7 +130,7 @@ def make_calibrator(cfg: Any, params0: MotionParams, seed: int) -> Any:
 
     import numpy as np
 
-    from calibration.online import OnlineCalibrator
+    from adaptnav.calibration.online import OnlineCalibrator
 
     online = cfg.calibrator.online
     if not (math.isfinite(online.origin_lat_deg) and math.isfinite(online.origin_lon_deg)):
@@ -148,7 +148,7 @@ def compact_imu(batch: list[Any]) -> list[Any]:
     """
     import numpy as np
 
-    from fusion.samples import ImuBatch, ImuSample
+    from adaptnav.fusion.samples import ImuBatch, ImuSample
 
     out: list[Any] = []
     run: list[Any] = []
@@ -233,7 +233,7 @@ def pack_batch(batch: list[Any]) -> tuple:
     :class:`~fusion.samples.ImuBatch` concatenated (three arrays per message instead of three
     per batch: pickling many small arrays was most of the transport's cost), each batch
     replaced by its row span; other samples as they are. Inverse: :func:`unpack_batch`."""
-    from fusion.samples import ImuBatch
+    from adaptnav.fusion.samples import ImuBatch
 
     items: list[Any] = []
     ts, fs, ws = [], [], []
@@ -255,7 +255,7 @@ def pack_batch(batch: list[Any]) -> tuple:
 
 def unpack_batch(packed: tuple) -> list[Any]:
     """Inverse of :func:`pack_batch` (batches become views of the shared arrays)."""
-    from fusion.samples import ImuBatch
+    from adaptnav.fusion.samples import ImuBatch
 
     items, arrays = packed
     if arrays is None:
@@ -339,7 +339,7 @@ def _enlarge_pipe(conn: Any, size: int = 1 << 20) -> None:
 def _forkserver_context() -> Any:
     ctx = mp.get_context("forkserver")
     # what the children need, imported (and numba's kernels loaded) once in the server
-    ctx.set_forkserver_preload(["__main__", "service.calibrator_process", "service._calibrator_preload"])
+    ctx.set_forkserver_preload(["__main__", "adaptnav.service.calibrator.process", "adaptnav.service.calibrator.preload"])
     return ctx
 
 
@@ -739,8 +739,8 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     import dataclasses
     import json
 
-    from .bus import Bus, nonblocking_enqueue
-    from .persistence import load_state
+    from adaptnav.service.transport.bus import Bus, nonblocking_enqueue
+    from adaptnav.service.runtime.persistence import load_state
 
     restored = load_state(cfg.state_dir)
     params0 = restored.params if restored and restored.params else cfg.motion.params0

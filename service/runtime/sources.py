@@ -2,9 +2,9 @@
 readers and simulators are interchangeable as sources). The live queue source is
 the daemon's (``service.daemon.QueueSource``).
 
-A source is an iterable of samples (:mod:`fusion.samples`), :class:`ImuBatch` runs and,
+A source is an iterable of samples (:mod:`adaptnav.fusion.samples`), :class:`ImuBatch` runs and,
 live, calibrator releases, in the deterministic replay order
-``(t_s, source priority, seq)`` (:func:`fusion.samples.replay_order_key`). It also has
+``(t_s, source priority, seq)`` (:func:`adaptnav.fusion.samples.replay_order_key`). It also has
 
 - ``counters`` — a :class:`SourceCounters` (messages read, decode errors, corrupt
   frames, samples with an unusable timestamp, late samples, ...),
@@ -16,7 +16,7 @@ live, calibrator releases, in the deterministic replay order
 
 Sources here: :class:`SimSource` (a scenario simulated in memory), :class:`McapSource`
 (our MCAP logs, scenario from the metadata), :class:`TlogReplaySource` (MAVLink
-``.tlog``/DataFlash ``.bin`` through :class:`service.tlog_source.TlogSource`) and
+``.tlog``/DataFlash ``.bin`` through :class:`adaptnav.service.transport.tlog_source.TlogSource`) and
 :class:`SampleStreamSource` (any iterable of samples).
 
 :func:`order_and_batch` is the common core: a bounded re-ordering heap (``horizon_s`` of
@@ -39,7 +39,7 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from fusion.samples import ImuBatch, ImuSample, replay_order_key
+from adaptnav.fusion.samples import ImuBatch, ImuSample, replay_order_key
 
 # streams navigation uses; a log lacking one of these is reported in ``missing``
 log = logging.getLogger(__name__)
@@ -196,7 +196,7 @@ class SampleStreamSource:
 
 
 class SimSource:
-    """A scenario simulated in memory as a source (``sim.simulate(scenario).iter_blocks()``).
+    """A scenario simulated in memory as a source (``adaptnav.sim.simulate(scenario).iter_blocks()``).
 
     The simulator already yields :class:`ImuBatch` runs and other samples in replay order;
     they pass through (counted). ``metadata`` holds the scenario.
@@ -235,17 +235,14 @@ class SimSource:
 
 
 def simulate(scenario: Any) -> Any:
-    """``sim.simulate`` (the package export when present, else ``sim.simulator``)."""
-    import sim
+    """Run the simulator on a scenario (``adaptnav.sim.simulator.simulate``)."""
+    from adaptnav.sim.simulator import simulate as run_simulation
 
-    fn = getattr(sim, "simulate", None)
-    if fn is None:
-        from sim.simulator import simulate as fn
-    return fn(scenario)
+    return run_simulation(scenario)
 
 
 class TlogReplaySource(SampleStreamSource):
-    """A :class:`service.tlog_source.TlogSource` batched for the estimator; its own
+    """A :class:`adaptnav.service.transport.tlog_source.TlogSource` batched for the estimator; its own
     counters (messages read, corrupt frames, what is missing) are the ones reported."""
 
     def __init__(self, tlog: Any) -> None:
@@ -269,13 +266,13 @@ class TlogReplaySource(SampleStreamSource):
 
 def tlog_source(path: Path) -> Any:
     """A ``.tlog``/``.bin`` file as a replay source."""
-    from service.tlog_source import TlogSource
+    from adaptnav.service.transport.tlog_source import TlogSource
 
     return TlogReplaySource(TlogSource(path))
 
 
 class McapSource(SampleStreamSource):
-    """Our MCAP logs (:func:`service.logs.read_mcap`), with the scenario from the metadata.
+    """Our MCAP logs (:func:`adaptnav.service.transport.logs.read_mcap`), with the scenario from the metadata.
 
     Undecodable messages are counted by reason (``decode:<field>``) and skipped; a
     truncated file replays up to the damage and says so in ``truncated``.
@@ -284,7 +281,7 @@ class McapSource(SampleStreamSource):
     MAX_LOGGED = 10
 
     def __init__(self, path: Path) -> None:
-        from service import logs
+        from adaptnav.service.transport import logs
 
         self.path = Path(path)
         self.stats = logs.ReadStats()
@@ -298,9 +295,9 @@ class McapSource(SampleStreamSource):
         self.duration_s = self.scenario.duration_s if self.scenario is not None else None
 
     def _samples(self):
-        from fusion.samples import SampleError
+        from adaptnav.fusion.samples import SampleError
 
-        from service import logs
+        from adaptnav.service.transport import logs
 
         logged = 0
         for item in self.reader:

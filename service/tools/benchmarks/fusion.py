@@ -16,11 +16,11 @@ import time
 
 import numpy as np
 
-from fusion.config import FilterConfig
-from fusion.eskf import Estimator
-from fusion.frames import GRAVITY_M_S2, GeoOrigin
-from fusion.motion_model import MotionParams, RpmSpeedTable
-from fusion.samples import DepthSample, HeadingSample, ImuBatch, RpmSample, UsblSample, replay_order_key
+from adaptnav.fusion.config import FilterConfig
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.samples import DepthSample, HeadingSample, ImuBatch, RpmSample, UsblSample, replay_order_key
 
 ORIGIN = GeoOrigin(np.radians(43.0), np.radians(5.0), 0.0)
 SPEED_M_S = 1.5

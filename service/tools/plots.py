@@ -66,7 +66,7 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
 
 def plot_params(rec: Any, path: Path, title: str = "") -> bool:
     plt = _pyplot()
-    from fusion.motion_model import MotionParams
+    from adaptnav.fusion.motion_model import MotionParams
 
     rows = []
     if rec.initial_params is not None and rec.nav_t:

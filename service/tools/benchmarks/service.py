@@ -14,7 +14,7 @@ Figures (``--quick``: shorter missions, same code):
 - ``replay_*``: a 1 h simulated survey with all sensors (IMU, DVL, depth, heading,
   RPM, USBL, side-scan sonar) replayed through the runner with the calibrator in its
   child process, releases applied deterministically at data time τ + ``latency_s``
-  (:func:`service.replay.replay`), as fast as possible; peer: the same replay without
+  (:func:`adaptnav.service.runtime.replay.replay`), as fast as possible; peer: the same replay without
   the calibrator, alternating with it in the same run (best of ``replay_repeats``).
 - ``rss_*``: the daemon's resident memory while 1 h of simulated data is pushed through
   it at full speed (flow-controlled on its queue depth): at half time, at the end, and
@@ -71,19 +71,19 @@ def daemon_main(config_json: str) -> int:
     from the scenario, so the daemon imports no simulator — as on a vehicle)."""
     import logging
 
-    from fusion.typed_config import build
+    from adaptnav.fusion.typed_config import build
 
-    from service.config import ServiceConfig
-    from service.daemon import serve
+    from adaptnav.service.config import ServiceConfig
+    from adaptnav.service.daemon import serve
 
     logging.basicConfig(level=logging.WARNING)
     return serve(build(ServiceConfig, json.loads(config_json)))
 
 
 def _start_daemon(scenario, port: int, state_dir: str) -> subprocess.Popen:
-    from fusion.typed_config import as_dict
+    from adaptnav.fusion.typed_config import as_dict
 
-    from service.replay import build_config
+    from adaptnav.service.runtime.replay import build_config
 
     cfg = build_config(scenario, None, [
         f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false", f'state_dir="{state_dir}"',
@@ -107,7 +107,7 @@ def _calibrator_pid(pid: int) -> int | None:
 
 
 def _flatten(items):
-    from fusion.samples import ImuBatch
+    from adaptnav.fusion.samples import ImuBatch
 
     for item in items:
         if isinstance(item, ImuBatch):
@@ -126,8 +126,8 @@ def _free_port() -> int:
 
 def zenoh_floor(n: int = 400) -> dict:
     """Peer figure: one-way pub→sub latency of a ~300-byte JSON payload, two sessions."""
-    from service.bus import Bus
-    from service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+    from adaptnav.service.config import ZenohConfig
 
     port = _free_port()
     a = Bus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)), "floor")
@@ -160,11 +160,11 @@ def zenoh_floor(n: int = 400) -> dict:
 
 def live(latency_s: float, rss_sim_s: float) -> dict:
     """Latency in real time for ``latency_s``, then full speed up to ``rss_sim_s`` of data."""
-    from sim.scenario import load_scenario
+    from adaptnav.sim.scenario import load_scenario
 
-    from service.bus import Bus
-    from service.config import ZenohConfig
-    from service.sources import simulate
+    from adaptnav.service.transport.bus import Bus
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.runtime.sources import simulate
 
     scenario = load_scenario(LIVE_SCENARIO, LIVE_OVERRIDES + [f"duration_s={rss_sim_s}"])
     items = simulate(scenario).iter_blocks()
@@ -265,12 +265,12 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     The two variants alternate ``repeats`` times in this process (a shared 2-core machine
     is noisy: the peer is always measured in the same run) and each figure is the best
     (least disturbed) of its repeats. The calibrator runs in its child process with
-    deterministic application (:class:`service.calibrator_process.LaggedCalibrator`);
+    deterministic application (:class:`adaptnav.service.calibrator.process.LaggedCalibrator`);
     ``replay_calibrator_process_cpu_s`` is that child's CPU time, ``replay_calibrator_wait_s``
     the wall time the runner waited for it.
     """
-    from service.calibrator_process import prestart
-    from service.replay import build_config, open_scenario, replay
+    from adaptnav.service.calibrator.process import prestart
+    from adaptnav.service.runtime.replay import build_config, open_scenario, replay
 
     prestart()  # as `adaptnav replay --calibrate` does: while the mission is simulated
     inp = open_scenario(LIVE_SCENARIO, REPLAY_OVERRIDES + [f"duration_s={duration_s}"])

@@ -1,4 +1,4 @@
-"""Preload of the calibrator's forkserver (:class:`service.calibrator_process.ProcessBackend`).
+"""Preload of the calibrator's forkserver (:class:`adaptnav.service.calibrator.process.ProcessBackend`).
 
 Imported once by the ``multiprocessing`` forkserver: it imports the calibrator's modules
 and runs one tiny EM window so that numba loads its cached kernels there; every child
@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-import calibration.online  # noqa: F401 (the import is the point)
-import service.config  # noqa: F401 (the child unpickles a ServiceConfig: pymavlink & co.)
-import sonar.stream  # noqa: F401
-from calibration.em import EMOptions, run_em
-from calibration.sensors import HeadingObservation, PositionFix
-from fusion.motion_model import MotionParams
+import adaptnav.calibration.online  # noqa: F401 (the import is the point)
+import adaptnav.service.config  # noqa: F401 (the child unpickles a ServiceConfig: pymavlink & co.)
+import adaptnav.sonar.stream  # noqa: F401
+from adaptnav.calibration.em import EMOptions, run_em
+from adaptnav.calibration.sensors import HeadingObservation, PositionFix
+from adaptnav.fusion.motion_model import MotionParams
 
 
 def _warm_kernels() -> None:

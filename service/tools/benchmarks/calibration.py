@@ -28,10 +28,10 @@ def _best(fn, repeats):
 def run(args) -> dict:
     import numpy as np
 
-    from calibration.mstep import m_step
-    from calibration.particle_filter import run_particle_filter
-    from calibration.smoother import ffbsi_exact, ffbsi_mcmc
-    from calibration.thesis import ThesisRow, simulate, _init_cloud
+    from adaptnav.calibration.mstep import m_step
+    from adaptnav.calibration.particle_filter import run_particle_filter
+    from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_mcmc
+    from adaptnav.calibration.thesis import ThesisRow, simulate, _init_cloud
 
     quick = bool(getattr(args, "quick", False))
     T, N, M = (30, 300, 30) if quick else (100, 1000, 100)

@@ -5,7 +5,7 @@ Two inputs, each turned into a ping-indexed waterfall whose consecutive 200-ping
 headline figures, when ``../shared/data`` is present) and a synthetic survey line
 (1024 samples per side, 30 m range, strongly textured seabed).
 
-* ours: :class:`sonar.motion.WindowRegistrar` — SIFT on a 2× downsampled image, K = 400
+* ours: :class:`adaptnav.sonar.motion.WindowRegistrar` — SIFT on a 2× downsampled image, K = 400
   strongest, features of the previous window cached (one detection per window);
 * peer: plain full-resolution SIFT on both windows of every pair (no cap, no cache),
   the same ratio test and RANSAC.
@@ -21,8 +21,8 @@ import numpy as np
 
 
 def _survey(n_pings: int, samples: int, seed: int = 0):
-    from sim.seabed import Seabed
-    from sim.sidescan import SidescanRenderer
+    from adaptnav.sim.seabed import Seabed
+    from adaptnav.sim.sidescan import SidescanRenderer
 
     rng = np.random.default_rng(seed)
     ds, v = 0.2, 1.5
@@ -37,8 +37,8 @@ def _survey(n_pings: int, samples: int, seed: int = 0):
 def _plain_sift_pair(img_a, img_b, mask_a, mask_b, res_along, wa, wb):
     import cv2
 
-    from sonar.matching import fit_similarity, match_descriptors
-    from sonar.motion import window_metric_xy
+    from adaptnav.sonar.matching import fit_similarity, match_descriptors
+    from adaptnav.sonar.motion import window_metric_xy
 
     sift = cv2.SIFT_create()
     ka, da = sift.detectAndCompute(img_a, mask_a)
@@ -55,8 +55,8 @@ def _plain_sift_pair(img_a, img_b, mask_a, mask_b, res_along, wa, wb):
 
 def _measure(wf, window: int, step: int, n_plain_max: int) -> dict:
     """Ours (streamed, cached) vs plain full-image SIFT on the same window pairs."""
-    from sonar.motion import WindowRegistrar
-    from sonar.waterfall import to_uint8
+    from adaptnav.sonar.motion import WindowRegistrar
+    from adaptnav.sonar.waterfall import to_uint8
 
     reg = WindowRegistrar()
     t0 = time.perf_counter()
@@ -97,8 +97,8 @@ def run(args) -> dict:
 
     import cv2
 
-    from sonar.waterfall import WaterfallConfig, build_waterfall
-    from sonar.xtf import SonarFileError, read_xtf
+    from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
+    from adaptnav.sonar.xtf import SonarFileError, read_xtf
 
     cv2.setNumThreads(1)
     quick = bool(getattr(args, "quick", False))

@@ -8,7 +8,7 @@ One thread owns the link.  It
 - on every (re)appearance of the autopilot's HEARTBEAT, asks for the streams it needs
   with ``MAV_CMD_SET_MESSAGE_INTERVAL`` (ArduSub streams RAW_IMU at 2 Hz unless asked)
   and sends ``SET_GPS_GLOBAL_ORIGIN`` once per link;
-- converts what arrives with :class:`service.mavlink_convert.MavlinkConverter` and
+- converts what arrives with :class:`adaptnav.service.transport.mavlink_convert.MavlinkConverter` and
   hands each sample to ``on_sample`` (which should only enqueue);
 - survives corrupt frames (pymavlink's robust parser yields ``BAD_DATA``; counted),
   link loss (no autopilot traffic for ``link_timeout_s``) and socket errors (re-open
@@ -17,7 +17,7 @@ One thread owns the link.  It
 :meth:`MavlinkBridge.send_nav` is called by the daemon's output at its own rate
 (≥ 4 Hz for ArduSub, which drops external navigation ~15 s after the last message); an
 invalid solution is never sent as plausible zeros (see
-:func:`service.mavlink_convert.odometry_fields`).
+:func:`adaptnav.service.transport.mavlink_convert.odometry_fields`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
+from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     ConvertConfig,
     MavlinkConverter,
     OdometryConfig,
@@ -39,7 +39,7 @@ from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     odometry_fields,
     vision_position_delta_fields,
 )
-from fusion.frames import GeoOrigin
+from adaptnav.fusion.frames import GeoOrigin
 
 from pymavlink import mavutil  # noqa: E402
 

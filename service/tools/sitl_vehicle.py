@@ -1,6 +1,6 @@
 """A simulated vehicle behind an ArduSub-like MAVLink endpoint (demo and tests).
 
-It takes timestamped samples (``sim.simulate(...).iter_samples()`` or any iterable of
+It takes timestamped samples (``adaptnav.sim.simulate(...).iter_samples()`` or any iterable of
 samples in time order) and speaks to the link as ArduSub would:
 
 - HEARTBEAT at 1 Hz as ``MAV_TYPE_SUBMARINE`` / ``MAV_AUTOPILOT_ARDUPILOTMEGA``
@@ -19,7 +19,7 @@ samples in time order) and speaks to the link as ArduSub would:
 - it records what comes back: ODOMETRY count and last message/quality,
   SET_GPS_GLOBAL_ORIGIN, the onboard component's heartbeats and the interval requests.
 
-Unit conversions go through :mod:`service.mavlink_convert` constants, the inverse of
+Unit conversions go through :mod:`adaptnav.service.transport.mavlink_convert` constants, the inverse of
 what the bridge applies.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
+from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     DEG_E7_TO_RAD,
     HPA_TO_PA,
     MG_TO_M_S2,
@@ -40,7 +40,7 @@ from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     ThrusterConfig,
     mavlink2,
 )
-from fusion.frames import quat_to_euler
+from adaptnav.fusion.frames import quat_to_euler
 
 from pymavlink import mavutil  # noqa: E402
 

@@ -1,7 +1,7 @@
 """Replay source for MAVLink telemetry logs (``.tlog``) and ArduPilot DataFlash (``.BIN``).
 
 pymavlink opens a log with the same ``mavutil.mavlink_connection`` API as a live link,
-so the messages go through the same :class:`service.mavlink_convert.MavlinkConverter`
+so the messages go through the same :class:`adaptnav.service.transport.mavlink_convert.MavlinkConverter`
 as the bridge.  Data time comes from the autopilot's ``time_boot_ms``/``time_usec``
 (the tlog's own ``_timestamp`` is the wall clock of the recording computer and is not
 used).  Samples are released in the deterministic replay order
@@ -24,13 +24,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from service.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
+from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     ConvertConfig,
     ConversionError,
     MavlinkConverter,
 )
-from fusion.frames import wrap_angle
-from fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
+from adaptnav.fusion.frames import wrap_angle
+from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
 
 from pymavlink import mavutil  # noqa: E402
 

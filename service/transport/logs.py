@@ -3,7 +3,7 @@
 Layout written by :func:`write_mcap`:
 
 - one channel per stream: topic ``/adaptnav/sensor/<kind>`` for sensor kinds,
-  ``/adaptnav/truth`` for ground truth (others as :func:`service.codec.topic_for` says),
+  ``/adaptnav/truth`` for ground truth (others as :func:`adaptnav.service.transport.codec.topic_for` says),
   ``message_encoding="json"``, schema encoding ``jsonschema`` with the kind's JSON Schema;
 - message log time = publish time = sample ``t_s`` in integer nanoseconds; sequence =
   the message's index in the file;
@@ -31,8 +31,8 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from fusion.samples import SCHEMA_VERSION, ImuBatch, SampleError
-from service import codec
+from adaptnav.fusion.samples import SCHEMA_VERSION, ImuBatch, SampleError
+from adaptnav.service.transport import codec
 
 METADATA_NAME = "adaptnav"
 
@@ -157,7 +157,7 @@ class McapLog:
     """One pass over an MCAP log: an iterator of messages and errors (see :func:`read_mcap`).
 
     Attributes known before iterating: ``metadata`` (the ``adaptnav`` record, ``{}`` if
-    none), ``scenario`` (the simulated :class:`sim.scenario.Scenario` rebuilt from the
+    none), ``scenario`` (the simulated :class:`adaptnav.sim.scenario.Scenario` rebuilt from the
     metadata, or ``None``), ``streams`` (kinds of the file's channels when its summary is
     readable, else ``None``). Filled while iterating: ``stats`` (:class:`ReadStats`) and
     ``counters`` (a dict: ``messages_read``, ``corrupt_frames``, ``decode_errors`` by kind).
@@ -228,8 +228,8 @@ def _scenario_from(metadata: dict) -> Any:
     raw = metadata.get("scenario")
     if not isinstance(raw, dict):
         return None
-    from fusion.typed_config import ConfigError, build
-    from sim.scenario import Scenario
+    from adaptnav.fusion.typed_config import ConfigError, build
+    from adaptnav.sim.scenario import Scenario
 
     try:
         return build(Scenario, raw)

@@ -4,9 +4,9 @@ Live, the sinks are the Zenoh publishers and the MAVLink bridge; in replay they 
 files written here (DESIGN.md "Service": the runner is the same, only sources, clock and
 sinks change). A sink implements any of
 
-- ``on_nav(state)`` — a :class:`fusion.state.NavState` at the output rate,
-- ``on_aid(statuses)`` — the :class:`fusion.status.AidStatus` records of one sample,
-- ``on_release(release)`` — a :class:`calibration.online.Release` (accepted or not),
+- ``on_nav(state)`` — a :class:`adaptnav.fusion.state.NavState` at the output rate,
+- ``on_aid(statuses)`` — the :class:`adaptnav.fusion.status.AidStatus` records of one sample,
+- ``on_release(release)`` — a :class:`adaptnav.calibration.online.Release` (accepted or not),
 - ``on_sample(sample)`` — every non-IMU input sample (truth included, for metrics),
 - ``close()`` — flush and write what is written at the end;
 
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import TrackArrays, TruthArrays, compute_metrics
+from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics
 
 
 def fmt(value: Any) -> str:
@@ -53,8 +53,8 @@ def fmt(value: Any) -> str:
 def euler_rad(q_nb: Any) -> tuple[float, float, float]:
     """(roll, pitch, yaw) rad, ZYX, of a unit (w, x, y, z) quaternion — closed form.
 
-    The same angles as :meth:`fusion.state.NavState.euler_rad` (rows of ``R_nb`` as in
-    :func:`fusion.frames.dcm_to_euler`) without a scipy round trip per output row.
+    The same angles as :meth:`adaptnav.fusion.state.NavState.euler_rad` (rows of ``R_nb`` as in
+    :func:`adaptnav.fusion.frames.dcm_to_euler`) without a scipy round trip per output row.
     """
     w, x, y, z = (float(v) for v in q_nb)
     r20 = 2.0 * (x * z - w * y)
@@ -72,7 +72,7 @@ def _vec(values: Any) -> str:
 
 def _state_slices():
     # imported lazily: fusion.state is the estimator's contract (DESIGN.md named slices)
-    from fusion import state as st
+    from adaptnav.fusion import state as st
     return st
 
 
@@ -214,7 +214,7 @@ class ParamsCsvSink(Sink):
     """
 
     def __init__(self, path: str | Path, initial_params: Any = None) -> None:
-        from fusion.motion_model import MotionParams
+        from adaptnav.fusion.motion_model import MotionParams
 
         self.path = Path(path)
         self.names = tuple(MotionParams().to_dict())
@@ -371,6 +371,6 @@ class PlotSink(Sink):
         self.written: list[Path] = []
 
     def close(self) -> None:
-        from . import plots
+        from adaptnav.service.tools import plots
 
         self.written = plots.write_all(self.recorder, self.out_dir, self.title)

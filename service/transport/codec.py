@@ -6,14 +6,14 @@ print it. Non-finite numbers travel as ``null`` (strict JSON has no NaN).
 
 - :func:`encode` ``(sample) -> bytes``
 - :func:`decode` ``(bytes) -> sample``; anything malformed (not UTF-8, not JSON, not an
-  object, unknown type, wrong field types) raises :class:`fusion.samples.SampleError`
+  object, unknown type, wrong field types) raises :class:`adaptnav.fusion.samples.SampleError`
   and never any other exception.
 - :func:`schema_for` ``(kind) -> dict``: the JSON Schema of a kind (MCAP channels).
 - :func:`register` ``(kind, encode_fn, decode_fn, schema, topic=None)``: how other
   packages add kinds (navigation state, aid status, parameters ...).
 
-Built in: every type of :data:`fusion.samples.SAMPLE_TYPES`, and ``sonar``
-(:class:`sonar.ping.SonarPing`, imported on first use; intensity arrays as JSON lists).
+Built in: every type of :data:`adaptnav.fusion.samples.SAMPLE_TYPES`, and ``sonar``
+(:class:`adaptnav.sonar.ping.SonarPing`, imported on first use; intensity arrays as JSON lists).
 """
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ import json
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from fusion import samples as fs
-from fusion.samples import SampleError
+from adaptnav.fusion import samples as fs
+from adaptnav.fusion.samples import SampleError
 
 __all__ = ["SampleError", "encode", "decode", "decode_dict", "schema_for", "register", "kinds",
            "topic_for", "kind_of", "time_of"]
@@ -67,7 +67,7 @@ for _kind, _cls in fs.SAMPLE_TYPES.items():
 
 
 def _sonar_codec() -> Codec:
-    from sonar.ping import SonarPing  # lazy: keeps numpy-only consumers light
+    from adaptnav.sonar.ping import SonarPing  # lazy: keeps numpy-only consumers light
 
     return Codec("sonar", SonarPing.to_dict, SonarPing.from_dict, SonarPing.json_schema,
                  _default_topic("sonar"))
@@ -111,7 +111,7 @@ def _fast_decoder(cls: type) -> Callable[[dict], Any]:
     """A decoder for the common, well-formed payload of a sample type (the hot path of
     log replay). It returns ``None`` for anything unusual (ints for floats, nulls,
     missing/unknown fields ...), which then goes to the strict generic decoder
-    :func:`fusion.samples.from_dict` for the verdict and its error message."""
+    :func:`adaptnav.fusion.samples.from_dict` for the verdict and its error message."""
     import dataclasses
 
     spec = []
@@ -146,7 +146,7 @@ _FAST = {kind: _fast_decoder(cls) for kind, cls in fs.SAMPLE_TYPES.items()}
 
 
 def _fast_encoder(cls: type) -> Callable[[Any], dict]:
-    """:func:`fusion.samples.to_dict` with the field list computed once (log writing)."""
+    """:func:`adaptnav.fusion.samples.to_dict` with the field list computed once (log writing)."""
     import dataclasses
     import math
 

@@ -1,5 +1,5 @@
 """Replay harness: a recorded mission (MCAP, ``.tlog``/``.BIN``) or a scenario simulated
-in memory, through the *same* runner as the live daemon (:func:`service.runner.run`),
+in memory, through the *same* runner as the live daemon (:func:`adaptnav.service.runtime.runner.run`),
 with a log/simulator source, a log (or real-time) clock and file sinks.
 
 Configuration is the daemon's :class:`service.config.ServiceConfig` (one typed tree),
@@ -15,7 +15,7 @@ With ``calibrate=True`` the online calibrator runs in a child process (the secon
 ``calibrator_location="inline"``: in this process, same output) and a release it computed
 at data time τ is applied once the runner's data time reaches τ + ``calibrator.latency_s``,
 the runner waiting for the child's progress: the output is deterministic
-(:class:`service.calibrator_process.LaggedCalibrator`).
+(:class:`adaptnav.service.calibrator.process.LaggedCalibrator`).
 
 Comparisons (the navigation-core targets): ``aiding="none"`` is pure INS (learned
 velocity, DVL and visual motion off; the other aids stay), ``k_v_error`` a static,
@@ -34,14 +34,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
 
-from .clock import LogClock, RealtimeClock
-from .health import Health
-from .runner import RunSummary, run
-from .sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
+from adaptnav.service.runtime.clock import LogClock, RealtimeClock
+from adaptnav.service.runtime.health import Health
+from adaptnav.service.runtime.runner import RunSummary, run
+from adaptnav.service.runtime.sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
                     TrajectoryCsvSink)
-from .sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
+from adaptnav.service.runtime.sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def _imu_filter_raw(grade: str) -> dict:
     driving density ``σ_GM·sqrt(2/τ)`` (the filter models biases as random walks).
     Floors keep a "perfect" IMU's filter well conditioned.
     """
-    from sim.imu import IMU_GRADES
+    from adaptnav.sim.imu import IMU_GRADES
 
     g = IMU_GRADES[grade]
 
@@ -110,7 +110,7 @@ def build_config(scenario: Any = None, config_path: str | Path | None = None,
     """Effective :class:`ServiceConfig` (precedence in the module docstring)."""
     import tomllib
 
-    from .config import ServiceConfig
+    from adaptnav.service.config import ServiceConfig
 
     raw: dict = config_raw_from_scenario(scenario) if scenario is not None else {}
     if config_path is not None:
@@ -141,7 +141,7 @@ class ReplayInput:
 
 def open_scenario(name: str, overrides: list[str] | tuple[str, ...] = ()) -> ReplayInput:
     """Simulate scenario ``name`` (or a .toml path) in memory."""
-    from sim.scenario import load_scenario
+    from adaptnav.sim.scenario import load_scenario
 
     scenario = load_scenario(name, list(overrides))
     result = simulate(scenario)
@@ -207,7 +207,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     out_dir : path, created if needed
     calibrate : bool
         Run the online calibrator; its releases are applied at data time τ +
-        ``cfg.calibrator.latency_s`` (deterministic: :class:`service.calibrator_process.LaggedCalibrator`).
+        ``cfg.calibrator.latency_s`` (deterministic: :class:`adaptnav.service.calibrator.process.LaggedCalibrator`).
     calibrator_location : {"process", "inline"}
         The calibrator in a child process (the second core) or in this process; both
         give the same output.
@@ -218,7 +218,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     plots : bool
         Write the PNG plots.
     """
-    from fusion.eskf import Estimator
+    from adaptnav.fusion.eskf import Estimator
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -237,7 +237,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     estimator = Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
     calibrator = None
     if calibrate:
-        from .calibrator_process import make_lagged_calibrator
+        from adaptnav.service.calibrator.process import make_lagged_calibrator
 
         calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
         items = calibrator.schedule(items)
@@ -366,7 +366,7 @@ VARIANTS = ("pure_ins", "static_wrong", "given")
 
 def variant_config(cfg: Any, variant: str, k_v_error: float = 0.1) -> Any:
     """``pure_ins`` (no velocity aiding), ``static_wrong`` (k_V × (1 + k_v_error)), ``given``."""
-    from .config import ServiceConfig
+    from adaptnav.service.config import ServiceConfig
 
     if variant == "given":
         return cfg

@@ -57,8 +57,8 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
-from fusion.frames import GRAVITY_M_S2, GeoOrigin, dcm_to_euler, quat_to_dcm, wrap_angle  # noqa: E402
-from fusion.samples import (  # noqa: E402
+from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, dcm_to_euler, quat_to_dcm, wrap_angle  # noqa: E402
+from adaptnav.fusion.samples import (  # noqa: E402
     AltitudeSample,
     AttitudeSample,
     DepthSample,
@@ -457,7 +457,7 @@ _HANDLERS = {
 def _cov_slices():
     """Error-state slices (position, velocity, attitude) of ``NavState.cov``."""
     try:
-        from fusion.state import ATT, POS, VEL  # the filter's named slices
+        from adaptnav.fusion.state import ATT, POS, VEL  # the filter's named slices
     except ImportError:  # fusion/state.py not landed yet: its documented layout
         POS, VEL, ATT = slice(0, 3), slice(3, 6), slice(6, 9)
     return POS, VEL, ATT
