@@ -602,6 +602,8 @@ class CalibratorProcess:
         self._started_at = 0.0
         self._closed = False
         self._lock = threading.Lock()
+        self.received = 0   # releases that came back from the child (any restart)
+        self._running = threading.Event()
 
     # -- lifecycle ----------------------------------------------------------------------
     def start(self) -> None:
@@ -617,6 +619,7 @@ class CalibratorProcess:
         self._proc.start()
         self._started_at = time.monotonic()
         self.state = "starting"
+        self._running.clear()
         self._reader = threading.Thread(target=self._read, args=(self._out_q, self._proc),
                                         name="calibrator-reader", daemon=True)
         self._reader.start()
@@ -635,6 +638,7 @@ class CalibratorProcess:
                 return
             if kind == "ready":
                 self.state = "running"
+                self._running.set()
             elif kind == "release":
                 try:
                     release = release_from_dict(body)
@@ -646,6 +650,11 @@ class CalibratorProcess:
                     self.params = release.params  # warm start of a restart
                 tau = msg[2] if len(msg) > 2 and msg[2] is not None else -math.inf
                 self._held.append((float(tau), release))  # deque.append: thread-safe
+                self.received += 1
+
+    def wait_running(self, timeout_s: float) -> bool:
+        """Block until the child has said it is ready (True) or ``timeout_s`` passed."""
+        return self._running.wait(timeout_s)
 
     def pid(self) -> int | None:
         return self._proc.pid if self._proc is not None else None

@@ -266,6 +266,25 @@ class Bus:
                 return json.loads(reply.ok.payload.to_bytes())
         return None
 
+    # -- synchronisation -------------------------------------------------------------
+    def wait_subscribed(self, key: str, timeout_s: float = 30.0) -> bool:
+        """Block until a subscriber somewhere matches ``key`` (Zenoh matching status of
+        this session's publisher on it); False after ``timeout_s``.
+
+        What a program (or a test) waits on before publishing data that must not be
+        lost to a subscription still propagating — instead of sleeping for a guess.
+        """
+        return _wait_matching(self._publisher(key), timeout_s)
+
+    def wait_queryable(self, name: str, timeout_s: float = 30.0) -> bool:
+        """Block until a queryable ``adaptnav/<v>/query/<name>`` is reachable; False after
+        ``timeout_s``."""
+        querier = self.session.declare_querier(self.keys.query(name))
+        try:
+            return _wait_matching(querier, timeout_s)
+        finally:
+            querier.undeclare()
+
     def close(self) -> None:
         for obj in self._declared:
             try:
@@ -280,6 +299,18 @@ class Bus:
                 pass
         self._publishers.clear()
         self.session.close()
+
+
+def _wait_matching(entity: Any, timeout_s: float) -> bool:
+    """Poll a Zenoh publisher's or querier's ``matching_status`` until it matches."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not entity.matching_status.matching:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.005)
+    return True
 
 
 def nonblocking_enqueue(q: "queue.Queue[Any]", overflow: Counter, reason: str = "queue_overflow") -> Callable[[Any], None]:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from collections import Counter
 
 import pytest
@@ -23,7 +22,6 @@ def _pair(vehicle="busauv"):
     port = free_port()
     a = Bus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",), scouting=False), vehicle)
     b = Bus(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=(), scouting=False), vehicle)
-    time.sleep(0.3)
     return a, b
 
 
@@ -32,7 +30,8 @@ def test_samples_cross_and_malformed_counted():
     got = []
     try:
         a.subscribe_samples(got.append)
-        time.sleep(0.2)
+        for kind in ("imu", "depth"):  # the subscription has reached b (no sample lost to its propagation)
+            assert b.wait_subscribed(b.keys.sensor(kind))
         sent = [ImuSample(0.005 * k, (0.1, 0.2, -9.8), (0.0, 0.01, 0.0)) for k in range(20)]
         for s in sent:
             b.publish_sample(s)
@@ -54,7 +53,7 @@ def test_queryable_answers_and_survives_errors():
     try:
         a.queryable("params", lambda: message("motion_params", {"params": {"k_v": 1.25}}))
         a.queryable("health", lambda: 1 / 0)  # a failing answer must not break the session
-        time.sleep(0.2)
+        assert b.wait_queryable("params") and b.wait_queryable("health")
         assert b.get("params")["params"]["k_v"] == 1.25
         assert b.get("health", timeout_s=1.0) is None
         assert b.get("params")["type"] == "motion_params"  # still answering
@@ -72,7 +71,13 @@ def test_record_writes_every_message(tmp_path):
                                                            record(b, out, stop, duration_s=30))))
     try:
         t.start()
-        time.sleep(0.5)
+        keys = (a.keys.sensor("imu"), a.keys.sensor("depth"), a.keys.nav_state, a.keys.health)
+        assert wait_until(lambda: all(a.wait_subscribed(k, 0.1) for k in keys), 30), "recorder not subscribed"
+        # a second subscriber in the recorder's session, declared after the recorder's: Zenoh
+        # runs a session's callbacks for a message in declaration order, so once this one has
+        # seen everything, the recorder's inbox holds everything
+        seen = []
+        b.subscribe_raw(b.keys.all, lambda key, payload: seen.append(key))
         samples = [ImuSample(0.01 * k, (0.0, 0.0, -9.8), (0.0, 0.0, 0.001 * k)) for k in range(50)]
         samples += [DepthSample(0.1 * k, 1.2e5 + k) for k in range(5)]
         for s in samples:
@@ -80,7 +85,7 @@ def test_record_writes_every_message(tmp_path):
         a.publish(a.keys.nav_state, "nav_state", {"t_s": 0.5, "pos_n_m": [1.0, 2.0, 3.0]})
         a.publish(a.keys.health, "health", {"t_s": 0.5, "queue_depth": 0})
         a.put(a.keys.sensor("imu"), b"garbage")
-        time.sleep(0.5)
+        assert wait_until(lambda: len(seen) == 58, 30), len(seen)  # 55 samples, 2 messages, 1 garbage
     finally:
         stop.set()
         t.join(10)

@@ -4,58 +4,66 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 
 import numpy as np
 import pytest
 
 from adaptnav.service.daemon import Daemon
 
-from .test_daemon_support import Collector, Feeder, daemon_config, free_port, peer, wait_until
+from .test_daemon_support import Collector, Feeder, connected, daemon_config, free_port, peer, wait_until
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = pytest.mark.timeout(300)
 
 
 def test_calibrator_killed_restarted_fusion_uninterrupted(tmp_path):
     port = free_port()
+    # a restart backoff long enough to see fusion go on while the child is dead (a
+    # generous window, not a pace: nothing below depends on how fast the machine is
+    # unless it stalls the daemon for the whole window)
     cfg = daemon_config(port, tmp_path / "state", "calibrator.enabled=true",
-                        'calibrator.location="process"', "calibrator.restart_backoff_s=0.2")
+                        'calibrator.location="process"', "calibrator.restart_backoff_s=5.0")
     daemon = Daemon(cfg)
     daemon.start()
     bus = peer(port)
     col = Collector(bus)
     feeder = Feeder(bus)
+
+    def calibrator_health():
+        h = bus.get("health", timeout_s=0.5)
+        return h["calibrator"] if h else None
+
     try:
-        time.sleep(0.3)
+        assert connected(bus)
         feeder.start()
-        first = wait_until(lambda: (h := bus.get("health", timeout_s=0.5)) and
-                           h["calibrator"]["state"] == "running" and h, timeout_s=60)
-        assert first, f"calibrator never came up: {bus.get('health')['calibrator']}"
-        pid = first["calibrator"]["pid"]
+        first = wait_until(lambda: (c := calibrator_health()) and c["state"] == "running" and c, timeout_s=120)
+        assert first, f"calibrator never came up: {calibrator_health()}"
+        pid = first["pid"]
         assert pid and pid != os.getpid()
-        n_nav_before = len(col.get(bus.keys.nav_state))
-        t_kill = time.monotonic()
         os.kill(pid, signal.SIGKILL)
-        again = wait_until(lambda: (h := bus.get("health", timeout_s=0.5)) and
-                           h["calibrator"]["state"] == "running" and h["calibrator"]["pid"] != pid and h,
-                           timeout_s=60)
-        t_back = time.monotonic()
-        time.sleep(0.5)
+        # WHILE the child is dead: nav states keep coming (counted from the moment the
+        # daemon has seen the death, until it has restarted the child)
+        dead = wait_until(lambda: (c := calibrator_health()) and c["state"] == "restarting" and c, timeout_s=120)
+        n_dead = len(col.get(col.keys.nav_state))
+        during = col.wait_for(col.keys.nav_state, lambda docs: len(docs) >= n_dead + 5)
+        still_dead = calibrator_health()  # asked after those arrived: were they made without a child?
+        again = wait_until(lambda: (c := calibrator_health()) and c["state"] == "running" and c["pid"] != pid and c,
+                           timeout_s=120)
+        n_back = len(col.get(col.keys.nav_state))
+        # and after it
+        assert col.wait_for(col.keys.nav_state, lambda docs: len(docs) >= n_back + 10)
+        health = bus.get("health")
     finally:
         feeder.stop()
         bus.close()
         daemon.stop()
+    assert dead, "the daemon never saw the child die"
     assert again, "calibrator was not restarted"
-    assert again["calibrator"]["restarts"] == 1
-    assert again["runner_alive"] is True
-    # fusion uninterrupted: nav states kept arriving at 10 Hz of data time, in real time,
-    # while the child was dead and restarting
+    assert again["restarts"] == 1
+    assert health["runner_alive"] is True
+    # fusion uninterrupted: nav states in data time without a gap, the whole time (the
+    # feeder's data are continuous; the filter's output must be too)
     navs = col.get(col.keys.nav_state)
-    recv = np.array([w for _, w in col.recv_wall])
-    during = (recv > t_kill) & (recv < t_back)
-    assert len(navs) > n_nav_before
-    assert during.sum() >= 0.8 * 10 * (t_back - t_kill) - 2
-    gaps_wall = np.diff(recv[(recv > t_kill - 1) & (recv < t_back + 0.5)])
-    assert gaps_wall.max() < 0.5, f"nav output stalled {gaps_wall.max():.2f} s"
     ts = np.array([d["t_s"] for d in navs])
-    assert np.diff(ts).max() < 0.2
+    assert np.all(np.diff(ts) > 0) and np.diff(ts).max() < 0.2
+    assert len(during) >= n_dead + 5 and still_dead["restarts"] == 0, \
+        "no nav states while the calibrator child was dead (or the daemon stalled for the whole backoff)"

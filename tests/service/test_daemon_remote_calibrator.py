@@ -3,7 +3,6 @@ the sensor topics and the daemon (calibrator.location = "remote") applies its re
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 
@@ -12,7 +11,7 @@ from adaptnav.service.daemon import Daemon
 from adaptnav.service.runtime.replay import build_config
 from adaptnav.service.runtime.sources import simulate
 
-from .test_daemon_support import Collector, free_port, peer, wait_until
+from .test_daemon_support import Collector, connected, free_port, peer, wait_until
 
 pytestmark = pytest.mark.timeout(170)
 
@@ -37,7 +36,8 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
     bus = peer(port)
     col = Collector(bus)
     try:
-        time.sleep(0.5)
+        assert connected(bus)  # the daemon's subscriptions
+        assert wait_until(lambda: bus.get("calibrator", 0.5))  # the node is up (subscribed before it answers)
         n = 0
         for item in simulate(scenario).iter_blocks():
             samples = item.samples() if isinstance(item, ImuBatch) else [item]
@@ -46,12 +46,12 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
                     bus.publish_sample(s)
                     n += 1
                     if n % 1000 == 0:  # flow control on the daemon's queue
-                        wait_until(lambda: (h := bus.get("health", 1.0)) and h["queue_depth"] < 3000, 10)
-        releases = col.wait_for(bus.keys.params, timeout_s=60)
+                        wait_until(lambda: (h := bus.get("health", 1.0)) and h["queue_depth"] < 3000, 60)
+        releases = col.wait_for(bus.keys.params, timeout_s=120)
         assert releases, "the calibrator node published no release"
         assert releases[0]["type"] == "calibration_release"
         accepted = [r for r in releases if r["accepted"]]
-        health = wait_until(lambda: (h := bus.get("health", 1.0)) and h["calibrator"]["releases"] >= len(releases) and h, 10)
+        health = wait_until(lambda: (h := bus.get("health", 1.0)) and h["calibrator"]["releases"] >= len(releases) and h, 60)
         node_status = bus.get("calibrator", 2.0)
         inertial = col.get(bus.keys.nav_inertial)
     finally:

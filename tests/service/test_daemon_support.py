@@ -109,7 +109,7 @@ class Collector:
         with self._lock:
             return list(self.by_key.get(key, []))
 
-    def wait_for(self, key: str, pred=lambda docs: bool(docs), timeout_s: float = 10.0) -> list[dict]:
+    def wait_for(self, key: str, pred=lambda docs: bool(docs), timeout_s: float = 60.0) -> list[dict]:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             docs = self.get(key)
@@ -119,7 +119,13 @@ class Collector:
         return self.get(key)
 
 
-def wait_until(pred, timeout_s: float = 10.0, period_s: float = 0.05):
+def connected(bus: Bus, kinds=("imu", "heading", "depth", "rpm"), timeout_s: float = 60.0) -> bool:
+    """The daemon's subscriptions to the sensor topics ``kinds`` have reached ``bus``: what
+    is published from now on is not lost to a declaration still propagating."""
+    return all(bus.wait_subscribed(bus.keys.sensor(k), timeout_s) for k in kinds)
+
+
+def wait_until(pred, timeout_s: float = 60.0, period_s: float = 0.05):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         value = pred()

@@ -16,6 +16,8 @@ from adaptnav.service.tools.sitl_vehicle import SitlVehicle, SitlVehicleConfig
 
 from pymavlink import mavutil
 
+from .test_daemon_support import wait_until
+
 pytestmark = pytest.mark.timeout(60)
 
 
@@ -37,6 +39,8 @@ class Peer:
         self.conn.mav.heartbeat_send(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
 
     def pump(self, seconds, until=None):
+        if until is not None:
+            seconds = max(seconds, 30.0)  # a condition wait: generous on a loaded machine
         end = time.monotonic() + seconds
         next_hb = 0.0
         while time.monotonic() < end:
@@ -57,7 +61,7 @@ class Peer:
         self.conn.close()
 
 
-def drain(q, until, timeout=5.0):
+def drain(q, until, timeout=30.0):
     out = []
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -170,7 +174,7 @@ def test_peer_restart_reconnects_and_re_requests_streams(link):
     assert peer.pump(3.0, until=bridge.link_up.is_set)
     n_req = bridge.counters["interval_requests"]
     peer.close()  # autopilot gone (reboot, cable, router restart)
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + 30.0
     while bridge.link_up.is_set() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not bridge.link_up.is_set() and bridge.counters["link_losses"] >= 1
@@ -203,13 +207,14 @@ def test_sitl_vehicle_end_to_end_through_the_bridge():
                            BridgeConfig(request_imu_message="HIGHRES_IMU"))
     vehicle = SitlVehicle(samples, SitlVehicleConfig(url=f"udpout:127.0.0.1:{port}", speed=3.0)).start()
     try:
-        assert bridge.wait_connected(5.0)
+        assert bridge.wait_connected(30.0)
         for _ in range(5):
             bridge.send_nav(nav())
-            time.sleep(0.1)
-        assert vehicle.done.wait(10.0) and vehicle.error is None
-        time.sleep(0.2)
-        vehicle.poll()
+        assert vehicle.done.wait(60.0) and vehicle.error is None
+        # the vehicle has stopped reading: what the bridge sent is read here, until it is all in
+        rec = vehicle.received
+        assert wait_until(lambda: vehicle.poll() >= 0 and rec["odometry"] == 5 and rec["origin"] is not None
+                          and rec["onboard_heartbeats"] >= 1 and "HIGHRES_IMU" in rec["interval_requests"], 30)
     finally:
         bridge.close()
         vehicle.close()
@@ -220,7 +225,11 @@ def test_sitl_vehicle_end_to_end_through_the_bridge():
     for s in got:
         by.setdefault(s.KIND, []).append(s)
     # after the 50 Hz request the 100 Hz IMU arrives as every second sample, floats intact
-    assert 100 <= len(by["imu"]) <= 160
+    # (when the request lands depends on the machine's load; the rate after it does not)
+    t_imu = np.array([s.t_s for s in by["imu"]])
+    assert len(t_imu) >= 10
+    assert np.median(np.diff(t_imu)) == pytest.approx(0.02, abs=1e-3)
+    assert len(t_imu) >= 0.9 * ((t_imu[-1] - t_imu[0]) / 0.02 + 1)
     assert by["imu"][-1].specific_force_b_m_s2 == pytest.approx((0.1, 0.2, -9.8), abs=1e-6)
     assert by["rpm"][-1].rpm == pytest.approx(1200.0, abs=3500 / 375)
     assert by["depth"][-1].pressure_pa == pytest.approx(150_000.0, rel=1e-6)
@@ -252,7 +261,7 @@ def test_tcp_link_survives_the_autopilot_side_closing_and_coming_back():
     try:
         assert peer.pump(5.0, until=lambda: peer.of_type("COMMAND_LONG") and bridge.link_up.is_set())
         peer.close()  # server gone: EOF on the bridge's socket, then refused connects
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + 30.0
         while bridge.counters["link_losses"] == 0 and time.monotonic() < deadline:
             time.sleep(0.02)
         assert bridge.counters["link_losses"] >= 1
@@ -339,7 +348,7 @@ def test_serial_link_over_a_pseudo_terminal():
     parser.robust_parsing = True
     received = []
     try:
-        end = time.monotonic() + 5.0
+        end = time.monotonic() + 30.0
         while time.monotonic() < end and not bridge.link_up.is_set():
             os.write(master, peer.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE,
                                                    mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4).pack(peer))
@@ -348,7 +357,7 @@ def test_serial_link_over_a_pseudo_terminal():
         os.write(master, peer.attitude_encode(3_000, 0.0, 0.3, 0.0, 0, 0, 0).pack(peer))
         got = drain(q, lambda out: any(s.KIND == "attitude" for s in out))
         assert [s.pitch_rad for s in got if s.KIND == "attitude"] == pytest.approx([0.3])
-        end = time.monotonic() + 3.0
+        end = time.monotonic() + 30.0
         while time.monotonic() < end and not any(m.get_type() == "HEARTBEAT" for m in received):
             try:
                 received += parser.parse_buffer(os.read(master, 4096)) or []

@@ -33,7 +33,7 @@ def test_realtime_clock_wakes_on_stop():
     stop.set()
     t0 = time.monotonic()
     clock.wait_until(3600.0, stop)
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 60.0  # returned on stop, not after the hour
 
 
 def test_log_clock_tracks_newest_data_time_and_never_goes_back():
