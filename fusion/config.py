@@ -78,6 +78,12 @@ class DvlConfig:
     sigma_m_s: float = 0.01
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     rotation_bd_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)  # R_bd maps d → b
+    # scale factor and yaw misalignment, calibrated from fixes vs the DVL's own track
+    # (fusion/aiding/dvl.py DvlCalibration): prior 1-σ; 0 for both: no calibration
+    scale_sigma: float = 0.005
+    misalignment_sigma_rad: float = 0.01
+    water_track: bool = True                   # fuse water-track velocities (relative to the water)
+    water_track_sigma_m_s: float = 0.03
 
 
 @dataclass(frozen=True)

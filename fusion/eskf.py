@@ -134,6 +134,10 @@ class Estimator:
         self._lv_period = 1.0 / config.learned_velocity.rate_hz
         self._R_db = aid_dvl.rotation_db(config.dvl.rotation_bd_rpy_rad)
         self._lever_b = np.asarray(config.dvl.lever_arm_b_m, dtype=float)
+        self.dvl_calibration: aid_dvl.DvlCalibration | None = None
+        if config.dvl.scale_sigma > 0 or config.dvl.misalignment_sigma_rad > 0:
+            self.dvl_calibration = aid_dvl.DvlCalibration(config.dvl.scale_sigma,
+                                                          config.dvl.misalignment_sigma_rad)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
         # input history for late measurements: entries (kind, payload) with the snapshot
@@ -655,10 +659,9 @@ class Estimator:
             meas = aid_attitude.measure(sample, x, c.attitude.sigma_roll_pitch_rad,
                                         c.attitude.sigma_yaw_rad)
         elif kind == "dvl":
-            meas = aid_dvl.measure(sample, x, self._acc[13:16], self._lever_b, self._R_db,
-                                   c.dvl.sigma_m_s)
+            meas, why = self._dvl_measurement(sample)
             if meas is None:
-                return [rejected(sample.t_s, kind, "invalid")]
+                return [rejected(sample.t_s, kind, why)]
         elif kind == "gnss":
             if not aid_gnss.at_surface(x, c.gnss.max_depth_m):
                 return [rejected(sample.t_s, kind, "surface_only")]
@@ -672,8 +675,32 @@ class Estimator:
         else:  # pragma: no cover - guarded by AID_KINDS
             return []
         if kind in ("gnss", "usbl"):
-            return [self._fuse_position(meas, sample.t_s, kind)]
+            status = self._fuse_position(meas, sample.t_s, kind)
+            if self.dvl_calibration is not None and status.fused:
+                self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
+                                            sample.sigma_h_m)
+            return [status]
         return [self._fuse(meas, sample.t_s, kind)]
+
+    def _dvl_measurement(self, sample) -> tuple[Measurement | None, str]:
+        """Bottom or water track, corrected with the calibrated scale and misalignment."""
+        c, cal = self.config.dvl, self.dvl_calibration
+        if not sample.valid:
+            if cal is not None:
+                cal.on_dvl(sample.t_s, None)
+            return None, "invalid"
+        vel_d = np.asarray(sample.vel_d_m_s, dtype=float)
+        if getattr(sample, "water_track", False):
+            if not c.water_track:
+                return None, "water_track_off"
+            z = cal.correct(vel_d) if cal is not None else vel_d
+            return aid_dvl.measure_water_track(z, self._x, self._acc[13:16], self._lever_b, self._R_db,
+                                               c.water_track_sigma_m_s), ""
+        z = None
+        if cal is not None:
+            cal.on_dvl(sample.t_s, aid_dvl.dcm(self._x) @ (self._R_db.T @ vel_d))
+            z = cal.correct(vel_d)
+        return aid_dvl.measure(sample, self._x, self._acc[13:16], self._lever_b, self._R_db, c.sigma_m_s, z), ""
 
     def _fuse_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         """Fuse an absolute position; after repeated gate rejections, trust it again.

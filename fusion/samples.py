@@ -53,13 +53,19 @@ class RpmSample:
 
 @dataclass(frozen=True, slots=True)
 class DvlSample:
-    """DVL bottom-track velocity in the DVL head frame; ``valid`` false on lost lock."""
+    """DVL velocity in the DVL head frame; ``valid`` false on lost lock.
+
+    Bottom track (``water_track`` false): the head's velocity over the seabed. Water track
+    (``water_track`` true, the DVL's fallback without bottom lock): its velocity relative
+    to a water layer a few metres away, i.e. over ground minus the current.
+    """
 
     KIND: ClassVar[str] = "dvl"
     t_s: float
     vel_d_m_s: Vec3
     valid: bool = True
     altitude_m: float = math.nan
+    water_track: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -115,6 +115,23 @@ class EnvironmentConfig:
     density_after_kg_m3: float | None = None
     atmospheric_pressure_pa: float = 101325.0
     bottom_depth_m: float = 30.0        # flat seabed depth (DVL altitude, side-scan)
+    # a trench across the survey: between these east coordinates (m) the seabed lies
+    # trench_depth_m deeper, with slopes trench_slope_m wide (empty: no trench)
+    trench_east_m: tuple[float, ...] = ()
+    trench_depth_m: float = 0.0
+    trench_slope_m: float = 20.0
+
+    def bottom_depth_at(self, east_m):
+        """Seabed depth (m, down) under east coordinates ``east_m`` (array or float)."""
+        import numpy as np
+
+        east = np.asarray(east_m, dtype=float)
+        if len(self.trench_east_m) != 2 or self.trench_depth_m == 0.0:
+            return np.full_like(east, self.bottom_depth_m)
+        a, b = self.trench_east_m
+        w = max(self.trench_slope_m, 1e-6)
+        inside = np.clip((east - a) / w + 0.5, 0.0, 1.0) * np.clip((b - east) / w + 0.5, 0.0, 1.0)
+        return self.bottom_depth_m + self.trench_depth_m * inside
 
 
 @dataclass(frozen=True)
@@ -172,14 +189,64 @@ class UsblConfig:
 
 @dataclass(frozen=True)
 class DvlConfig:
+    """A 4-beam Janus DVL (sim/sensors.py ``dvl_samples`` for the model and the datasheets).
+
+    Defaults are a 600 kHz-class unit (Teledyne RDI Workhorse Navigator / Pathfinder class):
+    beams 30° from the vertical, per-beam single-ping noise 5 mm/s at 5 Hz, a scale-factor
+    error of 0.3 % (sound speed), a head misalignment of a few tenths of a degree left after
+    installation, mm/s beam biases, rare outlier beams, bottom lock to ~80 m altitude.
+    """
+
     enabled: bool = False
     rate_hz: float = 5.0
-    sigma_m_s: float = 0.01
+    beam_angle_deg: float = 30.0        # Janus beams, from the head's z axis
+    beam_sigma_m_s: float = 0.005       # white noise per beam and ping
+    scale_factor_error: float = 0.003   # all beams × (1 + this): sound-speed error
+    # true head orientation = configured mount ⊗ this (roll, pitch, yaw; deg): what the
+    # installation survey missed
+    misalignment_rpy_deg: tuple[float, float, float] = (0.1, -0.15, 0.4)
+    beam_bias_m_s: tuple[float, float, float, float] = (0.001, -0.0005, 0.0008, -0.001)
+    outlier_prob: float = 0.001         # per beam and ping (fish, bubbles, side lobes)
+    outlier_sigma_m_s: float = 0.3
     dropout_prob: float = 0.02          # independent per-sample lost lock
     outages_s: tuple[tuple[float, float], ...] = ()   # [start, end) intervals without lock
     lever_arm_b_m: tuple[float, float, float] = (0.5, 0.0, 0.2)
     mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)   # R_bd as ZYX Euler
-    max_altitude_m: float = 80.0
+    min_altitude_m: float = 0.5
+    max_altitude_m: float = 80.0        # bottom lock while every beam's slant range ≤ this / cos(beam angle)
+    max_tilt_deg: float = 25.0          # roll/pitch beyond this: beams graze, no lock
+    water_track: bool = False           # without bottom lock, velocity relative to a water layer
+    water_track_sigma_m_s: float = 0.02  # per axis
+
+    def sigma_horizontal_m_s(self) -> float:
+        """1-σ of the x/y velocity from the beam noise (least squares over 4 Janus beams)."""
+        return self.beam_sigma_m_s / (math.sqrt(2.0) * math.sin(math.radians(self.beam_angle_deg)))
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Which truth model moves the vehicle, and the physical vehicle (sim/vehicle.py).
+
+    ``model = "motion_model"``: velocities are drawn from the motion model with the
+    parameters of ``[motion]``/``[environment]`` (the thesis experiments). ``"fossen3dof"``:
+    a surge–sway–yaw rigid body with added mass, linear + quadratic drag and thrust from
+    RPM (Fossen 2011), REMUS-100 coefficients (Prestero 2001); the water density, trim,
+    payload and fouling act on it and the motion-model parameters follow from them.
+    The ``*_after`` values apply from ``environment.change_at_s`` (None keeps the value).
+    """
+
+    model: Literal["motion_model", "fossen3dof"] = "motion_model"
+    trim_deg: float = 0.0               # pitch offset from ballast/payload placement
+    payload_kg: float = 0.0             # added dry mass (not buoyancy-compensated)
+    fouling: float = 0.0                # fractional increase of the hull's drag
+    trim_after_deg: float | None = None
+    payload_after_kg: float | None = None
+    fouling_after: float | None = None
+    # turbulence: white force/moment densities on surge, sway (N/√Hz) and yaw (N m/√Hz)
+    surge_force_n_rthz: float = 0.6
+    sway_force_n_rthz: float = 0.6
+    yaw_moment_nm_rthz: float = 0.05
+    integration_step_s: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -230,6 +297,7 @@ class Scenario:
     motion: MotionConfig = field(default_factory=MotionConfig)
     environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
     current: CurrentConfig = field(default_factory=CurrentConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     heading: HeadingConfig = field(default_factory=HeadingConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)

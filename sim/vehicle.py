@@ -24,6 +24,12 @@ ramp ``h_j = max(0, 1 − τ_j/ramp_s)``). The forward recursion contracts by
 
 Depth follows a smooth (raised-cosine) descent from ``start_depth_m`` to ``depth_m``;
 roll and pitch are small sinusoids, pitch also follows the flight-path angle.
+
+With ``vehicle.model = "fossen3dof"`` step 2 is physics instead of the motion model: the
+surge–sway–yaw body of :class:`Fossen3Dof` is integrated through the step and the step's
+``(V_k, W_k, S_k)`` are read off the poses it reaches (:func:`invert_step`); the true k_V is
+then whatever the water, trim, payload and fouling make of the thrust (:meth:`Fossen3Dof.k_v`)
+and the body pitches by the angle of attack that holds depth (``MotionSteps.pitch_rad``).
 """
 from __future__ import annotations
 
@@ -33,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adaptnav.fusion.motion_model import propagate, sample_velocities
+from adaptnav.fusion.motion_model import invert_step, propagate, sample_velocities
 from adaptnav.sim.scenario import Scenario
 
 
@@ -44,7 +50,8 @@ class MotionSteps:
     ``t_s`` (K+1,) step instants; ``pose_water`` (K+1, 3) water-relative (x north m,
     y east m, θ yaw rad, unwrapped); ``rpm``, ``v_m_s``, ``w_rad_s`` (K,) the reported
     controls; ``V_m_s``, ``W_rad_s``, ``S_m_s`` (K,) the true velocities drawn;
-    ``k_v`` (K,) the true k_V in force.
+    ``k_v`` (K,) the true k_V in force; ``pitch_rad`` (K,) or None, a pitch the vehicle
+    physics adds to the trajectory's (angle of attack holding depth; fossen3dof only).
     """
 
     t_s: np.ndarray
@@ -56,6 +63,7 @@ class MotionSteps:
     W_rad_s: np.ndarray
     S_m_s: np.ndarray
     k_v: np.ndarray
+    pitch_rad: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -126,8 +134,184 @@ class LosGuidance:
         return max(-self.max_rate, min(self.max_rate, self.gain * err))
 
 
+# REMUS 100 (Prestero 2001, "Verification of a six-degree of freedom simulation model for the
+# REMUS autonomous underwater vehicle", MIT/WHOI MSc thesis, tables of hydrodynamic
+# coefficients; values rounded): mass, yaw inertia, added mass, quadratic and cross-flow
+# drag, body lift and rudder derivatives. A linear surge drag (Fossen 2011, "Handbook of
+# Marine Craft Hydrodynamics and Motion Control", §6.4: linear + quadratic damping) is added.
+REMUS100 = dict(
+    mass_kg=30.5, izz_kg_m2=3.45, reference_density_kg_m3=1025.0,
+    x_udot=-0.93, y_vdot=-35.5, n_rdot=-4.88,
+    x_uu=-1.62, x_u=-1.0, x_vr=35.5, x_rr=-1.93,
+    y_vv=-1310.0, y_rr=0.632, y_uv=-28.6, y_ur=5.22, y_uudr=9.64,
+    n_vv=-3.18, n_rr=-94.0, n_uv=-24.0, n_ur=-2.0, n_uudr=-6.15,
+    z_uw=-28.6, rudder_max_rad=math.radians(15.0),
+)
+
+
+@dataclass(frozen=True)
+class Condition:
+    """What acts on the vehicle's dynamics: water density (kg/m³), trim (rad), payload (kg)
+    and fouling (fractional drag increase)."""
+
+    density_kg_m3: float
+    trim_rad: float
+    payload_kg: float
+    fouling: float
+
+
+class Fossen3Dof:
+    r"""Surge–sway–yaw rigid body in Fossen's form ``M ν̇ + C(ν) ν + D(ν) ν = τ``, ν = (u, v, r).
+
+    ::
+
+        (m − X_u̇) u̇ = ρ̃ [X_u u + X_uu u|u| (1+f)] − L(u) α + (m + ρ̃X_vr) v r + ρ̃X_rr r² + T(n) + w_u
+        (m − Y_v̇) v̇ = ρ̃ [Y_vv v|v| + Y_uv u v + Y_rr r|r| + Y_uuδ u² δ] + (ρ̃Y_ur − m) u r + w_v
+        (I_z − N_ṙ) ṙ = ρ̃ [N_vv v|v| + N_uv u v + N_ur u r + N_rr r|r| + N_uuδ u² δ] + w_r
+
+    with ``ρ̃ = ρ/ρ_ref`` (every hydrodynamic force and added mass scales with density) and
+    ``m`` the dry mass plus payload. Thrust ``T(n) = ρ̃ · (−X_u f − X_uu f|f|)``, ``f = f(n)``
+    the RPM table: the nominal vehicle (reference density, neutral, clean) cruises at
+    exactly ``f(n)`` — the table is its steady state. Depth is held with lift: the net
+    weight ``F_z = m g − ρ ∇ g`` (∇ makes the clean vehicle neutral at ρ_ref) needs an angle
+    of attack ``α = trim + F_z / (ρ̃|Z_uw| u²)`` whose lift ``L = ρ̃|Z_uw| u² α`` tilts
+    back as induced drag ``L α``. So density barely changes speed per RPM directly
+    (thrust and drag both ∝ ρ); it does through buoyancy → angle of attack → drag, as
+    trim, payload and fouling do (DESIGN.md "Physics of a change of water"). The rudder
+    follows the guidance's yaw-rate command by inverting the yaw equation (saturated).
+    """
+
+    GRAVITY = 9.81
+
+    def __init__(self, coeffs: dict | None = None):
+        self.c = dict(REMUS100 if coeffs is None else coeffs)
+        self.volume_m3 = self.c["mass_kg"] / self.c["reference_density_kg_m3"]
+
+    def _rho(self, cond: Condition) -> float:
+        return cond.density_kg_m3 / self.c["reference_density_kg_m3"]
+
+    def angle_of_attack(self, u: float, cond: Condition) -> float:
+        c, rho = self.c, self._rho(cond)
+        fz = (c["mass_kg"] + cond.payload_kg - cond.density_kg_m3 * self.volume_m3) * self.GRAVITY
+        return max(-0.35, min(0.35, cond.trim_rad + fz / (rho * abs(c["z_uw"]) * max(u, 0.3) ** 2)))
+
+    def thrust(self, speed_table_m_s: float, cond: Condition) -> float:
+        c, f = self.c, speed_table_m_s
+        return self._rho(cond) * (-c["x_u"] * f - c["x_uu"] * f * abs(f))
+
+    def surge_drag(self, u: float, cond: Condition) -> float:
+        """Hydrodynamic surge force at surge ``u`` (N, negative), induced drag included."""
+        c, rho = self.c, self._rho(cond)
+        a = self.angle_of_attack(u, cond)
+        return rho * (c["x_u"] * u + c["x_uu"] * u * abs(u) * (1.0 + cond.fouling)) - rho * abs(c["z_uw"]) * u * u * a * a
+
+    def steady_surge(self, speed_table_m_s: float, cond: Condition) -> float:
+        """Surge where thrust balances drag (bisection; m/s)."""
+        thrust = self.thrust(speed_table_m_s, cond)
+        if thrust <= 0.0:
+            return 0.0
+        lo, hi = 0.0, 3.0 * max(speed_table_m_s, 0.1)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if thrust + self.surge_drag(mid, cond) > 0 else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    def k_v(self, speed_table_m_s: float, cond: Condition) -> float:
+        """Speed per RPM relative to the table: the motion model's k_V under ``cond``."""
+        if speed_table_m_s <= 0.05:
+            return 1.0
+        return self.steady_surge(speed_table_m_s, cond) / speed_table_m_s
+
+    def step(self, nu: np.ndarray, speed_table_m_s: float, r_cmd: float, cond: Condition,
+             dt: float, force_noise: np.ndarray) -> np.ndarray:
+        """One explicit-Euler step of ν = (u, v, r); ``force_noise`` (3,) N, N, N m (already × 1/√dt)."""
+        c, rho = self.c, self._rho(cond)
+        u, v, r = float(nu[0]), float(nu[1]), float(nu[2])
+        m = c["mass_kg"] + cond.payload_kg
+        m_u = m - rho * c["x_udot"]
+        m_v = m - rho * c["y_vdot"]
+        i_r = c["izz_kg_m2"] - rho * c["n_rdot"]
+        # yaw: the rudder that gives ṙ = (r_cmd − r)/τ (τ = 1 s), within its travel
+        n_other = rho * (c["n_vv"] * v * abs(v) + c["n_uv"] * u * v + c["n_ur"] * u * r + c["n_rr"] * r * abs(r))
+        n_per_rad = rho * c["n_uudr"] * u * u
+        delta = 0.0
+        if abs(n_per_rad) > 1e-6:
+            delta = (i_r * (r_cmd - r) / 1.0 - n_other) / n_per_rad
+            delta = max(-c["rudder_max_rad"], min(c["rudder_max_rad"], delta))
+        du = (self.thrust(speed_table_m_s, cond) + self.surge_drag(u, cond)
+              + (m + rho * c["x_vr"]) * v * r + rho * c["x_rr"] * r * r + force_noise[0]) / m_u
+        dv = (rho * (c["y_vv"] * v * abs(v) + c["y_uv"] * u * v + c["y_rr"] * r * abs(r) + c["y_uudr"] * u * u * delta)
+              + (rho * c["y_ur"] - m) * u * r + force_noise[1]) / m_v
+        dr = (n_other + n_per_rad * delta + force_noise[2]) / i_r
+        return np.array([u + du * dt, v + dv * dt, r + dr * dt])
+
+
+def condition_at(scenario: Scenario, t_s: float) -> Condition:
+    """The vehicle's condition in force at ``t_s`` (``*_after`` from the change on)."""
+    veh, after = scenario.vehicle, t_s >= scenario.change_at_s
+
+    def pick(before, later):
+        return later if (after and later is not None) else before
+
+    return Condition(scenario.density_at(t_s), math.radians(pick(veh.trim_deg, veh.trim_after_deg)),
+                     pick(veh.payload_kg, veh.payload_after_kg), pick(veh.fouling, veh.fouling_after))
+
+
+def _fossen_steps(scenario: Scenario, rng: np.random.Generator) -> MotionSteps:
+    """Guidance + the physical vehicle (:class:`Fossen3Dof`), read out per motion step."""
+    tr, T, veh = scenario.trajectory, scenario.motion.step_s, scenario.vehicle
+    K = int(round(scenario.duration_s / T))
+    n_sub = max(1, int(round(T / veh.integration_step_s)))
+    dt = T / n_sub
+    table = scenario.rpm.table()
+    rpm_cmd = float(table.rpm_for_speed(tr.speed_m_s))
+    v_rep = float(table.speed(rpm_cmd))
+    cur = np.array(scenario.current.vel_n_m_s())
+    guide = LosGuidance(waypoints(scenario), tr.lookahead_m, tr.yaw_gain_per_s,
+                        math.radians(tr.turn_rate_max_deg_s))
+    body = Fossen3Dof()
+    t = np.arange(K + 1) * T
+    pose = np.empty((K + 1, 3))
+    pose[0] = (0.0, 0.0, math.radians(tr.heading_deg))
+    nu = np.array([v_rep if tr.start_delay_s <= 0 else 0.0, 0.0, 0.0])
+    rpm = np.full(K, rpm_cmd)
+    v_steps = np.full(K, v_rep)
+    w_cmd, k_v, pitch = np.empty(K), np.empty(K), np.empty(K)
+    sig = np.array([veh.surge_force_n_rthz, veh.sway_force_n_rthz, veh.yaw_moment_nm_rthz]) / math.sqrt(dt)
+    for k in range(K):
+        cond = condition_at(scenario, t[k])
+        if t[k] < tr.start_delay_s:
+            rpm[k], v_steps[k], w = 0.0, float(table.speed(0.0)), 0.0
+        else:
+            w = guide.command(pose[k, 0] + cur[0] * t[k], pose[k, 1] + cur[1] * t[k], pose[k, 2])
+        x, y, psi = pose[k]
+        noise = sig[None, :] * rng.standard_normal((n_sub, 3))
+        for j in range(n_sub):
+            nu_next = body.step(nu, v_steps[k], w, cond, dt, noise[j])
+            # trapezoid on the body velocity rotated by the mid-step heading
+            psi_mid = psi + 0.5 * (nu[2] + nu_next[2]) * 0.5 * dt
+            ub, vb = 0.5 * (nu[0] + nu_next[0]), 0.5 * (nu[1] + nu_next[1])
+            x += (ub * math.cos(psi_mid) - vb * math.sin(psi_mid)) * dt
+            y += (ub * math.sin(psi_mid) + vb * math.cos(psi_mid)) * dt
+            psi += 0.5 * (nu[2] + nu_next[2]) * dt
+            nu = nu_next
+        pose[k + 1] = (x, y, psi)
+        w_cmd[k] = w
+        k_v[k] = body.k_v(v_steps[k], cond)
+        pitch[k] = body.angle_of_attack(max(nu[0], 0.3), cond) if v_steps[k] > 0.05 else cond.trim_rad
+    V, W, S, _ = invert_step(pose[:-1], pose[1:], T, turn_ref_rad=w_cmd * T)
+    return MotionSteps(t_s=t, pose_water=pose, rpm=rpm, v_m_s=v_steps, w_rad_s=w_cmd,
+                       V_m_s=np.asarray(V), W_rad_s=np.asarray(W), S_m_s=np.asarray(S), k_v=k_v,
+                       pitch_rad=pitch)
+
+
 def simulate_steps(scenario: Scenario, rng: np.random.Generator) -> MotionSteps:
-    """Run guidance and draw the true velocities step by step (sequential: feedback)."""
+    """Run guidance and draw the true velocities step by step (sequential: feedback).
+
+    ``vehicle.model = "fossen3dof"``: the physical vehicle instead (:func:`_fossen_steps`).
+    """
+    if scenario.vehicle.model == "fossen3dof":
+        return _fossen_steps(scenario, rng)
     tr, T = scenario.trajectory, scenario.motion.step_s
     K = int(round(scenario.duration_s / T))
     table = scenario.rpm.table()
@@ -228,7 +412,10 @@ def dense_truth(scenario: Scenario, steps: MotionSteps) -> DenseTruth:
     pos[:, 2] = _trapezoid_cumsum(vd[:, None], dt)[:, 0] + down[0]
     tr = scenario.trajectory
     surge = np.hypot(vel_water[:, 0], vel_water[:, 1])
-    pitch = (math.radians(tr.pitch_trim_deg)
+    extra = 0.0
+    if steps.pitch_rad is not None:  # the physics' angle of attack, smooth between step midpoints
+        extra = np.interp(t, steps.t_s[:-1] + 0.5 * T, steps.pitch_rad)
+    pitch = (math.radians(tr.pitch_trim_deg) + extra
              + math.radians(tr.pitch_amp_deg) * np.sin(2 * math.pi * t / tr.pitch_period_s)
              - np.arctan2(vd, np.maximum(surge, 0.2)))
     roll = math.radians(tr.roll_amp_deg) * np.sin(2 * math.pi * t / tr.roll_period_s)

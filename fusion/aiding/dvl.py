@@ -1,19 +1,123 @@
-r"""DVL bottom-track velocity in the DVL head frame (lever arm, mounting rotation).
+r"""DVL velocity in the DVL head frame (lever arm, mounting rotation), bottom or water track.
 
 ::
 
-    h(x) = R_db (R_nbᵀ v_n + ω̂_b × l_b),   R_db = R_bdᵀ, R_bd from ``rotation_bd_rpy_rad``
+    bottom track:  h(x) = R_db (R_nbᵀ v_n + ω̂_b × l_b),   R_db = R_bdᵀ, R_bd from ``rotation_bd_rpy_rad``
+    water track:   h(x) = R_db (R_nbᵀ (v_n − c_n) + ω̂_b × l_b)
 
 (Groves 2013 §16.3.4 / Brokloff 1994). With ``ω̂ = ω_m − b_g``: ∂(ω̂ × l)/∂δb_g = [l]×.
-Jacobians: ``R_db R_nbᵀ`` (δv), ``R_db R_nbᵀ [v_n]×`` (δθ), ``R_db [l]×`` (δb_g).
+Jacobians: ``R_db R_nbᵀ`` (δv), ``R_db R_nbᵀ [v_n − c]×`` (δθ), ``R_db [l]×`` (δb_g), and for
+water track ``−R_db R_nbᵀ[:, :2]`` (δc).
+
+Scale factor and misalignment (:class:`DvlCalibration`): a real head reports
+``v_m ≈ (1 + s) R_z(ψ)ᵀ v`` (sound-speed scale error ``s``, a yaw misalignment ``ψ`` left
+by the installation survey; 0.1–1 % and tenths of a degree, sim/sensors.py). Neither is
+observable from the DVL and the IMU over straight legs; both are from absolute fixes: the
+DVL's own track between two fixes, ``D = Σ R_nd v_m Δt``, against the fixes' displacement
+``Δp`` gives ``Δp − D ≈ −s D + ψ (e_z × D)`` (horizontal, linear in (s, ψ); the track-to-fix
+calibration of Kinsey & Whitcomb, IEEE JOE 31(2), 2006). A two-state Kalman filter with
+prior σ (``scale_sigma``, ``misalignment_sigma_rad``) accumulates those pairs; the
+measurement is corrected with the current estimate, so without fixes (GNSS at the surface
+only) the correction stays at the prior's zero — "estimated where observable".
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..frames import euler_to_quat, quat_to_dcm
-from ..state import ATT, BG, N_ERR, VEL, X_VEL
+from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
 from .common import Measurement, dcm, make, skew
+
+
+def rotation_z(psi_rad: float) -> np.ndarray:
+    c, s = np.cos(psi_rad), np.sin(psi_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class DvlCalibration:
+    """Scale factor ``s`` and yaw misalignment ``ψ`` of the DVL head (module docstring).
+
+    Parameters
+    ----------
+    scale_sigma : prior 1-σ of ``s`` (–)
+    misalignment_sigma_rad : prior 1-σ of ``ψ`` (rad)
+    max_gap_fraction : a fix-to-fix interval with more of its time without DVL is not used
+    min_track_m : intervals with a shorter DVL track carry too little information
+    """
+
+    _BRIDGE_S = 2.0  # drop-outs up to this long are bridged by the trapezoid
+
+    def __init__(self, scale_sigma: float, misalignment_sigma_rad: float,
+                 max_gap_fraction: float = 0.2, min_track_m: float = 20.0):
+        self.theta = np.zeros(2)  # (s, ψ)
+        self.P = np.diag([scale_sigma**2, misalignment_sigma_rad**2])
+        self.max_gap_fraction = max_gap_fraction
+        self.min_track_m = min_track_m
+        self.pairs_used = 0
+        self._fix: tuple[float, np.ndarray, float] | None = None  # (t, NE, σ)
+        self._track = np.zeros(2)     # Σ R_nd v_m Δt since the last fix (n frame, N/E)
+        self._covered_s = 0.0
+        self._last_t: float | None = None
+        self._last_vel_n: np.ndarray | None = None
+
+    def report(self) -> dict:
+        """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs used."""
+        sd = np.sqrt(np.diag(self.P))
+        return {"scale_factor_error": float(self.theta[0]), "scale_sigma": float(sd[0]),
+                "misalignment_deg": float(np.degrees(self.theta[1])),
+                "misalignment_sigma_deg": float(np.degrees(sd[1])), "pairs_used": self.pairs_used}
+
+    def correct(self, vel_d_m_s) -> np.ndarray:
+        """The measured head velocity with the estimated scale and misalignment removed."""
+        return rotation_z(self.theta[1]) @ np.asarray(vel_d_m_s, dtype=float) / (1.0 + self.theta[0])
+
+    def on_dvl(self, t_s: float, vel_n_m_s: np.ndarray | None) -> None:
+        """A DVL sample at ``t_s``: its *uncorrected* velocity rotated to n (None: no lock).
+
+        The track integrates the trapezoid between consecutive samples with lock, across
+        short drop-outs (≤ ``_BRIDGE_S``); longer gaps count against the interval's coverage.
+        """
+        if vel_n_m_s is None or self._fix is None or (self._last_t is not None and t_s <= self._last_t):
+            return  # no lock, before the first fix, or re-fused history (late measurements)
+        v = np.asarray(vel_n_m_s, dtype=float)
+        if self._last_t is not None:
+            dt = t_s - self._last_t
+            if dt <= self._BRIDGE_S:
+                self._track += 0.5 * (self._last_vel_n[:2] + v[:2]) * dt
+                self._covered_s += dt
+        self._last_t = t_s
+        self._last_vel_n = v
+
+    def on_fix(self, t_s: float, ne_m: np.ndarray, sigma_m: float) -> None:
+        """An absolute horizontal fix: closes the interval since the previous one."""
+        ne = np.asarray(ne_m, dtype=float)
+        if self._fix is not None and t_s <= self._fix[0]:
+            return
+        bridged = self._last_t is not None and 0.0 <= t_s - self._last_t <= self._BRIDGE_S
+        if bridged:  # carry the track from the last sample up to the fix's time
+            self._track += self._last_vel_n[:2] * (t_s - self._last_t)
+            self._covered_s += t_s - self._last_t
+        if self._fix is not None:
+            t0, ne0, s0 = self._fix
+            span = t_s - t0
+            D = self._track
+            if (span > 0 and self._covered_s >= (1.0 - self.max_gap_fraction) * span
+                    and np.hypot(*D) >= self.min_track_m):
+                H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
+                y = (ne - ne0) - D - H @ self.theta
+                R = np.eye(2) * (sigma_m**2 + s0**2)
+                S = H @ self.P @ H.T + R
+                K = self.P @ H.T @ np.linalg.inv(S)
+                if float(y @ np.linalg.solve(S, y)) < 25.0:  # a wild fix says nothing about the DVL
+                    self.theta = self.theta + K @ y
+                    self.P = (np.eye(2) - K @ H) @ self.P
+                    self.P = 0.5 * (self.P + self.P.T)
+                    self.pairs_used += 1
+        self._fix = (t_s, ne, sigma_m)
+        self._track = np.zeros(2)
+        self._covered_s = 0.0
+        if bridged:  # the next interval starts at the fix
+            self._last_t = t_s
 
 
 def rotation_db(rotation_bd_rpy_rad) -> np.ndarray:
@@ -35,8 +139,25 @@ def jacobian(x, lever_arm_b_m, R_db) -> np.ndarray:
     return H
 
 
-def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s) -> Measurement | None:
-    """``None`` when the DVL reports no bottom lock."""
+def measure_water_track(vel_d_m_s, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s) -> Measurement:
+    """Water-track velocity (relative to the water: over ground minus the current)."""
+    lever = np.asarray(lever_arm_b_m, dtype=float)
+    R = dcm(x)
+    rel = x[X_VEL].copy()
+    rel[:2] -= x[X_CUR]
+    A = R_db @ R.T
+    H = np.zeros((3, N_ERR))
+    H[:, VEL] = A
+    H[:, ATT] = A @ skew(rel)
+    H[:, BG] = R_db @ skew(lever)
+    H[:, CUR] = -A[:, :2]
+    h = A @ rel + R_db @ np.cross(np.asarray(omega_b_rad_s, dtype=float), lever)
+    return make(vel_d_m_s, H, np.eye(3) * sigma_m_s**2, h)
+
+
+def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=None) -> Measurement | None:
+    """``None`` when the DVL reports no bottom lock. ``vel_d_m_s`` replaces the sample's
+    velocity (the calibrated one, :meth:`DvlCalibration.correct`)."""
     if not sample.valid:
         return None
     lever = np.asarray(lever_arm_b_m, dtype=float)
@@ -53,4 +174,5 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s) -> Measure
     o0, o1, o2 = np.asarray(omega_b_rad_s, dtype=float).tolist()
     l0, l1, l2 = lever.tolist()
     v_b = R.T @ vel + np.array([o1 * l2 - o2 * l1, o2 * l0 - o0 * l2, o0 * l1 - o1 * l0])
-    return make(sample.vel_d_m_s, H, np.eye(3) * sigma_m_s**2, R_db @ v_b)
+    z = sample.vel_d_m_s if vel_d_m_s is None else vel_d_m_s
+    return make(z, H, np.eye(3) * sigma_m_s**2, R_db @ v_b)

@@ -89,7 +89,8 @@ def config_raw_from_scenario(scenario: Any) -> dict:
             "heading": {"sigma_rad": math.radians(sc.heading.sigma_deg)},
             "depth": {"sigma_m": sc.depth.sigma_m, "water_density_kg_m3": sc.environment.density_kg_m3,
                       "atmospheric_pressure_pa": sc.environment.atmospheric_pressure_pa},
-            "dvl": {"sigma_m_s": sc.dvl.sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
+            "dvl": {"sigma_m_s": sc.dvl.sigma_horizontal_m_s(),
+                    "water_track_sigma_m_s": sc.dvl.water_track_sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
                     "rotation_bd_rpy_rad": [math.radians(v) for v in sc.dvl.mount_rpy_deg]},
             "gnss": {"max_depth_m": sc.gnss.max_depth_m},
         },
@@ -303,6 +304,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
         "health": health.report(),
     }
+    cal = getattr(estimator, "dvl_calibration", None)
+    if cal is not None and cal.pairs_used:
+        doc["dvl_calibration"] = cal.report()
     if counters.get("truncated"):
         doc["truncated"] = counters["truncated"]
     if metrics_sink.metrics:

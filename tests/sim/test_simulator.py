@@ -22,7 +22,10 @@ def perfect():
 
 @pytest.fixture(scope="module")
 def tactical():
-    return simulate(load_scenario("short", ["dvl.enabled=true", "dvl.outages_s=[[100.0, 160.0]]"]))
+    # the DVL without its systematic errors (those have their own test): white beam noise only
+    return simulate(load_scenario("short", ["dvl.enabled=true", "dvl.outages_s=[[100.0, 160.0]]",
+                                            "dvl.scale_factor_error=0.0", "dvl.misalignment_rpy_deg=[0, 0, 0]",
+                                            "dvl.beam_bias_m_s=[0, 0, 0, 0]", "dvl.outlier_prob=0.0"]))
 
 
 def test_perfect_imu_reproduces_the_truth(perfect):
@@ -152,7 +155,11 @@ def test_aiding_sensors(tactical):
         verr.append(np.array(s.vel_d_m_s) - vb - np.cross(omega, lever))
     verr = np.array(verr)
     assert np.all(np.abs(verr.mean(axis=0)) < 0.0015)
-    assert np.all(np.abs(verr.std(axis=0) / sc.dvl.sigma_m_s - 1.0) < 0.08)
+    # beam noise through the 4-beam least squares: σ_b/(√2 sin 30°) across, σ_b/(2 cos 30°) down
+    sigma_b, beam = sc.dvl.beam_sigma_m_s, math.radians(sc.dvl.beam_angle_deg)
+    expected = np.array([1, 1, 0]) * sigma_b / (math.sqrt(2) * math.sin(beam)) \
+        + np.array([0, 0, 1]) * sigma_b / (2 * math.cos(beam))
+    assert np.all(np.abs(verr.std(axis=0) / expected - 1.0) < 0.08)
 
 
 def test_usbl_lost_after_and_gnss_only_at_surface():
@@ -246,3 +253,39 @@ def test_survey_scenario_streams():
     assert 450.0 < p[:, 0].max() < 600.0 and np.abs(p[36_000:, 2] - 20.0).max() < 1e-3
     east_per_leg = 50.0
     assert p[-1, 1] > 5 * east_per_leg
+
+
+def test_dvl_scale_misalignment_outliers_and_lock_over_a_trench():
+    # GIVEN a DVL with a 0.8 % scale error and a 0.6° yaw misalignment, outliers, and a
+    # trench (seabed 30 → 140 m) across the second leg's east coordinate
+    sc = load_scenario("short", ["duration_s=300", "dvl.enabled=true", "dvl.scale_factor_error=0.008",
+                                 "dvl.misalignment_rpy_deg=[0, 0, 0.6]", "dvl.outlier_prob=0.01", "dvl.beam_bias_m_s=[0, 0, 0, 0]",
+                                 "environment.trench_east_m=[20.0, 60.0]", "environment.trench_depth_m=110.0"])
+    r = simulate(sc)
+    d = r.dense
+    dt = d.t_s[1] - d.t_s[0]
+    dvl = r.samples["dvl"]
+    idx = [int(round(s.t_s / dt)) for s in dvl]
+    east = d.pos_n_m[idx, 1]
+    valid = np.array([s.valid for s in dvl])
+    # THEN no bottom lock while over the trench (altitude ~130 m > 80 m), lock elsewhere
+    over = (east > 25.0) & (east < 55.0)
+    assert over.sum() > 20 and not valid[over].any()
+    assert valid[~over & (east < 10.0)].mean() > 0.9
+    # AND the measured horizontal velocity is the true one scaled by 1.008 and rotated by
+    # the misalignment (a least-squares fit on the samples with lock; outliers trimmed)
+    lever = np.array(sc.dvl.lever_arm_b_m)
+
+    def head_velocity(i):  # body velocity + ω × lever (ω from the truth attitudes around i)
+        dq = quat_mul(d.q_nb[i - 1] * np.array([1, -1, -1, -1]), d.q_nb[i + 1])
+        return quat_to_dcm(d.q_nb[i]).T @ d.vel_n_m_s[i] + np.cross(2.0 * dq[1:] / (2.0 * dt), lever)
+
+    vb = np.array([head_velocity(i) for i in np.array(idx)[valid]])
+    vm = np.array([s.vel_d_m_s for s in dvl if s.valid])
+    keep = np.linalg.norm(vm[:, :2] - vb[:, :2], axis=1) < 0.1
+    assert 0.005 < 1 - keep.mean() < 0.1  # outliers are there, and rare
+    zb = vb[keep, 0] + 1j * vb[keep, 1]
+    zm = vm[keep, 0] + 1j * vm[keep, 1]
+    g = np.vdot(zb, zm) / np.vdot(zb, zb)  # zm ≈ g zb, g = (1 + s) e^{-iψ}
+    assert abs(abs(g) - 1.008) < 0.001
+    assert abs(math.degrees(-np.angle(g)) - 0.6) < 0.05
