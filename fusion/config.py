@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 
 from scipy.stats import chi2, norm
 
+from .plausibility import PlausibilityConfig
+
 
 @dataclass(frozen=True)
 class ImuConfig:
@@ -145,6 +147,7 @@ class FilterConfig:
     usbl: UsblConfig = field(default_factory=UsblConfig)
     visual_motion: VisualMotionConfig = field(default_factory=VisualMotionConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)  # the door's bounds
     gate_sigma: float = 5.0                    # chi-square gate ≡ this many σ per DOF
     covariance_step_s: float = 0.1             # covariance propagated at this period
     max_delay_s: float = 1.0                   # late measurements up to this are re-fused
@@ -156,14 +159,19 @@ class FilterConfig:
     position_reset_after_rejections: int = 3
 
     def validate(self) -> None:
-        if self.gate_sigma <= 0:
-            raise ValueError("gate_sigma must be > 0")
+        if not 0.5 <= self.gate_sigma <= 50.0:  # nan rejected every aid, inf gated nothing
+            raise ValueError(f"gate_sigma must be within [0.5, 50], got {self.gate_sigma!r}")
+        if not 0.0 < self.valid_max_sigma_h_m:
+            raise ValueError("valid_max_sigma_h_m must be > 0")
         if not 0 < self.covariance_step_s <= 1.0:
             raise ValueError("covariance_step_s must be in (0, 1] s")
-        if self.max_delay_s < 0 or self.imu_gap_s <= 0:
-            raise ValueError("max_delay_s must be ≥ 0 and imu_gap_s > 0")
-        if self.learned_velocity.rate_hz <= 0:
-            raise ValueError("learned_velocity.rate_hz must be > 0")
+        # bounded: the late-measurement history holds max_delay_s of inputs
+        if not (0 <= self.max_delay_s <= 60.0 and 0 < self.imu_gap_s <= 60.0):
+            raise ValueError("max_delay_s must be within [0, 60] s and imu_gap_s within (0, 60] s")
+        if not 0 < self.learned_velocity.rate_hz <= 100.0:
+            raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
+        if self.position_reset_after_rejections < 1:
+            raise ValueError("position_reset_after_rejections must be ≥ 1")
 
     def gate_threshold(self, dof: int) -> float:
         """Chi-square gate for ``dof`` dimensions at the ``gate_sigma`` two-sided level."""

@@ -70,6 +70,11 @@ AID_KINDS = frozenset({"dvl", "depth", "heading", "attitude", "gnss", "usbl", "v
 _BLIND_VEL_RW_M_S_RTHZ = 0.3
 # Attitude random walk without a gyro (AHRS-only mode), rad/√s.
 _BLIND_ATT_RW_RAD_RTHZ = 0.3
+# A state moving faster than this is broken (no vehicle the filter serves comes near it).
+_MAX_SPEED_M_S = 1000.0
+# Aid fusions after a recovery (:meth:`Estimator._recover`) before the solution may be
+# valid again: a few seconds of learned velocity, depth and heading.
+_FUSIONS_TO_CONVERGE = 10
 # Roll/pitch random walk across an IMU gap (AUVs stay near level), rad/√s.
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
@@ -157,6 +162,11 @@ class Estimator:
         self._vel_inertial_n = np.zeros(3)
         self._pos_inertial_n = np.zeros(3)  # its integral (m): exact step means for the calibrator
         self.late_fused = 0  # measurements fused at their own (past) time of validity
+        # guard (:meth:`process`): last good state (snapshot, IMU time) and its time
+        self._good: tuple[_Snapshot, float] | None = None
+        self._good_t = -math.inf
+        self._recovering = False  # after a recovery: invalid until aids have fused again
+        self._fused_since_recovery = 0
 
     # ------------------------------------------------------------------ public API
     @property
@@ -172,7 +182,7 @@ class Estimator:
             cov = self._P.copy()
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
         valid = (self._mode == "ins" and sigma_h <= self.config.valid_max_sigma_h_m
-                 and bool(np.all(np.isfinite(x))))
+                 and bool(np.all(np.isfinite(x))) and not self._recovering)
         return NavState(
             t_s=float(self._clock[0]), pos_n_m=x[0:3].copy(), vel_n_m_s=x[3:6].copy(),
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
@@ -246,7 +256,98 @@ class Estimator:
         self._restored = True
 
     def process(self, sample) -> list[AidStatus]:
-        """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch)."""
+        """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch).
+
+        Guarded: a state or covariance that became non-finite or lost positive variances
+        (an absurd input the door let through, a numerical failure) is replaced by the last
+        good state with an inflated covariance (:meth:`_recover`), counted in
+        ``rejected["filter_recovered"]``; the solution is invalid until it has converged again.
+        """
+        try:
+            out = self._process(sample)
+        except np.linalg.LinAlgError:
+            out = []
+        if self._mode != "none":
+            if not self._state_ok():
+                self._recover()
+            if self._clock[0] >= self._good_t + 1.0:
+                self._keep_good()
+        return out
+
+    def _state_ok(self) -> bool:
+        """Nominal state and covariance finite, every variance positive, speed physical."""
+        return bool(np.isfinite(self._x).all() and np.isfinite(self._P).all()
+                    and (np.diagonal(self._P) > 0.0).all() and math.isfinite(self._clock[0])
+                    and (np.abs(self._x[3:6]) < _MAX_SPEED_M_S).all())
+
+    def _keep_good(self) -> None:
+        """Remember the current state as the last good one (once per data second)."""
+        try:
+            np.linalg.cholesky(self._P)
+        except np.linalg.LinAlgError:
+            return  # not positive definite: not a state to come back to
+        self._good = (self._snapshot(), self._t_imu_last)
+        self._good_t = float(self._clock[0])
+
+    def _recover(self) -> None:
+        """Back to the last good state, its covariance inflated by the initial σs (plus a
+        velocity random walk over the time lost), ``reset_counter`` bumped, history dropped."""
+        self.rejected["filter_recovered"] += 1
+        t_now = self._good_t
+        for t in (self._clock[0], self._t_imu_last):
+            if math.isfinite(t) and t > t_now:
+                t_now = float(t)
+        self._hist_t.clear()
+        self._hist.clear()
+        if self._good is None:  # nothing good yet: align again from scratch
+            self._mode = "none"
+            self._x[:] = initial_nominal()
+            self._P[:, :] = self._initial_covariance(self.config.initial.sigma_pos_m,
+                                                     self.config.initial.sigma_pos_m)
+            self._acc[:] = 0.0
+            self._aligner = Aligner(self.config.alignment.n_samples, self.config.alignment.max_acc_std_m_s2,
+                                    self.config.imu_gap_s)
+            self._t_imu_last = -math.inf
+            self._reset_counter += 1
+            return
+        snap, t_imu_last = self._good
+        rc = self._reset_counter
+        self._restore(snap)
+        self._reset_counter = rc + 1
+        dt = max(t_now - self._good_t, 0.0)
+        c = self.config.initial
+        d = np.zeros(N_ERR)
+        d[POS] = c.sigma_pos_m ** 2 + (_BLIND_VEL_RW_M_S_RTHZ ** 2) * dt ** 3 / 3.0
+        d[VEL] = c.sigma_vel_m_s ** 2 + (_BLIND_VEL_RW_M_S_RTHZ ** 2) * dt
+        d[6:8] = c.sigma_att_rad ** 2
+        d[8] = c.sigma_yaw_rad ** 2
+        self._P[:, :] += np.diag(d)
+        self._acc[:] = 0.0
+        self._clock[:] = t_now
+        self._t_imu_last = max(t_imu_last, t_now)
+        self._advance_lv_epoch(t_now)
+        self._recovering = True
+        self._fused_since_recovery = 0
+
+    def shift_time(self, delta_s: float) -> None:
+        """Re-base every time the filter holds by ``delta_s`` (a confirmed clock jump of the
+        input, :class:`adaptnav.fusion.plausibility.Door`): the state continues at the new
+        time as if no time had passed; late-measurement history is dropped."""
+        if not math.isfinite(delta_s) or delta_s == 0.0:
+            return
+        if np.isfinite(self._clock[0]):
+            self._clock[:] += delta_s
+        for name in ("_t_imu_last", "_next_lv_t", "_t_release", "_good_t"):
+            setattr(self, name, getattr(self, name) + delta_s)
+        self._aligner.t_last_s += delta_s
+        if self._rpm is not None:
+            self._rpm = (self._rpm[0] + delta_s, self._rpm[1])
+        self._hist_t.clear()
+        self._hist.clear()
+        self._good = None  # its time base is gone
+        self._reset_counter += 1
+
+    def _process(self, sample) -> list[AidStatus]:
         kind = sample.KIND
         if kind in IGNORED_KINDS:
             return []
@@ -560,9 +661,16 @@ class Estimator:
                 status = self._learned_velocity()
                 if status is not None:
                     out.append(status)
-                while self._next_lv_t <= self._clock[0]:
-                    self._next_lv_t += self._lv_period
+                self._advance_lv_epoch(self._clock[0])
         return [] if self._replaying else out
+
+    def _advance_lv_epoch(self, t_s: float) -> None:
+        """Move the next learned-velocity epoch past ``t_s`` in one step (a loop of
+        periods would run for ever after a far-future stamp)."""
+        if self._next_lv_t <= t_s:
+            self._next_lv_t += (math.floor((t_s - self._next_lv_t) / self._lv_period) + 1.0) * self._lv_period
+            if self._next_lv_t <= t_s:  # rounding
+                self._next_lv_t += self._lv_period
 
     def _imu_gap(self, t_s: float, f_b, w_b) -> None:
         """An IMU gap: coast at constant velocity, inflate the covariance, restart at t_s."""
@@ -584,8 +692,7 @@ class Estimator:
         self._acc[16:19] = np.asarray(f_b) - self._x[X_BA]
         self._clock[:] = t_s
         self._reset_counter += 1
-        while self._next_lv_t <= t_s:
-            self._next_lv_t += self._lv_period
+        self._advance_lv_epoch(t_s)
 
     def _ahrs_time_update(self, t_s: float) -> None:
         dt = t_s - self._clock[0]
@@ -733,6 +840,9 @@ class Estimator:
                                   self._dx, sdiag, self._mode == "ins")
         if fused:
             reason = ""
+            if self._recovering:
+                self._fused_since_recovery += 1
+                self._recovering = self._fused_since_recovery < _FUSIONS_TO_CONVERGE
         elif math.isfinite(nis):
             reason = "gate"
         else:

@@ -7,6 +7,8 @@ One mechanism for every configuration in the project (filter, scenario, service)
 - :func:`apply_overrides` applies ``section.key=value`` strings (values parsed as TOML
   scalars/arrays, so ``true``, ``1.5``, ``[1, 2]`` and ``"text"`` work; bare words are
   strings) to the raw dict before :func:`build`, so overrides get the same validation.
+- Every float must be finite (TOML's ``nan``/``inf`` are refused naming the key), except
+  NaN for a key whose default is NaN ("not set").
 - :func:`as_dict` gives the effective config back (for logs and replay outputs).
 
 Dataclasses may define ``validate(self)`` raising ``ValueError`` for cross-field rules.
@@ -14,6 +16,7 @@ Dataclasses may define ``validate(self)`` raising ``ValueError`` for cross-field
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import types
 import typing
@@ -88,6 +91,8 @@ def _coerce(value: Any, hint: Any, path: str) -> Any:
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{path}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # TOML has nan and inf literals; no setting wants them
+            raise ConfigError(f"{path}: expected a finite number, got {value!r}")
         return float(value)
     if hint is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -114,7 +119,12 @@ def build(cls: type, raw: dict | None = None, path: str = "") -> Any:
         where = f" in [{path}]" if path else ""
         raise ConfigError(f"unknown key(s){where}: {', '.join(unknown)} (known: {', '.join(sorted(names))})")
     kwargs = {}
+    nan_default = {f.name for f in dataclasses.fields(cls)
+                   if isinstance(f.default, float) and math.isnan(f.default)}
     for name, value in raw.items():
+        if name in nan_default and isinstance(value, float) and math.isnan(value):
+            kwargs[name] = value  # NaN is this key's own "not set"
+            continue
         kwargs[name] = _coerce(value, hints[name], f"{path}.{name}" if path else name)
     try:
         obj = cls(**kwargs)

@@ -55,6 +55,14 @@ SENSOR_KINDS = ("imu", "rpm", "dvl", "depth", "heading", "attitude", "gnss", "us
                 "range", "altitude", "visual_motion", "sonar")
 
 
+MAX_QUEUE_SIZE = 1_000_000  # items; a bound on the memory a burst may take
+
+
+def _check_queue_size(name: str, value: int) -> None:
+    if not 1 <= value <= MAX_QUEUE_SIZE:
+        raise ValueError(f"{name} must be within [1, {MAX_QUEUE_SIZE}], got {value!r}")
+
+
 @dataclass(frozen=True)
 class VehicleConfig:
     """``name``: the vehicle's name, the ``<v>`` in ``adaptnav/<v>/...`` keys."""
@@ -158,6 +166,9 @@ class CalibratorSection:
     def validate(self) -> None:
         if not (math.isfinite(self.latency_s) and self.latency_s >= 0.0):
             raise ValueError("latency_s must be a finite number ≥ 0")
+        if not 0.0 < self.restart_backoff_s <= self.restart_backoff_max_s <= 3600.0:
+            raise ValueError("restart backoff: need 0 < restart_backoff_s ≤ restart_backoff_max_s ≤ 3600 s")
+        _check_queue_size("queue_size", self.queue_size)
 
 
 @dataclass(frozen=True)
@@ -169,9 +180,10 @@ class OutputsConfig:
     aid_rate_hz: float = 1.0
 
     def validate(self) -> None:
-        for name in ("nav_rate_hz", "health_rate_hz", "aid_rate_hz"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name} must be > 0")
+        # above 1 kHz the output epochs outrun any IMU (and 1e308 Hz made the loop spin)
+        for name, top in (("nav_rate_hz", 1000.0), ("health_rate_hz", 100.0), ("aid_rate_hz", 100.0)):
+            if not 0.0 < getattr(self, name) <= top:
+                raise ValueError(f"{name} must be within (0, {top:g}] Hz, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -182,12 +194,21 @@ class HealthConfig:
     sensor_timeout_s: float = 10.0
     queue_size: int = 10000
 
+    def validate(self) -> None:
+        if not 0.0 < self.sensor_timeout_s <= 3600.0:
+            raise ValueError(f"sensor_timeout_s must be within (0, 3600] s, got {self.sensor_timeout_s!r}")
+        _check_queue_size("queue_size", self.queue_size)  # 0 would make queue.Queue unbounded
+
 
 @dataclass(frozen=True)
 class PersistenceConfig:
     """``period_s``: how often (wall seconds) learned state is written; also on shutdown."""
 
     period_s: float = 30.0
+
+    def validate(self) -> None:
+        if not 1.0 <= self.period_s <= 86400.0:
+            raise ValueError(f"period_s must be within [1, 86400] s, got {self.period_s!r}")
 
 
 @dataclass(frozen=True)

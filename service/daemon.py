@@ -97,6 +97,9 @@ class QueueSource:
         self._seq = 0
         self._imu_t = -math.inf
         self._imu_wall = -math.inf
+        # monotonic time the runner last came back for input (processing or waiting on
+        # an empty queue): the watchdog's proof that the runner is not wedged
+        self.heartbeat_s = time.monotonic()
 
     def qsize(self) -> int:
         return self.q.qsize() + len(self._held)
@@ -132,6 +135,7 @@ class QueueSource:
 
     def __iter__(self):
         while not self.stop.is_set():
+            self.heartbeat_s = time.monotonic()
             try:
                 item = self.q.get(timeout=0.05 if self._held else 0.1)
             except queue.Empty:
@@ -154,14 +158,18 @@ class BusSink(Sink):
         self.latest_state: dict | None = None
         self.latest_aid: dict[str, Any] = {}
         self.nav_count = 0
+        self.state_finite = True  # the last nav state's position and velocity were finite
         self._next_mavlink_t = -math.inf
 
     def on_nav(self, state: Any) -> None:
+        self.state_finite = bool(np.isfinite(state.pos_n_m).all() and np.isfinite(state.vel_n_m_s).all())
         doc = state.to_dict()
         self.latest_state = doc
         self.nav_count += 1
         self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)
         bridge = self.d.bridge
+        if state.t_s < self._next_mavlink_t - 2.0 / self.d.cfg.mavlink.output_rate_hz:
+            self._next_mavlink_t = -math.inf  # the input clock was re-based backwards
         if bridge is not None and state.t_s >= self._next_mavlink_t - 1e-6:
             self._next_mavlink_t = state.t_s + 1.0 / self.d.cfg.mavlink.output_rate_hz
             bridge.send_nav(state)
@@ -366,6 +374,11 @@ class Daemon:
                                                        "reconnects", "callback_errors", "odometry_sent")}
         rep["nav_states"] = self.sink.nav_count
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
+        rep["runner_heartbeat_age_s"] = round(time.monotonic() - self.source.heartbeat_s, 3)
+        rep["state_finite"] = self.sink.state_finite
+        imu = rep["sensors"].get("imu")
+        rep["status"] = ("not navigating: no IMU" if imu is None or imu["silent"] else
+                         "navigating" if self.sink.nav_count else "aligning")
         cal = self.calibrator
         if cal is not None:
             rep["calibrator"].update(state=cal.state, pid=cal.pid(), restarts=cal.restarts,
@@ -402,22 +415,34 @@ class Daemon:
         next_health = time.monotonic()
         while not self.stop_event.wait(tick):
             now = time.monotonic()
-            if self.calibrator is not None:
-                self.calibrator.supervise()
-            if now >= next_health:
-                next_health = now + period_s
-                self.latest_health = rep = self._health_report()
-                self.bus.publish(self.bus.keys.health, "health", rep)
-                if now >= next_aid:
-                    next_aid = now + aid_period_s
-                    for src, doc in self._aid_statuses(rep).items():
-                        self.bus.put(self.bus.keys.aid(src), json.dumps(doc).encode())
-            if now >= next_persist:
-                next_persist = now + cfg.persistence.period_s
-                self._snapshot_due.set()  # the runner snapshots at its next nav output
-            self._persist()
-            if watchdog_s and self._threads[0].is_alive():
-                sd_notify("WATCHDOG=1")  # only while the runner lives: systemd restarts a hang
+            try:  # the housekeeping thread must outlive one failing report or save
+                if self.calibrator is not None:
+                    self.calibrator.supervise()
+                if now >= next_health:
+                    next_health = now + period_s
+                    self.latest_health = rep = self._health_report()
+                    self.bus.publish(self.bus.keys.health, "health", rep)
+                    if now >= next_aid:
+                        next_aid = now + aid_period_s
+                        for src, doc in self._aid_statuses(rep).items():
+                            self.bus.put(self.bus.keys.aid(src), json.dumps(doc).encode())
+                if now >= next_persist:
+                    next_persist = now + cfg.persistence.period_s
+                    self._snapshot_due.set()  # the runner snapshots at its next nav output
+                self._persist()
+            except Exception:
+                self.health.on_rejected("error:housekeeping")
+                log.exception("housekeeping failed")
+            if watchdog_s and self.runner_sound(watchdog_s):
+                sd_notify("WATCHDOG=1")  # only while the runner is sound: systemd restarts it otherwise
+
+    def runner_sound(self, wedged_after_s: float) -> bool:
+        """The runner thread lives, came back for input within ``wedged_after_s`` (it
+        processes its queue or waits on an empty one — no IMU is not a reason to restart)
+        and its last state was finite: the condition for feeding the systemd watchdog."""
+        return bool(self._threads and self._threads[0].is_alive()
+                    and time.monotonic() - self.source.heartbeat_s < wedged_after_s
+                    and self.sink.state_finite)
 
     # -- shutdown -------------------------------------------------------------------------
     def stop(self, timeout_s: float = 5.0) -> None:

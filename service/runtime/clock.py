@@ -57,6 +57,10 @@ class LogClock(_WallMixin):
     def now_data_s(self) -> float:
         return self._t_s
 
+    def shift_time(self, delta_s: float) -> None:
+        """The input's clock jumped by ``delta_s`` (the runner re-bases)."""
+        self._t_s += delta_s
+
 
 def _stopped(stop: Any) -> bool:
     if stop is None:
@@ -108,6 +112,11 @@ class RealtimeClock(_WallMixin):
             return math.nan
         return self._t0_s + (time.monotonic() - self._wall_anchor) * self.speed
 
+    def shift_time(self, delta_s: float) -> None:
+        """The input's clock jumped by ``delta_s``: pacing continues from the new time."""
+        self._t0_s += delta_s
+        self._t_s += delta_s
+
 
 class LiveClock(_WallMixin):
     """Live data: never waits; data time "now" follows the monotonic clock.
@@ -132,3 +141,8 @@ class LiveClock(_WallMixin):
         if math.isnan(self._offset_s):
             return math.nan
         return max(time.monotonic() + self._offset_s, self._t_s)
+
+    def shift_time(self, delta_s: float) -> None:
+        """The input's clock jumped by ``delta_s``: "now" follows the new time base."""
+        self._offset_s += delta_s
+        self._t_s += delta_s

@@ -42,8 +42,8 @@ class _SensorStats:
         # a late sample (older bucket) only counts in the totals: rates are approximate
 
     def rate_hz(self, now_s: float, window_s: int) -> float:
-        if self.count == 0 or not math.isfinite(now_s):
-            return 0.0
+        if self.count == 0 or not math.isfinite(now_s) or math.isnan(self.first_t_s):
+            return 0.0  # (only samples without a usable time seen: no rate)
         now_sec = math.floor(now_s)
         lo = now_sec - window_s
         n = sum(c for s, c in self.buckets if lo <= s < now_sec)
@@ -71,6 +71,7 @@ class Health:
         self._sensors: dict[str, _SensorStats] = {}
         self.rejected: Counter[str] = Counter()       # service-side: decode/corrupt/errors
         self.estimator_rejected: Mapping[str, int] | None = None  # live view of estimator.rejected
+        self.door_rejected: Mapping[str, int] | None = None  # live view of the plausibility door's
         self.calibrator_state: str = "off"
         self.last_release: dict[str, Any] | None = None
         self.releases: int = 0
@@ -98,6 +99,15 @@ class Health:
         if not (t_s <= self.t_s):
             self.t_s = t_s
 
+    def shift_time(self, delta_s: float) -> None:
+        """The input's clock jumped by ``delta_s`` (re-based by the runner): every sensor's
+        times move with it, so none looks silent or far ahead (rates restart)."""
+        for s in self._sensors.values():
+            s.first_t_s += delta_s
+            s.last_t_s += delta_s
+            s.buckets.clear()
+        self.t_s += delta_s
+
     def on_rejected(self, reason: str, n: int = 1) -> None:
         """Count ``n`` inputs the service itself refused (decode error, corrupt frame, ...)."""
         if n:
@@ -122,8 +132,9 @@ class Health:
     def rejected_by_reason(self) -> dict[str, int]:
         """Estimator rejections and service-side rejections, merged, sorted by reason."""
         total: Counter[str] = Counter(self.rejected)
-        if self.estimator_rejected:
-            total.update(dict(self.estimator_rejected))
+        for view in (self.estimator_rejected, self.door_rejected):
+            if view:
+                total.update(dict(view))
         return {k: int(total[k]) for k in sorted(total) if total[k]}
 
     def silent_sensors(self, now_s: float | None = None) -> list[str]:

@@ -69,6 +69,7 @@ class RunSummary:
     last_t_s: float = math.nan
     wall_s: float = 0.0
     stopped: bool = False
+    clock_jumps: list = field(default_factory=list)   # confirmed input clock jumps (s)
 
     @property
     def duration_s(self) -> float:
@@ -83,6 +84,7 @@ class RunSummary:
             "first_t_s": None if math.isnan(self.first_t_s) else self.first_t_s,
             "last_t_s": None if math.isnan(self.last_t_s) else self.last_t_s,
             "duration_s": self.duration_s, "wall_s": self.wall_s, "stopped": self.stopped,
+            "clock_jumps": list(self.clock_jumps),
         }
 
 
@@ -110,8 +112,9 @@ def _bound(sinks: list, name: str) -> list:
 class _Loop:
     """State of one :func:`run` call (kept out of the function for readability)."""
 
-    def __init__(self, estimator, sinks, clock, calibrator, output_rate_hz, health, progress):
+    def __init__(self, estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door=None):
         self.estimator = estimator
+        self.door = door
         self.sinks = list(sinks)
         self.clock = clock
         self.calibrator = calibrator
@@ -172,6 +175,43 @@ class _Loop:
         if self.next_k is not None and t_s >= self.epoch(self.next_k) - 1e-9:
             self.emit()
             self.next_k = math.floor(t_s * self.rate + 1e-9) + 1
+
+    # -- the door ---------------------------------------------------------------------------
+    def admit(self, item: Any, is_batch: bool) -> Any:
+        """The plausibility door (:mod:`adaptnav.fusion.plausibility`): ``None`` when the whole
+        item is refused (counted there), else the item with the refused IMU samples removed.
+        It runs before anything that follows data time (clock, epochs, health)."""
+        door = self.door
+        if is_batch:
+            t = np.asarray(item.t_s, dtype=float)
+            f = np.asarray(item.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
+            w = np.asarray(item.omega_b_rad_s, dtype=float).reshape(-1, 3)
+            keep, jump = door.check_batch(t, f, w)
+            if keep is not None:
+                if not keep.any():
+                    return None
+                if not keep.all():
+                    item = ImuBatch(t[keep], f[keep], w[keep])
+        else:
+            ok, jump = door.check(item)
+            if not ok:
+                return None
+        if jump:
+            self.clock_jump(jump)
+        return item
+
+    def clock_jump(self, jump_s: float) -> None:
+        """A confirmed jump of the input's clock: re-base the estimator, the clock and health
+        by ``jump_s`` and restart the output epochs at the new time."""
+        log.warning("runner: input clock jumped by %+.3f s (stream continued consistently): re-based", jump_s)
+        self.summary.clock_jumps.append(float(jump_s))
+        for obj in (self.estimator, self.clock, self.health):
+            shift = getattr(obj, "shift_time", None)
+            if shift is not None:
+                shift(jump_s)
+        self.next_k = None
+        self.last_emitted_t = -math.inf
+        self._next_inertial_t = -math.inf
 
     # -- items ------------------------------------------------------------------------------
     def aid(self, statuses) -> None:
@@ -241,6 +281,10 @@ class _Loop:
         is_batch = kind == "imu_batch" and isinstance(item, ImuBatch)
         if is_batch and len(item) == 0:
             return
+        if self.door is not None:
+            item = self.admit(item, is_batch)
+            if item is None:
+                return
         t_s = float(item.t_s[0]) if is_batch else float(item.t_s)
         if math.isfinite(t_s):
             self.clock.wait_until(t_s)
@@ -265,9 +309,23 @@ class _Loop:
             self.progress(t_last)
 
 
+def door_for(estimator: Any) -> Any:
+    """The plausibility door of ``estimator`` (its config's bounds, origin and depth
+    conversion), or ``None`` for an estimator without a filter config."""
+    from adaptnav.fusion.plausibility import Door
+
+    cfg = getattr(estimator, "config", None)
+    bounds = getattr(cfg, "plausibility", None)
+    if bounds is None:
+        return None
+    return Door(bounds, getattr(estimator, "origin", None), cfg.depth.water_density_kg_m3,
+                cfg.depth.atmospheric_pressure_pa)
+
+
 def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         calibrator: Any = None, *, output_rate_hz: float = 10.0, stop: Any = None,
-        health: Health | None = None, progress: Any = None, close_sinks: bool = True) -> RunSummary:
+        health: Health | None = None, progress: Any = None, close_sinks: bool = True,
+        door: Any = None) -> RunSummary:
     """Run ``source`` through ``estimator`` into ``sinks`` (see the module docstring).
 
     Parameters
@@ -292,6 +350,9 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         Called with the data time reached after each item (progress bars).
     close_sinks : bool
         Call every sink's ``close()`` at the end.
+    door : adaptnav.fusion.plausibility.Door, optional
+        The plausibility check in front of everything; by default built from
+        ``estimator.config.plausibility`` (when the estimator has one).
 
     Returns
     -------
@@ -299,11 +360,14 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
     """
     if not (output_rate_hz > 0 and math.isfinite(output_rate_hz)):
         raise ValueError(f"output_rate_hz must be a positive number, got {output_rate_hz}")
+    if door is None:
+        door = door_for(estimator)
     if health is not None:
         health.estimator_rejected = getattr(estimator, "rejected", None)
+        health.door_rejected = getattr(door, "rejected", None)
         if calibrator is not None and health.calibrator_state == "off":
             health.calibrator_state = "in-process"
-    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress)
+    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door)
     qsize = getattr(source, "qsize", None)
     wall0 = time.monotonic()
     try:

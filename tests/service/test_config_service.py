@@ -1,6 +1,7 @@
 """ServiceConfig: the shipped deploy config loads, overrides work, errors name the key."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -71,3 +72,26 @@ def test_bad_file(tmp_path):
         load_config(bad)
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.toml")
+
+
+@pytest.mark.parametrize("override, key", [
+    ("outputs.nav_rate_hz=inf", "nav_rate_hz"),       # the runner died
+    ("outputs.nav_rate_hz=1e308", "nav_rate_hz"),     # the runner hung
+    ("filter.gate_sigma=nan", "gate_sigma"),          # every aid rejected
+    ("filter.gate_sigma=inf", "gate_sigma"),          # nothing gated
+    ("health.queue_size=0", "queue_size"),            # an unbounded queue
+    ("calibrator.queue_size=-1", "queue_size"),
+    ("health.sensor_timeout_s=nan", "sensor_timeout_s"),
+    ("filter.dvl.lever_arm_b_m=[0.0, inf, 0.0]", "lever_arm_b_m"),
+    ("filter.max_delay_s=1e9", "max_delay_s"),
+    ("persistence.period_s=0", "period_s"),
+])
+def test_config_refuses_non_finite_and_out_of_range_values_naming_the_key(override, key):
+    with pytest.raises(ConfigError, match=key):
+        load_config(None, [override])
+
+
+def test_a_nan_default_may_be_given_as_nan_and_the_shipped_config_loads():
+    cfg = load_config(None, ["calibrator.online.origin_lat_deg=nan"])
+    assert math.isnan(cfg.calibrator.online.origin_lat_deg)
+    load_config(Path(__file__).resolve().parents[2] / "deploy" / "adaptnav.toml")
