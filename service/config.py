@@ -55,7 +55,7 @@ SENSOR_KINDS = ("imu", "rpm", "dvl", "depth", "heading", "attitude", "gnss", "us
                 "range", "altitude", "visual_motion", "sonar")
 
 
-MAX_QUEUE_SIZE = 1_000_000  # items; a bound on the memory a burst may take
+MAX_QUEUE_SIZE = 10_000_000  # items; a bound on the memory a burst may take (a test replays an hour through one)
 
 
 def _check_queue_size(name: str, value: int) -> None:
