@@ -60,6 +60,7 @@ from typing import Literal
 import numpy as np
 
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable, rescale_step
+from adaptnav.fusion.samples import kinds
 from adaptnav.calibration.em import EMOptions, run_em
 from adaptnav.calibration.mstep import MStepOptions, surge_variances_from_increments
 from adaptnav.calibration.particle_filter import filter_step, run_particle_filter
@@ -69,11 +70,12 @@ from adaptnav.calibration.sensors import (HeadingObservation, LandmarkAssociator
                                  PositionFix, RangeObservation, sighting_from_sonar)
 
 
-# Sample kinds (``KIND``) the calibrator has no use for: senders skip them (they would
-# only cost pickling across the process boundary) and :meth:`OnlineCalibrator.observe`
-# ignores them. Depth and DVL aid the filter; the calibrator's model is horizontal and
-# learns from position information, IMU, RPM and headings.
-UNUSED_KINDS = frozenset({"truth", "depth", "dvl", "altitude", "visual_motion"})
+# Sample kinds (``KIND``) the calibrator has no use for (``calibrator_uses`` in the sensor
+# table, :data:`adaptnav.fusion.samples.SENSORS`): senders skip them (they would only cost
+# pickling across the process boundary) and :meth:`OnlineCalibrator.observe` ignores them.
+# Depth and DVL aid the filter; the calibrator's model is horizontal and learns from
+# position information, IMU, RPM and headings.
+UNUSED_KINDS = frozenset(kinds(calibrator_uses=False))
 
 
 @dataclass(frozen=True)

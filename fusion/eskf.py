@@ -45,26 +45,26 @@ from collections import Counter
 import numpy as np
 
 from . import strapdown as sd
-from .aiding import attitude as aid_attitude
+from .aiding import AIDS, AidContext
 from .aiding import depth as aid_depth
 from .aiding import dvl as aid_dvl
-from .aiding import gnss as aid_gnss
 from .aiding import heading as aid_heading
 from .aiding import learned_velocity as aid_lv
-from .aiding import usbl as aid_usbl
-from .aiding import visual_motion as aid_visual
 from .aiding.common import Measurement
 from .alignment import Aligner
 from .config import FilterConfig
 from .frames import GeoOrigin, euler_to_quat
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import InertialVelocitySample, is_finite
+from .samples import SENSORS, InertialVelocitySample, is_finite
 from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, VEL, X_BA, X_BG, X_CUR, X_KS, X_Q, NavState,
                     initial_nominal)
 from .status import AidStatus, rejected
 
-IGNORED_KINDS = frozenset({"truth", "range", "altitude"})
-AID_KINDS = frozenset({"dvl", "depth", "heading", "attitude", "gnss", "usbl", "visual_motion"})
+# Both from the sensor table and the aid registry: an aid-role kind without an aid
+# source yet, truth and context kinds are ignored; the aid sources fuse theirs.
+IGNORED_KINDS = frozenset(s.kind for s in SENSORS
+                          if s.role in ("truth", "context") or (s.role == "aid" and s.kind not in AIDS))
+AID_KINDS = frozenset(AIDS)
 # Velocity random walk assumed across an IMU gap or in AHRS-only mode (m/s per √s): an
 # AUV's speed changes by ~0.5 m/s within seconds when nothing measures it.
 _BLIND_VEL_RW_M_S_RTHZ = 0.3
@@ -137,12 +137,11 @@ class Estimator:
         self._rpm: tuple[float, float] | None = None  # (t_s, speed m/s)
         self._next_lv_t = math.nan
         self._lv_period = 1.0 / config.learned_velocity.rate_hz
-        self._R_db = aid_dvl.rotation_db(config.dvl.rotation_bd_rpy_rad)
-        self._lever_b = np.asarray(config.dvl.lever_arm_b_m, dtype=float)
-        self.dvl_calibration: aid_dvl.DvlCalibration | None = None
-        if config.dvl.scale_sigma > 0 or config.dvl.misalignment_sigma_rad > 0:
-            self.dvl_calibration = aid_dvl.DvlCalibration(config.dvl.scale_sigma,
-                                                          config.dvl.misalignment_sigma_rad)
+        # per aid kind: (its config section, what its setup() made of it), once
+        self._aid_cfg = {kind: (getattr(config, kind), aid.setup(getattr(config, kind)) if aid.setup else None)
+                         for kind, aid in AIDS.items()}
+        # the DVL's scale/misalignment estimate (None when not configured): its aid owns it
+        self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
         # input history for late measurements: entries (kind, payload) with the snapshot
@@ -521,7 +520,7 @@ class Estimator:
                         or self._imu_interval_s > self.config.imu_gap_s)
             if slow_imu and self._mode == "none":
                 return self._init_ahrs(sample)
-        elif kind in ("gnss", "usbl"):
+        elif AIDS[kind].absolute_position:
             ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
             self._pending_fix = (ned[:2], sample.sigma_h_m)
         elif kind == "depth":
@@ -746,68 +745,26 @@ class Estimator:
 
     def _aid(self, sample) -> list[AidStatus]:
         kind = sample.KIND
-        c = self.config
+        aid = AIDS[kind]
         if self._mode == "ahrs":
             # no dead reckoning: attitude, depth and absolute fixes only (position is a
             # random walk between fixes and never reported valid)
-            if kind not in ("attitude", "depth", "heading", "usbl", "gnss"):
+            if not aid.without_imu:
                 return [rejected(sample.t_s, kind, "no_imu")]
             self._ahrs_time_update(sample.t_s)
-        if not getattr(c, kind).enabled:
+        config, setup = self._aid_cfg[kind]
+        if not config.enabled:
             return [rejected(sample.t_s, kind, "disabled")]
-        x = self._x
-        meas: Measurement | None
-        if kind == "depth":
-            meas = aid_depth.measure(sample, x, c.depth.sigma_m, c.depth.water_density_kg_m3,
-                                     c.depth.atmospheric_pressure_pa)
-        elif kind == "heading":
-            meas = aid_heading.measure(sample, x, c.heading.sigma_rad)
-        elif kind == "attitude":
-            meas = aid_attitude.measure(sample, x, c.attitude.sigma_roll_pitch_rad,
-                                        c.attitude.sigma_yaw_rad)
-        elif kind == "dvl":
-            meas, why = self._dvl_measurement(sample)
-            if meas is None:
-                return [rejected(sample.t_s, kind, why)]
-        elif kind == "gnss":
-            if not aid_gnss.at_surface(x, c.gnss.max_depth_m):
-                return [rejected(sample.t_s, kind, "surface_only")]
-            meas = aid_gnss.measure(sample, x, self.origin)
-        elif kind == "usbl":
-            meas = aid_usbl.measure(sample, x, self.origin)
-        elif kind == "visual_motion":
-            meas = aid_visual.measure(sample, x)
-            if meas is None:
-                return [rejected(sample.t_s, kind, "invalid")]
-        else:  # pragma: no cover - guarded by AID_KINDS
-            return []
-        if kind in ("gnss", "usbl"):
+        meas = aid.measure(sample, AidContext(self._x, self._acc[13:16], self.origin, config, setup))
+        if meas is None or isinstance(meas, str):
+            return [rejected(sample.t_s, kind, meas or aid.none_reason)]
+        if aid.absolute_position:
             status = self._fuse_position(meas, sample.t_s, kind)
-            if self.dvl_calibration is not None and status.fused:
+            if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)
             return [status]
         return [self._fuse(meas, sample.t_s, kind)]
-
-    def _dvl_measurement(self, sample) -> tuple[Measurement | None, str]:
-        """Bottom or water track, corrected with the calibrated scale and misalignment."""
-        c, cal = self.config.dvl, self.dvl_calibration
-        if not sample.valid:
-            if cal is not None:
-                cal.on_dvl(sample.t_s, None)
-            return None, "invalid"
-        vel_d = np.asarray(sample.vel_d_m_s, dtype=float)
-        if getattr(sample, "water_track", False):
-            if not c.water_track:
-                return None, "water_track_off"
-            z = cal.correct(vel_d) if cal is not None else vel_d
-            return aid_dvl.measure_water_track(z, self._x, self._acc[13:16], self._lever_b, self._R_db,
-                                               c.water_track_sigma_m_s), ""
-        z = None
-        if cal is not None:
-            cal.on_dvl(sample.t_s, aid_dvl.dcm(self._x) @ (self._R_db.T @ vel_d))
-            z = cal.correct(vel_d)
-        return aid_dvl.measure(sample, self._x, self._acc[13:16], self._lever_b, self._R_db, c.sigma_m_s, z), ""
 
     def _fuse_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         """Fuse an absolute position; after repeated gate rejections, trust it again.

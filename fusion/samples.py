@@ -194,24 +194,88 @@ class TruthSample:
     bias_gyro_b_rad_s: Vec3 = (0.0, 0.0, 0.0)
 
 
-SAMPLE_TYPES: dict[str, type] = {
-    cls.KIND: cls
-    for cls in (ImuSample, RpmSample, DvlSample, DepthSample, HeadingSample, AttitudeSample,
-                GnssSample, UsblSample, RangeSample, AltitudeSample, VisualMotionSample,
-                InertialVelocitySample, TruthSample)
-}
+@dataclass(frozen=True)
+class SensorKind:
+    """One row of :data:`SENSORS`, the table every list of sample kinds derives from.
 
-# Lower runs first among samples with equal t_s: the IMU propagates to t before aiding
-# at t is fused; truth last so metrics see the state after every update at t.
-SOURCE_PRIORITY: dict[str, int] = {
-    "imu": 0, "rpm": 1, "attitude": 2, "heading": 3, "depth": 4, "dvl": 5, "altitude": 6,
-    "gnss": 7, "usbl": 8, "range": 9, "visual_motion": 10, "inertial_velocity": 11, "truth": 99,
-}
+    Attributes
+    ----------
+    kind : str
+        The ``KIND`` of its sample type, the ``type`` of its JSON form, its bus topic name.
+    sample_type : type or None
+        Its sample class; ``None`` for a kind declared outside :mod:`adaptnav.fusion`
+        (``sonar``: :class:`adaptnav.sonar.ping.SonarPing`, sonar being a leaf package).
+    priority : int
+        Replay order among samples with equal ``t_s`` (lower first).
+    role : str
+        ``"propagate"`` (moves the state: the IMU), ``"control"`` (an input of the motion
+        model: RPM), ``"aid"`` (corrects the state through an aid source of
+        :mod:`adaptnav.fusion.aiding`), ``"calibration"`` (only the calibrator learns from
+        it), ``"context"`` (used by other consumers, e.g. sonar's slant-range correction),
+        ``"truth"`` (simulator ground truth: metrics only).
+    calibrator_uses : bool
+        :class:`adaptnav.calibration.online.OnlineCalibrator` learns from it (the others
+        are not sent to it).
+    nav_stream : bool
+        A navigation log is expected to carry it (a replay reports it missing otherwise).
+    aid_source : str or None
+        The aid source whose status says why nothing is fused when this sensor is silent.
+    """
+
+    kind: str
+    sample_type: type | None
+    priority: int
+    role: str
+    calibrator_uses: bool
+    nav_stream: bool = False
+    aid_source: str | None = None
+
+
+ROLES = ("propagate", "control", "aid", "calibration", "context", "truth")
+
+# The sensor table. A new kind is one row here (and its sample class above); every other
+# list of kinds derives from it, and tests/test_sensor_table.py checks each consumer
+# covers every kind it must. Priorities: the IMU propagates to t before aiding at t is
+# fused; truth last, so metrics see the state after every update at t.
+SENSORS: tuple[SensorKind, ...] = (
+    SensorKind("imu", ImuSample, 0, "propagate", calibrator_uses=True, nav_stream=True),
+    SensorKind("rpm", RpmSample, 1, "control", calibrator_uses=True, nav_stream=True,
+               aid_source="learned_velocity"),
+    SensorKind("attitude", AttitudeSample, 2, "aid", calibrator_uses=True, aid_source="attitude"),
+    SensorKind("heading", HeadingSample, 3, "aid", calibrator_uses=True, nav_stream=True, aid_source="heading"),
+    SensorKind("depth", DepthSample, 4, "aid", calibrator_uses=False, nav_stream=True, aid_source="depth"),
+    SensorKind("dvl", DvlSample, 5, "aid", calibrator_uses=False, nav_stream=True, aid_source="dvl"),
+    SensorKind("altitude", AltitudeSample, 6, "context", calibrator_uses=False),
+    SensorKind("gnss", GnssSample, 7, "aid", calibrator_uses=True, nav_stream=True, aid_source="gnss"),
+    SensorKind("usbl", UsblSample, 8, "aid", calibrator_uses=True, nav_stream=True, aid_source="usbl"),
+    SensorKind("range", RangeSample, 9, "aid", calibrator_uses=True, aid_source="range"),
+    SensorKind("visual_motion", VisualMotionSample, 10, "aid", calibrator_uses=False,
+               aid_source="visual_motion"),
+    SensorKind("inertial_velocity", InertialVelocitySample, 11, "calibration", calibrator_uses=True),
+    SensorKind("sonar", None, 50, "calibration", calibrator_uses=True),
+    SensorKind("truth", TruthSample, 99, "truth", calibrator_uses=False),
+)
+
+SENSOR_BY_KIND: dict[str, SensorKind] = {s.kind: s for s in SENSORS}
+
+# derived lists (never written out by hand elsewhere)
+SAMPLE_TYPES: dict[str, type] = {s.kind: s.sample_type for s in SENSORS if s.sample_type is not None}
+SOURCE_PRIORITY: dict[str, int] = {s.kind: s.priority for s in SENSORS}
+DEFAULT_PRIORITY = 50  # a kind the table does not know (a newer sender's)
+
+
+def kinds(*, role: str | None = None, calibrator_uses: bool | None = None,
+          nav_stream: bool | None = None) -> tuple[str, ...]:
+    """The kinds of :data:`SENSORS` with the given attributes, in table order."""
+    return tuple(s.kind for s in SENSORS
+                 if (role is None or s.role == role)
+                 and (calibrator_uses is None or s.calibrator_uses == calibrator_uses)
+                 and (nav_stream is None or s.nav_stream == nav_stream))
 
 
 def replay_order_key(sample: Any, seq: int) -> tuple[float, int, int]:
     """Sort key of the deterministic replay order ``(t_s, source priority, seq)``."""
-    return (sample.t_s, SOURCE_PRIORITY.get(sample.KIND, 50), seq)
+    return (sample.t_s, SOURCE_PRIORITY.get(sample.KIND, DEFAULT_PRIORITY), seq)
 
 
 def _field_spec(f: dataclasses.Field) -> tuple[str, int | None]:

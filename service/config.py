@@ -35,25 +35,10 @@ from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, 
 
 from adaptnav.service.transport.mavlink_bridge import BridgeConfig
 
-try:  # the filter's config lands from the navigation-core work; embed it when present
-    from adaptnav.fusion.config import FilterConfig
-except ImportError:  # pragma: no cover - only while fusion/config.py does not exist yet
-    @dataclass(frozen=True)
-    class FilterConfig:  # type: ignore[no-redef]
-        """Placeholder until ``adaptnav.fusion.config.FilterConfig`` exists (no keys accepted)."""
-
-try:
-    from adaptnav.calibration.online import CalibratorConfig
-except ImportError:  # pragma: no cover
-    @dataclass(frozen=True)
-    class CalibratorConfig:  # type: ignore[no-redef]
-        """Placeholder until ``adaptnav.calibration.online.CalibratorConfig`` exists."""
+from adaptnav.calibration.online import CalibratorConfig
+from adaptnav.fusion.config import FilterConfig
 
 log = logging.getLogger(__name__)
-
-SENSOR_KINDS = ("imu", "rpm", "dvl", "depth", "heading", "attitude", "gnss", "usbl",
-                "range", "altitude", "visual_motion", "sonar")
-
 
 MAX_QUEUE_SIZE = 10_000_000  # items; a bound on the memory a burst may take (a test replays an hour through one)
 

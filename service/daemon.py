@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.motion_model import MotionParams
-from adaptnav.fusion.samples import SOURCE_PRIORITY
+from adaptnav.fusion.samples import SENSORS, SOURCE_PRIORITY
 
 from adaptnav.service.transport.bus import Bus, encode_sample, message, nonblocking_enqueue
 from adaptnav.service.calibrator.process import CalibratorProcess, release_from_dict
@@ -49,9 +49,7 @@ from adaptnav.service.runtime.sinks import Sink
 log = logging.getLogger(__name__)
 
 # sensor kind → the aid source whose status says why nothing is fused when it is silent
-SENSOR_AID_SOURCE = {"rpm": "learned_velocity", "dvl": "dvl", "depth": "depth",
-                     "heading": "heading", "attitude": "attitude", "gnss": "gnss",
-                     "usbl": "usbl", "range": "range", "visual_motion": "visual_motion"}
+SENSOR_AID_SOURCE = {s.kind: s.aid_source for s in SENSORS if s.aid_source}
 
 
 def sd_notify(state: str) -> bool:

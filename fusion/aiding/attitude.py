@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..state import ATT, N_ERR
-from .common import Measurement, dcm, euler_jacobian, euler_of, make
+from ..config import AttitudeConfig
+from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of, make
 
 
 def predict(x) -> np.ndarray:
@@ -25,3 +26,10 @@ def measure(sample, x, sigma_roll_pitch_rad, sigma_yaw_rad) -> Measurement:
     R = np.diag([sigma_roll_pitch_rad**2, sigma_roll_pitch_rad**2, sigma_yaw_rad**2])
     return make([sample.roll_rad, sample.pitch_rad, sample.yaw_rad], jacobian(x), R, predict(x),
                 [True, True, True])
+
+
+def _measure(sample, ctx: AidContext) -> Measurement:
+    return measure(sample, ctx.x, ctx.config.sigma_roll_pitch_rad, ctx.config.sigma_yaw_rad)
+
+
+AID = AidSource("attitude", AttitudeConfig, _measure, without_imu=True)

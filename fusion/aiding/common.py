@@ -1,6 +1,10 @@
-"""What every aiding source returns, and small helpers they share.
+"""What every aiding source declares and returns, and small helpers they share.
 
-Each source module provides ``predict(x, ...) -> h`` (the measurement model on the
+Each source module of a *sample kind* declares ``AID = AidSource(kind, config_type,
+measure, ...)`` (:class:`AidSource`): the estimator finds it by its kind
+(:data:`adaptnav.fusion.aiding.AIDS`) and calls ``AID.measure(sample, ctx) -> Measurement |
+None`` with an :class:`AidContext`; it does the gating, update and status once for all.
+The math underneath: each source module provides ``predict(x, ...) -> h`` (the measurement model on the
 nominal state, :mod:`adaptnav.fusion.state` layout) and ``measure(sample, x, ...) ->
 Measurement | None`` giving ``(z, H, R)`` plus ``h`` so the estimator can form the
 innovation ``y = z ⊖ h`` (angles wrapped). ``H`` is the Jacobian of ``h`` with respect
@@ -9,7 +13,8 @@ contract test checks it against finite differences through :func:`adaptnav.fusio
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -32,6 +37,60 @@ class Measurement(NamedTuple):
         if ang is not _NOT_ANGULAR.get(ang.size) and ang.any():  # make()'s shared all-False masks
             y = np.where(self.angular, wrap_angle(y), y)
         return y
+
+
+class AidContext(NamedTuple):
+    """What an aid source's ``measure`` may read besides its sample.
+
+    ``x`` the nominal state (:mod:`adaptnav.fusion.state` layout); ``omega_b_rad_s`` (3,)
+    the latest bias-corrected body angular rate (rad/s); ``origin`` the mission
+    :class:`~adaptnav.fusion.frames.GeoOrigin`; ``config`` the aid's own section of
+    :class:`~adaptnav.fusion.config.FilterConfig` (field named like the kind);
+    ``setup`` what :attr:`AidSource.setup` computed once from that section (or None).
+    """
+
+    x: np.ndarray
+    omega_b_rad_s: np.ndarray
+    origin: Any
+    config: Any
+    setup: Any
+
+
+@dataclass(frozen=True)
+class AidSource:
+    """The declaration an aid module makes (``AID = AidSource(...)``).
+
+    Attributes
+    ----------
+    kind : str
+        The sample kind it fuses (a row of :data:`adaptnav.fusion.samples.SENSORS` with
+        role ``"aid"``); also the name of its :class:`FilterConfig` section and of its
+        :class:`~adaptnav.fusion.status.AidStatus` source.
+    config_type : type
+        Its config section's dataclass (with an ``enabled`` flag).
+    measure : callable
+        ``measure(sample, ctx: AidContext) -> Measurement | None``; ``None`` is rejected
+        with :attr:`none_reason` (an aid with several reasons may return the reason, a
+        ``str``, instead).
+    none_reason : str
+        Why a ``None`` was not fused (``"invalid"``: the sample says it is not valid).
+    absolute_position : bool
+        A position fix: initialises the position before alignment and is trusted again
+        after ``position_reset_after_rejections`` gate rejections in a row.
+    without_imu : bool
+        Fused in AHRS mode too (needs no dead-reckoned velocity).
+    setup : callable or None
+        ``setup(config_section) -> Any``, computed once per estimator (e.g. a mounting
+        rotation), handed back as ``ctx.setup``.
+    """
+
+    kind: str
+    config_type: type
+    measure: Callable[[Any, AidContext], "Measurement | str | None"]
+    none_reason: str = "invalid"
+    absolute_position: bool = False
+    without_imu: bool = False
+    setup: Callable[[Any], Any] | None = None
 
 
 _NOT_ANGULAR = {m: np.zeros(m, bool) for m in (1, 2, 3)}

@@ -10,7 +10,8 @@ import numpy as np
 
 from ..frames import GRAVITY_M_S2
 from ..state import N_ERR, X_POS
-from .common import Measurement, make
+from ..config import DepthConfig
+from .common import AidContext, AidSource, Measurement, make
 
 
 def pressure_to_depth(pressure_pa, water_density_kg_m3: float, atmospheric_pressure_pa: float):
@@ -32,3 +33,11 @@ def jacobian(x) -> np.ndarray:
 def measure(sample, x, sigma_m, water_density_kg_m3, atmospheric_pressure_pa) -> Measurement:
     depth = float(pressure_to_depth(sample.pressure_pa, water_density_kg_m3, atmospheric_pressure_pa))
     return make([depth], jacobian(x), [[sigma_m**2]], predict(x))
+
+
+def _measure(sample, ctx: AidContext) -> Measurement:
+    c = ctx.config
+    return measure(sample, ctx.x, c.sigma_m, c.water_density_kg_m3, c.atmospheric_pressure_pa)
+
+
+AID = AidSource("depth", DepthConfig, _measure, without_imu=True)

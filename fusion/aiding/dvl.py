@@ -22,11 +22,14 @@ only) the correction stays at the prior's zero — "estimated where observable".
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..frames import euler_to_quat, quat_to_dcm
+from ..config import DvlConfig
 from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
-from .common import Measurement, dcm, make, skew
+from .common import AidContext, AidSource, Measurement, dcm, make, skew
 
 
 def rotation_z(psi_rad: float) -> np.ndarray:
@@ -176,3 +179,45 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=
     v_b = R.T @ vel + np.array([o1 * l2 - o2 * l1, o2 * l0 - o0 * l2, o0 * l1 - o1 * l0])
     z = sample.vel_d_m_s if vel_d_m_s is None else vel_d_m_s
     return make(z, H, np.eye(3) * sigma_m_s**2, R_db @ v_b)
+
+
+class DvlSetup(NamedTuple):
+    """What the estimator keeps for its DVL: lever arm ``l_b`` (3,) m, ``R_db`` (3, 3) and
+    the scale/misalignment estimate (None when ``scale_sigma`` and
+    ``misalignment_sigma_rad`` are 0)."""
+
+    lever_b: np.ndarray
+    R_db: np.ndarray
+    calibration: DvlCalibration | None
+
+
+def _setup(config: DvlConfig) -> DvlSetup:
+    cal = None
+    if config.scale_sigma > 0 or config.misalignment_sigma_rad > 0:
+        cal = DvlCalibration(config.scale_sigma, config.misalignment_sigma_rad)
+    return DvlSetup(np.asarray(config.lever_arm_b_m, dtype=float), rotation_db(config.rotation_bd_rpy_rad), cal)
+
+
+def _measure(sample, ctx: AidContext) -> Measurement | str:
+    """Bottom or water track, corrected with the calibrated scale and misalignment; a
+    rejection reason when there is nothing to fuse."""
+    c = ctx.config
+    lever_b, R_db, cal = ctx.setup
+    if not sample.valid:
+        if cal is not None:
+            cal.on_dvl(sample.t_s, None)
+        return "invalid"
+    vel_d = np.asarray(sample.vel_d_m_s, dtype=float)
+    if getattr(sample, "water_track", False):
+        if not c.water_track:
+            return "water_track_off"
+        z = cal.correct(vel_d) if cal is not None else vel_d
+        return measure_water_track(z, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.water_track_sigma_m_s)
+    z = None
+    if cal is not None:
+        cal.on_dvl(sample.t_s, dcm(ctx.x) @ (R_db.T @ vel_d))
+        z = cal.correct(vel_d)
+    return measure(sample, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.sigma_m_s, z)
+
+
+AID = AidSource("dvl", DvlConfig, _measure, setup=_setup)

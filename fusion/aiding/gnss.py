@@ -9,7 +9,8 @@ import numpy as np
 
 from ..frames import GeoOrigin
 from ..state import N_ERR, X_POS
-from .common import Measurement, make
+from ..config import GnssConfig
+from .common import AidContext, AidSource, Measurement, make
 
 
 def at_surface(x, max_depth_m: float) -> bool:
@@ -29,3 +30,13 @@ def jacobian(x) -> np.ndarray:
 def measure(sample, x, origin: GeoOrigin) -> Measurement:
     ned = origin.to_ned(sample.lat_rad, sample.lon_rad)
     return make(ned[:2], jacobian(x), np.eye(2) * sample.sigma_h_m**2, predict(x))
+
+
+def _measure(sample, ctx: AidContext) -> Measurement | None:
+    if not at_surface(ctx.x, ctx.config.max_depth_m):
+        return None
+    return measure(sample, ctx.x, ctx.origin)
+
+
+AID = AidSource("gnss", GnssConfig, _measure, none_reason="surface_only", absolute_position=True,
+                without_imu=True)

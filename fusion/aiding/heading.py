@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..state import ATT, N_ERR
-from .common import Measurement, dcm, euler_jacobian, euler_of
+from ..config import HeadingConfig
+from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of
 
 _ANGULAR = np.ones(1, bool)
 _ANGULAR.setflags(write=False)
@@ -40,3 +41,10 @@ def measure(sample, x, sigma_rad) -> Measurement:
     H[0, ATT] = (np.cos(yaw) * tp, np.sin(yaw) * tp, 1.0)
     return Measurement(np.array([float(sample.yaw_rad)]), H, np.array([[sigma_rad**2]], dtype=float),
                        np.array([yaw]), _ANGULAR)
+
+
+def _measure(sample, ctx: AidContext) -> Measurement:
+    return measure(sample, ctx.x, ctx.config.sigma_rad)
+
+
+AID = AidSource("heading", HeadingConfig, _measure, without_imu=True)

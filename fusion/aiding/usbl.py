@@ -10,7 +10,8 @@ import numpy as np
 
 from ..frames import GeoOrigin
 from ..state import N_ERR, X_POS
-from .common import Measurement, make
+from ..config import UsblConfig
+from .common import AidContext, AidSource, Measurement, make
 
 
 def predict(x, with_depth: bool) -> np.ndarray:
@@ -34,3 +35,10 @@ def measure(sample, x, origin: GeoOrigin) -> Measurement:
     else:
         z, R = ned[:2], np.eye(2) * sample.sigma_h_m**2
     return make(z, jacobian(x, with_depth), R, predict(x, with_depth))
+
+
+def _measure(sample, ctx: AidContext) -> Measurement:
+    return measure(sample, ctx.x, ctx.origin)
+
+
+AID = AidSource("usbl", UsblConfig, _measure, absolute_position=True, without_imu=True)

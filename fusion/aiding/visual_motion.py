@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..state import ATT, N_ERR, VEL, X_VEL
-from .common import Measurement, dcm, make, skew
+from ..config import VisualMotionConfig
+from .common import AidContext, AidSource, Measurement, dcm, make, skew
 
 
 def predict(x) -> np.ndarray:
@@ -37,3 +38,10 @@ def measure(sample, x) -> Measurement | None:
     if not np.all(np.linalg.eigvalsh(cov) > 0):
         return None
     return make([sample.along_m / dt, sample.across_m / dt], jacobian(x), cov, predict(x))
+
+
+def _measure(sample, ctx: AidContext) -> Measurement | None:
+    return measure(sample, ctx.x)
+
+
+AID = AidSource("visual_motion", VisualMotionConfig, _measure)

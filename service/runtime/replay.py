@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
 
 from adaptnav.service.runtime.clock import LogClock, RealtimeClock
@@ -328,7 +329,7 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
     for item in items:
         head.append(item)
         kind = getattr(item, "KIND", None)
-        if kind in ("gnss", "usbl") and math.isfinite(item.lat_rad) and math.isfinite(item.lon_rad) \
+        if kind in FIX_KINDS and math.isfinite(item.lat_rad) and math.isfinite(item.lon_rad) \
                 and (item.lat_rad != 0.0 or item.lon_rad != 0.0):
             return head, item
         t = getattr(item, "t_s", None)

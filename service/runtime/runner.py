@@ -42,12 +42,10 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from adaptnav.fusion.samples import ImuBatch
+from adaptnav.fusion.samples import ImuBatch, kinds
 
-try:  # what the calibrator has no use for is not sent to it
-    from adaptnav.calibration.online import UNUSED_KINDS as _CALIBRATOR_UNUSED
-except ImportError:  # a daemon without the calibrator package (remote calibrator)
-    _CALIBRATOR_UNUSED = frozenset({"truth"})
+# what the calibrator has no use for is not sent to it (the sensor table says which)
+_CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
 from adaptnav.service.runtime.health import Health
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics
 
 
@@ -259,7 +260,7 @@ class SeriesRecorder(Sink):
     GNSS) set ``last_fix_t_s``.
     """
 
-    FIX_SOURCES = ("usbl", "gnss")
+    FIX_SOURCES = FIX_KINDS
 
     def __init__(self, initial_params: Any = None) -> None:
         st = _state_slices()

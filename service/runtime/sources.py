@@ -39,12 +39,13 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from adaptnav.fusion.samples import ImuBatch, ImuSample, replay_order_key
+from adaptnav.fusion.samples import ImuBatch, ImuSample, kinds, replay_order_key
 
-# streams navigation uses; a log lacking one of these is reported in ``missing``
 log = logging.getLogger(__name__)
 
-NAV_STREAMS = ("imu", "rpm", "heading", "depth", "dvl", "gnss", "usbl")
+# streams navigation uses (``nav_stream`` in the sensor table); a log lacking one of
+# these is reported in ``missing``
+NAV_STREAMS = kinds(nav_stream=True)
 
 
 @dataclass

@@ -108,3 +108,60 @@ def test_heading_innovation_wraps():
 
 def test_dvl_invalid_gives_none():
     assert dvl.measure(DvlSample(0.0, (0, 0, 0), valid=False), _state(), OMEGA, LEVER, R_DB, 0.01) is None
+
+
+# -- the aid registry against the sensor table ---------------------------------------------
+# One example sample per aid source: the row a new aid adds here (with its CASES row above).
+EXAMPLES = {
+    "attitude": AttitudeSample(1.0, 0.0, 0.0, 0.5),
+    "depth": DepthSample(1.0, 101325.0),
+    "dvl": DvlSample(1.0, (0.0, 0.0, 0.0)),
+    "gnss": GnssSample(1.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 3.0),
+    "heading": HeadingSample(1.0, 0.5),
+    "usbl": UsblSample(1.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 0.0, 2.0),
+    "visual_motion": VisualMotionSample(1.0, 0.0, 0.0, 0.0, 0.0, (0.01, 0, 0, 0, 0.01, 0, 0, 0, 1e-4)),
+}
+# sample kinds with the role "aid" in the sensor table that no aid source fuses yet
+NOT_YET_FUSED = {"range"}
+
+
+def test_every_aid_kind_of_the_sensor_table_has_one_aid_source():
+    from adaptnav.fusion.aiding import AIDS
+    from adaptnav.fusion.samples import kinds
+
+    aid_kinds = set(kinds(role="aid"))
+    assert set(AIDS) | NOT_YET_FUSED == aid_kinds
+    assert not set(AIDS) & NOT_YET_FUSED, "fused now: remove it from NOT_YET_FUSED"
+    assert set(EXAMPLES) == set(AIDS), "one example sample per aid source"
+
+
+@pytest.mark.parametrize("kind", sorted(EXAMPLES))
+def test_each_aid_source_has_its_config_section_and_is_dispatched_by_its_kind(kind):
+    import dataclasses
+
+    from adaptnav.fusion.aiding import AIDS
+    from adaptnav.fusion.config import FilterConfig
+    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.fusion.motion_model import RpmSpeedTable
+    from adaptnav.fusion.samples import ImuBatch
+
+    aid = AIDS[kind]
+    section = {f.name: f for f in dataclasses.fields(FilterConfig)}.get(kind)
+    assert section is not None, f"FilterConfig has no section {kind!r}"
+    assert isinstance(getattr(FilterConfig(), kind), aid.config_type)
+    assert isinstance(getattr(FilterConfig(), kind).enabled, bool)
+
+    def aligned(cfg):
+        est = Estimator(cfg, PARAMS, RpmSpeedTable(), ORIGIN)
+        n = 100
+        est.process(ImuBatch(np.arange(1, n + 1) / 100.0, np.tile([0.0, 0.0, -GRAVITY_M_S2], (n, 1)),
+                             np.zeros((n, 3))))
+        est.process(HeadingSample(1.0, 0.5))
+        assert est.initialized
+        return est
+
+    out = aligned(FilterConfig()).process(EXAMPLES[kind])
+    assert [(s.source, s.reason) for s in out] in ([(kind, "")], [(kind, "gate")])
+    off = dataclasses.replace(FilterConfig(), **{kind: dataclasses.replace(getattr(FilterConfig(), kind),
+                                                                           enabled=False)})
+    assert [(s.source, s.reason) for s in aligned(off).process(EXAMPLES[kind])] == [(kind, "disabled")]
