@@ -48,6 +48,14 @@ bounds, and the window log-likelihood with them (a fresh filter run) must not be
 with the current ones by more than ``ll_tolerance`` nats (the PF estimate is noisy). Every
 attempt produces a :class:`Release` with ``accepted`` and the ``reason`` when refused.
 
+The DVL as teacher (:mod:`adaptnav.calibration.dvl_teacher`). DVL samples with lock are
+binned on the same grid as water-relative body velocities (the filter's current, carried by
+its ``InertialVelocitySample``, removed). A window with at least ``min_dvl_steps`` steps
+covered by the DVL is calibrated from those rows instead of the particle smoother (the
+DVL observes the velocities the smoother would infer from fixes); fewer, and the window
+is calibrated as before. Every release names the teacher of each term it changed
+(:attr:`Release.teachers`: DVL, fixes, IMU, landmarks, heading).
+
 Determinism: everything depends only on the samples observed and the ``rng``.
 """
 from __future__ import annotations
@@ -73,8 +81,8 @@ from adaptnav.calibration.sensors import (HeadingObservation, LandmarkAssociator
 # Sample kinds (``KIND``) the calibrator has no use for (``calibrator_uses`` in the sensor
 # table, :data:`adaptnav.fusion.samples.SENSORS`): senders skip them (they would only cost
 # pickling across the process boundary) and :meth:`OnlineCalibrator.observe` ignores them.
-# Depth and DVL aid the filter; the calibrator's model is horizontal and learns from
-# position information, IMU, RPM and headings.
+# Depth aids the filter; the calibrator's model is horizontal and learns from position
+# information, the DVL (calibration.dvl_teacher), IMU, RPM and headings.
 UNUSED_KINDS = frozenset(kinds(calibrator_uses=False))
 
 
@@ -137,6 +145,11 @@ class CalibratorConfig:
     landmark_sigma_across_m: float = 0.5
     # relative uncertainty of the speed used to bring an off-grid fix to the pose time
     lag_speed_sigma: float = 0.2
+    # the DVL as teacher (calibration.dvl_teacher): steps with at least min_dvl_samples DVL
+    # samples with lock count; a window with min_dvl_steps of them learns from the DVL
+    use_dvl: bool = True
+    min_dvl_steps: int = 24
+    min_dvl_samples: int = 3
 
     def validate(self) -> None:
         if self.window_steps < 2 or self.period_steps < 1 or self.min_window_steps < 2:
@@ -174,6 +187,8 @@ class Release:
     reason: str
     iterations: int
     current_n_m_s: tuple[float, float] = (0.0, 0.0)
+    # which teacher informed the release: "DVL", "fixes", "IMU", "landmarks", "heading"
+    teachers: tuple[str, ...] = ()
 
 
 def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
@@ -281,7 +296,13 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
                        f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - {config.ll_tolerance}", res.iterations,
                        cur)
     held = "".join(f"; {n}" for n in res.notes)  # what was held and why (calibration.mstep)
-    return Release(t_s, new, ll_new, True, "ok" + held + note, res.iterations, cur)
+    seen = [o for obs in observations for o in (obs or ())]
+    teachers = tuple(t for t, used in (("fixes", any(isinstance(o, PositionFix) for o in seen)),
+                                       ("landmarks", any(isinstance(o, (LandmarkSighting, RangeObservation))
+                                                         for o in seen)),
+                                       ("IMU", inc is not None)) if used)
+    return Release(t_s, new, ll_new, True, "ok" + held + note + f"; taught by {', '.join(teachers)}",
+                   res.iterations, cur, teachers)
 
 
 def _inertial_only(params, inc, config: CalibratorConfig, t_s, initial_params, cur, why) -> Release:
@@ -300,7 +321,48 @@ def _inertial_only(params, inc, config: CalibratorConfig, t_s, initial_params, c
     if ll_new < ll_old - config.ll_tolerance:
         return Release(t_s, new, ll_new, False, f"log-likelihood worse: {ll_new:.2f} < {ll_old:.2f} - "
                        f"{config.ll_tolerance} (IMU only)", 1, cur)
-    return Release(t_s, new, ll_new, True, f"ok; surge variances from the IMU only ({why})", 1, cur)
+    return Release(t_s, new, ll_new, True, f"ok; surge variances from the IMU only ({why}); taught by IMU", 1, cur,
+                   ("IMU",))
+
+
+def calibrate_from_dvl(params: MotionParams, v, w, dt, dvl_rows, config: CalibratorConfig, t_s: float,
+                       initial_params: MotionParams | None, current_n_m_s, headings_rad=None) -> Release:
+    """One window taught by the DVL (:mod:`adaptnav.calibration.dvl_teacher`) + the release rule.
+
+    ``dvl_rows`` (T, 3) the steps' water-relative surge, sway, heave (NaN without DVL);
+    ``headings_rad`` (T+1,) observed headings at the poses (NaN where none) for b_W.
+    """
+    from adaptnav.calibration.dvl_teacher import teach
+
+    T = len(v)
+    lam = config.forgetting ** np.arange(T - 1, -1, -1, dtype=float)
+    win = rescale_step(params, config.model_step_s, config.step_s)
+    anchor = (rescale_step(initial_params, config.model_step_s, config.step_s)
+              if config.prior_anchor == "initial" and initial_params is not None else None)
+    rate = None
+    if headings_rad is not None:
+        h = np.asarray(headings_rad, dtype=float)
+        rate = ((np.diff(h) + math.pi) % (2 * math.pi) - math.pi) / dt
+    rows = np.asarray(dvl_rows, dtype=float)
+    res = teach(win, v, w, rows[:, 0], rows[:, 1], rows[:, 2], lam, config.em_options().mstep, anchor, rate)
+    cur = (float(current_n_m_s[0]), float(current_n_m_s[1]))
+    try:
+        new = rescale_step(res.params, config.step_s, config.model_step_s)
+    except ValueError as e:
+        return Release(t_s, params, math.nan, False, f"DVL teacher failed: {e}", 1, cur)
+    reason = gate_reason(new, config)
+    if reason:
+        return Release(t_s, new, math.nan, False, reason + " (DVL teacher)", 1, cur)
+    if not res.ll_new >= res.ll_old - config.ll_tolerance:
+        return Release(t_s, new, res.ll_new, False, f"log-likelihood worse: {res.ll_new:.2f} < {res.ll_old:.2f} - "
+                       f"{config.ll_tolerance} (DVL teacher)", 1, cur)
+    by = {}
+    for term, teacher in res.teachers.items():
+        by.setdefault(teacher, []).append(term)
+    taught = "; ".join(f"{', '.join(terms)} from the {teacher}" for teacher, terms in by.items())
+    held = "".join(f"; {n}" for n in res.notes)
+    teachers = tuple(dict.fromkeys("DVL" if t == "DVL" else "heading" for t in res.teachers.values()))
+    return Release(t_s, new, res.ll_new, True, f"ok; {res.rows} DVL steps: {taught}{held}", 1, cur, teachers)
 
 
 @dataclass
@@ -317,7 +379,9 @@ class OnlineCalibrator:
     """Feed samples with :meth:`observe`, collect releases with :meth:`poll`."""
 
     def __init__(self, config: CalibratorConfig, params0: MotionParams, rpm_table: RpmSpeedTable,
-                 rng: np.random.Generator):
+                 rng: np.random.Generator, dvl_mount=None):
+        """``dvl_mount``: (lever arm (3,) m, mounting roll/pitch/yaw (3,) rad) of the DVL head,
+        the filter's ``[filter.dvl]``; None: at the origin, aligned."""
         self.config = config
         self.params = params0  # for the model step (config.model_step_s)
         self.params0 = params0
@@ -357,6 +421,14 @@ class OnlineCalibrator:
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
+        # the DVL teacher: water-relative body velocity per step (calibration.dvl_teacher)
+        from adaptnav.calibration.dvl_teacher import DvlWaterVelocity
+
+        self.dvl_water = DvlWaterVelocity(*dvl_mount) if dvl_mount is not None else DvlWaterVelocity()
+        self._dvl_bins: dict = {}
+        self._dvl_rows: deque = deque(maxlen=config.window_steps)
+        self._filter_current = (0.0, 0.0)  # the filter's current estimate (from its inertial samples)
+        self._taught_by_dvl = False  # the latest accepted release came from the DVL teacher
 
     # ---------------------------------------------------------------- input
     def _reject(self, why: str) -> None:
@@ -428,6 +500,8 @@ class OnlineCalibrator:
                 self._add_obs(t, ob)
             elif kind == "SonarPing":
                 self._sonar(sample)
+            elif kind == "DvlSample":
+                self._dvl(t, sample)
             elif hasattr(sample, "ground_range_m") and hasattr(sample, "side"):
                 tid = self._assoc.assign(sample)
                 ob = sighting_from_sonar(sample, tid, self.config.landmark_sigma_along_m,
@@ -482,9 +556,29 @@ class OnlineCalibrator:
         if buf and t <= buf[-1][0]:
             return self._reject("out-of-order inertial_velocity")
         buf.append((t, pn, pe, yaw, int(sample.reset_counter)))
+        cur = getattr(sample, "current_n_m_s", None)
+        if cur is not None and math.isfinite(cur[0]) and math.isfinite(cur[1]):
+            self._filter_current = (float(cur[0]), float(cur[1]))
         keep_s = (self.config.window_steps + 2) * self.config.step_s + self._lag_s
         while buf and buf[0][0] < t - keep_s:
             buf.popleft()
+
+    def _dvl(self, t, sample):
+        """A DVL sample with lock → water-relative body velocity, binned on the step grid."""
+        if not (self.config.use_dvl and sample.valid) or self._t0 is None:
+            return
+        vel = sample.vel_d_m_s
+        if not all(math.isfinite(x) for x in vel):
+            return self._reject("non-finite dvl")
+        k = math.floor((t - self._t0) / self.config.step_s)
+        if k < max(self._closed, 0):
+            return self._reject("late dvl")
+        yaw = self._last_heading[1] if self._last_heading is not None else 0.0
+        body = self.dvl_water.body(vel, bool(getattr(sample, "water_track", False)), yaw, self._last_yaw_rate,
+                                   self._filter_current)
+        from adaptnav.calibration.dvl_teacher import DvlBin
+
+        self._dvl_bins.setdefault(k, DvlBin()).add(body)
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):
@@ -606,6 +700,9 @@ class OnlineCalibrator:
             v, w = self._controls(k - 1)
             self._v.append(v)
             self._w.append(w)
+            dvl_bin = self._dvl_bins.pop(k - 1, None)
+            row = dvl_bin.mean(self.config.min_dvl_samples) if dvl_bin is not None else None
+            self._dvl_rows.append(np.full(3, np.nan) if row is None else row)
             try:
                 self._poses, self._log_w, _ = filter_step(self._win_params, self._poses, self._log_w, v, w, c.step_s,
                                                           fwd_obs, self.rng, current_n_m_s=self.current_n_m_s)
@@ -637,10 +734,29 @@ class OnlineCalibrator:
         if len(self._inertial_buf) >= 3:
             a = np.array(self._inertial_buf)
             inertial = InertialTrack(a[:, 0], a[:, 1:3], a[:, 3], a[:, 4])
-        rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
-                               initial_params=self.params0, current_n_m_s=self.current_n_m_s,
-                               headings_rad=circular_mean_headings(clouds), inertial=inertial)
+        dvl_rows = np.array(list(self._dvl_rows)[-T:]) if self._dvl_rows else np.empty((0, 3))
+        if (self.config.use_dvl and len(dvl_rows) == T
+                and int(np.sum(np.isfinite(dvl_rows[:, 0]))) >= self.config.min_dvl_steps):
+            observed = np.full(T + 1, np.nan)
+            for i, pose_obs in enumerate(obs):
+                for o in pose_obs or ():
+                    if isinstance(o, HeadingObservation):
+                        observed[i] = o.yaw_rad
+            rel = calibrate_from_dvl(self.params, v, w, self.config.step_s, dvl_rows, self.config, t_s,
+                                     self.params0, self._filter_current, observed)
+        elif self._taught_by_dvl and sum(1 for o in obs if any(not isinstance(x, HeadingObservation)
+                                                                for x in (o or ()))) < self.config.min_position_poses:
+            # the DVL is out (a trench, too steep): the model it taught minutes ago is the
+            # better evidence; the IMU alone (calibration.inertial) sees only velocity changes
+            rel = Release(t_s, self.params, math.nan, False,
+                          "held: the DVL-taught model is kept while the DVL is out and no fixes inform the window",
+                          0, self.current_n_m_s)
+        else:
+            rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
+                                   initial_params=self.params0, current_n_m_s=self.current_n_m_s,
+                                   headings_rad=circular_mean_headings(clouds), inertial=inertial)
         if rel.accepted:
+            self._taught_by_dvl = "DVL" in rel.teachers
             self.params = rel.params
             self.current_n_m_s = rel.current_n_m_s
             self._win_params = rescale_step(rel.params, self.config.model_step_s, self.config.step_s)

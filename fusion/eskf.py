@@ -142,6 +142,7 @@ class Estimator:
                          for kind, aid in AIDS.items()}
         # the DVL's scale/misalignment estimate (None when not configured): its aid owns it
         self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
+        self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
         # input history for late measurements: entries (kind, payload) with the snapshot
@@ -199,9 +200,10 @@ class Estimator:
             return None
         yaw = aid_heading.predict(self._x)[0]
         v, p = self._vel_inertial_n, self._pos_inertial_n
+        c = self._x[X_CUR]
         return InertialVelocitySample(float(self._clock[0]), (float(v[0]), float(v[1]), float(v[2])),
                                       (float(p[0]), float(p[1]), float(p[2])), float(yaw),
-                                      int(self._reset_counter))
+                                      int(self._reset_counter), (float(c[0]), float(c[1]), 0.0))
 
     def set_motion_params(self, params: MotionParams) -> None:
         """Apply a calibrator release; ``k_speed · k_V`` is kept continuous.
@@ -707,6 +709,7 @@ class Estimator:
         if not cfg.enabled or self._rpm is None:
             return None
         t = float(self._clock[0])
+        self._set_k_speed_walk(self._t_dvl_lock > -math.inf)
         if t - self._rpm[0] > cfg.rpm_hold_s:
             return rejected(t, "learned_velocity", "stale")
         R_nb = aid_lv.dcm(self._x)
@@ -755,6 +758,9 @@ class Estimator:
         config, setup = self._aid_cfg[kind]
         if not config.enabled:
             return [rejected(sample.t_s, kind, "disabled")]
+        if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
+            self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
+            self._set_k_speed_walk(True)
         meas = aid.measure(sample, AidContext(self._x, self._acc[13:16], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
@@ -765,6 +771,11 @@ class Estimator:
                                             sample.sigma_h_m)
             return [status]
         return [self._fuse(meas, sample.t_s, kind)]
+
+    def _set_k_speed_walk(self, dvl_lock: bool) -> None:
+        """k_speed's random walk: slow once the DVL has had lock (``dvl.k_speed_rw_rthz``)."""
+        rw = self.config.dvl.k_speed_rw_rthz if dvl_lock else self.config.process.k_speed_rw_rthz
+        self._qdiag[KS] = rw ** 2
 
     def _fuse_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         """Fuse an absolute position; after repeated gate rejections, trust it again.

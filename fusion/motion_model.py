@@ -59,7 +59,9 @@ class MotionParams:
     ``var_vw`` σ_Vw² (m²/rad², surge noise per unit yaw rate²), ``var_v1`` σ_V1² (m²/s²),
     ``var_wv`` σ_Wv² (rad²/m², yaw-rate noise per unit surge²), ``var_ww`` σ_Ww² (–),
     ``var_w1`` σ_W1² (rad²/s²), ``var_s`` σ_S² (m²/s², sway). Means: ``k_v`` speed
-    scale (–), ``b_w`` yaw-rate bias (rad/s).
+    scale (–), ``b_w`` yaw-rate bias (rad/s), ``heave_per_surge`` (–) the body heave per
+    unit surge while holding depth, ``tan α`` of the angle of attack (a heavy or trimmed
+    vehicle flies nose-up; learned from the DVL, calibration/dvl_teacher.py).
 
     The seed's results name σ_Dd ≡ σ_Vv and σ_Tr ≡ σ_Ww (:attr:`sigma_dd`,
     :attr:`sigma_tr`).
@@ -74,6 +76,7 @@ class MotionParams:
     var_s: float = 0.01**2
     k_v: float = 1.0
     b_w: float = 0.0
+    heave_per_surge: float = 0.0
 
     VARIANCE_NAMES = ("var_vv", "var_vw", "var_v1", "var_wv", "var_ww", "var_w1", "var_s")
 

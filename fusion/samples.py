@@ -169,6 +169,8 @@ class InertialVelocitySample:
     drifts, its changes over seconds are the IMU's. ``reset_counter`` changes across an
     IMU gap (no increments while coasting). The calibrator's surge-noise evidence
     (:mod:`adaptnav.calibration.inertial`): mean velocities over steps are differences of ``pos_n_m``.
+    ``current_n_m_s`` is the filter's sea-current estimate (north, east, 0): the DVL teacher
+    turns DVL ground velocities into water-relative ones with it (:mod:`adaptnav.calibration.dvl_teacher`).
     """
 
     KIND: ClassVar[str] = "inertial_velocity"
@@ -177,6 +179,7 @@ class InertialVelocitySample:
     pos_n_m: Vec3
     yaw_rad: float
     reset_counter: int = 0
+    current_n_m_s: Vec3 = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -244,7 +247,7 @@ SENSORS: tuple[SensorKind, ...] = (
     SensorKind("attitude", AttitudeSample, 2, "aid", calibrator_uses=True, aid_source="attitude"),
     SensorKind("heading", HeadingSample, 3, "aid", calibrator_uses=True, nav_stream=True, aid_source="heading"),
     SensorKind("depth", DepthSample, 4, "aid", calibrator_uses=False, nav_stream=True, aid_source="depth"),
-    SensorKind("dvl", DvlSample, 5, "aid", calibrator_uses=False, nav_stream=True, aid_source="dvl"),
+    SensorKind("dvl", DvlSample, 5, "aid", calibrator_uses=True, nav_stream=True, aid_source="dvl"),
     SensorKind("altitude", AltitudeSample, 6, "context", calibrator_uses=False),
     SensorKind("gnss", GnssSample, 7, "aid", calibrator_uses=True, nav_stream=True, aid_source="gnss"),
     SensorKind("usbl", UsblSample, 8, "aid", calibrator_uses=True, nav_stream=True, aid_source="usbl"),

@@ -242,10 +242,12 @@ class VehicleConfig:
     trim_after_deg: float | None = None
     payload_after_kg: float | None = None
     fouling_after: float | None = None
-    # turbulence: white force/moment densities on surge, sway (N/√Hz) and yaw (N m/√Hz)
-    surge_force_n_rthz: float = 0.6
-    sway_force_n_rthz: float = 0.6
-    yaw_moment_nm_rthz: float = 0.05
+    # turbulence: white fluctuations of the hull's forces, relative to the quadratic drag
+    # at the current surge (so a vehicle at rest is not pushed around), per √Hz: surge and
+    # sway force as a fraction of |X_uu| u², yaw moment of |N_uv| u² (at 1.5 m/s: 0.55 N/√Hz)
+    surge_force_rel_rthz: float = 0.15
+    sway_force_rel_rthz: float = 0.15
+    yaw_moment_rel_rthz: float = 0.002
     integration_step_s: float = 0.02
 
 

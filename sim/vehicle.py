@@ -224,7 +224,8 @@ class Fossen3Dof:
 
     def step(self, nu: np.ndarray, speed_table_m_s: float, r_cmd: float, cond: Condition,
              dt: float, force_noise: np.ndarray) -> np.ndarray:
-        """One explicit-Euler step of ν = (u, v, r); ``force_noise`` (3,) N, N, N m (already × 1/√dt)."""
+        """One explicit-Euler step of ν = (u, v, r); ``force_noise`` (3,) N, N, N m, the
+        turbulent fluctuation over this step (white: its density × 1/√dt)."""
         c, rho = self.c, self._rho(cond)
         u, v, r = float(nu[0]), float(nu[1]), float(nu[2])
         m = c["mass_kg"] + cond.payload_kg
@@ -277,7 +278,9 @@ def _fossen_steps(scenario: Scenario, rng: np.random.Generator) -> MotionSteps:
     rpm = np.full(K, rpm_cmd)
     v_steps = np.full(K, v_rep)
     w_cmd, k_v, pitch = np.empty(K), np.empty(K), np.empty(K)
-    sig = np.array([veh.surge_force_n_rthz, veh.sway_force_n_rthz, veh.yaw_moment_nm_rthz]) / math.sqrt(dt)
+    c = body.c
+    sig = np.array([veh.surge_force_rel_rthz * abs(c["x_uu"]), veh.sway_force_rel_rthz * abs(c["x_uu"]),
+                    veh.yaw_moment_rel_rthz * abs(c["n_uv"])]) / math.sqrt(dt)
     for k in range(K):
         cond = condition_at(scenario, t[k])
         if t[k] < tr.start_delay_s:
@@ -287,7 +290,7 @@ def _fossen_steps(scenario: Scenario, rng: np.random.Generator) -> MotionSteps:
         x, y, psi = pose[k]
         noise = sig[None, :] * rng.standard_normal((n_sub, 3))
         for j in range(n_sub):
-            nu_next = body.step(nu, v_steps[k], w, cond, dt, noise[j])
+            nu_next = body.step(nu, v_steps[k], w, cond, dt, noise[j] * nu[0] * abs(nu[0]))
             # trapezoid on the body velocity rotated by the mid-step heading
             psi_mid = psi + 0.5 * (nu[2] + nu_next[2]) * 0.5 * dt
             ub, vb = 0.5 * (nu[0] + nu_next[0]), 0.5 * (nu[1] + nu_next[1])

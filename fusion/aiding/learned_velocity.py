@@ -19,7 +19,7 @@ new release arrives (:meth:`adaptnav.fusion.eskf.Estimator.set_motion_params`) t
 Measurement (z, h) — the observation is the model's prediction with the learned scale,
 the state-dependent rest goes into h so H stays exact::
 
-    z = (k_V u, 0, 0),   u = f(rpm)
+    z = (k_V u, 0, h_w k_V u),   u = f(rpm), h_w = heave_per_surge (the flow angle, tan α)
     h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y,  v_b,z)
     R = diag(σ_V²(u, w), σ_S², σ_heave²)
 
@@ -79,4 +79,4 @@ def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: Moti
     R[0, 0] = var_V * variance_scale
     R[1, 1] = params.var_s * variance_scale
     R[2, 2] = sigma_heave_m_s**2 * variance_scale
-    return make([model, 0.0, 0.0], jacobian(x, model), R, predict(x, model))
+    return make([model, 0.0, params.heave_per_surge * model], jacobian(x, model), R, predict(x, model))

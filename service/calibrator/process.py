@@ -74,6 +74,7 @@ def release_to_dict(release: Any) -> dict[str, Any]:
         "reason": str(getattr(release, "reason", "") or ""),
         "iterations": int(getattr(release, "iterations", 0) or 0),
         "current_n_m_s": [float(x) for x in getattr(release, "current_n_m_s", (0.0, 0.0))],
+        "teachers": [str(x) for x in getattr(release, "teachers", ())],
     }
 
 
@@ -86,7 +87,8 @@ def _release_type() -> type:
 
         Release = make_dataclass("Release", ["t_s", "params", "log_likelihood", "accepted",
                                              "reason", "iterations",
-                                             ("current_n_m_s", tuple, dataclasses.field(default=(0.0, 0.0)))],
+                                             ("current_n_m_s", tuple, dataclasses.field(default=(0.0, 0.0))),
+                                             ("teachers", tuple, dataclasses.field(default=()))],
                                  frozen=True)
     return Release
 
@@ -115,7 +117,8 @@ def release_from_dict(data: Any) -> Any:
                        log_likelihood=math.nan if ll is None else float(ll),
                        accepted=bool(data["accepted"]), reason=str(data.get("reason", "")),
                        iterations=int(data.get("iterations", 0)),
-                       current_n_m_s=_current_from(data.get("current_n_m_s")))
+                       current_n_m_s=_current_from(data.get("current_n_m_s")),
+                       teachers=tuple(str(x) for x in data.get("teachers", ())))
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"calibration_release: {e}") from e
 
@@ -136,7 +139,9 @@ def make_calibrator(cfg: Any, params0: MotionParams, seed: int) -> Any:
     if not (math.isfinite(online.origin_lat_deg) and math.isfinite(online.origin_lon_deg)):
         online = dataclasses.replace(online, origin_lat_deg=cfg.origin.lat_deg,
                                      origin_lon_deg=cfg.origin.lon_deg)
-    return OnlineCalibrator(online, params0, cfg.motion.rpm_table, np.random.default_rng(seed))
+    dvl = cfg.filter.dvl  # the DVL teacher needs the head's mounting (calibration.dvl_teacher)
+    return OnlineCalibrator(online, params0, cfg.motion.rpm_table, np.random.default_rng(seed),
+                            dvl_mount=(dvl.lever_arm_b_m, dvl.rotation_bd_rpy_rad))
 
 
 def compact_imu(batch: list[Any]) -> list[Any]:

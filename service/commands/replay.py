@@ -6,6 +6,7 @@ Examples::
     adaptnav replay ../shared/data/mavlink/ardusub-4.1.0-corrupt-frames.tlog --out out/tlog
     adaptnav replay --scenario survey --set dvl.enabled=true --out out/survey_dvl
     adaptnav replay --scenario survey --compare --out out/compare
+    adaptnav replay --scenario dvl_outage --compare --json --out out/dvl_outage --set seed=2
 """
 from __future__ import annotations
 
@@ -36,7 +37,9 @@ def add_arguments(parser):
                         help="static wrong motion model: the filter gets k_V × (1 + E)")
     parser.add_argument("--compare", action="store_true",
                         help="run pure INS / static wrong model (k_V +10%% or --motion-k-v-error) / as given, "
-                             "side by side, and print a table")
+                             "side by side, and print a table; a scenario with a DVL: INS+DVL without the "
+                             "motion model / the static pre-change model / the model learned with the "
+                             "calibrator on (outage_drift_percent, recovery_correction_sigma)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary (or comparison) as JSON")
@@ -76,12 +79,11 @@ def run(args):
     if args.compare:
         k_err = 0.1 if args.motion_k_v_error is None else args.motion_k_v_error
         rows = {}
-        for variant in rp.VARIANTS:
+        for i, (name, variant, calibrate) in enumerate(rp.compare_plan(inp.scenario, args.calibrate)):
             vcfg = rp.variant_config(cfg, variant, k_err)
-            source_inp = inp if variant == rp.VARIANTS[0] else rp.ReplayInput(
+            source_inp = inp if i == 0 else rp.ReplayInput(
                 inp.reopen(), inp.scenario, inp.label, inp.duration_s, inp.reopen)
-            name = "learned" if (variant == "given" and args.calibrate) else variant
-            res = rp.replay(source_inp, vcfg, out / name, calibrate=args.calibrate and variant == "given",
+            res = rp.replay(source_inp, vcfg, out / name, calibrate=calibrate,
                             realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
                             plots=not args.no_plots, calibrator_location=args.calibrator_location)
             rows[name] = res.metrics

@@ -367,10 +367,27 @@ def _json_default(o: Any) -> Any:
 
 # -- comparisons ----------------------------------------------------------------------------
 VARIANTS = ("pure_ins", "static_wrong", "given")
+# with a DVL that loses lock (the DVL-outage scenario): INS + DVL without the motion model,
+# the static pre-change model, and the model the calibrator learns from the DVL
+DVL_VARIANTS = ("pure_ins", "static", "learned")
+MOTION_MODEL_OFF = ("filter.learned_velocity.enabled=false",)
+
+
+def compare_plan(scenario: Any, calibrate: bool) -> list[tuple[str, str, bool]]:
+    """``(row name, variant for variant_config, calibrator on)`` per row of ``--compare``.
+
+    A simulated mission with a DVL whose lock comes and goes compares through the outage
+    (:data:`DVL_VARIANTS`, the calibrator on for ``learned``); otherwise pure INS / static
+    wrong model / as given (``learned`` with ``calibrate``).
+    """
+    if scenario is not None and getattr(getattr(scenario, "dvl", None), "enabled", False):
+        return [("pure_ins", "motion_model_off", False), ("static", "given", False), ("learned", "given", True)]
+    return [(("learned" if (v == "given" and calibrate) else v), v, calibrate and v == "given") for v in VARIANTS]
 
 
 def variant_config(cfg: Any, variant: str, k_v_error: float = 0.1) -> Any:
-    """``pure_ins`` (no velocity aiding), ``static_wrong`` (k_V × (1 + k_v_error)), ``given``."""
+    """``pure_ins`` (no velocity aiding), ``motion_model_off`` (no learned velocity; DVL and
+    visual motion stay), ``static_wrong`` (k_V × (1 + k_v_error)), ``given``."""
     from adaptnav.service.config import ServiceConfig
 
     if variant == "given":
@@ -378,6 +395,8 @@ def variant_config(cfg: Any, variant: str, k_v_error: float = 0.1) -> Any:
     raw = as_dict(cfg)
     if variant == "pure_ins":
         return build(ServiceConfig, apply_overrides(raw, list(VELOCITY_AIDS_OFF)))
+    if variant == "motion_model_off":
+        return build(ServiceConfig, apply_overrides(raw, list(MOTION_MODEL_OFF)))
     if variant == "static_wrong":
         return replace(cfg, motion=replace(cfg.motion, params0=replace(
             cfg.motion.params0, k_v=cfg.motion.params0.k_v * (1.0 + k_v_error))))
@@ -387,7 +406,8 @@ def variant_config(cfg: Any, variant: str, k_v_error: float = 0.1) -> Any:
 TABLE_KEYS = (("final_horizontal_error_m", "final err (m)"), ("rms_horizontal_error_m", "RMS err (m)"),
               ("drift_percent_since_fix", "% DT since fix"), ("percent_distance_travelled", "% DT"),
               ("current_error_at_last_fix_m_s", "cur err@fix (m/s)"), ("current_error_m_s", "cur err end"),
-              ("nees_mean", "NEES mean"), ("nees_fraction_in_95", "NEES in 95%"))
+              ("nees_mean", "NEES mean"), ("nees_fraction_in_95", "NEES in 95%"),
+              ("outage_drift_percent", "% DT outage"), ("recovery_correction_sigma", "recovery (σ)"))
 
 
 def format_table(rows: dict[str, dict]) -> str:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.aiding import FIX_KINDS
-from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics
+from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics
 
 
 def fmt(value: Any) -> str:
@@ -280,6 +280,7 @@ class SeriesRecorder(Sink):
         self.initial_params = initial_params
         self.last_fix_t_s: float | None = None
         self.fused_counts: Counter[str] = Counter()
+        self.dvl_lock: list[tuple[float, bool]] = []  # (t, bottom lock) per DVL status
 
     def on_nav(self, state: Any) -> None:
         self.nav_t.append(float(state.t_s))
@@ -303,6 +304,8 @@ class SeriesRecorder(Sink):
                 self.fused_counts[s.source] += 1
                 if s.source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
                     self.last_fix_t_s = float(s.t_s)
+            if s.source == "dvl":
+                self.dvl_lock.append((float(s.t_s), bool(s.fused or s.reason == "gate")))
             # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component
             nu, var = s.innovation, s.innovation_variance
             if len(nu) == len(var):
@@ -345,7 +348,12 @@ class SeriesRecorder(Sink):
         truth = self.truth()
         if truth is None:
             return {}
-        return compute_metrics(self.track(), truth, self.last_fix_t_s)
+        track = self.track()
+        out = compute_metrics(track, truth, self.last_fix_t_s)
+        if self.dvl_lock and out:
+            a = np.asarray(self.dvl_lock, dtype=float)
+            out.update(dvl_outage_metrics(track, truth, a[:, 0], a[:, 1] > 0.5))
+        return out
 
 
 class MetricsSink(Sink):

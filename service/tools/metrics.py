@@ -17,6 +17,18 @@ interpolated linearly onto the estimate's times (only inside the truth's time sp
   ``nees_mean`` and ``nees_fraction_in_95``: the fraction of epochs inside the two-sided
   95 % band of χ²(d), ``[χ²_{0.025}(d), χ²_{0.975}(d)]`` (Bar-Shalom, Li & Kirubarajan,
   *Estimation with Applications to Tracking and Navigation*, 2001, §5.4).
+
+Through a DVL outage (:func:`dvl_outage_metrics`; the longest stretch without bottom lock,
+at least ``min_outage_s``, from the last sample with lock ``t_a`` to the first again ``t_b``):
+
+- ``outage_drift_percent = 100 · e(t_b⁻) / D_out``: the horizontal error of the last state
+  before the DVL is re-admitted over the truth's path length ``D_out`` in ``[t_a, t_b]``;
+- ``recovery_correction_sigma``: the largest position correction after the DVL returns, in
+  units of the published covariance just before. The correction is what the published
+  position does beyond its own velocity: ``C_j = Σ_{k≤j} (p_k − p_{k−1} − ½(v_k + v_{k−1})Δt)``
+  over the epochs of ``[t_b, t_b + window_s]`` (horizontal); reported as the largest
+  Mahalanobis length ``√(C_jᵀ P_h⁻¹ C_j)`` with ``P_h`` the horizontal position covariance
+  at the last epoch before ``t_b`` (``recovery_correction_m`` its length in metres).
 """
 from __future__ import annotations
 
@@ -164,4 +176,54 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
         "nees_fraction_in_95": float(np.mean((eps_ok >= lo) & (eps_ok <= hi))) if len(eps_ok) else None,
         "epochs": int(len(t)),
         "duration_s": tK - t0,
+    }
+
+
+def dvl_outage_metrics(track: TrackArrays, truth: TruthArrays, dvl_t_s: np.ndarray, dvl_lock: np.ndarray,
+                       min_outage_s: float = 60.0, window_s: float = 60.0) -> dict:
+    """Outage metrics of the module docstring; empty when no outage of ``min_outage_s``.
+
+    ``dvl_t_s`` (K,) times of DVL samples, ``dvl_lock`` (K,) bool: the sample had bottom lock
+    (fused or gated; not "invalid").
+    """
+    t = np.asarray(dvl_t_s, dtype=float)
+    lock = np.asarray(dvl_lock, dtype=bool)
+    if t.size < 2 or not lock.any() or len(track.t_s) < 2:
+        return {}
+    order = np.argsort(t, kind="stable")
+    t, lock = t[order], lock[order]
+    tl = t[lock]
+    gaps = np.diff(tl)
+    if not gaps.size or gaps.max() < min_outage_s:
+        return {}
+    i = int(np.argmax(gaps))
+    t_a, t_b = float(tl[i]), float(tl[i + 1])
+    if t_b > truth.t_s[-1] or t_a < truth.t_s[0]:
+        return {}
+    path_t = np.concatenate([[t_a], truth.t_s[(truth.t_s > t_a) & (truth.t_s < t_b)], [t_b]])
+    path = interp_rows(path_t, truth.t_s, truth.pos_n_m)
+    distance = float(horizontal_path_length_m(path)[-1])
+    k_before = int(np.searchsorted(track.t_s, t_b, side="left")) - 1
+    if k_before < 1 or distance <= 0:
+        return {}
+    tb = track.t_s[k_before]
+    p_true = interp_rows(np.array([tb]), truth.t_s, truth.pos_n_m)[0]
+    err = float(np.hypot(*(track.pos_n_m[k_before, :2] - p_true[:2])))
+    P_h = track.cov_pva[k_before, :2, :2]
+    sel = np.nonzero((track.t_s > tb) & (track.t_s <= t_b + window_s))[0]
+    worst_sigma, worst_m = 0.0, 0.0
+    if sel.size:
+        ks = np.concatenate([[k_before], sel])
+        dp = np.diff(track.pos_n_m[ks, :2], axis=0)
+        dt = np.diff(track.t_s[ks])[:, None]
+        vbar = 0.5 * (track.vel_n_m_s[ks[1:], :2] + track.vel_n_m_s[ks[:-1], :2])
+        C = np.cumsum(dp - vbar * dt, axis=0)
+        m = np.sqrt(np.einsum("ij,jk,ik->i", C, np.linalg.inv(P_h), C))
+        j = int(np.argmax(m))
+        worst_sigma, worst_m = float(m[j]), float(np.hypot(*C[j]))
+    return {
+        "outage_start_s": t_a, "outage_end_s": t_b, "outage_distance_m": distance,
+        "outage_error_m": err, "outage_drift_percent": 100.0 * err / distance,
+        "sigma_h_before_recovery_m": float(math.sqrt(max(P_h[0, 0], P_h[1, 1]))),
+        "recovery_correction_m": worst_m, "recovery_correction_sigma": worst_sigma,
     }

@@ -1,0 +1,77 @@
+"""The DVL as teacher (calibration/dvl_teacher.py): k_V and the flow angle learned from the DVL
+while it has lock, releases that name their teacher, the model held through a DVL outage."""
+import math
+
+import numpy as np
+import pytest
+
+from adaptnav.calibration.dvl_teacher import DvlWaterVelocity, teach
+from adaptnav.calibration.mstep import MStepOptions
+from adaptnav.fusion.motion_model import MotionParams
+
+
+def test_teacher_recovers_k_v_variances_and_flow_angle_from_rows():
+    # GIVEN rows drawn from a known model (k_V 0.92, σ_Vv 0.04, sway σ 0.03, heave 0.07 u)
+    rng = np.random.default_rng(5)
+    T = 400
+    v = rng.choice([1.0, 1.5, 2.0], T)
+    w = rng.normal(0.0, 0.02, T)
+    V = 0.92 * v + 0.04 * v * rng.standard_normal(T)
+    S = 0.03 * rng.standard_normal(T)
+    H = 0.07 * v + 0.005 * rng.standard_normal(T)
+    # WHEN the teacher fits them from the default model
+    res = teach(MotionParams(), v, w, V, S, H, np.ones(T), MStepOptions(prior_tau=math.inf))
+    # THEN it finds them, says the DVL taught each, and the fit is more likely than the start
+    assert res.params.k_v == pytest.approx(0.92, abs=0.006)
+    assert math.sqrt(res.params.var_vv) == pytest.approx(0.04, rel=0.15)
+    assert math.sqrt(res.params.var_s) == pytest.approx(0.03, rel=0.1)
+    assert res.params.heave_per_surge == pytest.approx(0.07, abs=0.002)
+    assert res.teachers["k_v"] == "DVL" and res.ll_new > res.ll_old
+
+
+def test_teacher_holds_k_v_when_the_speeds_do_not_inform_it():
+    # a vehicle at rest: the rows say nothing about the speed per RPM
+    rng = np.random.default_rng(1)
+    T = 100
+    v = np.zeros(T)
+    res = teach(MotionParams(), v, np.zeros(T), 0.01 * rng.standard_normal(T), 0.01 * rng.standard_normal(T),
+                np.zeros(T), np.ones(T))
+    assert res.params.k_v == 1.0 and "k_v" not in res.teachers
+    assert any(n.startswith("held k_v") for n in res.notes)
+
+
+def test_water_velocity_removes_current_and_lever_arm():
+    wv = DvlWaterVelocity(lever_arm_b_m=(0.5, 0.0, 0.0))
+    # heading east, current 0.1 m/s north-east each, turning at 0.1 rad/s: the head sees the
+    # body's surge 1.5 plus ω × l = 0.05 to starboard, plus the current (0.1 along, −0.1 across)
+    body = wv.body((1.5 + 0.1, 0.05 - 0.1, 0.0), False, math.pi / 2, 0.1, (0.1, 0.1))
+    assert body == pytest.approx([1.5, 0.0, 0.0], abs=1e-12)
+    # water track is already relative to the water: no current removed
+    assert wv.body((1.5, 0.05, 0.0), True, math.pi / 2, 0.1, (0.1, 0.1)) == pytest.approx([1.5, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def change_replay(tmp_path_factory):
+    """10 min with a DVL, no USBL, k_V 1.0 → 0.9 at 3 min; the calibrator (inline) learns."""
+    from adaptnav.service.runtime import replay as rp
+
+    inp = rp.open_scenario("short", ["duration_s=600", "environment.change_at_s=180", "dvl.enabled=true",
+                                     "usbl.enabled=false", "seed=11"])
+    cfg = rp.build_config(inp.scenario)
+    return rp.replay(inp, cfg, tmp_path_factory.mktemp("dvl_teacher"), calibrate=True, progress=False,
+                     plots=False, calibrator_location="inline")
+
+
+def test_dvl_teacher_recovers_k_v_after_a_change(change_replay):
+    import csv
+
+    rows = list(csv.DictReader(open(change_replay.out_dir / "params.csv")))
+    accepted = [r for r in rows if r["accepted"] in ("1", "True", "true")]
+    before = [float(r["k_v"]) for r in accepted if 120.0 <= float(r["t_s"]) < 180.0]
+    after = [float(r["k_v"]) for r in accepted if float(r["t_s"]) >= 540.0]
+    assert before and after
+    # GIVEN no position fix after the start, WHEN the DVL teaches, THEN k_V follows 1.0 → 0.9
+    assert all(abs(k - 1.0) < 0.03 for k in before)
+    assert all(abs(k - 0.9) < 0.02 for k in after)
+    # AND the releases say the DVL taught them
+    assert all("from the DVL" in r["reason"] for r in accepted if float(r["t_s"]) >= 180.0)
