@@ -160,8 +160,10 @@ def test_each_aid_source_has_its_config_section_and_is_dispatched_by_its_kind(ki
         assert est.initialized
         return est
 
-    out = aligned(FilterConfig()).process(EXAMPLES[kind])
+    def with_enabled(flag):
+        return dataclasses.replace(FilterConfig(), **{kind: dataclasses.replace(getattr(FilterConfig(), kind),
+                                                                                enabled=flag)})
+
+    out = aligned(with_enabled(True)).process(EXAMPLES[kind])
     assert [(s.source, s.reason) for s in out] in ([(kind, "")], [(kind, "gate")])
-    off = dataclasses.replace(FilterConfig(), **{kind: dataclasses.replace(getattr(FilterConfig(), kind),
-                                                                           enabled=False)})
-    assert [(s.source, s.reason) for s in aligned(off).process(EXAMPLES[kind])] == [(kind, "disabled")]
+    assert [(s.source, s.reason) for s in aligned(with_enabled(False)).process(EXAMPLES[kind])] == [(kind, "disabled")]
