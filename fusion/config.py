@@ -132,6 +132,15 @@ class VisualMotionConfig:
 
 
 @dataclass(frozen=True)
+class RangeConfig:
+    """Acoustic ranges to known beacons (:mod:`adaptnav.fusion.aiding.range`); opt-in."""
+
+    enabled: bool = False
+    sigma_scale: float = 1.0                   # × the sample's own sigma_m
+    min_range_m: float = 1.0                   # closer: line of sight undefined, not fused
+
+
+@dataclass(frozen=True)
 class AlignmentConfig:
     n_samples: int = 100                       # static IMU samples averaged for levelling
     max_acc_std_m_s2: float = 0.5              # more spread than this: not at rest, keep waiting
@@ -152,6 +161,7 @@ class FilterConfig:
     gnss: GnssConfig = field(default_factory=GnssConfig)
     usbl: UsblConfig = field(default_factory=UsblConfig)
     visual_motion: VisualMotionConfig = field(default_factory=VisualMotionConfig)
+    range: RangeConfig = field(default_factory=RangeConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)  # the door's bounds
     gate_sigma: float = 5.0                    # chi-square gate ≡ this many σ per DOF

@@ -4,11 +4,11 @@ import math
 import numpy as np
 import pytest
 
-from adaptnav.fusion.aiding import attitude, depth, dvl, gnss, heading, learned_velocity, usbl, visual_motion
+from adaptnav.fusion.aiding import attitude, depth, dvl, gnss, heading, learned_velocity, range as rng, usbl, visual_motion
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, wrap_angle
 from adaptnav.fusion.motion_model import MotionParams
-from adaptnav.fusion.samples import (AttitudeSample, DepthSample, DvlSample, GnssSample, HeadingSample, UsblSample,
-                            VisualMotionSample)
+from adaptnav.fusion.samples import (AttitudeSample, DepthSample, DvlSample, GnssSample, HeadingSample, RangeSample,
+                            UsblSample, VisualMotionSample)
 from adaptnav.fusion.state import N_ERR, inject, initial_nominal
 
 ORIGIN = GeoOrigin(math.radians(43.0), math.radians(5.0))
@@ -43,6 +43,8 @@ CASES = {
              lambda x: usbl.measure(UsblSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 10.0, 2.0, 0.5), x, ORIGIN)),
     "usbl_h": (lambda x: usbl.predict(x, False),
                lambda x: usbl.measure(UsblSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 10.0, 2.0), x, ORIGIN)),
+    "range": (lambda x: rng.predict(x, (30.0, -20.0, 40.0)),
+              lambda x: rng.measure(RangeSample(0.0, 1, (30.0, -20.0, 40.0), 50.0, 2.0), x)),
     "visual_motion": (visual_motion.predict,
                       lambda x: visual_motion.measure(VisualMotionSample(2.0, 1.0, 1.4, 0.1, 0.0, (0.01, 0, 0, 0, 0.01, 0, 0, 0, 1e-4)), x)),
 }
@@ -118,11 +120,12 @@ EXAMPLES = {
     "dvl": DvlSample(1.0, (0.0, 0.0, 0.0)),
     "gnss": GnssSample(1.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 3.0),
     "heading": HeadingSample(1.0, 0.5),
+    "range": RangeSample(1.0, 1, (30.0, 40.0, 0.0), 50.0, 2.0),
     "usbl": UsblSample(1.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 0.0, 2.0),
     "visual_motion": VisualMotionSample(1.0, 0.0, 0.0, 0.0, 0.0, (0.01, 0, 0, 0, 0.01, 0, 0, 0, 1e-4)),
 }
 # sample kinds with the role "aid" in the sensor table that no aid source fuses yet
-NOT_YET_FUSED = {"range"}
+NOT_YET_FUSED: set[str] = set()
 
 
 def test_every_aid_kind_of_the_sensor_table_has_one_aid_source():
