@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench golden clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -16,6 +16,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 tests
+
+# regenerate the golden replay references (tests/golden/) after a change of behaviour made
+# on purpose; the commit says why the numbers moved
+golden: $(STAMP)
+	$(BIN)/python -m tests.golden.golden
 
 bench: $(STAMP)
 	$(BIN)/adaptnav bench fusion
