@@ -9,6 +9,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip >/dev/null
 	$(BIN)/pip install -e '.[test,bench]'
+	$(BIN)/adaptnav warmup  # numba kernels compiled once here, not before the first solution
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-VERBS = ("simulate", "replay", "run", "record", "demo", "experiment", "sonar", "bench")
+VERBS = ("simulate", "replay", "run", "record", "demo", "experiment", "sonar", "bench", "warmup")
 
 
 def build_parser() -> argparse.ArgumentParser:

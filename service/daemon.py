@@ -69,6 +69,33 @@ def sd_notify(state: str) -> bool:
         return False
 
 
+def warm_up_filter(cfg: ServiceConfig, params: MotionParams | None = None) -> float:
+    """Run a throwaway filter over a few seconds of synthetic rest data so that the numba
+    kernels are compiled (or loaded from their cache) before READY, not on the first live
+    samples; also what ``adaptnav warmup`` runs at install time. Returns the seconds spent."""
+    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
+
+    t0 = time.monotonic()
+    est = Estimator(cfg.filter, params if params is not None else cfg.motion.params0,
+                    cfg.motion.rpm_table, cfg.origin.geo())
+    g = 9.80665
+    n = cfg.filter.alignment.n_samples + 400
+    for k in range(n):
+        t = k * 0.005
+        est.process(ImuSample(t, (0.0, 0.0, -g), (0.0, 0.0, 0.0)))
+        if k % 20 == 0:
+            for s in (HeadingSample(t, 0.0), DepthSample(t, 101325.0 + 1025.0 * g),
+                      RpmSample(t, 0.0), DvlSample(t, (0.0, 0.0, 0.0))):
+                est.process(s)
+        if k % 20 == 10 and est.initialized:
+            est.nav_state().to_dict()
+    est.slow_states()
+    elapsed = time.monotonic() - t0
+    log.info("filter warmed up in %.1f s", elapsed)
+    return elapsed
+
+
 class QueueSource:
     """Iterable over the input queue until ``stop`` is set, in data order across transports
     (``qsize`` for health).
@@ -246,26 +273,7 @@ class Daemon:
         return est
 
     def _warm_up(self) -> None:
-        """Run a throwaway filter over a few seconds of synthetic rest data so that JIT
-        compilation (numba) happens before READY, not on the first live samples."""
-        from adaptnav.fusion.eskf import Estimator
-        from adaptnav.fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
-
-        t0 = time.monotonic()
-        est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
-        g = 9.80665
-        n = self.cfg.filter.alignment.n_samples + 400
-        for k in range(n):
-            t = k * 0.005
-            est.process(ImuSample(t, (0.0, 0.0, -g), (0.0, 0.0, 0.0)))
-            if k % 20 == 0:
-                for s in (HeadingSample(t, 0.0), DepthSample(t, 101325.0 + 1025.0 * g),
-                          RpmSample(t, 0.0), DvlSample(t, (0.0, 0.0, 0.0))):
-                    est.process(s)
-            if k % 20 == 10 and est.initialized:
-                est.nav_state().to_dict()
-        est.slow_states()
-        log.info("filter warmed up in %.1f s", time.monotonic() - t0)
+        warm_up_filter(self.cfg, self.params)
 
     def enqueue(self, item: Any) -> None:
         """Non-blocking put into the runner's input queue (overflow counted)."""

@@ -17,7 +17,8 @@ from adaptnav.calibration.sensors import HeadingObservation, PositionFix
 from adaptnav.fusion.motion_model import MotionParams
 
 
-def _warm_kernels() -> None:
+def warm_kernels() -> None:
+    """One tiny EM window: every calibrator kernel compiled or loaded from its cache."""
     rng = np.random.default_rng(0)
     T, n = 4, 20
     obs = [[PositionFix((0.0, 0.0), 2.0)], [HeadingObservation(0.0, 0.05)], [], [],
@@ -30,4 +31,4 @@ def _warm_kernels() -> None:
         pass
 
 
-_warm_kernels()
+warm_kernels()

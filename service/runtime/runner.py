@@ -51,6 +51,10 @@ from adaptnav.service.runtime.health import Health
 
 log = logging.getLogger(__name__)
 
+# a next IMU sample predicted this far past an epoch completes it (s): above the rounding
+# of sample times, far below any IMU period or its jitter
+EPOCH_PAST_S = 1e-6
+
 
 @dataclass
 class RunSummary:
@@ -128,6 +132,8 @@ class _Loop:
         self._on_sample = _bound(self.sinks, "on_sample")
         self._on_inertial = _bound(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
+        self.imu_period_s = math.nan
+        self._last_imu_t = math.nan
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -167,12 +173,28 @@ class _Loop:
             while self.epoch(self.next_k) < t_s:
                 self.next_k += 1
 
-    def emit_if_at_epoch(self, t_s: float) -> None:
-        """Emit now when the IMU has just reached the next epoch (live latency: do not wait
-        for the sample after the epoch to learn that the epoch is complete)."""
-        if self.next_k is not None and t_s >= self.epoch(self.next_k) - 1e-9:
+    def emit_if_at_epoch(self, t_s: float, t_next_s: float = math.nan) -> None:
+        """Emit now when the IMU has just completed the next epoch: it reached it, or its
+        next sample (``t_next_s``, known inside a batch, else predicted one IMU period
+        ahead) will be past it. Live, the state must not wait for the sample after the
+        epoch to learn that the epoch is complete (one IMU period of latency) — also when
+        the IMU's clock is not aligned with the epochs, or too large a number for the
+        exact test (a UNIX time has 0.2 µs resolution)."""
+        if self.next_k is None:
+            return
+        epoch = self.epoch(self.next_k)
+        if math.isnan(t_next_s):
+            t_next_s = t_s + self.imu_period_s  # NaN before two IMU samples were seen
+        if t_s >= epoch - 1e-9 or t_next_s > epoch + EPOCH_PAST_S:
             self.emit()
-            self.next_k = math.floor(t_s * self.rate + 1e-9) + 1
+            self.next_k = max(self.next_k + 1, math.floor(t_s * self.rate + 1e-9) + 1)
+
+    def imu_time(self, t_s: float) -> None:
+        """Track the IMU period (the prediction of :meth:`emit_if_at_epoch`)."""
+        dt = t_s - self._last_imu_t
+        if 0.0 < dt < 1.0:
+            self.imu_period_s = dt
+        self._last_imu_t = t_s
 
     # -- the door ---------------------------------------------------------------------------
     def admit(self, item: Any, is_batch: bool) -> Any:
@@ -244,7 +266,10 @@ class _Loop:
                 t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop])
             self.aid(self.estimator.process(piece))
             if math.isfinite(t[stop - 1]):
-                self.emit_if_at_epoch(float(t[stop - 1]))
+                if stop - start >= 2:
+                    self._last_imu_t = float(t[stop - 2])
+                self.imu_time(float(t[stop - 1]))
+                self.emit_if_at_epoch(float(t[stop - 1]), float(t[stop]) if stop < n else math.nan)
             self.summary.imu_samples += stop - start
             self.summary.samples_used += stop - start
             start = stop
@@ -262,6 +287,7 @@ class _Loop:
             if sample.KIND == "imu":
                 self.summary.imu_samples += 1
                 if math.isfinite(sample.t_s):
+                    self.imu_time(sample.t_s)
                     self.emit_if_at_epoch(sample.t_s)
         for f in self._on_sample:
             f(sample)

@@ -192,3 +192,37 @@ def test_state_of_an_epoch_goes_out_with_the_imu_sample_at_that_epoch(sim60):
     assert times.t and not late, late[:3]
     on_grid = [t for t in times.t if abs(t * 5.0 - round(t * 5.0)) < 1e-9]
     assert len(on_grid) > 0.9 * len(times.t) and max(imu_t) >= times.t[-1]
+
+
+@pytest.mark.parametrize("offset_s", [0.0037, 1.7e9 + 0.0037])
+def test_state_goes_out_with_the_last_imu_sample_before_an_unaligned_epoch(sim60, offset_s):
+    """An IMU clock not aligned with the epochs (an outside client's, or a UNIX time too
+    large for the exact test): the state of t_k leaves with the last IMU sample before
+    t_k — not when the sample after t_k arrives, one IMU period later."""
+    import dataclasses
+
+    scenario, result = sim60
+    cfg, est = _estimator(scenario)
+    seen: list[tuple[str, float]] = []  # (kind, time) of the last item the source handed out
+
+    def source():
+        for s in result.iter_samples():
+            s = dataclasses.replace(s, t_s=s.t_s + offset_s)
+            seen.append((s.KIND, s.t_s))
+            yield s
+
+    released_by: list[tuple[float, str, float]] = []
+
+    class _Probe(Sink):
+        def on_nav(self, state):
+            released_by.append((state.t_s, *seen[-1]))
+
+    run(source(), est, [_Probe()], LogClock(), output_rate_hz=5.0)
+    n_epochs = DURATION_S * 5.0
+    assert len(released_by) >= 0.95 * n_epochs
+    # every state but the last (end of data) goes out with the IMU sample of its own time
+    late = [r for r in released_by[:-1] if not (r[1] == "imu" and r[2] == r[0])]
+    assert not late, late[:3]
+    # and one state per epoch: consecutive states 1 / 5 Hz apart (± one IMU period)
+    gaps = np.diff([r[0] for r in released_by[:-1]])
+    assert np.all(np.abs(gaps - 0.2) <= 1.0 / scenario.imu.rate_hz + 1e-6), gaps[np.abs(gaps - 0.2) > 0.011][:5]
