@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
+from adaptnav.kernels import jit
 import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -37,7 +37,7 @@ def pack(params, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarra
                      1.0 if turn_about_mean else 0.0])
 
 
-@nb.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _chord(W, dt):
     a = 0.5 * W * dt
     if abs(a) < 1e-8:
@@ -45,7 +45,7 @@ def _chord(W, dt):
     return dt * math.sin(a) / a
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def transition_logpdf_scalar(x0, y0, th0, x1, y1, th1, v, w, dt, p):
     ref = p[11] * (w + p[8]) * dt if p.shape[0] > 11 else 0.0  # branch centre (pack)
     dth = (th1 - th0 - ref + math.pi) % (2.0 * math.pi) - math.pi + ref
@@ -70,7 +70,7 @@ def transition_logpdf_scalar(x0, y0, th0, x1, y1, th1, v, w, dt, p):
     return ll - math.log(c * c * dt)
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def move(poses, idx, z, v, w, dt, p):
     n = idx.shape[0]
     out = np.empty((n, 3))
@@ -99,7 +99,7 @@ def move(poses, idx, z, v, w, dt, p):
     return out
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def range_loglik(poses, lm, ranges, sigma):
     n = poses.shape[0]
     out = np.empty(n)
@@ -115,7 +115,7 @@ def range_loglik(poses, lm, ranges, sigma):
     return out
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def backward_mcmc(poses, ancestors, v, w, dt, p, idx_T, props, log_u):
     """MCMC-FFBSi. ``props`` (T, K, M) proposals drawn ∝ W_t, ``log_u`` (T, K, M)."""
     T = v.shape[0]
@@ -147,7 +147,7 @@ def backward_mcmc(poses, ancestors, v, w, dt, p, idx_T, props, log_u):
     return out
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def backward_exact(poses, log_w, v, w, dt, p, idx_T, u):
     """Exact FFBSi, O(N·M·T). ``u`` (T, M) uniforms."""
     T = v.shape[0]
@@ -186,7 +186,7 @@ def backward_exact(poses, log_w, v, w, dt, p, idx_T, u):
     return out
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def heading_loglik(poses, yaw, sigma, log_sigma, half_log_2pi):
     """:meth:`adaptnav.calibration.sensors.HeadingObservation.log_likelihood` (same operations in
     the same order, so the same floats) without numpy's temporaries: the observation of
@@ -200,7 +200,7 @@ def heading_loglik(poses, yaw, sigma, log_sigma, half_log_2pi):
     return out
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def reweight(log_w, g):
     """Normalised ``log_w + g``, the increment ``log Σ exp(log_w + g)`` and the new ESS."""
     n = log_w.shape[0]
@@ -224,7 +224,7 @@ def reweight(log_w, g):
     return out, inc, 1.0 / s2
 
 
-@nb.njit(cache=True)
+@jit(cache=True)
 def systematic_from_log(log_w, u):
     """Systematic resampling indices from normalised ``log_w`` and one uniform ``u`` ∈ [0, 1);
     the cumulative sum's last element is forced to 1 (the round-off guard)."""

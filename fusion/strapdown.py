@@ -31,14 +31,14 @@ Arrays shared by the kernels (all float64, mutated in place):
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from adaptnav.kernels import jit
 
 from .frames import GRAVITY_M_S2
 
 ACC_SIZE = 19
 
 
-@njit(cache=True, fastmath=False)
+@jit(cache=True, fastmath=False)
 def _dcm(q0, q1, q2, q3, R):
     R[0, 0] = 1 - 2 * (q2 * q2 + q3 * q3)
     R[0, 1] = 2 * (q1 * q2 - q0 * q3)
@@ -51,7 +51,7 @@ def _dcm(q0, q1, q2, q3, R):
     R[2, 2] = 1 - 2 * (q1 * q1 + q2 * q2)
 
 
-@njit(cache=True)
+@jit(cache=True)
 def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     """Advance the nominal state ``x`` by one IMU sample held over ``dt`` seconds."""
     wx = w_b[0] - x[13]
@@ -119,7 +119,7 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     acc[18] = fz
 
 
-@njit(cache=True)
+@jit(cache=True)
 def transition(acc, T):
     """Φ (18×18) over the accumulated step of length ``T`` (see module docstring)."""
     F = np.zeros((18, 18))
@@ -145,7 +145,7 @@ def transition(acc, T):
     return Phi
 
 
-@njit(cache=True)
+@jit(cache=True)
 def propagated_covariance(P, acc, qdiag):
     """Covariance after the pending accumulated step (P itself is not changed)."""
     T = acc[12]
@@ -161,7 +161,7 @@ def propagated_covariance(P, acc, qdiag):
     return 0.5 * (Pn + Pn.T)
 
 
-@njit(cache=True)
+@jit(cache=True)
 def flush_covariance(P, acc, clock, qdiag):
     """Propagate ``P`` over the accumulated step and reset the accumulators."""
     if acc[12] > 0.0:
@@ -176,7 +176,7 @@ N_P = 18 * 18
 CORE_SIZE = N_X + N_P + ACC_SIZE + 2
 
 
-@njit(cache=True)
+@jit(cache=True)
 def core_views(core):
     """(x, P, acc, clock) views of the contiguous core array."""
     x = core[0:19]
@@ -186,14 +186,14 @@ def core_views(core):
     return x, P, acc, clock
 
 
-@njit(cache=True)
+@jit(cache=True)
 def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
     """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch)."""
     x, P, acc, clock = core_views(core)
     propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s)
 
 
-@njit(cache=True)
+@jit(cache=True)
 def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
     """Propagate over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
 
@@ -211,7 +211,7 @@ def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
             flush_covariance(P, acc, clock, qdiag)
 
 
-@njit(cache=True)
+@jit(cache=True)
 def inject_error(x, dx, P):
     """x ← x ⊕ δx and the ESKF covariance reset ``P ← G P Gᵀ``."""
     for i in range(6):
@@ -249,7 +249,7 @@ def inject_error(x, dx, P):
     P[:, :] = G @ P @ G.T
 
 
-@njit(cache=True)
+@jit(cache=True)
 def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
     """Chi-square gate, then the Joseph-form update (m ≤ 3 measurements, explicit loops).
 
@@ -318,7 +318,7 @@ def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
     return nis, True
 
 
-@njit(cache=True)
+@jit(cache=True)
 def dcm_of(x):
     """``R_nb`` (3×3) of the nominal state ``x``."""
     R = np.empty((3, 3))
@@ -326,7 +326,7 @@ def dcm_of(x):
     return R
 
 
-@njit(cache=True)
+@jit(cache=True)
 def imu_clean(t_s, f_b, w_b, t_last_s, gap_s):
     """True when every sample is finite, strictly after the previous one and gap-free."""
     prev = t_last_s
@@ -341,7 +341,7 @@ def imu_clean(t_s, f_b, w_b, t_last_s, gap_s):
     return True
 
 
-@njit(cache=True)
+@jit(cache=True)
 def fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush):
     """flush (INS mode) → gated Joseph update → error injection, in one call.
 
@@ -355,7 +355,7 @@ def fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush):
     return nis, fused
 
 
-@njit(cache=True)
+@jit(cache=True)
 def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
     """:func:`fuse` on the core array."""
     x, P, acc, clock = core_views(core)

@@ -1,43 +1,106 @@
-"""`adaptnav warmup [--config FILE]`: compile the numba kernels into their on-disk cache.
+"""`adaptnav warmup [--config FILE] [--jit-only]`: compile the kernels before the service needs them.
 
-Run once at install (``make``) and before every start of the systemd unit
-(``ExecStartPre``): the daemon and its calibrator child then load compiled kernels
-(a fraction of a second) instead of compiling them (~20 s here, a minute on a
-Raspberry Pi) before their first solution. The cache is where numba puts it:
-``NUMBA_CACHE_DIR`` when set (the unit sets ``/var/cache/adaptnav``, since the
-installed package directory is read-only to the service), else ``__pycache__`` next to
-the sources. A no-op when the cache is already current.
+Run at install (``make``) and before every start of the systemd unit (``ExecStartPre``).
+It runs the filter and one EM window just in time (filling numba's on-disk cache:
+``NUMBA_CACHE_DIR`` when set, else ``__pycache__`` next to the sources) and compiles
+every kernel ahead of time into one extension module (:mod:`adaptnav.kernels`): the
+daemon and its calibrator child then import compiled code and never numba (no JIT
+memory, no compile before the first solution). A no-op when the module for the current
+sources exists. Without a C compiler the ahead-of-time step fails with a warning and
+the just-in-time cache is what the service uses.
 """
 from __future__ import annotations
 
-HELP = "compile the numba kernels into their cache (install step; the unit's ExecStartPre)"
+HELP = "compile the kernels ahead of time (install step; the unit's ExecStartPre)"
 
 
 def add_arguments(parser):
     parser.add_argument("--config", metavar="FILE", help="service config (TOML); defaults when omitted")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config key (repeatable)")
+    parser.add_argument("--jit-only", action="store_true",
+                        help="only fill numba's just-in-time cache (no ahead-of-time module)")
+
+
+def _exercise_calibration_kernels() -> None:
+    """The calibrator kernels one EM window may leave uncalled (range likelihood,
+    resampling, the exact smoother): a small thesis problem runs them all."""
+    import numpy as np
+
+    from adaptnav.calibration.particle_filter import run_particle_filter
+    from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_mcmc
+    from adaptnav.calibration.thesis import ThesisRow, _init_cloud, simulate
+
+    rng = np.random.default_rng(0)
+    data = simulate(ThesisRow(steps=12), rng)
+    p = data.params_initial
+    fr = run_particle_filter(p, data.v, data.w, data.dt, data.observations, _init_cloud(64, rng), rng, 64)
+    ffbsi_exact(fr, p, data.v, data.w, data.dt, 8, rng)
+    ffbsi_mcmc(fr, p, data.v, data.w, data.dt, 8, rng)
 
 
 def run(args):
+    import os
+    import shutil
     import sys
+    import tempfile
     import time
 
-    from adaptnav.fusion.typed_config import ConfigError
-    from adaptnav.service.config import load_config
+    from adaptnav import kernels
 
+    path = kernels.aot_path()
+    if not args.jit_only and kernels.using_aot():
+        print(f"adaptnav warmup: kernels compiled ahead of time: {kernels.aot_path(existing=True)}")
+        return 0
+    tmp = None
+    saved_cache_dir = os.environ.get("NUMBA_CACHE_DIR")
+    if not args.jit_only:
+        # compiled afresh (not loaded from numba's cache), a kernel records the signatures
+        # of the kernels it calls too: all of them are then built ahead of time
+        tmp = tempfile.mkdtemp(prefix="adaptnav-jit-")
+        os.environ["NUMBA_CACHE_DIR"] = tmp
     try:
-        cfg = load_config(args.config, args.overrides)
-    except ConfigError as e:
-        print(f"adaptnav warmup: config error: {e}", file=sys.stderr)
-        return 2
-    from adaptnav.service.daemon import warm_up_filter
+        from adaptnav.fusion.typed_config import ConfigError
+        from adaptnav.service.config import load_config
 
-    t_filter = warm_up_filter(cfg)
-    t0 = time.monotonic()
-    from adaptnav.service.calibrator.preload import warm_kernels
+        try:
+            cfg = load_config(args.config, args.overrides)
+        except ConfigError as e:
+            print(f"adaptnav warmup: config error: {e}", file=sys.stderr)
+            return 2
 
-    warm_kernels()
-    print(f"adaptnav warmup: filter kernels {t_filter:.1f} s, calibrator kernels "
-          f"{time.monotonic() - t0:.1f} s")
-    return 0
+        def warm_up() -> None:
+            from adaptnav.service.calibrator.preload import warm_kernels
+            from adaptnav.service.daemon import warm_up_filter
+
+            t0 = time.monotonic()
+            warm_up_filter(cfg)
+            warm_kernels()
+            _exercise_calibration_kernels()
+            print(f"adaptnav warmup: kernels just in time {time.monotonic() - t0:.1f} s")
+
+        if args.jit_only:
+            warm_up()
+            return 0
+        t0 = time.monotonic()
+        try:
+            kernels.build(warm_up)
+        except Exception as e:  # noqa: BLE001 - no compiler, read-only directory: JIT still works
+            print(f"adaptnav warmup: ahead-of-time build failed ({type(e).__name__}: {e}); "
+                  "the service uses its kernels just in time, cached now", file=sys.stderr)
+            import subprocess
+
+            env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+            if saved_cache_dir is not None:
+                env["NUMBA_CACHE_DIR"] = saved_cache_dir
+            cmd = [sys.executable, "-m", "adaptnav", "warmup", "--jit-only"]
+            if args.config:
+                cmd += ["--config", args.config]
+            for o in args.overrides:
+                cmd += ["--set", o]
+            return subprocess.run(cmd, env=env).returncode
+        print(f"adaptnav warmup: kernels compiled ahead of time in {time.monotonic() - t0:.1f} s: {path}")
+        return 0
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,278 @@
+"""Compiled kernels: ahead of time when built, else numba's just-in-time compiler.
+
+The hot loops (:mod:`adaptnav.fusion.strapdown`, :mod:`adaptnav.calibration._kernels`) are
+numba ``njit`` functions declared with :func:`jit` instead of ``numba.njit``. Just in time,
+numba costs every process that imports it ~65 MB (llvmlite's LLVM and numba's typing
+registries) plus ~55–90 MB to load the cached kernels, and a fresh install compiles for
+20 s here (a minute on a Raspberry Pi) before the first solution. :func:`build` (run by
+``adaptnav warmup``, i.e. ``make`` and the systemd unit's ``ExecStartPre``) therefore
+compiles every kernel ahead of time with ``numba.pycc`` into one extension module,
+with the signatures the service really calls (recorded while the warm-up runs the
+filter and one EM window just in time). When that module is present *and* built from
+the current kernel sources, :func:`jit` returns its functions and numba is never
+imported: same numba code generation, no JIT at run time.
+
+The module is named after a hash of the kernel sources, the Python and the numba
+version (a stale build is ignored, never used), and lives in ``ADAPTNAV_KERNEL_DIR``
+when set, else next to this file. ``ADAPTNAV_KERNELS=jit`` forces just in time.
+A compiled function does not check its arguments (a strided or integer array where it
+was built for a contiguous float one reads wrong memory), so each comes with a guard:
+arguments of the recorded types (dtype, dimensions, contiguous and writeable arrays;
+numbers) go to the compiled code, anything else to the just-in-time version. A kernel
+the build did not see called (tests, benchmarks) works the same way: on its first call
+its module's kernels are compiled just in time, in a namespace of their own.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import json
+import numbers
+import importlib.util
+import os
+import sys
+import sysconfig
+import types
+from pathlib import Path
+from typing import Any, Callable
+
+# the modules whose kernels are declared with jit(); their sources key the compiled module
+KERNEL_MODULES = ("adaptnav.fusion.strapdown", "adaptnav.calibration._kernels")
+
+_registry: dict[str, dict[str, tuple[Callable, dict]]] = {}   # module → name → (py_func, options)
+_jit_namespaces: dict[str, dict[str, Any]] = {}
+_aot: Any = False  # False: not looked up yet; None: absent
+
+
+def kernel_dirs() -> list[Path]:
+    """Where the compiled module is looked up: ``ADAPTNAV_KERNEL_DIR`` when set (a
+    writable cache of a service whose package directory is read-only), then the
+    package directory (an install step run as its owner). Built into the first."""
+    env = os.environ.get("ADAPTNAV_KERNEL_DIR")
+    return ([Path(env)] if env else []) + [Path(__file__).parent]
+
+
+def aot_name() -> str:
+    """Module name of the compiled kernels for the current sources and toolchain."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    h = hashlib.sha1()
+    for name in KERNEL_MODULES:
+        spec = importlib.util.find_spec(name)
+        h.update(Path(spec.origin).read_bytes())
+    try:
+        numba_version = version("numba")
+    except PackageNotFoundError:
+        numba_version = "none"
+    h.update(f"{sys.version_info[:2]} {numba_version} {sysconfig.get_platform()}".encode())
+    return f"_aot_kernels_{h.hexdigest()[:16]}"
+
+
+def aot_path(existing: bool = False) -> Path:
+    """The compiled module's file: where it would be built, or (``existing``) the first
+    place it is found (the build place when nowhere)."""
+    name = aot_name() + importlib.machinery.EXTENSION_SUFFIXES[0]
+    dirs = kernel_dirs()
+    if existing:
+        for d in dirs:
+            if (d / name).is_file():
+                return d / name
+    return dirs[0] / name
+
+
+def _load_aot() -> Any:
+    global _aot
+    if _aot is False:
+        _aot = None
+        if os.environ.get("ADAPTNAV_KERNELS", "").lower() != "jit":
+            path = aot_path(existing=True)
+            specs_path = path.with_name(path.name.split(".")[0] + ".json")
+            if path.is_file() and specs_path.is_file():
+                spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                module.arg_specs = json.loads(specs_path.read_text())
+                _aot = module
+    return _aot
+
+
+def exported_name(module: str, name: str) -> str:
+    return f"{module.replace('.', '_')}__{name}"
+
+
+def using_aot() -> bool:
+    """True when the kernels come from the ahead-of-time module."""
+    return _load_aot() is not None
+
+
+def jit(**options: Any) -> Callable[[Callable], Any]:
+    """``numba.njit(**options)``, or the ahead-of-time compiled function when built."""
+    def decorate(py_func: Callable) -> Any:
+        module = py_func.__module__
+        _registry.setdefault(module, {})[py_func.__name__] = (py_func, options)
+        aot = _load_aot()
+        if aot is None:
+            import numba
+
+            return numba.njit(**options)(py_func)
+        export = exported_name(module, py_func.__name__)
+        compiled = getattr(aot, export, None)
+        fallback = _Deferred(module, py_func.__name__)
+        if compiled is None:
+            return fallback
+        return _guarded(compiled, aot.arg_specs[export], fallback)
+    return decorate
+
+
+def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
+    """``compiled`` for arguments of the types it was built for, else ``fallback``."""
+    import numpy as np
+
+    ndarray, Real, Integral = np.ndarray, numbers.Real, numbers.Integral
+    checks = tuple((kind, dtype, ndim, contiguous) for kind, dtype, ndim, contiguous in specs)
+    n = len(checks)
+
+    def call(*args: Any) -> Any:
+        if len(args) == n:
+            for a, (kind, dtype, ndim, contiguous) in zip(args, checks):
+                if kind == "array":
+                    if type(a) is not ndarray or a.dtype.char != dtype or a.ndim != ndim:
+                        break
+                    flags = a.flags
+                    if not flags.writeable or not flags.aligned or (contiguous and not flags.c_contiguous):
+                        break
+                elif kind == "float":
+                    if not isinstance(a, Real):
+                        break
+                elif kind == "int":
+                    if not isinstance(a, Integral):
+                        break
+                elif kind == "bool":
+                    if not isinstance(a, (bool, np.bool_)):
+                        break
+                else:
+                    break
+            else:
+                return compiled(*args)
+        return fallback(*args)
+
+    call.__name__ = call.__qualname__ = getattr(compiled, "__name__", "kernel")
+    call.__wrapped__ = compiled
+    return call
+
+
+class _Deferred:
+    """A kernel missing from the compiled module: compiled just in time on first call,
+    with every kernel of its module, in a namespace where they call each other's
+    numba versions (the module's own names are the compiled module's functions)."""
+
+    def __init__(self, module: str, name: str) -> None:
+        self.module, self.name = module, name
+
+    def __call__(self, *args: Any) -> Any:
+        return _jit_namespace(self.module)[self.name](*args)
+
+
+def _jit_namespace(module: str) -> dict[str, Any]:
+    ns = _jit_namespaces.get(module)
+    if ns is None:
+        import numba
+
+        ns = dict(vars(sys.modules[module]))
+        for name, (f, options) in _registry[module].items():
+            g = types.FunctionType(f.__code__, ns, name, f.__defaults__, f.__closure__)
+            g.__module__ = f.__module__
+            ns[name] = numba.njit(**options)(g)
+        _jit_namespaces[module] = ns
+    return ns
+
+
+# -- the ahead-of-time build ------------------------------------------------------------
+def _widen(sigs: list) -> Any:
+    """One signature accepting every recorded call: arrays of differing layout become
+    'A' (any layout); anything else differing → None (the kernel stays just in time)."""
+    from numba.core import types as nt
+
+    args = list(sigs[0][0])
+    ret = sigs[0][1]
+    for a_args, a_ret in sigs[1:]:
+        if len(a_args) != len(args) or a_ret != ret:
+            return None
+        for i, (x, y) in enumerate(zip(args, a_args)):
+            if x == y:
+                continue
+            if isinstance(x, nt.Array) and isinstance(y, nt.Array) and x.dtype == y.dtype and x.ndim == y.ndim:
+                args[i] = x.copy(layout="A")
+            else:
+                return None
+    return ret(*args)
+
+
+def _arg_spec(t: Any) -> list | None:
+    """What the guard checks for numba type ``t``; None when it cannot be checked."""
+    from numba.core import types as nt
+
+    if isinstance(t, nt.Array):
+        if t.mutable is False or not t.aligned or t.layout not in ("C", "A"):
+            return None
+        try:
+            import numpy as np
+
+            char = np.dtype(str(t.dtype)).char
+        except TypeError:
+            return None
+        return ["array", char, t.ndim, t.layout == "C"]
+    if isinstance(t, nt.Boolean):
+        return ["bool", "", 0, False]
+    if isinstance(t, nt.Float) and t.bitwidth == 64:
+        return ["float", "", 0, False]
+    if isinstance(t, nt.Integer) and t.signed and t.bitwidth == 64:
+        return ["int", "", 0, False]
+    return None
+
+
+def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
+    """Record the kernels' signatures while ``warm_up()`` runs them just in time (in
+    this process, which must not have loaded a compiled module), then compile them
+    ahead of time into :func:`aot_path`. Returns the path."""
+    if using_aot():
+        raise RuntimeError("build() needs the kernels just in time: set ADAPTNAV_KERNELS=jit")
+    for name in KERNEL_MODULES:
+        importlib.import_module(name)
+    warm_up()
+    import warnings
+
+    from numba.core.errors import NumbaPendingDeprecationWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NumbaPendingDeprecationWarning)
+        from numba.pycc import CC
+
+    path = aot_path()
+    cc = CC(path.name.split(".")[0])
+    cc.output_dir = str(path.parent)
+    cc.target_cpu = "host"
+    cc.verbose = verbose
+    arg_specs: dict[str, list] = {}
+    for module in KERNEL_MODULES:
+        mod = sys.modules[module]
+        for name in _registry.get(module, {}):
+            dispatcher = getattr(mod, name)
+            sigs = [(s.args, s.return_type) for s in
+                    (cres.signature for cres in dispatcher.overloads.values())]
+            sig = _widen(sigs) if sigs else None
+            specs = [_arg_spec(t) for t in sig.args] if sig is not None else [None]
+            if sig is not None and None not in specs:
+                export = exported_name(module, name)
+                cc.export(export, sig)(dispatcher.py_func)
+                arg_specs[export] = specs
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cc.compile()
+    specs_path = path.with_name(path.name.split(".")[0] + ".json")
+    specs_path.write_text(json.dumps(arg_specs, indent=1, sort_keys=True))  # last: marks it complete
+    for stale in path.parent.glob("_aot_kernels_*"):
+        if stale.name not in (path.name, specs_path.name):
+            stale.unlink(missing_ok=True)
+    return path

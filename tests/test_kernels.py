@@ -1,0 +1,52 @@
+"""Kernels compiled ahead of time (adaptnav.kernels) behave as the just-in-time ones."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from adaptnav import kernels
+from adaptnav.calibration._kernels import heading_loglik
+from adaptnav.fusion import strapdown as sd
+from adaptnav.fusion.state import N_ERR
+
+
+def _inputs():
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((N_ERR, N_ERR))
+    P = a @ a.T + N_ERR * np.eye(N_ERR)
+    acc = np.zeros(sd.ACC_SIZE)
+    acc[0:3] = rng.standard_normal(3) * 0.05        # Σ R f δt
+    acc[3:12] = np.eye(3).ravel() * 0.05              # Σ R δt
+    acc[12] = 0.05                                    # Σ δt
+    return P, acc, rng.uniform(1e-6, 1e-3, N_ERR)
+
+
+def test_arguments_of_other_types_than_built_for_give_the_same_result():
+    """A compiled function reads its arrays as built (contiguous float64): a strided or
+    Fortran-ordered array, or a read-only one, must go to the just-in-time version
+    instead of being read as if contiguous."""
+    P, acc, q = _inputs()
+    ref = sd.propagated_covariance(P, acc, q)
+    assert np.all(np.isfinite(ref)) and not np.allclose(ref, P)
+    wide = np.zeros((sd.ACC_SIZE, 2))
+    wide[:, 0] = acc
+    np.testing.assert_array_equal(sd.propagated_covariance(P, wide[:, 0], q), ref)
+    poses = np.random.default_rng(4).uniform(-3.0, 3.0, (50, 3))
+    ref_h = heading_loglik(poses, 0.3, 0.1, np.log(0.1), 0.5 * np.log(2 * np.pi))
+    np.testing.assert_array_equal(heading_loglik(np.asfortranarray(poses), 0.3, 0.1, np.log(0.1),
+                                                 0.5 * np.log(2 * np.pi)), ref_h)
+    readonly = q.copy()
+    readonly.flags.writeable = False
+    np.testing.assert_array_equal(sd.propagated_covariance(P, acc, readonly), ref)
+
+
+def test_the_service_path_does_not_import_numba_when_compiled_ahead_of_time():
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    code = ("import sys, adaptnav.service.daemon, adaptnav.calibration.online, adaptnav.service.calibrator.process;"
+            "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
