@@ -416,7 +416,7 @@ class OnlineCalibrator:
         self._assoc = LandmarkAssociator()
         self._pre_fix: list = []  # observations before the grid exists
         self.sonar_front_end = None  # sonar.stream.SonarFrontEnd, created on the first ping
-        from adaptnav.sonar.stream import AnchoredDeadReckoning
+        from adaptnav.sonar.dead_reckoning import AnchoredDeadReckoning
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window

@@ -100,7 +100,10 @@ class NavState:
     def to_dict(self) -> dict:
         """JSON-ready dict (non-finite floats as None), with ``schema_version``."""
         def arr(a):
-            return [float(v) if math.isfinite(v) else None for v in np.ravel(a)]
+            a = np.ravel(np.asarray(a, dtype=float))
+            if np.isfinite(a).all():  # the usual case: tolist() makes the floats at C speed
+                return a.tolist()
+            return [v if math.isfinite(v) else None for v in a.tolist()]
         roll, pitch, yaw = self.euler_rad()
         return {
             "type": "nav_state",

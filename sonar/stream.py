@@ -41,6 +41,7 @@ import numpy as np
 from adaptnav.sonar.features import Features, OrbDetector, SiftDetector
 from adaptnav.sonar.landmarks import LandmarkObservation, LandmarkTracker, extract_landmarks
 from adaptnav.sonar.motion import VisualMotion, WindowRegistrar
+from adaptnav.sonar.dead_reckoning import AnchoredDeadReckoning  # noqa: F401 (its home before)
 from adaptnav.sonar.ping import SonarPing
 from adaptnav.sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall, to_uint8
 
@@ -362,101 +363,3 @@ def reference_landmark(obs: LandmarkObservation, t_ref_s: float, speed_m_s: floa
     (straight track at speed ``v`` between the two times).
     """
     return replace(obs, along_track_m=float(speed_m_s) * (obs.t_s - float(t_ref_s)))
-
-
-class AnchoredDeadReckoning:
-    r"""Ping-to-ping dead reckoning tied to position fixes (USBL/GNSS) by a small Kalman filter.
-
-    Between pings the position is dead-reckoned from the pings' speed over ground and
-    heading (as in :class:`SonarFrontEnd`), ``p_DR``. Its error ``o = p − p_DR`` is an
-    offset that drifts at a nearly constant rate ``d`` (the current across the track,
-    which a speed log does not see), so a linear Kalman filter on ``x = (o, d)`` (4
-    states, north/east) tracks it from the fixes:
-
-    .. math:: o_{k+1} = o_k + d_k\,Δt + w_o,\quad d_{k+1} = d_k + w_d,\qquad
-              z = p_{fix} − p_{DR}(t_{fix}) = o + v,\; v ∼ N(0, σ_{fix}^2 I)
-
-    with random walks of densities ``q_offset`` (m²/s) and ``q_drift`` ((m/s)²/s). The
-    position at a ping is ``p_DR + ô`` with σ the RMS per axis of ``P_o``; NaN σ before
-    the first fix. A fix is applied once the pings have passed its time (its DR is
-    interpolated between the two pings around it).
-
-    Parameters
-    ----------
-    drift_sigma_m_s : float
-        Prior σ of the drift rate per axis (m/s).
-    q_offset_m2_s, q_drift_m2_s3 : float
-        Random-walk densities of the offset and of the drift.
-    """
-
-    def __init__(self, drift_sigma_m_s: float = 0.3, q_offset_m2_s: float = 1e-4,
-                 q_drift_m2_s3: float = 1e-7) -> None:
-        self.q_offset = float(q_offset_m2_s)
-        self.q_drift = float(q_drift_m2_s3)
-        self._last: tuple[float, float, float] | None = None  # t, speed, yaw
-        self._dr = np.zeros(2)
-        self._x = np.zeros(4)
-        # offset prior: vague but finite (1 km σ: an infinite one loses the covariance to round-off)
-        self._P = np.diag([1e6, 1e6, drift_sigma_m_s ** 2, drift_sigma_m_s ** 2])
-        self._t_kf = math.nan
-        self._pending: list[tuple[float, np.ndarray, float]] = []
-        self.fixes_used = 0
-
-    def _predict(self, t_s: float) -> None:
-        if math.isfinite(self._t_kf) and t_s > self._t_kf:
-            dt = t_s - self._t_kf
-            F = np.eye(4)
-            F[0, 2] = F[1, 3] = dt
-            self._x = F @ self._x
-            self._P = F @ self._P @ F.T + np.diag([self.q_offset, self.q_offset, self.q_drift, self.q_drift]) * dt
-        self._t_kf = t_s if not math.isfinite(self._t_kf) else max(self._t_kf, t_s)
-
-    def fix(self, t_s: float, pos_n_m, sigma_m: float) -> None:
-        """A position fix (north, east; m) ± ``sigma_m`` at ``t_s``; applied by a later ping."""
-        p = np.asarray(pos_n_m, dtype=float).reshape(-1)[:2]
-        if np.all(np.isfinite(p)) and math.isfinite(t_s) and math.isfinite(sigma_m) and sigma_m > 0:
-            self._pending.append((float(t_s), p, float(sigma_m)))
-
-    def _update(self, t_s: float, dr: np.ndarray, p: np.ndarray, sigma_m: float) -> None:
-        self._predict(t_s)
-        H = np.hstack([np.eye(2), np.zeros((2, 2))])
-        S = H @ self._P @ H.T + sigma_m ** 2 * np.eye(2)
-        K = self._P @ H.T @ np.linalg.inv(S)
-        self._x = self._x + K @ (p - dr - self._x[:2])
-        A = np.eye(4) - K @ H
-        self._P = A @ self._P @ A.T + sigma_m ** 2 * K @ K.T  # Joseph form: stays symmetric PSD
-        self.fixes_used += 1
-
-    def push(self, ping: SonarPing) -> tuple[np.ndarray, float]:
-        """Dead-reckon to ``ping``; return its (north, east) (m) and σ per axis (m).
-
-        Pings with a non-finite or non-increasing time do not move the estimate.
-        """
-        t = float(ping.t_s)
-        if not math.isfinite(t) or (self._last is not None and not t > self._last[0]):
-            return self._dr + self._x[:2], self.sigma()
-        speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else (self._last[1] if self._last else 0.0)
-        yaw = ping.heading_rad if math.isfinite(ping.heading_rad) else (self._last[2] if self._last else 0.0)
-        dr0 = self._dr
-        if self._last is not None:
-            t0, v0, yaw0 = self._last
-            mid = yaw0 + 0.5 * math.remainder(yaw - yaw0, 2.0 * math.pi)
-            self._dr = self._dr + 0.5 * (v0 + speed) * (t - t0) * np.array([math.cos(mid), math.sin(mid)])
-        t_prev = self._last[0] if self._last is not None else t
-        self._last = (t, speed, yaw)
-        keep = []
-        for tf, p, sig in sorted(self._pending, key=lambda f: f[0]):
-            if tf > t:
-                keep.append((tf, p, sig))
-                continue
-            a = 0.0 if t <= t_prev else min(max((tf - t_prev) / (t - t_prev), 0.0), 1.0)
-            self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, dr0 + a * (self._dr - dr0), p, sig)
-        self._pending = keep
-        self._predict(t)
-        return self._dr + self._x[:2], self.sigma()
-
-    def sigma(self) -> float:
-        """σ per axis of the current position (m); NaN before the first fix."""
-        if not self.fixes_used:
-            return math.nan
-        return math.sqrt(max(0.5 * (self._P[0, 0] + self._P[1, 1]), 0.0))
