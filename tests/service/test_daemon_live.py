@@ -114,7 +114,8 @@ def test_silent_sensor_reported_with_reason(live):
     try:
         col.wait_for(bus.keys.nav_state, lambda docs: len(docs) >= 3)
         feeder.kinds.discard("depth")
-        t_silenced = feeder.t_s
+        # the feeder's iteration in flight may have copied its kinds before the discard
+        t_silenced = feeder.t_s + feeder.dt
         health = wait_until(lambda: (h := col.get(bus.keys.health)) and "depth" in h[-1]["silent"] and h[-1],
                             timeout_s=60)
         aid = col.wait_for(bus.keys.aid("depth"), lambda docs: any(d["reason"] == "stale" for d in docs),
