@@ -213,6 +213,7 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     bus.subscribe_raw(bus.keys.nav_state,
                       lambda k, p: recv.setdefault(json.loads(p)["t_s"], time.perf_counter()))
     pub: dict[float, float] = {}
+    window_mono = [math.nan, math.nan]  # monotonic (system-wide) clock: the measured window
     try:
         time.sleep(0.3)
         wall0 = time.perf_counter()
@@ -221,7 +222,10 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
             if t0 is None:
                 t0 = sample.t_s
             if sample.t_s - t0 >= duration_s + warm_s:
+                window_mono[1] = time.monotonic()
                 break
+            if math.isnan(window_mono[0]) and sample.t_s - t0 >= warm_s:
+                window_mono[0] = time.monotonic()
             due = wall0 + (sample.t_s - t0)
             while (d := due - time.perf_counter()) > 0:
                 time.sleep(min(d, 0.002) if d > 0.0005 else 0)
@@ -237,7 +241,8 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     after = [t for t in recv if t0 is not None and t - t0 >= warm_s]
     print(json.dumps({"p50": _pct(ms, 50), "p90": _pct(ms, 90), "p99": _pct(ms, 99),
                       "max": float(ms.max()) if len(ms) else math.nan, "n": len(lat),
-                      "states": len(after), "unmatched": len(after) - len(lat)}))
+                      "states": len(after), "unmatched": len(after) - len(lat),
+                      "window_monotonic_s": window_mono}))
     return 0
 
 
@@ -285,17 +290,36 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float) -> dict:
                 time.sleep(0.05)
             code = ("import sys; from adaptnav.service.tools.benchmarks.service import client_main; "
                     f"sys.exit(client_main({port}, 'bench', {rate_hz}, {sonar}, {duration_s}, 0.0037))")
-            cpu0 = (_cpu_s(proc.pid), _cpu_s(cal), time.perf_counter())
-            res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                 timeout=duration_s * 3 + 300)
-            cpu1 = (_cpu_s(proc.pid), _cpu_s(cal), time.perf_counter())
+            # CPU time of both processes sampled through the run; the share is taken over
+            # the client's measured window (data flowing, alignment over)
+            cpu: list[tuple[float, float, float]] = []
+            done = threading.Event()
+
+            def sample_cpu() -> None:
+                while True:
+                    cpu.append((time.monotonic(), _cpu_s(proc.pid), _cpu_s(cal)))
+                    if done.wait(0.25):
+                        return
+
+            sampler = threading.Thread(target=sample_cpu, daemon=True)
+            sampler.start()
+            try:
+                res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     timeout=duration_s * 3 + 300)
+            finally:
+                done.set()
+                sampler.join()
             if res.returncode != 0:
                 raise RuntimeError(f"latency client failed: {res.stderr[-2000:]}")
             fig = json.loads(res.stdout.strip().splitlines()[-1])
             h = bus.get("health") or {}
-            wall = cpu1[2] - cpu0[2]
-            fig["daemon_cpu_percent"] = 100.0 * (cpu1[0] - cpu0[0]) / wall
-            fig["calibrator_cpu_percent"] = 100.0 * (cpu1[1] - cpu0[1]) / wall
+            arr = np.array(cpu)
+            w0, w1 = fig.pop("window_monotonic_s")
+            i0 = int(np.searchsorted(arr[:, 0], w0))
+            i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
+            wall = arr[i1, 0] - arr[i0, 0]
+            fig["daemon_cpu_percent"] = 100.0 * (arr[i1, 1] - arr[i0, 1]) / wall
+            fig["calibrator_cpu_percent"] = 100.0 * (arr[i1, 2] - arr[i0, 2]) / wall
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
         finally:
             bus.close()
