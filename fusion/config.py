@@ -170,9 +170,13 @@ class FilterConfig:
     on_time_tolerance_s: float = 0.02          # older than this: fused at its own time
     imu_gap_s: float = 0.2                     # IMU interval longer than this: gap (≤ 5 Hz is no INS)
     valid_max_sigma_h_m: float = 100.0         # horizontal σ above this: position invalid
-    # a position source (GNSS/USBL) gated this many times in a row is trusted again: the
-    # filter, not the fixes, is then wrong (PX4 EKF2 resets to the measurement likewise)
+    # a position source (GNSS/USBL) is trusted again after this many gated fixes that are
+    # consistent with each other and with the last accepted fix at the vehicle's top speed
+    # (+ 3σ), within the window: the filter, not the fixes, is then wrong (PX4 EKF2 resets
+    # to the measurement likewise); a spoofer's fixes far from where the vehicle can be never are
     position_reset_after_rejections: int = 3
+    position_reset_max_speed_m_s: float = 3.0    # over ground: an AUV's top speed + current
+    position_reset_window_s: float = 600.0       # gated fixes older than this are no evidence
 
     def validate(self) -> None:
         if not 0.5 <= self.gate_sigma <= 50.0:  # nan rejected every aid, inf gated nothing
@@ -188,6 +192,9 @@ class FilterConfig:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
         if self.position_reset_after_rejections < 1:
             raise ValueError("position_reset_after_rejections must be ≥ 1")
+        if not (0 < self.position_reset_max_speed_m_s <= 100.0 and 0 < self.position_reset_window_s <= 86400.0):
+            raise ValueError("position_reset_max_speed_m_s must be within (0, 100] m/s and "
+                             "position_reset_window_s within (0, 86400] s")
 
     def gate_threshold(self, dof: int) -> float:
         """Chi-square gate for ``dof`` dimensions at the ``gate_sigma`` two-sided level."""

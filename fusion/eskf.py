@@ -23,8 +23,10 @@ rejected ``too_late``.
 
 Robustness. The surge variance adapts upwards to the innovations (a change of water
 makes the released model too tight, see :mod:`adaptnav.fusion.aiding.learned_velocity`); an
-absolute position source gated ``position_reset_after_rejections`` times in a row is
-trusted again by inflating the position covariance (as PX4 EKF2 resets to GNSS).
+absolute position source is trusted again after gate rejections by inflating the position
+covariance (as PX4 EKF2 resets to GNSS) — only on consistent evidence: several gated fixes
+consistent with each other and with the last accepted fix at the vehicle's top speed
+(:meth:`Estimator._fuse_position`), so that a spoofer cannot move the solution.
 
 Modes. ``"none"`` until aligned (aids answered ``not_initialized``; the latest
 position fix and depth become the initial position); ``"ins"`` after levelling from a
@@ -88,7 +90,7 @@ def _finite(sample) -> bool:
 
 
 class _Snapshot:
-    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "gate_streak", "vel_inertial_n",
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
                  "pos_inertial_n", "motion_params", "t_release")
 
 
@@ -154,7 +156,10 @@ class Estimator:
         self._speed_cache: dict[float, float] = {}
         self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
         self._t_release = -math.inf  # state time of the latest calibrator release applied
-        self._gate_streak: dict[str, int] = {}
+        # position-reset evidence: "last_fix" → (t, (n, e), σ) of the last fused fix; per
+        # source, the recent gated fixes (tuples: snapshots share them)
+        self._fix_evidence: dict[str, tuple] = {}
+        self.position_resets: list[tuple[float, str, float]] = []  # (t_s, source, size m)
         # free-inertial velocity: the strapdown's velocity increments summed without the
         # aiding corrections — what the IMU alone says about velocity *changes* (the
         # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
@@ -425,7 +430,7 @@ class Estimator:
         s.mode = self._mode
         s.reset_counter = self._reset_counter
         s.lv_r_hat = self._lv_r_hat
-        s.gate_streak = dict(self._gate_streak)
+        s.fix_evidence = self._fix_evidence
         s.vel_inertial_n = self._vel_inertial_n.copy()
         s.pos_inertial_n = self._pos_inertial_n.copy()
         s.motion_params = self.motion_params
@@ -439,7 +444,7 @@ class Estimator:
         self._mode = s.mode
         self._reset_counter = s.reset_counter
         self._lv_r_hat = s.lv_r_hat
-        self._gate_streak = dict(s.gate_streak)
+        self._fix_evidence = s.fix_evidence
         self._vel_inertial_n[:] = s.vel_inertial_n
         self._pos_inertial_n[:] = s.pos_inertial_n
         self.motion_params = s.motion_params
@@ -525,6 +530,9 @@ class Estimator:
         elif AIDS[kind].absolute_position:
             ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
             self._pending_fix = (ned[:2], sample.sigma_h_m)
+            # the initial position: where later fixes must be reachable from
+            self._fix_evidence = {"last_fix": (float(sample.t_s), (float(ned[0]), float(ned[1])),
+                                               float(sample.sigma_h_m))}
         elif kind == "depth":
             self._pending_depth = float(aid_depth.pressure_to_depth(
                 sample.pressure_pa, self.config.depth.water_density_kg_m3,
@@ -778,26 +786,58 @@ class Estimator:
         self._qdiag[KS] = rw ** 2
 
     def _fuse_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
-        """Fuse an absolute position; after repeated gate rejections, trust it again.
+        """Fuse an absolute position; reset onto gated fixes only on consistent evidence.
 
-        The reset inflates the position covariance by the innovation's outer product
-        (plus R), so the fix pulls the state and the velocity-related states follow.
+        A gated fix joins the evidence of its source. A reset needs
+        ``position_reset_after_rejections`` gated fixes that are mutually consistent and
+        each within reach of the last accepted fix, both at
+        ``position_reset_max_speed_m_s`` (+ 3σ): a spoofer repeating a fix 1 km away is
+        consistent with itself but not with where the vehicle can have gone. A fused fix
+        clears the evidence. The reset inflates the position covariance by the
+        innovation's outer product (plus R), so the fix pulls the state and the
+        velocity-related states follow; it is recorded in :attr:`position_resets` as
+        ``(t_s, source, size_m)``.
         """
         status = self._fuse(meas, t_s, source)
-        if status.fused or status.reason != "gate":
-            self._gate_streak[source] = 0
+        ne = (float(meas.z[0]), float(meas.z[1]))
+        sigma = math.sqrt(max(float(meas.R[0, 0]), float(meas.R[1, 1])))
+        if status.fused:
+            self._fix_evidence = {"last_fix": (float(t_s), ne, sigma)}
             return status
-        streak = self._gate_streak.get(source, 0) + 1
-        self._gate_streak[source] = streak
-        if streak < self.config.position_reset_after_rejections:
+        if status.reason != "gate":
+            return status
+        cfg = self.config
+        fixes = tuple(f for f in self._fix_evidence.get(source, ())
+                      if t_s - f[0] <= cfg.position_reset_window_s)[-31:] + ((float(t_s), ne, sigma),)
+        self._fix_evidence = {**self._fix_evidence, source: fixes}
+        if len(self._consistent_fixes(fixes)) < cfg.position_reset_after_rejections:
             return status
         y = meas.innovation()
         idx = np.arange(y.size)  # position rows: POS is the first block
         self._P[np.ix_(idx, idx)] += np.outer(y, y) + meas.R
         self._reset_counter += 1
         self.rejected["position_reset"] += 1
-        self._gate_streak[source] = 0
+        self.position_resets.append((float(t_s), source, float(np.hypot(y[0], y[1]))))
+        self._fix_evidence = {k: v for k, v in self._fix_evidence.items() if k != source}
         return self._fuse(meas, t_s, source)
+
+    def _consistent_fixes(self, fixes: tuple) -> list:
+        """The newest fix and the older ones consistent with it and with each other (greedy,
+        newest first), all within reach of the last accepted fix."""
+        v = self.config.position_reset_max_speed_m_s
+        last = self._fix_evidence.get("last_fix")
+
+        def reach(a, b) -> bool:
+            d = math.hypot(a[1][0] - b[1][0], a[1][1] - b[1][1])
+            return d <= v * abs(a[0] - b[0]) + 3.0 * math.hypot(a[2], b[2])
+
+        chosen: list = []
+        for f in reversed(fixes):
+            if last is not None and not reach(f, last):
+                continue
+            if all(reach(f, g) for g in chosen):
+                chosen.append(f)
+        return chosen
 
     def _fuse(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         y = meas.innovation()

@@ -382,6 +382,9 @@ class Daemon:
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         rep["runner_heartbeat_age_s"] = round(time.monotonic() - self.source.heartbeat_s, 3)
         rep["state_finite"] = self.sink.state_finite
+        resets = list(getattr(self.estimator, "position_resets", ()))
+        rep["position_resets"] = {"count": len(resets), "last": [
+            {"t_s": t, "source": src, "size_m": round(size, 3)} for t, src, size in resets[-3:]]}
         imu = rep["sensors"].get("imu")
         rep["status"] = ("not navigating: no IMU" if imu is None or imu["silent"] else
                          "navigating" if self.sink.nav_count else "aligning")

@@ -296,6 +296,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "releases": summary.releases,
         "releases_accepted": summary.releases_accepted,
         "errors": dict(summary.errors),
+        # position resets onto gated fixes (consistent evidence), with their size
+        "position_resets": [{"t_s": t, "source": src, "size_m": size}
+                            for t, src, size in getattr(estimator, "position_resets", [])],
+        "clock_jumps_s": list(summary.clock_jumps),
         "calibrate": bool(calibrate),
         "calibrator": ({"location": calibrator_location, "latency_s": calibrator.latency_s,
                         "wait_s": getattr(calibrator.backend, "wait_s", 0.0),
