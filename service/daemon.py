@@ -20,6 +20,7 @@ Threads and processes::
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import json
 import logging
@@ -50,6 +51,28 @@ log = logging.getLogger(__name__)
 
 # sensor kind → the aid source whose status says why nothing is fused when it is silent
 SENSOR_AID_SOURCE = {s.kind: s.aid_source for s in SENSORS if s.aid_source}
+
+
+# physical bounds of persisted slow states: accelerometer bias (m/s²), gyro bias (rad/s),
+# k_speed (–); a state file beyond them was written by something broken or hostile
+_MAX_ACC_BIAS_M_S2, _MAX_GYRO_BIAS_RAD_S, _K_SPEED_RANGE = 2.0, 0.2, (0.25, 4.0)
+
+
+def slow_states_reason(slow: dict, max_current_m_s: float) -> str:
+    """Empty when persisted slow states are physically plausible, else why not."""
+    try:
+        checks = (("current_n_m_s", max_current_m_s), ("bias_acc_b_m_s2", _MAX_ACC_BIAS_M_S2),
+                  ("bias_gyro_b_rad_s", _MAX_GYRO_BIAS_RAD_S))
+        for name, bound in checks:
+            value = np.asarray(slow[name], dtype=float)
+            if not (np.all(np.isfinite(value)) and np.all(np.abs(value) <= bound)):
+                return f"{name} {value.tolist()} beyond ±{bound:g}"
+        k = float(slow["k_speed"])
+        if not _K_SPEED_RANGE[0] <= k <= _K_SPEED_RANGE[1]:
+            return f"k_speed {k!r} outside {_K_SPEED_RANGE}"
+    except (KeyError, TypeError, ValueError) as e:
+        return f"malformed {e}"
+    return ""
 
 
 def sd_notify(state: str) -> bool:
@@ -257,7 +280,21 @@ class Daemon:
     def _make_estimator(self) -> Any:
         from adaptnav.fusion.eskf import Estimator
 
+        from adaptnav.service.runtime.runner import default_release_gate
+
         restored = load_state(self.cfg.state_dir)
+        gate = default_release_gate(self.cfg.calibrator.online)
+        why = gate(restored.params) if gate is not None and restored is not None and restored.params else ""
+        if why:  # a state file is input like any other: held to the calibrator's bounds
+            log.warning("persisted params refused (%s); starting from the configured ones", why)
+            self.health.on_rejected(f"persisted_params_refused:{why.split('=')[0].strip('| ')}")
+            restored = dataclasses.replace(restored, params=None)
+        if restored is not None and restored.slow_states:
+            why = slow_states_reason(restored.slow_states, self.cfg.calibrator.online.max_current_m_s)
+            if why:
+                log.warning("persisted slow states refused (%s); starting from defaults", why)
+                self.health.on_rejected(f"persisted_states_refused:{why.split(' ')[0]}")
+                restored = dataclasses.replace(restored, slow_states={})
         if restored is not None and restored.params is not None:
             self.params = restored.params
         est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
@@ -324,11 +361,12 @@ class Daemon:
         self.bridge = MavlinkBridge(None, self.enqueue, self.cfg.origin.geo(), self.cfg.mavlink)
 
     def _run(self) -> None:
-        from adaptnav.service.runtime.runner import run
+        from adaptnav.service.runtime.runner import default_release_gate, run
 
         self.summary = run(self.source, self.estimator, [self.sink],
                            self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
-                           stop=self.stop_event, health=self.health, close_sinks=False)
+                           stop=self.stop_event, health=self.health, close_sinks=False,
+                           release_gate=default_release_gate(self.cfg.calibrator.online))
 
     # -- housekeeping ---------------------------------------------------------------------
     def _take_snapshot(self, t_s: float) -> None:

@@ -39,7 +39,7 @@ from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, 
 
 from adaptnav.service.runtime.clock import LogClock, RealtimeClock
 from adaptnav.service.runtime.health import Health
-from adaptnav.service.runtime.runner import RunSummary, run
+from adaptnav.service.runtime.runner import RunSummary, default_release_gate, run
 from adaptnav.service.runtime.sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
                     TrajectoryCsvSink)
 from adaptnav.service.runtime.sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
@@ -263,7 +263,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     gc.freeze()
     try:
         summary = run(items, estimator, sinks, clock, calibrator,
-                      output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog)
+                      output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog,
+                      release_gate=default_release_gate(cfg.calibrator.online))
     finally:
         gc.unfreeze()
         if bar is not None:

@@ -33,6 +33,7 @@ loop goes on.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -66,6 +67,7 @@ class RunSummary:
     nav_states: int = 0
     releases: int = 0
     releases_accepted: int = 0
+    releases_refused: int = 0       # accepted by their calibrator, outside its bounds here
     errors: Counter = field(default_factory=Counter)   # exceptions by item kind
     first_t_s: float = math.nan
     last_t_s: float = math.nan
@@ -81,7 +83,7 @@ class RunSummary:
         return {
             "items": self.items, "samples_used": self.samples_used, "imu_samples": self.imu_samples,
             "nav_states": self.nav_states, "releases": self.releases,
-            "releases_accepted": self.releases_accepted,
+            "releases_accepted": self.releases_accepted, "releases_refused": self.releases_refused,
             "errors": dict(sorted(self.errors.items())),
             "first_t_s": None if math.isnan(self.first_t_s) else self.first_t_s,
             "last_t_s": None if math.isnan(self.last_t_s) else self.last_t_s,
@@ -114,9 +116,11 @@ def _bound(sinks: list, name: str) -> list:
 class _Loop:
     """State of one :func:`run` call (kept out of the function for readability)."""
 
-    def __init__(self, estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door=None):
+    def __init__(self, estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door=None,
+                 release_gate=None):
         self.estimator = estimator
         self.door = door
+        self.release_gate = release_gate
         self.sinks = list(sinks)
         self.clock = clock
         self.calibrator = calibrator
@@ -241,6 +245,16 @@ class _Loop:
 
     def release(self, rel: Any) -> None:
         self.summary.releases += 1
+        if rel.accepted and rel.params is not None and self.release_gate is not None:
+            why = self.release_gate(rel.params)
+            if why:  # outside the calibrator's own bounds, wherever it came from: refused
+                name = why.split("=")[0].strip("| ")
+                self.summary.releases_refused += 1
+                if self.health is not None:
+                    self.health.on_rejected(f"release_refused:{name}")
+                log.warning("runner: release at t=%.1f s refused: %s", rel.t_s, why)
+                changes = {"accepted": False, "reason": f"refused by the filter: {why}"}
+                rel = dataclasses.replace(rel, **changes) if dataclasses.is_dataclass(rel) else rel._replace(**changes)
         if rel.accepted and rel.params is not None:
             self.estimator.set_motion_params(rel.params)
             self.summary.releases_accepted += 1
@@ -333,6 +347,18 @@ class _Loop:
             self.progress(t_last)
 
 
+def default_release_gate(calibrator_config: Any = None) -> Any:
+    """``params -> reason`` against the calibrator's bounds (``calibrator_config``, default
+    :class:`~adaptnav.calibration.online.CalibratorConfig`), or ``None`` without the
+    calibration package."""
+    try:
+        from adaptnav.calibration.online import CalibratorConfig, gate_reason
+    except ImportError:
+        return None
+    bounds = calibrator_config if calibrator_config is not None else CalibratorConfig()
+    return lambda params: gate_reason(params, bounds)
+
+
 def door_for(estimator: Any) -> Any:
     """The plausibility door of ``estimator`` (its config's bounds, origin and depth
     conversion), or ``None`` for an estimator without a filter config."""
@@ -349,7 +375,7 @@ def door_for(estimator: Any) -> Any:
 def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         calibrator: Any = None, *, output_rate_hz: float = 10.0, stop: Any = None,
         health: Health | None = None, progress: Any = None, close_sinks: bool = True,
-        door: Any = None) -> RunSummary:
+        door: Any = None, release_gate: Any = None) -> RunSummary:
     """Run ``source`` through ``estimator`` into ``sinks`` (see the module docstring).
 
     Parameters
@@ -377,6 +403,11 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
     door : adaptnav.fusion.plausibility.Door, optional
         The plausibility check in front of everything; by default built from
         ``estimator.config.plausibility`` (when the estimator has one).
+    release_gate : callable, optional
+        ``params -> reason`` ("" when acceptable): a release outside these bounds is not
+        applied, counted (``release_refused:<name>``) and passed on as not accepted. Default:
+        the calibrator's own bounds at their defaults
+        (:func:`adaptnav.calibration.online.gate_reason`).
 
     Returns
     -------
@@ -391,7 +422,9 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         health.door_rejected = getattr(door, "rejected", None)
         if calibrator is not None and health.calibrator_state == "off":
             health.calibrator_state = "in-process"
-    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door)
+    if release_gate is None:
+        release_gate = default_release_gate()
+    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door, release_gate)
     qsize = getattr(source, "qsize", None)
     wall0 = time.monotonic()
     try:

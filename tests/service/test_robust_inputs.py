@@ -163,3 +163,37 @@ def test_the_filter_recovers_from_a_non_finite_state(sim60, baseline):
     assert np.all(np.isfinite(end.pos_n_m)) and np.all(np.isfinite(end.cov))
     assert valid_after[-1] and not valid_after[0]
     assert np.linalg.norm(end.pos_n_m[:2] - base[-1].pos_n_m[:2]) < 3.0 * math.sqrt(end.cov[0, 0] + end.cov[1, 1])
+
+
+def test_a_release_outside_the_calibrators_bounds_is_refused_counted_and_not_persisted(sim60):
+    """k_v = 100 with variances of 1e-30 (a hostile remote node) was applied as it came."""
+    from dataclasses import replace
+
+    from adaptnav.calibration.online import Release
+    from adaptnav.service.runtime.sinks import ParamsCsvSink  # noqa: F401  (the sinks see it refused)
+
+    scenario, result = sim60
+    cfg = build_config(scenario)
+    est = Estimator(cfg.filter, cfg.motion.params0, cfg.motion.rpm_table, cfg.origin.geo())
+    p0 = cfg.motion.params0
+    hostile = Release(20.0, replace(p0, k_v=100.0, **{n: 1e-30 for n in p0.VARIANCE_NAMES}), 0.0, True, "", 1)
+    seen = []
+
+    class Releases(Sink):
+        def on_release(self, rel):
+            seen.append(rel)
+
+    def stream():
+        sent = False
+        for item in result.iter_blocks():
+            if not sent and isinstance(item, ImuBatch) and item.t_s[0] > 20.0:
+                sent = True
+                yield hostile
+            yield item
+
+    health = Health()
+    summary = run(stream(), est, [Releases()], LogClock(), health=health)
+    assert est.motion_params == p0
+    assert summary.releases_refused == 1 and summary.releases_accepted == 0
+    assert health.rejected_by_reason() == {"release_refused:var_vv": 1}
+    assert len(seen) == 1 and not seen[0].accepted and "var_vv" in seen[0].reason
