@@ -12,13 +12,15 @@ Noise conventions (continuous-time power spectral densities, as in Groves 2013, 
 - ``imu.acc_bias_sigma_m_s2`` / ``imu.gyro_bias_sigma_rad_s`` initial (turn-on + instability)
   1-σ of the biases; bias instability is folded into these and into the random walk.
 
-Defaults are a tactical-grade MEMS IMU (class of the Honeywell HG1120 / ADIS16495:
-ARW ≈ 0.1–0.2 °/√h, gyro bias instability ≈ 1–2 °/h, VRW ≈ 0.02–0.05 m/s/√h).
+The IMU figures come from ``imu.grade`` (:mod:`adaptnav.fusion.imu_grades`: datasheet
+classes ``consumer`` / ``tactical`` / ``navigation``, or ``auto`` from the data); a figure
+set here overrides its class's.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 from scipy import special
 
@@ -27,12 +29,19 @@ from .plausibility import PlausibilityConfig
 
 @dataclass(frozen=True)
 class ImuConfig:
-    acc_noise_m_s2_rthz: float = 0.0006        # ≈ 0.036 m/s/√h
-    gyro_noise_rad_s_rthz: float = 5.0e-5      # ≈ 0.17 °/√h
-    acc_bias_sigma_m_s2: float = 0.005         # ≈ 0.5 mg
-    gyro_bias_sigma_rad_s: float = 1.0e-5      # ≈ 2 °/h
-    acc_bias_rw_m_s3_rthz: float = 1.0e-5
-    gyro_bias_rw_rad_s2_rthz: float = 1.0e-7
+    """IMU error model: a grade's datasheet figures, each overridable (None: the grade's)."""
+
+    grade: Literal["auto", "consumer", "tactical", "navigation"] = "auto"
+    acc_noise_m_s2_rthz: float | None = None
+    gyro_noise_rad_s_rthz: float | None = None
+    acc_bias_sigma_m_s2: float | None = None
+    gyro_bias_sigma_rad_s: float | None = None
+    acc_bias_rw_m_s3_rthz: float | None = None
+    gyro_bias_rw_rad_s2_rthz: float | None = None
+    # "raw_imu": samples quantised to 1 mg / 1 mrad/s (adds q²/12 per sample); "auto": detected
+    quantization: Literal["auto", "none", "raw_imu"] = "auto"
+    # earth rate, Coriolis and normal gravity in the mechanisation ("auto": navigation grade)
+    earth_rotation: Literal["auto", "on", "off"] = "auto"
 
 
 @dataclass(frozen=True)
@@ -63,6 +72,12 @@ class LearnedVelocityConfig:
     rpm_hold_s: float = 1.0                    # latest RpmSample is used this long
     sigma_heave_m_s: float = 0.05              # heave ≈ 0 pseudo-measurement
     variance_scale: float = 1.0                # inflation of the motion model's variances
+    # lateral speed per lateral-thrust RPM relative to the surge table (vehicles with
+    # lateral thrusters: RpmSample.sway_rpm)
+    sway_speed_scale: float = 1.0
+    # the vehicle's speed follows a thrust change with this first-order time constant (s)
+    # (mass over linear drag); 0: at once
+    response_time_s: float = 0.0
     # innovation-based adaptive surge variance (Mehra 1972): R̂ = E[y²] − H P Hᵀ over this
     # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
     adaptive_window_s: float = 120.0
@@ -144,6 +159,53 @@ class RangeConfig:
 class AlignmentConfig:
     n_samples: int = 100                       # static IMU samples averaged for levelling
     max_acc_std_m_s2: float = 0.5              # more spread than this: not at rest, keep waiting
+    # the autopilot's yaw seeds the heading only once it has settled: attitude samples over
+    # this long (s) whose yaw stays within yaw_settle_tol_rad (ArduSub sends 0, then its DCM
+    # yaw, then 0 again while EKF3 starts, then the aligned yaw)
+    yaw_settle_s: float = 2.0
+    yaw_settle_tol_rad: float = 0.02
+    # attitude samples but no IMU fast enough for this long (s): AHRS-only mode
+    ahrs_after_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class ResetConfig:
+    """States reset to an aid that has been rejected for too long (as PX4 EKF2 does)."""
+
+    attitude_after_s: float = 5.0              # ATTITUDE / heading rejected this long: reset attitude
+    velocity_after_s: float = 10.0             # DVL / learned velocity rejected this long: reset velocity
+
+
+@dataclass(frozen=True)
+class IntegrityConfig:
+    """When ``valid`` is set (also the ODOMETRY quality sent to the autopilot), besides
+    ``FilterConfig.valid_max_sigma_h_m``."""
+
+    # windowed normalised-innovation test per aid: the sum of the last nis_window NIS
+    # (fused and gated alike) against the χ² quantile nis_quantile of its degrees of freedom
+    nis_window: int = 20
+    nis_quantile: float = 0.9999
+    # after a velocity/attitude reset the solution is invalid this long (s): converging
+    after_reset_s: float = 10.0
+
+
+@dataclass(frozen=True)
+class StationaryConfig:
+    """Zero-velocity updates while the vehicle is at rest (bench, deck, launch).
+
+    Only out of the water (estimated depth below ``max_depth_m``): in water an idle vehicle
+    drifts with the current, and the learned velocity (no thrust ⇒ no water-relative
+    velocity) already holds it.
+    """
+
+    enabled: bool = True
+    max_depth_m: float = 0.2
+    window_s: float = 1.0                      # IMU window judged at once
+    max_acc_std_m_s2: float = 0.05             # specific-force spread at rest (per axis)
+    max_gyro_rad_s: float = 0.01               # |ω| at rest
+    max_depth_rate_m_s: float = 0.03           # depth change over the window (when a depth aid exists)
+    max_rpm: float = 1.0                       # thrusters idle (when RPM is known)
+    sigma_m_s: float = 0.01                    # zero-velocity pseudo-measurement 1-σ
 
 
 @dataclass(frozen=True)
@@ -164,12 +226,18 @@ class FilterConfig:
     range: RangeConfig = field(default_factory=RangeConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)  # the door's bounds
+    reset: ResetConfig = field(default_factory=ResetConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
+    stationary: StationaryConfig = field(default_factory=StationaryConfig)
     gate_sigma: float = 5.0                    # chi-square gate ≡ this many σ per DOF
     covariance_step_s: float = 0.1             # covariance propagated at this period
     max_delay_s: float = 1.0                   # late measurements up to this are re-fused
     on_time_tolerance_s: float = 0.02          # older than this: fused at its own time
     imu_gap_s: float = 0.2                     # IMU interval longer than this: gap (≤ 5 Hz is no INS)
-    valid_max_sigma_h_m: float = 100.0         # horizontal σ above this: position invalid
+    # horizontal 1-σ (m) above this: invalid. A consistent model-aided solution without
+    # fixes (surge σ 5 %, heading σ 2°) grows ≈ 5 % of distance: 100 m keeps it valid for
+    # > 10 min at a 1.5 m/s survey speed (900 m)
+    valid_max_sigma_h_m: float = 100.0
     # a position source (GNSS/USBL) is trusted again after this many gated fixes that are
     # consistent with each other and with the last accepted fix at the vehicle's top speed
     # (+ 3σ), within the window: the filter, not the fixes, is then wrong (PX4 EKF2 resets

@@ -42,12 +42,14 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter
+from collections import Counter, deque
 
 import numpy as np
 
+from . import imu_grades
 from . import strapdown as sd
 from .aiding import AIDS, AidContext
+from .aiding import attitude as aid_attitude
 from .aiding import depth as aid_depth
 from .aiding import dvl as aid_dvl
 from .aiding import heading as aid_heading
@@ -55,7 +57,8 @@ from .aiding import learned_velocity as aid_lv
 from .aiding.common import Measurement
 from .alignment import Aligner
 from .config import FilterConfig
-from .frames import GeoOrigin, euler_to_quat
+from .frames import GeoOrigin, euler_to_quat, wrap_angle
+from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
 from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, VEL, X_BA, X_BG, X_CUR, X_KS, X_Q, NavState,
@@ -91,7 +94,7 @@ def _finite(sample) -> bool:
 
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
-                 "pos_inertial_n", "motion_params", "t_release")
+                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset")
 
 
 class Estimator:
@@ -125,6 +128,9 @@ class Estimator:
         self._clock = self._core[n_x + n_p + n_a:]
         self._x[:] = initial_nominal()
         self._clock[:] = -math.inf
+        sd.set_earth(self._acc, None)
+        # the IMU error model: the configured grade, or decided at alignment (``auto``)
+        self.imu_model = imu_grades.resolve(config.imu, np.empty((0, 3)), np.empty((0, 3)), math.nan)
         self._qdiag = self._process_noise()
         self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
         self._mode = "none"  # "none" | "ins" | "ahrs"
@@ -134,9 +140,13 @@ class Estimator:
         self._t_imu_last = -math.inf
         self._imu_interval_s = math.inf  # latest IMU sample interval seen before INS mode
         self._yaw_for_alignment: float | None = None
+        self._att_yaw: deque = deque()  # (t_s, yaw) of recent attitude samples before alignment
+        self._t_first_att = math.nan
+        self._pending_dvl = None  # latest valid DVL sample before alignment (velocity seed)
         self._pending_fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
         self._pending_depth: float | None = None
-        self._rpm: tuple[float, float] | None = None  # (t_s, speed m/s)
+        self._rpm: tuple[float, float, float] | None = None  # (t_s, surge, sway speed m/s)
+        self._rpm_raw = math.nan  # latest RPM (rev/min), for stationary detection
         self._next_lv_t = math.nan
         self._lv_period = 1.0 / config.learned_velocity.rate_hz
         # per aid kind: (its config section, what its setup() made of it), once
@@ -160,6 +170,16 @@ class Estimator:
         # source, the recent gated fixes (tuples: snapshots share them)
         self._fix_evidence: dict[str, tuple] = {}
         self.position_resets: list[tuple[float, str, float]] = []  # (t_s, source, size m)
+        # velocity/attitude resets: when each aid's current run of rejections began
+        self._reject_since: dict[str, float] = {}
+        self._t_reset = -math.inf  # state time of the latest velocity/attitude reset
+        self.resets: Counter = Counter()  # by what was reset and why ("attitude", "velocity", ...)
+        self._nis = NisMonitor(config.integrity.nis_window, config.integrity.nis_quantile)
+        # stationary detection over IMU windows: [t0, n, Σf (3), Σf² (3), max |ω|]
+        self._st = np.array([math.nan, 0.0] + [0.0] * 7)
+        self._depth_win: list[float] = []  # [t0, depth0, t, depth] of the current window
+        self._t_dvl_fused = -math.inf
+        self.zero_velocity_updates = 0
         # free-inertial velocity: the strapdown's velocity increments summed without the
         # aiding corrections — what the IMU alone says about velocity *changes* (the
         # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
@@ -186,13 +206,39 @@ class Estimator:
         else:
             cov = self._P.copy()
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
-        valid = (self._mode == "ins" and sigma_h <= self.config.valid_max_sigma_h_m
-                 and bool(np.all(np.isfinite(x))) and not self._recovering)
+        valid = self._mode == "ins" and not self.invalid_reasons(sigma_h) and bool(np.all(np.isfinite(x)))
         return NavState(
             t_s=float(self._clock[0]), pos_n_m=x[0:3].copy(), vel_n_m_s=x[3:6].copy(),
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
             current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter)
+
+    def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
+        """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
+
+        ``not_initialized`` / ``ahrs_only`` (no dead reckoning), ``sigma_h`` (horizontal σ
+        above the bound), ``converging`` (a velocity/attitude reset less than
+        ``after_reset_s`` ago), ``recovering`` (after a non-finite state, until aids fused
+        again), ``nis:<source>`` (that aid's recent innovations say the covariance is too
+        small).
+        """
+        if self._mode == "none":
+            return ["not_initialized"]
+        if self._mode == "ahrs":
+            return ["ahrs_only"]
+        c = self.config.integrity
+        if sigma_h_m is None:
+            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+            sigma_h_m = math.sqrt(max(P[0, 0], P[1, 1], 0.0))
+        out = []
+        if not sigma_h_m <= self.config.valid_max_sigma_h_m:
+            out.append("sigma_h")
+        if self._clock[0] - self._t_reset < c.after_reset_s:
+            out.append("converging")
+        if self._recovering:
+            out.append("recovering")
+        out += [f"nis:{s}" for s in self._nis.failing()]
+        return out
 
     def inertial_velocity(self) -> InertialVelocitySample | None:
         """The free-inertial velocity at the state time (INS mode only, else ``None``).
@@ -371,7 +417,7 @@ class Estimator:
                              "non_finite")]
         if kind == "rpm":
             self._record("sample", sample)
-            self._rpm = (sample.t_s, self._speed(sample.rpm))
+            self._take_rpm(sample)
             return []
         if kind not in AID_KINDS:
             return []
@@ -387,6 +433,27 @@ class Estimator:
         return self._aid(sample)
 
     # ------------------------------------------------------------------ internals
+    def _take_rpm(self, sample) -> None:
+        """Latest thrust: ``_rpm = (t, surge, sway, commanded surge, commanded sway)`` m/s.
+
+        The speeds follow the commanded ones with the vehicle's first-order response
+        (``learned_velocity.response_time_s``; the command held constant between samples):
+        a vehicle does not stop the instant its thrusters do.
+        """
+        cfg = self.config.learned_velocity
+        r_y = float(sample.sway_rpm)
+        sway = 0.0
+        if r_y != 0.0:
+            sway = math.copysign(self._speed(abs(r_y)), r_y) * cfg.sway_speed_scale
+        surge = self._speed(sample.rpm)
+        prev = self._rpm
+        if cfg.response_time_s > 0 and prev is not None and sample.t_s > prev[0]:
+            a = 1.0 - math.exp(-(sample.t_s - prev[0]) / cfg.response_time_s)
+            self._rpm = (sample.t_s, prev[1] + a * (prev[3] - prev[1]), prev[2] + a * (prev[4] - prev[2]), surge, sway)
+        else:
+            self._rpm = (sample.t_s, surge, sway, surge, sway)
+        self._rpm_raw = max(abs(float(sample.rpm)), abs(r_y))
+
     def _speed(self, rpm: float) -> float:
         """``f(rpm)`` memoised: commanded RPMs repeat and the PCHIP call is slow."""
         u = self._speed_cache.get(rpm)
@@ -398,12 +465,13 @@ class Estimator:
 
     def _process_noise(self) -> np.ndarray:
         c = self.config
+        imu = self.imu_model.figures
         q = np.zeros(N_ERR)
         q[POS] = c.process.pos_noise_m_rthz ** 2
-        q[VEL] = c.imu.acc_noise_m_s2_rthz ** 2
-        q[ATT] = c.imu.gyro_noise_rad_s_rthz ** 2
-        q[BA] = c.imu.acc_bias_rw_m_s3_rthz ** 2
-        q[BG] = c.imu.gyro_bias_rw_rad_s2_rthz ** 2
+        q[VEL] = imu.acc_noise_m_s2_rthz ** 2
+        q[ATT] = imu.gyro_noise_rad_s_rthz ** 2
+        q[BA] = imu.acc_bias_rw_m_s3_rthz ** 2
+        q[BG] = imu.gyro_bias_rw_rad_s2_rthz ** 2
         q[CUR] = c.process.current_rw_m_s_rthz ** 2
         q[KS] = c.process.k_speed_rw_rthz ** 2
         return q
@@ -416,8 +484,8 @@ class Estimator:
         d[VEL] = c.initial.sigma_vel_m_s ** 2
         d[6:8] = c.initial.sigma_att_rad ** 2
         d[8] = c.initial.sigma_yaw_rad ** 2
-        d[BA] = c.imu.acc_bias_sigma_m_s2 ** 2
-        d[BG] = c.imu.gyro_bias_sigma_rad_s ** 2
+        d[BA] = self.imu_model.figures.acc_bias_sigma_m_s2 ** 2
+        d[BG] = self.imu_model.figures.gyro_bias_sigma_rad_s ** 2
         d[CUR] = c.initial.sigma_current_m_s ** 2
         d[KS] = c.initial.sigma_k_speed ** 2
         return np.diag(d)
@@ -435,6 +503,8 @@ class Estimator:
         s.pos_inertial_n = self._pos_inertial_n.copy()
         s.motion_params = self.motion_params
         s.t_release = self._t_release
+        s.reject_since = dict(self._reject_since)
+        s.t_reset = self._t_reset
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -449,6 +519,8 @@ class Estimator:
         self._pos_inertial_n[:] = s.pos_inertial_n
         self.motion_params = s.motion_params
         self._t_release = s.t_release
+        self._reject_since = dict(s.reject_since)
+        self._t_reset = s.t_reset
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -489,7 +561,7 @@ class Estimator:
                             self._imu_run(t[j:], f[j:], w[j:])
                             continue
                     else:
-                        t_entry = payload[0] if kind in ("gap", "params") else payload.t_s
+                        t_entry = payload[0] if kind in ("gap", "params", "zupt") else payload.t_s
                         if t_entry > sample.t_s:
                             self._record("sample", sample)
                             out = self._aid(sample)
@@ -502,10 +574,13 @@ class Estimator:
                 elif kind == "params":
                     self._record("params", payload)
                     self._apply_motion_params(payload[1])
+                elif kind == "zupt":
+                    self._record("zupt", payload)
+                    self._zero_velocity(*payload)
                 else:
                     self._record("sample", payload)
                     if payload.KIND == "rpm":
-                        self._rpm = (payload.t_s, self._speed(payload.rpm))
+                        self._take_rpm(payload)
                     else:
                         self._aid(payload)
             if not inserted:
@@ -513,20 +588,43 @@ class Estimator:
                 out = self._aid(sample)
         finally:
             self._replaying = False
+        for st in out:
+            self._monitor(st)
         self.late_fused += 1
         return out
+
+    def _settled_yaw(self, t_s: float, yaw_rad: float) -> float | None:
+        """The autopilot's yaw once it has stayed within ``yaw_settle_tol_rad`` for
+        ``yaw_settle_s`` (ArduSub sends 0, its DCM yaw, 0 again, then the EKF's), else None."""
+        a = self.config.alignment
+        hist = self._att_yaw
+        hist.append((t_s, yaw_rad))
+        while len(hist) > 2 and hist[1][0] <= t_s - a.yaw_settle_s:
+            hist.popleft()
+        if t_s - hist[0][0] < a.yaw_settle_s - 1e-9:
+            return None
+        if max(abs(float(wrap_angle(y - yaw_rad))) for _, y in hist) > a.yaw_settle_tol_rad:
+            return None
+        return yaw_rad
 
     def _before_init(self, sample) -> list[AidStatus]:
         kind = sample.KIND
         if kind == "heading":
             self._yaw_for_alignment = sample.yaw_rad
         elif kind == "attitude":
-            self._yaw_for_alignment = sample.yaw_rad
-            # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz): AHRS mode
+            self._yaw_for_alignment = self._settled_yaw(sample.t_s, sample.yaw_rad)
+            if math.isnan(self._t_first_att):
+                self._t_first_att = sample.t_s
+            # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz), for a while
+            # (an ATTITUDE may come just before the first IMU sample): AHRS mode
             slow_imu = (sample.t_s - self._t_imu_last > self.config.imu_gap_s
                         or self._imu_interval_s > self.config.imu_gap_s)
-            if slow_imu and self._mode == "none":
+            waited = sample.t_s - self._t_first_att >= self.config.alignment.ahrs_after_s
+            if slow_imu and waited and self._mode == "none":
                 return self._init_ahrs(sample)
+        elif kind == "dvl":
+            bottom = sample.valid and not getattr(sample, "water_track", False)
+            self._pending_dvl = sample if bottom else self._pending_dvl
         elif AIDS[kind].absolute_position:
             ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
             self._pending_fix = (ned[:2], sample.sigma_h_m)
@@ -574,15 +672,28 @@ class Estimator:
         if level is None or self._yaw_for_alignment is None:
             return []
         roll, pitch = level
+        # the IMU model: the configured grade's, or decided from the data at rest (auto)
+        self.imu_model = imu_grades.resolve(self.config.imu, *self._aligner.window())
+        self._qdiag = self._process_noise()
         pos, sigma_h, sigma_d = self._initial_position()
         keep = self._x[10:19].copy() if self._restored else None
         P_keep = self._P.copy() if keep is not None else None
-        self._x[:] = initial_nominal(pos, (0.0, 0.0, 0.0), euler_to_quat(roll, pitch, self._yaw_for_alignment))
+        q = euler_to_quat(roll, pitch, self._yaw_for_alignment)
+        vel = np.zeros(3)
+        dvl = self._pending_dvl
+        if dvl is not None and self._aligner.t_last_s - dvl.t_s <= 1.0:
+            # a moving start: the DVL's velocity, not zero (no later aid removes that error)
+            v_b = self._aid_cfg["dvl"][1].R_db.T @ np.asarray(dvl.vel_d_m_s, dtype=float)
+            vel = aid_lv.dcm(initial_nominal(q_nb=q)) @ v_b
+        self._x[:] = initial_nominal(pos, vel, q)
         self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
+        if dvl is not None and np.any(vel):
+            self._P[VEL, VEL] = np.eye(3) * self.config.dvl.sigma_m_s ** 2 * 4.0
         if keep is not None:
             self._x[10:19] = keep
             self._P[9:, 9:] = P_keep[9:, 9:]
         self._acc[:] = 0.0
+        sd.set_earth(self._acc, self.origin.lat_rad if self.imu_model.earth_rotation else None)
         self._clock[:] = self._aligner.t_last_s
         self._mode = "ins"
         self._reset_counter += 1
@@ -592,7 +703,10 @@ class Estimator:
     def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
         """Validate IMU samples (vectorised), then align or propagate them."""
         if self._mode == "ins" and sd.imu_clean(t, f, w, self._clock[0], self.config.imu_gap_s):
-            return self._imu_run(t, f, w)
+            out = self._imu_run(t, f, w)
+            if self.config.stationary.enabled:
+                out += self._stationary(t, f, w)
+            return out
         finite = np.isfinite(t) & np.isfinite(f).all(axis=1) & np.isfinite(w).all(axis=1)
         if not finite.all():
             self.rejected["non_finite"] += int((~finite).sum())
@@ -611,7 +725,7 @@ class Estimator:
         if self._mode != "ins":
             prev_t = self._t_imu_last if t.size == 1 else float(t[-2])
             self._imu_interval_s = float(t[-1]) - prev_t
-            self._aligner.add(t, f)
+            self._aligner.add(t, f, w)
             self._t_imu_last = float(t[-1])
             was_ahrs = self._mode == "ahrs"
             if was_ahrs:
@@ -638,7 +752,50 @@ class Estimator:
             start = g + 1
         out += self._imu_run(t[start:], f[start:], w[start:])
         self._t_imu_last = float(self._clock[0])
+        if self.config.stationary.enabled:
+            out += self._stationary(t, f, w)
         return out
+
+    def _stationary(self, t, f, w) -> list[AidStatus]:
+        """Accumulate IMU windows; a window at rest (IMU quiet, thrusters idle, depth
+        steady) gives one zero-velocity update at its end."""
+        c = self.config.stationary
+        st = self._st
+        if t.size == 0 or self._mode != "ins":
+            return []
+        if not math.isfinite(st[0]):
+            st[0] = float(t[0])
+        st[1] += t.size
+        st[2:5] += f.sum(axis=0)
+        st[5:8] += (f * f).sum(axis=0)
+        st[8] = max(st[8], float(np.sqrt((w * w).sum(axis=1)).max()))
+        t_end = float(t[-1])
+        if t_end - st[0] < c.window_s:
+            return []
+        n = st[1]
+        var = st[5:8] / n - (st[2:5] / n) ** 2
+        quiet = n >= 3 and float(np.sqrt(max(var.max(), 0.0))) <= c.max_acc_std_m_s2 and st[8] <= c.max_gyro_rad_s
+        st[:] = [math.nan, 0.0] + [0.0] * 7
+        dw = self._depth_win
+        depth_steady = len(dw) < 4 or (dw[2] - dw[0] > 0 and abs(dw[3] - dw[1]) <= c.max_depth_rate_m_s * max(dw[2] - dw[0], c.window_s))
+        self._depth_win = dw[2:] * 2 if len(dw) == 4 else []
+        idle = math.isfinite(self._rpm_raw) and abs(self._rpm_raw) <= c.max_rpm
+        recent_dvl = t_end - self._t_dvl_fused < c.window_s
+        dry = self._x[2] < c.max_depth_m
+        if not (quiet and depth_steady and idle and dry and not recent_dvl):
+            return []
+        payload = (t_end,)
+        self._record("zupt", payload)
+        return [self._zero_velocity(*payload)]
+
+    def _zero_velocity(self, t_s: float) -> AidStatus:
+        """Zero-velocity update (the vehicle is at rest in the navigation frame)."""
+        sigma = self.config.stationary.sigma_m_s
+        H = np.zeros((3, N_ERR))
+        H[:, VEL] = np.eye(3)
+        meas = Measurement(np.zeros(3), H, np.eye(3) * sigma ** 2, self._x[3:6].copy(), np.zeros(3, bool))
+        self.zero_velocity_updates += 1
+        return self._fuse(meas, t_s, "zero_velocity")
 
     def _imu_run(self, t, f, w) -> list[AidStatus]:
         if t.size == 0:
@@ -723,12 +880,16 @@ class Estimator:
         R_nb = aid_lv.dcm(self._x)
         yaw_rate = float(R_nb[2] @ self._acc[13:16])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
-                              cfg.sigma_heave_m_s, cfg.variance_scale)
+                              cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
         if cfg.adaptive_window_s > 0:
             adapted = self._adapt_surge(meas)  # the estimate is kept current either way
             if t - self._t_release >= cfg.adaptive_suspend_after_release_s:
                 meas = adapted
-        return self._fuse(meas, t, "learned_velocity")
+        status = self._fuse(meas, t, "learned_velocity")
+        if self._rejected_too_long(status, self.config.reset.velocity_after_s):
+            self._reset_velocity(meas, status)
+            status = self._fuse(meas, t, "learned_velocity")
+        return status
 
     def _adapt_surge(self, meas: Measurement) -> Measurement:
         """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``.
@@ -778,7 +939,68 @@ class Estimator:
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)
             return [status]
-        return [self._fuse(meas, sample.t_s, kind)]
+        if kind == "depth" and self._mode == "ins":
+            d = float(meas.z[0])
+            self._depth_win = (self._depth_win[:2] if self._depth_win else [sample.t_s, d]) + [sample.t_s, d]
+        status = self._fuse(meas, sample.t_s, kind)
+        if kind == "dvl" and status.fused:
+            self._t_dvl_fused = sample.t_s
+        if self._mode == "ins":
+            c = self.config.reset
+            if kind in ("attitude", "heading") and self._rejected_too_long(status, c.attitude_after_s):
+                self._reset_attitude(sample, meas, status)
+                status = self._fuse(meas, sample.t_s, kind)
+            elif kind == "dvl" and self._rejected_too_long(status, c.velocity_after_s):
+                self._reset_velocity(meas, status)
+                status = self._fuse(meas, sample.t_s, kind)
+        return [status]
+
+    def _rejected_too_long(self, status: AidStatus, after_s: float) -> bool:
+        """This aid has been gated continuously for ``after_s`` (the run restarts after a reset)."""
+        src = status.source
+        if status.fused or status.reason != "gate":
+            self._reject_since.pop(src, None)
+            return False
+        # in state time: across an IMU gap the state is stale, and the gap has its own reset
+        t_now = float(self._clock[0])
+        t0 = self._reject_since.setdefault(src, t_now)
+        if t_now - t0 < after_s:
+            return False
+        self._reject_since.pop(src, None)
+        return True
+
+    def _after_reset(self, what: str, source: str, t_s: float) -> None:
+        self._reset_counter += 1
+        self.resets[f"{what}:{source}"] += 1
+        self._t_reset = float(self._clock[0])
+        self._nis.clear()
+
+    def _reset_attitude(self, sample, meas: Measurement, status: AidStatus) -> None:
+        """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated."""
+        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        roll, pitch, yaw = aid_attitude.predict(self._x)
+        if sample.KIND == "attitude":
+            roll, pitch = sample.roll_rad, sample.pitch_rad
+            var = np.diag(meas.R)
+        else:
+            var = np.array([self._P[6, 6], self._P[7, 7], meas.R[0, 0]])
+        self._x[X_Q] = euler_to_quat(roll, pitch, sample.yaw_rad)
+        self._P[ATT, :] = 0.0
+        self._P[:, ATT] = 0.0
+        self._P[ATT, ATT] = np.diag(var)
+        self._after_reset("attitude", status.source, status.t_s)
+
+    def _reset_velocity(self, meas: Measurement, status: AidStatus) -> None:
+        """Velocity to what the aid says (the innovation solved through H's velocity block)."""
+        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        Hv = meas.H[:, VEL]
+        dv, *_ = np.linalg.lstsq(Hv, meas.innovation(), rcond=None)
+        self._x[3:6] += dv
+        Hv_pinv = np.linalg.pinv(Hv)
+        self._P[VEL, :] = 0.0
+        self._P[:, VEL] = 0.0
+        self._P[VEL, VEL] = Hv_pinv @ meas.R @ Hv_pinv.T + np.eye(3) * 1e-6
+        self._after_reset("velocity", status.source, status.t_s)
 
     def _set_k_speed_walk(self, dvl_lock: bool) -> None:
         """k_speed's random walk: slow once the DVL has had lock (``dvl.k_speed_rw_rthz``)."""
@@ -856,5 +1078,14 @@ class Estimator:
         else:
             self.rejected["non_finite"] += 1
             reason = "non_finite"
-        return AidStatus(float(t_s), source, tuple(meas.z.tolist()), tuple(y.tolist()),
-                         tuple(sdiag.tolist()), float(nis) / self._gate[m], bool(fused), reason)
+        status = AidStatus(float(t_s), source, tuple(meas.z.tolist()), tuple(y.tolist()),
+                           tuple(sdiag.tolist()), float(nis) / self._gate[m], bool(fused), reason)
+        if not self._replaying:
+            self._monitor(status)
+        return status
+
+    def _monitor(self, status: AidStatus) -> None:
+        """Feed an attempt's NIS to the integrity monitor (INS mode; fused or gated)."""
+        if self._mode == "ins" and status.reason in ("", "gate"):
+            m = len(status.innovation)
+            self._nis.add(status.source, status.test_ratio * self._gate[m], m)

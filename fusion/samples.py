@@ -44,11 +44,16 @@ class ImuSample:
 
 @dataclass(frozen=True, slots=True)
 class RpmSample:
-    """Propeller speed (rev/min) — the motion model's control input."""
+    """Propeller speed (rev/min) — the motion model's control input.
+
+    ``sway_rpm``: lateral thrust as a signed RPM (starboard positive) for vehicles with
+    lateral thrusters (a BlueROV2's vectored frame); 0 for those without.
+    """
 
     KIND: ClassVar[str] = "rpm"
     t_s: float
     rpm: float
+    sway_rpm: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,18 +1,22 @@
 r"""Strapdown mechanisation and error-state propagation (numba kernels, the hot loop).
 
-Mechanisation in the local NED frame, flat non-rotating earth (the earth rate,
-7.3e-5 rad/s, is below a tactical gyro's noise over an AUV dive and is left out; Groves
-2013, §5.4 "local navigation frame", simplified), per IMU sample k held over
-``(t_{k-1}, t_k]``::
+Mechanisation in the local NED tangent plane at the mission origin (an earth-fixed
+frame, so no transport rate; Groves 2013 §5.3 "ECEF frame" written in local axes), per IMU
+sample k held over ``(t_{k-1}, t_k]``::
 
     ω̂ = ω_m − b_g,  f̂ = f_m − b_a
-    q_nb ← q_nb ⊗ q(ω̂ δt)
-    a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n,   g_n = (0, 0, g)
+    q_nb ← q(−ω_ie δt) ⊗ q_nb ⊗ q(ω̂ δt)
+    a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n − 2 ω_ie × v_n,   g_n = (0, 0, γ)
     p_n ← p_n + v_n δt + ½ a_n δt²,  v_n ← v_n + a_n δt
+
+with the earth rate in local axes ``ω_ie = Ω (cos L, 0, −sin L)`` and the normal gravity
+γ(L) of Somigliana's formula (WGS-84) when the earth model is on (navigation-grade IMUs,
+:mod:`adaptnav.fusion.imu_grades`); off, ``ω_ie = 0`` and γ = 9.80665 m/s² (flat,
+non-rotating: the earth rate is below a consumer or tactical gyro's noise over a dive).
 
 Error dynamics (global attitude error δθ, see :mod:`adaptnav.fusion.state`)::
 
-    δṗ = δv,  δv̇ = −[R f̂]× δθ − R δb_a + w_a,  δθ̇ = −R δb_g + w_g,
+    δṗ = δv,  δv̇ = −[R f̂]× δθ − 2[ω_ie]× δv − R δb_a + w_a,  δθ̇ = −[ω_ie]× δθ − R δb_g + w_g,
     δḃ_a = w_ba,  δḃ_g = w_bg,  δċ = w_c,  δk̇ = w_k
 
 The covariance is propagated every ``covariance_step_s`` T (as pyins and ArduPilot do),
@@ -23,19 +27,42 @@ Arrays shared by the kernels (all float64, mutated in place):
 
 - ``x`` (19,) nominal state (:mod:`adaptnav.fusion.state`),
 - ``P`` (18, 18) covariance at time ``clock[1]``,
-- ``acc`` (19,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
-  latest bias-corrected ω̂_b (3) and f̂_b (3),
+- ``acc`` (23,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
+  latest bias-corrected ω̂_b (3) and f̂_b (3); then the earth model (kept across steps):
+  ω_ie in local axes (3, rad/s) and γ − 9.80665 (1, m/s²) — see :func:`set_earth`,
 - ``clock`` (2,) ``[t_state_s, t_cov_s]``,
 - ``qdiag`` (18,) continuous process noise PSDs per error state.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from adaptnav.kernels import jit
 
 from .frames import GRAVITY_M_S2
 
-ACC_SIZE = 19
+ACC_SIZE = 23
+EARTH_RATE_RAD_S = 7.292115e-5  # WGS-84 Ω_ie
+# WGS-84 normal gravity (Somigliana): γ_e, k = b γ_p / (a γ_e) − 1, e²
+_GAMMA_E = 9.7803253359
+_SOMIGLIANA_K = 0.00193185265241
+_E2 = 0.00669437999013
+
+
+def normal_gravity_m_s2(lat_rad: float) -> float:
+    """Somigliana's normal gravity on the WGS-84 ellipsoid (m/s²)."""
+    s2 = math.sin(lat_rad) ** 2
+    return _GAMMA_E * (1.0 + _SOMIGLIANA_K * s2) / math.sqrt(1.0 - _E2 * s2)
+
+
+def set_earth(acc: np.ndarray, lat_rad: float | None) -> None:
+    """Earth model into the accumulator array: ``None`` = flat, non-rotating."""
+    if lat_rad is None:
+        acc[19:23] = 0.0
+    else:
+        acc[19:22] = (EARTH_RATE_RAD_S * math.cos(lat_rad), 0.0, -EARTH_RATE_RAD_S * math.sin(lat_rad))
+        acc[22] = normal_gravity_m_s2(lat_rad) - GRAVITY_M_S2
 
 
 @jit(cache=True, fastmath=False)
@@ -76,6 +103,15 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     n1 = q0 * d1 + q1 * d0 + q2 * d3 - q3 * d2
     n2 = q0 * d2 - q1 * d3 + q2 * d0 + q3 * d1
     n3 = q0 * d3 + q1 * d2 - q2 * d1 + q3 * d0
+    ex, ey, ez = acc[19], acc[20], acc[21]
+    if ex != 0.0 or ey != 0.0 or ez != 0.0:
+        # the local frame turns with the earth: q ← q(−ω_ie δt) ⊗ q (first order, |ω_ie δt| < 1e-5)
+        e1, e2, e3 = -0.5 * ex * dt, -0.5 * ey * dt, -0.5 * ez * dt
+        m0 = n0 - e1 * n1 - e2 * n2 - e3 * n3
+        m1 = n1 + e1 * n0 + e2 * n3 - e3 * n2
+        m2 = n2 - e1 * n3 + e2 * n0 + e3 * n1
+        m3 = n3 + e1 * n2 - e2 * n1 + e3 * n0
+        n0, n1, n2, n3 = m0, m1, m2, m3
     inv = 1.0 / np.sqrt(n0 * n0 + n1 * n1 + n2 * n2 + n3 * n3)
     if n0 < 0.0:
         inv = -inv
@@ -103,7 +139,12 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
             ay = a
         else:
             az = a
-    az += GRAVITY_M_S2
+    az += GRAVITY_M_S2 + acc[22]
+    if ex != 0.0 or ey != 0.0 or ez != 0.0:
+        # Coriolis −2 ω_ie × v
+        ax -= 2.0 * (ey * x[5] - ez * x[4])
+        ay -= 2.0 * (ez * x[3] - ex * x[5])
+        az -= 2.0 * (ex * x[4] - ey * x[3])
     x[0] += x[3] * dt + 0.5 * ax * dt * dt
     x[1] += x[4] * dt + 0.5 * ay * dt * dt
     x[2] += x[5] * dt + 0.5 * az * dt * dt
@@ -140,6 +181,20 @@ def transition(acc, T):
             r = acc[3 + 3 * i + j] / T
             F[3 + i, 9 + j] = -r
             F[6 + i, 12 + j] = -r
+    # earth rotation: δv̇ += −2[ω_ie]× δv, δθ̇ += −[ω_ie]× δθ
+    ex, ey, ez = acc[19], acc[20], acc[21]
+    F[3, 4] += 2.0 * ez
+    F[3, 5] -= 2.0 * ey
+    F[4, 3] -= 2.0 * ez
+    F[4, 5] += 2.0 * ex
+    F[5, 3] += 2.0 * ey
+    F[5, 4] -= 2.0 * ex
+    F[6, 7] += ez
+    F[6, 8] -= ey
+    F[7, 6] -= ez
+    F[7, 8] += ex
+    F[8, 6] += ey
+    F[8, 7] -= ex
     FT = F * T
     Phi = np.eye(18) + FT + 0.5 * (FT @ FT)
     return Phi
@@ -181,8 +236,8 @@ def core_views(core):
     """(x, P, acc, clock) views of the contiguous core array."""
     x = core[0:19]
     P = core[19:343].reshape((18, 18))
-    acc = core[343:362]
-    clock = core[362:364]
+    acc = core[343:366]
+    clock = core[366:368]
     return x, P, acc, clock
 
 

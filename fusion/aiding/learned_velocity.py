@@ -19,9 +19,14 @@ new release arrives (:meth:`adaptnav.fusion.eskf.Estimator.set_motion_params`) t
 Measurement (z, h) — the observation is the model's prediction with the learned scale,
 the state-dependent rest goes into h so H stays exact::
 
-    z = (k_V u, 0, h_w k_V u),   u = f(rpm), h_w = heave_per_surge (the flow angle, tan α)
-    h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y,  v_b,z)
-    R = diag(σ_V²(u, w), σ_S², σ_heave²)
+    z = (k_V u, k_V u_y, h_w k_V u),   u = f(rpm), h_w = heave_per_surge (the flow angle, tan α),
+                                       u_y = s_y sign(r_y) f(|r_y|)
+    h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y − (k_speed − 1) k_V u_y,  v_b,z)
+    R = diag(σ_V²(u, w), σ_S² + u_y² σ_Vv², σ_heave²)
+
+with ``r_y`` the lateral thrust as RPM (vehicles with lateral thrusters; 0 otherwise, then
+sway ≈ 0 is the non-holonomic pseudo-measurement) and ``s_y`` the lateral speed per RPM
+relative to the surge table (``learned_velocity.sway_speed_scale``).
 
 with ``w`` the yaw rate from the gyro, fused at the motion model's step rate (1 Hz by
 default: its variances are per step). When the water changes, the released variances
@@ -50,14 +55,15 @@ def water_velocity_b(x: np.ndarray) -> np.ndarray:
     return dcm(x).T @ rel
 
 
-def predict(x: np.ndarray, model_speed_m_s: float) -> np.ndarray:
-    """h(x) for a model speed ``k_V u`` (m/s)."""
+def predict(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0) -> np.ndarray:
+    """h(x) for a model speed ``k_V u`` and sway ``k_V u_y`` (m/s)."""
     v_b = water_velocity_b(x)
     v_b[0] -= (x[X_KS] - 1.0) * model_speed_m_s
+    v_b[1] -= (x[X_KS] - 1.0) * model_sway_m_s
     return v_b
 
 
-def jacobian(x: np.ndarray, model_speed_m_s: float) -> np.ndarray:
+def jacobian(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0) -> np.ndarray:
     R = dcm(x)
     rel = x[X_VEL].copy()
     rel[:2] -= x[X_CUR]
@@ -66,17 +72,20 @@ def jacobian(x: np.ndarray, model_speed_m_s: float) -> np.ndarray:
     H[:, ATT] = R.T @ skew(rel)
     H[:, CUR] = -R.T[:, :2]
     H[0, KS] = -model_speed_m_s
+    H[1, KS] = -model_sway_m_s
     return H
 
 
 def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: MotionParams,
-            sigma_heave_m_s: float, variance_scale: float = 1.0) -> Measurement:
-    """Measurement for RPM speed ``u = f(rpm)`` (m/s) and gyro yaw rate (rad/s)."""
+            sigma_heave_m_s: float, variance_scale: float = 1.0, sway_m_s: float = 0.0) -> Measurement:
+    """Measurement for RPM speed ``u = f(rpm)`` (m/s), lateral ``u_y`` (m/s) and gyro yaw rate (rad/s)."""
     model = params.k_v * speed_m_s
+    sway = params.k_v * sway_m_s
     # σ_V²(v, w) of the motion model (velocity_variances), inlined: this runs at the fusion rate
     var_V = speed_m_s**2 * params.var_vv + yaw_rate_rad_s**2 * params.var_vw + params.var_v1
     R = np.zeros((3, 3))
     R[0, 0] = var_V * variance_scale
-    R[1, 1] = params.var_s * variance_scale
+    R[1, 1] = (params.var_s + sway_m_s**2 * params.var_vv) * variance_scale
     R[2, 2] = sigma_heave_m_s**2 * variance_scale
-    return make([model, 0.0, params.heave_per_surge * model], jacobian(x, model), R, predict(x, model))
+    return make([model, sway, params.heave_per_surge * model], jacobian(x, model, sway), R,
+                predict(x, model, sway))

@@ -247,11 +247,12 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     truth = inp.has_truth
     recorder = SeriesRecorder(initial_params=params0)
     metrics_sink = MetricsSink(recorder, out / "metrics.json")
+    validity = _ValidCounter()
     sinks = [TrajectoryCsvSink(out / "trajectory.csv", truth=truth,
                                truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz),
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
-             recorder, metrics_sink]
+             recorder, metrics_sink, validity]
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     clock = RealtimeClock(realtime) if realtime else LogClock()
@@ -309,10 +310,18 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "origin": {"lat_deg": cfg.origin.lat_deg, "lon_deg": cfg.origin.lon_deg,
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
         "health": health.report(),
+        "valid_fraction": validity.fraction,
+        "filter": _filter_report(estimator),
     }
     cal = getattr(estimator, "dvl_calibration", None)
     if cal is not None and cal.pairs_used:
         doc["dvl_calibration"] = cal.report()
+    if validity.states and not validity.valid:
+        doc.setdefault("warnings", []).append(
+            f"no valid navigation solution in {validity.states} nav states "
+            f"(last reasons: {', '.join(estimator.invalid_reasons()) or 'none'})")
+    for w in doc.get("warnings", []):
+        log.warning("%s", w)
     if counters.get("truncated"):
         doc["truncated"] = counters["truncated"]
     if metrics_sink.metrics:
@@ -324,6 +333,31 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                                       default=_json_default) + "\n")
     files = sorted(p.name for p in out.iterdir() if p.is_file())
     return ReplayResult(out, doc, metrics_sink.metrics, summary, files)
+
+
+class _ValidCounter:
+    """Sink: how many nav states were output and how many of them valid."""
+
+    def __init__(self) -> None:
+        self.states = 0
+        self.valid = 0
+
+    def on_nav(self, state: Any) -> None:
+        self.states += 1
+        self.valid += bool(state.valid)
+
+    @property
+    def fraction(self) -> float | None:
+        return self.valid / self.states if self.states else None
+
+
+def _filter_report(estimator: Any) -> dict:
+    """The filter's own account: the IMU model it chose, resets, zero-velocity updates."""
+    imu = estimator.imu_model
+    return {"imu_grade": imu.grade, "imu_quantized": imu.quantized, "earth_rotation": imu.earth_rotation,
+            "resets": dict(sorted(estimator.resets.items())),
+            "zero_velocity_updates": estimator.zero_velocity_updates,
+            "invalid_reasons_at_end": estimator.invalid_reasons()}
 
 
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):

@@ -139,11 +139,16 @@ class ThrusterConfig:
 
     channels: tuple[int, ...] = (1, 2, 3, 4)  # servoN_raw, 1-based as in ArduPilot
     forward_signs: tuple[float, ...] = (-1.0, -1.0, 1.0, 1.0)  # BlueROV2 vectored frame
+    # lateral (strafe, starboard +) factors of the same channels (AP_Motors6DOF vectored:
+    # +1, −1, +1, −1); empty: no lateral thrusters (RpmSample.sway_rpm = 0)
+    lateral_signs: tuple[float, ...] = (1.0, -1.0, 1.0, -1.0)
     curve: PwmRpmCurve = field(default_factory=PwmRpmCurve)
 
     def validate(self) -> None:
         if len(self.channels) != len(self.forward_signs) or not self.channels:
             raise ValueError("channels and forward_signs need the same (non-zero) length")
+        if self.lateral_signs and len(self.lateral_signs) != len(self.channels):
+            raise ValueError("lateral_signs: one per channel (or empty)")
         if any(not 1 <= c <= 16 for c in self.channels):
             raise ValueError("channels are servo outputs 1..16")
 
@@ -293,14 +298,15 @@ def servo_pwm(msg: Any, channel: int) -> int:
 
 
 def rpm_from_servo(msg: Any, t_s: float, thrusters: ThrusterConfig) -> RpmSample:
-    """Mean signed forward RPM of the configured thrusters."""
+    """Mean signed forward (and lateral) RPM of the configured thrusters."""
     rpms = []
-    for ch, sign in zip(thrusters.channels, thrusters.forward_signs):
+    for ch in thrusters.channels:
         pwm = servo_pwm(msg, ch)
         if pwm <= 0:
             raise ConversionError("thruster_not_output", f"servo{ch}_raw = 0")
-        rpms.append(sign * thrusters.curve.rpm_of_pwm(pwm))
-    return RpmSample(t_s, float(np.mean(rpms)))
+        rpms.append(thrusters.curve.rpm_of_pwm(pwm))
+    sway = float(np.mean(np.multiply(thrusters.lateral_signs, rpms))) if thrusters.lateral_signs else 0.0
+    return RpmSample(t_s, float(np.mean(np.multiply(thrusters.forward_signs, rpms))), sway)
 
 
 def gnss_from_gps_raw_int(msg: Any, t_s: float, cfg: ConvertConfig) -> GnssSample:

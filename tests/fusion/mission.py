@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from adaptnav.fusion import imu_grades
+
 from adaptnav.fusion.config import FilterConfig
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable, velocity_variances
@@ -97,7 +99,7 @@ def make_mission(rng: np.random.Generator, duration_s: float = 300.0, *, rate_hz
     f_b = f_b_fine.reshape(n, sub, 3).mean(axis=1)
     w_b = np.zeros((n, 3))
     w_b[:, 2] = np.diff(psi[::sub]) / dt
-    imu = config.imu
+    imu = imu_grades.resolve(config.imu, np.empty((0, 3)), np.empty((0, 3)), 1.0 / rate_hz).figures
     b_a = rng.normal(0.0, imu.acc_bias_sigma_m_s2, 3)
     b_g = rng.normal(0.0, imu.gyro_bias_sigma_rad_s, 3)
     if imu_noise:

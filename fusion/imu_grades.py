@@ -1,0 +1,166 @@
+r"""IMU grade profiles (noise, bias, bias random walk per class) and the ``auto`` choice.
+
+Conventions as :mod:`adaptnav.fusion.config` (continuous-time densities, Groves 2013 §14.2.6).
+Figures are the class's datasheet values, rounded towards the pessimistic side; each
+can be overridden one by one in ``[filter.imu]``.
+
+- ``consumer`` — the MEMS parts in autopilots (Pixhawk / Navigator: InvenSense MPU-6000,
+  TDK ICM-20602 / ICM-20689). MPU-6000 product specification (PS-MPU-6000A-00 rev 3.4):
+  gyro rate noise 0.005 °/s/√Hz, accelerometer noise 400 µg/√Hz; ICM-20602 (DS-000176):
+  0.004 °/s/√Hz, 100 µg/√Hz, gyro zero-rate offset ±1 °/s untrimmed. On a vehicle, through
+  an autopilot's decimated MAVLink stream, the white noise is far larger: ArduPilot's EKF3
+  defaults (EK3_ACC_P_NSE, EK3_GYRO_P_NSE) are used. An autopilot trims the
+  gyro offset at boot; what remains over a dive is tens to hundreds of °/h (0.1 °/s taken),
+  accelerometer offsets after calibration ~10 mg; in-run instability ~10 °/h, 0.1 mg.
+- ``tactical`` — MEMS tactical IMUs: Analog Devices ADIS16495 (ARW 0.12 °/√h, in-run bias
+  0.8 °/h, VRW 0.008 m/s/√h), Safran STIM300 (ARW 0.15 °/√h, bias instability 0.5 °/h,
+  VRW 0.07 m/s/√h, accelerometer bias instability 0.05 mg); bias 1-σ 2 °/h, 0.5 mg.
+- ``navigation`` — fibre-optic gyro INS of the iXblue PHINS / Honeywell HG9900 class:
+  gyro bias < 0.01 °/h, ARW ≈ 0.0025 °/√h; accelerometer bias ≈ 50 µg, noise ≈ 15 µg/√Hz.
+  These see the earth rate (15 °/h): mechanised with earth rate, Coriolis and normal
+  gravity by default (:mod:`adaptnav.fusion.strapdown`).
+
+Quantisation (``RAW_IMU`` / ``SCALED_IMU*``: int16 in 1 mg and 1 mrad/s) adds white noise of
+variance ``q²/12`` per sample, i.e. density ``q √(Δt/12)`` at sample interval Δt
+(Widrow & Kollár, *Quantization Noise*, 2008, ch. 4). It is detected from the data (every
+sample on the 1 mg / 1 mrad/s grid ⇒ an autopilot's integer IMU message ⇒ ``consumer``).
+
+``auto``: quantised samples ⇒ ``consumer``; otherwise the gyro noise measured at rest in the
+alignment window picks the class (density above :data:`CONSUMER_GYRO_DENSITY_MIN` ⇒
+consumer, below :data:`NAVIGATION_GYRO_DENSITY_MAX` ⇒ navigation, else tactical). For a
+consumer IMU the white-noise densities used are never below what was measured (vibration
+of an armed vehicle is noise to the filter).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .frames import GRAVITY_M_S2
+
+DEG = math.pi / 180.0
+HOUR = 3600.0
+MG = 1e-3 * GRAVITY_M_S2
+UG = 1e-6 * GRAVITY_M_S2
+
+GRADES = ("consumer", "tactical", "navigation")
+# RAW_IMU / SCALED_IMU* resolution (ArduPilot: mg and mrad/s in int16)
+RAW_IMU_ACC_LSB_M_S2 = MG
+RAW_IMU_GYRO_LSB_RAD_S = 1e-3
+# class boundaries on the measured gyro white-noise density (rad/s/√Hz): between the
+# consumer (≥ 7e-5) and tactical (≤ 4.4e-5) datasheet figures, and between tactical and
+# navigation (≤ 1e-6)
+CONSUMER_GYRO_DENSITY_MIN = 7.0e-5
+NAVIGATION_GYRO_DENSITY_MAX = 5.0e-6
+
+
+@dataclass(frozen=True)
+class ImuFigures:
+    """One class's figures (units as :class:`adaptnav.fusion.config.ImuConfig`)."""
+
+    acc_noise_m_s2_rthz: float
+    gyro_noise_rad_s_rthz: float
+    acc_bias_sigma_m_s2: float
+    gyro_bias_sigma_rad_s: float
+    acc_bias_rw_m_s3_rthz: float
+    gyro_bias_rw_rad_s2_rthz: float
+
+
+PROFILES: dict[str, ImuFigures] = {
+    "consumer": ImuFigures(
+        # ArduPilot EKF3's defaults for these parts on a vehicle, EK3_ACC_P_NSE = 0.35 m/s² and
+        # EK3_GYRO_P_NSE = 0.015 rad/s per 10 ms prediction step (×√0.01 s → densities): ~9× and
+        # ~17× the MPU-6000 datasheet's 400 µg/√Hz and 0.005 °/s/√Hz, for vibration of an
+        # armed vehicle and the aliasing of a decimated sample stream (the datasheet figures
+        # made the freedrive replay's velocity innovations fail the NIS test)
+        acc_noise_m_s2_rthz=0.35 * math.sqrt(0.01),
+        gyro_noise_rad_s_rthz=0.015 * math.sqrt(0.01),
+        acc_bias_sigma_m_s2=10 * MG,
+        gyro_bias_sigma_rad_s=0.1 * DEG,                   # 360 °/h after boot trimming
+        acc_bias_rw_m_s3_rthz=0.1 * MG * math.sqrt(2.0 / 100.0),   # 0.1 mg over ~100 s
+        gyro_bias_rw_rad_s2_rthz=10 * DEG / HOUR * math.sqrt(2.0 / 100.0),  # 10 °/h over ~100 s
+    ),
+    "tactical": ImuFigures(                                # STIM300 / ADIS16495 class
+        acc_noise_m_s2_rthz=0.0006,                        # ≈ 0.036 m/s/√h
+        gyro_noise_rad_s_rthz=5.0e-5,                      # ≈ 0.17 °/√h
+        acc_bias_sigma_m_s2=0.005,                         # ≈ 0.5 mg
+        gyro_bias_sigma_rad_s=1.0e-5,                      # ≈ 2 °/h
+        acc_bias_rw_m_s3_rthz=1.0e-5,
+        gyro_bias_rw_rad_s2_rthz=1.0e-7,
+    ),
+    "navigation": ImuFigures(                              # PHINS / HG9900 class
+        acc_noise_m_s2_rthz=15 * UG,
+        gyro_noise_rad_s_rthz=0.0025 * DEG / math.sqrt(HOUR),
+        acc_bias_sigma_m_s2=50 * UG,
+        gyro_bias_sigma_rad_s=0.01 * DEG / HOUR,
+        acc_bias_rw_m_s3_rthz=1.0e-6,
+        gyro_bias_rw_rad_s2_rthz=1.0e-10,
+    ),
+}
+
+
+def on_raw_imu_grid(f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray) -> bool:
+    """Every sample is an integer number of 1 mg and 1 mrad/s (an autopilot's int16 IMU message)."""
+    f = np.asarray(f_b_m_s2, float) / RAW_IMU_ACC_LSB_M_S2
+    w = np.asarray(w_b_rad_s, float) / RAW_IMU_GYRO_LSB_RAD_S
+    if f.size == 0:
+        return False
+    return bool(np.all(np.abs(f - np.round(f)) < 1e-6) and np.all(np.abs(w - np.round(w)) < 1e-6))
+
+
+@dataclass(frozen=True)
+class ResolvedImu:
+    """What the estimator uses: the class, its figures (overrides applied), quantisation."""
+
+    grade: str
+    figures: ImuFigures
+    quantized: bool
+    measured_acc_density: float
+    measured_gyro_density: float
+    earth_rotation: bool
+
+
+def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float) -> ResolvedImu:
+    """The IMU model from ``cfg`` (:class:`~adaptnav.fusion.config.ImuConfig`) and a window
+    of samples at rest (N, 3) taken ``dt_s`` apart (the alignment window)."""
+    f = np.asarray(f_b_m_s2, float).reshape(-1, 3)
+    w = np.asarray(w_b_rad_s, float).reshape(-1, 3)
+    dt = dt_s if math.isfinite(dt_s) and dt_s > 0 else 0.01
+    quantized = on_raw_imu_grid(f, w) if cfg.quantization == "auto" else cfg.quantization == "raw_imu"
+    rt = math.sqrt(dt)
+    acc_d = float(np.max(np.std(f, axis=0))) * rt if len(f) > 1 else 0.0
+    gyro_d = float(np.max(np.std(w, axis=0))) * rt if len(w) > 1 else 0.0
+    grade = cfg.grade
+    if grade == "auto" and len(w) < 2:
+        grade = "tactical"  # nothing measured yet (before alignment): the former default
+    if grade == "auto":
+        if quantized or gyro_d >= CONSUMER_GYRO_DENSITY_MIN:
+            grade = "consumer"
+        elif gyro_d <= NAVIGATION_GYRO_DENSITY_MAX:
+            grade = "navigation"
+        else:
+            grade = "tactical"
+    base = PROFILES[grade]
+    q_acc = RAW_IMU_ACC_LSB_M_S2 * math.sqrt(dt / 12.0) if quantized else 0.0
+    q_gyro = RAW_IMU_GYRO_LSB_RAD_S * math.sqrt(dt / 12.0) if quantized else 0.0
+
+    # an autopilot's MEMS on an armed vehicle: vibration and aliasing are noise to the filter
+    measured_floor = cfg.grade == "auto" and grade == "consumer"
+
+    def pick(name: str) -> float:
+        v = getattr(cfg, name)
+        return float(getattr(base, name)) if v is None else float(v)
+
+    acc_noise = pick("acc_noise_m_s2_rthz")
+    gyro_noise = pick("gyro_noise_rad_s_rthz")
+    if cfg.acc_noise_m_s2_rthz is None:
+        # measured at rest (includes vibration and quantisation) or the datasheet + quantisation
+        acc_noise = max(math.hypot(acc_noise, q_acc), acc_d if measured_floor else 0.0)
+    if cfg.gyro_noise_rad_s_rthz is None:
+        gyro_noise = max(math.hypot(gyro_noise, q_gyro), gyro_d if measured_floor else 0.0)
+    figures = ImuFigures(acc_noise, gyro_noise, pick("acc_bias_sigma_m_s2"), pick("gyro_bias_sigma_rad_s"),
+                         pick("acc_bias_rw_m_s3_rthz"), pick("gyro_bias_rw_rad_s2_rthz"))
+    earth = cfg.earth_rotation == "on" or (cfg.earth_rotation == "auto" and grade == "navigation")
+    return ResolvedImu(grade, figures, quantized, acc_d, gyro_d, earth)

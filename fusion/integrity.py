@@ -1,0 +1,55 @@
+r"""Is the covariance telling the truth? A windowed normalised-innovation test per aid.
+
+For a consistent filter the normalised innovation squared ``ε_k = yᵀ S⁻¹ y`` of an
+m-dimensional measurement is χ²(m); the sum over the last ``n`` attempts of one aid is
+χ²(n·m) (Bar-Shalom, Li & Kirubarajan 2001, §5.4.2). Above its ``quantile`` the aid says
+the filter's covariance is too small — the solution is then not trustworthy whatever its σ
+says. Gated attempts count too: an aid rejected again and again is exactly that evidence.
+"""
+from __future__ import annotations
+
+from collections import deque
+
+from scipy.stats import chi2
+
+
+class NisMonitor:
+    """Per-source sliding sums of NIS; :meth:`failing` names the sources above their bound."""
+
+    def __init__(self, window: int, quantile: float):
+        self.window = int(window)
+        self.quantile = float(quantile)
+        self._nis: dict[str, deque] = {}
+        self._sum: dict[str, float] = {}
+        self._dof: dict[str, int] = {}
+        self._bound: dict[int, float] = {}
+
+    def add(self, source: str, nis: float, dof: int) -> None:
+        """One attempt's NIS (finite) of a ``dof``-dimensional measurement."""
+        q = self._nis.get(source)
+        if q is None or self._dof[source] != dof:
+            q = self._nis[source] = deque()
+            self._sum[source] = 0.0
+            self._dof[source] = dof
+        q.append(nis)
+        self._sum[source] += nis
+        if len(q) > self.window:
+            self._sum[source] -= q.popleft()
+
+    def bound(self, dof: int) -> float:
+        b = self._bound.get(dof)
+        if b is None:
+            b = self._bound[dof] = float(chi2.ppf(self.quantile, self.window * dof))
+        return b
+
+    def failing(self) -> list[str]:
+        """Sources whose last ``window`` NIS sum exceeds the χ² bound (full windows only)."""
+        return sorted(s for s, q in self._nis.items()
+                      if len(q) >= self.window and self._sum[s] > self.bound(self._dof[s]))
+
+    def clear(self, source: str | None = None) -> None:
+        """Forget (after a reset: the old innovations say nothing about the new state)."""
+        for s in ([source] if source is not None else list(self._nis)):
+            self._nis.pop(s, None)
+            self._sum.pop(s, None)
+            self._dof.pop(s, None)
