@@ -48,10 +48,11 @@ def test_short_demo_end_to_end_json(tmp_path):
             assert r[key] is not None and math.isfinite(r[key]), (name, key, r)
     learned = rows["learned"]
     # the live path delivers every nav epoch (10 Hz of data time) over Zenoh: the first
-    # second is alignment, nothing else may be missing — the daemon holds samples that
+    # seconds are alignment (levelling, and the autopilot's ATTITUDE yaw must settle for
+    # filter.alignment.yaw_settle_s), nothing else may be missing — the daemon holds samples that
     # overtake the IMU across transports (side-scan pings on Zenoh vs MAVLink) so the
     # runner sees data order, and nothing is dropped on the way
-    assert learned["nav_states_received"] >= DURATION_S * 10 - 10
+    assert learned["nav_states_received"] >= DURATION_S * 10 - 30
     assert learned["nav_epochs"]["received"] == learned["nav_states_received"]  # no duplicates
     assert learned["nav_epochs"]["published"] == learned["nav_states_received"]  # Zenoh lost none
     assert learned["reordered_at_daemon"].get("held", 0) > 0  # pings did overtake: the case is exercised
