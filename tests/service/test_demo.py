@@ -59,7 +59,7 @@ def test_short_demo_end_to_end_json(tmp_path):
     assert learned["mavlink_at_daemon"]["packets_lost"] == 0
     assert "queue_overflow" not in learned["rejected_at_daemon"]
     # ODOMETRY back over MAVLink at the bridge's 10 Hz (quality-0 states during alignment are not sent)
-    assert learned["odometry_received_by_vehicle"] >= DURATION_S * 10 - 20
+    assert learned["odometry_received_by_vehicle"] >= DURATION_S * 10 - 30  # alignment: see above
     assert learned["sonar_pings_published"] >= DURATION_S * 4
     # every ping published by the sonar driver's session reached the daemon (and from
     # there the calibrator, whose front end turns them into landmark sightings)
