@@ -63,7 +63,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -178,8 +178,10 @@ class CalibratorConfig:
 class Release:
     """One calibration attempt: the parameters (for the model step ``model_step_s``), the
     window log-likelihood with them, whether they were released and why not, the EM
-    iterations run, and the estimated sea current (north, east; m/s)."""
+    iterations run, and the estimated sea current (north, east; m/s). A message like the
+    samples (``KIND``; codec: :mod:`adaptnav.service.transport.release`)."""
 
+    KIND: ClassVar[str] = "calibration_release"
     t_s: float
     params: MotionParams
     log_likelihood: float

@@ -136,7 +136,7 @@ class CalibratorSection:
     (counted) — fusion never waits for EM. ``seed``: its RNG seed. ``latency_s``: a
     release computed from data up to data time τ is applied once the runner's data time
     reaches τ + latency_s, live and in replay (replay waits for the calibrator's
-    progress, so its output is deterministic; see :mod:`adaptnav.service.calibrator.process`).
+    progress, so its output is deterministic; see :mod:`adaptnav.service.calibrator.lagged`).
     """
 
     enabled: bool = True

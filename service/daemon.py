@@ -39,8 +39,10 @@ import numpy as np
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.fusion.samples import SENSORS, SOURCE_PRIORITY
 
+from adaptnav.service.compose import make_estimator, make_live_calibrator
+from adaptnav.service.runtime.protocols import Calibrator
+from adaptnav.service.transport import codec
 from adaptnav.service.transport.bus import Bus, encode_sample, message, nonblocking_enqueue
-from adaptnav.service.calibrator.process import CalibratorProcess, release_from_dict
 from adaptnav.service.runtime.clock import LiveClock
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
@@ -96,12 +98,10 @@ def warm_up_filter(cfg: ServiceConfig, params: MotionParams | None = None) -> fl
     """Run a throwaway filter over a few seconds of synthetic rest data so that the numba
     kernels are compiled (or loaded from their cache) before READY, not on the first live
     samples; also what ``adaptnav warmup`` runs at install time. Returns the seconds spent."""
-    from adaptnav.fusion.eskf import Estimator
     from adaptnav.fusion.samples import DepthSample, DvlSample, HeadingSample, ImuSample, RpmSample
 
     t0 = time.monotonic()
-    est = Estimator(cfg.filter, params if params is not None else cfg.motion.params0,
-                    cfg.motion.rpm_table, cfg.origin.geo())
+    est = make_estimator(cfg, params)
     g = 9.80665
     n = cfg.filter.alignment.n_samples + 400
     for k in range(n):
@@ -240,9 +240,7 @@ class BusSink(Sink):
             self.d.params = release.params
             self.d._snapshot_due.set()  # persist what was learned soon
         if self.d.cfg.calibrator.location == "process":  # remote: the node publishes
-            from adaptnav.service.calibrator.process import release_to_dict
-
-            self.d.bus.put(self.d.bus.keys.params, json.dumps(release_to_dict(release)).encode())
+            self.d.bus.put(self.d.bus.keys.params, codec.encode(release))
 
 
 class Daemon:
@@ -266,7 +264,7 @@ class Daemon:
         self.params: MotionParams = cfg.motion.params0
         self.restored = False
         self.bridge: Any = None
-        self.calibrator: CalibratorProcess | None = None
+        self.calibrator: Calibrator | None = None  # CalibratorProcess, RemoteCalibrator
         self.bus: Bus | None = None  # type: ignore[assignment]
         self.sink = BusSink(self)
         self.summary: Any = None
@@ -278,8 +276,6 @@ class Daemon:
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
-        from adaptnav.fusion.eskf import Estimator
-
         from adaptnav.service.runtime.runner import default_release_gate
 
         restored = load_state(self.cfg.state_dir)
@@ -297,7 +293,7 @@ class Daemon:
                 restored = dataclasses.replace(restored, slow_states={})
         if restored is not None and restored.params is not None:
             self.params = restored.params
-        est = Estimator(self.cfg.filter, self.params, self.cfg.motion.rpm_table, self.cfg.origin.geo())
+        est = make_estimator(self.cfg, self.params)
         if restored is not None:
             try:
                 if restored.slow_states:
@@ -319,13 +315,6 @@ class Daemon:
         except queue.Full:
             self.overflow["queue_overflow"] += 1
 
-    def _on_remote_release(self, key: str, payload: bytes) -> None:
-        try:
-            self.enqueue(release_from_dict(json.loads(payload)))
-        except ValueError as e:  # includes JSONDecodeError
-            self.bus.malformed["calibration_params"] += 1
-            log.debug("malformed release on %s: %s", key, e)
-
     def start(self) -> None:
         cfg = self.cfg
         log_effective(cfg)
@@ -334,7 +323,9 @@ class Daemon:
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
         self.bus.subscribe_samples(nonblocking_enqueue(self.queue, self.overflow))
         if cfg.calibrator.enabled and cfg.calibrator.location == "remote":
-            self.bus.subscribe_raw(self.bus.keys.params, self._on_remote_release)
+            from adaptnav.service.calibrator.node import RemoteCalibrator
+
+            self.calibrator = RemoteCalibrator(self.bus)
             self.health.calibrator_state = "remote"
         self.bus.queryable("state", lambda: message("nav_state", self.sink.latest_state or {"valid": False}))
         self.bus.queryable("params", lambda: message("motion_params", {
@@ -342,7 +333,7 @@ class Daemon:
         self.bus.queryable("config", lambda: message("service_config", config_dict(cfg)))
         self.bus.queryable("health", lambda: message("health", self._health_report()))
         if cfg.calibrator.enabled and cfg.calibrator.location == "process":
-            self.calibrator = CalibratorProcess(cfg, self.params, self.enqueue)
+            self.calibrator = make_live_calibrator(cfg, self.params)
             self.calibrator.start()
         if cfg.mavlink.enabled:
             self._start_bridge()
@@ -547,7 +538,7 @@ def serve(cfg: ServiceConfig) -> int:
 
 def serve_calibrator(cfg: ServiceConfig) -> int:
     """``--calibrator-only``: the calibrator as its own bus node until SIGTERM/SIGINT."""
-    from adaptnav.service.calibrator.process import run_node
+    from adaptnav.service.calibrator.node import run_node
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

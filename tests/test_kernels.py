@@ -46,7 +46,7 @@ def test_arguments_of_other_types_than_built_for_give_the_same_result():
 def test_the_service_path_does_not_import_numba_when_compiled_ahead_of_time():
     if not kernels.using_aot():
         pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
-    code = ("import sys, adaptnav.service.daemon, adaptnav.calibration.online, adaptnav.service.calibrator.process;"
+    code = ("import sys, adaptnav.service.daemon, adaptnav.calibration.online, adaptnav.service.calibrator.lagged, adaptnav.service.calibrator.live;"
             "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout

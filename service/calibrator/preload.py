@@ -1,4 +1,4 @@
-"""Preload of the calibrator's forkserver (:class:`adaptnav.service.calibrator.process.ProcessBackend`).
+"""Preload of the calibrator's forkserver (:class:`adaptnav.service.calibrator.lagged.ProcessBackend`).
 
 Imported once by the ``multiprocessing`` forkserver: it imports the calibrator's modules
 and runs one tiny EM window so that numba loads its cached kernels there; every child

@@ -57,7 +57,7 @@ def run(args):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
         return 2
     if args.calibrate and args.calibrator_location == "process":
-        from adaptnav.service.calibrator.process import prestart
+        from adaptnav.service.calibrator.lagged import prestart
 
         prestart()  # the calibrator's process server starts while the input is opened
     try:

@@ -15,7 +15,7 @@ With ``calibrate=True`` the online calibrator runs in a child process (the secon
 ``calibrator_location="inline"``: in this process, same output) and a release it computed
 at data time τ is applied once the runner's data time reaches τ + ``calibrator.latency_s``,
 the runner waiting for the child's progress: the output is deterministic
-(:class:`adaptnav.service.calibrator.process.LaggedCalibrator`).
+(:class:`adaptnav.service.calibrator.lagged.LaggedCalibrator`).
 
 Comparisons (the navigation-core targets): ``aiding="none"`` is pure INS (learned
 velocity, DVL and visual motion off; the other aids stay), ``k_v_error`` a static,
@@ -209,7 +209,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     out_dir : path, created if needed
     calibrate : bool
         Run the online calibrator; its releases are applied at data time τ +
-        ``cfg.calibrator.latency_s`` (deterministic: :class:`adaptnav.service.calibrator.process.LaggedCalibrator`).
+        ``cfg.calibrator.latency_s`` (deterministic: :class:`adaptnav.service.calibrator.lagged.LaggedCalibrator`).
     calibrator_location : {"process", "inline"}
         The calibrator in a child process (the second core) or in this process; both
         give the same output.
@@ -220,7 +220,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     plots : bool
         Write the PNG plots.
     """
-    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.service.compose import make_estimator
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -236,10 +236,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
     params0 = cfg.motion.params0
-    estimator = Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
+    estimator = make_estimator(cfg, params0)
     calibrator = None
     if calibrate:
-        from adaptnav.service.calibrator.process import make_lagged_calibrator
+        from adaptnav.service.compose import make_lagged_calibrator
 
         calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
         items = calibrator.schedule(items)

@@ -4,7 +4,7 @@
 Live: a Zenoh/MAVLink queue source, :class:`~service.clock.LiveClock`, Zenoh and MAVLink
 sinks. Replay: a log or simulator source, :class:`~service.clock.LogClock` (or
 :class:`~service.clock.RealtimeClock`), file sinks. Both hand the runner the calibrator
-of :mod:`adaptnav.service.calibrator.process` (a child process): a release computed at data time τ
+of :mod:`adaptnav.service.calibrator.lagged` (a child process): a release computed at data time τ
 comes back from ``calibrator.poll()`` once the runner's data time reaches τ + latency
 (replay waits for the child, so its output does not depend on wall-clock timing).
 Nothing else differs.
@@ -48,7 +48,9 @@ from adaptnav.fusion.samples import ImuBatch, kinds
 # what the calibrator has no use for is not sent to it (the sensor table says which)
 _CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
+from adaptnav.calibration.online import Release
 from adaptnav.service.runtime.health import Health
+from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +94,7 @@ class RunSummary:
         }
 
 
-def _is_release(item: Any) -> bool:
-    # a Release has params + accepted and no KIND (samples all have KIND)
-    return not hasattr(item, "KIND") and hasattr(item, "params") and hasattr(item, "accepted")
+_RELEASE_KIND = Release.KIND
 
 
 def _stop_requested(stop: Any) -> bool:
@@ -312,8 +312,8 @@ class _Loop:
                 self.release(rel)
 
     def item(self, item: Any) -> None:
-        kind = getattr(item, "KIND", None)  # every sample has one; a release has none
-        if kind is None and _is_release(item):
+        kind = getattr(item, "KIND", None)
+        if kind == _RELEASE_KIND:  # replay's lagged calibrator puts its releases into the stream
             self.release(item)
             return
         is_batch = kind == "imu_batch" and isinstance(item, ImuBatch)
@@ -372,8 +372,8 @@ def door_for(estimator: Any) -> Any:
                 cfg.depth.atmospheric_pressure_pa)
 
 
-def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
-        calibrator: Any = None, *, output_rate_hz: float = 10.0, stop: Any = None,
+def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], clock: Clock,
+        calibrator: Calibrator | None = None, *, output_rate_hz: float = 10.0, stop: Any = None,
         health: Health | None = None, progress: Any = None, close_sinks: bool = True,
         door: Any = None, release_gate: Any = None) -> RunSummary:
     """Run ``source`` through ``estimator`` into ``sinks`` (see the module docstring).
@@ -388,8 +388,9 @@ def run(source: Iterable[Any], estimator: Any, sinks: Sequence[Any], clock: Any,
         ``initialized``, ``rejected`` (Counter by reason).
     sinks : sequence of :class:`adaptnav.service.runtime.sinks.Sink`
     clock : :class:`adaptnav.service.runtime.clock.Clock`
-    calibrator : calibration.online.OnlineCalibrator, optional
-        In-process calibrator (replay): ``observe(sample)`` then ``poll() -> [Release]``.
+    calibrator : :class:`adaptnav.service.runtime.protocols.Calibrator`, optional
+        ``observe(sample)`` then ``poll() -> [Release]`` (in-process, the live child, the
+        remote node); replay's lagged calibrator puts its releases into ``source`` instead.
     output_rate_hz : float
         Nav-state output rate in data time (Hz).
     stop : threading.Event or callable, optional

@@ -314,6 +314,11 @@ class McapSource(SampleStreamSource):
                 self.counters.decode_errors["truncated"] += 1
                 log.warning("%s", item)
                 continue
+            if getattr(item, "KIND", None) == "calibration_release":
+                # what the live calibrator released is not re-applied: a replay runs its
+                # own calibrator (--calibrate) or none
+                self.counters.by_kind["calibration_release"] += 1
+                continue
             yield item
 
     def report_counters(self) -> dict:

@@ -246,7 +246,7 @@ def nav_epoch_counts(nav: list[dict], result: Any, duration_s: float, published:
 
 def live_recorder(live: LiveResult, result: Any, params0: Any) -> Any:
     """A :class:`adaptnav.service.runtime.sinks.SeriesRecorder` filled with the live run and the truth."""
-    from adaptnav.service.calibrator.process import release_from_dict
+    from adaptnav.service.transport.release import release_from_dict
     from adaptnav.service.runtime.sinks import SeriesRecorder
 
     rec = SeriesRecorder(initial_params=params0)

@@ -111,13 +111,13 @@ def message(kind: str, body: dict[str, Any]) -> bytes:
 
 # The service's own message kinds, registered with the codec (schemas for MCAP channels
 # and third-party readers). Decoding gives the JSON dict back: these are read by tools,
-# not turned into objects by the service.
+# not turned into objects by the service. (A calibrator release has its own type and
+# codec: adaptnav.service.transport.release.)
 SERVICE_KINDS: dict[str, tuple[str, str]] = {
     # kind: (MCAP topic, description)
     "nav_state": ("/adaptnav/nav/state", "navigation state with 18x18 error covariance"),
     "aid_status": ("/adaptnav/nav/aid", "one fusion attempt of an aiding source"),
     "motion_params": ("/adaptnav/motion_params", "motion parameters in use"),
-    "calibration_release": ("/adaptnav/calibration/params", "a calibrator release"),
     "health": ("/adaptnav/health", "health report"),
     "service_config": ("/adaptnav/config", "effective service configuration"),
 }

@@ -73,18 +73,28 @@ def _sonar_codec() -> Codec:
                  _default_topic("sonar"))
 
 
+def _release_codec() -> Codec:
+    from adaptnav.service.transport.release import KIND, release_from_dict, release_schema, release_to_dict
+
+    return Codec(KIND, release_to_dict, release_from_dict, release_schema, "/adaptnav/calibration/params")
+
+
+# kinds whose types live in packages this module does not load up front
+_LAZY = {"sonar": _sonar_codec, "calibration_release": _release_codec}
+
+
 def _lookup(kind: Any) -> Codec:
     codec = _REGISTRY.get(kind) if isinstance(kind, str) else None
-    if codec is None and kind == "sonar":
-        codec = _REGISTRY["sonar"] = _sonar_codec()
+    if codec is None and isinstance(kind, str) and kind in _LAZY:
+        codec = _REGISTRY[kind] = _LAZY[kind]()
     if codec is None:
         raise SampleError(f"unknown message type {kind!r} (known: {', '.join(kinds())})")
     return codec
 
 
 def kinds() -> list[str]:
-    """Every registered kind (``sonar`` included)."""
-    return sorted(set(_REGISTRY) | {"sonar"})
+    """Every registered kind (the lazily loaded ``sonar`` and ``calibration_release`` included)."""
+    return sorted(set(_REGISTRY) | set(_LAZY))
 
 
 def kind_of(obj: Any) -> str:

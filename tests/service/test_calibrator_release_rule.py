@@ -1,4 +1,4 @@
-"""The calibrator release rule live (adaptnav.service.calibrator.process.CalibratorProcess): a
+"""The calibrator release rule live (adaptnav.service.calibrator.live.CalibratorProcess): a
 release computed at data time τ reaches the runner (``poll()``) only once the runner's
 data time has reached τ + calibrator.latency_s — real spawn child, real calibrator.
 
@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from adaptnav.service.runtime import replay as rp
-from adaptnav.service.calibrator.process import CalibratorProcess, make_calibrator
+from adaptnav.service.calibrator.live import CalibratorProcess
+from adaptnav.service.compose import make_calibrator
 from adaptnav.service.runtime.sources import simulate
 from adaptnav.sim.scenario import load_scenario
 

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from adaptnav.service.calibrator.process import run_node
+from adaptnav.service.calibrator.node import run_node
 from adaptnav.service.daemon import Daemon
 from adaptnav.service.runtime.replay import build_config
 from adaptnav.service.runtime.sources import simulate

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from adaptnav.fusion.motion_model import MotionParams
-from adaptnav.service.calibrator.process import release_to_dict
+from adaptnav.service.transport.release import release_to_dict
 from adaptnav.service.runtime.persistence import load_state
 
 from .test_daemon_support import Feeder, free_port, peer, wait_until
@@ -54,9 +54,9 @@ period_s = 0.3
         feeder.start()
         assert wait_until(lambda: (s := bus.get("state", timeout_s=0.5)) and s.get("t_s") is not None, 30)
         learned = MotionParams(var_vv=0.004, var_ww=0.003, k_v=1.15, b_w=0.001)
-        from adaptnav.service.calibrator.process import _release_type
+        from adaptnav.calibration.online import Release
 
-        rel = _release_type()(t_s=feeder.t_s, params=learned, log_likelihood=-12.5, accepted=True,
+        rel = Release(t_s=feeder.t_s, params=learned, log_likelihood=-12.5, accepted=True,
                               reason="", iterations=3)
         assert bus.wait_subscribed(bus.keys.params)
         bus.put(bus.keys.params, json.dumps(release_to_dict(rel)).encode())

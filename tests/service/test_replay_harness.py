@@ -217,7 +217,7 @@ def test_real_tlog_with_corrupt_frames_replays_with_counters(tmp_path):
     assert len(_rows(out / "trajectory.csv")) > 100
 
 
-# -- deterministic calibrator application (adaptnav.service.calibrator.process.LaggedCalibrator) -----
+# -- deterministic calibrator application (adaptnav.service.calibrator.lagged.LaggedCalibrator) -----
 CAL_S = 260.0   # 24 five-second steps before the first EM window, then one a minute
 
 
@@ -249,7 +249,8 @@ def test_calibrated_replay_is_deterministic_and_the_same_in_a_child_process_or_i
 
 
 def test_a_release_is_applied_at_the_data_time_it_was_computed_at_plus_the_latency(sim_cal):
-    from adaptnav.service.calibrator.process import InlineBackend, LaggedCalibrator, make_calibrator
+    from adaptnav.service.calibrator.lagged import InlineBackend, LaggedCalibrator
+    from adaptnav.service.compose import make_calibrator
 
     scenario, result = sim_cal
     cfg = rp.build_config(scenario)
@@ -272,7 +273,7 @@ def test_a_release_is_applied_at_the_data_time_it_was_computed_at_plus_the_laten
     # THEN each release comes right after the item that brings the data time to τ + L
     k, now, before = 0, -math.inf, -math.inf
     for it in lagged.schedule(iter(items)):
-        if getattr(it, "KIND", None) is None:   # a release
+        if getattr(it, "KIND", None) == "calibration_release":
             assert before < tau[k] + lag <= now, (k, tau[k], before, now)
             k += 1
             continue

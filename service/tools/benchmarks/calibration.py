@@ -31,7 +31,7 @@ def run(args) -> dict:
     import subprocess
     import sys
 
-    from adaptnav.service.calibrator.process import CHILD_THREAD_ENV
+    from adaptnav.service.calibrator.lagged import CHILD_THREAD_ENV
 
     if any(os.environ.get(k) != v for k, v in CHILD_THREAD_ENV.items()):
         # measured as the calibrator child runs it: BLAS on one thread (its numpy is

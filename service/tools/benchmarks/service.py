@@ -166,7 +166,7 @@ def zenoh_floor(n: int = 400) -> dict:
 
 def _cpu_s(pid: int | None) -> float:
     """User + system CPU seconds of ``pid`` (NaN when gone)."""
-    from adaptnav.service.calibrator.process import _cpu_s as cpu
+    from adaptnav.service.calibrator.lagged import _cpu_s as cpu
 
     return cpu(pid) if pid else math.nan
 
@@ -480,11 +480,11 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     The two variants alternate ``repeats`` times in this process (a shared 2-core machine
     is noisy: the peer is always measured in the same run) and each figure is the best
     (least disturbed) of its repeats. The calibrator runs in its child process with
-    deterministic application (:class:`adaptnav.service.calibrator.process.LaggedCalibrator`);
+    deterministic application (:class:`adaptnav.service.calibrator.lagged.LaggedCalibrator`);
     ``replay_calibrator_process_cpu_s`` is that child's CPU time, ``replay_calibrator_wait_s``
     the wall time the runner waited for it.
     """
-    from adaptnav.service.calibrator.process import prestart
+    from adaptnav.service.calibrator.lagged import prestart
     from adaptnav.service.runtime.replay import build_config, open_scenario, replay
 
     prestart()  # as `adaptnav replay --calibrate` does: while the mission is simulated

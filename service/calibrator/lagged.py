@@ -1,0 +1,345 @@
+"""Replay's calibrator: deterministic application of releases (the release rule).
+
+The release rule, live and in replay. Data time is the latest sample time seen (a
+running maximum; a batch counts with its last sample). A release computed by the
+calibrator once its data time was ``τ`` is applied by the runner right after the item
+that brings the runner's data time to ``τ + L`` or beyond, ``L`` = ``calibrator.latency_s``.
+Live, :class:`adaptnav.service.calibrator.live.CalibratorProcess` holds releases until
+then and hands them over in ``poll()``.
+
+Here (:class:`LaggedCalibrator`), the runner, after an item that brings its data time to
+``t``, waits until the calibrator (child process or in-process) has reported that it
+processed every sample up to ``t − L`` (a progress message on the return pipe), so every
+release due by ``t`` is known; :meth:`LaggedCalibrator.schedule` puts it into the item
+stream, where the runner recognises it by its ``KIND`` (``calibration_release``). The
+output does not depend on wall-clock timing: same data and seed ⇒ the same trajectory and
+parameter history, whether the calibrator runs in a child process (``location="process"``,
+the second core) or in-process (``"inline"``), at any machine load. ``L`` is how far the
+runner may run ahead of the calibrator: it should exceed the calibrator's bursts (one EM
+window) in data time at the replay speed. Releases still pending at the end of the data are
+passed after the last item.
+
+Releases cross the process boundary in their codec's JSON form
+(:mod:`adaptnav.service.transport.release`).
+"""
+from __future__ import annotations
+
+import gc
+import math
+import multiprocessing as mp
+import threading
+import time
+from typing import Any
+
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.calibrator.batching import DataClock, data_time, pack_batch, unpack_batch
+from adaptnav.service.compose import make_calibrator
+from adaptnav.service.transport.release import release_from_dict, release_to_dict
+
+_STOP = "__stop__"
+
+
+class InlineBackend:
+    """The calibrator in this process (same rule, no second core)."""
+
+    def __init__(self, calibrator: Any) -> None:
+        self.calibrator = calibrator
+        self.clock = DataClock()
+        self.ready: list[tuple[float, Any]] = []   # (τ, release), oldest first
+
+    def send(self, sample: Any) -> None:
+        self.calibrator.observe(sample)
+        tau = self.clock.advance(sample)
+        for rel in self.calibrator.poll():
+            self.ready.append((tau, rel))
+
+    def sync(self, t_s: float) -> None:
+        """Every release with ``τ ≤ t_s`` is in :attr:`ready` (always, in-process)."""
+
+    def finish(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+
+def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any, conn_out: Any) -> None:
+    """Child of :class:`ProcessBackend`: per sample observe → poll, releases stamped with
+    τ; after each batch a progress message ``(seq of the last sample, τ)``."""
+    out_q = conn_out  # Connection.send: what Queue.put did, without a feeder thread
+    try:
+        try:
+            import cv2
+
+            # the parent runs the filter on the other core: OpenCV's worker threads would
+            # only compete with it (and with each other) for the second one
+            cv2.setNumThreads(1)
+        except ImportError:  # pragma: no cover - OpenCV is a dependency
+            pass
+        calibrator = make_calibrator(cfg, params0, seed)
+        clock = DataClock()
+        # the modules forked from the server (numpy, scipy, numba, OpenCV: ~10⁵ objects)
+        # stay out of the garbage collector's full passes: they were rescanned at every
+        # one, a quarter of the child's CPU (1 h survey with sonar: 18.4 → 13.7–14.0 s)
+        gc.freeze()
+        out_q.send(("ready", None, None))
+        while True:
+            try:
+                msg = conn_in.recv()
+            except EOFError:  # the parent is gone
+                return
+            if isinstance(msg, str) and msg == _STOP:
+                return
+            seq, n, packed = msg
+            tau = clock.tau
+            for sample in unpack_batch(packed):
+                calibrator.observe(sample)
+                t = sample.t_s  # DataClock.advance inlined (once per sample)
+                if type(t) is not float:
+                    t = data_time(sample)
+                if t > tau:  # False for NaN
+                    tau = t
+                for rel in calibrator.poll():
+                    out_q.send(("release", release_to_dict(rel), tau))
+            clock.tau = tau
+            out_q.send(("progress", seq + n, clock.tau))
+    except BaseException as e:  # the parent must not wait forever for a dead child
+        import traceback
+
+        try:
+            out_q.send(("error", f"{type(e).__name__}: {e}\n{traceback.format_exc()}", None))
+        except OSError:
+            pass
+        raise
+
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (s) from /proc; NaN elsewhere."""
+    import os
+
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return math.nan
+
+
+def _enlarge_pipe(conn: Any, size: int = 1 << 20) -> None:
+    """Linux: raise the pipe buffer behind ``conn`` to ``size`` bytes (best effort)."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(conn.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
+    except (ImportError, OSError, ValueError):
+        pass
+
+
+# BLAS thread pools of the calibrator's processes: one thread. The child is meant to use
+# one core (the fusion thread has the other); OpenBLAS's default pool spins on every core
+# for the M-step's small products (20000 × 3): EM iteration 0.044 → 0.030 s of CPU, the
+# M-step alone 0.022–0.031 → 0.012 s (`adaptnav bench calibration`, same run).
+CHILD_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def limit_child_threads() -> None:
+    """Set :data:`CHILD_THREAD_ENV` (where not set already) for the children started
+    from now on: their BLAS reads it when numpy loads, this process's own is loaded."""
+    import os
+
+    for key, value in CHILD_THREAD_ENV.items():
+        os.environ.setdefault(key, value)
+
+
+def _forkserver_context() -> Any:
+    limit_child_threads()
+    ctx = mp.get_context("forkserver")
+    # what the children need, imported (and numba's kernels loaded) once in the server
+    ctx.set_forkserver_preload(["__main__", "adaptnav.service.calibrator.lagged", "adaptnav.service.calibrator.preload"])
+    return ctx
+
+
+def prestart() -> None:
+    """Start the calibrator's forkserver in a background thread, so that its ~1.5 s of
+    imports overlap other work (opening or simulating the input); a no-op where there is
+    no forkserver. :class:`ProcessBackend` waits for it if it is not up yet."""
+    if "forkserver" not in mp.get_all_start_methods():
+        return
+    from multiprocessing import forkserver
+
+    _forkserver_context()
+    threading.Thread(target=forkserver.ensure_running, name="forkserver-start", daemon=True).start()
+
+
+
+class ProcessBackend:
+    """The calibrator in a child process (the second core; forked from a preloaded
+    forkserver, or spawned), flow-controlled by :meth:`sync`: samples go in batches of
+    ``batch_size``; the parent blocks only when it needs a progress the child has not
+    reported yet. A child that dies raises ``RuntimeError`` in the parent (replay must not
+    silently go on without it: its output would no longer be the deterministic one)."""
+
+    def __init__(self, cfg: Any, params0: MotionParams, seed: int, batch_size: int = 256,
+                 start_method: str | None = None) -> None:
+        if start_method is None:
+            # a spawned child re-imports numpy, scipy, numba and OpenCV (~1.5 s, 10 % of a
+            # 1 h replay at 200×); the forkserver pays that once per parent process and
+            # then forks children from its clean single-threaded state. Plain fork is not
+            # safe here: a parent that has used OpenCV's thread pool (an in-process
+            # calibrator, the sonar tools) hands the child a pool it deadlocks on.
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        limit_child_threads()
+        ctx = _forkserver_context() if start_method == "forkserver" else mp.get_context(start_method)
+        self.start_method = start_method
+        self.batch_size = int(batch_size)
+        self.ready: list[tuple[float, Any]] = []
+        # plain pipes written from this thread: an mp.Queue's feeder thread cost the
+        # runner ~1 s of CPU (and GIL hand-offs) per 20 min of data. The pipe to the child
+        # is enlarged so that a batch never blocks while the child runs an EM window
+        # (sync() bounds how far ahead the runner gets anyway).
+        child_in, self._w = ctx.Pipe(duplex=False)
+        self._r, child_out = ctx.Pipe(duplex=False)
+        _enlarge_pipe(self._w)
+        self._proc = ctx.Process(target=_lagged_child_main, name="adaptnav-calibrator", daemon=True,
+                                 args=(cfg, params0, seed, child_in, child_out))
+        self._proc.start()
+        child_in.close()
+        child_out.close()
+        self._batch: list[Any] = []
+        self._sent = 0          # samples sent (sequence number of the next one)
+        self._done = 0          # samples the child reported processed
+        self._child_tau = -math.inf
+        self.wait_s = 0.0       # wall time spent waiting for the child
+        self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
+
+    def send(self, sample: Any) -> None:
+        self._batch.append(sample)
+        if len(self._batch) >= self.batch_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._batch:
+            try:
+                self._w.send((self._sent, len(self._batch), pack_batch(self._batch)))
+            except (BrokenPipeError, OSError) as e:
+                raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+            self._sent += len(self._batch)
+            self._batch = []
+
+    def _read(self, block: bool) -> bool:
+        """Handle one message from the child; False when none (non-blocking)."""
+        try:
+            if not self._r.poll(1.0 if block else 0.0):
+                if block and not self._proc.is_alive():
+                    raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})")
+                return False
+            kind, body, tau = self._r.recv()
+        except (EOFError, OSError):
+            raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})") from None
+        if kind == "release":
+            self.ready.append((float(tau), release_from_dict(body)))
+        elif kind == "progress":
+            self._done, self._child_tau = int(body), float(tau)
+        elif kind == "error":
+            raise RuntimeError(f"calibrator process failed: {body}")
+        return True
+
+    def sync(self, t_s: float) -> None:
+        """Block until every release with ``τ ≤ t_s`` is in :attr:`ready`: the child has
+        processed a sample later than ``t_s`` (τ is non-decreasing and messages are in
+        order) or every sample observed so far."""
+        if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
+            return
+        self._flush()
+        t0 = time.monotonic()
+        while not (self._child_tau > t_s or self._done >= self._sent):
+            self._read(block=True)
+        self.wait_s += time.monotonic() - t0
+
+    def finish(self) -> None:
+        """Wait for the child to process everything observed."""
+        self._flush()
+        t0 = time.monotonic()
+        while self._done < self._sent:
+            self._read(block=True)
+        self.wait_s += time.monotonic() - t0
+        self.child_cpu_s = _cpu_s(self._proc.pid)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        proc = self._proc
+        if proc.is_alive():
+            try:
+                self._w.send(_STOP)
+            except (ValueError, OSError):
+                pass
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(1.0)
+        self._w.close()
+        self._r.close()
+
+
+
+class LaggedCalibrator:
+    """The runner's calibrator with deterministic application (module docstring).
+
+    Use as ``run(lagged.schedule(source), ..., calibrator=lagged)``: :meth:`observe`
+    forwards samples to the backend, :meth:`poll` returns nothing, and
+    :meth:`schedule` puts each release into the item stream once the data time has
+    reached its ``τ + L``.
+
+    Parameters
+    ----------
+    backend : InlineBackend or ProcessBackend
+    latency_s : float
+        ``L`` (data seconds, ≥ 0).
+    """
+
+    def __init__(self, backend: Any, latency_s: float) -> None:
+        if not (math.isfinite(latency_s) and latency_s >= 0):
+            raise ValueError(f"calibrator latency_s must be a finite number ≥ 0, got {latency_s}")
+        self.backend = backend
+        self.latency_s = float(latency_s)
+        self.released = 0
+        self.observe = backend.send  # the runner calls it for every sample: no extra frame
+
+    def observe(self, sample: Any) -> None:  # replaced per instance by backend.send (__init__)
+        self.backend.send(sample)
+
+    def poll(self) -> list:
+        return []  # releases go into the stream by schedule()
+
+    def schedule(self, source: Any):
+        """``source``'s items, each release inserted right after the item that brings the
+        data time to its ``τ + L`` (module docstring)."""
+        ready = self.backend.ready
+        lag = self.latency_s
+        sync = self.backend.sync
+        now = -math.inf  # the runner's data time (as DataClock, inlined: once per item)
+        for item in source:
+            yield item
+            kind = getattr(item, "KIND", None)
+            if kind is None or kind == "truth" or kind == "calibration_release":
+                continue  # releases, truth: not calibrator data (live, they do not exist)
+            if kind != "imu_batch":
+                t = item.t_s
+            else:  # its last time, unless not finite (then data_time looks further back)
+                t = float(item.t_s[-1]) if len(item) else math.nan
+                if not math.isfinite(t):
+                    t = data_time(item)
+            if t > now:  # False for NaN
+                now = t
+            sync(now - lag)
+            while ready and ready[0][0] + lag <= now:
+                self.released += 1
+                yield ready.pop(0)[1]
+        self.backend.finish()
+        while ready:
+            self.released += 1
+            yield ready.pop(0)[1]
+
+    def close(self) -> None:
+        self.backend.close()

@@ -1,0 +1,237 @@
+"""The daemon's calibrator: :class:`CalibratorProcess`, a supervised *spawn* child running
+:class:`adaptnav.calibration.online.OnlineCalibrator` (DESIGN.md "Service": fusion must
+never wait for EM, 2 cores).
+
+What the runner sees as its ``calibrator``: ``observe(sample)`` forwards the sample to the
+child without blocking (batched; a full queue drops and counts — EM can afford a gap,
+fusion cannot afford a stall); a reader thread takes the child's releases (stamped with
+the data time τ they were computed at) and holds them; ``poll()`` hands over those due by
+the release rule (:mod:`adaptnav.service.calibrator.lagged`): once the data time passed to
+``observe`` reaches ``τ + L``. The runner never waits: a release that comes back later
+than ``τ + L`` (EM slower than real time) is applied at the first poll after it arrives.
+That is the one route of a release into the live runner, the child's and a remote
+node's (:class:`adaptnav.service.calibrator.node.RemoteCalibrator`) alike.
+
+:meth:`CalibratorProcess.supervise` (called periodically by the daemon) restarts a dead
+child with exponential backoff, warm-started from the latest accepted params.
+"""
+from __future__ import annotations
+
+import gc
+import logging
+import math
+import multiprocessing as mp
+import queue
+import threading
+import time
+from collections import Counter, deque
+from typing import Any
+
+from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.calibrator.batching import DataClock, compact_imu
+from adaptnav.service.calibrator.lagged import limit_child_threads
+from adaptnav.service.compose import make_calibrator
+from adaptnav.service.transport.release import release_from_dict, release_to_dict
+
+log = logging.getLogger(__name__)
+
+_STOP = "__stop__"
+
+
+def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any) -> None:
+    """Child process: observe samples, send releases back; exits on ``_STOP``."""
+    calibrator = make_calibrator(cfg, params0, seed)
+    clock = DataClock()
+    gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)
+    out_q.put(("ready", None, None))
+    while True:
+        try:
+            batch = in_q.get(timeout=0.5)
+        except queue.Empty:
+            batch = []
+        if isinstance(batch, str) and batch == _STOP:
+            return
+        for sample in batch:
+            calibrator.observe(sample)
+            tau = clock.advance(sample)
+            for release in calibrator.poll():  # stamped with the data time it was computed at
+                out_q.put(("release", release_to_dict(release), tau))
+
+
+
+class CalibratorProcess:
+    """Supervised calibrator child process with the calibrator interface of the runner.
+
+    Parameters
+    ----------
+    cfg : ServiceConfig
+        Whole config (the child needs ``calibrator`` and ``motion``).
+    params0 : MotionParams
+        Warm start.
+    batch_s : float
+        Samples are sent to the child in batches at most this old (wall seconds), which
+        keeps inter-process overhead off the fusion thread.
+    """
+
+    def __init__(self, cfg: Any, params0: MotionParams, batch_s: float = 0.05) -> None:
+        self.cfg = cfg
+        self.params = params0
+        self.latency_s = float(getattr(cfg.calibrator, "latency_s", 0.0))
+        self._held: deque = deque()   # (τ, release) from the reader thread, oldest first
+        self._clock = DataClock()    # the runner's data time, from observe()
+        self.batch_s = batch_s
+        self.dropped = 0
+        self.restarts = 0
+        self.state = "stopped"
+        self.counters: Counter[str] = Counter()
+        self._ctx = mp.get_context("spawn")
+        self._proc: Any = None
+        self._in_q: Any = None
+        self._out_q: Any = None
+        self._reader: threading.Thread | None = None
+        self._batch: list[Any] = []
+        self._batch_t0 = 0.0
+        self._backoff_s = cfg.calibrator.restart_backoff_s
+        self._next_start = 0.0
+        self._started_at = 0.0
+        self._closed = False
+        self._lock = threading.Lock()
+        self.received = 0   # releases that came back from the child (any restart)
+        self._running = threading.Event()
+
+    # -- lifecycle ----------------------------------------------------------------------
+    def start(self) -> None:
+        with self._lock:
+            self._spawn()
+
+    def _spawn(self) -> None:
+        limit_child_threads()
+        seed = self.cfg.calibrator.seed + self.restarts
+        self._in_q = self._ctx.Queue(maxsize=max(1, self.cfg.calibrator.queue_size // 10))
+        self._out_q = self._ctx.Queue()
+        self._proc = self._ctx.Process(target=_child_main, name="adaptnav-calibrator", daemon=True,
+                                       args=(self.cfg, self.params, seed, self._in_q, self._out_q))
+        self._proc.start()
+        self._started_at = time.monotonic()
+        self.state = "starting"
+        self._running.clear()
+        self._reader = threading.Thread(target=self._read, args=(self._out_q, self._proc),
+                                        name="calibrator-reader", daemon=True)
+        self._reader.start()
+        log.info("calibrator process started (pid %s)", self._proc.pid)
+
+    def _read(self, out_q: Any, proc: Any) -> None:
+        while not self._closed:
+            try:
+                msg = out_q.get(timeout=0.2)
+                kind, body = msg[0], msg[1]
+            except queue.Empty:
+                if not proc.is_alive():
+                    return
+                continue
+            except (EOFError, OSError):
+                return
+            if kind == "ready":
+                self.state = "running"
+                self._running.set()
+            elif kind == "release":
+                try:
+                    release = release_from_dict(body)
+                except ValueError as e:
+                    self.counters["bad_release"] += 1
+                    log.warning("calibrator sent a bad release: %s", e)
+                    continue
+                if release.accepted and release.params is not None:
+                    self.params = release.params  # warm start of a restart
+                tau = msg[2] if len(msg) > 2 and msg[2] is not None else -math.inf
+                self._held.append((float(tau), release))  # deque.append: thread-safe
+                self.received += 1
+
+    def wait_running(self, timeout_s: float) -> bool:
+        """Block until the child has said it is ready (True) or ``timeout_s`` passed."""
+        return self._running.wait(timeout_s)
+
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def supervise(self) -> None:
+        """Restart a dead child (exponential backoff); call periodically."""
+        if self._closed or self.alive():
+            if self.alive() and time.monotonic() - self._started_at > 60.0:
+                self._backoff_s = self.cfg.calibrator.restart_backoff_s  # stable again
+            return
+        now = time.monotonic()
+        with self._lock:
+            if self.state != "restarting":
+                code = self._proc.exitcode if self._proc is not None else None
+                log.warning("calibrator process died (exit code %s); restarting in %.1f s",
+                            code, self._backoff_s)
+                self.state = "restarting"
+                self._next_start = now + self._backoff_s
+                self._backoff_s = min(2.0 * self._backoff_s, self.cfg.calibrator.restart_backoff_max_s)
+                self._discard_queues()
+                return
+            if now >= self._next_start:
+                self.restarts += 1
+                self._spawn()
+
+    def _discard_queues(self) -> None:
+        for q in (self._in_q, self._out_q):
+            if q is not None:
+                q.cancel_join_thread()  # never block exit on a dead reader
+                q.close()
+        self._in_q = None
+        self._batch.clear()
+
+    # -- runner interface -----------------------------------------------------------------
+    def observe(self, sample: Any) -> None:
+        """Forward ``sample`` to the child (batched, never blocking)."""
+        self._clock.advance(sample)  # the runner's data time: when held releases are due
+        if self._in_q is None:
+            self.dropped += 1
+            return
+        if not self._batch:
+            self._batch_t0 = time.monotonic()
+        self._batch.append(sample)
+        if time.monotonic() - self._batch_t0 >= self.batch_s or len(self._batch) >= 500:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._batch or self._in_q is None:
+            return
+        try:
+            self._in_q.put_nowait(compact_imu(self._batch))
+        except (queue.Full, ValueError, OSError):
+            self.dropped += len(self._batch)
+        self._batch = []
+
+    def poll(self) -> list:
+        # the runner polls after every sample: flushing here unconditionally sent
+        # one-sample batches (thousands of queue items per second at the demo's pace,
+        # the queue filled and samples were dropped); only a batch older than batch_s goes
+        if self._batch and time.monotonic() - self._batch_t0 >= self.batch_s:
+            self.flush()
+        held, due = self._held, []
+        limit = self._clock.tau - self.latency_s
+        while held and held[0][0] <= limit:  # the release rule (module docstring)
+            due.append(held.popleft()[1])
+        return due
+
+    def stop(self, timeout_s: float = 3.0) -> None:
+        self._closed = True
+        proc, in_q = self._proc, self._in_q
+        if proc is not None and proc.is_alive():
+            try:
+                if in_q is not None:
+                    in_q.put(_STOP, timeout=0.5)
+            except (queue.Full, ValueError, OSError):
+                pass
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(1.0)
+        self._discard_queues()
+        self.state = "stopped"

@@ -1,0 +1,55 @@
+"""What the runner needs of its collaborators, as typed protocols (structural: any object
+with these members fits; nothing inherits from them).
+
+- :class:`Estimator` — :class:`adaptnav.fusion.eskf.Estimator`;
+- :class:`Calibrator` — :class:`~adaptnav.calibration.online.OnlineCalibrator`,
+  :class:`~adaptnav.service.calibrator.lagged.LaggedCalibrator`,
+  :class:`~adaptnav.service.calibrator.live.CalibratorProcess`,
+  :class:`~adaptnav.service.calibrator.node.RemoteCalibrator`;
+- :class:`Sink` — the output side (:class:`adaptnav.service.runtime.sinks.Sink` is the base
+  class with no-op methods that concrete sinks extend);
+- :class:`Clock` — :mod:`adaptnav.service.runtime.clock`.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any, Protocol, runtime_checkable
+
+from adaptnav.service.runtime.clock import Clock
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """The navigation filter as the runner drives it."""
+
+    rejected: Counter
+
+    @property
+    def initialized(self) -> bool: ...
+
+    def process(self, sample: Any) -> list: ...
+
+    def nav_state(self) -> Any: ...
+
+    def set_motion_params(self, params: Any) -> None: ...
+
+    def inertial_velocity(self) -> Any: ...
+
+
+@runtime_checkable
+class Calibrator(Protocol):
+    """Takes samples, returns releases (``calibration_release``) when they are due."""
+
+    def observe(self, sample: Any) -> None: ...
+
+    def poll(self) -> list: ...
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives what the runner produces; any method may be absent (then not called)."""
+
+    def on_nav(self, state: Any) -> None: ...
+
+
+__all__ = ["Calibrator", "Clock", "Estimator", "Sink"]
