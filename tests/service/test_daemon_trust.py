@@ -10,7 +10,7 @@ import pytest
 
 from adaptnav.calibration.online import Release
 from adaptnav.fusion.motion_model import MotionParams
-from adaptnav.service.calibrator.process import release_to_dict
+from adaptnav.service.transport.release import release_to_dict
 from adaptnav.service.daemon import Daemon
 from adaptnav.service.runtime.persistence import load_state, save_state
 
