@@ -33,6 +33,7 @@ def test_a_hostile_remote_release_is_refused_counted_and_not_persisted(tmp_path)
         p0 = MotionParams()
         hostile = Release(feeder.t_s, replace(p0, k_v=100.0, **{n: 1e-30 for n in p0.VARIANCE_NAMES}),
                           0.0, True, "", 1)
+        assert bus.wait_subscribed(bus.keys.params)  # the daemon's release subscription reached us
         bus.put(bus.keys.params, json.dumps(release_to_dict(hostile)).encode())
         health = wait_until(lambda: (h := bus.get("health")) and h["calibrator"]["releases"] >= 1 and h,
                             timeout_s=20)
