@@ -42,6 +42,9 @@ class ImuConfig:
     quantization: Literal["auto", "none", "raw_imu"] = "auto"
     # earth rate, Coriolis and normal gravity in the mechanisation ("auto": navigation grade)
     earth_rotation: Literal["auto", "on", "off"] = "auto"
+    # body-frame position of the IMU relative to the vehicle reference point (m): the point
+    # the filter navigates; every other lever arm is relative to the same reference point
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,9 @@ class DepthConfig:
     sigma_m: float = 0.05
     water_density_kg_m3: float = 1025.0
     atmospheric_pressure_pa: float = 101325.0
+    # body-frame (FRD) position of the sensor relative to the vehicle reference point (m);
+    # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -134,11 +140,17 @@ class AttitudeConfig:
 class GnssConfig:
     enabled: bool = True
     max_depth_m: float = 0.5                   # surface-only: estimated depth below this
+    # body-frame (FRD) position of the antenna relative to the vehicle reference point (m);
+    # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
 class UsblConfig:
     enabled: bool = True
+    # body-frame (FRD) position of the transponder relative to the vehicle reference point (m);
+    # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -238,6 +250,9 @@ class FilterConfig:
     # fixes (surge σ 5 %, heading σ 2°) grows ≈ 5 % of distance: 100 m keeps it valid for
     # > 10 min at a 1.5 m/s survey speed (900 m)
     valid_max_sigma_h_m: float = 100.0
+    # where the solution is reported (bus, CSV, ODOMETRY): body-frame position relative to
+    # the vehicle reference point (m), e.g. the sonar; the IMU is what is navigated
+    output_point_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # a position source (GNSS/USBL) is trusted again after this many gated fixes that are
     # consistent with each other and with the last accepted fix at the vehicle's top speed
     # (+ 3σ), within the window: the filter, not the fixes, is then wrong (PX4 EKF2 resets

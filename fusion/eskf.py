@@ -92,6 +92,24 @@ def _finite(sample) -> bool:
     return is_finite(sample)
 
 
+def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurement:
+    """A position measurement of the IMU moved to a point ``arm_b_m`` (body, from the IMU).
+
+    ``h ← h + (R_nb l)_j`` for each row measuring position axis j; with the global
+    attitude error ``R = Exp(δθ) R̂``: ``∂(R l)/∂δθ = −[R̂ l]×`` (Groves 2013 §14.3.2).
+    """
+    r = aid_lv.dcm(x) @ arm_b_m
+    rx = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    H = meas.H.copy()
+    h = meas.h.copy()
+    for i in range(H.shape[0]):
+        j = int(np.argmax(np.abs(H[i, POS])))
+        if H[i, POS][j] == 1.0:
+            h[i] += r[j]
+            H[i, ATT] -= rx[j]
+    return meas._replace(H=H, h=h)
+
+
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
                  "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset")
@@ -154,6 +172,17 @@ class Estimator:
                          for kind, aid in AIDS.items()}
         # the DVL's scale/misalignment estimate (None when not configured): its aid owns it
         self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
+        # reference points: lever arms are given from the vehicle reference point; the filter
+        # navigates the IMU, so each becomes an arm from the IMU (None: at the IMU)
+        l_imu = np.asarray(config.imu.lever_arm_b_m, dtype=float)
+        if np.any(l_imu):
+            dvl_cfg, dvl_setup = self._aid_cfg["dvl"]
+            self._aid_cfg["dvl"] = (dvl_cfg, dvl_setup._replace(lever_b=dvl_setup.lever_b - l_imu))
+        self._arm = {kind: np.asarray(getattr(config, kind).lever_arm_b_m, dtype=float) - l_imu
+                     for kind in ("gnss", "usbl", "depth")}
+        self._arm = {k: a for k, a in self._arm.items() if np.any(a)}
+        out_arm = np.asarray(config.output_point_b_m, dtype=float) - l_imu
+        self._out_arm = out_arm if np.any(out_arm) else None
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
@@ -207,8 +236,18 @@ class Estimator:
             cov = self._P.copy()
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
         valid = self._mode == "ins" and not self.invalid_reasons(sigma_h) and bool(np.all(np.isfinite(x)))
+        pos, vel = x[0:3].copy(), x[3:6].copy()
+        if self._out_arm is not None:
+            # reported at the output point: p + R l, v + R (ω̂ × l), P ← J P Jᵀ (J[POS, ATT] = −[R l]×)
+            R = aid_lv.dcm(x)
+            r = R @ self._out_arm
+            pos += r
+            vel += R @ np.cross(self._acc[13:16], self._out_arm)
+            J = np.eye(N_ERR)
+            J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+            cov = J @ cov @ J.T
         return NavState(
-            t_s=float(self._clock[0]), pos_n_m=x[0:3].copy(), vel_n_m_s=x[3:6].copy(),
+            t_s=float(self._clock[0]), pos_n_m=pos, vel_n_m_s=vel,
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
             current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter)
@@ -933,6 +972,8 @@ class Estimator:
         meas = aid.measure(sample, AidContext(self._x, self._acc[13:16], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
+        if kind in self._arm:
+            meas = _at_lever(meas, self._x, self._arm[kind])
         if aid.absolute_position:
             status = self._fuse_position(meas, sample.t_s, kind)
             if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval

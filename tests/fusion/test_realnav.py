@@ -229,3 +229,51 @@ def test_real_vehicle_at_rest_stays_within_half_a_metre_and_is_never_valid_beyon
     valid = np.array([s.valid for s in states])
     assert excursion.max() < 0.5
     assert not np.any(valid & (excursion >= 0.5))
+
+
+def test_each_position_aid_at_its_own_point_and_the_solution_at_the_output_point():
+    from adaptnav.fusion.config import UsblConfig
+    from adaptnav.fusion.samples import UsblSample
+
+    # GIVEN the IMU 0.5 m aft of the vehicle reference, a USBL transponder 1 m above it and
+    # 2 m forward, the output point (a sonar) 1.5 m forward; vehicle at rest heading east
+    cfg = replace(FilterConfig(), imu=ImuConfig(lever_arm_b_m=(-0.5, 0.0, 0.0)),
+                  usbl=UsblConfig(lever_arm_b_m=(2.0, 0.0, -1.0)), output_point_b_m=(1.5, 0.0, 0.0))
+    est = _est(cfg)
+    yaw = math.pi / 2
+    imu_ne = np.array([10.0, 20.0])   # where the IMU truly is
+    tr_ne = imu_ne + np.array([0.0, 2.5])  # the transponder: 2.5 m ahead of the IMU, i.e. east
+
+    def fixes(t, k):
+        if k % 25:
+            return []
+        lat, lon, _ = ORIGIN.to_geodetic(np.array([tr_ne[0], tr_ne[1], 0.0]))
+        return [UsblSample(t, float(lat), float(lon), math.nan, 0.3)]
+
+    _interleave(est, 60.0, att=lambda t: yaw, extra=fixes)
+    s = est.nav_state()
+    # THEN the reported position is the output point's: 2 m ahead of the IMU (east)
+    np.testing.assert_allclose(s.pos_n_m[:2], imu_ne + np.array([0.0, 2.0]), atol=0.1)
+    assert est.resets == {}
+
+
+def test_lever_arm_jacobian_matches_finite_differences():
+    from adaptnav.fusion.aiding.common import make
+    from adaptnav.fusion.eskf import _at_lever
+    from adaptnav.fusion.state import N_ERR, initial_nominal, inject
+
+    x = initial_nominal((1.0, 2.0, 3.0), (0.5, 0.0, 0.0), euler_to_quat(0.1, -0.2, 1.0))
+    arm = np.array([1.0, -0.5, 0.3])
+
+    def h(xx):
+        H = np.zeros((3, N_ERR))
+        H[:, :3] = np.eye(3)
+        return _at_lever(make(np.zeros(3), H, np.eye(3), xx[:3]), xx, arm)
+
+    m = h(x)
+    num = np.zeros((3, N_ERR))
+    for i in range(N_ERR):
+        dx = np.zeros(N_ERR)
+        dx[i] = 1e-6
+        num[:, i] = (h(inject(x, dx)).h - h(inject(x, -dx)).h) / 2e-6
+    np.testing.assert_allclose(m.H, num, atol=1e-6)
