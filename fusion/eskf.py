@@ -61,7 +61,8 @@ from .frames import GeoOrigin, euler_to_quat, wrap_angle
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
-from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, VEL, X_BA, X_BG, X_CUR, X_KS, X_Q, NavState,
+from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, SLOW, VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_Q,
+                    X_SLOW, X_VEL, NavState,
                     initial_nominal)
 from .status import AidStatus, rejected
 
@@ -236,13 +237,13 @@ class Estimator:
             cov = self._P.copy()
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
         valid = self._mode == "ins" and not self.invalid_reasons(sigma_h) and bool(np.all(np.isfinite(x)))
-        pos, vel = x[0:3].copy(), x[3:6].copy()
+        pos, vel = x[X_POS].copy(), x[X_VEL].copy()
         if self._out_arm is not None:
             # reported at the output point: p + R l, v + R (ω̂ × l), P ← J P Jᵀ (J[POS, ATT] = −[R l]×)
             R = aid_lv.dcm(x)
             r = R @ self._out_arm
             pos += r
-            vel += R @ np.cross(self._acc[13:16], self._out_arm)
+            vel += R @ np.cross(self._acc[sd.ACC_OMEGA], self._out_arm)
             J = np.eye(N_ERR)
             J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
             cov = J @ cov @ J.T
@@ -369,7 +370,7 @@ class Estimator:
         """Nominal state and covariance finite, every variance positive, speed physical."""
         return bool(np.isfinite(self._x).all() and np.isfinite(self._P).all()
                     and (np.diagonal(self._P) > 0.0).all() and math.isfinite(self._clock[0])
-                    and (np.abs(self._x[3:6]) < _MAX_SPEED_M_S).all())
+                    and (np.abs(self._x[X_VEL]) < _MAX_SPEED_M_S).all())
 
     def _keep_good(self) -> None:
         """Remember the current state as the last good one (once per data second)."""
@@ -693,14 +694,14 @@ class Estimator:
         """No usable IMU: attitude from the AHRS, depth from pressure, position invalid."""
         pos, sigma_h, sigma_d = self._initial_position()
         q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
-        keep = self._x[10:19].copy() if self._restored else None
+        keep = self._x[X_SLOW].copy() if self._restored else None
         P_keep = self._P.copy() if keep is not None else None
         self._x[:] = initial_nominal(pos, (0.0, 0.0, 0.0), q)
         if keep is not None:
-            self._x[10:19] = keep
+            self._x[X_SLOW] = keep
         self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
         if keep is not None:
-            self._P[9:, 9:] = P_keep[9:, 9:]
+            self._P[SLOW, SLOW] = P_keep[SLOW, SLOW]
         self._clock[:] = sample.t_s
         self._mode = "ahrs"
         self._reset_counter += 1
@@ -715,7 +716,7 @@ class Estimator:
         self.imu_model = imu_grades.resolve(self.config.imu, *self._aligner.window())
         self._qdiag = self._process_noise()
         pos, sigma_h, sigma_d = self._initial_position()
-        keep = self._x[10:19].copy() if self._restored else None
+        keep = self._x[X_SLOW].copy() if self._restored else None
         P_keep = self._P.copy() if keep is not None else None
         q = euler_to_quat(roll, pitch, self._yaw_for_alignment)
         vel = np.zeros(3)
@@ -729,8 +730,8 @@ class Estimator:
         if dvl is not None and np.any(vel):
             self._P[VEL, VEL] = np.eye(3) * self.config.dvl.sigma_m_s ** 2 * 4.0
         if keep is not None:
-            self._x[10:19] = keep
-            self._P[9:, 9:] = P_keep[9:, 9:]
+            self._x[X_SLOW] = keep
+            self._P[SLOW, SLOW] = P_keep[SLOW, SLOW]
         self._acc[:] = 0.0
         sd.set_earth(self._acc, self.origin.lat_rad if self.imu_model.earth_rotation else None)
         self._clock[:] = self._aligner.t_last_s
@@ -773,7 +774,7 @@ class Estimator:
                     # a usable IMU rate appeared: re-align as an INS, keeping the AHRS
                     # heading and the depth
                     self._yaw_for_alignment = aid_heading.predict(self._x)[0]
-                    self._pending_depth = float(self._x[2])
+                    self._pending_depth = float(self._x[X_DEPTH])
                     self._mode = "none"
             if self._mode == "none":
                 return self._try_align()
@@ -820,7 +821,7 @@ class Estimator:
         self._depth_win = dw[2:] * 2 if len(dw) == 4 else []
         idle = math.isfinite(self._rpm_raw) and abs(self._rpm_raw) <= c.max_rpm
         recent_dvl = t_end - self._t_dvl_fused < c.window_s
-        dry = self._x[2] < c.max_depth_m
+        dry = self._x[X_DEPTH] < c.max_depth_m
         if not (quiet and depth_steady and idle and dry and not recent_dvl):
             return []
         payload = (t_end,)
@@ -832,7 +833,7 @@ class Estimator:
         sigma = self.config.stationary.sigma_m_s
         H = np.zeros((3, N_ERR))
         H[:, VEL] = np.eye(3)
-        meas = Measurement(np.zeros(3), H, np.eye(3) * sigma ** 2, self._x[3:6].copy(), np.zeros(3, bool))
+        meas = Measurement(np.zeros(3), H, np.eye(3) * sigma ** 2, self._x[X_VEL].copy(), np.zeros(3, bool))
         self.zero_velocity_updates += 1
         return self._fuse(meas, t_s, "zero_velocity")
 
@@ -854,13 +855,13 @@ class Estimator:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
-            t0, pos0, vel0 = self._clock[0], self._x[0:3].copy(), self._x[3:6].copy()
+            t0, pos0, vel0 = self._clock[0], self._x[X_POS].copy(), self._x[X_VEL].copy()
             sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                               self._qdiag, self.config.covariance_step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
-            self._pos_inertial_n += (self._x[0:3] - pos0) + (self._vel_inertial_n - vel0) * (self._clock[0] - t0)
-            self._vel_inertial_n += self._x[3:6] - vel0
+            self._pos_inertial_n += (self._x[X_POS] - pos0) + (self._vel_inertial_n - vel0) * (self._clock[0] - t0)
+            self._vel_inertial_n += self._x[X_VEL] - vel0
             start = stop
             if lv_due and self._clock[0] >= self._next_lv_t:
                 status = self._learned_velocity()
@@ -881,7 +882,7 @@ class Estimator:
         """An IMU gap: coast at constant velocity, inflate the covariance, restart at t_s."""
         sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         dt = t_s - self._clock[0]
-        self._x[0:3] += self._x[3:6] * dt
+        self._x[X_POS] += self._x[X_VEL] * dt
         Phi = np.eye(N_ERR)
         Phi[POS, VEL] = np.eye(3) * dt
         q = _BLIND_VEL_RW_M_S_RTHZ ** 2
@@ -893,8 +894,8 @@ class Estimator:
         Q[ATT, ATT] = np.diag([_BLIND_LEVEL_RW_RAD_RTHZ ** 2, _BLIND_LEVEL_RW_RAD_RTHZ ** 2,
                                _BLIND_ATT_RW_RAD_RTHZ ** 2]) * dt
         self._P[:, :] = Phi @ self._P @ Phi.T + Q
-        self._acc[13:16] = np.asarray(w_b) - self._x[X_BG]
-        self._acc[16:19] = np.asarray(f_b) - self._x[X_BA]
+        self._acc[sd.ACC_OMEGA] = np.asarray(w_b) - self._x[X_BG]
+        self._acc[sd.ACC_F] = np.asarray(f_b) - self._x[X_BA]
         self._clock[:] = t_s
         self._reset_counter += 1
         self._advance_lv_epoch(t_s)
@@ -917,7 +918,7 @@ class Estimator:
         if t - self._rpm[0] > cfg.rpm_hold_s:
             return rejected(t, "learned_velocity", "stale")
         R_nb = aid_lv.dcm(self._x)
-        yaw_rate = float(R_nb[2] @ self._acc[13:16])
+        yaw_rate = float(R_nb[2] @ self._acc[sd.ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
         if cfg.adaptive_window_s > 0:
@@ -969,7 +970,7 @@ class Estimator:
         if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
             self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
             self._set_k_speed_walk(True)
-        meas = aid.measure(sample, AidContext(self._x, self._acc[13:16], self.origin, config, setup))
+        meas = aid.measure(sample, AidContext(self._x, self._acc[sd.ACC_OMEGA], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
         if kind in self._arm:
@@ -1036,7 +1037,7 @@ class Estimator:
         sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         Hv = meas.H[:, VEL]
         dv, *_ = np.linalg.lstsq(Hv, meas.innovation(), rcond=None)
-        self._x[3:6] += dv
+        self._x[X_VEL] += dv
         Hv_pinv = np.linalg.pinv(Hv)
         self._P[VEL, :] = 0.0
         self._P[:, VEL] = 0.0

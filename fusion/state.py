@@ -38,6 +38,11 @@ X_BG = slice(13, 16)
 X_CUR = slice(16, 18)
 X_KS = 18
 N_NOM = 19
+# the slow states (biases, current, k_speed): what persistence keeps and a re-alignment
+# after a restore carries over, nominal and error-state blocks
+X_SLOW = slice(10, 19)
+SLOW = slice(9, 18)
+X_DEPTH = 2  # the down component of X_POS
 
 NAV_STATE_SCHEMA_VERSION = 1
 

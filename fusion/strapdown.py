@@ -43,6 +43,9 @@ from adaptnav.kernels import jit
 from .frames import GRAVITY_M_S2
 
 ACC_SIZE = 23
+# named parts of ``acc`` for Python callers (the kernels index it with literals)
+ACC_OMEGA = slice(13, 16)  # latest bias-corrected ω̂_b (rad/s)
+ACC_F = slice(16, 19)      # latest bias-corrected f̂_b (m/s²)
 EARTH_RATE_RAD_S = 7.292115e-5  # WGS-84 Ω_ie
 # WGS-84 normal gravity (Somigliana): γ_e, k = b γ_p / (a γ_e) − 1, e²
 _GAMMA_E = 9.7803253359

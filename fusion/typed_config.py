@@ -12,6 +12,17 @@ One mechanism for every configuration in the project (filter, scenario, service)
 - :func:`as_dict` gives the effective config back (for logs and replay outputs).
 
 Dataclasses may define ``validate(self)`` raising ``ValueError`` for cross-field rules.
+
+Keys are user-facing (config files outlive releases). A renamed key stays accepted for at
+least one release: the dataclass declares ``RENAMED_KEYS: ClassVar[dict[str, str]] =
+{"old_name": "new_name"}``; :func:`build` takes the old name with a
+:class:`ConfigDeprecationWarning` that names both, and refuses a file that sets both.
+
+Vocabulary: a config dataclass is named ``<Thing>Config`` (older ones named ``Options``,
+``Settings`` or ``Section`` keep their names: the names are imported across packages, and
+the TOML keys, which users see, do not depend on them). This module lives in
+:mod:`adaptnav.fusion` because that is the bottom layer every other package may import
+(DESIGN.md "Layout"); it uses nothing of the filter.
 """
 from __future__ import annotations
 
@@ -20,11 +31,35 @@ import math
 import tomllib
 import types
 import typing
+import warnings
 from typing import Any
 
 
 class ConfigError(ValueError):
     """A configuration that does not fit its schema; the message names the key."""
+
+
+class ConfigDeprecationWarning(FutureWarning):
+    """A config key under its old name (still accepted; the message names the new one).
+    A ``FutureWarning``: shown by default, it is meant for the people who write the files."""
+
+
+def _renamed(cls: type, raw: dict, path: str) -> dict:
+    """``raw`` with the old names of ``cls.RENAMED_KEYS`` replaced by the new ones."""
+    renamed = getattr(cls, "RENAMED_KEYS", None)
+    if not renamed or not any(old in raw for old in renamed):
+        return raw
+    raw = dict(raw)
+    where = f"{path}." if path else ""
+    for old, new in renamed.items():
+        if old not in raw:
+            continue
+        if new in raw:
+            raise ConfigError(f"{where}{old} and {where}{new} are both set: {old} is the old name of {new}")
+        warnings.warn(f"config key {where}{old} is deprecated: use {where}{new}", ConfigDeprecationWarning,
+                      stacklevel=3)
+        raw[new] = raw.pop(old)
+    return raw
 
 
 def _parse_value(text: str) -> Any:
@@ -111,7 +146,7 @@ def _coerce(value: Any, hint: Any, path: str) -> Any:
 
 def build(cls: type, raw: dict | None = None, path: str = "") -> Any:
     """Build dataclass ``cls`` from ``raw``; missing keys take the dataclass defaults."""
-    raw = raw or {}
+    raw = _renamed(cls, raw or {}, path)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(raw) - names)
