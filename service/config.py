@@ -197,6 +197,23 @@ class PersistenceConfig:
 
 
 @dataclass(frozen=True)
+class FoxgloveConfig:
+    """``[foxglove]``: a live Foxglove WebSocket server (off by default; loopback unless
+    ``host`` says otherwise) with the solution in Foxglove's well-known schemas
+    (:mod:`adaptnav.service.transport.foxglove`). ``port`` 0 = any free port (logged)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 8765
+
+    def validate(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError("port must be within [0, 65535]")
+        if not self.host:
+            raise ValueError("host must not be empty")
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """The whole live-service configuration (see module docstring)."""
 
@@ -210,6 +227,7 @@ class ServiceConfig:
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
     state_dir: str = "/var/lib/adaptnav"
 
 

@@ -264,6 +264,7 @@ class Daemon:
         self.params: MotionParams = cfg.motion.params0
         self.restored = False
         self.bridge: Any = None
+        self.foxglove: Any = None  # LiveServer when [foxglove] is enabled
         self.calibrator: Calibrator | None = None  # CalibratorProcess, RemoteCalibrator
         self.bus: Bus | None = None  # type: ignore[assignment]
         self.sink = BusSink(self)
@@ -337,6 +338,12 @@ class Daemon:
             self.calibrator.start()
         if cfg.mavlink.enabled:
             self._start_bridge()
+        if cfg.foxglove.enabled:
+            from adaptnav.service.transport.foxglove import LiveServer
+
+            self.foxglove = LiveServer(cfg.foxglove.host, cfg.foxglove.port, cfg.origin.geo(),
+                                       name=f"adaptnav {cfg.vehicle.name}")
+            log.info("foxglove live view on ws://%s:%d", cfg.foxglove.host, self.foxglove.port)
         runner = threading.Thread(target=self._run, name="adaptnav-runner", daemon=True)
         house = threading.Thread(target=self._housekeeping, name="adaptnav-housekeeping", daemon=True)
         self._threads = [runner, house]
@@ -354,7 +361,8 @@ class Daemon:
     def _run(self) -> None:
         from adaptnav.service.runtime.runner import default_release_gate, run
 
-        self.summary = run(self.source, self.estimator, [self.sink],
+        sinks = [self.sink] + ([self.foxglove.sink] if self.foxglove is not None else [])
+        self.summary = run(self.source, self.estimator, sinks,
                            self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
                            stop=self.stop_event, health=self.health, close_sinks=False,
                            release_gate=default_release_gate(self.cfg.calibrator.online))
@@ -460,6 +468,8 @@ class Daemon:
                     next_health = now + period_s
                     self.latest_health = rep = self._health_report()
                     self.bus.publish(self.bus.keys.health, "health", rep)
+                    if self.foxglove is not None:
+                        self.foxglove.sink.on_health(rep)
                     if now >= next_aid:
                         next_aid = now + aid_period_s
                         for src, doc in self._aid_statuses(rep).items():
@@ -492,6 +502,8 @@ class Daemon:
             t.join(timeout_s)
         if self.bridge is not None:
             self.bridge.close()
+        if self.foxglove is not None:
+            self.foxglove.stop()
         if self.calibrator is not None:
             self.calibrator.stop()
         # the runner has ended: the estimator is ours to read

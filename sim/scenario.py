@@ -294,6 +294,9 @@ class Scenario:
     seed: int = 1
     duration_s: float = 300.0
     name: str = ""
+    # real (UTC) time of t = 0, ISO 8601 ("2026-05-01T08:00:00Z"); "" = the time of the run.
+    # Only log times use it (Foxglove's timeline): the simulation itself is timeless.
+    start_utc: str = ""
     origin: OriginConfig = field(default_factory=OriginConfig)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
@@ -316,6 +319,8 @@ class Scenario:
             raise ValueError("duration_s must be > 0")
         if self.seed < 0:
             raise ValueError("seed must be ≥ 0")
+        if self.start_utc:
+            start_unix_s(self.start_utc)  # raises on a malformed time
         steps_per_imu = self.motion.step_s * self.imu.rate_hz
         if abs(steps_per_imu - round(steps_per_imu)) > 1e-9 or round(steps_per_imu) < 2:
             raise ValueError(f"motion.step_s × imu.rate_hz must be an integer ≥ 2, got {steps_per_imu}")
@@ -385,3 +390,16 @@ def load_scenario(name_or_path: str | Path, overrides=()) -> Scenario:
     if not scenario.name:
         scenario = replace(scenario, name=path.stem)
     return scenario
+
+
+def start_unix_s(start_utc: str) -> float:
+    """UNIX seconds of an ISO 8601 time (``Z`` or an offset; naive = UTC)."""
+    from datetime import datetime, timezone
+
+    try:
+        t = datetime.fromisoformat(start_utc.replace("Z", "+00:00"))
+    except ValueError as e:
+        raise ValueError(f"start_utc {start_utc!r} is not an ISO 8601 time: {e}") from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=timezone.utc)
+    return t.timestamp()

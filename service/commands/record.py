@@ -32,8 +32,13 @@ def recorder_zenoh(cfg, connect=()):
     return ZenohConfig(mode="client", connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
 
 
-def record(bus, out, stop, duration_s=None, metadata=None):
+def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
     """Record ``adaptnav/<v>/**`` from ``bus`` into ``out`` until ``stop`` or the duration.
+
+    Log times are the wall clock at reception (Foxglove's timeline shows when it happened);
+    with ``origin`` (:class:`GeoOrigin` of the daemon's NED frame) the nav solution, aid
+    statuses and releases are also written in Foxglove's well-known schemas
+    (:func:`adaptnav.service.transport.foxglove.bus_message_encoder`).
 
     Returns ``(counts_by_kind, malformed_count)``.
     """
@@ -70,7 +75,12 @@ def record(bus, out, stop, duration_s=None, metadata=None):
             except queue.Empty:
                 return
 
-    counts = write_mcap(out, messages(), metadata=metadata)
+    extra = None
+    if origin is not None:
+        from adaptnav.service.transport.foxglove import TimeBase, bus_message_encoder
+
+        extra = bus_message_encoder(origin, TimeBase.wall())
+    counts = write_mcap(out, messages(), metadata=metadata, log_time_ns=lambda _t: time.time_ns(), extra=extra)
     return counts, malformed[0]
 
 
@@ -99,7 +109,8 @@ def run(args):
               f"({'until Ctrl-C' if args.duration is None else f'{args.duration:g} s'})", file=sys.stderr)
         counts, malformed = record(bus, args.out, stop, args.duration,
                                    metadata={"recorded_by": "adaptnav record", "vehicle": cfg.vehicle.name,
-                                             "service_config": _strict(config_dict(cfg))})
+                                             "service_config": _strict(config_dict(cfg))},
+                                   origin=cfg.origin.geo())
     finally:
         bus.close()
     total = sum(counts.values())

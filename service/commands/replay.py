@@ -40,6 +40,11 @@ def add_arguments(parser):
                              "side by side, and print a table; a scenario with a DVL: INS+DVL without the "
                              "motion model / the static pre-change model / the model learned with the "
                              "calibrator on (outage_drift_percent, recovery_correction_sigma)")
+    parser.add_argument("--mcap", metavar="OUT.mcap",
+                        help="also write the solution (and the truth) to this MCAP in Foxglove's well-known "
+                             "schemas (map, 3D, plots; deploy/foxglove-layout.json), log times on a real clock")
+    parser.add_argument("--report", metavar="OUT.html",
+                        help="also write a self-contained HTML report (track, error ±3σ, aids, releases, summary)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary (or comparison) as JSON")
@@ -98,7 +103,8 @@ def run(args):
     if args.motion_k_v_error is not None:
         cfg = rp.variant_config(cfg, "static_wrong", args.motion_k_v_error)
     res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
-                    progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location)
+                    progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
+                    mcap=args.mcap)
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))

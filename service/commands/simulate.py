@@ -25,7 +25,8 @@ def run(args):
 
     from adaptnav.fusion.typed_config import ConfigError, as_dict
     from adaptnav.service.transport.logs import write_mcap
-    from adaptnav.sim.scenario import load_scenario
+    from adaptnav.service.transport.foxglove import TimeBase, bus_message_encoder
+    from adaptnav.sim.scenario import load_scenario, start_unix_s
     from adaptnav.sim.simulator import simulate
 
     try:
@@ -33,6 +34,11 @@ def run(args):
     except ConfigError as e:
         print(f"adaptnav simulate: {e}", file=sys.stderr)
         return 2
+    if not scenario.start_utc:  # the log (and every replay of it) starts now on Foxglove's timeline
+        from dataclasses import replace
+        from datetime import datetime, timezone
+
+        scenario = replace(scenario, start_utc=datetime.now(timezone.utc).replace(microsecond=0).isoformat())
     t0 = time.perf_counter()
     result = simulate(scenario)
     t_sim = time.perf_counter() - t0
@@ -43,7 +49,9 @@ def run(args):
     t1 = time.perf_counter()
     with tqdm(total=total, unit="msg", unit_scale=True, disable=args.no_progress,
               desc=f"writing {args.out}") as bar:
-        counts = write_mcap(args.out, result.iter_blocks(), metadata, progress=bar.update)
+        tb = TimeBase(unix_s=start_unix_s(scenario.start_utc), data_s=0.0)
+        counts = write_mcap(args.out, result.iter_blocks(), metadata, progress=bar.update, log_time_ns=tb.ns,
+                            extra=bus_message_encoder(scenario.origin.geo(), tb))
     t_write = time.perf_counter() - t1
     per_kind = " ".join(f"{k}={v}" for k, v in sorted(counts.items()))
     print(f"{args.out}: {scenario.name} {scenario.duration_s:.0f} s simulated, {sum(counts.values())} "

@@ -135,6 +135,7 @@ class ReplayInput:
     label: str = ""
     duration_s: float | None = None
     reopen: Any = None              # callable → a fresh source over the same data
+    path: Path | None = None        # the log file, when the input is one
 
     @property
     def has_truth(self) -> bool:
@@ -158,10 +159,10 @@ def open_log(path: str | Path) -> ReplayInput:
         raise FileNotFoundError(f"log not found: {path}")
     suffix = path.suffix.lower()
     if suffix in (".tlog", ".bin", ".log"):
-        return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path))
+        return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path), path=path)
     if suffix == ".mcap":
         src = McapSource(path)
-        return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path))
+        return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path), path=path)
     raise ValueError(f"{path}: unknown log type {suffix!r} (expected .mcap, .tlog or .bin)")
 
 
@@ -199,7 +200,8 @@ def _progress_bar(total_s: float | None, label: str, enabled: bool):
 
 def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
            realtime: float | None = None, progress: bool = True, title: str = "",
-           plots: bool = True, calibrator_location: str = "process") -> ReplayResult:
+           plots: bool = True, calibrator_location: str = "process",
+           mcap: str | Path | None = None) -> ReplayResult:
     """Run one replay of ``inp`` with config ``cfg`` into ``out_dir`` (see module docstring).
 
     Parameters
@@ -219,6 +221,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         Show a progress bar over data time.
     plots : bool
         Write the PNG plots.
+    mcap : path, optional
+        Also write the solution (and the truth) to this MCAP file in Foxglove's
+        well-known schemas, log times on a real clock (:mod:`adaptnav.service.transport.foxglove`).
     """
     from adaptnav.service.compose import make_estimator
 
@@ -255,6 +260,12 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
              recorder, metrics_sink, validity]
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
+    if mcap is not None:
+        from adaptnav.service.transport.foxglove import open_mcap_sink, replay_time_base
+
+        sinks.append(open_mcap_sink(mcap, cfg.origin.geo(), replay_time_base(inp),
+                                    truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz,
+                                    metadata={"input": inp.label}))
     clock = RealtimeClock(realtime) if realtime else LogClock()
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()

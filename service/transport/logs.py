@@ -23,7 +23,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 from mcap.reader import make_reader
@@ -35,6 +35,7 @@ from adaptnav.fusion.samples import SCHEMA_VERSION, ImuBatch, SampleError
 from adaptnav.service.transport import codec
 
 METADATA_NAME = "adaptnav"
+ADAPTNAV_TOPIC_PREFIX = "/adaptnav/"  # our messages; other topics (Foxglove's schemas) are skipped on reading
 
 
 class LogError(Exception):
@@ -82,7 +83,8 @@ def _imu_rows(batch: ImuBatch) -> Iterator[tuple[float, bytes]]:
 
 
 def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict | None = None,
-               progress=None) -> dict[str, int]:
+               progress=None, log_time_ns: Callable[[float], int] | None = None,
+               extra: Callable[[Any], Iterable[tuple]] | None = None) -> dict[str, int]:
     """Write messages to an MCAP file.
 
     Parameters
@@ -92,6 +94,11 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
         :class:`ImuBatch` is written as its individual IMU messages
     metadata : stored in the ``adaptnav`` metadata record
     progress : optional callable ``progress(n_messages_written_since_last_call)``
+    log_time_ns : optional callable data time (s) → log time (UNIX ns), a real clock for
+        Foxglove's timeline (default: the data time itself)
+    extra : optional callable message → more messages to write beside it, as tuples
+        ``(topic, schema_name, schema_encoding, schema_data, message_encoding, data)``
+        (Foxglove's well-known schemas: :func:`adaptnav.service.transport.foxglove.encoded`)
 
     Returns
     -------
@@ -100,6 +107,7 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
     counts: dict[str, int] = {}
     channels: dict[str, int] = {}
     seq = 0
+    log_ns = log_time_ns or _ns
     with open(path, "wb") as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=512 * 1024)
         writer.start(profile="", library="adaptnav")
@@ -125,7 +133,7 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
                 cid = channel("imu")
                 n = 0
                 for t, data in _imu_rows(item):
-                    ns = _ns(t)
+                    ns = log_ns(t)
                     writer.add_message(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
                     seq += 1
                     n += 1
@@ -133,11 +141,18 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
             else:
                 kind = codec.kind_of(item)
                 cid = channel(kind)
-                ns = _ns(codec.time_of(item))
+                ns = log_ns(codec.time_of(item))
                 writer.add_message(cid, log_time=ns, data=codec.encode(item), publish_time=ns, sequence=seq)
                 seq += 1
                 n = 1
                 counts[kind] = counts.get(kind, 0) + 1
+                for topic, sname, senc, sdata, menc, data in (extra(item) if extra is not None else ()):
+                    if topic not in channels:
+                        sid = writer.register_schema(name=sname, encoding=senc, data=sdata)
+                        channels[topic] = writer.register_channel(topic=topic, message_encoding=menc,
+                                                                  schema_id=sid)
+                    writer.add_message(channels[topic], log_time=ns, data=data, publish_time=ns, sequence=seq)
+                    seq += 1
             if progress is not None:
                 progress(n)
         writer.finish()
@@ -204,6 +219,9 @@ class McapLog:
                                             f"messages ({stats.truncation_reason}); kept what came before")
                     return
                 if isinstance(record, Message):
+                    ch = channels.get(record.channel_id)
+                    if ch is not None and not ch.topic.startswith(ADAPTNAV_TOPIC_PREFIX):
+                        continue  # a viewer's channel beside ours (Foxglove well-known schemas)
                     stats.messages += 1
                     try:
                         if record.channel_id not in channels:
@@ -248,6 +266,8 @@ def _summary_streams(path: Path) -> list[str] | None:
         return None
     kinds = []
     for ch in summary.channels.values():
+        if not ch.topic.startswith(ADAPTNAV_TOPIC_PREFIX):
+            continue
         schema = summary.schemas.get(ch.schema_id)
         name = schema.name if schema is not None else ""
         kinds.append(name.split(".", 1)[1] if name.startswith("adaptnav.") else ch.topic.rsplit("/", 1)[-1])
