@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench golden clean
+.PHONY: demo test bench golden browser clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -15,7 +15,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/adaptnav demo
 
-test: $(STAMP)
+# Debian's chromium: tests/service/test_report.py renders replay reports in it (and skips,
+# saying why, where it cannot be installed)
+browser:
+	@command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || \
+	  echo "make browser: chromium could not be installed; the report test will skip"
+
+test: $(STAMP) browser
 	$(BIN)/python -m pytest -q -n 2 tests
 
 # regenerate the golden replay references (tests/golden/) after a change of behaviour made

@@ -258,4 +258,12 @@ def config_dict(cfg: ServiceConfig) -> dict:
 
 
 def log_effective(cfg: ServiceConfig) -> None:
-    log.info("effective config: %s", json.dumps(config_dict(cfg), sort_keys=True))
+    """One INFO line of what matters to an operator; the whole effective config at DEBUG."""
+    z = cfg.zenoh
+    log.info("config: vehicle %s; zenoh %s%s%s; mavlink %s; calibrator %s; foxglove %s; state in %s",
+             cfg.vehicle.name, z.mode, f" listen {','.join(z.listen)}" if z.listen else "",
+             f" connect {','.join(z.connect)}" if z.connect else "",
+             cfg.mavlink.url if cfg.mavlink.enabled else "off",
+             cfg.calibrator.location if cfg.calibrator.enabled else "off",
+             f"ws://{cfg.foxglove.host}:{cfg.foxglove.port}" if cfg.foxglove.enabled else "off", cfg.state_dir)
+    log.debug("effective config: %s", json.dumps(config_dict(cfg), sort_keys=True))

@@ -265,6 +265,7 @@ class Daemon:
         self.restored = False
         self.bridge: Any = None
         self.foxglove: Any = None  # LiveServer when [foxglove] is enabled
+        self._saved_once = False
         self.calibrator: Calibrator | None = None  # CalibratorProcess, RemoteCalibrator
         self.bus: Bus | None = None  # type: ignore[assignment]
         self.sink = BusSink(self)
@@ -361,7 +362,9 @@ class Daemon:
     def _run(self) -> None:
         from adaptnav.service.runtime.runner import default_release_gate, run
 
-        sinks = [self.sink] + ([self.foxglove.sink] if self.foxglove is not None else [])
+        from adaptnav.service.runtime.events import LifecycleLog
+
+        sinks = [self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
         self.summary = run(self.source, self.estimator, sinks,
                            self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
                            stop=self.stop_event, health=self.health, close_sinks=False,
@@ -386,6 +389,12 @@ class Daemon:
             save_state(self.cfg.state_dir, snap[0], snap[1], snap[2], self.cfg.vehicle.name)
         except OSError as e:
             log.error("could not persist learned state to %s: %s", self.cfg.state_dir, e)
+            return
+        # the first save and the last (shutdown) at INFO; the periodic ones at DEBUG
+        level = logging.INFO if (not self._saved_once or self.stop_event.is_set()) else logging.DEBUG
+        self._saved_once = True
+        log.log(level, "state saved to %s (data time %.1f s, k_V %.4g)", self.cfg.state_dir, snap[0], snap[1].k_v,
+                extra={"event": {"event": "state_saved", "t_s": snap[0]}})
 
     def _health_report(self) -> dict:
         with self._health_lock:  # housekeeping thread and health queries
@@ -493,6 +502,17 @@ class Daemon:
                     and self.sink.state_finite)
 
     # -- shutdown -------------------------------------------------------------------------
+    def abort(self) -> None:
+        """Undo a start that failed half-way: close what was opened; nothing ran, so
+        nothing is persisted."""
+        for obj, method in ((self.bridge, "close"), (self.foxglove, "stop"), (self.calibrator, "stop"),
+                            (self.bus, "close")):
+            if obj is not None:
+                try:
+                    getattr(obj, method)()
+                except Exception as e:  # noqa: BLE001 — best effort on the way out
+                    log.debug("abort: %s.%s: %s", type(obj).__name__, method, e)
+        self.stop_event.set()
     def stop(self, timeout_s: float = 5.0) -> None:
         if self.stop_event.is_set() and not self._threads:
             return
@@ -520,8 +540,18 @@ class Daemon:
         log.info("adaptnav daemon stopped")
 
 
+def startup_error(e: BaseException) -> str:
+    """One line of why the daemon could not start (a busy port, an unreachable router):
+    Zenoh's error text without its Rust source locations."""
+    import re
+
+    text = re.sub(r"\s+at /\S+", "", str(e)).replace("[", "").replace("]", "").strip().rstrip(".")
+    return f"{type(e).__name__}: {text}" if not isinstance(e, OSError) else text
+
+
 def serve(cfg: ServiceConfig) -> int:
-    """Run the daemon until SIGTERM/SIGINT."""
+    """Run the daemon until SIGTERM/SIGINT. Exit 2 (one logged line, no traceback) when it
+    cannot start: a Zenoh port in use, a router that does not answer, the Foxglove port in use."""
     import sys
 
     # A thread holding the GIL delays the runner by up to the switch interval (5 ms by
@@ -536,7 +566,14 @@ def serve(cfg: ServiceConfig) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    daemon.start()
+    import zenoh
+
+    try:
+        daemon.start()
+    except (zenoh.ZError, OSError) as e:
+        log.error("cannot start: %s", startup_error(e), extra={"event": {"event": "startup_failed"}})
+        daemon.abort()
+        return 2
     try:
         while not stop.wait(0.5):
             if not daemon._threads[0].is_alive():
@@ -550,10 +587,16 @@ def serve(cfg: ServiceConfig) -> int:
 
 def serve_calibrator(cfg: ServiceConfig) -> int:
     """``--calibrator-only``: the calibrator as its own bus node until SIGTERM/SIGINT."""
+    import zenoh
+
     from adaptnav.service.calibrator.node import run_node
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     sd_notify("READY=1\nSTATUS=calibrating")
-    return run_node(cfg, stop)
+    try:
+        return run_node(cfg, stop)
+    except (zenoh.ZError, OSError) as e:
+        log.error("cannot start the calibrator node: %s", startup_error(e))
+        return 2

@@ -32,6 +32,7 @@ import time
 from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
 from adaptnav.service.calibrator.batching import DataClock, data_time, pack_batch, unpack_batch
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
@@ -67,6 +68,7 @@ class InlineBackend:
 def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any, conn_out: Any) -> None:
     """Child of :class:`ProcessBackend`: per sample observe → poll, releases stamped with
     τ; after each batch a progress message ``(seq of the last sample, τ)``."""
+    ignore_sigint()
     out_q = conn_out  # Connection.send: what Queue.put did, without a feeder thread
     try:
         try:
@@ -204,7 +206,7 @@ class ProcessBackend:
         _enlarge_pipe(self._w)
         self._proc = ctx.Process(target=_lagged_child_main, name="adaptnav-calibrator", daemon=True,
                                  args=(cfg, params0, seed, child_in, child_out))
-        self._proc.start()
+        start_ignoring_sigint(self._proc)
         child_in.close()
         child_out.close()
         self._batch: list[Any] = []

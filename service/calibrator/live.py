@@ -28,6 +28,7 @@ from collections import Counter, deque
 from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
 from adaptnav.service.calibrator.batching import DataClock, compact_imu
 from adaptnav.service.calibrator.lagged import limit_child_threads
 from adaptnav.service.compose import make_calibrator
@@ -40,6 +41,7 @@ _STOP = "__stop__"
 
 def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any) -> None:
     """Child process: observe samples, send releases back; exits on ``_STOP``."""
+    ignore_sigint()
     calibrator = make_calibrator(cfg, params0, seed)
     clock = DataClock()
     gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)
@@ -111,7 +113,7 @@ class CalibratorProcess:
         self._out_q = self._ctx.Queue()
         self._proc = self._ctx.Process(target=_child_main, name="adaptnav-calibrator", daemon=True,
                                        args=(self.cfg, self.params, seed, self._in_q, self._out_q))
-        self._proc.start()
+        start_ignoring_sigint(self._proc)
         self._started_at = time.monotonic()
         self.state = "starting"
         self._running.clear()

@@ -20,8 +20,11 @@ def add_arguments(parser):
 
 
 def run(args):
+    from adaptnav.service.console import heartbeat
+
     module = importlib.import_module(f"adaptnav.service.tools.benchmarks.{args.target}")
-    figures = module.run(args)
+    with heartbeat(f"bench {args.target}"):  # benchmarks take minutes: say it is alive (stderr)
+        figures = module.run(args)
     if args.json:
         print(json.dumps(figures, indent=2, sort_keys=True))
     else:

@@ -79,6 +79,12 @@ def _plot(result, path):
     plt.close(fig)
 
 
+def _nothing():
+    import contextlib
+
+    return contextlib.nullcontext()
+
+
 def run(args):
     import json
     import multiprocessing
@@ -86,7 +92,7 @@ def run(args):
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from pathlib import Path
 
-    from tqdm import tqdm
+    from adaptnav.service.console import progress
 
     from adaptnav.calibration.thesis import row_result, run_seed
 
@@ -101,19 +107,22 @@ def run(args):
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     tasks = [(row, seed) for row in rows for seed in seeds]
     jobs = min(args.jobs if args.jobs > 0 else len(os.sched_getaffinity(0)), len(tasks))
-    with tqdm(total=len(tasks), desc="thesis", unit="seed", disable=None) as bar:
+    bar = progress(len(tasks), "thesis", "seed")  # a bar on a terminal, else a line every 10 s
+    with bar if bar is not None else _nothing():
         if jobs == 1:
             per_task = []
             for row, seed in tasks:
                 per_task.append(run_seed(row, seed))
-                bar.update(1)
+                if bar is not None:
+                    bar.update(1)
         else:
             # every (row, seed) owns its generators (calibration.thesis.run_seed): the
             # result does not depend on which worker ran it or when
             with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = [pool.submit(run_seed, row, seed) for row, seed in tasks]
                 for f in as_completed(futures):
-                    bar.update(1)
+                    if bar is not None:
+                        bar.update(1)
                 per_task = [f.result() for f in futures]
     n = len(seeds)
     results = [row_result(row, per_task[i * n:(i + 1) * n]) for i, row in enumerate(rows)]

@@ -103,7 +103,15 @@ def run(args):
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    bus = Bus(recorder_zenoh(cfg, args.connect), cfg.vehicle.name)
+    import zenoh
+
+    from adaptnav.service.daemon import startup_error
+
+    try:
+        bus = Bus(recorder_zenoh(cfg, args.connect), cfg.vehicle.name)
+    except zenoh.ZError as e:
+        print(f"adaptnav record: cannot connect: {startup_error(e)}", file=sys.stderr)
+        return 2
     try:
         print(f"recording adaptnav/{cfg.vehicle.name}/** to {args.out} "
               f"({'until Ctrl-C' if args.duration is None else f'{args.duration:g} s'})", file=sys.stderr)

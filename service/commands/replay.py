@@ -104,7 +104,7 @@ def run(args):
         cfg = rp.variant_config(cfg, "static_wrong", args.motion_k_v_error)
     res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
                     progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
-                    mcap=args.mcap)
+                    mcap=args.mcap, report=args.report)
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))

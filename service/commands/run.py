@@ -18,21 +18,17 @@ def add_arguments(parser):
                         help="override a config key, e.g. --set zenoh.mode=client (repeatable)")
     parser.add_argument("--calibrator-only", action="store_true",
                         help="run only the EM calibrator as a bus node")
-    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ... (default INFO)")
     parser.add_argument("--print-config", action="store_true",
                         help="print the effective config as JSON and exit")
 
 
 def run(args):
     import json
-    import logging
     import sys
 
     from adaptnav.fusion.typed_config import ConfigError
     from adaptnav.service.config import config_dict, load_config
 
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         cfg = load_config(args.config, args.overrides)
     except ConfigError as e:

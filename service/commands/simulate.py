@@ -21,7 +21,7 @@ def run(args):
     import sys
     import time
 
-    from tqdm import tqdm
+    from adaptnav.service.console import progress
 
     from adaptnav.fusion.typed_config import ConfigError, as_dict
     from adaptnav.service.transport.logs import write_mcap
@@ -47,11 +47,14 @@ def run(args):
     total = sum(result.counts().values())
     metadata = {"scenario": as_dict(scenario), "scenario_name": scenario.name, "generator": "adaptnav simulate"}
     t1 = time.perf_counter()
-    with tqdm(total=total, unit="msg", unit_scale=True, disable=args.no_progress,
-              desc=f"writing {args.out}") as bar:
-        tb = TimeBase(unix_s=start_unix_s(scenario.start_utc), data_s=0.0)
-        counts = write_mcap(args.out, result.iter_blocks(), metadata, progress=bar.update, log_time_ns=tb.ns,
-                            extra=bus_message_encoder(scenario.origin.geo(), tb))
+    bar = progress(total, f"writing {args.out}", "msg", not args.no_progress)
+    tb = TimeBase(unix_s=start_unix_s(scenario.start_utc), data_s=0.0)
+    try:
+        counts = write_mcap(args.out, result.iter_blocks(), metadata, progress=bar.update if bar else None,
+                            log_time_ns=tb.ns, extra=bus_message_encoder(scenario.origin.geo(), tb))
+    finally:
+        if bar is not None:
+            bar.close()
     t_write = time.perf_counter() - t1
     per_kind = " ".join(f"{k}={v}" for k, v in sorted(counts.items()))
     print(f"{args.out}: {scenario.name} {scenario.duration_s:.0f} s simulated, {sum(counts.values())} "

@@ -38,6 +38,7 @@ from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
 
 from adaptnav.service.runtime.clock import LogClock, RealtimeClock
+from adaptnav.service.runtime.events import LifecycleLog
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.runner import RunSummary, default_release_gate, run
 from adaptnav.service.runtime.sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
@@ -177,14 +178,13 @@ class ReplayResult:
 
 
 def _progress_bar(total_s: float | None, label: str, enabled: bool):
-    if not enabled:
-        return None, None
-    from tqdm import tqdm
+    from adaptnav.service.console import progress as progress_bar
 
-    bar = tqdm(total=round(total_s, 1) if total_s else None, unit="s", unit_scale=False,
-               desc=label[:30], leave=False, mininterval=0.5,
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s data [{elapsed}<{remaining}]"
-               if total_s else None)
+    # a bar on a terminal, a line every 10 s elsewhere (stderr), nothing when disabled/quiet
+    bar = progress_bar(round(total_s, 1) if total_s else None, label[:30], "s data", enabled, leave=False,
+                       mininterval=0.5)
+    if bar is None:
+        return None, None
     state = {"t0": None, "done": 0.0}
 
     def progress(t_s: float) -> None:
@@ -201,7 +201,7 @@ def _progress_bar(total_s: float | None, label: str, enabled: bool):
 def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
            realtime: float | None = None, progress: bool = True, title: str = "",
            plots: bool = True, calibrator_location: str = "process",
-           mcap: str | Path | None = None) -> ReplayResult:
+           mcap: str | Path | None = None, report: str | Path | None = None) -> ReplayResult:
     """Run one replay of ``inp`` with config ``cfg`` into ``out_dir`` (see module docstring).
 
     Parameters
@@ -224,6 +224,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     mcap : path, optional
         Also write the solution (and the truth) to this MCAP file in Foxglove's
         well-known schemas, log times on a real clock (:mod:`adaptnav.service.transport.foxglove`).
+    report : path, optional
+        Also write a self-contained HTML report here (:mod:`adaptnav.service.tools.report`).
     """
     from adaptnav.service.compose import make_estimator
 
@@ -257,7 +259,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz),
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
-             recorder, metrics_sink, validity]
+             recorder, metrics_sink, validity, LifecycleLog()]  # lifecycle events at INFO (`adaptnav -v replay`)
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     if mcap is not None:
@@ -342,6 +344,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     if inp.scenario is not None:
         (out / "scenario.json").write_text(json.dumps(as_dict(inp.scenario), indent=2, sort_keys=True,
                                                       default=_json_default) + "\n")
+    if report is not None:
+        from adaptnav.service.tools.report import write_report
+
+        write_report(recorder, doc, report, title or f"adaptnav replay: {inp.label}")
     files = sorted(p.name for p in out.iterdir() if p.is_file())
     return ReplayResult(out, doc, metrics_sink.metrics, summary, files)
 

@@ -281,6 +281,7 @@ class SeriesRecorder(Sink):
         self.last_fix_t_s: float | None = None
         self.fused_counts: Counter[str] = Counter()
         self.dvl_lock: list[tuple[float, bool]] = []  # (t, bottom lock) per DVL status
+        self.rejected_reasons: Counter[tuple[str, str]] = Counter()  # (source, reason) → count
 
     def on_nav(self, state: Any) -> None:
         self.nav_t.append(float(state.t_s))
@@ -304,6 +305,8 @@ class SeriesRecorder(Sink):
                 self.fused_counts[s.source] += 1
                 if s.source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
                     self.last_fix_t_s = float(s.t_s)
+            else:
+                self.rejected_reasons[(s.source, s.reason or "unspecified")] += 1
             if s.source == "dvl":
                 self.dvl_lock.append((float(s.t_s), bool(s.fused or s.reason == "gate")))
             # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component

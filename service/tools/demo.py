@@ -191,10 +191,9 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
         vehicle.start()
         duration = float(scenario.duration_s)
         if progress:
-            from tqdm import tqdm
+            from adaptnav.service.console import progress as progress_bar
 
-            bar = tqdm(total=round(duration), unit="s", desc="live daemon", leave=False, file=sys.stderr,
-                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s data [{elapsed}<{remaining}]")
+            bar = progress_bar(round(duration), "live daemon", "s data", leave=False)
         last = 0.0
         while not vehicle.done.wait(0.25):
             t = collector.last_t()

@@ -15,6 +15,25 @@ from typing import Any
 import numpy as np
 
 
+# what each aid's measurement vector holds (fusion/aiding/<source>.py), for labels
+AID_COMPONENTS: dict[str, tuple[str, ...]] = {
+    "gnss": ("north", "east"),
+    "usbl": ("north", "east", "down"),
+    "depth": ("down",),
+    "heading": ("yaw",),
+    "attitude": ("roll", "pitch", "yaw"),
+    "dvl": ("forward", "right", "down"),
+    "learned_velocity": ("surge", "sway", "heave"),
+    "visual_motion": ("along-track", "across-track"),
+}
+
+
+def component_names(source: str, width: int) -> list[str]:
+    """Names of the ``width`` components of ``source``'s measurement (index when unknown)."""
+    names = AID_COMPONENTS.get(source, ())
+    return [names[j] if width <= len(names) else f"component {j + 1}" for j in range(width)]
+
+
 def _pyplot():
     import matplotlib
 
@@ -64,7 +83,12 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     return True
 
 
-def plot_params(rec: Any, path: Path, title: str = "") -> bool:
+# units of σ of each variance term (DESIGN.md "Motion model": V ~ N(k_V v, v²σ_Vv² + w²σ_Vw² + σ_V1²), ...)
+SIGMA_UNITS = {"var_vv": "–", "var_vw": "m", "var_v1": "m/s", "var_wv": "rad/m", "var_ww": "–",
+               "var_w1": "rad/s", "var_s": "m/s"}
+
+
+def plot_params(rec: Any, path: Any, title: str = "", fmt: str | None = None) -> bool:
     plt = _pyplot()
     from adaptnav.fusion.motion_model import MotionParams
 
@@ -89,7 +113,8 @@ def plot_params(rec: Any, path: Path, title: str = "") -> bool:
             axes[0].plot(t[~acc], k_v[~acc], "rx", label="rejected release")
         for name in names:
             sig = np.sqrt([getattr(r[1], name) for r in rows])
-            axes[1].step(t_acc, np.append(sig[acc], sig[acc][-1]), where="post", label=f"σ of {name[4:]}")
+            axes[1].step(t_acc, np.append(sig[acc], sig[acc][-1]), where="post",
+                         label=f"σ_{name[4:].upper()} ({SIGMA_UNITS.get(name, '?')})")
             if np.any(~acc):
                 axes[1].plot(t[~acc], sig[~acc], "x", color=axes[1].lines[-1].get_color(), ms=4)
     if rec.nav_t:
@@ -104,15 +129,16 @@ def plot_params(rec: Any, path: Path, title: str = "") -> bool:
     if rec.truth_rows:
         t_truth, k_true = rec.truth_k_v()
         axes[0].plot((t_truth - t0) / 60.0, k_true, "k--", lw=1.0, label="truth k_V")
-        axes[1].set_yscale("log")
+    if rows:
+        axes[1].set_yscale("log")  # the seven σ span decades
         axes[1].legend(loc="best", fontsize=8, ncol=2)
     axes[0].set_ylabel("speed scale")
     axes[0].legend(loc="best")
-    axes[1].set_ylabel("σ (model units)")
+    axes[1].set_ylabel("σ (unit of each term in the legend)")
     axes[1].set_xlabel("time (min)")
     fig.suptitle(title or "motion parameters")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=90, format=fmt)
     plt.close(fig)
     return True
 
@@ -134,13 +160,13 @@ def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
             nu[i, :len(r[4])] = r[4]
         # decimate dense sources: a plot needs no more than ~20k points per panel
         step = max(1, len(rows) // 20000)
-        for j in range(width):
-            ax.plot(t[fused][::step], nu[fused, j][::step], ".", ms=1.5, label=f"[{j}] fused" if width > 1 else "fused")
+        for j, name in enumerate(component_names(src, width)):
+            ax.plot(t[fused][::step], nu[fused, j][::step], ".", ms=1.5, label=f"{name} fused")
         if np.any(~fused):
             ax.plot(t[~fused], np.nanmax(np.abs(nu[~fused]), axis=1, initial=0.0), "rx", ms=3, label="rejected")
         ax.axhline(3.0, color="k", lw=0.5, ls=":")
         ax.axhline(-3.0, color="k", lw=0.5, ls=":")
-        ax.set_ylabel(f"{src}\nν/√S")
+        ax.set_ylabel(f"{src}\nν/√S (–)")
         ax.legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1, 0].set_xlabel("time (min)")
     fig.suptitle(title or "normalised innovations")

@@ -272,6 +272,10 @@ class MavlinkBridge:
 
     def _on_autopilot_up(self, sysid: int, compid: int) -> None:
         self.autopilot = (sysid, compid)
+        r = self.config.rates
+        log.info("MAVLink link up: autopilot system %d component %d on %s; requesting %s at %g Hz",
+                 sysid, compid, self.url, self.config.request_imu_message, r.imu_hz,
+                 extra={"event": {"event": "link_up", "peer": f"{sysid}/{compid}", "url": self.url}})
         for msg_id, interval_us in message_intervals(self.config).items():
             if self._send("command_long_send", target_system=sysid, target_component=compid,
                           command=mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, confirmation=0,
@@ -347,7 +351,9 @@ class MavlinkBridge:
             if self.autopilot is not None and time.monotonic() - self._last_rx > self.config.link_timeout_s:
                 # silent autopilot: re-open (a fresh socket drops stale peers and
                 # re-runs the stream requests when it comes back, possibly rebooted)
-                log.warning("MAVLink: no autopilot traffic for %.1f s; re-opening", self.config.link_timeout_s)
+                log.warning("MAVLink link down: no traffic from autopilot %d/%d for %.1f s; re-opening %s",
+                            *self.autopilot, self.config.link_timeout_s, self.url,
+                            extra={"event": {"event": "link_down", "peer": "%d/%d" % self.autopilot}})
                 self.counters["link_losses"] += 1
                 with self._lock:
                     self._close_conn()

@@ -45,6 +45,8 @@ pose — never zeros that look valid.
 """
 from __future__ import annotations
 
+import logging
+
 import math
 import os
 from dataclasses import dataclass, field
@@ -427,6 +429,8 @@ class MavlinkConverter:
         sample = imu_from_highres(msg, t_s) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s)
         if self.imu_message is None:
             self.imu_message = mtype  # lock: two IMUs interleaved would corrupt strapdown
+            logging.getLogger(__name__).info("IMU stream: %s (the first with a real sample; others ignored)",
+                                             mtype, extra={"event": {"event": "imu_stream", "message": mtype}})
         return sample
 
     def _pressure(self, msg, mtype, t_s):

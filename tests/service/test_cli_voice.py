@@ -1,0 +1,142 @@
+"""The command line behaves like the tools robotics engineers know: ``--version``, ``-v``/``-q``,
+unknown log levels refused, logs/progress on stderr (``--json``: stdout is the JSON and
+nothing else), lifecycle events once each, JSON log lines on request; the daemon says why
+it cannot start in one line (exit 2) and stops on Ctrl-C without a traceback from any of
+its processes."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from adaptnav.service.cli import main
+
+pytestmark = pytest.mark.timeout(180)
+
+ADAPTNAV = [sys.executable, "-m", "adaptnav"]
+
+
+def _run(args, **kw):
+    return subprocess.run(ADAPTNAV + args, capture_output=True, text=True, timeout=150, **kw)
+
+
+def test_version_and_unknown_log_level(capsys):
+    from adaptnav import __version__
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"adaptnav {__version__}"
+    with pytest.raises(SystemExit) as e:
+        main(["run", "--log-level", "verbose", "--print-config"])
+    assert e.value.code == 2 and "unknown log level 'verbose'" in capsys.readouterr().err
+    # accepted in any case, before or after the verb
+    assert main(["--log-level", "debug", "run", "--print-config"]) == 0
+    assert main(["run", "-q", "--print-config"]) == 0
+
+
+def test_json_stdout_is_only_the_json_object(tmp_path):
+    res = _run(["-v", "replay", "--scenario", "short", "--set", "duration_s=60", "--out", str(tmp_path / "r"),
+                "--no-plots", "--json"])
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)  # the whole stdout is one JSON document
+    assert doc["input"] == "scenario short" and doc["duration_s"] > 50
+    assert "aligned" in res.stderr  # -v: the lifecycle events went to stderr
+
+
+def test_line_progress_off_a_terminal(capsys):
+    from adaptnav.service import console
+
+    console.setup_logging(logging.WARNING)
+    bar = console.progress(10, "thesis", "seed", period_s=0.0)
+    assert isinstance(bar, console.LineProgress)  # pytest's stderr is not a terminal
+    for _ in range(4):
+        bar.update(1)
+    bar.close()
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].startswith("thesis: 4/10 seed (40 %)") and len(err) == 4
+    console.setup_logging(logging.WARNING, quiet=True)
+    assert console.progress(10, "thesis") is None
+    console.setup_logging(logging.WARNING)
+
+
+def test_lifecycle_events_once_each_and_as_json(tmp_path):
+    res = _run(["-v", "--log-json", "replay", "--scenario", "short", "--set", "duration_s=300",
+                "--out", str(tmp_path / "r"), "--no-plots", "--no-progress"])
+    assert res.returncode == 0, res.stderr
+    events = []
+    for line in res.stderr.splitlines():
+        doc = json.loads(line)  # every log line is a JSON object
+        assert {"ts", "level", "logger", "msg"} <= set(doc)
+        if "event" in doc:
+            events.append(doc)
+    names = [e["event"] for e in events]
+    assert names.count("aligned") == 1
+    assert names.count("solution_valid") == 1
+    assert names.count("fix_accepted") == len({e["source"] for e in events if e["event"] == "fix_accepted"}) >= 1
+    # one line per event, not one per sample: the 300 s mission has 10 USBL fixes and 3000 states
+    assert len(events) < 20
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_busy_port_is_one_line_and_exit_2(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = _run(["run", "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "--set", f'state_dir="{tmp_path}"',
+                    "--set", "calibrator.enabled=false"])
+    assert res.returncode == 2
+    errors = [ln for ln in res.stderr.splitlines() if " ERROR " in ln]
+    assert len(errors) == 1 and "Address already in use" in errors[0] and f":{port}" in errors[0]
+    assert "Traceback" not in res.stderr and " at /" not in errors[0]
+
+
+def test_unreachable_router_is_one_line_and_exit_2(tmp_path):
+    port = _free_port()  # nobody listens there
+    res = _run(["run", "--set", "zenoh.mode=client", "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]',
+                "--set", "zenoh.listen=[]", "--set", "zenoh.connect_timeout_s=1.0", "--set", f'state_dir="{tmp_path}"',
+                "--set", "calibrator.enabled=false"])
+    assert res.returncode == 2
+    errors = [ln for ln in res.stderr.splitlines() if " ERROR " in ln]
+    assert len(errors) == 1 and f"127.0.0.1:{port}" in errors[0], res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_ctrl_c_stops_cleanly_without_traceback_from_any_process(tmp_path):
+    """A terminal's Ctrl-C sends SIGINT to the whole process group: the daemon *and* its
+    calibrator child. Only the daemon acts on it; nobody prints a traceback."""
+    port = _free_port()
+    proc = subprocess.Popen(ADAPTNAV + ["run", "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]',
+                                        "--set", f'state_dir="{tmp_path}"'],
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    lines = []
+    try:
+        for line in proc.stderr:  # wait for the daemon (and its calibrator child) to be up
+            lines.append(line)
+            if "daemon up" in line:
+                break
+        os.killpg(proc.pid, signal.SIGINT)
+        rest = proc.stderr.read()
+        rc = proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    err = "".join(lines) + rest
+    assert "calibrator process started" in err and "daemon up" in err
+    assert rc == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert "adaptnav daemon stopped" in err and "state saved" in err
