@@ -50,13 +50,29 @@ def level_for(log_level: str | None, verbose: int = 0, quiet: bool = False, defa
     return max(logging.DEBUG, getattr(logging, default) - 10 * verbose)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A handler on whatever ``sys.stderr`` is at each record (a test's capture, a
+    redirected stream), not the stream that was current when it was installed."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def setup_logging(level: int, json_lines: bool = False, quiet: bool = False) -> None:
     """Configure the root logger on stderr (replacing handlers a previous call installed)."""
     root = logging.getLogger()
     for h in list(root.handlers):
         if getattr(h, "_adaptnav", False):
             root.removeHandler(h)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler._adaptnav = True  # type: ignore[attr-defined]
     handler.setFormatter(JsonFormatter() if json_lines else logging.Formatter(TEXT_FORMAT))
     root.addHandler(handler)
