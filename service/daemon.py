@@ -360,9 +360,8 @@ class Daemon:
         self.bridge = MavlinkBridge(None, self.enqueue, self.cfg.origin.geo(), self.cfg.mavlink)
 
     def _run(self) -> None:
-        from adaptnav.service.runtime.runner import default_release_gate, run
-
         from adaptnav.service.runtime.events import LifecycleLog
+        from adaptnav.service.runtime.runner import default_release_gate, run
 
         sinks = [self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
         self.summary = run(self.source, self.estimator, sinks,
