@@ -203,6 +203,7 @@ class BusSink(Sink):
 
     def __init__(self, daemon: "Daemon") -> None:
         self.d = daemon
+        self.origin = daemon.cfg.origin.geo()
         self.latest_state: dict | None = None
         self.latest_aid: dict[str, Any] = {}
         self.nav_count = 0
@@ -212,6 +213,10 @@ class BusSink(Sink):
     def on_nav(self, state: Any) -> None:
         self.state_finite = bool(np.isfinite(state.pos_n_m).all() and np.isfinite(state.vel_n_m_s).all())
         doc = state.to_dict()
+        # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
+        lat, lon, alt = self.origin.to_geodetic(state.pos_n_m)
+        doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = (float(np.degrees(lat)), float(np.degrees(lon)),
+                                                        float(alt))
         self.latest_state = doc
         self.nav_count += 1
         self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)

@@ -13,7 +13,18 @@ def add_arguments(parser):
     parser.add_argument("scenario", help="scenario name (survey, short, demo, ...) or path to a .toml")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a scenario key, e.g. --set dvl.enabled=true (repeatable)")
-    parser.add_argument("--out", required=True, help="output .mcap file")
+    parser.add_argument("--out", help="output .mcap file (required unless --live)")
+    parser.add_argument("--live", choices=("zenoh", "mavlink"),
+                        help="feed a running daemon instead of writing a file, as a vehicle would: "
+                             "'zenoh' publishes the samples on adaptnav/<v>/sensor/* (a Zenoh client of "
+                             "--connect), 'mavlink' plays an ArduSub autopilot on --url")
+    parser.add_argument("--connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT",
+                        help="--live zenoh: the daemon's (or router's) endpoint (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--vehicle", default="auv1", help="--live zenoh: the vehicle name in the keys (default auv1)")
+    parser.add_argument("--url", default="udpout:127.0.0.1:14550", metavar="URL",
+                        help="--live mavlink: where the daemon's bridge listens (default udpout:127.0.0.1:14550)")
+    parser.add_argument("--speed", type=float, default=1.0, metavar="X",
+                        help="--live: data seconds per wall second (default 1 = real time)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -33,6 +44,13 @@ def run(args):
         scenario = load_scenario(args.scenario, args.overrides)
     except ConfigError as e:
         print(f"adaptnav simulate: {e}", file=sys.stderr)
+        return 2
+    if args.live:
+        from adaptnav.service.tools.live_vehicle import run_live
+
+        return run_live(scenario, args)
+    if not args.out:
+        print("adaptnav simulate: give --out FILE.mcap (or --live zenoh|mavlink)", file=sys.stderr)
         return 2
     if not scenario.start_utc:  # the log (and every replay of it) starts now on Foxglove's timeline
         from dataclasses import replace

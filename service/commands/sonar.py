@@ -59,6 +59,40 @@ def run(args) -> int:
     return _motion(args, pings)
 
 
+def scale_bar_m(width_m: float) -> float:
+    """A round length (1, 2 or 5 × 10^k m) of about a fifth of ``width_m``."""
+    target = max(width_m / 5.0, 1e-3)
+    exp = math.floor(math.log10(target))
+    for step in (5.0, 2.0, 1.0):
+        if step * 10 ** exp <= target:
+            return step * 10 ** exp
+    return 10 ** exp
+
+
+def with_scale_bar(img, res_m_per_px: float):
+    """The waterfall (uint8, rows = pings) with a labelled across-track scale bar in its
+    lower left corner: white on a black band, readable on any backscatter."""
+    import cv2
+    import numpy as np
+
+    out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
+    h, w = out.shape[:2]
+    if not (res_m_per_px > 0 and math.isfinite(res_m_per_px)) or h < 20 or w < 40:
+        return out
+    length_m = scale_bar_m(w * res_m_per_px)
+    px = max(1, int(round(length_m / res_m_per_px)))
+    thick = max(2, h // 150)
+    font = max(0.4, min(w, h) / 900.0)
+    label = f"{length_m:g} m across track"
+    (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, font, 1)
+    x0, y0 = max(5, w // 40), h - max(8, h // 40)
+    band = (x0 - 4, y0 - th - 2 * thick - 10, x0 + max(px, tw) + 4, y0 + 4)
+    cv2.rectangle(out, band[:2], band[2:], (0, 0, 0), -1)
+    cv2.rectangle(out, (x0, y0 - thick), (x0 + px - 1, y0), (255, 255, 255), -1)  # inclusive corners
+    cv2.putText(out, label, (x0, y0 - thick - 6), cv2.FONT_HERSHEY_SIMPLEX, font, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.ascontiguousarray(out)
+
+
 def _waterfall(args, pings) -> int:
     import cv2
 
@@ -66,7 +100,7 @@ def _waterfall(args, pings) -> int:
 
     res = args.res_m or pings[0].sample_spacing_m
     wf = build_waterfall(pings, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))
-    if not cv2.imwrite(args.out, to_uint8(wf.image)):
+    if not cv2.imwrite(args.out, with_scale_bar(to_uint8(wf.image), wf.ground_res_m)):
         return _fail(f"could not write {args.out}")
     print(f"{args.out}: {wf.image.shape[0]} rows x {wf.image.shape[1]} columns, "
           f"{wf.ground_res_m:.3f} m/px across, "

@@ -33,9 +33,11 @@ def emit(event: str, message: str, *args: Any, level: int = logging.INFO, **fiel
 
 
 class LifecycleLog(Sink):
-    """Runner sink logging lifecycle events (module docstring)."""
+    """Runner sink logging lifecycle events (module docstring). ``warnings=False`` (replay):
+    every event at INFO — a replay reports its findings in its summary, not as warnings."""
 
-    def __init__(self) -> None:
+    def __init__(self, warnings: bool = True) -> None:
+        self._warn = logging.WARNING if warnings else logging.INFO
         self._aligned = False
         self._valid: bool | None = None
         self._reset_counter: int | None = None
@@ -56,11 +58,11 @@ class LifecycleLog(Sink):
                 emit("solution_valid" if state.valid else "solution_invalid",
                      "solution %s at data time %.2f s (σ horizontal %.1f m)",
                      "valid" if state.valid else "INVALID", t, sigma_h,
-                     level=logging.INFO if state.valid else logging.WARNING, t_s=t, sigma_h_m=sigma_h)
+                     level=logging.INFO if state.valid else self._warn, t_s=t, sigma_h_m=sigma_h)
             self._valid = bool(state.valid)
         rc = int(state.reset_counter)
         if self._reset_counter is not None and rc != self._reset_counter:
-            emit("reset", "filter reset #%d at data time %.2f s", rc, t, level=logging.WARNING, t_s=t,
+            emit("reset", "filter reset #%d at data time %.2f s", rc, t, level=self._warn, t_s=t,
                  reset_counter=rc)
         self._reset_counter = rc
 
@@ -83,7 +85,7 @@ class LifecycleLog(Sink):
             elif burst is None:
                 self._burst[s.source] = {"n": 1, "t0_s": t, "reason": s.reason}
                 emit("fix_rejections_start", "%s fix rejected at data time %.2f s: %s (test ratio %.2f)",
-                     s.source, t, s.reason or "?", float(s.test_ratio), level=logging.WARNING, t_s=t,
+                     s.source, t, s.reason or "?", float(s.test_ratio), level=self._warn, t_s=t,
                      source=s.source, reason=s.reason)
             else:
                 burst["n"] += 1
@@ -96,10 +98,10 @@ class LifecycleLog(Sink):
                  f" ({release.reason})" if release.reason else "", t_s=t, k_v=k_v, reason=release.reason)
         else:
             emit("release_rejected", "calibrator release rejected at data time %.1f s: %s", t,
-                 release.reason or "no reason given", level=logging.WARNING, t_s=t, reason=release.reason)
+                 release.reason or "no reason given", level=self._warn, t_s=t, reason=release.reason)
 
     def close(self) -> None:
         for src, burst in self._burst.items():
             emit("fix_rejections_open", "%s: %d fixes rejected since data time %.2f s (%s), none accepted since",
-                 src, burst["n"], burst["t0_s"], burst["reason"], level=logging.WARNING, source=src,
+                 src, burst["n"], burst["t0_s"], burst["reason"], level=self._warn, source=src,
                  rejected=burst["n"])

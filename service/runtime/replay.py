@@ -259,7 +259,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz),
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
-             recorder, metrics_sink, validity, LifecycleLog()]  # lifecycle events at INFO (`adaptnav -v replay`)
+             recorder, metrics_sink, validity, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     if mcap is not None:

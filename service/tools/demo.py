@@ -332,14 +332,26 @@ def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> li
     names = dict(ROWS)
     files = []
 
+    # the view is set by the truth and the aided runs: pure INS drifts by hundreds of metres
+    # and would shrink static vs learned to one line; it is drawn clipped, its size said
     fig, ax = plt.subplots(figsize=(8, 8))
     ax.plot(truth.pos_n_m[:, 1], truth.pos_n_m[:, 0], "k--", lw=1.2, label="truth")
+    aided = [truth.pos_n_m[:, :2]] + [series[k][1] for k, _ in ROWS if k != "pure_ins" and len(series[k][1])]
+    lo, hi = np.min([a.min(axis=0) for a in aided], axis=0), np.max([a.max(axis=0) for a in aided], axis=0)
+    pad = 0.08 * max(float(np.max(hi - lo)), 10.0)
     for key, _ in ROWS:
         t, ne = series[key]
-        ax.plot(ne[:, 1], ne[:, 0], lw=1.0, label=names[key])
+        label = names[key]
+        if key == "pure_ins" and len(t):
+            end_err = float(np.hypot(*(ne[-1] - np.array([np.interp(t[-1], truth.t_s, truth.pos_n_m[:, i])
+                                                         for i in (0, 1)]))))
+            label += f" (clipped; {end_err:.0f} m off at the end)"
+        ax.plot(ne[:, 1], ne[:, 0], lw=1.0, label=label)
+    ax.set_xlim(lo[1] - pad, hi[1] + pad)
+    ax.set_ylim(lo[0] - pad, hi[0] + pad)
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box")
     ax.legend(loc="best")
     ax.set_title(f"adaptnav demo: track vs truth ({scenario.duration_s:.0f} s)")
     fig.tight_layout()
@@ -348,13 +360,23 @@ def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> li
     files.append("demo_track.png")
 
     fig, ax = plt.subplots(figsize=(10, 4.5))
+    errors = {}
     for key, _ in ROWS:
         t, ne = series[key]
         if len(t) == 0:
             continue
         tn = np.interp(t, truth.t_s, truth.pos_n_m[:, 0])
         te = np.interp(t, truth.t_s, truth.pos_n_m[:, 1])
-        ax.plot(t, np.hypot(ne[:, 0] - tn, ne[:, 1] - te), lw=1.0, label=names[key])
+        errors[key] = (t, np.hypot(ne[:, 0] - tn, ne[:, 1] - te))
+    # the y scale is the aided runs' (pure INS would flatten them to zero); pure INS is
+    # clipped at the top, its maximum said in its label
+    top = max([float(np.nanmax(e)) for k, (_, e) in errors.items() if k != "pure_ins" and len(e)] + [1.0]) * 1.3
+    for key, (t, e) in errors.items():
+        label = names[key]
+        if key == "pure_ins" and float(np.nanmax(e)) > top:
+            label += f" (clipped; up to {float(np.nanmax(e)):.0f} m)"
+        ax.plot(t, e, lw=1.0, label=label)
+    ax.set_ylim(0.0, top)
     ax.axvline(scenario.environment.change_at_s, color="grey", ls=":", label="environment change")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("horizontal error (m)")

@@ -61,6 +61,23 @@ class Keys:
     def query(self, name: str) -> str:
         return f"{self.root}/query/{name}"
 
+    def schema_of(self, key: str) -> str:
+        """The schema name of what is published on ``key`` (``adaptnav.<kind>``): the
+        payload encoding says it, so generic tools know the JSON without being told."""
+        rel = key[len(self.root) + 1:] if key.startswith(self.root + "/") else key
+        parts = rel.split("/")
+        if parts[0] == "sensor" and len(parts) == 2:
+            return f"adaptnav.{parts[1]}"
+        return "adaptnav." + {"nav/state": "nav_state", "nav/inertial": "inertial_velocity",
+                              "calibration/params": "calibration_release", "health": "health"}.get(
+            rel, "aid_status" if rel.startswith("nav/aid/") else
+            (parts[1] if parts[0] == "query" and len(parts) == 2 else "message"))
+
+
+def json_encoding(schema: str) -> zenoh.Encoding:
+    """``application/json`` with the schema name (e.g. ``adaptnav.nav_state``)."""
+    return zenoh.Encoding.APPLICATION_JSON.with_schema(schema)
+
 
 def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     """Our :class:`ZenohConfig` → a ``zenoh.Config`` (JSON5 of the zenoh config schema)."""
@@ -210,7 +227,8 @@ class Bus:
             with self._lock:
                 pub = self._publishers.get(key)
                 if pub is None:
-                    pub = self._publishers[key] = self.session.declare_publisher(key)
+                    pub = self._publishers[key] = self.session.declare_publisher(
+                        key, encoding=json_encoding(self.keys.schema_of(key)))
         return pub
 
     def put(self, key: str, payload: bytes) -> None:
@@ -249,10 +267,11 @@ class Bus:
     def queryable(self, name: str, answer: Callable[[], bytes]) -> None:
         """Answer ``adaptnav/<v>/query/<name>`` with ``answer()`` (fast, non-blocking)."""
         key = self.keys.query(name)
+        encoding = json_encoding(self.keys.schema_of(key))
 
         def on_query(query: Any) -> None:
             try:
-                query.reply(key, answer())
+                query.reply(key, answer(), encoding=encoding)
             except Exception as e:  # a queryable must never take the session down
                 log.warning("query %s failed: %s", key, e)
                 query.reply_err(str(e).encode())

@@ -140,3 +140,15 @@ def test_ctrl_c_stops_cleanly_without_traceback_from_any_process(tmp_path):
     assert rc == 0, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err
     assert "adaptnav daemon stopped" in err and "state saved" in err
+
+
+def test_compare_explains_a_wrong_model_that_beats_the_given_one():
+    from adaptnav.service.commands.replay import compare_note
+
+    rows = {"pure_ins": {"drift_percent_since_fix": 300.0},
+            "static_wrong": {"drift_percent_since_fix": 0.41}, "given": {"drift_percent_since_fix": 0.45}}
+    note = compare_note(rows, {"static_wrong": 1.003, "given": 1.001}, 0.1)
+    assert "k_V × 1.1" in note and "0.41 vs 0.45" in note and "1.0030 (wrong) vs 1.0010 (given)" in note
+    assert "k_speed" in note and "seeds" in note
+    rows["given"]["drift_percent_since_fix"] = 0.40  # the given model wins: nothing to explain
+    assert compare_note(rows, {}, 0.1) == ""

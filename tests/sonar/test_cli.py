@@ -44,3 +44,16 @@ def test_motion_json_records(capsys):
         assert rec["inliers"] <= rec["matches"]
     t = np.array([r["t_s"] for r in lines])
     assert np.all(np.diff(t) > 0)
+
+
+def test_waterfall_png_has_a_labelled_scale_bar():
+    """The bar is as long as the length it says: 1000 px at 0.05 m/px → a 10 m bar of 200 px."""
+    import numpy as np
+
+    from adaptnav.service.commands.sonar import scale_bar_m, with_scale_bar
+
+    assert [scale_bar_m(w) for w in (50.0, 12.0, 3.0, 480.0)] == [10.0, 2.0, 0.5, 50.0]
+    img = with_scale_bar(np.full((400, 1000), 128, np.uint8), 0.05)
+    white = (img == 255).all(axis=2)
+    longest = max(int(np.diff(np.flatnonzero(np.diff(np.r_[0, row, 0]))).max(initial=0)) for row in white)
+    assert longest == 200
