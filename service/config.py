@@ -200,7 +200,7 @@ class PersistenceConfig:
 class FoxgloveConfig:
     """``[foxglove]``: a live Foxglove WebSocket server (off by default; loopback unless
     ``host`` says otherwise) with the solution in Foxglove's well-known schemas
-    (:mod:`adaptnav.service.transport.foxglove`). ``port`` 0 = any free port (logged)."""
+    (:mod:`adaptnav.service.runtime.foxglove`). ``port`` 0 = any free port (logged)."""
 
     enabled: bool = False
     host: str = "127.0.0.1"

@@ -345,7 +345,7 @@ class Daemon:
         if cfg.mavlink.enabled:
             self._start_bridge()
         if cfg.foxglove.enabled:
-            from adaptnav.service.transport.foxglove import LiveServer
+            from adaptnav.service.runtime.foxglove import LiveServer
 
             self.foxglove = LiveServer(cfg.foxglove.host, cfg.foxglove.port, cfg.origin.geo(),
                                        name=f"adaptnav {cfg.vehicle.name}")

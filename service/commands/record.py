@@ -38,7 +38,7 @@ def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
     Log times are the wall clock at reception (Foxglove's timeline shows when it happened);
     with ``origin`` (:class:`GeoOrigin` of the daemon's NED frame) the nav solution, aid
     statuses and releases are also written in Foxglove's well-known schemas
-    (:func:`adaptnav.service.transport.foxglove.bus_message_encoder`).
+    (:func:`adaptnav.service.runtime.foxglove.bus_message_encoder`).
 
     Returns ``(counts_by_kind, malformed_count)``.
     """
@@ -77,7 +77,7 @@ def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
 
     extra = None
     if origin is not None:
-        from adaptnav.service.transport.foxglove import TimeBase, bus_message_encoder
+        from adaptnav.service.runtime.foxglove import TimeBase, bus_message_encoder
 
         extra = bus_message_encoder(origin, TimeBase.wall())
     counts = write_mcap(out, messages(), metadata=metadata, log_time_ns=lambda _t: time.time_ns(), extra=extra)

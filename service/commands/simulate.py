@@ -36,7 +36,7 @@ def run(args):
 
     from adaptnav.fusion.typed_config import ConfigError, as_dict
     from adaptnav.service.transport.logs import write_mcap
-    from adaptnav.service.transport.foxglove import TimeBase, bus_message_encoder
+    from adaptnav.service.runtime.foxglove import TimeBase, bus_message_encoder
     from adaptnav.sim.scenario import load_scenario, start_unix_s
     from adaptnav.sim.simulator import simulate
 

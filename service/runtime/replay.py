@@ -223,7 +223,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         Write the PNG plots.
     mcap : path, optional
         Also write the solution (and the truth) to this MCAP file in Foxglove's
-        well-known schemas, log times on a real clock (:mod:`adaptnav.service.transport.foxglove`).
+        well-known schemas, log times on a real clock (:mod:`adaptnav.service.runtime.foxglove`).
     report : path, optional
         Also write a self-contained HTML report here (:mod:`adaptnav.service.tools.report`).
     """
@@ -263,7 +263,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     if mcap is not None:
-        from adaptnav.service.transport.foxglove import open_mcap_sink, replay_time_base
+        from adaptnav.service.runtime.foxglove import open_mcap_sink, replay_time_base
 
         sinks.append(open_mcap_sink(mcap, cfg.origin.geo(), replay_time_base(inp),
                                     truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz,

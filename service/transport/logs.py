@@ -98,7 +98,7 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
         Foxglove's timeline (default: the data time itself)
     extra : optional callable message → more messages to write beside it, as tuples
         ``(topic, schema_name, schema_encoding, schema_data, message_encoding, data)``
-        (Foxglove's well-known schemas: :func:`adaptnav.service.transport.foxglove.encoded`)
+        (Foxglove's well-known schemas: :func:`adaptnav.service.runtime.foxglove.encoded`)
 
     Returns
     -------
