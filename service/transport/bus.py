@@ -140,13 +140,49 @@ SERVICE_KINDS: dict[str, tuple[str, str]] = {
 }
 
 
+def _num(description: str) -> dict:
+    return {"type": ["number", "null"], "description": description}
+
+
+def _vec(n: int | None, description: str) -> dict:
+    out: dict = {"type": "array", "items": {"type": ["number", "null"]}, "description": description}
+    if n is not None:
+        out["minItems"] = out["maxItems"] = n
+    return out
+
+
+# the fields of the nav state (fusion.state.NavState.to_dict, plus what the daemon adds),
+# so that a reader of a log or of the bus knows them without the source
+NAV_STATE_FIELDS = {
+    "t_s": _num("data time of validity, s"),
+    "pos_n_m": _vec(3, "position north, east, down of the mission origin, m"),
+    "vel_n_m_s": _vec(3, "velocity north, east, down, m/s"),
+    "q_nb": _vec(4, "attitude body (FRD) to NED, quaternion w, x, y, z"),
+    "euler_rad": _vec(3, "roll, pitch, yaw (ZYX), rad"),
+    "bias_acc_b_m_s2": _vec(3, "accelerometer bias, body, m/s²"),
+    "bias_gyro_b_rad_s": _vec(3, "gyro bias, body, rad/s"),
+    "current_n_m_s": _vec(None, "sea current north, east, m/s"),
+    "k_speed": _num("speed-scale state of the learned velocity, –"),
+    "cov": _vec(18 * 18, "error-state covariance 18×18, row-major (fusion/state.py order: pos, vel, att, "
+                         "bias_acc, bias_gyro, current, k_speed)"),
+    "valid": {"type": "boolean", "description": "usable for navigation"},
+    "reset_counter": {"type": "integer", "description": "steps on every discontinuity"},
+    "lat_deg": _num("latitude, deg (WGS-84, from the mission origin)"),
+    "lon_deg": _num("longitude, deg"),
+    "alt_m": _num("altitude, m (negative below the surface)"),
+}
+
+
 def _schema(kind: str, description: str) -> dict:
+    props: dict = {"type": {"const": kind}, "schema_version": {"const": SCHEMA_VERSION}}
+    if kind == "nav_state":
+        props.update(NAV_STATE_FIELDS)
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"adaptnav.{kind}",
         "description": description,
         "type": "object",
-        "properties": {"type": {"const": kind}, "schema_version": {"const": SCHEMA_VERSION}},
+        "properties": props,
         "required": ["type", "schema_version"],
     }
 
