@@ -317,7 +317,7 @@ class FoxgloveConverter:
     def release(self, release: Any) -> list[tuple[str, Any]]:
         from foxglove.messages import Log, LogLevel
 
-        from adaptnav.service.calibrator.process import release_to_dict
+        from adaptnav.service.transport.release import release_to_dict
 
         doc = release_to_dict(release)
         ns = self.time.ns(float(release.t_s))
@@ -549,7 +549,7 @@ def bus_message_encoder(origin: Any, time_base: TimeBase) -> Callable[[Any], lis
             elif kind == "aid_status":
                 pairs = conv.aid([item.body])
             elif kind == "calibration_release":
-                from adaptnav.service.calibrator.process import release_from_dict
+                from adaptnav.service.transport.release import release_from_dict
 
                 pairs = conv.release(release_from_dict(item.body))
             else:
