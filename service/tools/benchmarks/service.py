@@ -207,7 +207,9 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     scenario = load_scenario(LIVE_SCENARIO, [f"imu.rate_hz={rate_hz}", "dvl.enabled=true",
                                              f"sonar.enabled={str(sonar).lower()}",
                                              f"duration_s={duration_s + warm_s + 2.0}"])
-    stream = _shifted(_flatten(simulate(scenario).iter_blocks()), offset_s)
+    # simulated before publishing: generating side-scan pings on the fly made the client
+    # fall behind and then publish in bursts, which the latency then measured
+    stream = list(_shifted(_flatten(simulate(scenario).iter_blocks()), offset_s))
     bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), vehicle)
     recv: dict[float, float] = {}
     bus.subscribe_raw(bus.keys.nav_state,
@@ -318,8 +320,8 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float) -> dict:
             i0 = int(np.searchsorted(arr[:, 0], w0))
             i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
             wall = arr[i1, 0] - arr[i0, 0]
-            fig["daemon_cpu_percent"] = 100.0 * (arr[i1, 1] - arr[i0, 1]) / wall
-            fig["calibrator_cpu_percent"] = 100.0 * (arr[i1, 2] - arr[i0, 2]) / wall
+            fig["daemon_cpu_percent"] = float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall)
+            fig["calibrator_cpu_percent"] = float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall)
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
         finally:
             bus.close()
