@@ -2,6 +2,9 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# kernels compiled ahead of time (adaptnav/kernels.py), rebuilt when their sources change
+KERNELS := $(VENV)/.kernels
+KERNEL_SOURCES := fusion/strapdown.py calibration/_kernels.py adaptnav/kernels.py
 
 .PHONY: demo test bench golden browser clean
 
@@ -9,10 +12,13 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --upgrade pip >/dev/null
 	$(BIN)/pip install -e '.[test,bench]'
-	$(BIN)/adaptnav warmup  # numba kernels compiled once here, not before the first solution
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(KERNELS): $(STAMP) $(KERNEL_SOURCES)
+	$(BIN)/adaptnav warmup  # compiled once here, not before the first solution
+	touch $(KERNELS)
+
+demo: $(STAMP) $(KERNELS)
 	$(BIN)/adaptnav demo
 
 # Debian's chromium: tests/service/test_report.py renders replay reports in it (and skips,
@@ -22,15 +28,15 @@ browser:
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || \
 	  echo "make browser: chromium could not be installed; the report test will skip"
 
-test: $(STAMP) browser
+test: $(STAMP) $(KERNELS) browser
 	$(BIN)/python -m pytest -q -n 2 tests
 
 # regenerate the golden replay references (tests/golden/) after a change of behaviour made
 # on purpose; the commit says why the numbers moved
-golden: $(STAMP)
+golden: $(STAMP) $(KERNELS)
 	$(BIN)/python -m tests.golden.golden
 
-bench: $(STAMP)
+bench: $(STAMP) $(KERNELS)
 	$(BIN)/adaptnav bench fusion
 	$(BIN)/adaptnav bench calibration
 	$(BIN)/adaptnav bench sonar
