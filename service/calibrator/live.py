@@ -21,6 +21,7 @@ import gc
 import logging
 import math
 import multiprocessing as mp
+import os
 import queue
 import threading
 import time
@@ -39,9 +40,32 @@ log = logging.getLogger(__name__)
 _STOP = "__stop__"
 
 
-def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any) -> None:
+def die_with_parent(parent_pid: int) -> None:
+    """Make this (child) process end when its parent does, even a SIGKILLed parent that
+    cannot stop it: Linux ``prctl(PR_SET_PDEATHSIG, SIGKILL)``; if the parent is already
+    gone (it died before the call), exit now. Elsewhere nothing (the child's pipes end)."""
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    PR_SET_PDEATHSIG = 1
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:  # pragma: no cover
+        return
+    if os.getppid() != parent_pid:
+        os._exit(0)
+
+
+def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: Any,
+                parent_pid: int | None = None) -> None:
     """Child process: observe samples, send releases back; exits on ``_STOP``."""
     ignore_sigint()
+    if parent_pid is not None:  # dies with its daemon, even a SIGKILLed one
+        die_with_parent(parent_pid)
     calibrator = make_calibrator(cfg, params0, seed)
     clock = DataClock()
     gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)
@@ -112,7 +136,7 @@ class CalibratorProcess:
         self._in_q = self._ctx.Queue(maxsize=max(1, self.cfg.calibrator.queue_size // 10))
         self._out_q = self._ctx.Queue()
         self._proc = self._ctx.Process(target=_child_main, name="adaptnav-calibrator", daemon=True,
-                                       args=(self.cfg, self.params, seed, self._in_q, self._out_q))
+                                       args=(self.cfg, self.params, seed, self._in_q, self._out_q, os.getpid()))
         start_ignoring_sigint(self._proc)
         self._started_at = time.monotonic()
         self.state = "starting"

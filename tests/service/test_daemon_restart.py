@@ -124,3 +124,48 @@ def test_systemd_notify_ready_watchdog_stopping(tmp_path):
             proc.kill()
         srv.close()
     assert (tmp_path / "state" / "learned_state.json").exists()  # written at shutdown
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"  # a zombie is dead
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal is Linux's")
+def test_the_calibrator_child_dies_with_a_sigkilled_daemon(tmp_path):
+    """It used to live on (192 MB, parent 1) after the daemon was SIGKILLed."""
+    port = free_port()
+    cfg_path = tmp_path / "adaptnav.toml"
+    cfg_path.write_text(f"""
+state_dir = "{tmp_path / 'state'}"
+[vehicle]
+name = "testauv"
+[zenoh]
+listen = ["tcp/127.0.0.1:{port}"]
+scouting = false
+""")
+    log_path = tmp_path / "daemon.log"
+    proc = _start(cfg_path, log_path)
+    child = None
+    try:
+        bus = peer(port)
+        try:
+            health = wait_until(lambda: (h := bus.get("health", timeout_s=0.5)) and h["calibrator"].get("pid")
+                                and h, timeout_s=90)
+        finally:
+            bus.close()
+        assert health, log_path.read_text()[-2000:]
+        child = int(health["calibrator"]["pid"])
+        assert _alive(child)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        assert wait_until(lambda: not _alive(child), timeout_s=20), "the calibrator outlived its daemon"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)
