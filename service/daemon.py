@@ -362,7 +362,18 @@ class Daemon:
         from adaptnav.service.transport.mavlink_bridge import MavlinkBridge
 
         # the bridge thread converts and enqueues; nav output goes back through BusSink
-        self.bridge = MavlinkBridge(None, self.enqueue, self.cfg.origin.geo(), self.cfg.mavlink)
+        self.bridge = MavlinkBridge(None, self._from_mavlink, self.cfg.origin.geo(), self.cfg.mavlink)
+
+    def _from_mavlink(self, sample: Any) -> None:
+        """A sample from the autopilot: to the runner, and on the bus for the other nodes
+        (``adaptnav record`` then records every sample the daemon fuses, whatever transport
+        it came in on, and a replay of the recording reproduces the live solution)."""
+        self.enqueue(sample)
+        try:
+            self.bus.publish_sample_to_others(sample)
+        except Exception as e:  # noqa: BLE001 — the bus must never cost the filter a sample
+            self.overflow["republish_failed"] += 1
+            log.debug("re-publishing a MAVLink sample failed: %s", e)
 
     def _run(self) -> None:
         from adaptnav.service.runtime.events import LifecycleLog

@@ -121,7 +121,7 @@ def run(args):
                                    origin=cfg.origin.geo())
     finally:
         bus.close()
-    total = sum(counts.values())
+    total = sum(n for k, n in counts.items() if k != "skipped")
     print(f"wrote {total} messages to {args.out}: "
           + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
           + (f"; {malformed} malformed messages skipped" if malformed else ""), file=sys.stderr)

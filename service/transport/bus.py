@@ -270,6 +270,20 @@ class Bus:
     def put(self, key: str, payload: bytes) -> None:
         self._publisher(key).put(payload)
 
+    def publish_sample_to_others(self, sample: Any) -> None:
+        """Publish a sample that did not come over the bus (e.g. from MAVLink) for the other
+        nodes only — recorders, a remote calibrator — never back to this session's own
+        subscribers (it would be fused twice)."""
+        key = self.keys.sensor(sample.KIND)
+        pub = self._publishers.get(("remote", key))
+        if pub is None:
+            with self._lock:
+                pub = self._publishers.get(("remote", key))
+                if pub is None:
+                    pub = self._publishers[("remote", key)] = self.session.declare_publisher(
+                        key, allowed_destination=zenoh.Locality.REMOTE)
+        pub.put(encode_sample(sample))
+
     def publish_sample(self, sample: Any) -> None:
         self.put(self.keys.sensor(sample.KIND), encode_sample(sample))
 

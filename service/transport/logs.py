@@ -20,6 +20,7 @@ reading goes on. :class:`ReadStats` counts both.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,8 @@ from adaptnav.service.transport import codec
 
 METADATA_NAME = "adaptnav"
 ADAPTNAV_TOPIC_PREFIX = "/adaptnav/"  # our messages; other topics (Foxglove's schemas) are skipped on reading
+SKIPPED = "skipped"  # key of write_mcap's counts: messages that could not be written
+log = logging.getLogger(__name__)
 
 
 class LogError(Exception):
@@ -58,10 +61,14 @@ class ReadStats:
     per_kind: dict[str, int] = field(default_factory=dict)
 
 
+_MAX_NS = 2**64 - 1
+
+
 def _ns(t_s: float) -> int:
-    if not math.isfinite(t_s) or t_s < 0:
-        return 0  # MCAP times are unsigned; such a sample is judged by whoever reads it
-    return int(round(t_s * 1e9))
+    ns = t_s * 1e9
+    if not math.isfinite(ns) or ns < 0 or ns > _MAX_NS:
+        return 0  # MCAP times are unsigned 64-bit; such a sample is judged by whoever reads it
+    return int(round(ns))
 
 
 def _imu_rows(batch: ImuBatch) -> Iterator[tuple[float, bytes]]:
@@ -102,7 +109,9 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
 
     Returns
     -------
-    dict kind → number of messages written
+    dict kind → number of messages written (``"skipped"``: messages that could not be
+    encoded, skipped and logged; the file is finished properly even when the iterable
+    raises, e.g. on SIGTERM, and each completed chunk is readable after a SIGKILL)
     """
     counts: dict[str, int] = {}
     channels: dict[str, int] = {}
@@ -128,34 +137,46 @@ def write_mcap(path: str | Path, samples_iterable: Iterable[Any], metadata: dict
                                                          message_encoding="json", schema_id=sid)
             return channels[kind]
 
-        for item in samples_iterable:
-            if isinstance(item, ImuBatch):
-                cid = channel("imu")
-                n = 0
-                for t, data in _imu_rows(item):
-                    ns = log_ns(t)
-                    writer.add_message(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
-                    seq += 1
-                    n += 1
-                counts["imu"] = counts.get("imu", 0) + n
-            else:
-                kind = codec.kind_of(item)
-                cid = channel(kind)
-                ns = log_ns(codec.time_of(item))
-                writer.add_message(cid, log_time=ns, data=codec.encode(item), publish_time=ns, sequence=seq)
-                seq += 1
-                n = 1
-                counts[kind] = counts.get(kind, 0) + 1
-                for topic, sname, senc, sdata, menc, data in (extra(item) if extra is not None else ()):
-                    if topic not in channels:
-                        sid = writer.register_schema(name=sname, encoding=senc, data=sdata)
-                        channels[topic] = writer.register_channel(topic=topic, message_encoding=menc,
-                                                                  schema_id=sid)
-                    writer.add_message(channels[topic], log_time=ns, data=data, publish_time=ns, sequence=seq)
-                    seq += 1
-            if progress is not None:
-                progress(n)
-        writer.finish()
+        try:
+            for item in samples_iterable:
+                try:
+                    if isinstance(item, ImuBatch):
+                        cid = channel("imu")
+                        n = 0
+                        for t, data in _imu_rows(item):
+                            ns = log_ns(t)
+                            writer.add_message(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
+                            seq += 1
+                            n += 1
+                        counts["imu"] = counts.get("imu", 0) + n
+                    else:
+                        kind = codec.kind_of(item)
+                        data = codec.encode(item)
+                        cid = channel(kind)
+                        ns = log_ns(codec.time_of(item))
+                        writer.add_message(cid, log_time=ns, data=data, publish_time=ns, sequence=seq)
+                        seq += 1
+                        n = 1
+                        counts[kind] = counts.get(kind, 0) + 1
+                        for topic, sname, senc, sdata, menc, xdata in (extra(item) if extra is not None else ()):
+                            if topic not in channels:
+                                sid = writer.register_schema(name=sname, encoding=senc, data=sdata)
+                                channels[topic] = writer.register_channel(topic=topic, message_encoding=menc,
+                                                                          schema_id=sid)
+                            writer.add_message(channels[topic], log_time=ns, data=xdata, publish_time=ns,
+                                               sequence=seq)
+                            seq += 1
+                except (SampleError, ValueError, TypeError, OverflowError) as e:
+                    # one message that cannot be written must not lose the recording
+                    counts[SKIPPED] = counts.get(SKIPPED, 0) + 1
+                    if counts[SKIPPED] <= 10:
+                        log.warning("%s: message skipped (%s: %s)", path, type(e).__name__, e)
+                    continue
+                stream.flush()  # a finished chunk goes to disk at once (readable after a SIGKILL); else a no-op
+                if progress is not None:
+                    progress(n)
+        finally:  # also on an exception or a signal: a complete file with what was written
+            writer.finish()
     return counts
 
 
