@@ -231,6 +231,23 @@ class ServiceConfig:
     state_dir: str = "/var/lib/adaptnav"
 
 
+def read_config_file(path: str | Path) -> dict:
+    """The raw TOML tree of a config file; :class:`ConfigError` (one line) when it is
+    missing, unreadable, not text or not TOML."""
+    import tomllib
+
+    try:
+        return tomllib.loads(Path(path).read_text())
+    except FileNotFoundError as e:
+        raise ConfigError(f"config file {path}: not found") from e
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path}: TOML syntax: {e}") from e
+    except UnicodeDecodeError as e:  # a binary or foreign file
+        raise ConfigError(f"config file {path}: not a text (UTF-8) TOML file ({e.reason} at byte {e.start})") from e
+    except OSError as e:
+        raise ConfigError(f"config file {path}: {e.strerror or e}") from e
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ServiceConfig:
     """Load ``path`` (TOML; ``None`` = all defaults), apply ``overrides``, validate.
 
@@ -239,16 +256,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     ConfigError
         With the offending dotted key in the message.
     """
-    import tomllib
-
-    raw: dict = {}
-    if path is not None:
-        try:
-            raw = tomllib.loads(Path(path).read_text())
-        except FileNotFoundError as e:
-            raise ConfigError(f"config file {path}: not found") from e
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"config file {path}: TOML syntax: {e}") from e
+    raw: dict = read_config_file(path) if path is not None else {}
     return build(ServiceConfig, apply_overrides(raw, list(overrides)))
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from adaptnav.fusion.aiding import FIX_KINDS
-from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
+from adaptnav.fusion.typed_config import apply_overrides, as_dict, build
 
 from adaptnav.service.runtime.clock import LogClock, RealtimeClock
 from adaptnav.service.runtime.events import LifecycleLog
@@ -111,18 +111,11 @@ def _merge(base: dict, top: dict) -> dict:
 def build_config(scenario: Any = None, config_path: str | Path | None = None,
                  overrides: list[str] | tuple[str, ...] = ()) -> Any:
     """Effective :class:`ServiceConfig` (precedence in the module docstring)."""
-    import tomllib
-
-    from adaptnav.service.config import ServiceConfig
+    from adaptnav.service.config import ServiceConfig, read_config_file
 
     raw: dict = config_raw_from_scenario(scenario) if scenario is not None else {}
     if config_path is not None:
-        try:
-            raw = _merge(raw, tomllib.loads(Path(config_path).read_text()))
-        except FileNotFoundError as e:
-            raise ConfigError(f"config file {config_path}: not found") from e
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"config file {config_path}: TOML syntax: {e}") from e
+        raw = _merge(raw, read_config_file(config_path))
     return build(ServiceConfig, apply_overrides(raw, list(overrides)))
 
 
@@ -377,17 +370,38 @@ def _filter_report(estimator: Any) -> dict:
             "invalid_reasons_at_end": estimator.invalid_reasons()}
 
 
+# a first fix is taken for the origin only when the next fix is within reach of it at
+# this speed (+ 3σ): a mis-stamped or mis-placed first fix must not move the origin
+_ORIGIN_CONFIRM_SPEED_M_S = 5.0
+
+
+def _fixes_agree(a: Any, b: Any) -> bool:
+    """Two fixes within reach of each other (great-circle distance on a sphere)."""
+    d_m = 6.371e6 * math.hypot(b.lat_rad - a.lat_rad, (b.lon_rad - a.lon_rad) * math.cos(a.lat_rad))
+    return d_m <= _ORIGIN_CONFIRM_SPEED_M_S * abs(b.t_s - a.t_s) + 3.0 * math.hypot(a.sigma_h_m, b.sigma_h_m)
+
+
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):
-    """Items read until the first finite GNSS/USBL fix (included), at most ``max_data_s``
-    of data or ``max_items``; returns (items read, the fix or None)."""
+    """Items read until a GNSS/USBL fix confirmed by the next one (both included), at most
+    ``max_data_s`` of data or ``max_items``; returns (items read, the fix or None). A fix
+    the next one does not confirm is passed over (logged); with a single fix in the window,
+    that one (logged as unconfirmed)."""
     head: list = []
     t0 = None
+    candidate = None
     for item in items:
         head.append(item)
         kind = getattr(item, "KIND", None)
         if kind in FIX_KINDS and math.isfinite(item.lat_rad) and math.isfinite(item.lon_rad) \
-                and (item.lat_rad != 0.0 or item.lon_rad != 0.0):
-            return head, item
+                and (item.lat_rad != 0.0 or item.lon_rad != 0.0) and math.isfinite(item.t_s):
+            if candidate is None:
+                candidate = item
+            elif _fixes_agree(candidate, item):
+                return head, candidate
+            else:
+                log.warning("replay: the %s fix at t=%.3f s is not confirmed by the next one (t=%.3f s): "
+                            "not taken for the origin", candidate.KIND, candidate.t_s, item.t_s)
+                candidate = item
         t = getattr(item, "t_s", None)
         if kind == "imu_batch":
             t = float(item.t_s[-1]) if len(item) else None
@@ -397,7 +411,10 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
                 break
         if len(head) >= max_items:
             break
-    return head, None
+    if candidate is not None:
+        log.warning("replay: origin from a single %s fix at t=%.3f s, not confirmed by another",
+                    candidate.KIND, candidate.t_s)
+    return head, candidate
 
 
 def _finite_or_none(x: Any) -> float | None:

@@ -18,6 +18,7 @@ asked for more), in which case the IMU samples are withheld and attitude is used
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -31,6 +32,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 )
 from adaptnav.fusion.frames import wrap_angle
 from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
+
+log = logging.getLogger(__name__)
 
 from pymavlink import mavutil  # noqa: E402
 
@@ -146,7 +149,12 @@ class TlogSource:
 
     # --------------------------------------------------------------------- iteration
     def _messages(self) -> Iterator[Any]:
-        conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        try:
+            conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        except Exception as e:  # noqa: BLE001 — empty or foreign file (DFReader mmaps it): nothing to read
+            self._reject(f"unreadable:{type(e).__name__}")
+            log.warning("%s: not a readable MAVLink/DataFlash log (%s: %s)", self.path.name, type(e).__name__, e)
+            return
         try:
             while True:
                 try:
