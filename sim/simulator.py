@@ -143,7 +143,7 @@ def _sonar_pings(scenario: Scenario, truth: sensors.TruthInterpolator, dense: De
     offset = np.array([pos[:, 0].min() - margin, pos[:, 1].min() - margin])
     extent = (float(pos[:, 0].max() + margin - offset[0]), float(pos[:, 1].max() + margin - offset[1]))
     n_objects = int(round(cfg.objects_per_hectare * extent[0] * extent[1] / 1e4))
-    seabed = Seabed.random(extent, rngs["sonar_seabed"], n_objects=n_objects, res_m=cfg.seabed_res_m)
+    seabed = Seabed.survey(extent, rngs["sonar_seabed"], n_objects=n_objects, res_m=cfg.seabed_res_m)
     renderer = SidescanRenderer(seabed, cfg.range_m, cfg.samples_per_side)
     t = sensors.sample_times(cfg.ping_rate_hz, scenario.duration_s)
     p = truth.pos(t)

@@ -1,10 +1,12 @@
-"""`adaptnav experiment thesis`: the seed's §3.6 table (static vs learned motion model).
+"""`adaptnav experiment thesis`: the seed's §3.6 table (static vs learned motion model);
+`adaptnav experiment landmarks`: side-scan object landmarks re-found on reciprocal legs.
 
-See :mod:`adaptnav.calibration.thesis` for the simulation, the controls chosen and the learner.
+See :mod:`adaptnav.calibration.thesis` for the simulation, the controls chosen and the learner,
+and :mod:`adaptnav.service.tools.landmarks_experiment` for the landmark survey.
 """
 from __future__ import annotations
 
-HELP = "reproduce the thesis experiments (static vs learned motion model)"
+HELP = "reproduce the thesis experiments (static vs learned motion model); side-scan landmark survey"
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -15,7 +17,9 @@ def _pair(text: str) -> tuple[float, float]:
 
 
 def add_arguments(parser):
-    parser.add_argument("name", choices=("thesis",), help="which experiment")
+    parser.add_argument("name", choices=("thesis", "landmarks"), help="which experiment")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="landmarks: scenario key override (e.g. seed=7, duration_s=1800); repeatable")
     parser.add_argument("--seeds", type=int, default=20, help="seeds per row (default 20)")
     parser.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--jobs", type=int, default=0,
@@ -85,8 +89,29 @@ def _nothing():
     return contextlib.nullcontext()
 
 
+def _run_landmarks(args) -> int:
+    import json
+
+    from adaptnav.fusion.typed_config import ConfigError
+    from adaptnav.service.tools.landmarks_experiment import load, run
+
+    try:
+        scenario = load(args.overrides)
+    except (ConfigError, ValueError) as e:
+        raise SystemExit(f"adaptnav experiment landmarks: {e}")
+    result = run(scenario).to_dict()
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for k, v in result.items():
+            print(f"{k:34s} {v}")
+    return 0
+
+
 def run(args):
     import json
+    if args.name == "landmarks":
+        return _run_landmarks(args)
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed

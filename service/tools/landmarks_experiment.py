@@ -1,0 +1,221 @@
+"""`adaptnav experiment landmarks`: side-scan objects re-found on reciprocal legs, and what they buy.
+
+The survey scenario (reciprocal lawnmower legs 50 m apart, side-scan of 50 m range at 10 m
+altitude, so every seabed point between two legs is seen from both at ground ranges g and
+≈ 50 − g) with USBL lost after 20 min and no DVL, simulated once; two filters run over it
+side by side:
+
+* **with landmarks**: every ping is placed by this filter's navigation (position, its
+  covariance, heading); :class:`adaptnav.sonar.objects.ObjectFrontEnd` detects objects in
+  blocks, :class:`adaptnav.sonar.association.LegAssociator` associates each block with the
+  earlier legs inside the filter's covariance, and every loop closure is fused by the filter
+  (:meth:`adaptnav.fusion.eskf.Estimator.fuse_loop_closure`, stochastic clones);
+* **without**: the same filter without the side-scan.
+
+Scored against the simulator's truth (the seabed's objects, the true track):
+
+* ``objects_in_common_swath``: objects that two consecutive (reciprocal) legs both pass
+  abeam at a ground range within ``[min_range_m, max_range_m]`` (the usable swath: nearer
+  the nadir a shadow is too short to measure);
+* ``objects_reassociated_fraction``: of those, the fraction in at least one accepted pair
+  whose two sightings are truly that object, one from each of the two legs;
+* ``false_link_fraction``: accepted pairs whose sightings are not the same object;
+* ``links_per_km``: loop closures per km travelled;
+* ``drift_percent_with_landmarks`` / ``drift_percent_without_landmarks``: horizontal error
+  at the end / distance travelled since the last USBL fix, %.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+# the survey, shortened to 40 min, USBL lost after 20 min, side-scan on, no DVL
+BASE_OVERRIDES = ("duration_s=2400.0", "usbl.lost_after_s=1200.0", "dvl.enabled=false",
+                  "sonar.enabled=true")
+
+
+@dataclass(frozen=True)
+class LandmarkScore:
+    """What :func:`run` measures (see the module docstring)."""
+
+    objects_in_common_swath: int
+    objects_reassociated: int
+    pairs: int
+    false_pairs: int
+    loop_closures: int
+    loop_closures_fused: int
+    distance_km: float
+    drift_percent_with_landmarks: float
+    drift_percent_without_landmarks: float
+    sightings: int
+    sightings_on_objects: int
+    seed: int
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        n = self.objects_in_common_swath
+        return {
+            "seed": self.seed,
+            "objects_in_common_swath": n,
+            "objects_reassociated_fraction": self.objects_reassociated / n if n else None,
+            "false_link_fraction": self.false_pairs / self.pairs if self.pairs else 0.0,
+            "links_per_km": self.loop_closures / self.distance_km if self.distance_km > 0 else None,
+            "drift_percent_with_landmarks": self.drift_percent_with_landmarks,
+            "drift_percent_without_landmarks": self.drift_percent_without_landmarks,
+            "pairs": self.pairs,
+            "false_pairs": self.false_pairs,
+            "loop_closures": self.loop_closures,
+            "loop_closures_fused": self.loop_closures_fused,
+            "sightings": self.sightings,
+            "sightings_on_objects": self.sightings_on_objects,
+            **self.extra,
+        }
+
+
+def load(overrides=()) -> Any:
+    """The experiment's scenario: survey + :data:`BASE_OVERRIDES` + ``overrides``."""
+    from adaptnav.sim.scenario import load_scenario
+
+    return load_scenario("survey", list(BASE_OVERRIDES) + list(overrides))
+
+
+def _legs(t: np.ndarray, yaw: np.ndarray, min_s: float = 60.0, max_rate_rad_s: float = 0.01) -> list[tuple[int, int]]:
+    """Index ranges [a, b) of straight legs: the yaw rate (over ±5 s) stays below
+    ``max_rate_rad_s`` for at least ``min_s``."""
+    y = np.unwrap(yaw)
+    k = 5
+    rate = np.zeros_like(y)
+    if y.size > 2 * k:
+        rate[k:-k] = (y[2 * k:] - y[:-2 * k]) / (t[2 * k:] - t[:-2 * k])
+        rate[:k], rate[-k:] = rate[k], rate[-k - 1]
+    straight = np.abs(rate) < max_rate_rad_s
+    legs = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], straight.astype(int), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if t[b - 1] - t[a] >= min_s:
+            legs.append((int(a), int(b)))
+    return legs
+
+
+def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
+        max_range_m: float = 45.0, progress: bool = False) -> LandmarkScore:
+    """Simulate ``scenario`` and score the side-scan landmarks (see the module docstring)."""
+    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.service.runtime.replay import build_config
+    from adaptnav.sim.simulator import simulate
+    from adaptnav.sonar.association import LegAssociator
+    from adaptnav.sonar.objects import ObjectFrontEnd
+
+    res = simulate(scenario)
+    cfg = build_config(scenario)
+    params0 = cfg.motion.params0
+
+    def make():
+        return Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
+
+    est_with, est_without = make(), make()
+    fe, assoc = ObjectFrontEnd(), LegAssociator()
+    closures, fused = [], 0
+    sightings = []
+    for item in res.iter_blocks():
+        kind = item.KIND
+        if kind == "sonar":
+            if not (landmarks and est_with.initialized):
+                continue
+            ns = est_with.nav_state()
+            if not ns.valid:
+                continue
+            dt = item.t_s - ns.t_s
+            pos = ns.pos_n_m[:2] + ns.vel_n_m_s[:2] * dt
+            batch = fe.push(item, pos, ns.cov[:2, :2], ns.euler_rad()[2])
+            if batch:
+                sightings += batch
+                lc = assoc.add(batch)
+                if lc is not None:
+                    closures.append(lc)
+                    fuse = getattr(est_with, "fuse_loop_closure", None)
+                    if fuse is not None and any(s.fused for s in fuse(lc)):
+                        fused += 1
+            continue
+        est_with.process(item)
+        est_without.process(item)
+        if landmarks and kind == "imu_batch" and hasattr(est_with, "clone_position"):
+            est_with.clone_position()
+    return _score(scenario, res, est_with, est_without, sightings, closures, fused,
+                  min_range_m, max_range_m)
+
+
+def _score(scenario, res, est_with, est_without, sightings, closures, fused, min_range_m, max_range_m) -> LandmarkScore:
+    dense = res.dense
+    t = dense.t_s
+    step = max(int(round(1.0 / (t[1] - t[0]))), 1)  # 1 Hz truth is plenty
+    tt, pp, yy = t[::step], dense.pos_n_m[::step, :2], dense.euler_rad[::step, 2]
+    sb = res.seabed
+    objs = sb.seabed.objects_n_m + np.asarray(sb.origin_n_m)[None, :]
+    radius = sb.seabed.objects_radius_m
+
+    def truth_object(o) -> int:
+        p = np.array([np.interp(o.t_s, tt, pp[:, 0]), np.interp(o.t_s, tt, pp[:, 1])])
+        q = p + o.offset_n_m(float(np.interp(o.t_s, tt, yy)))
+        d = np.linalg.norm(objs - q[None], axis=1) - radius
+        k = int(np.argmin(d))
+        return k if d[k] <= 1.5 else -1
+
+    legs = _legs(tt, yy)
+    leg_of_t = np.full(tt.size, -1)
+    for i, (a, b) in enumerate(legs):
+        leg_of_t[a:b] = i
+
+    def leg(ts: float) -> int:
+        return int(leg_of_t[min(int(np.searchsorted(tt, ts)), tt.size - 1)])
+
+    # objects both of two consecutive legs pass abeam within the usable swath
+    common: dict[int, tuple[int, int]] = {}
+    for i in range(len(legs) - 1):
+        ga = _abeam_range(pp[legs[i][0]:legs[i][1]], objs)
+        gb = _abeam_range(pp[legs[i + 1][0]:legs[i + 1][1]], objs)
+        ok = (ga >= min_range_m) & (ga <= max_range_m) & (gb >= min_range_m) & (gb <= max_range_m)
+        for k in np.flatnonzero(ok):
+            common.setdefault(int(k), (i, i + 1))
+    found: set[int] = set()
+    n_pairs = n_false = 0
+    for lc in closures:
+        for a, b in lc.pairs:
+            n_pairs += 1
+            ka, kb = truth_object(a), truth_object(b)
+            if ka < 0 or ka != kb:
+                n_false += 1
+                continue
+            if ka in common and {leg(a.t_s), leg(b.t_s)} == set(common[ka]):
+                found.add(ka)
+    on_obj = sum(truth_object(o) >= 0 for o in sightings)
+    t_fix = scenario.usbl.lost_after_s if scenario.usbl.enabled and scenario.usbl.lost_after_s else 0.0
+    i0 = int(np.searchsorted(tt, t_fix))
+    dist_outage = float(np.sum(np.linalg.norm(np.diff(pp[i0:], axis=0), axis=1)))
+    dist_all = float(np.sum(np.linalg.norm(np.diff(pp, axis=0), axis=1)))
+
+    def drift(est) -> float:
+        ns = est.nav_state()
+        k = min(int(np.searchsorted(t, ns.t_s)), t.size - 1)
+        err = float(np.linalg.norm(ns.pos_n_m[:2] - dense.pos_n_m[k, :2]))
+        return 100.0 * err / dist_outage if dist_outage > 0 else math.nan
+
+    return LandmarkScore(
+        objects_in_common_swath=len(common), objects_reassociated=len(found), pairs=n_pairs,
+        false_pairs=n_false, loop_closures=len(closures), loop_closures_fused=fused,
+        distance_km=dist_all / 1000.0, drift_percent_with_landmarks=drift(est_with),
+        drift_percent_without_landmarks=drift(est_without), sightings=len(sightings),
+        sightings_on_objects=int(on_obj), seed=int(scenario.seed))
+
+
+def _abeam_range(track: np.ndarray, objs: np.ndarray) -> np.ndarray:
+    """Ground range of each object at its closest approach to a leg; NaN when the closest
+    point is an end of the leg (the object is beyond it, not abeam)."""
+    d = np.linalg.norm(track[None, :, :] - objs[:, None, :], axis=2)
+    k = np.argmin(d, axis=1)
+    g = d[np.arange(objs.shape[0]), k]
+    g[(k < 3) | (k > track.shape[0] - 4)] = np.nan
+    return g

@@ -1,0 +1,291 @@
+r"""Object landmarks re-found on another leg: gated candidates, joint compatibility, loop closures.
+
+Each :class:`~adaptnav.sonar.objects.ObjectSighting` carries its position from the
+navigation at its ping, ``p̂ = p + e`` (``e`` the navigation error then) plus the detector's
+offset, the navigation's covariance ``P`` there and the detector's covariance ``D``. Two
+sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one object satisfy
+
+.. math:: p̂_a − p̂_b = e_a − e_b + n_a − n_b
+
+1. **Candidates** (individual compatibility): the Mahalanobis distance of ``p̂_a − p̂_b`` in
+   ``P_a + P_b + D_a + D_b`` — the navigation's own covariance at both times, so the gate
+   grows with the drift — is within the χ²₂ gate, and the view-independent attributes
+   agree: height (from the shadow) and along-track length within ``attribute_sigmas``.
+   Sightings of the same leg are not compared (``min_gap_s``).
+2. **Joint compatibility** (Neira & Tardós 2001, as used for side-scan by Fallon et al.
+   ICRA 2011): the navigation error is nearly common to a batch, so true pairs agree on one
+   rigid offset ``δ = e_a − e_b`` (a translation: the heading aid bounds rotation), wrong ones
+   scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
+   keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
+   ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
+   drift over the batch (``relative_sigma_m_s`` × time from the batch centre, on both legs).
+   Chance agreement is bounded: a wrong candidate falls inside a hypothesis' inlier region
+   with probability ≈ (inlier area / gate area); with λ the sum of those over the candidates,
+   a set of ``n`` needs ``P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` — a wide gate (a
+   drifting navigation) or many candidates ask for more objects.
+3. A set of at least ``min_objects`` is one **loop closure**: times ``t_a``, ``t_b`` (the
+   sightings' median times on each leg), offset ``δ`` and covariance
+   ``(Σ W_j)⁻¹`` (``W_j`` the inverse residual covariances), the number of objects.
+
+Reciprocal legs need nothing special here: attributes are view-independent and positions
+are in the local frame (the image is not matched, so its along-track order does not matter).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2, poisson
+
+from adaptnav.sonar.objects import ObjectSighting
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Gates of :class:`LegAssociator`.
+
+    Attributes
+    ----------
+    gate_probability : float
+        Individual χ²₂ gate of the candidates (navigation + detector covariances).
+    inlier_probability : float
+        χ²₂ gate of a pair's residual from a set's offset (detector + relative drift).
+    joint_probability : float
+        Joint χ² gate of an accepted set.
+    min_objects : int
+        Smallest jointly compatible set accepted as a loop closure.
+    min_gap_s : float
+        Sightings closer in time are the same leg (not compared).
+    attribute_sigmas : float
+        Attribute agreement threshold (σ).
+    height_sigma_m, height_sigma_fraction : float
+        1-σ of a height from the shadow: ``a + b h``.
+    length_sigma_m, length_sigma_fraction : float
+        1-σ of an along-track length.
+    relative_sigma_m_s : float
+        Relative navigation drift within a batch (m/s of time from its centre, per axis).
+    max_candidates_per_object : int
+        The nearest (Mahalanobis) old sightings kept per new one.
+    chance_probability : float
+        A set is accepted only if so many pairs agreeing with one hypothesis by chance is
+        this unlikely (see the module docstring; per hypothesis: the hypotheses overlap, and
+        a bound over all of them asked for twice the objects that were needed for no false
+        link on the seeds tried).
+    memory_s : float
+        Old sightings are forgotten after this long.
+    """
+
+    gate_probability: float = 0.999
+    inlier_probability: float = 0.99
+    joint_probability: float = 0.99
+    min_objects: int = 3
+    min_gap_s: float = 60.0
+    attribute_sigmas: float = 3.0
+    height_sigma_m: float = 0.12
+    height_sigma_fraction: float = 0.3
+    length_sigma_m: float = 0.5
+    length_sigma_fraction: float = 0.4
+    relative_sigma_m_s: float = 0.05
+    max_candidates_per_object: int = 8
+    memory_s: float = 3600.0
+    chance_probability: float = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class LoopClosure:
+    """Two legs' views of the same objects agree on one offset of the navigation error.
+
+    Attributes
+    ----------
+    t_a_s, t_b_s : float
+        Median sighting times on the earlier leg and on the new one (s).
+    offset_n_m : numpy.ndarray, shape (2,)
+        ``δ ≈ e(t_a) − e(t_b)``: the earlier leg's position error minus the new one's
+        (north, east; m). A filter that was right at ``t_a`` is off by ``−δ`` at ``t_b``.
+    cov : numpy.ndarray, shape (2, 2)
+        Covariance of ``offset_n_m`` (m²) from the detector and relative-drift terms.
+    n_objects : int
+        Objects that agree.
+    pairs : tuple of (ObjectSighting, ObjectSighting)
+        The (earlier, new) sightings.
+    nis : float
+        Joint normalised residual (χ² with 2n − 2 degrees of freedom).
+    """
+
+    t_a_s: float
+    t_b_s: float
+    offset_n_m: np.ndarray
+    cov: np.ndarray
+    n_objects: int
+    pairs: tuple = field(default=())
+    nis: float = math.nan
+
+    def to_record(self) -> dict:
+        """JSON-ready summary."""
+        return {"t_a_s": self.t_a_s, "t_b_s": self.t_b_s, "offset_n_m": [float(v) for v in self.offset_n_m],
+                "cov": [float(v) for v in np.asarray(self.cov).reshape(4)], "n_objects": self.n_objects,
+                "nis": self.nis}
+
+
+class LegAssociator:
+    """Keeps object sightings and finds loop closures for each new batch.
+
+    Parameters
+    ----------
+    config : AssociationConfig
+    """
+
+    def __init__(self, config: AssociationConfig = AssociationConfig()) -> None:
+        self.config = config
+        self._gate = float(chi2.ppf(config.gate_probability, 2))
+        self._inlier = float(chi2.ppf(config.inlier_probability, 2))
+        self._old: list[ObjectSighting] = []
+        self.candidates_seen = 0
+        self.batches = 0
+
+    @property
+    def sightings(self) -> list[ObjectSighting]:
+        return list(self._old)
+
+    def _attributes_agree(self, a: ObjectSighting, b: ObjectSighting) -> bool:
+        c = self.config
+        k = c.attribute_sigmas
+        if math.isfinite(a.height_m) and math.isfinite(b.height_m):
+            sa = c.height_sigma_m + c.height_sigma_fraction * a.height_m
+            sb = c.height_sigma_m + c.height_sigma_fraction * b.height_m
+            if abs(a.height_m - b.height_m) > k * math.hypot(sa, sb):
+                return False
+        if math.isfinite(a.length_along_m) and math.isfinite(b.length_along_m):
+            sa = c.length_sigma_m + c.length_sigma_fraction * a.length_along_m
+            sb = c.length_sigma_m + c.length_sigma_fraction * b.length_along_m
+            if abs(a.length_along_m - b.length_along_m) > k * math.hypot(sa, sb):
+                return False
+        return True
+
+    def candidates(self, batch: list[ObjectSighting]) -> list[tuple[int, int, float]]:
+        """(old index, batch index, Mahalanobis d²) of individually compatible pairs."""
+        c = self.config
+        if not self._old or not batch:
+            return []
+        t_new = min(o.t_s for o in batch)
+        old = [i for i, o in enumerate(self._old) if o.t_s < t_new - c.min_gap_s]
+        if not old:
+            return []
+        P_old = np.array([self._old[i].pos_n_m for i in old])
+        C_old = np.array([self._old[i].nav_cov + self._old[i].det_cov for i in old])
+        out = []
+        for j, b in enumerate(batch):
+            d = P_old - b.pos_n_m[None, :]
+            S = C_old + (b.nav_cov + b.det_cov)[None]
+            m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
+            near = np.flatnonzero(m2 <= self._gate)
+            near = near[np.argsort(m2[near])][: c.max_candidates_per_object]
+            for k in near:
+                if self._attributes_agree(self._old[old[k]], b):
+                    out.append((old[k], j, float(m2[k])))
+        return out
+
+    def _residual_cov(self, a: ObjectSighting, b: ObjectSighting, ta: float, tb: float) -> np.ndarray:
+        q = self.config.relative_sigma_m_s
+        rel = (q * (a.t_s - ta)) ** 2 + (q * (b.t_s - tb)) ** 2
+        return a.det_cov + b.det_cov + rel * np.eye(2)
+
+    def associate(self, batch: list[ObjectSighting]) -> LoopClosure | None:
+        """The largest jointly compatible set of candidate pairs for ``batch`` (or None)."""
+        c = self.config
+        cand = self.candidates(batch)
+        self.candidates_seen += len(cand)
+        if len(cand) < c.min_objects:
+            return None
+        old = self._old
+        diffs = np.array([old[i].pos_n_m - batch[j].pos_n_m for i, j, _ in cand])
+        ta = float(np.median([old[i].t_s for i, _, _ in cand]))
+        tb = float(np.median([batch[j].t_s for _, j, _ in cand]))
+        R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _ in cand])
+        W = np.linalg.inv(R)
+        S = np.array([old[i].nav_cov + old[i].det_cov + batch[j].nav_cov + batch[j].det_cov for i, j, _ in cand])
+        # chance inliers: the inlier region (rᵀWr ≤ inlier gate) over the candidate gate's area
+        ratio = (self._inlier / self._gate) * np.sqrt(np.linalg.det(R) / np.linalg.det(S))
+        lam = float(np.sum(np.minimum(ratio, 1.0)))
+        n_min = c.min_objects
+        while n_min <= len(cand) and float(poisson.sf(n_min - 2, lam)) > c.chance_probability:
+            n_min += 1
+        if n_min > len(cand):
+            return None
+        best: tuple[int, float, list[int]] | None = None
+        for h in range(len(cand)):
+            # the hypothesis is itself one noisy pair: its residuals have about twice the
+            # variance; the inliers it finds re-estimate the offset, which then selects
+            r = diffs - diffs[h]
+            inl = self._one_to_one(cand, 0.5 * np.einsum("ki,kij,kj->k", r, W, r))
+            if len(inl) < 2:
+                continue
+            r = diffs - self._mean(diffs, W, inl)
+            inl = self._one_to_one(cand, np.einsum("ki,kij,kj->k", r, W, r))
+            if len(inl) < n_min:
+                continue
+            sel = self._refine(diffs, W, inl, n_min)
+            if sel is None:
+                continue
+            r = diffs[sel] - self._mean(diffs, W, sel)
+            cost = float(np.sum(np.einsum("ki,kij,kj->k", r, W[sel], r)))
+            if best is None or len(sel) > best[0] or (len(sel) == best[0] and cost < best[1]):
+                best = (len(sel), cost, sel)
+        if best is None:
+            return None
+        sel = best[2]
+        info = W[sel].sum(axis=0)
+        cov = np.linalg.inv(info)
+        delta = self._mean(diffs, W, sel)
+        pairs = tuple((old[cand[k][0]], batch[cand[k][1]]) for k in sel)
+        return LoopClosure(t_a_s=float(np.median([p[0].t_s for p in pairs])),
+                           t_b_s=float(np.median([p[1].t_s for p in pairs])),
+                           offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=best[1])
+
+    def _one_to_one(self, cand, m2) -> list[int]:
+        """Inliers (m² within the inlier gate), each old and new sighting used once (best first)."""
+        used_a, used_b, out = set(), set(), []
+        for k in np.argsort(m2):
+            if m2[k] > self._inlier:
+                break
+            i, j, _ = cand[k]
+            if i in used_a or j in used_b:
+                continue
+            used_a.add(i)
+            used_b.add(j)
+            out.append(int(k))
+        return out
+
+    @staticmethod
+    def _mean(diffs, W, sel) -> np.ndarray:
+        info = W[sel].sum(axis=0)
+        return np.linalg.solve(info, np.einsum("kij,kj->i", W[sel], diffs[sel]))
+
+    def _refine(self, diffs, W, sel: list[int], n_min: int) -> list[int] | None:
+        """Drop the worst pair until the set is jointly compatible (χ² with 2n − 2 dof)."""
+        sel = list(sel)
+        while len(sel) >= n_min:
+            r = diffs[sel] - self._mean(diffs, W, sel)
+            m2 = np.einsum("ki,kij,kj->k", r, W[sel], r)
+            if float(m2.sum()) <= chi2.ppf(self.config.joint_probability, 2 * len(sel) - 2) \
+                    and float(m2.max()) <= self._inlier:
+                return sel
+            sel.pop(int(np.argmax(m2)))
+        return None
+
+    def add(self, batch: list[ObjectSighting]) -> LoopClosure | None:
+        """Associate ``batch`` with the stored sightings, then store it.
+
+        Every sighting needs ``pos_n_m``, ``nav_cov`` and ``det_cov``
+        (:func:`adaptnav.sonar.objects.with_navigation`).
+        """
+        for o in batch:
+            if o.pos_n_m is None or o.nav_cov is None or o.det_cov is None:
+                raise ValueError("object sightings need pos_n_m, nav_cov and det_cov (with_navigation)")
+        self.batches += 1
+        lc = self.associate(list(batch))
+        if batch:
+            t_new = max(o.t_s for o in batch)
+            self._old = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
+        return lc

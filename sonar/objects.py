@@ -1,0 +1,440 @@
+r"""Object landmarks on side-scan: highlight → acoustic shadow, with view-independent attributes.
+
+An object standing on a flat seabed, seen from the side at altitude ``H``, returns a
+*highlight* on its face towards the sonar and hides the seabed behind it: an acoustic
+*shadow* that starts at the object's top (ground range ``g``) and is ``L`` long. Similar
+triangles give its height (independent of the side it is seen from, which is what makes
+it a landmark for reciprocal legs; Blondel, *The Handbook of Sidescan Sonar*, §4.5; Reed
+et al., IEEE JOE 2003):
+
+.. math:: h = H \, L / (g + L)
+
+Canonical image (Xu et al. 2023, "canonical transformation" of side-scan): the
+ground-range waterfall of :func:`adaptnav.sonar.waterfall.build_waterfall` (slant → ground
+range with the altitude; every column divided by its median over pings — the beam pattern
+and the incidence-angle falloff, which depend on range only; every row by its median —
+ping gain) is further divided by a local background (a box mean over a few metres) so that
+a mud patch (dark) or gravel (bright) does not look like a shadow or a highlight.
+
+Detection (:func:`detect_objects`), per side with columns ordered outwards:
+
+1. shadow pixels: local level < ``shadow_level``; connected components (8-neighbours) of
+   at least ``min_shadow_px`` pixels and ``min_shadow_m`` long across-track;
+2. a component is an object when, on some of its rows, the ``highlight_window_m`` just
+   before its near edge holds a highlight (local level > ``highlight_level``);
+3. attributes: the ping (row) at its centre, ground range of the top ``g`` (the shadow's
+   near edge, median over rows), the leading edge of the highlight, shadow length ``L``
+   (largest over rows), height ``h``, along-track extent (rows × metres per row) and
+   across-track extent (leading edge to top). The position reported is midway between
+   the leading edge and the top; its across-track error is a fraction of the object's
+   size (the face seen differs between the two sides), in the covariance.
+
+SIFT/ORB keypoints (:mod:`adaptnav.sonar.landmarks`) remain for texture-rich seabeds.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.ndimage import find_objects, gaussian_filter, label, uniform_filter
+
+from adaptnav.sonar.waterfall import Waterfall
+
+
+@dataclass(frozen=True)
+class ObjectDetectorConfig:
+    """Thresholds of :func:`detect_objects` (levels relative to the local background).
+
+    Attributes
+    ----------
+    shadow_level, highlight_level : float
+        Local level below which a pixel is shadow, above which it is highlight.
+    background_m : float
+        Side (m) of the box over which the local background is averaged.
+    smooth_px : (float, float)
+        Gaussian smoothing (rows, columns; pixels) before thresholding (speckle).
+    min_contrast : float
+        Mean highlight level over mean shadow level of an object, at least.
+    min_shadow_px : int
+        Smallest shadow component (pixels).
+    min_shadow_m : float
+        Shortest shadow across-track (m) on its longest row.
+    highlight_window_m : float
+        Ground-range window before the shadow's near edge searched for the highlight (m).
+    min_highlight_rows : int
+        Rows of the component that must have a highlight before them.
+    min_ground_range_m : float
+        Objects nearer the track are dropped (nadir: shadows too short to measure).
+    merge_m : float
+        Detections closer than this (across and along) are one object (a tyre casts two
+        shadows; a wreck several): the one with the longer shadow is kept.
+    sigma_across_m, sigma_along_m : float
+        Base 1-σ of the reported position (m), before the size-dependent part.
+    size_fraction : float
+        Position 1-σ grows by this fraction of the object's extent.
+    """
+
+    shadow_level: float = 0.5
+    highlight_level: float = 1.7
+    min_contrast: float = 6.5
+    background_m: float = 6.0
+    smooth_px: tuple[float, float] = (0.5, 0.7)
+    min_shadow_px: int = 6
+    min_shadow_m: float = 0.45
+    highlight_window_m: float = 1.5
+    min_highlight_rows: int = 1
+    min_ground_range_m: float = 4.0
+    merge_m: float = 1.5
+    sigma_across_m: float = 0.15
+    sigma_along_m: float = 0.2
+    size_fraction: float = 0.15
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectSighting:
+    """One object seen on one side-scan pass.
+
+    Attributes
+    ----------
+    t_s : float
+        Time of the ping that saw it abeam (s).
+    side : str
+        ``"port"`` or ``"starboard"``.
+    ground_range_m : float
+        Horizontal distance of the object's centre from the track (m).
+    height_m : float
+        Height from the shadow, ``H L / (g + L)`` (m).
+    shadow_length_m : float
+        Longest shadow (m).
+    length_along_m, width_across_m : float
+        Along-track extent (rows × metres per row; NaN when the along spacing is unknown)
+        and across-track extent (highlight leading edge to top), m.
+    contrast : float
+        Mean highlight level / mean shadow level.
+    altitude_m : float
+        Altitude used (m).
+    row : float
+        Waterfall row of the centre.
+    pos_n_m : numpy.ndarray or None, shape (2,)
+        Local (north, east) from the navigation at ``t_s`` (set by the front end).
+    nav_cov : numpy.ndarray or None, shape (2, 2)
+        Covariance of the navigation's horizontal position at ``t_s`` (m²).
+    det_cov : numpy.ndarray or None, shape (2, 2)
+        Covariance (north, east) of the position relative to the vehicle (m²): the
+        detector's error.
+    heading_rad : float
+        Heading at ``t_s`` (rad).
+    """
+
+    t_s: float
+    side: str
+    ground_range_m: float
+    height_m: float
+    shadow_length_m: float
+    length_along_m: float
+    width_across_m: float
+    contrast: float
+    altitude_m: float
+    row: float = math.nan
+    pos_n_m: np.ndarray | None = None
+    nav_cov: np.ndarray | None = None
+    det_cov: np.ndarray | None = None
+    heading_rad: float = math.nan
+
+    def offset_n_m(self, yaw_rad: float) -> np.ndarray:
+        """(north, east) of the object relative to the vehicle at ``t_s`` (m)."""
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        sign = 1.0 if self.side == "starboard" else -1.0
+        return sign * self.ground_range_m * np.array([-s, c])
+
+    def detector_covariance(self, yaw_rad: float, config: "ObjectDetectorConfig") -> np.ndarray:
+        """2×2 (north, east) covariance of :meth:`offset_n_m` (m²).
+
+        Along-track: base σ + a fraction of the along extent; across-track: base σ + a
+        fraction of the across extent (which face is lit depends on the side).
+        """
+        along = self.length_along_m if math.isfinite(self.length_along_m) else 1.0
+        s_al = config.sigma_along_m + config.size_fraction * along
+        s_ac = config.sigma_across_m + config.size_fraction * self.width_across_m
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        R = np.array([[c, -s], [s, c]])  # columns: forward, starboard in (n, e)
+        return R @ np.diag([s_al ** 2, s_ac ** 2]) @ R.T
+
+
+def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
+                config: ObjectDetectorConfig) -> np.ndarray:
+    """Image divided by its local background (box mean over ``background_m``), smoothed.
+
+    Pixels without data (0) stay 1 (neither shadow nor highlight).
+    """
+    data = image > 0
+    img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
+    wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
+    img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
+    along = along_res_m if math.isfinite(along_res_m) and along_res_m > 0 else ground_res_m
+    box = (max(int(round(config.background_m / along)), 3), max(int(round(config.background_m / ground_res_m)), 3))
+    num = uniform_filter(np.where(data, img, 0.0), box)
+    den = uniform_filter(data.astype(np.float32), box)
+    bg = np.divide(num, den, out=np.ones_like(num), where=den > 1e-3)
+    lev = np.divide(img, bg, out=np.ones_like(img), where=bg > 1e-6)
+    lev[~data] = 1.0
+    return lev
+
+
+def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
+                   config: ObjectDetectorConfig = ObjectDetectorConfig()) -> list[ObjectSighting]:
+    """Highlight → shadow objects of a ground-range waterfall (see the module docstring).
+
+    Parameters
+    ----------
+    waterfall : Waterfall
+        Ground-range image (any along-track sampling; one row per ping is typical).
+    along_m : numpy.ndarray, shape (M,), optional
+        Along-track distance of every row (m), e.g. from the navigation; default the
+        waterfall's own ``along_m`` (NaN when the speed was unknown: along extents NaN).
+    config : ObjectDetectorConfig
+
+    Returns
+    -------
+    list of ObjectSighting
+        Sorted by time, without navigation (``pos_n_m`` etc. None).
+    """
+    img = waterfall.image
+    n_rows = img.shape[0]
+    if n_rows < 3:
+        return []
+    along = np.asarray(waterfall.along_m if along_m is None else along_m, dtype=float)
+    step = np.diff(along)
+    along_res = float(np.median(step)) if step.size and np.all(np.isfinite(step)) else math.nan
+    res = waterfall.ground_res_m
+    lev = local_level(img, res, along_res, config)
+    w = waterfall.n_side
+    rows = np.arange(n_rows, dtype=float)
+    out: list[ObjectSighting] = []
+    for side, sub in (("starboard", lev[:, w:]), ("port", lev[:, w - 1::-1])):
+        alt = waterfall.altitude_m[:, 1 if side == "starboard" else 0]
+        out += _detect_side(sub, side, res, along, along_res, rows, waterfall, alt, config)
+    out = _merge(out, config.merge_m, along_res)
+    return sorted(out, key=lambda o: o.t_s)
+
+
+def _detect_side(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
+    shadow = lev < config.shadow_level
+    lab, n = label(shadow, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return []
+    hw = max(int(round(config.highlight_window_m / res)), 2)
+    min_cols = max(int(round(config.min_shadow_m / res)), 1)
+    min_col0 = int(config.min_ground_range_m / res)
+    out = []
+    for k, sl in enumerate(find_objects(lab), start=1):
+        if sl is None:
+            continue
+        comp = lab[sl] == k
+        if comp.sum() < config.min_shadow_px:
+            continue
+        r0, c0 = sl[0].start, sl[1].start
+        has = comp.any(axis=1)
+        comp_rows = np.flatnonzero(has)
+        near = np.argmax(comp, axis=1)[has] + c0             # first shadow column per row
+        far = comp.shape[1] - np.argmax(comp[:, ::-1], axis=1)[has] + c0  # one past the last
+        length_px = far - near
+        if length_px.max() < min_cols or np.median(near) < min_col0:
+            continue
+        hl_rows, lead, hl_vals = [], [], []
+        for rr, cn in zip(comp_rows + r0, near):
+            a = max(cn - hw, 0)
+            seg = lev[rr, a:cn]
+            if seg.size == 0:
+                continue
+            j = int(np.argmax(seg))
+            if seg[j] > config.highlight_level:
+                hl_rows.append(rr)
+                hl_vals.append(float(seg[j]))
+                # leading edge: the nearest column of the bright run that ends at the shadow
+                bright = seg > 0.5 * (1.0 + config.highlight_level)
+                jj = j
+                while jj > 0 and bright[jj - 1]:
+                    jj -= 1
+                lead.append(a + jj)
+        if len(hl_rows) < config.min_highlight_rows:
+            continue
+        g_top = (float(np.median(near)) + 0.5) * res
+        g_lead = (float(np.median(lead)) + 0.5) * res
+        L = float(length_px.max()) * res
+        rc = float(np.mean(np.concatenate([np.asarray(hl_rows, float), comp_rows + r0])))
+        ping = float(np.interp(rc, rows, wf.ping_index))
+        H = float(np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping))
+        if not math.isfinite(H) or H <= 0:
+            continue
+        touches_end = np.any(far >= lev.shape[1] - 1)
+        height = H * L / (g_top + L) if not touches_end else math.nan
+        span_rows = (min(hl_rows + [comp_rows[0] + r0]), max(hl_rows + [comp_rows[-1] + r0]))
+        length = (float(np.interp(span_rows[1] + 0.5, rows, along) - np.interp(span_rows[0] - 0.5, rows, along))
+                  if math.isfinite(along_res) else math.nan)
+        shadow_mean = float(lev[sl][comp].mean())
+        contrast = float(np.mean(hl_vals)) / max(shadow_mean, 1e-3)
+        if contrast < config.min_contrast:
+            continue
+        out.append(ObjectSighting(
+            t_s=float(np.interp(rc, rows, wf.t_s)), side=side,
+            ground_range_m=0.5 * (g_lead + g_top), height_m=height, shadow_length_m=L,
+            length_along_m=abs(length), width_across_m=max(g_top - g_lead, res),
+            contrast=contrast, altitude_m=H, row=rc,
+            heading_rad=float(np.interp(rc, rows, np.unwrap(wf.heading_rad)))))
+    return out
+
+
+def _merge(objs: list[ObjectSighting], merge_m: float, along_res: float) -> list[ObjectSighting]:
+    """One detection per object: of those within ``merge_m`` (same side), the longest shadow."""
+    row_m = along_res if math.isfinite(along_res) and along_res > 0 else 0.4
+    order = sorted(range(len(objs)), key=lambda i: -objs[i].shadow_length_m)
+    kept: list[ObjectSighting] = []
+    for i in order:
+        o = objs[i]
+        if any(k.side == o.side and abs(k.ground_range_m - o.ground_range_m) <= merge_m + 0.5 * k.width_across_m
+               and abs(k.row - o.row) * row_m <= merge_m + 0.5 * (k.length_along_m if math.isfinite(k.length_along_m) else 0)
+               for k in kept):
+            continue
+        kept.append(o)
+    return kept
+
+
+def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
+                    config: ObjectDetectorConfig = ObjectDetectorConfig()) -> ObjectSighting:
+    """The sighting placed in the local frame from the vehicle pose at its ping.
+
+    Parameters
+    ----------
+    pos_n_m : (2,) array
+        Vehicle (north, east) at ``obj.t_s`` (m).
+    nav_cov : (2, 2) array
+        Covariance of that position (m²), e.g. the ESKF's.
+    yaw_rad : float
+        Heading at ``obj.t_s``.
+    """
+    p = np.asarray(pos_n_m, float)[:2] + obj.offset_n_m(yaw_rad)
+    return replace(obj, pos_n_m=p, nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
+                   det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad))
+
+
+@dataclass(frozen=True)
+class ObjectFrontEndConfig:
+    """How :class:`ObjectFrontEnd` cuts the ping stream into detection blocks.
+
+    Attributes
+    ----------
+    block_pings : int
+        Pings per block (one batch of sightings for the associator).
+    context_pings : int
+        Extra pings on each side of a block in its waterfall (objects at a block's edge
+        are seen whole; the column normalisation has enough rows).
+    ground_res_m : float
+        Across-track pixel size of the canonical image (m).
+    max_turn_rad : float
+        Sightings where the heading changes more than this over ±``context_pings``/2 are
+        dropped (the flat-track geometry of the image does not hold in a turn).
+    detector : ObjectDetectorConfig
+    """
+
+    block_pings: int = 160
+    context_pings: int = 20
+    ground_res_m: float = 0.1
+    max_turn_rad: float = 0.15
+    detector: ObjectDetectorConfig = ObjectDetectorConfig()
+
+
+class ObjectFrontEnd:
+    """Pings + the navigation at each ping → batches of placed object sightings.
+
+    Every ping comes with the navigation's horizontal position, its covariance and the
+    heading at the ping time (from the filter, not from the ping's own speed); a block's
+    rows are placed by that navigation, so the along-track spacing of the image is the
+    filter's and the sightings' positions and covariances are the filter's at their pings.
+
+    Parameters
+    ----------
+    config : ObjectFrontEndConfig
+    """
+
+    def __init__(self, config: ObjectFrontEndConfig = ObjectFrontEndConfig()) -> None:
+        from collections import deque
+
+        self.config = config
+        n = config.block_pings + 2 * config.context_pings
+        self._pings: deque = deque(maxlen=n)
+        self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4)
+        self._n = 0
+        self._next_emit = 0  # global index of the next block's first ping
+        self.blocks = 0
+        self.sightings = 0
+        self.rejected: dict[str, int] = {}
+
+    def push(self, ping, pos_n_m, nav_cov, yaw_rad: float) -> list[ObjectSighting]:
+        """Take one ping with the navigation at its time; return a block's sightings when one completes.
+
+        Parameters
+        ----------
+        ping : SonarPing
+        pos_n_m : (2,) array
+            Vehicle (north, east) at ``ping.t_s`` (m).
+        nav_cov : (2, 2) array
+            Its covariance (m²).
+        yaw_rad : float
+            Heading at ``ping.t_s`` (rad).
+        """
+        p = np.asarray(pos_n_m, float).reshape(-1)[:2]
+        cov = np.asarray(nav_cov, float).reshape(2, 2)
+        if not (math.isfinite(ping.t_s) and np.all(np.isfinite(p)) and np.all(np.isfinite(cov))
+                and math.isfinite(yaw_rad)):
+            self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
+            return []
+        if self._pings and (ping.t_s <= self._pings[-1].t_s or ping.n_samples != self._pings[-1].n_samples
+                            or ping.slant_range_m != self._pings[-1].slant_range_m):
+            self.rejected["out of order or other geometry"] = self.rejected.get("out of order or other geometry", 0) + 1
+            return []
+        self._pings.append(ping)
+        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4)))
+        self._n += 1
+        c = self.config
+        if self._n < self._next_emit + c.block_pings + c.context_pings:
+            return []
+        start = self._next_emit
+        self._next_emit += c.block_pings
+        return self._block(start)
+
+    def _block(self, start: int) -> list[ObjectSighting]:
+        from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
+
+        c = self.config
+        first = self._n - len(self._pings)  # global index of the buffer's first ping
+        pings = list(self._pings)
+        nav = np.array(self._nav)
+        try:
+            wf = build_waterfall(pings, WaterfallConfig(ground_res_m=c.ground_res_m, resample_along=False))
+        except ValueError:
+            self.rejected["waterfall failed"] = self.rejected.get("waterfall failed", 0) + 1
+            return []
+        self.blocks += 1
+        step = np.hypot(np.diff(nav[:, 0]), np.diff(nav[:, 1]))
+        along = np.concatenate([[0.0], np.cumsum(step)])
+        objs = detect_objects(wf, along_m=along, config=c.detector)
+        idx = np.arange(len(pings), dtype=float)
+        yaw_u = np.unwrap(nav[:, 2])
+        half = max(c.context_pings // 2, 1)
+        out = []
+        for o in objs:
+            gi = first + float(np.interp(o.t_s, [q.t_s for q in pings], idx))
+            if not start <= gi < start + c.block_pings:
+                continue
+            li = gi - first
+            a, b = max(int(li) - half, 0), min(int(li) + half, len(pings) - 1)
+            if abs(yaw_u[b] - yaw_u[a]) > c.max_turn_rad:
+                self.rejected["turning"] = self.rejected.get("turning", 0) + 1
+                continue
+            pos = (float(np.interp(li, idx, nav[:, 0])), float(np.interp(li, idx, nav[:, 1])))
+            cov = np.array([float(np.interp(li, idx, nav[:, 3 + k])) for k in range(4)]).reshape(2, 2)
+            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector))
+        self.sightings += len(out)
+        return out

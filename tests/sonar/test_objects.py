@@ -1,0 +1,155 @@
+"""Object landmarks: the realistic seabed, the highlight→shadow detector, association across
+reciprocal legs (sonar.objects, sonar.association, sim.seabed)."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from adaptnav.sim.seabed import OBJECT_KINDS, Seabed
+from adaptnav.sim.sidescan import SidescanRenderer
+from adaptnav.sonar.association import LegAssociator
+from adaptnav.sonar.objects import ObjectFrontEnd, detect_objects
+from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
+
+DS_M = 0.375      # along-track metres per ping (1.5 m/s, 4 Hz)
+ALT_M = 10.0
+
+
+def test_survey_seabed_has_objects_of_realistic_kinds_and_sizes():
+    a = Seabed.survey((120.0, 100.0), np.random.default_rng(5), n_objects=40)
+    b = Seabed.survey((120.0, 100.0), np.random.default_rng(5), n_objects=40)
+    assert np.array_equal(a.reflectivity, b.reflectivity) and np.array_equal(a.objects_n_m, b.objects_n_m)
+    kinds = list(a.objects_kind)
+    assert set(kinds) <= set(OBJECT_KINDS) and kinds.count("wreck") == 1
+    assert {"boulder", "debris", "tyre"} <= set(kinds) and len(kinds) == 41
+    for kind, (length, width), h in zip(kinds, a.objects_size_m, a.objects_height_m):
+        lo, hi = {"boulder": (0.3, 2.5), "debris": (0.3, 2.5), "tyre": (0.6, 1.0), "wreck": (4.0, 30.0)}[kind]
+        assert lo <= width <= length <= hi and 0.15 <= h <= 4.0
+    assert abs(float(a.reflectivity.mean()) - 1.0) < 0.25
+    # the seabed really is raised at the objects (the renderer draws their shadows from it)
+    solid = np.array([k != "tyre" for k in kinds])  # a tyre's centre is its hole
+    ij = np.round(a.objects_n_m[solid] / a.res_m).astype(int)
+    assert np.all(a.height_m[ij[:, 0], ij[:, 1]] > 0.1)
+
+
+def _pass(renderer, east_m, yaw_rad, n, rng, north0_m=10.0):
+    k = np.arange(n)
+    north = north0_m + (k if yaw_rad == 0.0 else n - 1 - k) * DS_M
+    pos = np.column_stack([north, np.full(n, east_m)])
+    pings = renderer.render_track(k * DS_M / 1.5, pos, yaw_rad, ALT_M, rng, 1.5)
+    return pings, pos
+
+
+@pytest.fixture(scope="module")
+def reciprocal_passes():
+    """Two reciprocal passes 50 m apart over a 150 m × 170 m realistic seabed (both swaths on it)."""
+    sb = Seabed.survey((150.0, 170.0), np.random.default_rng(11), n_objects=80, wreck=False)
+    ren = SidescanRenderer(sb, 50.0, 512)
+    rng = np.random.default_rng(12)
+    a = _pass(ren, 60.0, 0.0, 340, rng)
+    b = _pass(ren, 110.0, math.pi, 340, rng)
+    return sb, a, b
+
+
+def _truth_match(sb, true_pos, tol_m=1.5):
+    """Index of the object at each true position (−1: none within ``tol_m`` of its edge)."""
+    objs = sb.objects_n_m
+    out = []
+    for q in true_pos:
+        d = np.linalg.norm(objs - q[None], axis=1) - sb.objects_radius_m
+        k = int(np.argmin(d))
+        out.append(k if d[k] <= tol_m else -1)
+    return np.array(out)
+
+
+def _front_end(pings, pos, yaw, err_n_m, sigma_m, dt_s=0.0):
+    """Sightings of one pass placed with a navigation off by ``err_n_m`` (σ ``sigma_m``),
+    their times shifted by ``dt_s``; and their true positions (for scoring)."""
+    fe = ObjectFrontEnd()
+    out, true_pos = [], []
+    cov = np.eye(2) * sigma_m ** 2
+    for p, q in zip(pings, pos):
+        for s in fe.push(p, q + err_n_m, cov, yaw):
+            out.append(replace(s, t_s=s.t_s + dt_s))
+            true_pos.append(s.pos_n_m - err_n_m)
+    return out, true_pos
+
+
+def test_detector_finds_most_objects_with_few_false_ones_and_measures_height(reciprocal_passes):
+    sb, (pa, xa), (pb, xb) = reciprocal_passes
+    found, in_swath, n_true, n_false, h_err = set(), set(), 0, 0, []
+    for (pings, pos), yaw in (((pa, xa), 0.0), ((pb, xb), math.pi)):
+        s, tp = _front_end(pings, pos, yaw, np.zeros(2), 1.0)
+        k = _truth_match(sb, tp)
+        n_true += int((k >= 0).sum())
+        n_false += int((k < 0).sum())
+        g = np.abs(sb.objects_n_m[:, 1] - pos[0, 1])
+        sw = np.flatnonzero((g > 10.0) & (g < 45.0) & (sb.objects_n_m[:, 0] > pos[:, 0].min() + 9)
+                            & (sb.objects_n_m[:, 0] < pos[:, 0].max() - 9))
+        in_swath |= {(yaw, int(j)) for j in sw}
+        found |= {(yaw, int(j)) for j in k if j in sw}
+        h_err += [o.height_m / sb.objects_height_m[j] - 1 for o, j in zip(s, k) if j >= 0 and math.isfinite(o.height_m)]
+    precision = n_true / (n_true + n_false)
+    recall = len(found) / len(in_swath)
+    assert precision >= 0.85, (n_true, n_false)
+    assert recall >= 0.5, (len(found), len(in_swath))
+    # height from the shadow, seen from either side: biased low (the shadow's ends are
+    # soft) but the right size
+    assert -0.5 < float(np.median(h_err)) < 0.1
+
+
+def test_reciprocal_legs_give_one_loop_closure_with_the_navigation_offset(reciprocal_passes):
+    sb, (pa, xa), (pb, xb) = reciprocal_passes
+    e_a, e_b = np.array([1.0, -0.5]), np.array([-4.0, 2.5])  # navigation errors of the two legs
+    sa, ta = _front_end(pa, xa, 0.0, e_a, 2.0)
+    # the second leg flown later: its sightings' times after the first's
+    t_shift = pa[-1].t_s + 120.0
+    sb_, tb = _front_end(pb, xb, math.pi, e_b, 4.0, t_shift)
+    truth = {id(s): q for s, q in zip(sa + sb_, ta + tb)}
+    assoc = LegAssociator()
+    assert assoc.add(sa) is None  # nothing earlier to close on
+    # the new leg arrives in the front end's batches (blocks of pings)
+    blocks: dict[int, list] = {}
+    for s in sb_:
+        blocks.setdefault(math.floor((s.t_s - t_shift) / (160 * DS_M / 1.5)), []).append(s)
+    closures = [lc for lc in (assoc.add(b) for _, b in sorted(blocks.items())) if lc is not None]
+    assert closures, "no loop closure between reciprocal legs"
+    pairs = [p for lc in closures for p in lc.pairs]
+    ka = _truth_match(sb, [truth[id(p[0])] for p in pairs])
+    kb = _truth_match(sb, [truth[id(p[1])] for p in pairs])
+    assert np.mean((ka == kb) & (ka >= 0)) >= 0.9
+    for lc in closures:
+        r = lc.offset_n_m - (e_a - e_b)
+        # within 3σ of its covariance (+ the detector's side-dependent bias, ≲ 0.5 m)
+        assert float(np.sqrt(r @ np.linalg.solve(lc.cov + 0.25 * np.eye(2), r))) < 3.5, (lc.offset_n_m, lc.cov)
+        assert lc.n_objects >= 3 and lc.t_b_s > lc.t_a_s
+
+
+def test_no_loop_closure_between_different_seabeds(reciprocal_passes):
+    sb, (pa, xa), _ = reciprocal_passes
+    other = Seabed.survey((150.0, 170.0), np.random.default_rng(99), n_objects=80, wreck=False)
+    pb, xb = _pass(SidescanRenderer(other, 50.0, 512), 110.0, math.pi, 340, np.random.default_rng(3))
+    assoc = LegAssociator()
+    assoc.add(_front_end(pa, xa, 0.0, np.zeros(2), 3.0)[0])
+    late = _front_end(pb, xb, math.pi, np.zeros(2), 3.0, 500.0)[0]
+    closures = [assoc.add(late[i:i + 8]) for i in range(0, len(late), 8)]
+    assert all(lc is None for lc in closures)
+
+
+def test_scotsman_wreck_is_found_by_the_object_detector(scotsman_pings):
+    from tests.sonar.conftest import SCOTSMAN
+
+    pings, _ = scotsman_pings
+    channel, x_hit, y_hit = map(int, (SCOTSMAN.parent / "scotsman-iver2.xtf.hits").read_text().split()[:3])
+    wf = build_waterfall(pings, WaterfallConfig(resample_along=False, ground_res_m=0.1))
+    objs = detect_objects(wf)
+    r_hit = (x_hit + 0.5) * pings[0].sample_spacing_m
+    h = wf.altitude_m[y_hit, 1]
+    g_hit = math.sqrt(max(r_hit ** 2 - h ** 2, 0.0))
+    near = [o for o in objs if o.side == "starboard" and abs(o.row - y_hit) < 60 and abs(o.ground_range_m - g_hit) < 10]
+    assert near, [(o.side, round(o.row), round(o.ground_range_m, 1)) for o in objs]
+    # a wreck stands metres high: the tallest object near the hit is
+    assert max(o.height_m for o in near if math.isfinite(o.height_m)) > 0.5
