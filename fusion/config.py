@@ -155,7 +155,24 @@ class UsblConfig:
 
 @dataclass(frozen=True)
 class VisualMotionConfig:
+    # off: displacement between consecutive windows of one swath restates the dead-reckoned
+    # speed (shared pings, along-track spacing from the speed) — it is not a measurement.
+    # Side-scan's independent information is in revisits: filter.loop_closure.
+    enabled: bool = False
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    """Side-scan leg-to-leg loop closures (fusion/aiding/loop_closure.py, stochastic clones)."""
+
     enabled: bool = True
+    clone_period_s: float = 5.0                # a horizontal-position clone at most this often
+    clone_horizon_s: float = 900.0             # clones older than this are dropped (two legs)
+
+    def validate(self) -> None:
+        if not (0.1 <= self.clone_period_s <= 600.0 and self.clone_period_s < self.clone_horizon_s <= 86400.0):
+            raise ValueError("loop_closure: clone_period_s must be within [0.1, 600] s and below "
+                             "clone_horizon_s (≤ 86400 s)")
 
 
 @dataclass(frozen=True)
@@ -236,6 +253,7 @@ class FilterConfig:
     usbl: UsblConfig = field(default_factory=UsblConfig)
     visual_motion: VisualMotionConfig = field(default_factory=VisualMotionConfig)
     range: RangeConfig = field(default_factory=RangeConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     plausibility: PlausibilityConfig = field(default_factory=PlausibilityConfig)  # the door's bounds
     reset: ResetConfig = field(default_factory=ResetConfig)

@@ -54,6 +54,7 @@ from .aiding import depth as aid_depth
 from .aiding import dvl as aid_dvl
 from .aiding import heading as aid_heading
 from .aiding import learned_velocity as aid_lv
+from .aiding import loop_closure as aid_loop
 from .aiding.common import Measurement
 from .alignment import Aligner
 from .config import FilterConfig
@@ -113,7 +114,7 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
 
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
-                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset")
+                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "clones")
 
 
 class Estimator:
@@ -151,6 +152,8 @@ class Estimator:
         # the IMU error model: the configured grade, or decided at alignment (``auto``)
         self.imu_model = imu_grades.resolve(config.imu, np.empty((0, 3)), np.empty((0, 3)), math.nan)
         self._qdiag = self._process_noise()
+        # past horizontal positions for leg-to-leg loop closures (aiding.loop_closure)
+        self._clones = aid_loop.CloneBank(config.loop_closure.clone_period_s, config.loop_closure.clone_horizon_s)
         self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
         self._mode = "none"  # "none" | "ins" | "ahrs"
         self._reset_counter = 0
@@ -296,6 +299,61 @@ class Estimator:
                                       (float(p[0]), float(p[1]), float(p[2])), float(yaw),
                                       int(self._reset_counter), (float(c[0]), float(c[1]), 0.0))
 
+    def clone_position(self) -> bool:
+        """Keep the current horizontal position as a clone for later loop closures
+        (:mod:`adaptnav.fusion.aiding.loop_closure`), at most every
+        ``loop_closure.clone_period_s``; the side-scan user calls this as data arrive
+        (clones cost a kernel call per covariance step, so only a user of loop closures pays).
+        Returns True when a clone was made."""
+        if self._mode != "ins" or not self.config.loop_closure.enabled:
+            return False
+        t = float(self._clock[0])
+        if self._clones.t_s and t - self._clones.t_s[-1] < self._clones.period_s:
+            return False
+        self._clones.flush(self._core, self._qdiag)
+        return self._clones.maybe_clone(t, self._x[0:2], self._P)
+
+    def fuse_loop_closure(self, t_a_s: float, t_b_s: float, offset_n_m, cov) -> AidStatus:
+        """Fuse a leg-to-leg loop closure: ``offset_n_m ≈ e(t_a) − e(t_b)`` (the navigation's
+        horizontal error at the earlier leg minus at the later one; m) with covariance ``cov``
+        (2×2, m²), between the clones nearest ``t_a_s`` and ``t_b_s``
+        (:meth:`clone_position`). Gated like every aid; the status has source
+        ``"loop_closure"`` (``too_late`` when no clone is near one of the times)."""
+        src = "loop_closure"
+        offset = np.asarray(offset_n_m, dtype=float).reshape(-1)
+        obs = tuple(float(v) for v in offset[:2])
+        if self._mode != "ins":
+            return rejected(t_b_s, src, "not_initialized", obs)
+        if not self.config.loop_closure.enabled:
+            return rejected(t_b_s, src, "disabled", obs)
+        if not (offset.size == 2 and aid_loop.is_valid(offset, cov) and math.isfinite(t_a_s)
+                and math.isfinite(t_b_s) and t_a_s < t_b_s):
+            self.rejected["non_finite"] += 1
+            return rejected(t_b_s if math.isfinite(t_b_s) else math.nan, src, "invalid", obs)
+        payload = (float(self._clock[0]), float(t_a_s), float(t_b_s), offset.copy(),
+                   np.asarray(cov, dtype=float).reshape(2, 2).copy())
+        self._record("loop_closure", payload)
+        return self._loop_closure(*payload)
+
+    def _loop_closure(self, t_now: float, t_a_s: float, t_b_s: float, offset, cov) -> AidStatus:
+        src = "loop_closure"
+        a, b = self._clones.nearest(t_a_s), self._clones.nearest(t_b_s)
+        if a is None or b is None or a == b:
+            return rejected(t_b_s, src, "too_late", tuple(offset.tolist()))
+        self._clones.flush(self._core, self._qdiag)
+        K, y, S, nis = self._clones.closure_update(a, b, offset, cov)
+        gate = self._gate[2]
+        fused = bool(nis <= gate)
+        if fused:
+            dx = K @ y
+            P = self._P - K @ S @ K.T
+            self._P[:, :] = 0.5 * (P + P.T)
+            self._clones.apply(a, b, K)
+            sd.inject_error(self._x, dx, self._P)
+            self._clones.transform(aid_loop.reset_jacobian(dx))
+        return AidStatus(float(t_b_s), src, tuple(offset.tolist()), tuple(y.tolist()), tuple(np.diag(S).tolist()),
+                         float(nis) / gate, fused, "" if fused else "gate")
+
     def set_motion_params(self, params: MotionParams) -> None:
         """Apply a calibrator release; ``k_speed · k_V`` is kept continuous.
 
@@ -312,6 +370,7 @@ class Estimator:
         self._x[X_KS] *= ratio
         self._P[KS, :] *= ratio
         self._P[:, KS] *= ratio
+        self._clones.scale_rows(KS, ratio)
         self.motion_params = params
         self._t_release = float(self._clock[0])
 
@@ -385,6 +444,7 @@ class Estimator:
         """Back to the last good state, its covariance inflated by the initial σs (plus a
         velocity random walk over the time lost), ``reset_counter`` bumped, history dropped."""
         self.rejected["filter_recovered"] += 1
+        self._clones.clear()
         t_now = self._good_t
         for t in (self._clock[0], self._t_imu_last):
             if math.isfinite(t) and t > t_now:
@@ -432,6 +492,7 @@ class Estimator:
         for name in ("_t_imu_last", "_next_lv_t", "_t_release", "_good_t"):
             setattr(self, name, getattr(self, name) + delta_s)
         self._aligner.t_last_s += delta_s
+        self._clones.shift_time(delta_s)
         if self._rpm is not None:
             self._rpm = (self._rpm[0] + delta_s, self._rpm[1])
         self._hist_t.clear()
@@ -545,6 +606,7 @@ class Estimator:
         s.t_release = self._t_release
         s.reject_since = dict(self._reject_since)
         s.t_reset = self._t_reset
+        s.clones = self._clones.copy() if self._clones.active else None
         return s
 
     def _restore(self, s: _Snapshot) -> None:
@@ -561,6 +623,10 @@ class Estimator:
         self._t_release = s.t_release
         self._reject_since = dict(s.reject_since)
         self._t_reset = s.t_reset
+        if s.clones is not None:
+            self._clones = s.clones.copy()
+        elif self._clones.active:
+            self._clones.clear()
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
@@ -601,7 +667,7 @@ class Estimator:
                             self._imu_run(t[j:], f[j:], w[j:])
                             continue
                     else:
-                        t_entry = payload[0] if kind in ("gap", "params", "zupt") else payload.t_s
+                        t_entry = payload[0] if kind in ("gap", "params", "zupt", "loop_closure") else payload.t_s
                         if t_entry > sample.t_s:
                             self._record("sample", sample)
                             out = self._aid(sample)
@@ -611,6 +677,8 @@ class Estimator:
                 elif kind == "gap":
                     self._record("gap", payload)
                     self._imu_gap(*payload)
+                elif kind == "loop_closure":
+                    self._loop_closure(*payload)
                 elif kind == "params":
                     self._record("params", payload)
                     self._apply_motion_params(payload[1])
@@ -736,6 +804,7 @@ class Estimator:
         sd.set_earth(self._acc, self.origin.lat_rad if self.imu_model.earth_rotation else None)
         self._clock[:] = self._aligner.t_last_s
         self._mode = "ins"
+        self._clones.clear()  # a new alignment: earlier epochs' errors are not this filter's
         self._reset_counter += 1
         self._next_lv_t = math.floor(self._clock[0] / self._lv_period + 1.0) * self._lv_period
         return []
@@ -856,8 +925,12 @@ class Estimator:
                 stop = max(stop, start + 1)
                 lv_due = True
             t0, pos0, vel0 = self._clock[0], self._x[X_POS].copy(), self._x[X_VEL].copy()
-            sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
-                              self._qdiag, self.config.covariance_step_s)
+            if self._clones.active:  # each covariance step also carries the clones' cross-covariances
+                self._clones.propagate(t[start:stop], f[start:stop], w[start:stop], self._core,
+                                       self._qdiag, self.config.covariance_step_s)
+            else:
+                sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
+                                  self._qdiag, self.config.covariance_step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
             self._pos_inertial_n += (self._x[X_POS] - pos0) + (self._vel_inertial_n - vel0) * (self._clock[0] - t0)
@@ -880,7 +953,7 @@ class Estimator:
 
     def _imu_gap(self, t_s: float, f_b, w_b) -> None:
         """An IMU gap: coast at constant velocity, inflate the covariance, restart at t_s."""
-        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        self._clones.flush(self._core, self._qdiag)
         dt = t_s - self._clock[0]
         self._x[X_POS] += self._x[X_VEL] * dt
         Phi = np.eye(N_ERR)
@@ -894,6 +967,7 @@ class Estimator:
         Q[ATT, ATT] = np.diag([_BLIND_LEVEL_RW_RAD_RTHZ ** 2, _BLIND_LEVEL_RW_RAD_RTHZ ** 2,
                                _BLIND_ATT_RW_RAD_RTHZ ** 2]) * dt
         self._P[:, :] = Phi @ self._P @ Phi.T + Q
+        self._clones.transform(Phi)
         self._acc[sd.ACC_OMEGA] = np.asarray(w_b) - self._x[X_BG]
         self._acc[sd.ACC_F] = np.asarray(f_b) - self._x[X_BA]
         self._clock[:] = t_s
@@ -1107,9 +1181,15 @@ class Estimator:
         y = meas.innovation()
         m = y.size
         sdiag = self._sdiag[:m]
+        P_prior = None
+        if self._clones.active and self._mode == "ins":
+            self._clones.flush(self._core, self._qdiag)
+            P_prior = self._P.copy()
         # a non-finite y, H or R gives a NaN NIS, which the gate rejects before P is touched
         nis, fused = sd.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
                                   self._dx, sdiag, self._mode == "ins")
+        if fused and P_prior is not None:
+            self._clones.after_update(P_prior, meas.H, meas.R, self._dx)
         if fused:
             reason = ""
             if self._recovering:

@@ -213,10 +213,21 @@ class Seabed:
 
 
 def _lognormal_texture(shape, res_m, scales_m, amplitudes, rng) -> np.ndarray:
-    """``exp(Σ a g)`` normalised to mean 1 (g: unit-variance smoothed white noise)."""
+    """``exp(Σ a g)`` normalised to mean 1 (g: unit-variance smoothed white noise).
+
+    A component whose correlation length spans many cells is drawn on a grid of a quarter
+    of that length and interpolated (bilinear): the same statistics for a fraction of the
+    filtering cost on a survey-sized grid.
+    """
+    import cv2
+
     log_refl = np.zeros(shape, np.float32)
     for scale, amp in zip(scales_m, amplitudes):
-        g = gaussian_filter(rng.standard_normal(shape).astype(np.float32), scale / res_m)
+        step = max(int(scale / res_m / 4.0), 1)
+        cshape = (shape[0] // step + 2, shape[1] // step + 2) if step > 1 else shape
+        g = gaussian_filter(rng.standard_normal(cshape).astype(np.float32), scale / res_m / step)
+        if step > 1:
+            g = cv2.resize(g, (cshape[1] * step, cshape[0] * step), interpolation=cv2.INTER_LINEAR)[: shape[0], : shape[1]]
         log_refl += amp * g / max(float(g.std()), 1e-12)
     refl = np.exp(log_refl)
     refl /= refl.mean()
@@ -238,11 +249,12 @@ def _sediment(shape, res_m, rng) -> tuple[np.ndarray, np.ndarray]:
     level_c = np.where(field_c < t1, np.log(0.5), np.where(field_c < t2, 0.0, np.log(1.8)))
     level_c = gaussian_filter(level_c, 1.0 / coarse_res)
     sand_c = gaussian_filter(((field_c >= t1) & (field_c < t2)).astype(float), 1.0 / coarse_res)
-    from scipy.ndimage import zoom
+    import cv2
 
-    zf = (shape[0] / cshape[0], shape[1] / cshape[1])
-    level = zoom(level_c, zf, order=1)[: shape[0], : shape[1]].astype(np.float32)
-    sand = zoom(sand_c, zf, order=1)[: shape[0], : shape[1]].astype(np.float32)
+    def up(a):  # bilinear, coarse → fine (cv2: an order of magnitude faster than ndimage.zoom)
+        return cv2.resize(a.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+    level, sand = up(level_c), up(sand_c)
     refl = _lognormal_texture(shape, res_m, (0.3, 2.0), (0.35, 0.25), rng) * np.exp(level)
     refl /= refl.mean()
     wavelength = rng.uniform(0.6, 1.2)

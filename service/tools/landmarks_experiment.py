@@ -136,13 +136,12 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
                 lc = assoc.add(batch)
                 if lc is not None:
                     closures.append(lc)
-                    fuse = getattr(est_with, "fuse_loop_closure", None)
-                    if fuse is not None and any(s.fused for s in fuse(lc)):
+                    if est_with.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov).fused:
                         fused += 1
             continue
         est_with.process(item)
         est_without.process(item)
-        if landmarks and kind == "imu_batch" and hasattr(est_with, "clone_position"):
+        if landmarks and kind == "imu_batch":
             est_with.clone_position()
     return _score(scenario, res, est_with, est_without, sightings, closures, fused,
                   min_range_m, max_range_m)

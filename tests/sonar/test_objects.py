@@ -45,8 +45,8 @@ def _pass(renderer, east_m, yaw_rad, n, rng, north0_m=10.0):
 
 @pytest.fixture(scope="module")
 def reciprocal_passes():
-    """Two reciprocal passes 50 m apart over a 150 m × 170 m realistic seabed (both swaths on it)."""
-    sb = Seabed.survey((150.0, 170.0), np.random.default_rng(11), n_objects=80, wreck=False)
+    """Two reciprocal passes 50 m apart over a 150 m × 170 m realistic seabed (both swaths on it), 50 objects per hectare."""
+    sb = Seabed.survey((150.0, 170.0), np.random.default_rng(11), n_objects=130, wreck=False)
     ren = SidescanRenderer(sb, 50.0, 512)
     rng = np.random.default_rng(12)
     a = _pass(ren, 60.0, 0.0, 340, rng)
@@ -130,7 +130,7 @@ def test_reciprocal_legs_give_one_loop_closure_with_the_navigation_offset(recipr
 
 def test_no_loop_closure_between_different_seabeds(reciprocal_passes):
     sb, (pa, xa), _ = reciprocal_passes
-    other = Seabed.survey((150.0, 170.0), np.random.default_rng(99), n_objects=80, wreck=False)
+    other = Seabed.survey((150.0, 170.0), np.random.default_rng(99), n_objects=130, wreck=False)
     pb, xb = _pass(SidescanRenderer(other, 50.0, 512), 110.0, math.pi, 340, np.random.default_rng(3))
     assoc = LegAssociator()
     assoc.add(_front_end(pa, xa, 0.0, np.zeros(2), 3.0)[0])

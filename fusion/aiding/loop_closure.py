@@ -1,0 +1,214 @@
+r"""Leg-to-leg loop closure: a relative position constraint between two past times (stochastic clones).
+
+A side-scan loop closure (:class:`adaptnav.sonar.association.LoopClosure`) says that the
+objects an earlier leg mapped at ``t_a`` and the new leg at ``t_b`` are the same, offset by
+
+.. math:: δ = e(t_a) − e(t_b) + n,\qquad n ∼ N(0, R)
+
+with ``e = p̂ − p`` the navigation's horizontal position error at each time. It constrains
+the *relative* position of two epochs, so the filter keeps **clones** of its horizontal
+position at past epochs (Roumeliotis & Burdick, ICRA 2002, "stochastic cloning"; Mourikis &
+Roumeliotis' MSCKF): at cloning time ``d_i = p_i − p̂_i`` (error-state convention) is copied,
+with its covariance ``Σ_ii = P_pp`` and its cross-covariances with the state and the older
+clones. Clones are *consider* states (Schmidt): their estimates are never updated, which
+keeps every update consistent while only the 18-state covariance and the cross-covariances
+``C_i = Cov(δx, d_i)`` (18×2) evolve:
+
+* propagation ``δx ← Φ δx + w``: ``C_i ← Φ C_i``;
+* an ordinary update with gain ``K``: ``C_i ← (I − K H) C_i``; the reset ``G``: ``C_i ← G C_i``;
+* the loop closure ``z = δ``, ``h = 0``, ``H = [−I on d_a, +I on d_b]``:
+  ``S = Σ_aa + Σ_bb − Σ_ab − Σ_ba + R``, gain on the state ``K = (C_b − C_a) S⁻¹``,
+  ``δx̂ = K δ``, ``P ← P − K S Kᵀ``, ``C_j ← C_j − K (Σ_bj − Σ_aj)``.
+
+The state correction carries the drift accumulated between ``t_a`` and ``t_b`` through the
+cross-covariances: position, and with it velocity, current and ``k_speed`` (the along-track
+offset between legs is evidence on the speed scale).
+
+:class:`CloneBank` holds the clones; the estimator calls its hooks (see
+:mod:`adaptnav.fusion.eskf`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import strapdown as sd
+from ..state import ATT, N_ERR
+
+_NO_FLUSH_S = 1e18  # a covariance step the strapdown kernel never reaches: we flush ourselves
+
+
+class CloneBank:
+    """Horizontal-position clones of past epochs and their covariances.
+
+    Parameters
+    ----------
+    period_s : float
+        A new clone at most this often (:meth:`maybe_clone`).
+    horizon_s : float
+        Clones older than this are dropped.
+    """
+
+    def __init__(self, period_s: float = 5.0, horizon_s: float = 900.0) -> None:
+        self.period_s = float(period_s)
+        self.horizon_s = float(horizon_s)
+        self.t_s: list[float] = []
+        self.pos_n_m: list[np.ndarray] = []
+        # Σ between clones: rows are immutable once created (shared by snapshots)
+        self._sigma: dict[tuple[int, int], np.ndarray] = {}
+        self._ids: list[int] = []
+        self._next_id = 0
+        self.C = np.zeros((N_ERR, 0))  # [C_0 | C_1 | ...], 2 columns per clone
+
+    @property
+    def active(self) -> bool:
+        return bool(self._ids)
+
+    def copy(self) -> "CloneBank":
+        """A copy for the estimator's snapshots (Σ entries are shared: never modified)."""
+        out = CloneBank.__new__(CloneBank)
+        out.period_s, out.horizon_s = self.period_s, self.horizon_s
+        out.t_s, out.pos_n_m, out._ids = list(self.t_s), list(self.pos_n_m), list(self._ids)
+        out._sigma = self._sigma  # append-only dict; pruned keys are harmless
+        out._next_id = self._next_id
+        out.C = self.C.copy()
+        return out
+
+    def clear(self) -> None:
+        self.__init__(self.period_s, self.horizon_s)
+
+    # ---------------------------------------------------------------- hooks
+    def transform(self, A: np.ndarray) -> None:
+        """``C ← A C`` (A: Φ, ``I − K H`` or the reset ``G``; 18×18)."""
+        if self._ids:
+            self.C = A @ self.C
+
+    def flush(self, core: np.ndarray, qdiag: np.ndarray) -> None:
+        """Flush the pending covariance step of the estimator's core array, ``C ← Φ C``."""
+        _, P, acc, clock = sd.core_views(core)
+        T = acc[12]
+        if T > 0.0 and self._ids:
+            self.C = sd.transition(acc, T) @ self.C
+        sd.flush_covariance(P, acc, clock, qdiag)
+
+    def propagate(self, t_s, f_b, w_b, core: np.ndarray, qdiag: np.ndarray, cov_step_s: float) -> None:
+        """:func:`adaptnav.fusion.strapdown.propagate_core` with the same covariance steps, each
+        also applied to the clones' cross-covariances (one kernel call per step)."""
+        _, _, _, clock = sd.core_views(core)
+        n = t_s.shape[0]
+        start = 0
+        while start < n:
+            # the kernel flushes after the first sample with t − t_flush ≥ step − 1e-9
+            stop = int(np.searchsorted(t_s, clock[1] + cov_step_s - 1e-9, side="left")) + 1
+            stop = min(max(stop, start + 1), n)
+            sd.propagate_core(t_s[start:stop], f_b[start:stop], w_b[start:stop], core, qdiag, _NO_FLUSH_S)
+            if clock[0] - clock[1] >= cov_step_s - 1e-9:
+                self.flush(core, qdiag)
+            start = stop
+
+    def after_update(self, P_prior: np.ndarray, H: np.ndarray, R: np.ndarray, dx: np.ndarray) -> None:
+        """Cross-covariances after an ordinary fused update: ``C ← G (I − K H) C``."""
+        if not self._ids:
+            return
+        PHt = P_prior @ H.T
+        K = PHt @ np.linalg.inv(H @ PHt + R)
+        self.C = self.C - K @ (H @ self.C)
+        self.transform(reset_jacobian(dx))
+
+    def shift_time(self, delta_s: float) -> None:
+        self.t_s = [t + delta_s for t in self.t_s]
+
+    def scale_rows(self, rows, factor: float) -> None:
+        if self._ids:
+            self.C[rows, :] *= factor
+
+    def zero_rows(self, rows) -> None:
+        if self._ids:
+            self.C[rows, :] = 0.0
+
+    def maybe_clone(self, t_s: float, x_pos_n_m: np.ndarray, P: np.ndarray) -> bool:
+        """Clone the horizontal position if ``period_s`` has passed since the last clone.
+
+        ``P`` must be the covariance at ``t_s`` (flushed). Returns True when cloned.
+        """
+        if self.t_s and t_s - self.t_s[-1] < self.period_s:
+            return False
+        self._prune(t_s)
+        cid = self._next_id
+        self._next_id += 1
+        self._sigma[(cid, cid)] = P[0:2, 0:2].copy()
+        for k, oid in enumerate(self._ids):
+            # Cov(d_new, d_old) = Cov(δx[0:2], d_old) = C_old[0:2]
+            self._sigma[(cid, oid)] = self.C[0:2, 2 * k:2 * k + 2].copy()
+        self._ids.append(cid)
+        self.t_s.append(float(t_s))
+        self.pos_n_m.append(np.asarray(x_pos_n_m, float)[:2].copy())
+        self.C = np.hstack([self.C, P[:, 0:2]])
+        return True
+
+    def _prune(self, t_now: float) -> None:
+        keep = [k for k, t in enumerate(self.t_s) if t >= t_now - self.horizon_s]
+        if len(keep) == len(self.t_s):
+            return
+        gone = {self._ids[k] for k in range(len(self._ids)) if k not in set(keep)}
+        self._ids = [self._ids[k] for k in keep]
+        self.t_s = [self.t_s[k] for k in keep]
+        self.pos_n_m = [self.pos_n_m[k] for k in keep]
+        cols = np.array([[2 * k, 2 * k + 1] for k in keep], dtype=int).reshape(-1)
+        self.C = self.C[:, cols]
+        # Σ entries of dropped clones are dropped here only (snapshots never look them up again)
+        self._sigma = {key: v for key, v in self._sigma.items() if key[0] not in gone and key[1] not in gone}
+
+    def sigma(self, i: int, j: int) -> np.ndarray:
+        """Σ between clones at list positions ``i`` and ``j`` (2×2)."""
+        a, b = self._ids[i], self._ids[j]
+        # stored once per pair as (newer, older): ids only grow, so a snapshot restored
+        # from before a clone was made never reads an entry written after it
+        return self._sigma[(a, b)] if a >= b else self._sigma[(b, a)].T
+
+    def nearest(self, t_s: float) -> int | None:
+        """List position of the clone nearest ``t_s`` (None if there is none within a period)."""
+        if not self.t_s:
+            return None
+        k = int(np.argmin(np.abs(np.asarray(self.t_s) - t_s)))
+        return k if abs(self.t_s[k] - t_s) <= self.period_s else None
+
+    # ---------------------------------------------------------------- the update
+    def closure_update(self, a: int, b: int, offset_n_m, R) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Gain and innovation of a loop closure between clones ``a`` (earlier) and ``b``.
+
+        Returns ``(K (18×2), y (2,), S (2×2), nis)``; nothing is changed (see :meth:`apply`).
+        """
+        y = np.asarray(offset_n_m, float).reshape(2)
+        S = (self.sigma(a, a) + self.sigma(b, b) - self.sigma(a, b) - self.sigma(b, a)
+             + np.asarray(R, float).reshape(2, 2))
+        S = 0.5 * (S + S.T)
+        Sinv = np.linalg.inv(S)
+        K = (self.C[:, 2 * b:2 * b + 2] - self.C[:, 2 * a:2 * a + 2]) @ Sinv
+        nis = float(y @ Sinv @ y)
+        return K, y, S, nis
+
+    def apply(self, a: int, b: int, K: np.ndarray) -> None:
+        """Cross-covariances after a fused loop closure: ``C_j ← C_j − K (Σ_bj − Σ_aj)``."""
+        for j in range(len(self._ids)):
+            self.C[:, 2 * j:2 * j + 2] -= K @ (self.sigma(b, j) - self.sigma(a, j))
+
+
+def reset_jacobian(dx: np.ndarray) -> np.ndarray:
+    """``G`` of the ESKF reset after injecting ``dx`` (as :func:`adaptnav.fusion.strapdown.inject_error`)."""
+    rx, ry, rz = (float(v) for v in dx[ATT])
+    G = np.eye(N_ERR)
+    G[6, 7], G[6, 8] = -0.5 * rz, 0.5 * ry
+    G[7, 6], G[7, 8] = 0.5 * rz, -0.5 * rx
+    G[8, 6], G[8, 7] = -0.5 * ry, 0.5 * rx
+    return G
+
+
+def is_valid(offset_n_m, cov) -> bool:
+    """A usable closure: finite offset, symmetric positive-definite covariance."""
+    o = np.asarray(offset_n_m, float)
+    c = np.asarray(cov, float)
+    return (o.shape == (2,) and c.shape == (2, 2) and bool(np.all(np.isfinite(o)))
+            and bool(np.all(np.isfinite(c))) and math.isclose(c[0, 1], c[1, 0], rel_tol=1e-6, abs_tol=1e-9)
+            and bool(np.all(np.linalg.eigvalsh(0.5 * (c + c.T)) > 0)))
