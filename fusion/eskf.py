@@ -313,6 +313,16 @@ class Estimator:
         self._clones.flush(self._core, self._qdiag)
         return self._clones.maybe_clone(t, self._x[0:2], self._P)
 
+    def relative_position_covariance(self, t_a_s: float, t_b_s: float) -> np.ndarray | None:
+        """Covariance (2×2, m²) of the horizontal position error difference between the
+        clones nearest ``t_a_s`` and ``t_b_s``: what a loop closure's gate needs (the errors of
+        two epochs are correlated, most of all during an outage); None without both clones."""
+        a, b = self._clones.nearest(t_a_s), self._clones.nearest(t_b_s)
+        if a is None or b is None:
+            return None
+        c = self._clones
+        return c.sigma(a, a) + c.sigma(b, b) - c.sigma(a, b) - c.sigma(b, a)
+
     def fuse_loop_closure(self, t_a_s: float, t_b_s: float, offset_n_m, cov) -> AidStatus:
         """Fuse a leg-to-leg loop closure: ``offset_n_m ≈ e(t_a) − e(t_b)`` (the navigation's
         horizontal error at the earlier leg minus at the later one; m) with covariance ``cov``

@@ -9,7 +9,9 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
 
 1. **Candidates** (individual compatibility): the Mahalanobis distance of ``p̂_a − p̂_b`` in
    ``P_a + P_b + D_a + D_b`` — the navigation's own covariance at both times, so the gate
-   grows with the drift — is within the χ²₂ gate, and the view-independent attributes
+   grows with the drift; where the filter keeps clones of both epochs (``relative_cov``), the
+   covariance of the error *difference* ``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` replaces ``P_a + P_b``
+   (during an outage most of the error is common to both legs) — is within the χ²₂ gate, and the view-independent attributes
    agree: height (from the shadow) and along-track length within ``attribute_sigmas``.
    Sightings of the same leg are not compared (``min_gap_s``).
 2. **Joint compatibility** (Neira & Tardós 2001, as used for side-scan by Fallon et al.
@@ -136,8 +138,11 @@ class LegAssociator:
     config : AssociationConfig
     """
 
-    def __init__(self, config: AssociationConfig = AssociationConfig()) -> None:
+    def __init__(self, config: AssociationConfig = AssociationConfig(), relative_cov=None) -> None:
         self.config = config
+        # (t_a, t_b) → covariance of the navigation's error difference e(t_a) − e(t_b) (2×2),
+        # or None: the filter knows the correlation of its errors at two epochs (its clones)
+        self.relative_cov = relative_cov
         self._gate = float(chi2.ppf(config.gate_probability, 2))
         self._inlier = float(chi2.ppf(config.inlier_probability, 2))
         self._old: list[ObjectSighting] = []
@@ -163,8 +168,8 @@ class LegAssociator:
                 return False
         return True
 
-    def candidates(self, batch: list[ObjectSighting]) -> list[tuple[int, int, float]]:
-        """(old index, batch index, Mahalanobis d²) of individually compatible pairs."""
+    def candidates(self, batch: list[ObjectSighting]) -> list[tuple[int, int, float, np.ndarray]]:
+        """(old index, batch index, Mahalanobis d², gate covariance) of individually compatible pairs."""
         c = self.config
         if not self._old or not batch:
             return []
@@ -174,17 +179,39 @@ class LegAssociator:
             return []
         P_old = np.array([self._old[i].pos_n_m for i in old])
         C_old = np.array([self._old[i].nav_cov + self._old[i].det_cov for i in old])
+        D_old = np.array([self._old[i].det_cov for i in old])
+        t_old = np.array([self._old[i].t_s for i in old])
+        rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
         out = []
         for j, b in enumerate(batch):
             d = P_old - b.pos_n_m[None, :]
             S = C_old + (b.nav_cov + b.det_cov)[None]
+            if rel is not None:  # the error difference's own covariance where the filter has it
+                S = np.where(rel[1][:, None, None], rel[0] + D_old + b.det_cov[None], S)
             m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
             near = np.flatnonzero(m2 <= self._gate)
             near = near[np.argsort(m2[near])][: c.max_candidates_per_object]
             for k in near:
                 if self._attributes_agree(self._old[old[k]], b):
-                    out.append((old[k], j, float(m2[k])))
+                    out.append((old[k], j, float(m2[k]), S[k]))
         return out
+
+    def _relative(self, t_old: np.ndarray, t_new: float):
+        """(covariances (K, 2, 2), known (K,)) of e(t_old) − e(t_new) from ``relative_cov``,
+        one call per distinct second of the old sightings (the clones are seconds apart)."""
+        if self.relative_cov is None:
+            return None
+        cov = np.zeros((t_old.size, 2, 2))
+        ok = np.zeros(t_old.size, bool)
+        cache: dict[int, np.ndarray | None] = {}
+        for k, t in enumerate(t_old):
+            key = int(round(t))
+            if key not in cache:
+                cache[key] = self.relative_cov(float(t), t_new)
+            c = cache[key]
+            if c is not None and np.all(np.isfinite(c)):
+                cov[k], ok[k] = c, True
+        return cov, ok
 
     def _residual_cov(self, a: ObjectSighting, b: ObjectSighting, ta: float, tb: float) -> np.ndarray:
         q = self.config.relative_sigma_m_s
@@ -199,12 +226,12 @@ class LegAssociator:
         if len(cand) < c.min_objects:
             return None
         old = self._old
-        diffs = np.array([old[i].pos_n_m - batch[j].pos_n_m for i, j, _ in cand])
-        ta = float(np.median([old[i].t_s for i, _, _ in cand]))
-        tb = float(np.median([batch[j].t_s for _, j, _ in cand]))
-        R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _ in cand])
+        diffs = np.array([old[i].pos_n_m - batch[j].pos_n_m for i, j, _, _ in cand])
+        ta = float(np.median([old[i].t_s for i, _, _, _ in cand]))
+        tb = float(np.median([batch[j].t_s for _, j, _, _ in cand]))
+        R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _, _ in cand])
         W = np.linalg.inv(R)
-        S = np.array([old[i].nav_cov + old[i].det_cov + batch[j].nav_cov + batch[j].det_cov for i, j, _ in cand])
+        S = np.array([c[3] for c in cand])  # each candidate's gate covariance
         # chance inliers: the inlier region (rᵀWr ≤ inlier gate) over the candidate gate's area
         ratio = (self._inlier / self._gate) * np.sqrt(np.linalg.det(R) / np.linalg.det(S))
         lam = float(np.sum(np.minimum(ratio, 1.0)))
@@ -249,7 +276,7 @@ class LegAssociator:
         for k in np.argsort(m2):
             if m2[k] > self._inlier:
                 break
-            i, j, _ = cand[k]
+            i, j, _, _ = cand[k]
             if i in used_a or j in used_b:
                 continue
             used_a.add(i)

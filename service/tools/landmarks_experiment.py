@@ -117,7 +117,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
         return Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
 
     est_with, est_without = make(), make()
-    fe, assoc = ObjectFrontEnd(), LegAssociator()
+    fe, assoc = ObjectFrontEnd(), LegAssociator(relative_cov=est_with.relative_position_covariance)
     closures, fused = [], 0
     sightings = []
     for item in res.iter_blocks():

@@ -53,6 +53,12 @@ def test_closure_that_disagrees_is_gated_and_one_before_any_clone_is_too_late(se
     status, before, after, _, _, est = _run(seed, offset_bias_m=(80.0, -60.0))
     assert status.source == "loop_closure" and not status.fused and status.reason == "gate"
     assert np.allclose(before, after)
+    # the error difference of two epochs of one outage is smaller than the later epoch's
+    # error (its common part cancels): the gate a loop closure's association needs
+    rel = est.relative_position_covariance(T_A, T_B)
+    assert np.all(np.linalg.eigvalsh(rel) > 0)
+    assert np.trace(rel) < np.trace(est.nav_state().cov[:2, :2])
+    assert est.relative_position_covariance(-500.0, T_B) is None
     early = est.fuse_loop_closure(-500.0, T_B, np.zeros(2), np.eye(2))
     assert not early.fused and early.reason == "too_late"
     assert est.fuse_loop_closure(T_A, T_B, np.array([np.nan, 0.0]), np.eye(2)).reason == "invalid"
