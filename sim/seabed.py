@@ -212,18 +212,19 @@ class Seabed:
                    np.array(hgt, float), tuple(kinds), size_a)
 
 
-def _lognormal_texture(shape, res_m, scales_m, amplitudes, rng) -> np.ndarray:
+def _lognormal_texture(shape, res_m, scales_m, amplitudes, rng, coarse: bool = False) -> np.ndarray:
     """``exp(Σ a g)`` normalised to mean 1 (g: unit-variance smoothed white noise).
 
-    A component whose correlation length spans many cells is drawn on a grid of a quarter
-    of that length and interpolated (bilinear): the same statistics for a fraction of the
-    filtering cost on a survey-sized grid.
+    ``coarse``: a component whose correlation length spans many cells is drawn on a grid of
+    a quarter of that length and interpolated (bilinear): the same statistics for a fraction
+    of the filtering cost on a survey-sized grid (:meth:`Seabed.random` keeps the full grid:
+    its seabeds are the fixtures of earlier tests).
     """
     import cv2
 
     log_refl = np.zeros(shape, np.float32)
     for scale, amp in zip(scales_m, amplitudes):
-        step = max(int(scale / res_m / 4.0), 1)
+        step = max(int(scale / res_m / 4.0), 1) if coarse else 1
         cshape = (shape[0] // step + 2, shape[1] // step + 2) if step > 1 else shape
         g = gaussian_filter(rng.standard_normal(cshape).astype(np.float32), scale / res_m / step)
         if step > 1:
@@ -255,7 +256,7 @@ def _sediment(shape, res_m, rng) -> tuple[np.ndarray, np.ndarray]:
         return cv2.resize(a.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
     level, sand = up(level_c), up(sand_c)
-    refl = _lognormal_texture(shape, res_m, (0.3, 2.0), (0.35, 0.25), rng) * np.exp(level)
+    refl = _lognormal_texture(shape, res_m, (0.3, 2.0), (0.35, 0.25), rng, coarse=True) * np.exp(level)
     refl /= refl.mean()
     wavelength = rng.uniform(0.6, 1.2)
     amp = rng.uniform(0.02, 0.04)
