@@ -218,10 +218,6 @@ class DvlConfig:
     water_track: bool = False           # without bottom lock, velocity relative to a water layer
     water_track_sigma_m_s: float = 0.02  # per axis
 
-    def sigma_horizontal_m_s(self) -> float:
-        """1-σ of the x/y velocity from the beam noise (least squares over 4 Janus beams)."""
-        return self.beam_sigma_m_s / (math.sqrt(2.0) * math.sin(math.radians(self.beam_angle_deg)))
-
 
 @dataclass(frozen=True)
 class VehicleConfig:

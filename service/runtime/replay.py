@@ -91,8 +91,8 @@ def config_raw_from_scenario(scenario: Any) -> dict:
             "heading": {"sigma_rad": math.radians(sc.heading.sigma_deg)},
             "depth": {"sigma_m": sc.depth.sigma_m, "water_density_kg_m3": sc.environment.density_kg_m3,
                       "atmospheric_pressure_pa": sc.environment.atmospheric_pressure_pa},
-            "dvl": {"sigma_m_s": sc.dvl.sigma_horizontal_m_s(),
-                    "water_track_sigma_m_s": sc.dvl.water_track_sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
+            # the DVL's σ stays the filter's (fusion/config.py: its long-term errors dominate)
+            "dvl": {"water_track_sigma_m_s": sc.dvl.water_track_sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
                     "rotation_bd_rpy_rad": [math.radians(v) for v in sc.dvl.mount_rpy_deg]},
             "gnss": {"max_depth_m": sc.gnss.max_depth_m},
         },
