@@ -63,6 +63,9 @@ class DvlSample:
     Bottom track (``water_track`` false): the head's velocity over the seabed. Water track
     (``water_track`` true, the DVL's fallback without bottom lock): its velocity relative
     to a water layer a few metres away, i.e. over ground minus the current.
+
+    ``sigma_m_s``: the sensor's own 1-σ per axis when it reports one (a DVL's figure of
+    merit); NaN: the configured sigma. The filter uses the larger.
     """
 
     KIND: ClassVar[str] = "dvl"
@@ -71,6 +74,7 @@ class DvlSample:
     valid: bool = True
     altitude_m: float = math.nan
     water_track: bool = False
+    sigma_m_s: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)

@@ -163,6 +163,8 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=
     velocity (the calibrated one, :meth:`DvlCalibration.correct`)."""
     if not sample.valid:
         return None
+    if sample.sigma_m_s > sigma_m_s:  # the sensor says it is worse than configured (NaN: not said)
+        sigma_m_s = sample.sigma_m_s
     lever = np.asarray(lever_arm_b_m, dtype=float)
     # jacobian() and predict() from one R_nb, with the same operations on the same floats
     # (R_db R_nbᵀ once; ω × l written out as np.cross computes it: a product difference per

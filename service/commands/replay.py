@@ -7,6 +7,11 @@ Examples::
     adaptnav replay --scenario survey --set dvl.enabled=true --out out/survey_dvl
     adaptnav replay --scenario survey --compare --out out/compare
     adaptnav replay --scenario dvl_outage --compare --json --out out/dvl_outage --set seed=2
+
+Exit status, one rule for every input: 0 when the replay ran on something usable, even if it
+never produced a valid position (that is a loud warning on stderr and in ``summary.json``
+``warnings``); 1 when nothing usable could be read (unreadable, empty, no usable sample);
+2 for a wrong command line or configuration.
 """
 from __future__ import annotations
 
@@ -75,9 +80,12 @@ def run(args):
         if args.aiding == "none":
             cfg_overrides += list(rp.VELOCITY_AIDS_OFF)
         cfg = rp.build_config(inp.scenario, args.config, cfg_overrides)
-    except (ConfigError, FileNotFoundError, ValueError) as e:
+    except (ConfigError, ValueError) as e:
         print(f"adaptnav replay: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # not found, unreadable
+        print(f"adaptnav replay: {e}", file=sys.stderr)
+        return 1
     out = Path(args.out)
     progress = not args.no_progress and not args.json
 
@@ -94,6 +102,7 @@ def run(args):
                             plots=not args.no_plots, calibrator_location=args.calibrator_location)
             rows[name] = res.metrics
             scales[name] = _effective_scale(out / name / "trajectory.csv", vcfg.motion.params0.k_v)
+            _warn(res.summary, f"{name}: ")
         if args.json:
             print(json.dumps(rows, indent=2, sort_keys=True))
         else:
@@ -113,7 +122,8 @@ def run(args):
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))
-        return 0
+        _warn(s)
+        return 1 if rp.nothing_usable(s) else 0
     print(f"replayed {inp.label}: {s['duration_s']:.1f} s of data in {s['wall_s']:.2f} s "
           f"({s['realtime_factor'] or 0:.0f}× real time); messages {s['messages_read']}, "
           f"samples used {s['samples_used']}, corrupt frames {s['corrupt_frames']}, "
@@ -126,7 +136,16 @@ def run(args):
         print(f"  processing errors (logged): {s['errors']}")
     print(rp.targets_text(res.metrics))
     print(f"outputs: {', '.join(res.files)} in {out}")
-    return 0
+    _warn(s)
+    return 1 if rp.nothing_usable(s) else 0
+
+
+def _warn(summary, prefix=""):
+    """The summary's warnings, loudly, on stderr."""
+    import sys
+
+    for w in summary.get("warnings", []):
+        print(f"WARNING: {prefix}{w}", file=sys.stderr)
 
 
 def _effective_scale(trajectory_csv, k_v_model: float) -> float:

@@ -42,7 +42,7 @@ from adaptnav.service.runtime.events import LifecycleLog
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.runner import RunSummary, default_release_gate, run
 from adaptnav.service.runtime.sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
-                    TrajectoryCsvSink)
+                    Sink, TrajectoryCsvSink)
 from adaptnav.service.runtime.sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
@@ -224,6 +224,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    origin_configured = cfg.origin.lat_deg != 0.0 or cfg.origin.lon_deg != 0.0
+    if origin_configured and hasattr(inp.source, "set_origin"):
+        inp.source.set_origin(cfg.origin.geo())
     items: Any = iter(inp.source)
     origin_note = None
     if inp.scenario is None and cfg.origin.lat_deg == 0.0 and cfg.origin.lon_deg == 0.0:
@@ -247,12 +250,20 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     truth = inp.has_truth
     recorder = SeriesRecorder(initial_params=params0)
     metrics_sink = MetricsSink(recorder, out / "metrics.json")
-    validity = _ValidCounter()
+    validity = ValidityCounter()
+    origin_known = inp.scenario is not None or origin_configured or origin_note is not None
     sinks = [TrajectoryCsvSink(out / "trajectory.csv", truth=truth,
-                               truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz),
+                               truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz,
+                               unix_of=getattr(inp.source, "unix_of", None),
+                               origin=cfg.origin.geo() if origin_known else None),
+             validity,
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
+<<<<<<< HEAD
              recorder, metrics_sink, validity, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
+=======
+             recorder, metrics_sink]
+>>>>>>> 721e229 (MAVLink time model and inputs: MissionClock maps the autopilot's boot clock, UNIX time_usec and receive stamps (tlog or live) onto one mission clock (SYSTEM_TIME pairs exactly; reboots keep the down time via receive stamps; jumps counted); samples without a placeable time are held, not dropped (a fix before any boot-clock message comes out at its receive time); DVL from VISION_POSITION_DELTA (mid-interval, rotated by half the angle delta, rejected above 0.35 rad; BlueOS confidence -> valid and σ = 0.4·(1−c/100)) and VISION_SPEED_ESTIMATE, GLOBAL_VISION_POSITION_ESTIMATE as a position fix, GPS_RAW_INT optionally acoustic; aiding types accepted from system 255 (BlueOS drivers); every message type accounted for (used/rejected/ignored with why/unknown, rate on the mission clock) in summary.json; trajectory.csv gains t_unix_s, lat_deg, lon_deg; replay exits 1 only when nothing usable was read, otherwise 0 with a loud warning (summary warnings, valid_fraction); DvlSample.sigma_m_s (the filter takes the larger))
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     if mcap is not None:
@@ -317,16 +328,20 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},
         "health": health.report(),
         "valid_fraction": validity.fraction,
+        "first_valid_t_s": validity.first_valid_t_s,
         "filter": _filter_report(estimator),
     }
     cal = getattr(estimator, "dvl_calibration", None)
     if cal is not None and cal.pairs_used:
         doc["dvl_calibration"] = cal.report()
-    if validity.states and not validity.valid:
-        doc.setdefault("warnings", []).append(
-            f"no valid navigation solution in {validity.states} nav states "
-            f"(last reasons: {', '.join(estimator.invalid_reasons()) or 'none'})")
-    for w in doc.get("warnings", []):
+    if counters.get("message_types"):
+        doc["message_types"] = counters["message_types"]
+        doc["unknown_message_types"] = sorted(k for k, v in counters["message_types"].items()
+                                              if v.get("status") == "unknown")
+    if counters.get("clock"):
+        doc["clock"] = counters["clock"]
+    doc["warnings"] = replay_warnings(doc)
+    for w in doc["warnings"]:
         log.warning("%s", w)
     if counters.get("truncated"):
         doc["truncated"] = counters["truncated"]
@@ -345,16 +360,20 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     return ReplayResult(out, doc, metrics_sink.metrics, summary, files)
 
 
-class _ValidCounter:
-    """Sink: how many nav states were output and how many of them valid."""
+class ValidityCounter(Sink):
+    """Sink: how many nav states were output, how many of them valid, the first valid one."""
 
     def __init__(self) -> None:
         self.states = 0
         self.valid = 0
+        self.first_valid_t_s: float | None = None
 
     def on_nav(self, state: Any) -> None:
         self.states += 1
-        self.valid += bool(state.valid)
+        if state.valid:
+            self.valid += 1
+            if self.first_valid_t_s is None:
+                self.first_valid_t_s = float(state.t_s)
 
     @property
     def fraction(self) -> float | None:
@@ -370,6 +389,7 @@ def _filter_report(estimator: Any) -> dict:
             "invalid_reasons_at_end": estimator.invalid_reasons()}
 
 
+<<<<<<< HEAD
 # a first fix is taken for the origin only when the next fix is within reach of it at
 # this speed (+ 3σ): a mis-stamped or mis-placed first fix must not move the origin
 _ORIGIN_CONFIRM_SPEED_M_S = 5.0
@@ -379,6 +399,30 @@ def _fixes_agree(a: Any, b: Any) -> bool:
     """Two fixes within reach of each other (great-circle distance on a sphere)."""
     d_m = 6.371e6 * math.hypot(b.lat_rad - a.lat_rad, (b.lon_rad - a.lon_rad) * math.cos(a.lat_rad))
     return d_m <= _ORIGIN_CONFIRM_SPEED_M_S * abs(b.t_s - a.t_s) + 3.0 * math.hypot(a.sigma_h_m, b.sigma_h_m)
+=======
+def replay_warnings(summary: dict) -> list[str]:
+    """What a user must not miss about a replay, one sentence each (summary ``warnings``)."""
+    out = []
+    if not summary.get("messages_read"):
+        out.append("nothing could be read from the input (empty, unreadable or not a log)")
+    elif not summary.get("samples_used"):
+        out.append("no usable sample in the input: nothing was navigated")
+    elif not summary.get("valid_fraction"):
+        what = "no nav state at all" if summary.get("nav_states", 0) == 0 else \
+            f"{summary.get('nav_states', 0)} nav states, none valid"
+        reasons = ", ".join((summary.get("filter") or {}).get("invalid_reasons_at_end") or []) or "none"
+        out.append(f"NO VALID POSITION was produced ({what}; last reasons: {reasons}): "
+                   "trajectory.csv is not a navigation solution")
+    unknown = summary.get("unknown_message_types") or []
+    if unknown:
+        out.append(f"{len(unknown)} message type(s) not understood (counted, not used): {', '.join(unknown)}")
+    return out
+
+
+def nothing_usable(summary: dict) -> bool:
+    """The one rule for a non-zero exit: nothing usable could be read."""
+    return not summary.get("messages_read") or not summary.get("samples_used")
+>>>>>>> 721e229 (MAVLink time model and inputs: MissionClock maps the autopilot's boot clock, UNIX time_usec and receive stamps (tlog or live) onto one mission clock (SYSTEM_TIME pairs exactly; reboots keep the down time via receive stamps; jumps counted); samples without a placeable time are held, not dropped (a fix before any boot-clock message comes out at its receive time); DVL from VISION_POSITION_DELTA (mid-interval, rotated by half the angle delta, rejected above 0.35 rad; BlueOS confidence -> valid and σ = 0.4·(1−c/100)) and VISION_SPEED_ESTIMATE, GLOBAL_VISION_POSITION_ESTIMATE as a position fix, GPS_RAW_INT optionally acoustic; aiding types accepted from system 255 (BlueOS drivers); every message type accounted for (used/rejected/ignored with why/unknown, rate on the mission clock) in summary.json; trajectory.csv gains t_unix_s, lat_deg, lon_deg; replay exits 1 only when nothing usable was read, otherwise 0 with a loud warning (summary warnings, valid_fraction); DvlSample.sigma_m_s (the filter takes the larger))
 
 
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):

@@ -100,6 +100,26 @@ class Sink:
         pass
 
 
+def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict[str, float]:
+    """``t_unix_s`` (when ``unix_of(t_s)`` knows it) and ``lat_deg``, ``lon_deg`` (when the
+    NED ``origin``, a :class:`adaptnav.fusion.frames.GeoOrigin`, is known) of a nav state."""
+    out: dict[str, float] = {}
+    t_unix = unix_of(float(state.t_s)) if unix_of is not None else None
+    if t_unix is not None:
+        out["t_unix_s"] = float(t_unix)
+    if origin is not None:
+        lat, lon, _ = origin.to_geodetic(np.asarray(state.pos_n_m, dtype=float))
+        if math.isfinite(float(lat)) and math.isfinite(float(lon)):
+            out["lat_deg"], out["lon_deg"] = math.degrees(float(lat)), math.degrees(float(lon))
+    return out
+
+
+def geo_time_columns(state: Any, unix_of: Any = None, origin: Any = None) -> list[str]:
+    f = geo_time_fields(state, unix_of, origin)
+    return [format(f["t_unix_s"], ".6f") if "t_unix_s" in f else "",
+            *(format(f[k], ".9f") if k in f else "" for k in ("lat_deg", "lon_deg"))]
+
+
 def _current_xy(state: Any) -> tuple[float, float]:
     c = np.asarray(state.current_n_m_s, dtype=float).ravel()
     return float(c[0]), float(c[1])
@@ -110,7 +130,9 @@ class TrajectoryCsvSink(Sink):
 
     Columns: ``t_s, north_m, east_m, down_m, vel_n_m_s, vel_e_m_s, vel_d_m_s, roll_rad,
     pitch_rad, yaw_rad, sigma_north_m, sigma_east_m, sigma_down_m, current_n_m_s,
-    current_e_m_s, k_speed, valid`` and, with ``truth=True``, ``truth_north_m,
+    current_e_m_s, k_speed, valid, t_unix_s, lat_deg, lon_deg`` (``t_unix_s`` when
+    ``unix_of`` maps mission time to UNIX time — a wall-clock reference exists —,
+    ``lat_deg``/``lon_deg`` when the ``origin`` is known; empty otherwise) and, with ``truth=True``, ``truth_north_m,
     truth_east_m, truth_down_m, truth_current_n_m_s, truth_current_e_m_s, truth_k_v`` from
     the truth sample within ``truth_max_age_s`` of the state: the latest one, or the one
     that arrives before the next state (the runner emits an epoch's state when the IMU
@@ -119,12 +141,16 @@ class TrajectoryCsvSink(Sink):
 
     COLUMNS = ("t_s", "north_m", "east_m", "down_m", "vel_n_m_s", "vel_e_m_s", "vel_d_m_s",
                "roll_rad", "pitch_rad", "yaw_rad", "sigma_north_m", "sigma_east_m",
-               "sigma_down_m", "current_n_m_s", "current_e_m_s", "k_speed", "valid")
+               "sigma_down_m", "current_n_m_s", "current_e_m_s", "k_speed", "valid", "t_unix_s", "lat_deg",
+               "lon_deg")
     TRUTH_COLUMNS = ("truth_north_m", "truth_east_m", "truth_down_m", "truth_current_n_m_s",
                      "truth_current_e_m_s", "truth_k_v")
 
-    def __init__(self, path: str | Path, truth: bool = False, truth_max_age_s: float = 0.05) -> None:
+    def __init__(self, path: str | Path, truth: bool = False, truth_max_age_s: float = 0.05,
+                 unix_of: Any = None, origin: Any = None) -> None:
         self.path = Path(path)
+        self.unix_of = unix_of
+        self.origin = origin
         self.truth = truth
         self.truth_max_age_s = truth_max_age_s
         self._file = open(self.path, "w", newline="")
@@ -168,6 +194,7 @@ class TrajectoryCsvSink(Sink):
         row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
                                                   pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
         row.append("1" if state.valid else "0")
+        row += geo_time_columns(state, self.unix_of, self.origin)
         t_s = float(state.t_s)
         if not self.truth or self._truth_matches(t_s, self._last_truth):
             self._write(row, self._last_truth)

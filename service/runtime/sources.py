@@ -254,6 +254,15 @@ class TlogReplaySource(SampleStreamSource):
     def missing(self) -> list[str]:
         return list(getattr(self.tlog, "missing", []) or [])
 
+    def unix_of(self, t_s: float) -> float | None:
+        """UNIX time of mission time ``t_s`` (None without a wall-clock reference in the log)."""
+        return self.tlog.converter.time.unix_of(t_s)
+
+    def set_origin(self, origin: Any) -> None:
+        """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE)."""
+        conv = self.tlog.converter
+        conv.origin, conv.origin_from = origin, "config"
+
     def report_counters(self) -> dict:
         c = self.tlog.counters
         rejected = dict(c.get("rejected", {}))
@@ -262,7 +271,9 @@ class TlogReplaySource(SampleStreamSource):
         return {"messages_read": int(c.get("messages_read", 0)),
                 "corrupt_frames": int(c.get("corrupt_frames", 0)),
                 "rejected": rejected,
-                "late_samples": int(c.get("late_samples", 0))}
+                "late_samples": int(c.get("late_samples", 0)),
+                "message_types": c.get("message_types", {}),
+                "clock": c.get("clock", {})}
 
 
 def tlog_source(path: Path) -> Any:

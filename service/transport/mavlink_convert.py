@@ -49,6 +49,7 @@ import logging
 
 import math
 import os
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -64,6 +65,7 @@ from adaptnav.fusion.samples import (  # noqa: E402
     AltitudeSample,
     AttitudeSample,
     DepthSample,
+    DvlSample,
     GnssSample,
     ImuSample,
     RpmSample,
@@ -173,12 +175,33 @@ class ConvertConfig:
     altitude_orientation: int = 25  # MAV_SENSOR_ROTATION_PITCH_270 = looking down
     autopilot_component: int = 1  # MAV_COMP_ID_AUTOPILOT1
     reboot_backjump_s: float = 2.0  # a clock going back further than this is a reboot
+    # companion-side drivers: BlueOS's DVL and UGPS extensions send as system 255, component 0
+    aid_system_ids: tuple[int, ...] = (255,)
+    aid_component_ids: tuple[int, ...] = ()  # empty: any component of those systems
+    # "acoustic": GPS_RAW_INT carries an underwater GPS's fixes (no surface-only rule)
+    gps_raw_int_source: Literal["gnss", "acoustic"] = "gnss"
+    # DVL from VISION_POSITION_DELTA: BlueOS maps the DVL's figure of merit (its velocity
+    # 1-σ, m/s) to confidence = 100·(1 − min(fom, 0.4)/0.4); inverted here
+    dvl_confidence_fom_max_m_s: float = 0.4
+    dvl_min_confidence: float = 1.0  # below: no bottom lock (valid = False)
+    dvl_max_angle_delta_rad: float = 0.35  # rotation within one delta above which it is rejected
+    dvl_max_interval_s: float = 5.0
+    vision_speed_frame: Literal["body", "ned"] = "body"  # BlueOS sends the DVL's body-frame velocity
+    vision_position_sigma_m: float = 2.0  # GLOBAL_VISION_POSITION_ESTIMATE without a covariance
+    # a sample without a placeable time is held at most this long (receive time) before the
+    # source is taken to have no boot clock
+    hold_max_s: float = 5.0
+    hold_max_messages: int = 5000
 
     def validate(self) -> None:
         if self.gnss_sigma_per_hdop_m <= 0 or self.usbl_sigma_per_hdop_m <= 0:
             raise ValueError("sigma_per_hdop_m must be > 0")
         if self.reboot_backjump_s <= 0:
             raise ValueError("reboot_backjump_s must be > 0")
+        if self.dvl_confidence_fom_max_m_s <= 0 or self.vision_position_sigma_m <= 0:
+            raise ValueError("dvl_confidence_fom_max_m_s and vision_position_sigma_m must be > 0")
+        if self.hold_max_s <= 0 or self.hold_max_messages <= 0:
+            raise ValueError("hold_max_s and hold_max_messages must be > 0")
 
 
 @dataclass(frozen=True)
@@ -197,62 +220,166 @@ class OdometryConfig:
 
 
 # --------------------------------------------------------------------------- time
-class TimeMapper:
-    """Autopilot boot time (s) → monotonic mission time ``t_s``.
+class _WindowMin:
+    """Minimum of ``value`` over the last ``window_s`` of ``key`` (monotonic deque, O(1))."""
 
-    ``t_s = boot_s + offset``.  A 32-bit ``time_boot_ms`` wrap adds 2³²/1000 s to the
-    offset; any other backward jump larger than ``reboot_backjump_s`` is a reboot and
-    the offset continues the mission clock from the last time seen (``reboots`` counts
-    them).  Small backward steps (messages sent slightly out of order) pass through
-    unchanged — ordering is the replay's job.
+    def __init__(self, window_s: float):
+        self.window_s = window_s
+        self._q: deque[tuple[float, float]] = deque()
+
+    def push(self, key: float, value: float) -> float:
+        q = self._q
+        while q and q[-1][1] >= value:
+            q.pop()
+        q.append((key, value))
+        while q[0][0] < key - self.window_s:
+            q.popleft()
+        return q[0][1]
+
+
+class MissionClock:
+    """One time model for a MAVLink source: every stamp → mission time ``t_s``.
+
+    Three clocks meet here:
+
+    - the autopilot's **boot clock** (``time_boot_ms``, and ``time_usec`` below
+      :data:`UNIX_EPOCH_MIN_US` from the autopilot's component);
+    - **UNIX time** (``time_usec`` ≥ :data:`UNIX_EPOCH_MIN_US` from any component,
+      ``SYSTEM_TIME.time_unix_usec``);
+    - the **receive stamp** (UNIX seconds): the tlog's own 8-byte stamp per message, or the
+      wall clock at reception on a live link (pymavlink's ``msg._timestamp`` in both cases).
+
+    ``t_s`` is the boot clock plus ``boot_offset_s`` (0 until a reboot or a 32-bit wrap)
+    whenever the source has a boot clock; a source without one (only UNIX stamps or receive
+    stamps) gets ``t_s = unix − epoch`` with the epoch the first such stamp, once the hold
+    has expired (:meth:`start_without_boot_clock`).
+
+    ``unix_offset_s`` (``t_unix = t_s + unix_offset_s``) links the two: exactly from a
+    ``SYSTEM_TIME`` pair of the autopilot (``unix_reference = "SYSTEM_TIME"``), else from
+    the receive stamps (``"receive"``), as the minimum of ``recv − t_s`` over the last
+    ``window_s`` (the transport delay is ≥ 0, so the smallest difference is the least
+    delayed message; a sliding window follows a receive clock that drifts or is stepped).
+    A UNIX-stamped sample maps to ``t_s = t_unix − unix_offset_s``; a sample without a
+    usable stamp of its own (``time_usec = 0``, another component's boot clock) to
+    ``t_s = recv − unix_offset_s``.  Until ``unix_offset_s`` is known such samples
+    cannot be placed: the converter *holds* them (:class:`MavlinkConverter`).
+
+    Jumps: the boot clock going back by more than ``reboot_backjump_s`` is a reboot (or,
+    near 2³² ms, a wrap); after a reboot the receive stamps place the new boot clock on the
+    mission clock (the time the autopilot was down is kept), without them the mission clock
+    continues from the last time seen.  A change of ``unix_offset_s`` by more than
+    ``jump_s`` is counted in ``unix_jumps`` (a receive clock stepped by NTP, a GPS time
+    arriving).
     """
 
-    def __init__(self, reboot_backjump_s: float = 2.0):
+    def __init__(self, reboot_backjump_s: float = 2.0, window_s: float = 10.0, jump_s: float = 1.0):
         self.reboot_backjump_s = reboot_backjump_s
-        self.offset_s = 0.0
+        self.jump_s = jump_s
+        self.boot_offset_s = 0.0
         self.last_boot_s: float | None = None
-        self.now_s: float | None = None  # latest mission time mapped (reception clock)
+        self.now_s: float | None = None  # latest mission time mapped
+        self.unix_offset_s: float | None = None
+        self.unix_reference: str | None = None  # "SYSTEM_TIME" | "receive" | "epoch"
+        self.base: str | None = None  # "boot" | "unix"
         self.reboots = 0
         self.wraps = 0
+        self.unix_jumps = 0
+        self._recv_min = _WindowMin(window_s)
 
-    def map_boot_s(self, boot_s: float) -> float:
-        if self.last_boot_s is not None and boot_s < self.last_boot_s - self.reboot_backjump_s:
-            last_t = self.last_boot_s + self.offset_s
-            if self.last_boot_s > U32_WRAP_S_MS - 3600.0 and boot_s < 3600.0:
-                self.offset_s += U32_WRAP_S_MS
-                self.wraps += 1
-            else:
-                self.offset_s = last_t - boot_s  # continue the mission clock after a reboot
-                self.reboots += 1
-        if self.last_boot_s is None or boot_s > self.last_boot_s or boot_s < self.last_boot_s - self.reboot_backjump_s:
-            self.last_boot_s = boot_s
-        t = boot_s + self.offset_s
+    # -- what is known
+    @property
+    def offset_s(self) -> float:
+        """Boot clock → mission clock offset (kept for the DataFlash reader)."""
+        return self.boot_offset_s
+
+    def unix_of(self, t_s: float) -> float | None:
+        """UNIX time of mission time ``t_s``, None without a wall-clock reference."""
+        return None if self.unix_offset_s is None else t_s + self.unix_offset_s
+
+    def _advance(self, t: float) -> float:
         if self.now_s is None or t > self.now_s:
             self.now_s = t
         return t
 
-    def from_boot_ms(self, time_boot_ms: int) -> float:
-        return self.map_boot_s(time_boot_ms / 1000.0)
+    def _set_unix_offset(self, offset: float, reference: str) -> None:
+        if self.unix_offset_s is not None and abs(offset - self.unix_offset_s) > self.jump_s:
+            self.unix_jumps += 1
+        self.unix_offset_s = offset
+        self.unix_reference = reference
 
-    def from_usec(self, time_usec: int, clock: bool = True) -> float | None:
-        """64-bit ``time_usec`` since boot (0 or UNIX time: the latest time instead).
+    # -- the boot clock
+    def map_boot_s(self, boot_s: float, recv_s: float | None = None) -> float:
+        """Autopilot boot time (s) → ``t_s``; learns ``unix_offset_s`` from ``recv_s``."""
+        if self.base is None:
+            self.base = "boot"
+        elif self.last_boot_s is None and self.unix_offset_s is not None and recv_s is not None:
+            # the first boot stamp of a source that started on UNIX time: place it by reception
+            self.boot_offset_s = (recv_s - self.unix_offset_s) - boot_s
+        if self.last_boot_s is not None and boot_s < self.last_boot_s - self.reboot_backjump_s:
+            last_t = self.last_boot_s + self.boot_offset_s
+            if self.last_boot_s > U32_WRAP_S_MS - 3600.0 and boot_s < 3600.0:
+                self.boot_offset_s += U32_WRAP_S_MS
+                self.wraps += 1
+            else:
+                self.reboots += 1
+                if recv_s is not None and self.unix_offset_s is not None and self.unix_reference != "SYSTEM_TIME":
+                    # the receive clock kept running while the autopilot rebooted
+                    self.boot_offset_s = max(recv_s - self.unix_offset_s, last_t) - boot_s
+                else:
+                    self.boot_offset_s = last_t - boot_s  # continue the mission clock
+                if self.unix_reference == "SYSTEM_TIME":
+                    self.unix_reference = None  # the old pair is void; re-learn
+                    self._recv_min = _WindowMin(self._recv_min.window_s)
+        if self.last_boot_s is None or boot_s > self.last_boot_s or boot_s < self.last_boot_s - self.reboot_backjump_s:
+            self.last_boot_s = boot_s
+        t = boot_s + self.boot_offset_s
+        if recv_s is not None and self.unix_reference in (None, "receive"):
+            self._set_unix_offset(self._recv_min.push(recv_s, recv_s - t), "receive")
+        return self._advance(t)
 
-        ``clock=False`` for sensor times that may be stale (GPS_RAW_INT repeats the time
-        of its last fix): mapped with the current offset without moving the clock.
-        """
-        if time_usec <= 0 or time_usec >= UNIX_EPOCH_MIN_US:
-            return self.now_s
-        if not clock and self.now_s is not None:
-            return time_usec / 1e6 + self.offset_s
-        return self.map_boot_s(time_usec / 1e6)
+    def from_boot_ms(self, time_boot_ms: int, recv_s: float | None = None) -> float:
+        return self.map_boot_s(time_boot_ms / 1000.0, recv_s)
 
-    def from_u32_usec(self, time_usec: int) -> float | None:
+    def from_u32_usec(self, time_usec: int, recv_s: float | None = None) -> float:
         """32-bit µs (SERVO_OUTPUT_RAW): unwrapped to the candidate nearest the latest boot time."""
-        if self.last_boot_s is None:
-            return self.map_boot_s(time_usec / 1e6)
         base = time_usec / 1e6
-        k = round((self.last_boot_s - base) / U32_WRAP_S_US)
-        return self.map_boot_s(base + k * U32_WRAP_S_US)
+        if self.last_boot_s is not None:
+            base += round((self.last_boot_s - base) / U32_WRAP_S_US) * U32_WRAP_S_US
+        return self.map_boot_s(base, recv_s)
+
+    def stale_boot_s(self, boot_s: float) -> float | None:
+        """A boot-clock sensor time that may be old (GPS_RAW_INT repeats its last fix's
+        time): mapped with the current offset, without moving the clock."""
+        if self.last_boot_s is None:
+            return None
+        return boot_s + self.boot_offset_s
+
+    # -- UNIX time and reception
+    def pair_system_time(self, unix_s: float, boot_s: float, recv_s: float | None = None) -> None:
+        """The autopilot's SYSTEM_TIME: an exact (UNIX, boot) pair."""
+        t = self.map_boot_s(boot_s, recv_s)
+        self._set_unix_offset(unix_s - t, "SYSTEM_TIME")
+
+    def from_unix_s(self, unix_s: float) -> float | None:
+        """UNIX time → ``t_s`` (None while no reference links UNIX to the mission clock)."""
+        if self.unix_offset_s is None:
+            return None
+        return self._advance(unix_s - self.unix_offset_s)
+
+    def from_receive(self, recv_s: float | None) -> float | None:
+        """Reception time → ``t_s``; without a receive stamp the latest mission time."""
+        if recv_s is None:
+            return self.now_s
+        if self.unix_offset_s is None:
+            return None
+        return self._advance(recv_s - self.unix_offset_s)
+
+    def start_without_boot_clock(self, epoch_unix_s: float) -> None:
+        """No boot clock came in time: the mission clock is UNIX time − ``epoch_unix_s``."""
+        if self.unix_offset_s is None:
+            self.base = self.base or "unix"
+            self._set_unix_offset(epoch_unix_s, "epoch")
+
 
 
 # --------------------------------------------------------------------------- in: pure
@@ -353,6 +480,69 @@ def usbl_from_gps_input(msg: Any, t_s: float, cfg: ConvertConfig) -> UsblSample:
     return UsblSample(t_s, msg.lat * DEG_E7_TO_RAD, msg.lon * DEG_E7_TO_RAD, depth, sigma_h, sigma_v)
 
 
+def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig) -> DvlSample:
+    """VISION_POSITION_DELTA (a DVL driver's displacement over ``time_delta_usec``) → DvlSample.
+
+    The delta is in the body frame at the *start* of the interval (MAVLink: "FRD frame of the
+    previous time step"); the mean velocity is rotated by half the interval's rotation
+    ``angle_delta`` into the body frame at mid-interval, the time of validity of a mean.
+    ``confidence`` (0–100 %) → ``valid`` (≥ ``dvl_min_confidence``) and the velocity 1-σ
+    ``fom = fom_max·(1 − confidence/100)`` (the BlueOS DVL extension's mapping, inverted).
+    A rotation above ``dvl_max_angle_delta_rad`` within one delta is rejected: a mean over
+    it is not one body-frame velocity.  The body frame is the DVL's frame for the filter
+    (``filter.dvl.rotation_bd_rpy_rad`` = 0: the driver has already rotated its head).
+    """
+    dt = msg.time_delta_usec / 1e6
+    if not 0.0 < dt <= cfg.dvl_max_interval_s:
+        raise ConversionError("dvl_bad_interval", f"time_delta_usec={msg.time_delta_usec}")
+    dpos = np.asarray(msg.position_delta, dtype=float)
+    conf = float(msg.confidence)
+    if not (np.all(np.isfinite(dpos)) and math.isfinite(conf)):
+        raise ConversionError("non_finite", "VISION_POSITION_DELTA")
+    ang = np.asarray(msg.angle_delta, dtype=float)
+    if not np.all(np.isfinite(ang)):
+        ang = np.zeros(3)  # not reported: no rotation correction
+    if float(np.linalg.norm(ang)) > cfg.dvl_max_angle_delta_rad:
+        raise ConversionError("dvl_rotating", f"|angle_delta| = {np.linalg.norm(ang):.3f} rad")
+    from scipy.spatial.transform import Rotation
+
+    vel_mid = Rotation.from_rotvec(0.5 * ang).inv().apply(dpos / dt)
+    sigma = cfg.dvl_confidence_fom_max_m_s * (1.0 - min(max(conf, 0.0), 100.0) / 100.0)
+    return DvlSample(t_end_s - 0.5 * dt, tuple(float(v) for v in vel_mid), conf >= cfg.dvl_min_confidence,
+                     sigma_m_s=sigma if sigma > 0.0 else math.nan)
+
+
+def dvl_from_vision_speed(msg: Any, t_s: float, cfg: ConvertConfig, R_nb: np.ndarray | None = None) -> DvlSample:
+    """VISION_SPEED_ESTIMATE → DvlSample.  The BlueOS DVL extension sends the DVL's body
+    velocity (``vision_speed_frame = "body"``, the default); ``"ned"`` (the MAVLink
+    definition) needs ``R_nb`` at ``t_s``.  1-σ from the covariance diagonal when given."""
+    vel = np.array([msg.x, msg.y, msg.z], dtype=float)
+    if not np.all(np.isfinite(vel)):
+        raise ConversionError("non_finite", "VISION_SPEED_ESTIMATE")
+    if cfg.vision_speed_frame == "ned":
+        if R_nb is None:
+            raise ConversionError("no_attitude", "VISION_SPEED_ESTIMATE in NED needs the attitude")
+        vel = R_nb.T @ vel
+    cov = np.asarray(getattr(msg, "covariance", [math.nan]) or [math.nan], dtype=float)
+    diag = cov[[0, 4, 8]] if cov.size >= 9 else np.array([math.nan])
+    sigma = float(math.sqrt(max(diag))) if np.all(np.isfinite(diag)) and max(diag) > 0 else math.nan
+    return DvlSample(t_s, tuple(float(v) for v in vel), True, sigma_m_s=sigma)
+
+
+def usbl_from_global_vision(msg: Any, t_s: float, origin: GeoOrigin, cfg: ConvertConfig) -> UsblSample:
+    """GLOBAL_VISION_POSITION_ESTIMATE (local NED position from the EKF origin, m) → UsblSample.
+    σ_h from the covariance (upper triangle: x at 0, y at 6) or ``vision_position_sigma_m``."""
+    pos = np.array([msg.x, msg.y, msg.z], dtype=float)
+    if not np.all(np.isfinite(pos)):
+        raise ConversionError("non_finite", "GLOBAL_VISION_POSITION_ESTIMATE")
+    cov = np.asarray(getattr(msg, "covariance", [math.nan]) or [math.nan], dtype=float)
+    sigma = cfg.vision_position_sigma_m
+    if cov.size >= 7 and math.isfinite(cov[0]) and math.isfinite(cov[6]) and max(cov[0], cov[6]) > 0:
+        sigma = math.sqrt(max(cov[0], cov[6]))
+    lat, lon, _ = origin.to_geodetic(pos)
+    return UsblSample(t_s, float(lat), float(lon), float(pos[2]), max(sigma, cfg.usbl_min_sigma_m))
+
+
 def altitude_from_distance_sensor(msg: Any, t_s: float, cfg: ConvertConfig) -> AltitudeSample:
     if msg.orientation != cfg.altitude_orientation:
         raise ConversionError("distance_not_down", f"orientation={msg.orientation}")
@@ -365,67 +555,283 @@ def altitude_from_distance_sensor(msg: Any, t_s: float, cfg: ConvertConfig) -> A
 
 
 # --------------------------------------------------------------------------- in: stateful
-class MavlinkConverter:
-    """Turns a stream of ArduSub messages into samples (one instance per link or log).
+# Message types deliberately not turned into samples, and why (summary.json says so; a type
+# neither handled nor listed here is reported as unknown).
+_WHY_AUTOPILOT_SOLUTION = "the autopilot's own estimate (an output of its EKF, not a sensor)"
+_WHY_HOUSEKEEPING = "status / housekeeping (no navigation content)"
+_WHY_GCS = "ground-station traffic (commands, parameters, missions, pilot input)"
+IGNORED_WHY: dict[str, str] = {
+    **{m: _WHY_AUTOPILOT_SOLUTION for m in (
+        "AHRS", "AHRS2", "AHRS3", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED",
+        "VFR_HUD", "NAV_CONTROLLER_OUTPUT", "EKF_STATUS_REPORT", "HOME_POSITION", "POSITION_TARGET_GLOBAL_INT",
+        "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS", "ODOMETRY", "VISION_POSITION_ESTIMATE")},
+    **{m: _WHY_HOUSEKEEPING for m in (
+        "SYS_STATUS", "BATTERY_STATUS", "POWER_STATUS", "HWSTATUS", "MEMINFO", "VIBRATION", "SENSOR_OFFSETS",
+        "MOUNT_STATUS", "GIMBAL_DEVICE_ATTITUDE_STATUS", "AUTOPILOT_VERSION", "STORAGE_INFORMATION",
+        "VIDEO_STREAM_STATUS", "NAMED_VALUE_FLOAT", "NAMED_VALUE_INT", "STATUSTEXT", "TIMESYNC",
+        "MISSION_CURRENT", "RC_CHANNELS", "RC_CHANNELS_RAW", "TERRAIN_REPORT", "TERRAIN_REQUEST",
+        "ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8", "CAMERA_INFORMATION", "CAMERA_SETTINGS",
+        "EXTENDED_SYS_STATE", "PING", "RADIO_STATUS", "FENCE_STATUS")},
+    **{m: _WHY_GCS for m in (
+        "MANUAL_CONTROL", "COMMAND_LONG", "COMMAND_INT", "COMMAND_ACK", "REQUEST_DATA_STREAM", "PARAM_VALUE",
+        "PARAM_SET", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_EXT_VALUE", "PARAM_EXT_REQUEST_LIST",
+        "MISSION_ACK", "MISSION_COUNT", "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT",
+        "SET_MODE", "SET_MESSAGE_INTERVAL", "SET_GPS_GLOBAL_ORIGIN", "RC_CHANNELS_OVERRIDE", "GPS_RTCM_DATA")},
+    "HEARTBEAT": "link liveness; gives the autopilot's system id",
+    "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",
+    "GPS_GLOBAL_ORIGIN": "the autopilot's EKF origin (places GLOBAL_VISION_POSITION_ESTIMATE), no sample",
+    "SIM_STATE": "simulator ground truth (never fused)",
+    "SIMSTATE": "simulator ground truth (never fused)",
+    "RANGEFINDER": "ArduPilot's copy of DISTANCE_SENSOR (that one is used)",
+    "SCALED_IMU3": "a third IMU: one IMU stream is integrated",
+}
 
-    Holds the little state conversion needs: the :class:`TimeMapper`, the autopilot's
-    system id (learned from its HEARTBEAT; messages of other systems — ground stations —
-    are ignored), the IMU message type locked on, and when GPS_INPUT was last seen.
-    ``rejected`` counts messages that were not turned into samples, by reason.
+
+class IgnoredMessage(Exception):
+    """A handled message type that is not for us in this instance (``why`` says why)."""
+
+    def __init__(self, why: str):
+        super().__init__(why)
+        self.why = why
+
+
+@dataclass
+class TypeAccount:
+    """What became of one message type: messages read, samples made, rejected/ignored by why."""
+
+    messages: int = 0
+    samples: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    ignored: dict[str, int] = field(default_factory=dict)
+    t_first_s: float = math.nan
+    t_last_s: float = math.nan
+    stamped: int = 0
+
+    def stamp(self, t_s: float) -> None:
+        if self.stamped == 0:
+            self.t_first_s = t_s
+        self.t_last_s = t_s
+        self.stamped += 1
+
+    def rate_hz(self) -> float | None:
+        """Rate on the mission clock (messages that received a time)."""
+        span = self.t_last_s - self.t_first_s
+        return (self.stamped - 1) / span if self.stamped > 1 and span > 0 else None
+
+
+class MavlinkConverter:
+    """Turns a stream of MAVLink messages into samples (one instance per link or log).
+
+    Holds the little state conversion needs: the :class:`MissionClock`, the autopilot's
+    system id (learned from its HEARTBEAT), the IMU message type locked on, the EKF origin
+    (from config or ``GPS_GLOBAL_ORIGIN``), and when GPS_INPUT was last seen.
+
+    Who is listened to: every handled type from the autopilot's system (any component: the
+    UGPS extension sends GPS_INPUT as component 220, a Ping driver DISTANCE_SENSOR as 194);
+    the aiding types (:data:`AID_MESSAGES`) also from ``aid_system_ids`` (BlueOS's DVL and
+    UGPS extensions send as system 255, component 0), restricted to ``aid_component_ids``
+    when that is not empty.  Anything else is ``other_system``.
+
+    Samples whose time cannot be placed yet (a UNIX ``time_usec`` or a receive stamp before
+    any clock reference) are **held**, not dropped, and come out of a later :meth:`convert`
+    (or :meth:`flush`) once the clock is known; after ``hold_max_s`` of receive time
+    without a boot clock the source is taken to have none (:meth:`MissionClock.start_without_boot_clock`).
+
+    ``rejected`` counts messages that were not turned into samples, by reason;
+    :meth:`accounting` says, for every message type seen, what became of it.
     """
 
-    def __init__(self, config: ConvertConfig | None = None):
+    def __init__(self, config: ConvertConfig | None = None, origin: GeoOrigin | None = None):
         self.config = config or ConvertConfig()
-        self.time = TimeMapper(self.config.reboot_backjump_s)
+        self.time = MissionClock(self.config.reboot_backjump_s)
         self.autopilot_sysid: int | None = None
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
         self.last_gps_input_t: float | None = None
+        self.origin = origin
+        self.origin_from: str | None = "config" if origin is not None else None
         self.rejected: dict[str, int] = {}
+        self.types: dict[str, TypeAccount] = {}
+        self.held = 0  # samples held until the clock was known (released later)
+        self._held: list[tuple[Any, str, float | None]] = []
+        self._first_unix_s: float | None = None
+        self._first_hold_recv_s: float | None = None
 
-    def _reject(self, reason: str) -> list:
+    # ------------------------------------------------------------------ public
+    def convert(self, msg: Any) -> list:
+        """Samples carried by one message (usually 0 or 1), plus held ones now placeable."""
+        mtype = msg.get_type()
+        acc = self.types.get(mtype)
+        if acc is None:
+            acc = self.types[mtype] = TypeAccount()
+        acc.messages += 1
+        recv_s = getattr(msg, "_timestamp", None)
+        recv_s = float(recv_s) if isinstance(recv_s, (int, float)) and recv_s > 0 else None
+        out = self._convert_one(msg, mtype, recv_s, acc)
+        if self._held:
+            if self.time.unix_offset_s is None and self._hold_expired(recv_s):
+                self._start_without_boot_clock()
+            if self.time.unix_offset_s is not None:
+                out += self._release_held()
+        return out
+
+    def flush(self) -> list:
+        """End of the stream: place what is still held (or count it ``no_time``)."""
+        if self._held and self.time.unix_offset_s is None:
+            self._start_without_boot_clock()
+        out = self._release_held()
+        for _, mtype, _ in self._held:
+            self._count_reject(self.types[mtype], "no_time")
+        self._held = []
+        return out
+
+    def accounting(self) -> dict[str, dict]:
+        """Per message type: ``status`` (used | rejected | ignored | unknown), ``why``,
+        ``messages``, ``samples``, ``rejected``/``ignored`` by reason, ``rate_hz`` (mission clock)."""
+        out = {}
+        for mtype, a in sorted(self.types.items()):
+            handled = mtype in _HANDLERS
+            if a.samples:
+                status, why = "used", None
+            elif handled and a.rejected:
+                status, why = "rejected", "every message rejected (see rejected)"
+            elif a.ignored:
+                status, why = "ignored", "; ".join(sorted(a.ignored))
+            elif mtype in IGNORED_WHY:
+                status, why = "ignored", IGNORED_WHY[mtype]
+            elif handled:
+                status, why = "held", "no time reference yet"
+            else:
+                status, why = "unknown", "no converter for this message type"
+            d: dict[str, Any] = {"status": status, "messages": a.messages, "samples": a.samples}
+            if why:
+                d["why"] = why
+            if a.rejected:
+                d["rejected"] = dict(a.rejected)
+            if a.ignored:
+                d["ignored"] = dict(a.ignored)
+            rate = a.rate_hz()
+            if rate is not None:
+                d["rate_hz"] = round(rate, 3)
+            out[mtype] = d
+        return out
+
+    def clock_report(self) -> dict[str, Any]:
+        """The time model's state, for summaries and health."""
+        c = self.time
+        return {"base": c.base, "unix_reference": c.unix_reference, "unix_offset_s": c.unix_offset_s,
+                "reboots": c.reboots, "wraps": c.wraps, "unix_jumps": c.unix_jumps, "held_samples": self.held}
+
+    # ------------------------------------------------------------------ internals
+    def _count_reject(self, acc: TypeAccount, reason: str) -> list:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        acc.rejected[reason] = acc.rejected.get(reason, 0) + 1
+        return []
+
+    def _reject(self, reason: str) -> list:  # kept for handlers' callers outside this class
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
         return []
 
-    def _stamp(self, msg: Any, mtype: str) -> float | None:
-        """Mission time of ``msg``; the autopilot's own clock, else reception time."""
-        if msg.get_srcComponent() != self.config.autopilot_component:
-            return self.time.now_s
-        if hasattr(msg, "time_boot_ms"):
-            return self.time.from_boot_ms(msg.time_boot_ms)
-        if mtype == "SERVO_OUTPUT_RAW":
-            return self.time.from_u32_usec(msg.time_usec)
-        if hasattr(msg, "time_usec"):
-            return self.time.from_usec(msg.time_usec, clock=mtype != "GPS_RAW_INT")
-        return self.time.now_s
+    def _hold_expired(self, recv_s: float | None) -> bool:
+        if recv_s is None or self._first_hold_recv_s is None:
+            return len(self._held) >= self.config.hold_max_messages
+        return recv_s - self._first_hold_recv_s > self.config.hold_max_s
 
-    def convert(self, msg: Any) -> list:
-        """Samples carried by one message (usually 0 or 1)."""
-        mtype = msg.get_type()
+    def _start_without_boot_clock(self) -> None:
+        epoch = self._first_unix_s if self._first_unix_s is not None else self._first_hold_recv_s
+        if epoch is not None:
+            self.time.start_without_boot_clock(math.floor(epoch))
+
+    def _release_held(self) -> list:
+        held, self._held = self._held, []
+        out = []
+        for msg, mtype, recv_s in held:
+            out += self._convert_one(msg, mtype, recv_s, self.types[mtype], releasing=True)
+        return out
+
+    def _is_autopilot(self, msg: Any) -> bool:
+        return (msg.get_srcComponent() == self.config.autopilot_component
+                and (self.autopilot_sysid is None or msg.get_srcSystem() == self.autopilot_sysid))
+
+    def _accepted_source(self, msg: Any, mtype: str) -> bool:
+        sysid = msg.get_srcSystem()
+        if self.autopilot_sysid is None or sysid == self.autopilot_sysid:
+            return True
+        if mtype not in AID_MESSAGES or sysid not in self.config.aid_system_ids:
+            return False
+        comps = self.config.aid_component_ids
+        return not comps or msg.get_srcComponent() in comps
+
+    def _stamp(self, msg: Any, mtype: str, recv_s: float | None) -> float | None:
+        """Mission time of ``msg`` (None: not placeable yet, hold it)."""
+        own_clock = self._is_autopilot(msg)
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None and own_clock and boot_ms > 0:
+            return self.time.from_boot_ms(boot_ms, recv_s)
+        usec = getattr(msg, "time_usec", getattr(msg, "usec", None))
+        if usec is not None and usec >= UNIX_EPOCH_MIN_US:
+            if self._first_unix_s is None:
+                self._first_unix_s = usec / 1e6
+            return self.time.from_unix_s(usec / 1e6)
+        if usec is not None and usec > 0 and own_clock:
+            if mtype == "SERVO_OUTPUT_RAW":
+                return self.time.from_u32_usec(usec, recv_s)
+            if mtype == "GPS_RAW_INT":  # repeats the time of its last fix: do not move the clock
+                t = self.time.stale_boot_s(usec / 1e6)
+                return t if t is not None else self.time.map_boot_s(usec / 1e6, recv_s)
+            return self.time.map_boot_s(usec / 1e6, recv_s)
+        # no usable stamp of its own (0, or another component's clock): the reception time
+        return self.time.from_receive(recv_s)
+
+    def _convert_one(self, msg: Any, mtype: str, recv_s: float | None, acc: TypeAccount,
+                     releasing: bool = False) -> list:
         if mtype == "HEARTBEAT":
             if self.autopilot_sysid is None and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
                 self.autopilot_sysid = msg.get_srcSystem()
             return []
+        if mtype == "SYSTEM_TIME":
+            if self._is_autopilot(msg) and msg.time_unix_usec >= UNIX_EPOCH_MIN_US and msg.time_boot_ms > 0:
+                self.time.pair_system_time(msg.time_unix_usec / 1e6, msg.time_boot_ms / 1000.0, recv_s)
+            elif self._is_autopilot(msg) and msg.time_boot_ms > 0:
+                self.time.from_boot_ms(msg.time_boot_ms, recv_s)
+            return []
         handler = _HANDLERS.get(mtype)
         if handler is None:
+            if mtype == "GPS_GLOBAL_ORIGIN" and self.origin_from != "config" and self._is_autopilot(msg):
+                self.origin = GeoOrigin(msg.latitude * DEG_E7_TO_RAD, msg.longitude * DEG_E7_TO_RAD,
+                                        msg.altitude / 1000.0)
+                self.origin_from = "GPS_GLOBAL_ORIGIN"
+            elif self._is_autopilot(msg) and getattr(msg, "time_boot_ms", 0):
+                self.time.from_boot_ms(msg.time_boot_ms, recv_s)  # every boot stamp teaches the clock
             return []
-        if self.autopilot_sysid is not None and msg.get_srcSystem() != self.autopilot_sysid:
-            return self._reject("other_system")
-        t_s = self._stamp(msg, mtype)
+        if not self._accepted_source(msg, mtype):
+            return self._count_reject(acc, "other_system")
+        t_s = self._stamp(msg, mtype, recv_s)
         if t_s is None:
-            return self._reject("no_time_yet")
+            if not releasing:
+                if self._first_hold_recv_s is None:
+                    self._first_hold_recv_s = recv_s
+                self._held.append((msg, mtype, recv_s))
+                self.held += 1
+            else:
+                self._held.append((msg, mtype, recv_s))
+            return []
+        acc.stamp(t_s)
         try:
             sample = handler(self, msg, mtype, t_s)
+        except IgnoredMessage as e:
+            acc.ignored[e.why] = acc.ignored.get(e.why, 0) + 1
+            return []
         except ConversionError as e:
-            return self._reject(e.reason)
+            return self._count_reject(acc, e.reason)
         except (AttributeError, TypeError, ValueError, OverflowError):
-            return self._reject("malformed")
-        return [] if sample is None else [sample]
+            return self._count_reject(acc, "malformed")
+        acc.samples += 1
+        return [sample]
 
     # handlers -------------------------------------------------------------------
     def _imu(self, msg, mtype, t_s):
         if self.imu_message is not None and mtype != self.imu_message:
-            self.rejected["imu_other_stream"] = self.rejected.get("imu_other_stream", 0) + 1
-            return None
+            raise IgnoredMessage(f"another IMU stream ({self.imu_message}) is integrated")
         sample = imu_from_highres(msg, t_s) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s)
         if self.imu_message is None:
             self.imu_message = mtype  # lock: two IMUs interleaved would corrupt strapdown
@@ -435,17 +841,25 @@ class MavlinkConverter:
 
     def _pressure(self, msg, mtype, t_s):
         if mtype != self.config.depth_message:
-            return None  # the internal barometer measures hull air, not water
+            raise IgnoredMessage(f"depth comes from {self.config.depth_message} (the external sensor)")
         return depth_from_pressure(msg, t_s)
 
     def _gps_raw(self, msg, mtype, t_s):
         if self.last_gps_input_t is not None and t_s - self.last_gps_input_t < self.config.gps_input_echo_window_s:
             raise ConversionError("gnss_echo_of_gps_input")
-        return gnss_from_gps_raw_int(msg, t_s, self.config)
+        g = gnss_from_gps_raw_int(msg, t_s, self.config)
+        if self.config.gps_raw_int_source == "acoustic":  # an underwater GPS behind GPS1_TYPE
+            return UsblSample(g.t_s, g.lat_rad, g.lon_rad, math.nan, max(g.sigma_h_m, self.config.usbl_min_sigma_m))
+        return g
 
     def _gps_input(self, msg, mtype, t_s):
         self.last_gps_input_t = t_s
         return usbl_from_gps_input(msg, t_s, self.config)
+
+    def _vision_position(self, msg, mtype, t_s):
+        if self.origin is None:
+            raise ConversionError("no_origin", "GLOBAL_VISION_POSITION_ESTIMATE before any origin")
+        return usbl_from_global_vision(msg, t_s, self.origin, self.config)
 
 
 _HANDLERS = {
@@ -460,8 +874,13 @@ _HANDLERS = {
     "GPS_RAW_INT": MavlinkConverter._gps_raw,
     "GPS_INPUT": MavlinkConverter._gps_input,
     "DISTANCE_SENSOR": lambda self, m, k, t: altitude_from_distance_sensor(m, t, self.config),
+    "VISION_POSITION_DELTA": lambda self, m, k, t: dvl_from_vision_position_delta(m, t, self.config),
+    "VISION_SPEED_ESTIMATE": lambda self, m, k, t: dvl_from_vision_speed(m, t, self.config),
+    "GLOBAL_VISION_POSITION_ESTIMATE": MavlinkConverter._vision_position,
 }
-
+# types accepted from the aiding systems (companion drivers) as well as from the autopilot
+AID_MESSAGES = frozenset({"VISION_POSITION_DELTA", "VISION_SPEED_ESTIMATE", "GLOBAL_VISION_POSITION_ESTIMATE",
+                          "GPS_INPUT", "DISTANCE_SENSOR", "HIGHRES_IMU"})
 
 # --------------------------------------------------------------------------- out
 def _cov_slices():

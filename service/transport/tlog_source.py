@@ -29,8 +29,9 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
     ConvertConfig,
     ConversionError,
     MavlinkConverter,
+    TypeAccount,
 )
-from adaptnav.fusion.frames import wrap_angle
+from adaptnav.fusion.frames import GeoOrigin, wrap_angle
 from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
 
 log = logging.getLogger(__name__)
@@ -73,12 +74,12 @@ class TlogSource:
         What the estimator will lack, in words; complete once iteration has finished.
     """
 
-    def __init__(self, path: str | Path, config: TlogConfig | None = None):
+    def __init__(self, path: str | Path, config: TlogConfig | None = None, origin: GeoOrigin | None = None):
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"MAVLink log not found: {self.path}")
         self.config = config or TlogConfig()
-        self.converter = MavlinkConverter(self.config.convert)
+        self.converter = MavlinkConverter(self.config.convert, origin)
         self.counters: dict[str, Any] = {
             "messages_read": 0, "corrupt_frames": 0, "samples_by_kind": {}, "rejected": {},
             "late_samples": 0, "duration_s": 0.0,
@@ -119,10 +120,21 @@ class TlogSource:
     def _convert_dataflash(self, msg: Any) -> list:
         """DataFlash records (already SI apart from degrees): IMU, ATT, BARO, RCOU."""
         mtype = msg.get_type()
+        acc = self.converter.types.setdefault(mtype, TypeAccount())
+        acc.messages += 1
         t_us = getattr(msg, "TimeUS", None)
-        if t_us is None:
+        if t_us is None or mtype not in ("IMU", "ATT", "BARO", "RCOU"):
+            acc.ignored["DataFlash record not used"] = acc.messages
             return []
         t_s = self.converter.time.map_boot_s(t_us / 1e6)
+        acc.stamp(t_s)
+        out = self._dataflash_samples(msg, mtype, t_s)
+        acc.samples += len(out)
+        if not out:
+            acc.ignored["other instance"] = acc.ignored.get("other instance", 0) + 1
+        return out
+
+    def _dataflash_samples(self, msg: Any, mtype: str, t_s: float) -> list:
         try:
             if mtype == "IMU" and getattr(msg, "I", 0) == 0:
                 self._imu_type = "IMU[0]"
@@ -197,8 +209,9 @@ class TlogSource:
                 by_kind[sample.KIND] = by_kind.get(sample.KIND, 0) + 1
                 yield sample
 
-        for msg in self._messages():
-            for sample in self._convert(msg):
+        def push(samples: list):
+            nonlocal seq
+            for sample in samples:
                 if isinstance(sample, ImuSample) and not self._keep_imu(sample):
                     continue
                 if sample.t_s < released_t:
@@ -207,12 +220,20 @@ class TlogSource:
                     continue
                 heapq.heappush(heap, (replay_order_key(sample, seq), sample))
                 seq += 1
-                yield from release(sample.t_s - window)
+
+        for msg in self._messages():
+            samples = self._convert(msg)
+            if samples:
+                push(samples)
+                yield from release(max(s.t_s for s in samples) - window)
+        push(self.converter.flush())
         yield from release(math.inf)
         for reason, n in self.converter.rejected.items():
             self.counters["rejected"][reason] = self.counters["rejected"].get(reason, 0) + n
         self.counters["duration_s"] = 0.0 if t_first is None else t_last - t_first
         self.counters["reboots"] = self.converter.time.reboots
+        self.counters["message_types"] = self.converter.accounting()
+        self.counters["clock"] = self.converter.clock_report()
         self.missing = self._diagnose()
 
     def _diagnose(self) -> list[str]:

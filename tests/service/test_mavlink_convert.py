@@ -10,7 +10,7 @@ from adaptnav.service.transport.mavlink_convert import (
     MavlinkConverter,
     OdometryConfig,
     PwmRpmCurve,
-    TimeMapper,
+    MissionClock,
     gps_global_origin_fields,
     mavlink2,
     odometry_fields,
@@ -51,7 +51,8 @@ def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
     # auto mode locks on the first real IMU stream, then ignores the others
     assert len(c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))) == 1
     assert c.convert(wire("scaled_imu2_encode", 1200, 1, 2, -1000, 0, 0, 0, 0, 0, 0)) == []
-    assert c.rejected["imu_other_stream"] == 1
+    acct = c.accounting()["SCALED_IMU2"]  # ignored on purpose, and says why
+    assert acct["status"] == "rejected" and acct["ignored"] == {"another IMU stream (RAW_IMU) is integrated": 1}
 
 
 def test_highres_imu_attitude_pressure_distance():
@@ -121,15 +122,15 @@ def test_servo_output_to_rpm_uses_forward_signs():
     assert r.rpm == pytest.approx(expected, rel=1e-3)
 
 
-def test_time_mapper_wrap_and_reboot_keep_mission_time_monotonic():
-    tm = TimeMapper(reboot_backjump_s=2.0)
+def test_mission_clock_wrap_and_reboot_keep_mission_time_monotonic():
+    tm = MissionClock(reboot_backjump_s=2.0)
     assert tm.from_boot_ms(1000) == pytest.approx(1.0)
     assert tm.from_boot_ms(990) == pytest.approx(0.99)  # small out-of-order: not a reboot
     t_before = tm.from_boot_ms(500_000)
     t_after = tm.from_boot_ms(3_000)  # autopilot rebooted
     assert tm.reboots == 1 and t_after >= t_before
     assert tm.from_boot_ms(4_000) == pytest.approx(t_after + 1.0)
-    tm2 = TimeMapper()
+    tm2 = MissionClock()
     near_wrap = 2**32 - 500
     t1 = tm2.from_boot_ms(near_wrap)
     t2 = tm2.from_boot_ms(500)  # uint32 wrapped after 49.7 days
