@@ -772,7 +772,9 @@ class MavlinkConverter:
             if self._first_unix_s is None:
                 self._first_unix_s = usec / 1e6
             return self.time.from_unix_s(usec / 1e6)
-        if usec is not None and usec > 0 and own_clock:
+        if usec is not None and own_clock and (usec > 0 or self.time.last_boot_s is None):
+            # (0 from the autopilot before any other boot stamp is the start of its boot
+            # clock; later, 0 means "no time": the reception time below)
             if mtype == "SERVO_OUTPUT_RAW":
                 return self.time.from_u32_usec(usec, recv_s)
             if mtype == "GPS_RAW_INT":  # repeats the time of its last fix: do not move the clock
