@@ -765,16 +765,15 @@ class MavlinkConverter:
         """Mission time of ``msg`` (None: not placeable yet, hold it)."""
         own_clock = self._is_autopilot(msg)
         boot_ms = getattr(msg, "time_boot_ms", None)
-        if boot_ms is not None and own_clock and boot_ms > 0:
+        first_boot_stamp = self.time.last_boot_s is None  # 0 is the start of the boot clock then
+        if boot_ms is not None and own_clock and (boot_ms > 0 or first_boot_stamp):
             return self.time.from_boot_ms(boot_ms, recv_s)
         usec = getattr(msg, "time_usec", getattr(msg, "usec", None))
         if usec is not None and usec >= UNIX_EPOCH_MIN_US:
             if self._first_unix_s is None:
                 self._first_unix_s = usec / 1e6
             return self.time.from_unix_s(usec / 1e6)
-        if usec is not None and own_clock and (usec > 0 or self.time.last_boot_s is None):
-            # (0 from the autopilot before any other boot stamp is the start of its boot
-            # clock; later, 0 means "no time": the reception time below)
+        if usec is not None and own_clock and (usec > 0 or first_boot_stamp):  # later 0: "no time"
             if mtype == "SERVO_OUTPUT_RAW":
                 return self.time.from_u32_usec(usec, recv_s)
             if mtype == "GPS_RAW_INT":  # repeats the time of its last fix: do not move the clock
