@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 KERNELS := $(VENV)/.kernels
 KERNEL_SOURCES := fusion/strapdown.py calibration/_kernels.py adaptnav/kernels.py
 
-.PHONY: demo test bench golden browser clean
+.PHONY: demo test test-sitl bench golden browser clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -35,6 +35,12 @@ test: $(STAMP) $(KERNELS) browser
 # on purpose; the commit says why the numbers moved
 golden: $(STAMP) $(KERNELS)
 	$(BIN)/python -m tests.golden.golden
+
+# the daemon against a real ArduSub (../shared/sitl) on loopback: paces on the wall clock
+# (~6 min), so not part of `make test`; skips when the binary is absent. Figures and the
+# ground station's recording go to out/sitl (report.json, session.tlog).
+test-sitl: $(STAMP)
+	ADAPTNAV_SITL_OUT=out/sitl $(BIN)/python -m pytest -q -s -n 0 -m sitl tests/sitl
 
 bench: $(STAMP) $(KERNELS)
 	$(BIN)/adaptnav bench fusion

@@ -32,6 +32,7 @@ import socket
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,7 +48,7 @@ from adaptnav.service.runtime.clock import LiveClock
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.persistence import load_state, save_state
-from adaptnav.service.runtime.sinks import Sink
+from adaptnav.service.runtime.sinks import Sink, geo_time_fields
 
 log = logging.getLogger(__name__)
 
@@ -208,24 +209,22 @@ class BusSink(Sink):
         self.latest_aid: dict[str, Any] = {}
         self.nav_count = 0
         self.state_finite = True  # the last nav state's position and velocity were finite
-        self._next_mavlink_t = -math.inf
 
     def on_nav(self, state: Any) -> None:
         self.state_finite = bool(np.isfinite(state.pos_n_m).all() and np.isfinite(state.vel_n_m_s).all())
         doc = state.to_dict()
+        bridge = self.d.bridge
         # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
         lat, lon, alt = self.origin.to_geodetic(state.pos_n_m)
         doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = (float(np.degrees(lat)), float(np.degrees(lon)),
                                                         float(alt))
+        if bridge is not None:  # UNIX time when the MAVLink link gives a wall-clock reference
+            doc.update(geo_time_fields(state, bridge.converter.time.unix_of))
         self.latest_state = doc
         self.nav_count += 1
         self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)
-        bridge = self.d.bridge
-        if state.t_s < self._next_mavlink_t - 2.0 / self.d.cfg.mavlink.output_rate_hz:
-            self._next_mavlink_t = -math.inf  # the input clock was re-based backwards
-        if bridge is not None and state.t_s >= self._next_mavlink_t - 1e-6:
-            self._next_mavlink_t = state.t_s + 1.0 / self.d.cfg.mavlink.output_rate_hz
-            bridge.send_nav(state)
+        if bridge is not None:
+            bridge.offer_nav(state)  # ODOMETRY on its fixed schedule
         if self.d._snapshot_due.is_set():
             self.d._take_snapshot(state.t_s)
 
@@ -362,7 +361,10 @@ class Daemon:
         from adaptnav.service.transport.mavlink_bridge import MavlinkBridge
 
         # the bridge thread converts and enqueues; nav output goes back through BusSink
-        self.bridge = MavlinkBridge(None, self._from_mavlink, self.cfg.origin.geo(), self.cfg.mavlink)
+        # its reset_counter persists next to the learned state: a restart is a reset
+        self.bridge = MavlinkBridge(None, self._from_mavlink, self.cfg.origin.geo(), self.cfg.mavlink,
+                                    state_path=Path(self.cfg.state_dir) / "mavlink_bridge.json",
+                                    output_rate_hz=self.cfg.mavlink.output_rate_hz)
 
     def _from_mavlink(self, sample: Any) -> None:
         """A sample from the autopilot: to the runner, and on the bus for the other nodes
@@ -435,10 +437,8 @@ class Daemon:
             return self.latest_health
         rep["queue_depth"] = self.source.qsize()
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
-        if self.bridge is not None:  # what the MAVLink link lost or refused, counted
-            c = self.bridge.counters
-            rep["mavlink"] = {k: c.get(k, 0) for k in ("packets_lost", "corrupt_frames", "link_losses",
-                                                       "reconnects", "callback_errors", "odometry_sent")}
+        if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
+            rep["mavlink"] = self.bridge.health()
         rep["nav_states"] = self.sink.nav_count
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         rep["runner_heartbeat_age_s"] = round(time.monotonic() - self.source.heartbeat_s, 3)

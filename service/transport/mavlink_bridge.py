@@ -5,29 +5,44 @@ One thread owns the link.  It
 - opens the URL with ``mavutil.mavlink_connection`` (``udpin:``, ``udpout:``, ``tcp:``,
   ``tcpin:``, serial ``/dev/...[,baud]``) as an onboard component (HEARTBEAT at 1 Hz,
   ``MAV_TYPE_ONBOARD_CONTROLLER``, component ``MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY``);
-- on every (re)appearance of the autopilot's HEARTBEAT, asks for the streams it needs
-  with ``MAV_CMD_SET_MESSAGE_INTERVAL`` (ArduSub streams RAW_IMU at 2 Hz unless asked)
-  and sends ``SET_GPS_GLOBAL_ORIGIN`` once per link;
+- on every (re)appearance of the autopilot's HEARTBEAT, and after it rebooted (its boot
+  clock went back), asks for the streams it needs with ``MAV_CMD_SET_MESSAGE_INTERVAL``
+  (ArduSub streams RAW_IMU at 2 Hz unless asked): ``HIGHRES_IMU`` (float SI) first, and
+  ``RAW_IMU`` only when no HIGHRES_IMU came within ``imu_fallback_s`` (``request_imu_message
+  = "auto"``);
+- sends ``SET_GPS_GLOBAL_ORIGIN`` and asks for the autopilot's ``GPS_GLOBAL_ORIGIN`` back;
+  until the answer matches, re-sends every ``origin_retry_s`` (at most ``origin_retries``
+  times; a mismatch is reported in health), and again after the autopilot rebooted;
 - converts what arrives with :class:`adaptnav.service.transport.mavlink_convert.MavlinkConverter` and
   hands each sample to ``on_sample`` (which should only enqueue);
 - survives corrupt frames (pymavlink's robust parser yields ``BAD_DATA``; counted),
   link loss (no autopilot traffic for ``link_timeout_s``) and socket errors (re-open
   with exponential back-off; counted).
 
-:meth:`MavlinkBridge.send_nav` is called by the daemon's output at its own rate
-(≥ 4 Hz for ArduSub, which drops external navigation ~15 s after the last message); an
-invalid solution is never sent as plausible zeros (see
-:func:`adaptnav.service.transport.mavlink_convert.odometry_fields`).
+:meth:`MavlinkBridge.offer_nav` takes every nav state and sends ODOMETRY on a fixed
+schedule of ``output_rate_hz`` on the data clock (:class:`OutputSchedule`: a state a hair
+early for its slot is still sent, so 10 Hz states give 10 Hz ODOMETRY, within ArduSub's
+300 ms window); ArduSub drops external navigation ~15 s after the last message.  What is
+sent is honest: nothing below ``output.min_quality`` or for an invalid solution (never
+plausible zeros, see :func:`adaptnav.service.transport.mavlink_convert.odometry_fields`);
+the pose alone (VISION_POSITION_ESTIMATE) when the velocity σ says no aid has constrained
+it; ``reset_counter`` continues across daemon restarts (persisted in ``state_path``: a
+restart is a reset for the autopilot).  :meth:`MavlinkBridge.health` exports the counters,
+the converter's rejections and per-type accounting, the origin's state and command acks.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
+import math
 import os
 import socket
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
 from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
@@ -35,9 +50,11 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
     MavlinkConverter,
     OdometryConfig,
     gps_global_origin_fields,
+    horizontal_velocity_sigma_m_s,
     mavlink2,
     odometry_fields,
     vision_position_delta_fields,
+    vision_position_estimate_fields,
 )
 from adaptnav.fusion.frames import GeoOrigin
 
@@ -69,7 +86,11 @@ class BridgeConfig:
     link_timeout_s: float = 3.0
     reconnect_min_s: float = 0.2
     reconnect_max_s: float = 5.0
-    request_imu_message: str = "RAW_IMU"  # ArduSub 4.x streams RAW_IMU; HIGHRES_IMU on newer builds
+    # "auto": HIGHRES_IMU (float, ArduSub 4.5+), RAW_IMU (int16 mg, mrad/s) only as a fallback
+    request_imu_message: str = "auto"
+    imu_fallback_s: float = 3.0  # no HIGHRES_IMU this long after asking: fall back to RAW_IMU
+    origin_retry_s: float = 5.0
+    origin_retries: int = 5
     rates: StreamRates = field(default_factory=StreamRates)
     udp_rcvbuf_bytes: int = 4 * 1024 * 1024
     convert: ConvertConfig = field(default_factory=ConvertConfig)
@@ -80,8 +101,10 @@ class BridgeConfig:
             raise ValueError("heartbeat_period_s and link_timeout_s must be > 0")
         if not 0 < self.reconnect_min_s <= self.reconnect_max_s:
             raise ValueError("need 0 < reconnect_min_s ≤ reconnect_max_s")
-        if self.request_imu_message not in ("RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"):
-            raise ValueError("request_imu_message: RAW_IMU, SCALED_IMU2 or HIGHRES_IMU")
+        if self.request_imu_message not in ("auto", "RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"):
+            raise ValueError("request_imu_message: auto, RAW_IMU, SCALED_IMU2 or HIGHRES_IMU")
+        if self.imu_fallback_s <= 0 or self.origin_retry_s <= 0 or self.origin_retries < 0:
+            raise ValueError("imu_fallback_s and origin_retry_s must be > 0, origin_retries ≥ 0")
 
 
 def link_device(url: str) -> tuple[str, int]:
@@ -109,15 +132,51 @@ def link_device(url: str) -> tuple[str, int]:
     return device, baud
 
 
+def _enum_name(enum: str, value: int) -> str:
+    entry = mavlink2.enums.get(enum, {}).get(int(value))
+    return entry.name if entry is not None else str(value)
+
+
 def _raise_link_closed() -> None:
     raise ConnectionError("link closed by peer")
 
 
-def message_intervals(config: BridgeConfig) -> dict[int, float]:
+class OutputSchedule:
+    """Fixed-rate output slots on the data clock.
+
+    ``due(t_s)`` is True for the state nearest each slot ``k / rate_hz`` from its side: a
+    state stamped a hair before its slot (floating-point sums of IMU intervals) takes that
+    slot instead of waiting for the next one — the old rule (next = state time + period)
+    skipped every second state and halved a 10 Hz output to 5 Hz.  The slack is just under
+    half the interval between offered states (at most a quarter period), so faster states
+    are never taken early.  A gap or a clock that went back re-anchors the slots.
+    """
+
+    def __init__(self, rate_hz: float):
+        self.period_s = 1.0 / rate_hz
+        self.next_s: float | None = None
+        self._last_t: float | None = None
+
+    def due(self, t_s: float) -> bool:
+        dt_in = t_s - self._last_t if self._last_t is not None and t_s > self._last_t else self.period_s
+        self._last_t = t_s
+        slack = min(0.49 * dt_in, 0.25 * self.period_s)
+        if self.next_s is None or t_s < self.next_s - 2.0 * self.period_s or t_s > self.next_s + self.period_s:
+            self.next_s = t_s  # first state, clock went back, or a gap: re-anchor
+        if t_s < self.next_s - slack:
+            return False
+        self.next_s += self.period_s
+        return True
+
+
+def message_intervals(config: BridgeConfig, imu_message: str | None = None) -> dict[int, float]:
     """MAVLink message id → requested interval (µs) for SET_MESSAGE_INTERVAL."""
     r = config.rates
+    imu = imu_message or config.request_imu_message
+    if imu == "auto":
+        imu = "HIGHRES_IMU"
     wanted = {
-        config.request_imu_message: r.imu_hz,
+        imu: r.imu_hz,
         "ATTITUDE": r.attitude_hz,
         config.convert.depth_message: r.pressure_hz,
         "SERVO_OUTPUT_RAW": r.servo_hz,
@@ -152,21 +211,40 @@ class MavlinkBridge:
     """
 
     def __init__(self, url: str | None, on_sample: Callable[[Any], None],
-                 origin: GeoOrigin | None = None, config: BridgeConfig | None = None):
+                 origin: GeoOrigin | None = None, config: BridgeConfig | None = None,
+                 state_path: str | os.PathLike | None = None, output_rate_hz: float | None = None):
         self.config = config or BridgeConfig()
         self.url = url or self.config.url
         self.on_sample = on_sample
         self.origin = origin
         convert = self.config.convert
+        self.imu_stream = self.config.request_imu_message
+        if self.imu_stream == "auto":
+            self.imu_stream = "HIGHRES_IMU"  # RAW_IMU only if the autopilot has no HIGHRES_IMU
         if convert.imu_message == "auto":  # lock on the IMU stream we ask for
-            convert = dataclasses.replace(convert, imu_message=self.config.request_imu_message)
-        self.converter = MavlinkConverter(convert)
+            convert = dataclasses.replace(convert, imu_message=self.imu_stream)
+        self.converter = MavlinkConverter(convert, origin)
         self.counters: dict[str, Any] = {
             "messages_by_type": {}, "corrupt_frames": 0, "samples": 0, "rejected": self.converter.rejected,
             "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
             "callback_errors": 0, "interval_requests": 0, "origin_sent": 0, "command_acks": 0,
-            "packets_lost": 0,
+            "packets_lost": 0, "pose_only_sent": 0, "autopilot_reboots": 0,
         }
+        self.command_acks: dict[str, int] = {}  # "COMMAND:RESULT" → count
+        self.origin_confirmed = False
+        self.autopilot_origin: tuple[float, float] | None = None  # degrees, as the autopilot reports it
+        self._origin_attempts = 0
+        self._next_origin_s = math.inf
+        self._imu_requested_s: float | None = None
+        self._reboots_seen = 0
+        rate = output_rate_hz or getattr(self.config, "output_rate_hz", 10.0)
+        self.schedule = OutputSchedule(rate)
+        self._sent_wall: deque[float] = deque(maxlen=200)  # wall times of the last sends (rate)
+        self.first_sent: dict[str, Any] | None = None  # fields of the first pose sent (tests, health)
+        self.last_sent: dict[str, Any] | None = None
+        self.state_path = None if state_path is None else Path(state_path)
+        self.reset_base = self._load_reset_base()
+        self._persisted_reset: int | None = None
         self._lost_closed = 0  # packets lost on links closed since
         self._conn: Any = None
         self._prev_nav: Any = None
@@ -180,8 +258,15 @@ class MavlinkBridge:
         self._thread.start()
 
     # ------------------------------------------------------------------ public
+    def offer_nav(self, nav_state: Any, omega_b_rad_s: Any = None) -> bool:
+        """Every nav state comes here; ODOMETRY goes out on the fixed output schedule."""
+        if not self.schedule.due(float(nav_state.t_s)):
+            return False
+        return self.send_nav(nav_state, omega_b_rad_s)
+
     def send_nav(self, nav_state: Any, omega_b_rad_s: Any = None) -> bool:
-        """Send ODOMETRY for ``nav_state``; False when silenced, no link or a send error."""
+        """Send ODOMETRY for ``nav_state`` now (the pose alone when its velocity is not
+        constrained); False when silenced, no link or a send error."""
         fields = odometry_fields(nav_state, self.config.output, omega_b_rad_s)
         if fields is None:
             self.counters["nav_silenced"] += 1
@@ -189,13 +274,55 @@ class MavlinkBridge:
         if not self.link_up.is_set():
             self.counters["nav_no_link"] += 1
             return False
-        ok = self._send("odometry_send", **fields) and self._count("odometry_sent")
+        fields["reset_counter"] = (int(fields["reset_counter"]) + self.reset_base) % 256
+        self._persist_reset(fields["reset_counter"])
+        if horizontal_velocity_sigma_m_s(nav_state.cov) > self.config.output.max_velocity_sigma_m_s:
+            ok = self._send("vision_position_estimate_send", **vision_position_estimate_fields(fields)) \
+                and self._count("pose_only_sent")
+        else:
+            ok = self._send("odometry_send", **fields) and self._count("odometry_sent")
+        if ok:
+            self._sent_wall.append(time.monotonic())
+            self.last_sent = fields
+            if self.first_sent is None:
+                self.first_sent = fields
         if self.config.output.vision_position_delta:
             delta = None if self._prev_nav is None else vision_position_delta_fields(self._prev_nav, nav_state)
             if delta is not None and self._send("vision_position_delta_send", **delta):
                 self._count("vision_delta_sent")
             self._prev_nav = nav_state
         return ok
+
+    def output_rate_hz(self) -> float | None:
+        """Measured rate of what was sent over the last sends (wall clock)."""
+        w = list(self._sent_wall)
+        return (len(w) - 1) / (w[-1] - w[0]) if len(w) > 2 and w[-1] > w[0] else None
+
+    def health(self) -> dict[str, Any]:
+        """What the link did, for the daemon's health topic."""
+        c = self.counters
+        types = self.converter.accounting()
+        return {
+            **{k: c.get(k, 0) for k in ("packets_lost", "corrupt_frames", "link_losses", "reconnects",
+                                        "callback_errors", "odometry_sent", "pose_only_sent", "nav_silenced",
+                                        "nav_no_link", "send_errors", "interval_requests", "origin_sent",
+                                        "samples", "autopilot_reboots")},
+            "link_up": self.link_up.is_set(),
+            "autopilot": list(self.autopilot) if self.autopilot else None,
+            "imu_stream": self.imu_stream,
+            "output_rate_hz": self.output_rate_hz(),
+            "reset_counter_base": self.reset_base,
+            "origin_confirmed": self.origin_confirmed,
+            "autopilot_origin_deg": list(self.autopilot_origin) if self.autopilot_origin else None,
+            "command_acks": dict(self.command_acks),
+            "messages_by_type": dict(c["messages_by_type"]),
+            "rejected": dict(self.converter.rejected),
+            # per type: used / rejected (with reasons) / ignored (why) / unknown; e.g. why a
+            # DISTANCE_SENSOR never became an altitude sample
+            "message_types": {k: {kk: v[kk] for kk in ("status", "why", "rejected", "rate_hz") if kk in v}
+                              for k, v in types.items()},
+            "clock": self.converter.clock_report(),
+        }
 
     def wait_connected(self, timeout_s: float) -> bool:
         """Block until the autopilot's heartbeat has been seen (or timeout)."""
@@ -214,6 +341,31 @@ class MavlinkBridge:
         self.close()
 
     # ------------------------------------------------------------------ internals
+    def _load_reset_base(self) -> int:
+        """The reset_counter sent last by an earlier run + 1 (a restart is a reset), or 0."""
+        if self.state_path is None:
+            return 0
+        try:
+            return (int(json.loads(self.state_path.read_text())["reset_counter"]) + 1) % 256
+        except FileNotFoundError:
+            return 0
+        except (ValueError, KeyError, TypeError, OSError) as e:
+            log.warning("%s unusable (%s): reset_counter starts at 1", self.state_path, e)
+            return 1
+
+    def _persist_reset(self, value: int) -> None:
+        if self.state_path is None or value == self._persisted_reset:
+            return
+        try:
+            self.state_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.state_path.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"reset_counter": int(value)}))
+            os.replace(tmp, self.state_path)
+            self._persisted_reset = value
+        except OSError as e:
+            self.counters["persist_errors"] = self.counters.get("persist_errors", 0) + 1
+            log.warning("could not persist reset_counter to %s: %s", self.state_path, e)
+
     def _count(self, key: str, n: int = 1) -> bool:
         self.counters[key] = self.counters.get(key, 0) + n
         return True
@@ -270,22 +422,69 @@ class MavlinkBridge:
                    autopilot=mavlink2.MAV_AUTOPILOT_INVALID, base_mode=0, custom_mode=0,
                    system_status=mavlink2.MAV_STATE_ACTIVE)
 
+    def _command(self, command: int, *params: float) -> bool:
+        sysid, compid = self.autopilot
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        return self._send("command_long_send", target_system=sysid, target_component=compid,
+                          command=command, confirmation=0, param1=p[0], param2=p[1], param3=p[2],
+                          param4=p[3], param5=p[4], param6=p[5], param7=p[6])
+
+    def _request_streams(self) -> None:
+        for msg_id, interval_us in message_intervals(self.config, self.imu_stream).items():
+            if self._command(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us):
+                self.counters["interval_requests"] += 1
+        self._imu_requested_s = time.monotonic()
+
+    def _send_origin(self) -> None:
+        if self.origin is None:
+            return
+        if self._send("set_gps_global_origin_send", **gps_global_origin_fields(self.origin, self.autopilot[0])):
+            self.counters["origin_sent"] += 1
+        # ArduSub answers GPS_GLOBAL_ORIGIN on the setter's channel; ask for it explicitly too
+        self._command(mavlink2.MAV_CMD_REQUEST_MESSAGE, mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+        self._origin_attempts += 1
+        self._next_origin_s = time.monotonic() + self.config.origin_retry_s
+
     def _on_autopilot_up(self, sysid: int, compid: int) -> None:
         self.autopilot = (sysid, compid)
         r = self.config.rates
         log.info("MAVLink link up: autopilot system %d component %d on %s; requesting %s at %g Hz",
-                 sysid, compid, self.url, self.config.request_imu_message, r.imu_hz,
+                 sysid, compid, self.url, self.imu_stream, r.imu_hz,
                  extra={"event": {"event": "link_up", "peer": f"{sysid}/{compid}", "url": self.url}})
-        for msg_id, interval_us in message_intervals(self.config).items():
-            if self._send("command_long_send", target_system=sysid, target_component=compid,
-                          command=mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, confirmation=0,
-                          param1=float(msg_id), param2=float(interval_us), param3=0.0, param4=0.0,
-                          param5=0.0, param6=0.0, param7=0.0):
-                self.counters["interval_requests"] += 1
-        if self.origin is not None and self._send(
-                "set_gps_global_origin_send", **gps_global_origin_fields(self.origin, sysid)):
-            self.counters["origin_sent"] += 1
+        self._request_streams()
+        self.origin_confirmed = False
+        self._origin_attempts = 0
+        self._send_origin()
         self.link_up.set()
+
+    def _supervise(self) -> None:
+        """Periodic duties: IMU fallback, origin confirmation, autopilot reboots."""
+        if self.autopilot is None:
+            return
+        now = time.monotonic()
+        reboots = self.converter.time.reboots
+        if reboots != self._reboots_seen:  # its boot clock went back: streams and origin are lost
+            self._reboots_seen = reboots
+            self.counters["autopilot_reboots"] = reboots
+            self._on_autopilot_up(*self.autopilot)
+            return
+        if (self.config.request_imu_message == "auto" and self.imu_stream == "HIGHRES_IMU"
+                and self._imu_requested_s is not None and now - self._imu_requested_s > self.config.imu_fallback_s
+                and not self.counters["messages_by_type"].get("HIGHRES_IMU")):
+            log.warning("MAVLink: no HIGHRES_IMU %.0f s after asking; falling back to RAW_IMU", self.config.imu_fallback_s)
+            self.imu_stream = "RAW_IMU"
+            self.converter.imu_message = "RAW_IMU"
+            self._request_streams()
+        if (self.origin is not None and not self.origin_confirmed and now >= self._next_origin_s
+                and self._origin_attempts <= self.config.origin_retries):
+            self._send_origin()
+
+    def _on_origin(self, msg: Any) -> None:
+        lat, lon = msg.latitude / 1e7, msg.longitude / 1e7
+        self.autopilot_origin = (lat, lon)
+        if self.origin is not None:
+            want = gps_global_origin_fields(self.origin, 0)
+            self.origin_confirmed = abs(msg.latitude - want["latitude"]) <= 1 and abs(msg.longitude - want["longitude"]) <= 1
 
     def _handle(self, msg: Any) -> None:
         mtype = msg.get_type()
@@ -300,6 +499,10 @@ class MavlinkBridge:
                 self._on_autopilot_up(msg.get_srcSystem(), msg.get_srcComponent())
         elif mtype == "COMMAND_ACK":
             self.counters["command_acks"] += 1
+            key = f"{_enum_name('MAV_CMD', msg.command)}:{_enum_name('MAV_RESULT', msg.result)}"
+            self.command_acks[key] = self.command_acks.get(key, 0) + 1
+        elif mtype == "GPS_GLOBAL_ORIGIN" and self.autopilot is not None and msg.get_srcSystem() == self.autopilot[0]:
+            self._on_origin(msg)
         elif self.autopilot is not None and msg.get_srcSystem() == self.autopilot[0]:
             self._last_rx = time.monotonic()
         for sample in self.converter.convert(msg):
@@ -328,6 +531,7 @@ class MavlinkBridge:
             if now >= next_hb:
                 self._heartbeat()
                 next_hb = now + self.config.heartbeat_period_s
+                self._supervise()
             try:
                 got = 0
                 while got < 1000:  # drain what is there, but keep heartbeats going

@@ -213,10 +213,21 @@ class OdometryConfig:
     invalid: Literal["silence", "failed"] = "silence"  # "failed": quality -1, NaN pose
     estimator_type: int = 3  # MAV_ESTIMATOR_TYPE_VIO
     vision_position_delta: bool = False  # also send VISION_POSITION_DELTA between outputs
+    # below this quality nothing is sent (silence, not a down-rated solution); set ArduSub's
+    # VISO_QUAL_MIN to the same number (README) so both ends draw the line at one σ_h
+    # (quality 10 ⇔ σ_h ≈ 33 m with the defaults)
+    min_quality: int = 10
+    # horizontal velocity 1-σ above which no aid has constrained the velocity for longer than
+    # the covariance allows: the pose goes out alone (VISION_POSITION_ESTIMATE), no velocity
+    max_velocity_sigma_m_s: float = 0.3
 
     def validate(self) -> None:
         if not 0 < self.sigma_best_m < self.sigma_worst_m:
             raise ValueError("need 0 < sigma_best_m < sigma_worst_m")
+        if not 1 <= self.min_quality <= 100:
+            raise ValueError("min_quality must be within [1, 100]")
+        if not self.max_velocity_sigma_m_s > 0:
+            raise ValueError("max_velocity_sigma_m_s must be > 0")
 
 
 # --------------------------------------------------------------------------- time
@@ -916,6 +927,25 @@ def horizontal_sigma_m(cov: np.ndarray) -> float:
     return float(math.sqrt(max(np.linalg.eigvalsh(0.5 * (p_ne + p_ne.T))[-1], 0.0)))
 
 
+def horizontal_velocity_sigma_m_s(cov: np.ndarray) -> float:
+    """sqrt of the largest eigenvalue of the north/east velocity covariance."""
+    _, vel, _ = _cov_slices()
+    p = np.asarray(cov)[vel, vel][:2, :2]
+    if not np.all(np.isfinite(p)):
+        return math.nan
+    return float(math.sqrt(max(np.linalg.eigvalsh(0.5 * (p + p.T))[-1], 0.0)))
+
+
+def vision_position_estimate_fields(odometry: dict[str, Any]) -> dict[str, Any]:
+    """The pose of ODOMETRY fields as VISION_POSITION_ESTIMATE (no velocity): what goes out
+    when the velocity is not constrained. Same frame (ArduSub reads it as local FRD)."""
+    q = np.asarray(odometry["q"], dtype=float)
+    roll, pitch, yaw = dcm_to_euler(quat_to_dcm(q))
+    return dict(usec=odometry["time_usec"], x=odometry["x"], y=odometry["y"], z=odometry["z"],
+                roll=float(roll), pitch=float(pitch), yaw=float(yaw), covariance=odometry["pose_covariance"],
+                reset_counter=odometry["reset_counter"])
+
+
 def nav_is_valid(nav: Any) -> bool:
     """The solution may be sent: flagged valid and every sent number finite."""
     if not getattr(nav, "valid", False):
@@ -928,7 +958,8 @@ def odometry_fields(nav: Any, cfg: OdometryConfig | None = None,
                     omega_b_rad_s: Any = None) -> dict[str, Any] | None:
     """``NavState`` → keyword arguments of ``MAVLink.odometry_send``.
 
-    Returns ``None`` for an invalid solution when ``cfg.invalid == "silence"``;
+    Returns ``None`` for an invalid solution (or one below ``cfg.min_quality``) when
+    ``cfg.invalid == "silence"``;
     with ``"failed"`` the message has quality −1 and NaN pose and velocity.
     ``omega_b_rad_s`` (3,) rad/s is sent as the angular rates when given (NaN otherwise).
     """
@@ -937,7 +968,8 @@ def odometry_fields(nav: Any, cfg: OdometryConfig | None = None,
     reset_counter = int(getattr(nav, "reset_counter", 0)) % 256
     nan3 = [math.nan] * 3
     rates = nan3 if omega_b_rad_s is None else [float(w) for w in omega_b_rad_s]
-    if not nav_is_valid(nav):
+    valid = nav_is_valid(nav) and quality_from_sigma(horizontal_sigma_m(nav.cov), cfg) >= cfg.min_quality
+    if not valid:
         if cfg.invalid == "silence":
             return None
         return dict(time_usec=time_usec, frame_id=mavlink2.MAV_FRAME_LOCAL_FRD,

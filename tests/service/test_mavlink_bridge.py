@@ -120,7 +120,8 @@ def test_bridge_speaks_as_onboard_component_and_requests_rates(link):
     assert hbs[0].get_srcComponent() == mavlink2.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
     cmds = {int(c.param1): c.param2 for c in peer.of_type("COMMAND_LONG")
             if c.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL and c.target_system == 1}
-    assert cmds[mavlink2.MAVLINK_MSG_ID_RAW_IMU] == pytest.approx(20_000)  # 50 Hz
+    assert cmds[mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU] == pytest.approx(20_000)  # 50 Hz, float SI first
+    assert mavlink2.MAVLINK_MSG_ID_RAW_IMU not in cmds  # only as a fallback
     assert cmds[mavlink2.MAVLINK_MSG_ID_ATTITUDE] == pytest.approx(20_000)
     assert mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE2 in cmds
     (origin,) = peer.of_type("SET_GPS_GLOBAL_ORIGIN")  # once
