@@ -98,7 +98,9 @@ def test_peer_messages_become_samples_in_si_units(link):
     assert peer.pump(3.0, until=bridge.link_up.is_set)
     mav = peer.conn.mav
     mav.attitude_send(10_000, 0.1, -0.2, 0.3, 0.0, 0.0, 0.0)
-    mav.raw_imu_send(10_010_000, 10, -20, -1000, 15, -17, 3, 0, 0, 0)
+    # the bridge asked for HIGHRES_IMU (float SI); RAW_IMU's mg/mrad are the converter's tests
+    mav.highres_imu_send(10_010_000, 0.0980665, -0.196133, -9.80665, 0.015, -0.017, 0.003, 0, 0, 0, 0, 0, 0, 0,
+                         0x3F)
     mav.scaled_pressure2_send(10_020, 1513.25, 0.0, 1500)
     mav.servo_output_raw_send(10_030_000, 0, 1287, 1287, 1713, 1713, 1500, 1500, 1500, 1500)
     got = drain(q, lambda out: len(out) >= 4)

@@ -206,3 +206,17 @@ def test_gps_raw_int_as_an_acoustic_source_becomes_a_position_fix(tmp_path):
     _, gnss = read(s.write(tmp_path / "g.tlog"))
     _, acoustic = read(tmp_path / "g.tlog", gps_raw_int_source="acoustic")
     assert [x.KIND for x in gnss] == ["gnss"] and [x.KIND for x in acoustic] == ["usbl"]
+
+
+def test_the_filter_takes_the_dvl_sigma_when_the_driver_says_it_is_worse():
+    from adaptnav.fusion.aiding import dvl as aid_dvl
+    from adaptnav.fusion.samples import DvlSample
+    from adaptnav.fusion.state import initial_nominal
+
+    x = initial_nominal(vel_n_m_s=(1.0, 0.0, 0.0))
+    args = (x, np.zeros(3), np.zeros(3), np.eye(3), 0.02)
+    r_cfg = aid_dvl.measure(DvlSample(1.0, (1.0, 0.0, 0.0)), *args).R
+    r_low = aid_dvl.measure(DvlSample(1.0, (1.0, 0.0, 0.0), sigma_m_s=0.1), *args).R
+    r_good = aid_dvl.measure(DvlSample(1.0, (1.0, 0.0, 0.0), sigma_m_s=0.001), *args).R
+    assert np.allclose(np.diag(r_cfg), 0.02**2) and np.allclose(np.diag(r_low), 0.1**2)
+    assert np.allclose(r_good, r_cfg)  # a driver never makes it more trusted than configured

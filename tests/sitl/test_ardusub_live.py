@@ -44,11 +44,11 @@ class NavLog(threading.Thread):
         super().__init__(daemon=True)
         self.daemon_ref = None
         self.states: list[dict] = []
-        self._stop = threading.Event()
+        self._halt = threading.Event()
 
     def run(self):
         last = None
-        while not self._stop.is_set():
+        while not self._halt.is_set():
             d = self.daemon_ref
             doc = d.sink.latest_state if d is not None else None
             if doc is not None and doc is not last:
@@ -57,7 +57,7 @@ class NavLog(threading.Thread):
             time.sleep(0.02)
 
     def stop(self):
-        self._stop.set()
+        self._halt.set()
         self.join(2.0)
 
     def arrays(self, key="t_s", t0=-math.inf, t1=math.inf):
