@@ -222,7 +222,9 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
                 b.close()
         daemon.stop()
         state_dir.cleanup()
-    return LiveResult(collector.nav, collector.releases, int(vehicle.received["odometry"]),
+    # ODOMETRY, or the pose alone (VISION_POSITION_ESTIMATE) while the velocity is unconstrained
+    return LiveResult(collector.nav, collector.releases,
+                      int(vehicle.received["odometry"]) + int(vehicle.received["pose_only"]),
                       {k: v for k, v in vehicle.sent.items()}, sonar_count[0], health,
                       time.monotonic() - wall0, bridge_counters)
 

@@ -105,7 +105,7 @@ class SitlVehicle:
         self.samples = samples
         self.interval_s = {k: (1.0 / v if v > 0 else math.inf) for k, v in ARDUSUB_DEFAULT_RATES_HZ.items()}
         self._last_sent_t: dict[str, float] = {}
-        self.received: dict[str, Any] = {"odometry": 0, "last_odometry": None, "last_quality": None,
+        self.received: dict[str, Any] = {"odometry": 0, "pose_only": 0, "last_odometry": None, "last_quality": None,
                                          "origin": None, "onboard_heartbeats": 0, "interval_requests": {},
                                          "odometry_log": []}
         self.sent: dict[str, Any] = {"not_sent_by_kind": {}}
@@ -202,6 +202,8 @@ class SitlVehicle:
             rec["last_odometry"] = msg
             rec["last_quality"] = msg.quality
             rec["odometry_log"].append((self.t_data_s, msg))
+        elif mtype == "VISION_POSITION_ESTIMATE":  # the bridge's pose without velocity
+            rec["pose_only"] += 1
         elif mtype == "SET_GPS_GLOBAL_ORIGIN":
             rec["origin"] = msg
         elif mtype == "HEARTBEAT" and msg.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER:

@@ -776,7 +776,10 @@ class MavlinkConverter:
         """Mission time of ``msg`` (None: not placeable yet, hold it)."""
         own_clock = self._is_autopilot(msg)
         boot_ms = getattr(msg, "time_boot_ms", None)
-        first_boot_stamp = self.time.last_boot_s is None  # 0 is the start of the boot clock then
+        # a 0 stamp while the boot clock has not gone further than a reboot's back-jump is the
+        # start of the boot clock (a simulator's first samples); later 0 means "no time"
+        last_boot = self.time.last_boot_s
+        first_boot_stamp = last_boot is None or last_boot < self.config.reboot_backjump_s
         if boot_ms is not None and own_clock and (boot_ms > 0 or first_boot_stamp):
             return self.time.from_boot_ms(boot_ms, recv_s)
         usec = getattr(msg, "time_usec", getattr(msg, "usec", None))
