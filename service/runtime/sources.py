@@ -259,9 +259,13 @@ class TlogReplaySource(SampleStreamSource):
         return self.tlog.converter.time.unix_of(t_s)
 
     def set_origin(self, origin: Any) -> None:
-        """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE)."""
-        conv = self.tlog.converter
-        conv.origin, conv.origin_from = origin, "config"
+        """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE and the truth)."""
+        self.tlog.set_origin(origin)
+
+    @property
+    def has_truth(self) -> bool:
+        """A simulator's SIM_STATE in the log: metrics against it."""
+        return bool(self.tlog.has_truth)
 
     def report_counters(self) -> dict:
         c = self.tlog.counters

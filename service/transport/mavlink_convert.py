@@ -265,15 +265,19 @@ class MissionClock:
     stamps) gets ``t_s = unix − epoch`` with the epoch the first such stamp, once the hold
     has expired (:meth:`start_without_boot_clock`).
 
-    ``unix_offset_s`` (``t_unix = t_s + unix_offset_s``) links the two: exactly from a
-    ``SYSTEM_TIME`` pair of the autopilot (``unix_reference = "SYSTEM_TIME"``), else from
-    the receive stamps (``"receive"``), as the minimum of ``recv − t_s`` over the last
+    Two offsets link them.  ``recv_offset_s`` (``recv = t_s + recv_offset_s``) from the
+    receive stamps of boot-stamped messages, as the minimum of ``recv − t_s`` over the last
     ``window_s`` (the transport delay is ≥ 0, so the smallest difference is the least
-    delayed message; a sliding window follows a receive clock that drifts or is stepped).
-    A UNIX-stamped sample maps to ``t_s = t_unix − unix_offset_s``; a sample without a
-    usable stamp of its own (``time_usec = 0``, another component's boot clock) to
-    ``t_s = recv − unix_offset_s``.  Until ``unix_offset_s`` is known such samples
-    cannot be placed: the converter *holds* them (:class:`MavlinkConverter`).
+    delayed message; a sliding window follows a receive clock that drifts or is stepped):
+    a sample without a usable stamp of its own (``time_usec = 0``, another component's boot
+    clock) maps to ``t_s = recv − recv_offset_s``.  ``unix_offset_s`` (``t_unix = t_s +
+    unix_offset_s``): exactly from a ``SYSTEM_TIME`` pair of the autopilot
+    (``unix_reference = "SYSTEM_TIME"``), else the receive relation (``"receive"``); a
+    UNIX-stamped sample maps to ``t_s = t_unix − unix_offset_s``.  The two differ when the
+    autopilot's clock and the recording computer's drift apart (a SITL falling behind the
+    wall clock on a loaded machine: 2.3 s in 150 s), which is why each stamp uses its own.
+    Until they are known such samples cannot be placed: the converter *holds* them
+    (:class:`MavlinkConverter`).
 
     Jumps: the boot clock going back by more than ``reboot_backjump_s`` is a reboot (or,
     near 2³² ms, a wrap); after a reboot the receive stamps place the new boot clock on the
@@ -291,6 +295,7 @@ class MissionClock:
         self.now_s: float | None = None  # latest mission time mapped
         self.unix_offset_s: float | None = None
         self.unix_reference: str | None = None  # "SYSTEM_TIME" | "receive" | "epoch"
+        self.recv_offset_s: float | None = None
         self.base: str | None = None  # "boot" | "unix"
         self.reboots = 0
         self.wraps = 0
@@ -323,9 +328,9 @@ class MissionClock:
         """Autopilot boot time (s) → ``t_s``; learns ``unix_offset_s`` from ``recv_s``."""
         if self.base is None:
             self.base = "boot"
-        elif self.last_boot_s is None and self.unix_offset_s is not None and recv_s is not None:
+        elif self.last_boot_s is None and self.recv_offset_s is not None and recv_s is not None:
             # the first boot stamp of a source that started on UNIX time: place it by reception
-            self.boot_offset_s = (recv_s - self.unix_offset_s) - boot_s
+            self.boot_offset_s = (recv_s - self.recv_offset_s) - boot_s
         if self.last_boot_s is not None and boot_s < self.last_boot_s - self.reboot_backjump_s:
             last_t = self.last_boot_s + self.boot_offset_s
             if self.last_boot_s > U32_WRAP_S_MS - 3600.0 and boot_s < 3600.0:
@@ -333,19 +338,21 @@ class MissionClock:
                 self.wraps += 1
             else:
                 self.reboots += 1
-                if recv_s is not None and self.unix_offset_s is not None and self.unix_reference != "SYSTEM_TIME":
+                if recv_s is not None and self.recv_offset_s is not None:
                     # the receive clock kept running while the autopilot rebooted
-                    self.boot_offset_s = max(recv_s - self.unix_offset_s, last_t) - boot_s
+                    self.boot_offset_s = max(recv_s - self.recv_offset_s, last_t) - boot_s
                 else:
                     self.boot_offset_s = last_t - boot_s  # continue the mission clock
                 if self.unix_reference == "SYSTEM_TIME":
-                    self.unix_reference = None  # the old pair is void; re-learn
-                    self._recv_min = _WindowMin(self._recv_min.window_s)
+                    self.unix_reference = "receive"  # the old pair is void until the next one
+                    self.unix_offset_s = self.recv_offset_s
         if self.last_boot_s is None or boot_s > self.last_boot_s or boot_s < self.last_boot_s - self.reboot_backjump_s:
             self.last_boot_s = boot_s
         t = boot_s + self.boot_offset_s
-        if recv_s is not None and self.unix_reference in (None, "receive"):
-            self._set_unix_offset(self._recv_min.push(recv_s, recv_s - t), "receive")
+        if recv_s is not None:
+            self.recv_offset_s = self._recv_min.push(recv_s, recv_s - t)
+            if self.unix_reference in (None, "receive"):
+                self._set_unix_offset(self.recv_offset_s, "receive")
         return self._advance(t)
 
     def from_boot_ms(self, time_boot_ms: int, recv_s: float | None = None) -> float:
@@ -381,15 +388,17 @@ class MissionClock:
         """Reception time → ``t_s``; without a receive stamp the latest mission time."""
         if recv_s is None:
             return self.now_s
-        if self.unix_offset_s is None:
+        if self.recv_offset_s is None:
             return None
-        return self._advance(recv_s - self.unix_offset_s)
+        return self._advance(recv_s - self.recv_offset_s)
 
     def start_without_boot_clock(self, epoch_unix_s: float) -> None:
         """No boot clock came in time: the mission clock is UNIX time − ``epoch_unix_s``."""
         if self.unix_offset_s is None:
             self.base = self.base or "unix"
             self._set_unix_offset(epoch_unix_s, "epoch")
+        if self.recv_offset_s is None:
+            self.recv_offset_s = epoch_unix_s
 
 
 
@@ -591,7 +600,7 @@ IGNORED_WHY: dict[str, str] = {
     "HEARTBEAT": "link liveness; gives the autopilot's system id",
     "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",
     "GPS_GLOBAL_ORIGIN": "the autopilot's EKF origin (places GLOBAL_VISION_POSITION_ESTIMATE), no sample",
-    "SIM_STATE": "simulator ground truth (never fused)",
+    "SIM_STATE": "simulator ground truth (never fused; the log replay makes it the truth of its metrics)",
     "SIMSTATE": "simulator ground truth (never fused)",
     "RANGEFINDER": "ArduPilot's copy of DISTANCE_SENSOR (that one is used)",
     "SCALED_IMU3": "a third IMU: one IMU stream is integrated",
@@ -730,6 +739,7 @@ class MavlinkConverter:
         """The time model's state, for summaries and health."""
         c = self.time
         return {"base": c.base, "unix_reference": c.unix_reference, "unix_offset_s": c.unix_offset_s,
+                "receive_offset_s": c.recv_offset_s,
                 "reboots": c.reboots, "wraps": c.wraps, "unix_jumps": c.unix_jumps, "held_samples": self.held}
 
     # ------------------------------------------------------------------ internals

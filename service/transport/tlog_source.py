@@ -32,7 +32,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
     TypeAccount,
 )
 from adaptnav.fusion.frames import GeoOrigin, wrap_angle
-from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuSample, RpmSample, replay_order_key
+from adaptnav.fusion.samples import (AttitudeSample, DepthSample, ImuSample, RpmSample, TruthSample,
+                                    replay_order_key)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,8 @@ class TlogSource:
             raise FileNotFoundError(f"MAVLink log not found: {self.path}")
         self.config = config or TlogConfig()
         self.converter = MavlinkConverter(self.config.convert, origin)
+        self.truth_origin: GeoOrigin | None = origin
+        self._truth_held: list[tuple[Any, float]] = []
         self.counters: dict[str, Any] = {
             "messages_read": 0, "corrupt_frames": 0, "samples_by_kind": {}, "rejected": {},
             "late_samples": 0, "duration_s": 0.0,
@@ -89,6 +92,7 @@ class TlogSource:
         self._imu_last_t: float | None = None
         self._imu_type: str | None = None
         self._dataflash = self.path.suffix.lower() in (".bin", ".log")
+        self.has_truth = self._scan_truth()
 
     # --------------------------------------------------------------------- helpers
     def _reject(self, reason: str) -> None:
@@ -115,7 +119,60 @@ class TlogSource:
         samples = self.converter.convert(msg)
         if samples and isinstance(samples[0], ImuSample):
             self._imu_type = self.converter.imu_message
+        if msg.get_type() == "SIM_STATE":
+            samples = samples + self._truth(msg)
+        elif self.truth_origin is None and self._truth_held:
+            fix = next((x for x in samples if x.KIND in ("gnss", "usbl") and math.isfinite(x.lat_rad)), None)
+            if fix is not None:  # the replay's rule: the first position fix is the NED origin
+                self.truth_origin = GeoOrigin(fix.lat_rad, fix.lon_rad, 0.0)
+                held, self._truth_held = self._truth_held, []
+                samples = samples + [self._truth_sample(m, t) for m, t in held]
         return samples
+
+    def set_origin(self, origin: GeoOrigin) -> None:
+        """The NED origin the replay uses (a configured one); truth is placed around it."""
+        self.truth_origin = origin
+        self.converter.origin, self.converter.origin_from = origin, "config"
+
+    def _truth(self, msg: Any) -> list:
+        """SIM_STATE (a simulator's ground truth; no time field: its receive time) → TruthSample
+        around the NED origin, held until the origin is known (the first fix, as the replay's)."""
+        t_s = self.converter.time.from_receive(getattr(msg, "_timestamp", None))
+        if t_s is None:
+            return []
+        if self.truth_origin is None:
+            self._truth_held.append((msg, t_s))
+            return []
+        return [self._truth_sample(msg, t_s)]
+
+    def _truth_sample(self, msg: Any, t_s: float) -> TruthSample:
+        lat, lon = msg.lat_int * 1e-7, msg.lon_int * 1e-7
+        if lat == 0.0 and lon == 0.0:  # older SIM_STATE without the integer fields
+            lat, lon = msg.lat, msg.lon
+        pos = self.truth_origin.to_ned(math.radians(lat), math.radians(lon), msg.alt)
+        q = (msg.q1, msg.q2, msg.q3, msg.q4)  # w, x, y, z
+        self.counters["truth_samples"] = self.counters.get("truth_samples", 0) + 1
+        return TruthSample(t_s, tuple(float(v) for v in pos), (float(msg.vn), float(msg.ve), float(msg.vd)),
+                           tuple(float(v) for v in q), (0.0, 0.0, 0.0), math.nan)
+
+    def _scan_truth(self, max_messages: int = 20_000) -> bool:
+        """Does the log carry a simulator's truth (SIM_STATE) near its start?"""
+        if self._dataflash:
+            return False
+        conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        try:
+            for _ in range(max_messages):
+                try:
+                    m = conn.recv_match()
+                except Exception:
+                    continue
+                if m is None:
+                    return False
+                if m.get_type() == "SIM_STATE":
+                    return True
+            return False
+        finally:
+            conn.close()
 
     def _convert_dataflash(self, msg: Any) -> list:
         """DataFlash records (already SI apart from degrees): IMU, ATT, BARO, RCOU."""
