@@ -68,11 +68,11 @@ def fingerprint(out_dir: Path, summary: dict) -> dict:
     for r in rows:
         t = float(r["t_s"])
         if t >= next_t:
-            traj.append({"t_s": t, "valid": r["valid"], **{c: float(r[c]) for c in cols}})
+            traj.append({"t_s": t, "valid": r["valid"], **{c: _number(r[c]) for c in cols}})
             next_t = t + TRAJECTORY_EVERY_S
     if rows:
         last = rows[-1]
-        traj.append({"t_s": float(last["t_s"]), "valid": last["valid"], **{c: float(last[c]) for c in cols}})
+        traj.append({"t_s": float(last["t_s"]), "valid": last["valid"], **{c: _number(last[c]) for c in cols}})
     with open(out_dir / "aid_status.csv") as fh:
         aids = Counter(f"{r['source']}/{r['fused']}/{r['reason']}" for r in csv.DictReader(fh))
     with open(out_dir / "params.csv") as fh:

@@ -109,4 +109,4 @@ def test_the_simulator_truth_scores_the_replay(replayed):
     # (10 %: SIM_STATE has no time field, it is placed by its receive stamp, whose jitter
     # on this loaded recording adds a little zigzag to the path: 59.4 m against 56.4 m)
     assert m["distance_travelled_m"] == pytest.approx(path, rel=0.1)
-    assert sum(1 for r in rows if r["truth_north_m"]) > 0.9 * len(rows)
+    assert sum(1 for r in rows if r["truth_north_m"]) > 0.4 * len(rows)  # truth at 5 Hz, rows at 10 Hz
