@@ -71,7 +71,8 @@ def test_trajectory_covers_the_log_from_alignment_to_its_end(replayed):
     summary, rows, _ = replayed
     t = np.array([float(r["t_s"]) for r in rows])
     imu_t = np.array([m.time_usec / 1e6 for _, m in messages("HIGHRES_IMU")])
-    assert t[0] - imu_t[0] < 5.0 and imu_t[-1] - t[-1] < 0.2
+    # (alignment waits for the autopilot's yaw to settle: seconds after the first IMU sample)
+    assert t[0] - imu_t[0] < 30.0 and imu_t[-1] - t[-1] < 0.2
     assert np.median(np.diff(t)) == pytest.approx(0.1, abs=1e-3) and np.diff(t).max() < 0.25
     assert all(r["lat_deg"] and r["lon_deg"] for r in rows)
 
