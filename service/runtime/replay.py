@@ -259,11 +259,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
              validity,
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
-<<<<<<< HEAD
-             recorder, metrics_sink, validity, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
-=======
-             recorder, metrics_sink]
->>>>>>> 721e229 (MAVLink time model and inputs: MissionClock maps the autopilot's boot clock, UNIX time_usec and receive stamps (tlog or live) onto one mission clock (SYSTEM_TIME pairs exactly; reboots keep the down time via receive stamps; jumps counted); samples without a placeable time are held, not dropped (a fix before any boot-clock message comes out at its receive time); DVL from VISION_POSITION_DELTA (mid-interval, rotated by half the angle delta, rejected above 0.35 rad; BlueOS confidence -> valid and σ = 0.4·(1−c/100)) and VISION_SPEED_ESTIMATE, GLOBAL_VISION_POSITION_ESTIMATE as a position fix, GPS_RAW_INT optionally acoustic; aiding types accepted from system 255 (BlueOS drivers); every message type accounted for (used/rejected/ignored with why/unknown, rate on the mission clock) in summary.json; trajectory.csv gains t_unix_s, lat_deg, lon_deg; replay exits 1 only when nothing usable was read, otherwise 0 with a loud warning (summary warnings, valid_fraction); DvlSample.sigma_m_s (the filter takes the larger))
+             recorder, metrics_sink, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
     if plots:
         sinks.append(PlotSink(recorder, out, title or inp.label))
     if mcap is not None:
@@ -389,7 +385,6 @@ def _filter_report(estimator: Any) -> dict:
             "invalid_reasons_at_end": estimator.invalid_reasons()}
 
 
-<<<<<<< HEAD
 # a first fix is taken for the origin only when the next fix is within reach of it at
 # this speed (+ 3σ): a mis-stamped or mis-placed first fix must not move the origin
 _ORIGIN_CONFIRM_SPEED_M_S = 5.0
@@ -399,7 +394,8 @@ def _fixes_agree(a: Any, b: Any) -> bool:
     """Two fixes within reach of each other (great-circle distance on a sphere)."""
     d_m = 6.371e6 * math.hypot(b.lat_rad - a.lat_rad, (b.lon_rad - a.lon_rad) * math.cos(a.lat_rad))
     return d_m <= _ORIGIN_CONFIRM_SPEED_M_S * abs(b.t_s - a.t_s) + 3.0 * math.hypot(a.sigma_h_m, b.sigma_h_m)
-=======
+
+
 def replay_warnings(summary: dict) -> list[str]:
     """What a user must not miss about a replay, one sentence each (summary ``warnings``)."""
     out = []
@@ -422,7 +418,6 @@ def replay_warnings(summary: dict) -> list[str]:
 def nothing_usable(summary: dict) -> bool:
     """The one rule for a non-zero exit: nothing usable could be read."""
     return not summary.get("messages_read") or not summary.get("samples_used")
->>>>>>> 721e229 (MAVLink time model and inputs: MissionClock maps the autopilot's boot clock, UNIX time_usec and receive stamps (tlog or live) onto one mission clock (SYSTEM_TIME pairs exactly; reboots keep the down time via receive stamps; jumps counted); samples without a placeable time are held, not dropped (a fix before any boot-clock message comes out at its receive time); DVL from VISION_POSITION_DELTA (mid-interval, rotated by half the angle delta, rejected above 0.35 rad; BlueOS confidence -> valid and σ = 0.4·(1−c/100)) and VISION_SPEED_ESTIMATE, GLOBAL_VISION_POSITION_ESTIMATE as a position fix, GPS_RAW_INT optionally acoustic; aiding types accepted from system 255 (BlueOS drivers); every message type accounted for (used/rejected/ignored with why/unknown, rate on the mission clock) in summary.json; trajectory.csv gains t_unix_s, lat_deg, lon_deg; replay exits 1 only when nothing usable was read, otherwise 0 with a loud warning (summary warnings, valid_fraction); DvlSample.sigma_m_s (the filter takes the larger))
 
 
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):
