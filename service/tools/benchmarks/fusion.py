@@ -19,6 +19,7 @@ import numpy as np
 from adaptnav.fusion.config import FilterConfig
 from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin
+from adaptnav.fusion.imu_grades import PROFILES
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.samples import DepthSample, HeadingSample, ImuBatch, RpmSample, UsblSample, replay_order_key
 
@@ -52,7 +53,7 @@ def make_log(duration_s: float, rate_hz: float = 100.0, seed: int = 0):
     f_b = np.stack([c * f_n[:, 0] + s * f_n[:, 1], -s * f_n[:, 0] + c * f_n[:, 1], f_n[:, 2]], axis=1)
     w_b = np.zeros((n, 3))
     w_b[:, 2] = psid
-    imu = cfg.imu
+    imu = PROFILES["tactical"]  # the simulated IMU: tactical-grade datasheet figures
     f_b += rng.normal(0, imu.acc_bias_sigma_m_s2, 3) + imu.acc_noise_m_s2_rthz * np.sqrt(rate_hz) * rng.standard_normal((n, 3))
     w_b += rng.normal(0, imu.gyro_bias_sigma_rad_s, 3) + imu.gyro_noise_rad_s_rthz * np.sqrt(rate_hz) * rng.standard_normal((n, 3))
     rpm = float(RpmSpeedTable().rpm_for_speed(SPEED_M_S))
