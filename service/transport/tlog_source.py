@@ -159,7 +159,10 @@ class TlogSource:
         """Does the log carry a simulator's truth (SIM_STATE) near its start?"""
         if self._dataflash:
             return False
-        conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        try:
+            conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
+            return False
         try:
             for _ in range(max_messages):
                 try:
