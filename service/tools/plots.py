@@ -43,6 +43,29 @@ def _pyplot():
     return plt
 
 
+def error_sigma_series(rec: Any, track: Any, truth: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """What the error plots show, shared by the PNGs and the HTML report.
+
+    Returns
+    -------
+    t_min : (N,) minutes since the first state
+    sigma_h_m : (N,) horizontal 1σ from the covariance (m)
+    err_h_m : (N,) horizontal error against truth (m, NaN outside the truth's span), or None
+    fix_t_min : (K,) times of fused position fixes (min)
+    """
+    t_min = (track.t_s - track.t_s[0]) / 60.0
+    sigma_h_m = np.sqrt(np.clip(track.cov_pva[:, 0, 0] + track.cov_pva[:, 1, 1], 0.0, None))
+    err_h_m = None
+    if truth is not None:
+        inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
+        n = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 0])
+        e = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 1])
+        err_h_m = np.where(inside, np.hypot(track.pos_n_m[:, 0] - n, track.pos_n_m[:, 1] - e), np.nan)
+    fixes = [r[0] for r in rec.aid_rows if r[2] and r[1] in rec.FIX_SOURCES]
+    fix_t_min = (np.asarray(fixes, float) - track.t_s[0]) / 60.0
+    return t_min, sigma_h_m, err_h_m, fix_t_min
+
+
 def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     track = rec.track()
     if len(track.t_s) == 0:
@@ -58,19 +81,12 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     ax0.set_aspect("equal", adjustable="datalim")
     ax0.legend(loc="best")
     ax0.set_title("track")
-    sigma_h = np.sqrt(np.clip(track.cov_pva[:, 0, 0] + track.cov_pva[:, 1, 1], 0.0, None))
-    t_min = (track.t_s - track.t_s[0]) / 60.0
-    if truth is not None:
-        inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
-        n = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 0])
-        e = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 1])
-        err = np.where(inside, np.hypot(track.pos_n_m[:, 0] - n, track.pos_n_m[:, 1] - e), np.nan)
+    t_min, sigma_h, err, fix_t_min = error_sigma_series(rec, track, truth)
+    if err is not None:
         ax1.plot(t_min, err, lw=1.0, label="horizontal error")
     ax1.fill_between(t_min, 0.0, 3.0 * sigma_h, alpha=0.25, color="tab:orange", label="3σ (horizontal)")
-    fixes = [r[0] for r in rec.aid_rows if r[2] and r[1] in rec.FIX_SOURCES]
-    if fixes:
-        ax1.plot((np.asarray(fixes) - track.t_s[0]) / 60.0, np.zeros(len(fixes)), "k|", ms=10,
-                 label="fused position fixes")
+    if len(fix_t_min):
+        ax1.plot(fix_t_min, np.zeros(len(fix_t_min)), "k|", ms=10, label="fused position fixes")
     ax1.set_xlabel("time (min)")
     ax1.set_ylabel("m")
     ax1.set_title("horizontal error and ±3σ")

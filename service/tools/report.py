@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from adaptnav.service.tools.plots import _pyplot, component_names, plot_params
+from adaptnav.service.tools.plots import _pyplot, component_names, error_sigma_series, plot_params
 
 def _svg(fig: Any) -> str:
     plt = _pyplot()
@@ -82,20 +82,13 @@ def error_figure(rec: Any) -> str | None:
         return None
     plt = _pyplot()
     truth = rec.truth()
-    t_min = (track.t_s - track.t_s[0]) / 60.0
-    sigma_h = np.sqrt(np.clip(track.cov_pva[:, 0, 0] + track.cov_pva[:, 1, 1], 0.0, None))
+    t_min, sigma_h, err, fix_t_min = error_sigma_series(rec, track, truth)
     fig, ax = plt.subplots(figsize=(9, 3.6))
     ax.fill_between(t_min, 0.0, 3.0 * sigma_h, alpha=0.25, color="tab:orange", label="3σ horizontal (m)")
-    if truth is not None:
-        inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
-        n = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 0])
-        e = np.interp(track.t_s, truth.t_s, truth.pos_n_m[:, 1])
-        err = np.where(inside, np.hypot(track.pos_n_m[:, 0] - n, track.pos_n_m[:, 1] - e), np.nan)
+    if err is not None:
         ax.plot(t_min, err, lw=1.0, label="horizontal error vs truth (m)")
-    fixes = [r[0] for r in rec.aid_rows if r[2] and r[1] in rec.FIX_SOURCES]
-    if fixes:
-        ax.plot((np.asarray(fixes) - track.t_s[0]) / 60.0, np.zeros(len(fixes)), "k|", ms=10,
-                label="fused position fix")
+    if len(fix_t_min):
+        ax.plot(fix_t_min, np.zeros(len(fix_t_min)), "k|", ms=10, label="fused position fix")
     ax.set_xlabel("time since the first state (min)")
     ax.set_ylabel("m")
     ax.grid(alpha=0.3)
