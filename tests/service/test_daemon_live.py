@@ -5,43 +5,22 @@ from __future__ import annotations
 
 import json
 import math
-import time
 
 import numpy as np
 import pytest
 
-from adaptnav.service.daemon import Daemon
 
-from .test_daemon_support import Collector, Feeder, connected, daemon_config, free_port, peer, wait_until
+from .test_daemon_support import Feeder, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
 
-@pytest.fixture
-def live(tmp_path):
-    """A daemon (calibrator off) + a peer with a collector; yields (daemon, peer, collector)."""
-    made = []
-
-    def make(*extra):
-        port = free_port()
-        cfg = daemon_config(port, tmp_path / "state", "calibrator.enabled=false",
-                            "health.sensor_timeout_s=1.0", "persistence.period_s=0.5", *extra)
-        d = Daemon(cfg)
-        d.start()
-        p = peer(port)
-        c = Collector(p)
-        made.append((d, p))
-        assert connected(p)  # the daemon's subscriptions reached this peer
-        return d, p, c
-
-    yield make
-    for d, p in made:
-        p.close()
-        d.stop()
+# sensors silent after 1 s of data time; state saved every 0.5 s
+SETTINGS = ("health.sensor_timeout_s=1.0", "persistence.period_s=0.5")
 
 
 def test_sample_in_nav_state_out_and_queryables(live):
-    daemon, bus, col = live()
+    daemon, bus, col = live(*SETTINGS)
     feeder = Feeder(bus)
     feeder.start()
     try:
@@ -77,7 +56,7 @@ def test_sample_in_nav_state_out_and_queryables(live):
 
 
 def test_malformed_and_nan_counted_service_alive(live):
-    daemon, bus, col = live()
+    daemon, bus, col = live(*SETTINGS)
     feeder = Feeder(bus)
     feeder.start()
     try:
@@ -108,7 +87,7 @@ def test_malformed_and_nan_counted_service_alive(live):
 
 
 def test_silent_sensor_reported_with_reason(live):
-    daemon, bus, col = live()  # sensor_timeout_s = 1.0 s of data time
+    daemon, bus, col = live(*SETTINGS)  # sensor_timeout_s = 1.0 s of data time
     feeder = Feeder(bus)
     feeder.start()
     try:

@@ -12,35 +12,17 @@ import numpy as np
 import pytest
 
 from adaptnav.fusion.samples import DepthSample, ImuSample
-from adaptnav.service.daemon import Daemon
 
-from .test_daemon_support import Collector, Feeder, daemon_config, free_port, peer, wait_until
+from .test_daemon_support import Feeder, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
 
-@pytest.fixture
-def live(tmp_path):
-    made = []
-
-    def make(*extra):
-        port = free_port()
-        cfg = daemon_config(port, tmp_path / "state", "calibrator.enabled=false",
-                            "health.sensor_timeout_s=2.0", *extra)
-        d = Daemon(cfg)
-        d.start()
-        p = peer(port)
-        made.append((d, p))
-        return d, p, Collector(p)
-
-    yield make
-    for d, p in made:
-        p.close()
-        d.stop()
+SETTINGS = ("health.sensor_timeout_s=2.0",)
 
 
 def test_absurd_samples_on_the_bus_are_refused_and_navigation_goes_on(live):
-    daemon, bus, col = live()
+    daemon, bus, col = live(*SETTINGS)
     feeder = Feeder(bus)
     feeder.start()
     try:
@@ -110,7 +92,7 @@ def test_watchdog_fed_only_while_the_runner_is_sound(live, tmp_path, monkeypatch
     listener.start()
     monkeypatch.setenv("NOTIFY_SOCKET", sock_path)
     monkeypatch.setenv("WATCHDOG_USEC", "1000000")  # fed every ≤ 0.25 s; wedged after 0.5 s
-    daemon, bus, col = live()
+    daemon, bus, col = live(*SETTINGS)
     feeder = Feeder(bus)
     feeder.start()
     wedge = _Wedge()
