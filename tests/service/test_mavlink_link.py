@@ -5,6 +5,7 @@ constrained, silence below the quality ArduSub is told to accept, the origin con
 on UDP loopback."""
 import math
 import queue
+from contextlib import contextmanager
 from types import SimpleNamespace
 
 import numpy as np
@@ -29,13 +30,21 @@ def nav(t_s=30.0, sigma_h=2.0, sigma_v=0.1, reset_counter=1, valid=True):
                            reset_counter=reset_counter)
 
 
-def open_link(tmp_path=None, **cfg):
+@contextmanager
+def linked(tmp_path=None, **cfg):
+    """A bridge on UDP loopback and a pymavlink peer (the autopilot), closed on exit;
+    yields (bridge, peer, queue of converted samples)."""
     port = free_udp_port()
     q = queue.Queue()
     config = BridgeConfig(**{"link_timeout_s": 5.0, "heartbeat_period_s": 0.1, **cfg})
     bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, ORIGIN, config,
                            state_path=None if tmp_path is None else tmp_path / "bridge.json")
-    return bridge, Peer(port), q
+    peer = Peer(port)
+    try:
+        yield bridge, peer, q
+    finally:
+        bridge.close()
+        peer.close()
 
 
 def test_output_schedule_sends_every_slot_even_when_states_come_a_hair_early():
@@ -53,8 +62,7 @@ def test_output_schedule_sends_every_slot_even_when_states_come_a_hair_early():
 
 
 def test_raw_imu_only_when_the_autopilot_has_no_highres_imu():
-    bridge, peer, q = open_link(imu_fallback_s=0.5)
-    try:
+    with linked(imu_fallback_s=0.5) as (bridge, peer, q):
         def requested(msg_id):
             return [c for c in peer.of_type("COMMAND_LONG")
                     if c.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL and int(c.param1) == msg_id]
@@ -67,22 +75,15 @@ def test_raw_imu_only_when_the_autopilot_has_no_highres_imu():
         peer.conn.mav.raw_imu_send(1_000_000, 0, 0, -1000, 1, 2, 3, 0, 0, 0)
         got = []
         assert peer.pump(5.0, until=lambda: got.extend(_drain(q)) or any(s.KIND == "imu" for s in got))
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def test_highres_imu_keeps_its_stream():
-    bridge, peer, q = open_link(imu_fallback_s=0.5)
-    try:
+    with linked(imu_fallback_s=0.5) as (bridge, peer, q):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         peer.conn.mav.highres_imu_send(2_000_000, 0, 0, -9.8, 0, 0, 0.01, 0, 0, 0, 0, 0, 0, 0, 0x3F)
         peer.pump(1.5)
         assert bridge.imu_stream == "HIGHRES_IMU"
         assert any(s.KIND == "imu" for s in _drain(q))
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def _drain(q):
@@ -93,31 +94,22 @@ def _drain(q):
 
 
 def test_reset_counter_continues_across_a_restart(tmp_path):
-    bridge, peer, _ = open_link(tmp_path)
-    try:
+    with linked(tmp_path) as (bridge, peer, _):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         assert bridge.send_nav(nav(reset_counter=4))
         assert peer.pump(5.0, until=lambda: peer.of_type("ODOMETRY"))
         first = peer.of_type("ODOMETRY")[-1].reset_counter
-    finally:
-        bridge.close()
-        peer.close()
     # the daemon restarts: its filter counts from 0 again, the autopilot must see a reset
-    bridge, peer, _ = open_link(tmp_path)
-    try:
+    with linked(tmp_path) as (bridge, peer, _):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         assert bridge.send_nav(nav(reset_counter=0))
         assert peer.pump(5.0, until=lambda: peer.of_type("ODOMETRY"))
         second = peer.of_type("ODOMETRY")[-1].reset_counter
-    finally:
-        bridge.close()
-        peer.close()
     assert first == 4 and second == 5
 
 
 def test_an_unconstrained_velocity_is_not_sent_as_valid():
-    bridge, peer, _ = open_link()
-    try:
+    with linked() as (bridge, peer, _):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         assert bridge.send_nav(nav(sigma_v=1.5))  # no velocity aid for minutes: σ_v 1.5 m/s
         assert peer.pump(5.0, until=lambda: peer.of_type("VISION_POSITION_ESTIMATE"))
@@ -125,16 +117,12 @@ def test_an_unconstrained_velocity_is_not_sent_as_valid():
         assert (pose.x, pose.y, pose.z) == (5.0, 6.0, 7.0) and pose.yaw == pytest.approx(0.3, abs=1e-6)
         assert not peer.of_type("ODOMETRY")
         assert bridge.counters["pose_only_sent"] == 1 and bridge.counters["odometry_sent"] == 0
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def test_below_the_quality_arduSub_is_told_to_accept_nothing_is_sent():
     cfg = OdometryConfig()
     assert quality_from_sigma(40.0, cfg) < cfg.min_quality <= quality_from_sigma(30.0, cfg)
-    bridge, peer, _ = open_link()
-    try:
+    with linked() as (bridge, peer, _):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         assert not bridge.send_nav(nav(sigma_h=40.0))
         assert bridge.send_nav(nav(sigma_h=30.0, t_s=31.0))
@@ -142,14 +130,10 @@ def test_below_the_quality_arduSub_is_told_to_accept_nothing_is_sent():
         peer.pump(0.3)
         (od,) = peer.of_type("ODOMETRY")
         assert od.time_usec == 31_000_000 and od.quality >= cfg.min_quality
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def test_origin_is_resent_until_the_autopilot_confirms_it():
-    bridge, peer, _ = open_link(origin_retry_s=0.3)
-    try:
+    with linked(origin_retry_s=0.3) as (bridge, peer, _):
         assert peer.pump(10.0, until=lambda: len(peer.of_type("SET_GPS_GLOBAL_ORIGIN")) >= 3)
         assert not bridge.origin_confirmed
         o = peer.of_type("SET_GPS_GLOBAL_ORIGIN")[-1]
@@ -161,14 +145,10 @@ def test_origin_is_resent_until_the_autopilot_confirms_it():
         h = bridge.health()
         assert h["origin_confirmed"] and h["origin_sent"] == n
         assert h["autopilot_origin_deg"] == pytest.approx([48.5, -124.25])
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def test_autopilot_reboot_re_requests_streams_and_the_origin():
-    bridge, peer, _ = open_link(origin_retry_s=30.0)
-    try:
+    with linked(origin_retry_s=30.0) as (bridge, peer, _):
         assert peer.pump(5.0, until=lambda: peer.of_type("SET_GPS_GLOBAL_ORIGIN"))
         peer.conn.mav.attitude_send(600_000, 0, 0, 0, 0, 0, 0)
         peer.pump(0.3)
@@ -177,14 +157,10 @@ def test_autopilot_reboot_re_requests_streams_and_the_origin():
         assert peer.pump(5.0, until=lambda: len(peer.of_type("SET_GPS_GLOBAL_ORIGIN")) >= 2)
         assert len(peer.of_type("COMMAND_LONG")) > n_cmd + 5
         assert bridge.health()["autopilot_reboots"] == 1
-    finally:
-        bridge.close()
-        peer.close()
 
 
 def test_health_says_what_the_link_did_and_why_a_rangefinder_gives_no_altitude():
-    bridge, peer, _ = open_link()
-    try:
+    with linked() as (bridge, peer, _):
         assert peer.pump(5.0, until=bridge.link_up.is_set)
         peer.conn.mav.command_ack_send(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink2.MAV_RESULT_ACCEPTED)
         peer.conn.mav.command_ack_send(mavlink2.MAV_CMD_REQUEST_MESSAGE, mavlink2.MAV_RESULT_UNSUPPORTED)
@@ -200,6 +176,3 @@ def test_health_says_what_the_link_did_and_why_a_rangefinder_gives_no_altitude()
         assert ds["status"] == "rejected" and ds["rejected"] == {"distance_out_of_range": 3}
         assert h["rejected"]["distance_out_of_range"] == 3 and h["link_up"]
         assert h["messages_by_type"]["DISTANCE_SENSOR"] == 3
-    finally:
-        bridge.close()
-        peer.close()
