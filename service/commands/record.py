@@ -8,6 +8,8 @@ reported, not written. Ends after ``--duration`` seconds or on SIGINT/SIGTERM.
 """
 from __future__ import annotations
 
+from adaptnav.service.commands.config_args import add_config_arguments, load_config_or_report
+
 HELP = "record all Zenoh bus traffic of a vehicle to an MCAP file"
 
 
@@ -15,9 +17,7 @@ def add_arguments(parser):
     parser.add_argument("--out", required=True, metavar="FILE.mcap", help="output MCAP file")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
-    parser.add_argument("--config", metavar="FILE", help="service config (vehicle name, zenoh)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config key (repeatable)")
+    add_config_arguments(parser, "service config (vehicle name, zenoh)")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="Zenoh endpoint to connect to (default: the daemon's listen endpoints)")
 
@@ -90,15 +90,12 @@ def run(args):
     import sys
     import threading
 
-    from adaptnav.fusion.typed_config import ConfigError
     from adaptnav.service.transport.bus import Bus, _strict
-    from adaptnav.service.config import config_dict, load_config
+    from adaptnav.service.config import config_dict
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        cfg = load_config(args.config, args.overrides)
-    except ConfigError as e:
-        print(f"adaptnav record: config error: {e}", file=sys.stderr)
+    cfg = load_config_or_report(args, "record")
+    if cfg is None:
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())

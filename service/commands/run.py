@@ -9,13 +9,13 @@ releases on ``adaptnav/<v>/calibration/params``; the daemon then uses
 """
 from __future__ import annotations
 
+from adaptnav.service.commands.config_args import add_config_arguments, load_config_or_report
+
 HELP = "run the live navigation daemon (Zenoh, calibrator process, MAVLink bridge)"
 
 
 def add_arguments(parser):
-    parser.add_argument("--config", metavar="FILE", help="service config (TOML); defaults when omitted")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config key, e.g. --set zenoh.mode=client (repeatable)")
+    add_config_arguments(parser)
     parser.add_argument("--calibrator-only", action="store_true",
                         help="run only the EM calibrator as a bus node")
     parser.add_argument("--print-config", action="store_true",
@@ -24,15 +24,11 @@ def add_arguments(parser):
 
 def run(args):
     import json
-    import sys
 
-    from adaptnav.fusion.typed_config import ConfigError
-    from adaptnav.service.config import config_dict, load_config
+    from adaptnav.service.config import config_dict
 
-    try:
-        cfg = load_config(args.config, args.overrides)
-    except ConfigError as e:
-        print(f"adaptnav run: config error: {e}", file=sys.stderr)
+    cfg = load_config_or_report(args, "run")
+    if cfg is None:
         return 2
     if args.print_config:
         from adaptnav.service.transport.bus import _strict

@@ -11,13 +11,13 @@ the just-in-time cache is what the service uses.
 """
 from __future__ import annotations
 
+from adaptnav.service.commands.config_args import add_config_arguments, load_config_or_report
+
 HELP = "compile the kernels ahead of time (install step; the unit's ExecStartPre)"
 
 
 def add_arguments(parser):
-    parser.add_argument("--config", metavar="FILE", help="service config (TOML); defaults when omitted")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config key (repeatable)")
+    add_config_arguments(parser)
     parser.add_argument("--jit-only", action="store_true",
                         help="only fill numba's just-in-time cache (no ahead-of-time module)")
 
@@ -60,13 +60,8 @@ def run(args):
         tmp = tempfile.mkdtemp(prefix="adaptnav-jit-")
         os.environ["NUMBA_CACHE_DIR"] = tmp
     try:
-        from adaptnav.fusion.typed_config import ConfigError
-        from adaptnav.service.config import load_config
-
-        try:
-            cfg = load_config(args.config, args.overrides)
-        except ConfigError as e:
-            print(f"adaptnav warmup: config error: {e}", file=sys.stderr)
+        cfg = load_config_or_report(args, "warmup")
+        if cfg is None:
             return 2
 
         def warm_up() -> None:
