@@ -322,11 +322,9 @@ def _track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> list[str]:
     """``demo_track.png`` (three tracks vs truth), ``demo_error.png`` (horizontal error vs
     time), ``demo_params.png`` (learned parameters vs truth over time)."""
-    import matplotlib
+    from adaptnav.service.tools.plots import headless_pyplot, save_figure
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
+    plt = headless_pyplot()
     truth = rec.truth()
     live = rec.track()
     series = {k: _track_csv(p) for k, p in tracks.items()}
@@ -356,9 +354,7 @@ def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> li
     ax.set_aspect("equal", adjustable="box")
     ax.legend(loc="best")
     ax.set_title(f"adaptnav demo: track vs truth ({scenario.duration_s:.0f} s)")
-    fig.tight_layout()
-    fig.savefig(out / "demo_track.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "demo_track.png", dpi=110)
     files.append("demo_track.png")
 
     fig, ax = plt.subplots(figsize=(10, 4.5))
@@ -383,9 +379,7 @@ def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> li
     ax.set_xlabel("t (s)")
     ax.set_ylabel("horizontal error (m)")
     ax.legend(loc="best")
-    fig.tight_layout()
-    fig.savefig(out / "demo_error.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "demo_error.png", dpi=110)
     files.append("demo_error.png")
 
     fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
@@ -409,9 +403,7 @@ def plot_demo(out: Path, rec: Any, tracks: dict[str, Path], scenario: Any) -> li
     ax1.set_xlabel("t (s)")
     ax1.set_ylabel("σ")
     ax1.legend(loc="best")
-    fig.tight_layout()
-    fig.savefig(out / "demo_params.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "demo_params.png", dpi=110)
     files.append("demo_params.png")
     return files
 

@@ -34,13 +34,21 @@ def component_names(source: str, width: int) -> list[str]:
     return [names[j] if width <= len(names) else f"component {j + 1}" for j in range(width)]
 
 
-def _pyplot():
+def headless_pyplot():
+    """matplotlib on its file backend (no display on a vehicle or in CI)."""
     import matplotlib
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig: Any, path: Any, dpi: int = 90, fmt: str | None = None) -> None:
+    """Lay out, write and close ``fig`` (closing frees the figure's memory in a long run)."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi, format=fmt)
+    headless_pyplot().close(fig)
 
 
 def error_sigma_series(rec: Any, track: Any, truth: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
@@ -70,7 +78,7 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     track = rec.track()
     if len(track.t_s) == 0:
         return False
-    plt = _pyplot()
+    plt = headless_pyplot()
     truth = rec.truth()
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5.5))
     ax0.plot(track.pos_n_m[:, 1], track.pos_n_m[:, 0], lw=1.0, label="estimate")
@@ -93,9 +101,7 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     ax1.legend(loc="upper left")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -105,7 +111,7 @@ SIGMA_UNITS = {"var_vv": "–", "var_vw": "m", "var_v1": "m/s", "var_wv": "rad/m
 
 
 def plot_params(rec: Any, path: Any, title: str = "", fmt: str | None = None) -> bool:
-    plt = _pyplot()
+    plt = headless_pyplot()
     from adaptnav.fusion.motion_model import MotionParams
 
     rows = []
@@ -153,16 +159,14 @@ def plot_params(rec: Any, path: Any, title: str = "", fmt: str | None = None) ->
     axes[1].set_ylabel("σ (unit of each term in the legend)")
     axes[1].set_xlabel("time (min)")
     fig.suptitle(title or "motion parameters")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90, format=fmt)
-    plt.close(fig)
+    save_figure(fig, path, fmt=fmt)
     return True
 
 
 def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
     if not rec.aid_rows:
         return False
-    plt = _pyplot()
+    plt = headless_pyplot()
     sources = sorted({r[1] for r in rec.aid_rows})
     fig, axes = plt.subplots(len(sources), 1, figsize=(10, 1.9 * len(sources) + 1), sharex=True, squeeze=False)
     t0 = rec.nav_t[0] if rec.nav_t else rec.aid_rows[0][0]
@@ -186,9 +190,7 @@ def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
         ax.legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1, 0].set_xlabel("time (min)")
     fig.suptitle(title or "normalised innovations")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 

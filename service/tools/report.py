@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from adaptnav.service.tools.plots import _pyplot, component_names, error_sigma_series, plot_params
+from adaptnav.service.tools.plots import headless_pyplot, component_names, error_sigma_series, plot_params
 
 def _svg(fig: Any) -> str:
-    plt = _pyplot()
+    plt = headless_pyplot()
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight")
     plt.close(fig)
@@ -61,7 +61,7 @@ def track_figure(rec: Any) -> str | None:
     track = rec.track()
     if len(track.t_s) == 0:
         return None
-    plt = _pyplot()
+    plt = headless_pyplot()
     truth = rec.truth()
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
     ax.plot(track.pos_n_m[:, 1], track.pos_n_m[:, 0], lw=1.0, label="estimate")
@@ -80,7 +80,7 @@ def error_figure(rec: Any) -> str | None:
     track = rec.track()
     if len(track.t_s) == 0:
         return None
-    plt = _pyplot()
+    plt = headless_pyplot()
     truth = rec.truth()
     t_min, sigma_h, err, fix_t_min = error_sigma_series(rec, track, truth)
     fig, ax = plt.subplots(figsize=(9, 3.6))
@@ -99,7 +99,7 @@ def error_figure(rec: Any) -> str | None:
 def innovations_figure(rec: Any) -> str | None:
     if not rec.aid_rows:
         return None
-    plt = _pyplot()
+    plt = headless_pyplot()
     by_source: dict[str, list] = defaultdict(list)
     for r in rec.aid_rows:
         by_source[r[1]].append(r)
