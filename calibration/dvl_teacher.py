@@ -29,8 +29,9 @@ each row weighted by the forgetting ``λ_k``:
   with the identifiability test (columns the controls do not separate are held) and the
   prior of the M-step;
 - sway ``σ_S² = Σλ Ŝ² / Σλ``;
-- flow angle ``heave_per_surge = Σλ v Ĥ / Σλ v²`` (body heave per unit surge: a heavy or
-  trimmed vehicle flies nose-up to hold depth);
+- flow angle ``heave_per_surge = tan α = Σλ V̂ Ĥ / Σλ V̂²`` (body heave per unit of the
+  *measured* surge: a heavy or trimmed vehicle flies nose-up by α to hold depth), what the
+  filter's flow-angle row ``v_b,z − tan α · v_b,x = 0`` uses (it carries no speed);
 - ``b_W`` is not in the DVL's rows: it comes from the heading (compass) against the IMU yaw
   rate, ``b_W = Σλ (Δψ_k/Δ − w_k) / Σλ`` over the window's headings, when given.
 
@@ -176,10 +177,10 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
     if options.fit_var_s:
         new = replace(new, var_s=float(max(np.sum(lam * S * S) / np.sum(lam), options.var_floor)))
         teachers["var_s"] = "DVL"
-    moving = v >= min_heave_speed_m_s
+    moving = (v >= min_heave_speed_m_s) & (V >= min_heave_speed_m_s)
     if np.sum(lam[moving]) > 0:
-        vm = v[moving]
-        new = replace(new, heave_per_surge=float(np.sum(lam[moving] * vm * H[moving]) / np.sum(lam[moving] * vm * vm)))
+        Vm = V[moving]
+        new = replace(new, heave_per_surge=float(np.sum(lam[moving] * Vm * H[moving]) / np.sum(lam[moving] * Vm * Vm)))
         teachers["heave_per_surge"] = "DVL"
     else:
         notes.append("held heave_per_surge (no step under way)")

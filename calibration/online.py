@@ -191,6 +191,9 @@ class Release:
     current_n_m_s: tuple[float, float] = (0.0, 0.0)
     # which teacher informed the release: "DVL", "fixes", "IMU", "landmarks", "heading"
     teachers: tuple[str, ...] = ()
+    # "DVL" when k_V itself was measured by the DVL (calibration.dvl_teacher): the filter then
+    # takes k_V as the speed scale instead of keeping its own k_speed·k_V (Estimator.set_motion_params)
+    k_v_teacher: str = ""
 
 
 def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
@@ -364,7 +367,8 @@ def calibrate_from_dvl(params: MotionParams, v, w, dt, dvl_rows, config: Calibra
     taught = "; ".join(f"{', '.join(terms)} from the {teacher}" for teacher, terms in by.items())
     held = "".join(f"; {n}" for n in res.notes)
     teachers = tuple(dict.fromkeys("DVL" if t == "DVL" else "heading" for t in res.teachers.values()))
-    return Release(t_s, new, res.ll_new, True, f"ok; {res.rows} DVL steps: {taught}{held}", 1, cur, teachers)
+    return Release(t_s, new, res.ll_new, True, f"ok; {res.rows} DVL steps: {taught}{held}", 1, cur, teachers,
+                   res.teachers.get("k_v", ""))
 
 
 @dataclass

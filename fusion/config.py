@@ -122,6 +122,11 @@ class DepthConfig:
     enabled: bool = True
     sigma_m: float = 0.05
     water_density_kg_m3: float = 1025.0
+    # 1-σ of that density (kg/m³): without a CTD aboard the water may be anything from sea
+    # (1020–1030) to brackish or fresh (1000). Its error is a depth *scale*, unobservable at
+    # constant depth and the same at every sample: the filter does not estimate it, the
+    # published covariance carries it ((depth · σ_ρ/ρ)², Estimator._add_considered). 0: known.
+    density_sigma_kg_m3: float = 0.0
     atmospheric_pressure_pa: float = 101325.0
     # body-frame (FRD) position of the sensor relative to the vehicle reference point (m);
     # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here

@@ -238,6 +238,7 @@ class Estimator:
             cov = sd.propagated_covariance(self._P, self._acc, self._qdiag)
         else:
             cov = self._P.copy()
+        self._add_considered(cov)
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
         valid = self._mode == "ins" and not self.invalid_reasons(sigma_h) and bool(np.all(np.isfinite(x)))
         pos, vel = x[X_POS].copy(), x[X_VEL].copy()
@@ -255,6 +256,19 @@ class Estimator:
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
             current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter)
+
+    def _add_considered(self, cov: np.ndarray) -> None:
+        """The published covariance (in place) gains what the filter treats as known but is
+        not (*consider* parameters): the DVL's scale and misalignment on its track since the
+        last fix (:meth:`DvlCalibration.position_cov_ne`), and the water density the depth is
+        converted with, a depth scale ``(d σ_ρ/ρ)²`` (``depth.density_sigma_kg_m3``;
+        unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
+        depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
+        if self.dvl_calibration is not None:
+            cov[:2, :2] += self.dvl_calibration.position_cov_ne()
+        dep = self.config.depth
+        if dep.density_sigma_kg_m3 > 0.0:
+            cov[2, 2] += (float(self._x[X_DEPTH]) * dep.density_sigma_kg_m3 / dep.water_density_kg_m3) ** 2
 
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
@@ -364,19 +378,25 @@ class Estimator:
         return AidStatus(float(t_b_s), src, tuple(offset.tolist()), tuple(y.tolist()), tuple(np.diag(S).tolist()),
                          float(nis) / gate, fused, "" if fused else "gate")
 
-    def set_motion_params(self, params: MotionParams) -> None:
-        """Apply a calibrator release; ``k_speed · k_V`` is kept continuous.
+    def set_motion_params(self, params: MotionParams, adopt_k_v: bool = False) -> None:
+        """Apply a calibrator release; ``k_speed · k_V`` is kept continuous — unless
+        ``adopt_k_v``: the release's k_V was measured by the DVL (calibration.dvl_teacher, a
+        least-squares fit of DVL surge on the RPM speed over the window), and ``k_speed`` goes
+        back to 1 so the speed scale is the release's. Kept continuous, a DVL-taught k_V never
+        reached the velocity the filter predicts: the product stayed the filter's own slow
+        (``dvl.k_speed_rw_rthz``) estimate (dvl_outage seed 2: 0.969 into the outage, the
+        release 0.954, truth 0.949 × the DVL's scale error).
 
         The release is part of the input history: a late measurement older than it is
         re-fused before it and the release re-applied after, as it came. For
         ``learned_velocity.adaptive_suspend_after_release_s`` after it, the released surge
         variance is used as it is (:meth:`_learned_velocity`).
         """
-        self._record("params", (float(self._clock[0]), params))
-        self._apply_motion_params(params)
+        self._record("params", (float(self._clock[0]), params, adopt_k_v))
+        self._apply_motion_params(params, adopt_k_v)
 
-    def _apply_motion_params(self, params: MotionParams) -> None:
-        ratio = self.motion_params.k_v / params.k_v
+    def _apply_motion_params(self, params: MotionParams, adopt_k_v: bool = False) -> None:
+        ratio = (1.0 / self._x[X_KS]) if adopt_k_v else self.motion_params.k_v / params.k_v
         self._x[X_KS] *= ratio
         self._P[KS, :] *= ratio
         self._P[:, KS] *= ratio
@@ -691,7 +711,7 @@ class Estimator:
                     self._loop_closure(*payload)
                 elif kind == "params":
                     self._record("params", payload)
-                    self._apply_motion_params(payload[1])
+                    self._apply_motion_params(payload[1], payload[2])
                 elif kind == "zupt":
                     self._record("zupt", payload)
                     self._zero_velocity(*payload)

@@ -164,6 +164,10 @@ class DepthConfig:
     enabled: bool = True
     rate_hz: float = 10.0
     sigma_m: float = 0.05               # pressure noise expressed as depth at 1025 kg/m³
+    # what the vehicle's filter is told of the water density it converts pressure with
+    # (filter.depth.density_sigma_kg_m3): 0 = known; a vehicle without a CTD that may meet
+    # fresher water says how unsure it is
+    density_sigma_kg_m3: float = 0.0
 
 
 @dataclass(frozen=True)

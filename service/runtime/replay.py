@@ -90,6 +90,7 @@ def config_raw_from_scenario(scenario: Any) -> dict:
             "imu": _imu_filter_raw(sc.imu.grade),
             "heading": {"sigma_rad": math.radians(sc.heading.sigma_deg)},
             "depth": {"sigma_m": sc.depth.sigma_m, "water_density_kg_m3": sc.environment.density_kg_m3,
+                      "density_sigma_kg_m3": sc.depth.density_sigma_kg_m3,
                       "atmospheric_pressure_pa": sc.environment.atmospheric_pressure_pa},
             # the DVL's σ stays the filter's (fusion/config.py: its long-term errors dominate)
             "dvl": {"water_track_sigma_m_s": sc.dvl.water_track_sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),

@@ -256,7 +256,8 @@ class _Loop:
                 changes = {"accepted": False, "reason": f"refused by the filter: {why}"}
                 rel = dataclasses.replace(rel, **changes) if dataclasses.is_dataclass(rel) else rel._replace(**changes)
         if rel.accepted and rel.params is not None:
-            self.estimator.set_motion_params(rel.params)
+            # a k_V the DVL measured is adopted as the speed scale (Estimator.set_motion_params)
+            self.estimator.set_motion_params(rel.params, adopt_k_v=getattr(rel, "k_v_teacher", "") == "DVL")
             self.summary.releases_accepted += 1
         if self.health is not None:
             self.health.on_release(rel)

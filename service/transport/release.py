@@ -33,6 +33,7 @@ def release_to_dict(release: Release) -> dict[str, Any]:
         "iterations": int(release.iterations or 0),
         "current_n_m_s": [float(x) for x in release.current_n_m_s],
         "teachers": [str(x) for x in release.teachers],
+        "k_v_teacher": str(release.k_v_teacher),
     }
 
 
@@ -59,7 +60,8 @@ def release_from_dict(data: Any) -> Release:
                        accepted=bool(data["accepted"]), reason=str(data.get("reason", "")),
                        iterations=int(data.get("iterations", 0)),
                        current_n_m_s=_current_from(data.get("current_n_m_s")),
-                       teachers=tuple(str(x) for x in data.get("teachers", ())))
+                       teachers=tuple(str(x) for x in data.get("teachers", ())),
+                       k_v_teacher=str(data.get("k_v_teacher", "")))
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{KIND}: {e}") from e
 
@@ -77,6 +79,7 @@ def release_schema() -> dict:
             "reason": {"type": "string"}, "iterations": {"type": "integer"},
             "current_n_m_s": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2},
             "teachers": {"type": "array", "items": {"type": "string"}},
+            "k_v_teacher": {"type": "string"},
         },
         "required": ["type", "schema_version", "t_s", "params", "accepted"],
     }

@@ -11,14 +11,15 @@ from adaptnav.fusion.motion_model import MotionParams
 
 
 def test_teacher_recovers_k_v_variances_and_flow_angle_from_rows():
-    # GIVEN rows drawn from a known model (k_V 0.92, σ_Vv 0.04, sway σ 0.03, heave 0.07 u)
+    # GIVEN rows drawn from a known model (k_V 0.92, σ_Vv 0.04, sway σ 0.03, flow angle tan α 0.07:
+    # the body heave is 0.07 × the surge the DVL measures, not × the commanded speed)
     rng = np.random.default_rng(5)
     T = 400
     v = rng.choice([1.0, 1.5, 2.0], T)
     w = rng.normal(0.0, 0.02, T)
     V = 0.92 * v + 0.04 * v * rng.standard_normal(T)
     S = 0.03 * rng.standard_normal(T)
-    H = 0.07 * v + 0.005 * rng.standard_normal(T)
+    H = 0.07 * V + 0.005 * rng.standard_normal(T)
     # WHEN the teacher fits them from the default model
     res = teach(MotionParams(), v, w, V, S, H, np.ones(T), MStepOptions(prior_tau=math.inf))
     # THEN it finds them, says the DVL taught each, and the fit is more likely than the start

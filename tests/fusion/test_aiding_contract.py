@@ -33,6 +33,8 @@ PARAMS = MotionParams()
 CASES = {
     "learned_velocity": (lambda x: learned_velocity.predict(x, 1.5),
                          lambda x: learned_velocity.measure(x, 1.5, 0.05, PARAMS, 0.05)),
+    "learned_velocity_flow": (lambda x: learned_velocity.predict(x, 1.5, 0.0, 0.08),
+                              lambda x: learned_velocity.measure(x, 1.5, 0.05, MotionParams(heave_per_surge=0.08), 0.05)),
     "dvl": (lambda x: dvl.predict(x, OMEGA - (x[13:16] - _state()[13:16]), LEVER, R_DB),
             lambda x: dvl.measure(DvlSample(0.0, (1.0, 0.0, 0.1)), x, OMEGA, LEVER, R_DB, 0.01)),
     "depth": (depth.predict, lambda x: depth.measure(DepthSample(0.0, 2e5), x, 0.05, 1025.0, 101325.0)),
@@ -100,6 +102,21 @@ def test_learned_velocity_variance_follows_motion_model():
     assert m.R[0, 0] == pytest.approx(1.5**2 * 0.04**2 + 0.1**2 * 0.2**2 + 0.01**2)
     assert m.R[1, 1] == pytest.approx(0.02**2) and m.R[2, 2] == pytest.approx(0.05**2)
     assert m.z[0] == pytest.approx(p.k_v * 1.5)
+
+
+def test_the_flow_angle_row_carries_no_speed():
+    # GIVEN a vehicle flying nose-up at an angle of attack α (tan α = 0.08): the water meets the
+    # body from below, v_b = U (1, 0, tan α) / ‖·‖, at two speeds U
+    tan_a = 0.08
+    p = MotionParams(heave_per_surge=tan_a)
+    for speed in (1.0, 1.5):
+        x = initial_nominal(vel_n_m_s=speed * np.array([1.0, 0.0, 0.0]), q_nb=euler_to_quat(0.0, math.atan(tan_a), 0.0))
+        m = learned_velocity.measure(x, 1.2, 0.0, p, 0.05)
+        # THEN the heave row agrees whatever the speed (the RPM says 1.2 m/s), and moving along
+        # the flow does not change it: the speed is the surge row's alone
+        assert m.z[2] - m.h[2] == pytest.approx(0.0, abs=1e-12)
+        along_flow = x[3:6] / np.linalg.norm(x[3:6])
+        assert m.H[2, 3:6] @ along_flow == pytest.approx(0.0, abs=1e-12)
 
 
 def test_heading_innovation_wraps():

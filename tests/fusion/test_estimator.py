@@ -249,6 +249,17 @@ def test_a_calibrator_release_keeps_the_modelled_speed_continuous():
     assert est.nav_state().k_speed * 1.1 == pytest.approx(before)
 
 
+def test_a_k_v_the_dvl_measured_becomes_the_speed_scale():
+    # GIVEN a filter whose own k_speed has wandered to 1.03
+    est = _aligned()
+    from adaptnav.fusion.state import X_KS
+    est._x[X_KS] = 1.03
+    # WHEN a release whose k_V the DVL measured arrives
+    est.set_motion_params(replace(MotionParams(), k_v=0.95), adopt_k_v=True)
+    # THEN the modelled speed scale is the release's, not the filter's product 1.03 × 1.0
+    assert est.nav_state().k_speed * est.motion_params.k_v == pytest.approx(0.95)
+
+
 def test_a_filter_that_gated_the_fixes_repeatedly_trusts_them_again():
     # GIVEN an aligned filter that believes it is at the origin within 1.5 m
     est = _aligned()
