@@ -21,10 +21,16 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
    ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
    drift over the batch (``relative_sigma_m_s`` × time from the batch centre, on both legs).
-   Chance agreement is bounded: a wrong candidate falls inside a hypothesis' inlier region
-   with probability ≈ (inlier area / gate area); with λ the sum of those over the candidates,
-   a set of ``n`` needs ``P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` — a wide gate (a
-   drifting navigation) or many candidates ask for more objects.
+   Chance agreement is bounded: around each new sighting the wrong old sightings expected in
+   its gate (its *clutter*, counted over a wider area so that its one true match barely
+   counts) fall inside a hypothesis' inlier region with probability ≈ (inlier area / gate
+   area); with λ the sum over the new sightings, a set of ``n`` needs
+   ``H · P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` over the ``H`` hypotheses tried — a
+   cluttered seabed, a wide gate or many candidates ask for more objects, a sparse one does
+   not. A pair whose sighting has a second candidate that also fits the offset is dropped
+   (two neighbouring objects: either could be the match).
+   A block often holds only one or two objects of the other leg: when the block alone gives
+   no set, the sets are sought among the last ``window_s`` of new sightings not yet used.
 3. A set of at least ``min_objects`` is one **loop closure**: times ``t_a``, ``t_b`` (the
    sightings' median times on each leg), offset ``δ`` and covariance
    ``(Σ W_j)⁻¹`` (``W_j`` the inverse residual covariances), the number of objects.
@@ -76,12 +82,20 @@ class AssociationConfig:
         link on the seeds tried).
     memory_s : float
         Old sightings are forgotten after this long.
+    clutter_scale : float
+        The clutter (wrong sightings a gate may hold) is counted over this many times the
+        gate's area, so that the true match is diluted (see :meth:`LegAssociator.candidates`).
+    window_s : float
+        New sightings not yet in an accepted set stay in play this long (s): a block often
+        holds one or two objects of the other leg, fewer than a set needs, so the sets are
+        sought among the last ``window_s`` of sightings; a sighting in an accepted set leaves
+        the window (each pair enters one loop closure only).
     """
 
     gate_probability: float = 0.999
     inlier_probability: float = 0.99
     joint_probability: float = 0.99
-    min_objects: int = 3
+    min_objects: int = 4
     min_gap_s: float = 60.0
     attribute_sigmas: float = 3.0
     height_sigma_m: float = 0.12
@@ -92,6 +106,8 @@ class AssociationConfig:
     max_candidates_per_object: int = 8
     memory_s: float = 3600.0
     chance_probability: float = 0.1
+    window_s: float = 60.0
+    clutter_scale: float = 9.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,6 +162,7 @@ class LegAssociator:
         self._gate = float(chi2.ppf(config.gate_probability, 2))
         self._inlier = float(chi2.ppf(config.inlier_probability, 2))
         self._old: list[ObjectSighting] = []
+        self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
         self.candidates_seen = 0
         self.batches = 0
 
@@ -168,15 +185,26 @@ class LegAssociator:
                 return False
         return True
 
-    def candidates(self, batch: list[ObjectSighting]) -> list[tuple[int, int, float, np.ndarray]]:
-        """(old index, batch index, Mahalanobis d², gate covariance) of individually compatible pairs."""
+    def candidates(self, batch: list[ObjectSighting]) -> tuple[list[tuple[int, int, float, np.ndarray]], np.ndarray]:
+        """Individually compatible pairs and the clutter around each new sighting.
+
+        Returns
+        -------
+        pairs : list of (old index, batch index, Mahalanobis d², gate covariance)
+        clutter : numpy.ndarray, shape (len(batch),)
+            Wrong old sightings expected inside each new sighting's gate: those with
+            agreeing attributes inside ``clutter_scale`` × the gate's area, less the one
+            that may be its match, divided by ``clutter_scale``.
+        """
         c = self.config
+        clutter = np.zeros(len(batch))
         if not self._old or not batch:
-            return []
-        t_new = min(o.t_s for o in batch)
-        old = [i for i, o in enumerate(self._old) if o.t_s < t_new - c.min_gap_s]
+            return [], clutter
+        t_new = max(o.t_s for o in batch)
+        in_batch = {id(o) for o in batch}
+        old = [i for i, o in enumerate(self._old) if o.t_s < t_new - c.min_gap_s and id(o) not in in_batch]
         if not old:
-            return []
+            return [], clutter
         P_old = np.array([self._old[i].pos_n_m for i in old])
         C_old = np.array([self._old[i].nav_cov + self._old[i].det_cov for i in old])
         D_old = np.array([self._old[i].det_cov for i in old])
@@ -184,17 +212,18 @@ class LegAssociator:
         rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
         out = []
         for j, b in enumerate(batch):
+            same_leg = t_old >= b.t_s - c.min_gap_s
             d = P_old - b.pos_n_m[None, :]
             S = C_old + (b.nav_cov + b.det_cov)[None]
             if rel is not None:  # the error difference's own covariance where the filter has it
                 S = np.where(rel[1][:, None, None], rel[0] + D_old + b.det_cov[None], S)
             m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
-            near = np.flatnonzero(m2 <= self._gate)
-            near = near[np.argsort(m2[near])][: c.max_candidates_per_object]
-            for k in near:
-                if self._attributes_agree(self._old[old[k]], b):
-                    out.append((old[k], j, float(m2[k]), S[k]))
-        return out
+            wide = np.flatnonzero((m2 <= c.clutter_scale * self._gate) & ~same_leg)
+            agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
+            clutter[j] = max(len(agree) - 1, 0) / c.clutter_scale
+            for k in [k for k in agree if m2[k] <= self._gate][: c.max_candidates_per_object]:
+                out.append((old[k], j, float(m2[k]), S[k]))
+        return out, clutter
 
     def _relative(self, t_old: np.ndarray, t_new: float):
         """(covariances (K, 2, 2), known (K,)) of e(t_old) − e(t_new) from ``relative_cov``,
@@ -221,7 +250,7 @@ class LegAssociator:
     def associate(self, batch: list[ObjectSighting]) -> LoopClosure | None:
         """The largest jointly compatible set of candidate pairs for ``batch`` (or None)."""
         c = self.config
-        cand = self.candidates(batch)
+        cand, clutter = self.candidates(batch)
         self.candidates_seen += len(cand)
         if len(cand) < c.min_objects:
             return None
@@ -232,11 +261,16 @@ class LegAssociator:
         R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _, _ in cand])
         W = np.linalg.inv(R)
         S = np.array([c[3] for c in cand])  # each candidate's gate covariance
-        # chance inliers: the inlier region (rᵀWr ≤ inlier gate) over the candidate gate's area
-        ratio = (self._inlier / self._gate) * np.sqrt(np.linalg.det(R) / np.linalg.det(S))
-        lam = float(np.sum(np.minimum(ratio, 1.0)))
+        # chance inliers: per new sighting, the wrong old sightings expected in its gate
+        # (its clutter) times the inlier region's share of the gate's area
+        ratio = np.minimum((self._inlier / self._gate) * np.sqrt(np.linalg.det(R) / np.linalg.det(S)), 1.0)
+        lam = 0.0
+        for j in {cj for _, cj, _, _ in cand}:
+            mine = [k for k, cc in enumerate(cand) if cc[1] == j]
+            lam += clutter[j] * float(np.max(ratio[mine]))
         n_min = c.min_objects
-        while n_min <= len(cand) and float(poisson.sf(n_min - 2, lam)) > c.chance_probability:
+        # every candidate is tried as the hypothesis: a union bound over them
+        while n_min <= len(cand) and len(cand) * float(poisson.sf(n_min - 2, lam)) > c.chance_probability:
             n_min += 1
         if n_min > len(cand):
             return None
@@ -261,7 +295,9 @@ class LegAssociator:
                 best = (len(sel), cost, sel)
         if best is None:
             return None
-        sel = best[2]
+        sel = self._unambiguous(cand, diffs, W, best[2])
+        if len(sel) < n_min:
+            return None
         info = W[sel].sum(axis=0)
         cov = np.linalg.inv(info)
         delta = self._mean(diffs, W, sel)
@@ -269,6 +305,18 @@ class LegAssociator:
         return LoopClosure(t_a_s=float(np.median([p[0].t_s for p in pairs])),
                            t_b_s=float(np.median([p[1].t_s for p in pairs])),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=best[1])
+
+    def _unambiguous(self, cand, diffs, W, sel: list[int]) -> list[int]:
+        """The set without pairs whose new (or old) sighting has a second candidate that
+        also fits the set's offset: two neighbouring objects, either could be the match."""
+        r = diffs - self._mean(diffs, W, sel)
+        fits = np.einsum("ki,kij,kj->k", r, W, r) <= self._inlier
+        ambiguous = set()
+        for k in sel:
+            i, j = cand[k][0], cand[k][1]
+            if any(fits[m] and m != k and (cand[m][1] == j or cand[m][0] == i) for m in range(len(cand))):
+                ambiguous.add(k)
+        return [k for k in sel if k not in ambiguous]
 
     def _one_to_one(self, cand, m2) -> list[int]:
         """Inliers (m² within the inlier gate), each old and new sighting used once (best first)."""
@@ -311,8 +359,16 @@ class LegAssociator:
             if o.pos_n_m is None or o.nav_cov is None or o.det_cov is None:
                 raise ValueError("object sightings need pos_n_m, nav_cov and det_cov (with_navigation)")
         self.batches += 1
+        if not batch:
+            return None
+        t_new = max(o.t_s for o in batch)
+        self._pending = [o for o in self._pending if o.t_s >= t_new - self.config.window_s] + list(batch)
+        # the block alone first (its sightings share the least drift), then the window
         lc = self.associate(list(batch))
-        if batch:
-            t_new = max(o.t_s for o in batch)
-            self._old = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
+        if lc is None and len(self._pending) > len(batch):
+            lc = self.associate(list(self._pending))
+        if lc is not None:
+            used = {id(b) for _, b in lc.pairs}
+            self._pending = [o for o in self._pending if id(o) not in used]
+        self._old = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
         return lc
