@@ -166,6 +166,8 @@ class Estimator:
         self._t_first_att = math.nan
         self._pending_dvl = None  # latest valid DVL sample before alignment (velocity seed)
         self._pending_fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
+        # that fix is a radio fix taken before any depth: void once the depth says under water
+        self._pending_fix_gnss = False
         self._pending_depth: float | None = None
         self._rpm: tuple[float, float, float] | None = None  # (t_s, surge, sway speed m/s)
         self._rpm_raw = math.nan  # latest RPM (rev/min), for stationary detection
@@ -196,6 +198,8 @@ class Estimator:
         self._hist: list[tuple[str, object, _Snapshot]] = []
         self._replaying = False
         self._restored = False
+        # the last position of an earlier run (restore_slow_states): (t_s, pos_n (3), var (3))
+        self._saved_pos: tuple[float, np.ndarray, np.ndarray] | None = None
         self._speed_cache: dict[float, float] = {}
         self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
         self._t_release = -math.inf  # state time of the latest calibrator release applied
@@ -405,14 +409,21 @@ class Estimator:
         self._t_release = float(self._clock[0])
 
     def slow_states(self) -> dict:
-        """Biases, current and ``k_speed`` with their variances (for persistence)."""
+        """Biases, current and ``k_speed`` with their variances (for persistence); in INS
+        mode also the position with its variances and state time (``pos_n_m``,
+        ``var_pos_n_m2``, ``pos_t_s``): a restart seeds from it (:meth:`restore_slow_states`)."""
         d = np.diag(self._P)
-        return {
+        out = {
             "bias_acc_b_m_s2": self._x[X_BA].tolist(), "var_bias_acc": d[BA].tolist(),
             "bias_gyro_b_rad_s": self._x[X_BG].tolist(), "var_bias_gyro": d[BG].tolist(),
             "current_n_m_s": self._x[X_CUR].tolist(), "var_current": d[CUR].tolist(),
             "k_speed": float(self._x[X_KS]), "var_k_speed": float(d[KS][0]),
         }
+        if self._mode == "ins":
+            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+            out.update(pos_n_m=self._x[X_POS].tolist(), var_pos_n_m2=np.diag(P)[POS].tolist(),
+                       pos_t_s=float(self._clock[0]))
+        return out
 
     def restore_slow_states(self, d: dict) -> None:
         """Inverse of :meth:`slow_states` (also before initialisation: kept through it)."""
@@ -435,6 +446,13 @@ class Estimator:
         self._P[:, KS] = 0.0
         self._P[KS, KS] = vk
         self._restored = True
+        self._saved_pos = None
+        if d.get("pos_n_m") is not None:
+            t, pos, var = float(d["pos_t_s"]), np.asarray(d["pos_n_m"], float), np.asarray(d["var_pos_n_m2"], float)
+            if not (math.isfinite(t) and pos.shape == (3,) and var.shape == (3,)
+                    and np.all(np.isfinite(pos)) and np.all(var > 0) and np.all(np.isfinite(var))):
+                raise ValueError("restore_slow_states: bad position")
+            self._saved_pos = (t, pos, var)
 
     def process(self, sample) -> list[AidStatus]:
         """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch).
@@ -763,9 +781,15 @@ class Estimator:
         elif kind == "dvl":
             bottom = sample.valid and not getattr(sample, "water_track", False)
             self._pending_dvl = sample if bottom else self._pending_dvl
+        elif kind == "gnss" and self._pending_depth is not None \
+                and self._pending_depth >= self.config.gnss.max_depth_m:
+            # a radio fix below the surface is no position (a simulator keeps its fix under
+            # water): as after alignment (aiding.gnss), it does not seed the position either
+            return [rejected(sample.t_s, kind, "surface_only")]
         elif AIDS[kind].absolute_position:
             ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
             self._pending_fix = (ned[:2], sample.sigma_h_m)
+            self._pending_fix_gnss = kind == "gnss" and self._pending_depth is None
             # the initial position: where later fixes must be reachable from
             self._fix_evidence = {"last_fix": (float(sample.t_s), (float(ned[0]), float(ned[1])),
                                                float(sample.sigma_h_m))}
@@ -773,24 +797,38 @@ class Estimator:
             self._pending_depth = float(aid_depth.pressure_to_depth(
                 sample.pressure_pa, self.config.depth.water_density_kg_m3,
                 self.config.depth.atmospheric_pressure_pa))
+            if self._pending_fix_gnss and self._pending_depth >= self.config.gnss.max_depth_m:
+                self._pending_fix, self._pending_fix_gnss = None, False  # came before the first depth
+                self._fix_evidence = {}
         statuses = [rejected(sample.t_s, kind, "not_initialized")]
         if self._mode == "none":
             statuses += self._try_align()
         return statuses
 
-    def _initial_position(self) -> tuple[np.ndarray, float, float]:
+    def _initial_position(self, t_s: float) -> tuple[np.ndarray, float, float]:
+        """Initial position and its horizontal and vertical σ at state time ``t_s``: the latest
+        fix; else the position an earlier run persisted (a restart), its σ grown by what the
+        vehicle can have moved since — ``position_reset_max_speed_m_s`` × elapsed time taken as
+        the 3σ bound — (only on the same clock: 0 ≤ elapsed ≤ 1 h); else the origin (σ
+        ``initial.sigma_pos_m``). Depth from the latest pressure."""
         pos = np.zeros(3)
         sigma_h = self.config.initial.sigma_pos_m
         sigma_d = self.config.initial.sigma_pos_m
+        saved = self._saved_pos
         if self._pending_fix is not None:
             pos[:2], sigma_h = self._pending_fix
+        elif saved is not None and 0.0 <= t_s - saved[0] <= 3600.0:
+            moved = self.config.position_reset_max_speed_m_s * (t_s - saved[0]) / 3.0
+            pos[:] = saved[1]
+            sigma_h = math.sqrt(float(max(saved[2][0], saved[2][1])) + moved**2)
+            sigma_d = math.sqrt(float(saved[2][2]) + moved**2)
         if self._pending_depth is not None:
             pos[2], sigma_d = self._pending_depth, self.config.depth.sigma_m
         return pos, sigma_h, sigma_d
 
     def _init_ahrs(self, sample) -> list[AidStatus]:
         """No usable IMU: attitude from the AHRS, depth from pressure, position invalid."""
-        pos, sigma_h, sigma_d = self._initial_position()
+        pos, sigma_h, sigma_d = self._initial_position(sample.t_s)
         q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
         keep = self._x[X_SLOW].copy() if self._restored else None
         P_keep = self._P.copy() if keep is not None else None
@@ -813,7 +851,7 @@ class Estimator:
         # the IMU model: the configured grade's, or decided from the data at rest (auto)
         self.imu_model = imu_grades.resolve(self.config.imu, *self._aligner.window())
         self._qdiag = self._process_noise()
-        pos, sigma_h, sigma_d = self._initial_position()
+        pos, sigma_h, sigma_d = self._initial_position(self._aligner.t_last_s)
         keep = self._x[X_SLOW].copy() if self._restored else None
         P_keep = self._P.copy() if keep is not None else None
         q = euler_to_quat(roll, pitch, self._yaw_for_alignment)
@@ -1021,19 +1059,47 @@ class Estimator:
         self._set_k_speed_walk(self._t_dvl_lock > -math.inf)
         if t - self._rpm[0] > cfg.rpm_hold_s:
             return rejected(t, "learned_velocity", "stale")
+        meas = self._lv_measure(t, adapt=True)
+        status = self._fuse(meas, t, "learned_velocity")
+        if self._rejected_too_long(status, self.config.reset.velocity_after_s):
+            self._doubt_motion_model(meas)
+            self._reset_velocity(meas, status)
+            # measured again: the innovation before the reset is what the reset removed
+            status = self._fuse(self._lv_measure(t, adapt=False), t, "learned_velocity")
+        return status
+
+    def _lv_measure(self, t: float, adapt: bool) -> Measurement:
+        """The learned-velocity measurement now, its surge variance adapted (``adapt``: the
+        innovation estimate is updated with this epoch)."""
+        cfg = self.config.learned_velocity
         R_nb = aid_lv.dcm(self._x)
         yaw_rate = float(R_nb[2] @ self._acc[sd.ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
-        if cfg.adaptive_window_s > 0:
-            adapted = self._adapt_surge(meas)  # the estimate is kept current either way
-            if t - self._t_release >= cfg.adaptive_suspend_after_release_s:
-                meas = adapted
-        status = self._fuse(meas, t, "learned_velocity")
-        if self._rejected_too_long(status, self.config.reset.velocity_after_s):
-            self._reset_velocity(meas, status)
-            status = self._fuse(meas, t, "learned_velocity")
-        return status
+        if cfg.adaptive_window_s > 0 and t - self._t_release >= cfg.adaptive_suspend_after_release_s:
+            if adapt:
+                return self._adapt_surge(meas)
+            scale = min(max((self._lv_r_hat or 0.0) / float(meas.R[0, 0]), 1.0), cfg.adaptive_max_scale)
+            R = meas.R.copy()
+            R[0, 0] *= scale
+            return meas._replace(R=R)
+        if adapt and cfg.adaptive_window_s > 0:
+            self._adapt_surge(meas)  # the estimate is kept current either way
+        return meas
+
+    def _doubt_motion_model(self, meas: Measurement) -> None:
+        """The learned velocity was rejected for ``reset.velocity_after_s``: before the
+        velocity is reset onto it, its surge variance estimate takes the rejected innovation
+        (so it is re-admitted with a variance that explains it, not gated again) and
+        ``k_speed`` its initial σ again (the RPM → speed scale is in doubt)."""
+        cfg = self.config.learned_velocity
+        y0 = float(meas.innovation()[0])
+        if cfg.adaptive_window_s > 0 and math.isfinite(y0):
+            cap = 100.0 * float(meas.R[0, 0]) * cfg.adaptive_max_scale
+            self._lv_r_hat = max(self._lv_r_hat or 0.0, min(y0 * y0, cap))
+        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        k = KS.start
+        self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
 
     def _adapt_surge(self, meas: Measurement) -> Measurement:
         """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``.
@@ -1093,12 +1159,18 @@ class Estimator:
             self._t_dvl_fused = sample.t_s
         if self._mode == "ins":
             c = self.config.reset
+            reset = False
             if kind in ("attitude", "heading") and self._rejected_too_long(status, c.attitude_after_s):
                 self._reset_attitude(sample, meas, status)
-                status = self._fuse(meas, sample.t_s, kind)
+                reset = True
             elif kind == "dvl" and self._rejected_too_long(status, c.velocity_after_s):
                 self._reset_velocity(meas, status)
-                status = self._fuse(meas, sample.t_s, kind)
+                reset = True
+            if reset:
+                # measured again: the innovation before the reset is what the reset removed
+                meas = aid.measure(sample, AidContext(self._x, self._acc[sd.ACC_OMEGA], self.origin, config, setup))
+                if isinstance(meas, Measurement):
+                    status = self._fuse(meas, sample.t_s, kind)
         return [status]
 
     def _rejected_too_long(self, status: AidStatus, after_s: float) -> bool:

@@ -163,6 +163,19 @@ class Gcs:
         self.wait(pred, timeout_s, f"STATUSTEXT '{needle}'")
         return found[0]
 
+    def ext_nav_in_use(self, at_wall: float) -> bool:
+        """Whether ArduSub was using external navigation at ``at_wall``: its last STATUSTEXT
+        on the matter before then ("is using external nav data" / "stopped aiding")."""
+        state = False
+        for w, text in list(self.statustext):
+            if w > at_wall:
+                break
+            if "using external nav" in text:
+                state = True
+            elif "stopped aiding" in text:
+                state = False
+        return state
+
     def count(self, mtype: str) -> int:
         return len(self.messages[mtype])
 
