@@ -59,15 +59,146 @@ class VehicleConfig:
             raise ValueError(f"name {self.name!r}: must be non-empty without / * $ ? #")
 
 
+_ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
+_ACL_FLOWS = ("ingress", "egress")
+
+
+@dataclass(frozen=True)
+class ZenohTlsConfig:
+    """``[zenoh.tls]``: Zenoh's ``transport.link.tls`` (used by ``tls/<host>:<port>`` endpoints).
+
+    Paths of PEM files: ``root_ca_certificate`` (the CA that signed the other side's
+    certificate), ``listen_certificate``/``listen_private_key`` (this node's, when it listens),
+    ``connect_certificate``/``connect_private_key`` (this node's, when it connects; needed
+    with mutual TLS). ``enable_mtls``: the listener asks connecting peers for a certificate
+    signed by ``root_ca_certificate`` and refuses those without one. ``verify_name_on_connect``:
+    the listener's certificate must name the host connected to.
+    ``close_link_on_expiration``: links close when the other side's certificate expires.
+    Empty path = not set.
+    """
+
+    root_ca_certificate: str = ""
+    listen_certificate: str = ""
+    listen_private_key: str = ""
+    connect_certificate: str = ""
+    connect_private_key: str = ""
+    enable_mtls: bool = False
+    verify_name_on_connect: bool = True
+    close_link_on_expiration: bool = False
+
+    def validate(self) -> None:
+        for a, b in (("listen_certificate", "listen_private_key"), ("connect_certificate", "connect_private_key")):
+            if bool(getattr(self, a)) != bool(getattr(self, b)):
+                raise ValueError(f"{a} and {b} go together (both set or both empty)")
+        if self.enable_mtls and not self.root_ca_certificate:
+            raise ValueError("enable_mtls needs root_ca_certificate (the CA peers' certificates are checked against)")
+
+
+@dataclass(frozen=True)
+class ZenohAuthConfig:
+    """``[zenoh.auth]``: Zenoh's user/password authentication (``transport.auth.usrpwd``).
+
+    ``user`` + ``password_file`` (a file holding the password, so that the password is in
+    neither the logged effective config nor the ``query/config`` answer): the identity this
+    node presents. ``dictionary_file``: a listening node's accepted ``user:password`` lines.
+    Empty = not set.
+    """
+
+    user: str = ""
+    password_file: str = ""
+    dictionary_file: str = ""
+
+    def validate(self) -> None:
+        if bool(self.user) != bool(self.password_file):
+            raise ValueError("user and password_file go together (both set or both empty)")
+
+
+@dataclass(frozen=True)
+class AclRule:
+    """One access-control rule: ``permission`` for ``messages`` in ``flows`` on ``key_exprs``."""
+
+    id: str
+    messages: tuple[str, ...]
+    key_exprs: tuple[str, ...]
+    permission: Literal["allow", "deny"] = "allow"
+    flows: tuple[str, ...] = _ACL_FLOWS
+
+    def validate(self) -> None:
+        for name, values, allowed in (("messages", self.messages, _ACL_MESSAGES), ("flows", self.flows, _ACL_FLOWS)):
+            bad = sorted(set(values) - set(allowed))
+            if not values or bad:
+                raise ValueError(f"rule {self.id!r}: {name} must be a non-empty list of {list(allowed)}"
+                                 + (f", got {bad}" if bad else ""))
+        if not self.key_exprs:
+            raise ValueError(f"rule {self.id!r}: key_exprs must not be empty")
+
+
+@dataclass(frozen=True)
+class AclSubject:
+    """Who a rule applies to: the conjunction of the non-empty lists (an empty list = anyone).
+
+    ``cert_common_names`` (the CN of a peer's TLS certificate: needs mutual TLS),
+    ``usernames`` (``[zenoh.auth]``), ``interfaces`` (network interfaces, e.g. ``lo``),
+    ``link_protocols`` (``tls``, ``tcp``, ...).
+    """
+
+    id: str
+    cert_common_names: tuple[str, ...] = ()
+    usernames: tuple[str, ...] = ()
+    interfaces: tuple[str, ...] = ()
+    link_protocols: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class AclPolicy:
+    """Which ``rules`` (ids) apply to which ``subjects`` (ids)."""
+
+    rules: tuple[str, ...]
+    subjects: tuple[str, ...]
+    id: str = ""
+
+
+@dataclass(frozen=True)
+class ZenohAccessControlConfig:
+    """``[zenoh.access_control]``: Zenoh's access-control rules (``access_control``), enforced
+    by this node on what other nodes send it and what it sends them (not on its own
+    publications). ``default_permission`` applies to everything no rule allows or denies;
+    ``rules``, ``subjects``, ``policies`` as in Zenoh's configuration (arrays of tables
+    ``[[zenoh.access_control.rules]]``...). ``deploy/adaptnav-secure.toml`` holds the
+    vehicle profile."""
+
+    enabled: bool = False
+    default_permission: Literal["allow", "deny"] = "deny"
+    rules: tuple[AclRule, ...] = ()
+    subjects: tuple[AclSubject, ...] = ()
+    policies: tuple[AclPolicy, ...] = ()
+
+    def validate(self) -> None:
+        for what, items in (("rule", self.rules), ("subject", self.subjects)):
+            ids = [x.id for x in items]
+            if len(set(ids)) != len(ids) or not all(ids):
+                raise ValueError(f"{what} ids must be non-empty and unique, got {ids}")
+        rules, subjects = {r.id for r in self.rules}, {s.id for s in self.subjects}
+        for p in self.policies:
+            unknown = sorted((set(p.rules) - rules) | (set(p.subjects) - subjects))
+            if unknown or not p.rules or not p.subjects:
+                raise ValueError(f"policy {p.id or p.rules}: needs rules and subjects declared above"
+                                 + (f"; unknown: {unknown}" if unknown else ""))
+
+
 @dataclass(frozen=True)
 class ZenohConfig:
     """Zenoh session.
 
     ``mode`` peer (embedded, default) | client (through a router) | router.
-    ``connect``/``listen``: endpoint lists such as ``"tcp/127.0.0.1:7447"``.
+    ``connect``/``listen``: endpoint lists such as ``"tcp/127.0.0.1:7447"`` or, encrypted,
+    ``"tls/127.0.0.1:7447"`` (with ``[zenoh.tls]``).
     ``scouting``: multicast scouting on/off (off on a vehicle LAN you do not own).
     ``connect_timeout_s``: in client mode, how long opening the session waits for a
     ``connect`` endpoint to answer (the daemon or router may start later); -1 = forever.
+    ``tls``, ``auth``, ``access_control``: the bus's security (see their classes and
+    README "Security").
     """
 
     mode: Literal["peer", "client", "router"] = "peer"
@@ -75,6 +206,9 @@ class ZenohConfig:
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     scouting: bool = False
     connect_timeout_s: float = 30.0
+    tls: ZenohTlsConfig = field(default_factory=ZenohTlsConfig)
+    auth: ZenohAuthConfig = field(default_factory=ZenohAuthConfig)
+    access_control: ZenohAccessControlConfig = field(default_factory=ZenohAccessControlConfig)
 
     def validate(self) -> None:
         if self.mode == "client" and not self.connect:
@@ -82,6 +216,30 @@ class ZenohConfig:
         for ep in (*self.connect, *self.listen):
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r}: expected <proto>/<address>, e.g. tcp/127.0.0.1:7447")
+        tls = self.tls
+        if any(ep.startswith("tls/") for ep in self.listen) and not tls.listen_certificate:
+            raise ValueError("a tls/ listen endpoint needs tls.listen_certificate and tls.listen_private_key")
+        if any(ep.startswith("tls/") for ep in self.connect):
+            if not tls.root_ca_certificate:
+                raise ValueError("a tls/ connect endpoint needs tls.root_ca_certificate")
+            if tls.enable_mtls and not tls.connect_certificate:
+                raise ValueError("tls/ connect with enable_mtls needs tls.connect_certificate and "
+                                 "tls.connect_private_key")
+        if self.access_control.enabled and self.access_control.default_permission == "deny" \
+                and not self.access_control.policies:
+            raise ValueError("access_control enabled with default_permission 'deny' and no policies "
+                             "would refuse every other node")
+
+    def as_client(self, connect: tuple[str, ...] = ()) -> "ZenohConfig":
+        """The config of another program joining this bus (recorder, calibrator node): a
+        *client* of ``connect`` (default: this config's connect, else listen endpoints),
+        listening nowhere, with the same TLS and user/password identity; access control
+        stays with the listener that enforces it (daemon or router)."""
+        import dataclasses
+
+        return dataclasses.replace(self, mode="client", connect=tuple(connect) or tuple(self.connect)
+                                   or tuple(self.listen), listen=(),
+                                   access_control=ZenohAccessControlConfig())
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,6 @@ log = logging.getLogger(__name__)
 
 def run_node(cfg: Any, stop: threading.Event) -> int:
     """``adaptnav run --calibrator-only``: calibrate from the bus, publish releases."""
-    import dataclasses
     import json
 
     from adaptnav.service.transport.bus import Bus, nonblocking_enqueue
@@ -32,14 +31,13 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     # a node, not a second daemon: a Zenoh *client* of the router, or of the daemon's peer
     # (which then routes between it and the other programs: peers behind one peer do not
     # see each other without gossip), listening nowhere, so it can share the config file
-    zcfg = dataclasses.replace(cfg.zenoh, mode="client",
-                               connect=tuple(cfg.zenoh.connect) or tuple(cfg.zenoh.listen), listen=())
-    bus = Bus(zcfg, cfg.vehicle.name)
+    bus = Bus(cfg.zenoh.as_client(), cfg.vehicle.name)
     inbox: queue.Queue = queue.Queue(maxsize=cfg.calibrator.queue_size)
     overflow: Counter[str] = Counter()
     bus.subscribe_samples(nonblocking_enqueue(inbox, overflow))
     # the daemon's free-inertial velocity: the surge-noise evidence (calibration.inertial)
-    bus.subscribe_samples(nonblocking_enqueue(inbox, overflow), key=bus.keys.nav_inertial)
+    bus.subscribe_samples(nonblocking_enqueue(inbox, overflow), key=bus.keys.nav_inertial,
+                         kinds={"inertial_velocity"})
     last: dict[str, Any] = {"params": params0.to_dict()}
     received: Counter[str] = Counter()  # samples taken, by kind
     bus.queryable("calibrator", lambda: json.dumps(

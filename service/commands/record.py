@@ -25,11 +25,9 @@ def add_arguments(parser):
 def recorder_zenoh(cfg, connect=()):
     """Zenoh config of the recorder: a *client* of the daemon's peer (or of the router),
     listening nowhere — the daemon routes every program's traffic to its clients, so the
-    recorder sees what other nodes publish too (a plain peer would only see the daemon's)."""
-    from adaptnav.service.config import ZenohConfig
-
-    endpoints = tuple(connect) or tuple(cfg.zenoh.connect) or tuple(cfg.zenoh.listen)
-    return ZenohConfig(mode="client", connect=endpoints, listen=(), scouting=cfg.zenoh.scouting)
+    recorder sees what other nodes publish too (a plain peer would only see the daemon's);
+    with the config's TLS and user/password identity (``ZenohConfig.as_client``)."""
+    return cfg.zenoh.as_client(tuple(connect))
 
 
 def record(bus, out, stop, duration_s=None, metadata=None, origin=None):

@@ -80,7 +80,14 @@ def json_encoding(schema: str) -> zenoh.Encoding:
 
 
 def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
-    """Our :class:`ZenohConfig` → a ``zenoh.Config`` (JSON5 of the zenoh config schema)."""
+    """Our :class:`ZenohConfig` → a ``zenoh.Config`` (JSON5 of the zenoh 1.x config schema:
+    ``transport.link.tls``, ``transport.auth.usrpwd``, ``access_control``).
+
+    Raises
+    ------
+    OSError
+        ``zenoh.auth.password_file`` cannot be read.
+    """
     doc: dict[str, Any] = {
         "mode": cfg.mode,
         "connect": {"endpoints": list(cfg.connect),
@@ -92,7 +99,45 @@ def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
         "scouting": {"multicast": {"enabled": bool(cfg.scouting)},
                      "gossip": {"enabled": bool(cfg.scouting)}},
     }
+    transport = _security_transport(cfg)
+    if transport:
+        doc["transport"] = transport
+    acl = cfg.access_control
+    if acl.enabled:
+        doc["access_control"] = {
+            "enabled": True, "default_permission": acl.default_permission,
+            "rules": [{"id": r.id, "messages": list(r.messages), "flows": list(r.flows),
+                       "permission": r.permission, "key_exprs": list(r.key_exprs)} for r in acl.rules],
+            # an empty property is "anyone" for us; Zenoh refuses an empty list: left out
+            "subjects": [{"id": s.id, **{k: list(getattr(s, k)) for k in
+                                         ("cert_common_names", "usernames", "interfaces", "link_protocols")
+                                         if getattr(s, k)}} for s in acl.subjects],
+            "policies": [{**({"id": p.id} if p.id else {}), "rules": list(p.rules), "subjects": list(p.subjects)}
+                         for p in acl.policies],
+        }
     return zenoh.Config.from_json5(json.dumps(doc))
+
+
+def _security_transport(cfg: ZenohConfig) -> dict[str, Any]:
+    """The ``transport`` part of the Zenoh config: TLS files and user/password (only what is set)."""
+    from pathlib import Path
+
+    tls = cfg.tls
+    link = {k: getattr(tls, k) for k in ("root_ca_certificate", "listen_certificate", "listen_private_key",
+                                         "connect_certificate", "connect_private_key") if getattr(tls, k)}
+    if link or tls.enable_mtls or not tls.verify_name_on_connect or tls.close_link_on_expiration:
+        link.update(enable_mtls=tls.enable_mtls, verify_name_on_connect=tls.verify_name_on_connect,
+                    close_link_on_expiration=tls.close_link_on_expiration)
+    out: dict[str, Any] = {"link": {"tls": link}} if link else {}
+    auth = cfg.auth
+    usrpwd: dict[str, Any] = {}
+    if auth.user:  # the password is read here, never kept in the (logged, queryable) config
+        usrpwd.update(user=auth.user, password=Path(auth.password_file).read_text().rstrip("\r\n"))
+    if auth.dictionary_file:
+        usrpwd["dictionary_file"] = auth.dictionary_file
+    if usrpwd:
+        out["auth"] = {"usrpwd": usrpwd}
+    return out
 
 
 def _json_default(obj: Any) -> Any:
@@ -291,19 +336,32 @@ class Bus:
         self.put(key, message(kind, body))
 
     # -- subscribing -----------------------------------------------------------------
-    def subscribe_samples(self, enqueue: Callable[[Any], None], key: str | None = None) -> None:
+    def subscribe_samples(self, enqueue: Callable[[Any], None], key: str | None = None,
+                          kinds: frozenset[str] | set[str] | None = None) -> None:
         """Decode samples on ``key`` (default: all sensor topics) and ``enqueue`` them.
 
         ``enqueue`` must not block (e.g. ``queue.put_nowait`` wrapped to count overflow).
-        Malformed payloads are counted in :attr:`malformed` and logged at debug level.
+        Malformed payloads are counted in :attr:`malformed` and logged at debug level, and
+        so is a message of another kind than its key says: on ``sensor/<kind>`` only
+        samples of that kind, on ``key`` only ``kinds`` (when given) — a nav state or a
+        release published on a sensor key must neither be fused, nor applied, nor become a
+        "sensor" in health.
         """
+        sensor_prefix = f"{self.keys.root}/sensor/"
 
         def on_sample(zsample: Any) -> None:
+            topic = str(zsample.key_expr)
+            suffix = topic.rsplit("/", 1)[-1]
             try:
                 item = decode_sample(zsample.payload.to_bytes())
             except SampleError as e:
-                self.malformed[str(zsample.key_expr).rsplit("/", 1)[-1]] += 1
-                log.debug("malformed payload on %s: %s", zsample.key_expr, e)
+                self.malformed[suffix] += 1
+                log.debug("malformed payload on %s: %s", topic, e)
+                return
+            kind = getattr(item, "KIND", None)
+            if (kind != suffix if topic.startswith(sensor_prefix) else kinds is not None and kind not in kinds):
+                self.malformed[f"{suffix}:{kind}"] += 1  # e.g. "imu:nav_state"
+                log.debug("a %s message on %s: not taken", kind, topic)
                 return
             enqueue(item)
 

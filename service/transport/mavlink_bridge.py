@@ -79,7 +79,9 @@ class StreamRates:
 class BridgeConfig:
     """``[mavlink]`` section: link, identity, requested rates, conversion and output."""
 
-    url: str = "udpin:0.0.0.0:14550"
+    # loopback: only programs on this computer (the BlueOS MAVLink router) can feed the
+    # filter; a LAN address or 0.0.0.0 is an explicit choice (deploy/adaptnav.toml)
+    url: str = "udpin:127.0.0.1:14550"
     source_system: int = 1  # onboard components share the vehicle's system id
     source_component: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
     heartbeat_period_s: float = 1.0
