@@ -542,7 +542,7 @@ class Estimator:
         self._aligner.t_last_s += delta_s
         self._clones.shift_time(delta_s)
         if self._rpm is not None:
-            self._rpm = (self._rpm[0] + delta_s, self._rpm[1])
+            self._rpm = (self._rpm[0] + delta_s, *self._rpm[1:])  # (t, surge, sway, commanded ...)
         self._hist_t.clear()
         self._hist.clear()
         self._good = None  # its time base is gone

@@ -47,6 +47,7 @@ from adaptnav.service.transport.bus import Bus, encode_sample, message, nonblock
 from adaptnav.service.runtime.clock import LiveClock
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
+from adaptnav.service.runtime.memory import BurstTrimmer
 from adaptnav.service.runtime.persistence import load_state, save_state
 from adaptnav.service.runtime.sinks import Sink, geo_time_fields
 
@@ -279,6 +280,7 @@ class Daemon:
         self._health_lock = threading.Lock()
         self._malformed_reported: Counter[str] = Counter()
         self._overflow_reported: Counter[str] = Counter()
+        self._trimmer = BurstTrimmer()
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
@@ -404,9 +406,11 @@ class Daemon:
         self._snapshot = None
         try:
             save_state(self.cfg.state_dir, snap[0], snap[1], snap[2], self.cfg.vehicle.name)
-        except OSError as e:
+        except OSError as e:  # counted in health (persistence.failures): an operator must see it
             log.error("could not persist learned state to %s: %s", self.cfg.state_dir, e)
+            self.health.on_state_saved(f"{type(e).__name__}: {e.strerror or e}")
             return
+        self.health.on_state_saved()
         # the first save and the last (shutdown) at INFO; the periodic ones at DEBUG
         level = logging.INFO if (not self._saved_once or self.stop_event.is_set()) else logging.DEBUG
         self._saved_once = True
@@ -498,6 +502,8 @@ class Daemon:
                         next_aid = now + aid_period_s
                         for src, doc in self._aid_statuses(rep).items():
                             self.bus.put(self.bus.keys.aid(src), json.dumps(doc).encode())
+                if self._trimmer.check(self.source.qsize()):
+                    self.health.memory_trims += 1  # a burst drained: its heap given back
                 if now >= next_persist:
                     next_persist = now + cfg.persistence.period_s
                     self._snapshot_due.set()  # the runner snapshots at its next nav output

@@ -38,6 +38,7 @@ from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
 
 _STOP = "__stop__"
+_SHIFT = "__shift__"
 
 
 class InlineBackend:
@@ -56,6 +57,10 @@ class InlineBackend:
 
     def sync(self, t_s: float) -> None:
         """Every release with ``τ ≤ t_s`` is in :attr:`ready` (always, in-process)."""
+
+    def shift_time(self, delta_s: float) -> None:
+        """The data clock jumped by ``delta_s`` (re-based by the runner)."""
+        self.clock.tau += delta_s
 
     def finish(self) -> None:
         pass
@@ -93,6 +98,10 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 return
             if isinstance(msg, str) and msg == _STOP:
                 return
+            if msg[0] == _SHIFT:  # the runner re-based a clock jump: τ moves with the data
+                clock.tau += msg[1]
+                out_q.send(("shifted", None, msg[1]))
+                continue
             seq, n, packed = msg
             tau = clock.tau
             for sample in unpack_batch(packed):
@@ -214,6 +223,7 @@ class ProcessBackend:
         self._done = 0          # samples the child reported processed
         self._child_tau = -math.inf
         self.wait_s = 0.0       # wall time spent waiting for the child
+        self._unacked_shift_s = 0.0  # clock shifts sent to the child it has not confirmed yet
         self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
 
     def send(self, sample: Any) -> None:
@@ -240,10 +250,12 @@ class ProcessBackend:
             kind, body, tau = self._r.recv()
         except (EOFError, OSError):
             raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})") from None
-        if kind == "release":
-            self.ready.append((float(tau), release_from_dict(body)))
+        if kind == "release":  # computed before a shift the child has not seen yet: re-based here
+            self.ready.append((float(tau) + self._unacked_shift_s, release_from_dict(body)))
         elif kind == "progress":
-            self._done, self._child_tau = int(body), float(tau)
+            self._done, self._child_tau = int(body), float(tau) + self._unacked_shift_s
+        elif kind == "shifted":
+            self._unacked_shift_s -= float(tau)
         elif kind == "error":
             raise RuntimeError(f"calibrator process failed: {body}")
         return True
@@ -259,6 +271,17 @@ class ProcessBackend:
         while not (self._child_tau > t_s or self._done >= self._sent):
             self._read(block=True)
         self.wait_s += time.monotonic() - t0
+
+    def shift_time(self, delta_s: float) -> None:
+        """The data clock jumped by ``delta_s``: the child's τ moves with it (after the
+        samples already sent), what it reports before it has seen the shift is re-based here."""
+        self._flush()
+        try:
+            self._w.send((_SHIFT, float(delta_s)))
+        except (BrokenPipeError, OSError) as e:
+            raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+        self._unacked_shift_s += delta_s
+        self._child_tau += delta_s
 
     def finish(self) -> None:
         """Wait for the child to process everything observed."""
@@ -306,6 +329,7 @@ class LaggedCalibrator:
         self.backend = backend
         self.latency_s = float(latency_s)
         self.released = 0
+        self._now = -math.inf  # the schedule's data time (running maximum, re-based on a clock jump)
         self.observe = backend.send  # the runner calls it for every sample: no extra frame
 
     def observe(self, sample: Any) -> None:  # replaced per instance by backend.send (__init__)
@@ -314,14 +338,25 @@ class LaggedCalibrator:
     def poll(self) -> list:
         return []  # releases go into the stream by schedule()
 
+    def shift_time(self, delta_s: float) -> None:
+        """The runner confirmed a jump of the input's clock by ``delta_s`` (it re-bases the
+        estimator, its clock and health alike): the schedule's data time, the τ of every
+        pending release and the calibrator's own data clock move with it, so releases keep
+        coming ``L`` after their data. Without it a backward jump held every later release
+        for as long as the jump (the running maximum stayed in the old time base)."""
+        self._now += delta_s
+        self.backend.ready[:] = [(tau + delta_s, rel) for tau, rel in self.backend.ready]
+        self.backend.shift_time(delta_s)
+
     def schedule(self, source: Any):
         """``source``'s items, each release inserted right after the item that brings the
         data time to its ``τ + L`` (module docstring)."""
         ready = self.backend.ready
         lag = self.latency_s
         sync = self.backend.sync
-        now = -math.inf  # the runner's data time (as DataClock, inlined: once per item)
+        self._now = now = -math.inf  # the runner's data time (as DataClock, inlined: once per item)
         for item in source:
+            now = self._now  # moved by shift_time() while the runner handled the last item
             yield item
             kind = getattr(item, "KIND", None)
             if kind is None or kind == "truth" or kind == "calibration_release":
@@ -333,7 +368,7 @@ class LaggedCalibrator:
                 if not math.isfinite(t):
                     t = data_time(item)
             if t > now:  # False for NaN
-                now = t
+                self._now = now = t
             sync(now - lag)
             while ready and ready[0][0] + lag <= now:
                 self.released += 1

@@ -9,14 +9,17 @@ from __future__ import annotations
 import importlib
 import json
 
-HELP = "benchmarks (fusion, calibration, sonar, service) with ratios against a peer"
-TARGETS = ("fusion", "calibration", "sonar", "service")
+HELP = "benchmarks (fusion, calibration, sonar, service, soak) with ratios against a peer"
+TARGETS = ("fusion", "calibration", "sonar", "service", "soak")
 
 
 def add_arguments(parser):
     parser.add_argument("target", choices=TARGETS, help="what to measure")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     parser.add_argument("--quick", action="store_true", help="smaller problem sizes (smoke run)")
+    from adaptnav.service.tools.benchmarks import soak
+
+    soak.add_arguments(parser)  # --minutes, --sample-s
 
 
 def run(args):

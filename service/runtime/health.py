@@ -78,6 +78,10 @@ class Health:
         self.releases_accepted: int = 0
         self.queue_depth: int = 0
         self.t_s: float = math.nan
+        self.state_saves: int = 0           # learned state written (persistence)
+        self.state_save_failures: int = 0   # ... and attempts that failed (disk full, read-only)
+        self.state_save_error: str = ""     # why the last one failed ("" once a save succeeds)
+        self.memory_trims: int = 0          # heap returned to the system after a burst drained
 
     # -- feeding ---------------------------------------------------------------------
     def on_sample(self, kind: str, t_s: float, n: int = 1) -> None:
@@ -112,6 +116,14 @@ class Health:
         """Count ``n`` inputs the service itself refused (decode error, corrupt frame, ...)."""
         if n:
             self.rejected[reason] += n
+
+    def on_state_saved(self, error: str = "") -> None:
+        """A save of the learned state succeeded (``error`` empty) or failed (why)."""
+        if error:
+            self.state_save_failures += 1
+        else:
+            self.state_saves += 1
+        self.state_save_error = error
 
     def on_release(self, release: Any) -> None:
         """A calibrator release (accepted or not)."""
@@ -170,4 +182,7 @@ class Health:
                 "last_release": self.last_release,
             },
             "queue_depth": int(self.queue_depth),
+            "persistence": {"saves": self.state_saves, "failures": self.state_save_failures,
+                            "last_error": self.state_save_error or None},
+            "memory_trims": self.memory_trims,
         }

@@ -230,9 +230,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         inp.source.set_origin(cfg.origin.geo())
     items: Any = iter(inp.source)
     origin_note = None
+    origin_warnings: list[str] = []  # a first fix passed over, or an unconfirmed one taken
     if inp.scenario is None and cfg.origin.lat_deg == 0.0 and cfg.origin.lon_deg == 0.0:
         # no origin configured (real logs): the first position fix is the NED origin
-        head, fix = _read_until_fix(items)
+        head, fix, origin_warnings = _read_until_fix(items)
         items = itertools.chain(head, items)
         if fix is not None:
             cfg = replace(cfg, origin=replace(cfg.origin, lat_deg=math.degrees(fix.lat_rad),
@@ -337,7 +338,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                               if v.get("status") == "unknown")
     if counters.get("clock"):
         doc["clock"] = counters["clock"]
-    doc["warnings"] = replay_warnings(doc)
+    doc["warnings"] = origin_warnings + replay_warnings(doc)
     for w in doc["warnings"]:
         log.warning("%s", w)
     if counters.get("truncated"):
@@ -410,6 +411,11 @@ def replay_warnings(summary: dict) -> list[str]:
         reasons = ", ".join((summary.get("filter") or {}).get("invalid_reasons_at_end") or []) or "none"
         out.append(f"NO VALID POSITION was produced ({what}; last reasons: {reasons}): "
                    "trajectory.csv is not a navigation solution")
+    jumps = summary.get("clock_jumps_s") or []
+    if jumps:
+        out.append(f"the input's time base jumped {len(jumps)} time(s) "
+                   f"({', '.join(f'{j:+.3f} s' for j in jumps[:5])}{', ...' if len(jumps) > 5 else ''}): "
+                   "navigation re-based each one; times in the outputs follow the input's")
     unknown = summary.get("unknown_message_types") or []
     if unknown:
         out.append(f"{len(unknown)} message type(s) not understood (counted, not used): {', '.join(unknown)}")
@@ -423,10 +429,11 @@ def nothing_usable(summary: dict) -> bool:
 
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):
     """Items read until a GNSS/USBL fix confirmed by the next one (both included), at most
-    ``max_data_s`` of data or ``max_items``; returns (items read, the fix or None). A fix
-    the next one does not confirm is passed over (logged); with a single fix in the window,
-    that one (logged as unconfirmed)."""
+    ``max_data_s`` of data or ``max_items``; returns (items read, the fix or None, warnings).
+    A fix the next one does not confirm is passed over; with a single fix in the window,
+    that one is taken — each said in ``warnings`` (for summary.json and the log)."""
     head: list = []
+    warnings: list[str] = []
     t0 = None
     candidate = None
     for item in items:
@@ -437,10 +444,10 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
             if candidate is None:
                 candidate = item
             elif _fixes_agree(candidate, item):
-                return head, candidate
+                return head, candidate, warnings
             else:
-                log.warning("replay: the %s fix at t=%.3f s is not confirmed by the next one (t=%.3f s): "
-                            "not taken for the origin", candidate.KIND, candidate.t_s, item.t_s)
+                warnings.append(f"origin: the {candidate.KIND} fix at t={candidate.t_s:.3f} s is not confirmed "
+                                f"by the next one (t={item.t_s:.3f} s): not taken for the origin")
                 candidate = item
         t = getattr(item, "t_s", None)
         if kind == "imu_batch":
@@ -452,9 +459,9 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
         if len(head) >= max_items:
             break
     if candidate is not None:
-        log.warning("replay: origin from a single %s fix at t=%.3f s, not confirmed by another",
-                    candidate.KIND, candidate.t_s)
-    return head, candidate
+        warnings.append(f"origin: from a single {candidate.KIND} fix at t={candidate.t_s:.3f} s, "
+                        "not confirmed by another")
+    return head, candidate, warnings
 
 
 def _finite_or_none(x: Any) -> float | None:

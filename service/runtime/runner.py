@@ -225,11 +225,12 @@ class _Loop:
         return item
 
     def clock_jump(self, jump_s: float) -> None:
-        """A confirmed jump of the input's clock: re-base the estimator, the clock and health
-        by ``jump_s`` and restart the output epochs at the new time."""
+        """A confirmed jump of the input's clock: re-base the estimator, the clock, health and
+        the calibrator's release schedule by ``jump_s`` and restart the output epochs at the
+        new time."""
         log.warning("runner: input clock jumped by %+.3f s (stream continued consistently): re-based", jump_s)
         self.summary.clock_jumps.append(float(jump_s))
-        for obj in (self.estimator, self.clock, self.health):
+        for obj in (self.estimator, self.clock, self.health, self.calibrator):
             shift = getattr(obj, "shift_time", None)
             if shift is not None:
                 shift(jump_s)

@@ -413,66 +413,24 @@ def live(latency_s: float, rss_sim_s: float) -> dict:
 
 def memory(rss_sim_s: float) -> dict:
     """RSS (and PSS) of the daemon and its calibrator child while ``rss_sim_s`` of data is
-    pushed through the daemon at full speed (flow-controlled on its queue depth)."""
-    from adaptnav.sim.scenario import load_scenario
+    pushed through the daemon at full speed (flow-controlled on its queue depth): the soak
+    (:func:`adaptnav.service.tools.benchmarks.soak.soak`), under this benchmark's names."""
+    from adaptnav.service.tools.benchmarks.soak import soak
 
-    from adaptnav.service.config import ZenohConfig
-    from adaptnav.service.transport.bus import Bus
-
-    scenario = load_scenario(LIVE_SCENARIO, LIVE_OVERRIDES + [f"duration_s={rss_sim_s}"])
-    port = _free_port()
-    out: dict[str, Any] = {}
-    with tempfile.TemporaryDirectory(prefix="adaptnav-bench-") as tmp:
-        proc = _start_daemon(scenario, port, tmp)
-        bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
-        try:
-            _wait_up(bus, proc)
-            cal = _calibrator_pid(proc.pid)
-            out["rss_daemon_mb_start"] = _rss_mb(proc.pid)
-            out["rss_calibrator_mb_start"] = _rss_mb(cal) if cal else math.nan
-            rss: list[tuple[float, float, float]] = []  # (data s, daemon MB, calibrator MB)
-            last_check = 0.0
-            n = 0
-            wall_fast0 = time.perf_counter()
-            for sample in _flatten(simulate_blocks(scenario)):
-                bus.publish_sample(sample)
-                n += 1
-                if n % 2000 == 0:
-                    while True:
-                        h = bus.get("health", timeout_s=1.0) or {}
-                        if h.get("queue_depth", 0) < 8000:
-                            break
-                        time.sleep(0.01)
-                    if sample.t_s - last_check >= 30.0:
-                        last_check = sample.t_s
-                        cal = _calibrator_pid(proc.pid)
-                        rss.append((sample.t_s, _rss_mb(proc.pid), _rss_mb(cal) if cal else math.nan))
-            while (bus.get("health", timeout_s=1.0) or {}).get("queue_depth", 0) > 0:
-                time.sleep(0.05)
-            wall_fast = time.perf_counter() - wall_fast0
-            cal = _calibrator_pid(proc.pid)
-            rss.append((rss_sim_s, _rss_mb(proc.pid), _rss_mb(cal) if cal else math.nan))
-            h = bus.get("health") or {}
-            arr = np.array(rss)
-            half = arr[arr[:, 0] >= rss_sim_s / 2]
-            out.update({
-                "rss_sim_s": rss_sim_s,
-                "rss_daemon_mb_half": float(half[0, 1]), "rss_daemon_mb_end": float(arr[-1, 1]),
-                "rss_daemon_mb_peak": float(np.nanmax(arr[:, 1])),
-                "rss_daemon_growth_last_half_mb": float(arr[-1, 1] - half[0, 1]),
-                "rss_calibrator_mb_end": float(arr[-1, 2]),
-                "rss_calibrator_growth_last_half_mb": float(arr[-1, 2] - half[0, 2]),
-                "rss_total_mb_end": float(arr[-1, 1] + arr[-1, 2]),
-                "pss_daemon_mb_end": _pss_mb(proc.pid), "pss_calibrator_mb_end": _pss_mb(cal),
-                "full_speed_realtime_factor": rss_sim_s / wall_fast,
-                "daemon_rejected": json.dumps(h.get("rejected", {}), sort_keys=True),
-                "daemon_calibrator_restarts": h.get("calibrator", {}).get("restarts"),
-                "daemon_releases": h.get("calibrator", {}).get("releases"),
-            })
-            out["pss_total_mb_end"] = out["pss_daemon_mb_end"] + out["pss_calibrator_mb_end"]
-        finally:
-            bus.close()
-            _stop(proc)
+    fig = soak(rss_sim_s)
+    out = {key: fig[key] for key in (
+        "rss_daemon_mb_start", "rss_calibrator_mb_start", "rss_daemon_mb_half", "rss_daemon_mb_end",
+        "rss_daemon_mb_peak", "rss_calibrator_mb_end", "rss_total_mb_end", "pss_daemon_mb_end",
+        "pss_calibrator_mb_end", "daemon_rejected", "daemon_calibrator_restarts")}
+    out.update({
+        "rss_sim_s": rss_sim_s,
+        "rss_daemon_growth_last_half_mb": fig["rss_daemon_mb_end"] - fig["rss_daemon_mb_half"],
+        "rss_calibrator_growth_last_half_mb": fig["rss_calibrator_mb_end"] - fig["rss_calibrator_mb_half"],
+        "rss_daemon_growth_last_half_percent": fig["rss_growth_last_half_percent"],
+        "full_speed_realtime_factor": fig["soak_realtime_factor"],
+        "daemon_releases": fig["releases"],
+        "pss_total_mb_end": fig["pss_daemon_mb_end"] + fig["pss_calibrator_mb_end"],
+    })
     return out
 
 
