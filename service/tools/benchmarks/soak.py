@@ -11,7 +11,9 @@ releases so far (health), so the figures show memory *while learning happens*.
 Figures: ``rss_samples`` (data s, wall s, daemon MB, calibrator MB, releases, releases
 accepted), and the growth over the last half of the mission, in % of the RSS at half time:
 ``rss_growth_last_half_percent`` (daemon), ``rss_calibrator_growth_last_half_percent``,
-``rss_total_growth_last_half_percent`` (both). Target (issue 12): ≤ 5 % over 1 h simulated.
+``rss_total_growth_last_half_percent`` (both); as RSS moves by a few MB between samples,
+also its range and least-squares trend over the last half (``rss_*_trend_last_half_mb_per_h``).
+Target (issue 12): ≤ 5 % over 1 h simulated.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ import math
 import tempfile
 import time
 from typing import Any
+
+import numpy as np
 
 GOAL_GROWTH_PERCENT = 5.0
 
@@ -97,6 +101,10 @@ def soak(sim_s: float, sample_every_s: float = 30.0, max_queue: int = 8000) -> d
     half = next(s for s in samples if s[0] >= sim_s / 2)
     end = samples[-1]
     daemon_mb = [s[2] for s in samples]
+    # RSS moves by a few MB between samples (the heap breathes with the queue and EM
+    # windows): the trend over the last half, a least-squares line, tells growth from that
+    last = np.array([s[:4] for s in samples if s[0] >= sim_s / 2], dtype=float)
+    slope = (lambda col: float(np.polyfit(last[:, 0] / 3600.0, last[:, col], 1)[0]) if len(last) >= 3 else math.nan)
     out.update({
         "rss_samples": samples,
         "rss_samples_columns": ["data_s", "wall_s", "daemon_mb", "calibrator_mb", "releases", "releases_accepted"],
@@ -105,6 +113,9 @@ def soak(sim_s: float, sample_every_s: float = 30.0, max_queue: int = 8000) -> d
         "rss_growth_last_half_percent": _growth_percent(half[2], end[2]),
         "rss_calibrator_growth_last_half_percent": _growth_percent(half[3], end[3]),
         "rss_total_growth_last_half_percent": _growth_percent(half[2] + half[3], end[2] + end[3]),
+        "rss_daemon_mb_range_last_half": [float(last[:, 2].min()), float(last[:, 2].max())],
+        "rss_daemon_trend_last_half_mb_per_h": slope(2),
+        "rss_calibrator_trend_last_half_mb_per_h": slope(3),
         "rss_total_mb_end": end[2] + end[3],
         "pss_daemon_mb_end": pss[0], "pss_calibrator_mb_end": pss[1],
         "soak_wall_s": wall_s, "soak_realtime_factor": sim_s / wall_s,
