@@ -38,6 +38,7 @@ from adaptnav.service.transport.release import release_from_dict, release_to_dic
 log = logging.getLogger(__name__)
 
 _STOP = "__stop__"
+_SHIFT = "__shift__"
 
 
 def die_with_parent(parent_pid: int) -> None:
@@ -78,6 +79,10 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
         if isinstance(batch, str) and batch == _STOP:
             return
         for sample in batch:
+            if type(sample) is tuple:  # (_SHIFT, Δ): the runner re-based a clock jump
+                clock.tau += sample[1]
+                out_q.put(("shifted", None, sample[1]))
+                continue
             calibrator.observe(sample)
             tau = clock.advance(sample)
             for release in calibrator.poll():  # stamped with the data time it was computed at
@@ -122,7 +127,10 @@ class CalibratorProcess:
         self._started_at = 0.0
         self._closed = False
         self._lock = threading.Lock()
+        self._held_lock = threading.Lock()  # the reader appends, shift_time() re-bases
         self.received = 0   # releases that came back from the child (any restart)
+        self._shift_to_send_s = 0.0  # a clock shift not yet sent to the child (rides the next batch)
+        self._unacked_shift_s = 0.0  # shifts sent the child has not confirmed: its τ lags by them
         self._running = threading.Event()
 
     # -- lifecycle ----------------------------------------------------------------------
@@ -139,6 +147,8 @@ class CalibratorProcess:
                                        args=(self.cfg, self.params, seed, self._in_q, self._out_q, os.getpid()))
         start_ignoring_sigint(self._proc)
         self._started_at = time.monotonic()
+        with self._held_lock:  # a new child's data clock starts in the current time base
+            self._shift_to_send_s = self._unacked_shift_s = 0.0
         self.state = "starting"
         self._running.clear()
         self._reader = threading.Thread(target=self._read, args=(self._out_q, self._proc),
@@ -170,8 +180,12 @@ class CalibratorProcess:
                 if release.accepted and release.params is not None:
                     self.params = release.params  # warm start of a restart
                 tau = msg[2] if len(msg) > 2 and msg[2] is not None else -math.inf
-                self._held.append((float(tau), release))  # deque.append: thread-safe
+                with self._held_lock:  # stamped before a shift the child had not seen: re-based here
+                    self._held.append((float(tau) + self._unacked_shift_s + self._shift_to_send_s, release))
                 self.received += 1
+            elif kind == "shifted":
+                with self._held_lock:
+                    self._unacked_shift_s -= float(msg[2])
 
     def wait_running(self, timeout_s: float) -> bool:
         """Block until the child has said it is ready (True) or ``timeout_s`` passed."""
@@ -226,13 +240,32 @@ class CalibratorProcess:
             self.flush()
 
     def flush(self) -> None:
-        if not self._batch or self._in_q is None:
+        if not (self._batch or self._shift_to_send_s) or self._in_q is None:
             return
+        shift = self._shift_to_send_s
+        items = compact_imu(self._batch)
+        if shift:  # first in the batch: it applies after the samples sent before it
+            items.insert(0, (_SHIFT, shift))
         try:
-            self._in_q.put_nowait(compact_imu(self._batch))
+            self._in_q.put_nowait(items)
         except (queue.Full, ValueError, OSError):
-            self.dropped += len(self._batch)
+            self.dropped += len(self._batch)  # the shift stays pending for the next batch
+        else:
+            if shift:
+                with self._held_lock:
+                    self._shift_to_send_s -= shift
+                    self._unacked_shift_s += shift
         self._batch = []
+
+    def shift_time(self, delta_s: float) -> None:
+        """The runner confirmed a jump of the input's clock by ``delta_s``: the data time
+        of the release rule, the τ of the held releases and the child's own data clock move
+        with it (the child's with its next batch), so a release after a backward jump comes
+        ``L`` after its data, not once the data has caught up with the old time base."""
+        with self._held_lock:
+            self._clock.tau += delta_s
+            self._held = deque((tau + delta_s, rel) for tau, rel in self._held)
+            self._shift_to_send_s += delta_s
 
     def poll(self) -> list:
         # the runner polls after every sample: flushing here unconditionally sent

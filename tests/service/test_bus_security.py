@@ -105,6 +105,13 @@ def test_profile_passes_tls_auth_and_access_control_to_zenoh(pki, tmp_path):
     usrpwd = json.loads(zenoh_config(with_user).get_json("transport/auth/usrpwd"))
     assert (usrpwd["user"], usrpwd["password"]) == ("sonar-driver", "s3cret")
     assert "s3cret" not in json.dumps(config_dict(dataclasses.replace(cfg, zenoh=with_user)))
+    # the programs that join the bus (recorder, calibrator node) keep the TLS and user identity
+    # as clients; the access control stays with the listener that enforces it
+    from adaptnav.service.commands.record import recorder_zenoh
+
+    joined = recorder_zenoh(dataclasses.replace(cfg, zenoh=with_user))
+    assert (joined.mode, joined.listen, joined.connect) == ("client", (), cfg.zenoh.listen)
+    assert joined.tls == cfg.zenoh.tls and joined.auth == with_user.auth and not joined.access_control.enabled
 
 
 def test_mutual_tls_refuses_a_peer_without_a_certificate_and_accepts_one_with_it(pki, tmp_path):

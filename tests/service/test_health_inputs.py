@@ -63,3 +63,14 @@ def test_a_failing_state_save_is_counted_in_health(live, tmp_path):
     assert persistence["saves"] == 0
     assert "NotADirectoryError" in persistence["last_error"] or "FileExistsError" in persistence["last_error"]
     assert len(navs) >= n_before + 5, "navigation stopped with the failing saves"
+
+
+def test_the_heap_is_given_back_once_a_burst_has_drained():
+    from adaptnav.service.runtime.memory import BurstTrimmer
+
+    trimmer = BurstTrimmer(burst_items=100)
+    # ordinary traffic never trims; a burst trims once, when its queue is empty again
+    assert [trimmer.check(d) for d in (0, 3, 0, 50, 0)] == [False] * 5
+    assert [trimmer.check(d) for d in (40, 150, 90, 1)] == [False] * 4
+    assert trimmer.check(0) is True
+    assert trimmer.check(0) is False

@@ -111,3 +111,35 @@ def test_the_calibrator_child_moves_its_data_clock_with_the_shift():
         assert backend._unacked_shift_s == 0.0
     finally:
         backend.close()
+
+
+def test_the_live_calibrator_rebases_held_releases_and_its_child():
+    """The daemon's calibrator (a supervised child): held releases and the release rule's data
+    time move with a shift at once, the child's clock with its next batch (it confirms)."""
+    import time
+
+    from adaptnav.service.calibrator.live import CalibratorProcess
+
+    cfg = load_config(None, [f"calibrator.latency_s={LAG_S}"])
+    cal = CalibratorProcess(cfg, cfg.motion.params0)
+    cal.start()
+    try:
+        assert cal.wait_running(120.0), "the calibrator child did not start"
+        for s in imu(1000.0, 1010.0):
+            cal.observe(s)
+        cal.flush()
+        rel = Release(t_s=1005.0, params=MotionParams(k_v=1.1), log_likelihood=0.0, accepted=True, reason="",
+                      iterations=1)
+        cal._held.append((1005.0, rel))  # as the reader holds a release stamped τ = 1005 s
+        cal.shift_time(-900.0)
+        assert cal.poll() == []  # due at 105 + L in the new time base, not before
+        for s in imu(110.0, 116.0):
+            cal.observe(s)
+        assert cal.poll() == [rel]
+        cal.flush()
+        deadline = time.monotonic() + 60.0
+        while (cal._shift_to_send_s or cal._unacked_shift_s) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert (cal._shift_to_send_s, cal._unacked_shift_s) == (0.0, 0.0), "the child never confirmed the shift"
+    finally:
+        cal.stop()
