@@ -197,3 +197,22 @@ def test_access_control_keeps_an_unnamed_peers_release_and_samples_from_the_daem
     # the runner takes its queue in order: had the intruder's sample got in, it would count too
     assert health["sensors"]["depth"]["count"] == 1
     assert health["calibrator"]["releases"] == 1 and health["calibrator"]["last_release"]["params"]["k_v"] == 1.1
+
+
+def test_only_named_nodes_answer_queries_through_the_daemon(pki, tmp_path):
+    """The calibrator node's status queryable is reachable through the daemon; a queryable an
+    unnamed peer declares (e.g. a fake ``query/state``) is not routed to anyone."""
+    cfg = secure_config(pki, free_port(), tmp_path)
+    daemon_bus = Bus(cfg.zenoh, VEHICLE)
+    buses = [program(cfg, pki.issue(cn)) for cn in ("adaptnav-calibrator", "recorder", "impostor")]
+    node, reader, impostor = buses
+    try:
+        node.queryable("calibrator", lambda: json.dumps({"type": "calibrator_status", "ok": True}).encode())
+        impostor.queryable("state", lambda: json.dumps({"type": "nav_state", "valid": True}).encode())
+        assert reader.wait_queryable("calibrator", 30)
+        assert reader.get("calibrator", 10.0) == {"type": "calibrator_status", "ok": True}
+        assert not reader.wait_queryable("state", 2.0), "an unnamed peer's queryable was routed"
+        assert reader.get("state", 1.0) is None
+    finally:
+        for bus in (*buses, daemon_bus):
+            bus.close()
