@@ -24,6 +24,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -96,9 +98,20 @@ def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarr
 
 
 def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
-    """``q_nb`` → (roll, pitch, yaw) in rad, yaw in [-π, π)."""
-    yaw, pitch, roll = quat_to_scipy(q).as_euler("ZYX")
-    return float(roll), float(pitch), float(wrap_angle(yaw))
+    """``q_nb`` (unit, w x y z) → (roll, pitch, yaw) in rad, ZYX, yaw in [-π, π).
+
+    Closed form on the rows of ``R_nb`` (as :func:`dcm_to_euler`): every published nav
+    state and output row converts its attitude, and a scipy ``Rotation`` round trip costs
+    ~15 µs of the output epoch (issue 17); the same angles to 1e-12 away from gimbal lock.
+    """
+    w, x, y, z = (float(v) for v in q)
+    r20 = 2.0 * (x * z - w * y)
+    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    roll = math.atan2(2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
+    yaw = math.atan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
+    if yaw >= math.pi:  # [-π, π) as wrap_angle
+        yaw -= 2.0 * math.pi
+    return roll, pitch, yaw
 
 
 def dcm_to_euler(R_nb: np.ndarray) -> tuple[float, float, float]:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.aiding import FIX_KINDS
+from adaptnav.fusion.frames import quat_to_euler
 from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics
 
 
@@ -49,22 +50,6 @@ def fmt(value: Any) -> str:
         return value
     arr = np.asarray(value, dtype=float).ravel()
     return ";".join(format(float(v), ".10g") if math.isfinite(v) else str(float(v)) for v in arr)
-
-
-def euler_rad(q_nb: Any) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) rad, ZYX, of a unit (w, x, y, z) quaternion — closed form.
-
-    The same angles as :meth:`adaptnav.fusion.state.NavState.euler_rad` (rows of ``R_nb`` as in
-    :func:`adaptnav.fusion.frames.dcm_to_euler`) without a scipy round trip per output row.
-    """
-    w, x, y, z = (float(v) for v in q_nb)
-    r20 = 2.0 * (x * z - w * y)
-    pitch = -math.asin(min(1.0, max(-1.0, r20)))
-    roll = math.atan2(2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
-    yaw = math.atan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
-    if yaw >= math.pi:  # [-π, π) as fusion.frames.wrap_angle
-        yaw -= 2.0 * math.pi
-    return roll, pitch, yaw
 
 
 def _vec(values: Any) -> str:
@@ -186,7 +171,7 @@ class TrajectoryCsvSink(Sink):
             self._pending = None
         p = state.pos_n_m
         v = state.vel_n_m_s
-        roll, pitch, yaw = euler_rad(state.q_nb)
+        roll, pitch, yaw = quat_to_euler(state.q_nb)
         cov = state.cov
         i0 = self._pos.start
         sig = [math.sqrt(max(float(cov[i, i]), 0.0)) for i in (i0, i0 + 1, i0 + 2)]
