@@ -77,7 +77,7 @@ class ObjectDetectorConfig:
 
     shadow_level: float = 0.5
     highlight_level: float = 1.7
-    min_contrast: float = 6.5
+    min_contrast: float = 8.0
     background_m: float = 6.0
     smooth_px: tuple[float, float] = (0.5, 0.7)
     min_shadow_px: int = 6
