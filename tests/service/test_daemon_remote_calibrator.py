@@ -47,12 +47,15 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
                     n += 1
                     if n % 1000 == 0:  # flow control on the daemon's queue
                         wait_until(lambda: (h := bus.get("health", 1.0)) and h["queue_depth"] < 3000, 60)
-        releases = col.wait_for(bus.keys.params, timeout_s=120)
-        assert releases, "the calibrator node published no release"
-        assert releases[0]["type"] == "calibration_release"
-        accepted = [r for r in releases if r["accepted"]]
-        health = wait_until(lambda: (h := bus.get("health", 1.0)) and h["calibrator"]["releases"] >= len(releases) and h, 60)
+        assert col.wait_for(bus.keys.params, timeout_s=120), "the calibrator node published no release"
         node_status = bus.get("calibrator", 2.0)
+        # stop the node, then compare what it published with what the daemon counted and
+        # applied (a release still in flight would race the comparison)
+        stop.set()
+        node.join(10)
+        health = wait_until(lambda: (h := bus.get("health", 1.0))
+                            and h["calibrator"]["releases"] == len(col.get(bus.keys.params)) and h, 60)
+        releases = col.get(bus.keys.params)
         inertial = col.get(bus.keys.nav_inertial)
     finally:
         stop.set()
@@ -60,6 +63,8 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
         bus.close()
         daemon.stop()
     assert health, "the daemon did not count the node's releases"
+    assert releases[0]["type"] == "calibration_release"
+    accepted = [r for r in releases if r["accepted"]]
     assert health["calibrator"]["state"] == "remote"
     assert health["calibrator"]["last_release"]["t_s"] == releases[-1]["t_s"]
     if accepted:  # the daemon now uses what the node learned
