@@ -144,6 +144,11 @@ class AttitudeConfig:
     enabled: bool = True
     sigma_roll_pitch_rad: float = math.radians(0.5)
     sigma_yaw_rad: float = math.radians(2.0)
+    # with a navigation-grade IMU the autopilot's attitude (a consumer AHRS: magnetic heading
+    # off by degrees, correlated over minutes) seeds the heading and is then not fused — fused
+    # as white noise it would pull the INS onto the compass's error; the DVL-aided FOG finds
+    # north from the earth rate (gyrocompassing). "fuse": fused with every grade
+    with_navigation_grade: Literal["seed", "fuse"] = "seed"
 
 
 @dataclass(frozen=True)

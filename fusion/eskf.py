@@ -1137,6 +1137,9 @@ class Estimator:
         config, setup = self._aid_cfg[kind]
         if not config.enabled:
             return [rejected(sample.t_s, kind, "disabled")]
+        if kind == "attitude" and self._mode == "ins" and self.imu_model.grade == "navigation" \
+                and config.with_navigation_grade == "seed":
+            return [rejected(sample.t_s, kind, "navigation_grade_ins")]  # the heading seed only
         if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
             self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
             self._set_k_speed_walk(True)

@@ -25,8 +25,8 @@ variance ``q²/12`` per sample, i.e. density ``q √(Δt/12)`` at sample interva
 (Widrow & Kollár, *Quantization Noise*, 2008, ch. 4). It is detected from the data (every
 sample on the 1 mg / 1 mrad/s grid ⇒ an autopilot's integer IMU message ⇒ ``consumer``).
 
-``auto``: quantised samples ⇒ ``consumer``; otherwise the gyro noise measured at rest in the
-alignment window picks the class (density above :data:`CONSUMER_GYRO_DENSITY_MIN` ⇒
+``auto``: quantised samples ⇒ ``consumer``; otherwise the gyro noise measured in the
+alignment window (at rest or cruising: :func:`white_sigma`) picks the class (density above :data:`CONSUMER_GYRO_DENSITY_MIN` ⇒
 consumer, below :data:`NAVIGATION_GYRO_DENSITY_MAX` ⇒ navigation, else tactical). For a
 consumer IMU the white-noise densities used are never below what was measured (vibration
 of an armed vehicle is noise to the filter).
@@ -110,6 +110,18 @@ def on_raw_imu_grid(f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray) -> bool:
     return bool(np.all(np.abs(f - np.round(f)) < 1e-6) and np.all(np.abs(w - np.round(w)) < 1e-6))
 
 
+def white_sigma(x: np.ndarray) -> float:
+    """Largest per-axis 1-σ of the white noise in samples ``x`` (N, 3), from second differences
+    (std(Δ²x)/√6): the vehicle's own motion — roll and pitch oscillating by a degree, turns,
+    accelerations — changes smoothly from one sample to the next and drops out, so a vehicle
+    that is cruising, not at rest, still shows its IMU's noise (a plain std would call a FOG on a
+    rolling AUV a consumer part).  0 with fewer than 3 samples."""
+    x = np.asarray(x, float).reshape(-1, 3)
+    if len(x) < 3:
+        return 0.0
+    return float(np.max(np.std(np.diff(x, n=2, axis=0), axis=0))) / math.sqrt(6.0)
+
+
 @dataclass(frozen=True)
 class ResolvedImu:
     """What the estimator uses: the class, its figures (overrides applied), quantisation."""
@@ -130,10 +142,10 @@ def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float) -> Re
     dt = dt_s if math.isfinite(dt_s) and dt_s > 0 else 0.01
     quantized = on_raw_imu_grid(f, w) if cfg.quantization == "auto" else cfg.quantization == "raw_imu"
     rt = math.sqrt(dt)
-    acc_d = float(np.max(np.std(f, axis=0))) * rt if len(f) > 1 else 0.0
-    gyro_d = float(np.max(np.std(w, axis=0))) * rt if len(w) > 1 else 0.0
+    acc_d = white_sigma(f) * rt
+    gyro_d = white_sigma(w) * rt
     grade = cfg.grade
-    if grade == "auto" and len(w) < 2:
+    if grade == "auto" and len(w) < 3:
         grade = "tactical"  # nothing measured yet (before alignment): the former default
     if grade == "auto":
         if quantized or gyro_d >= CONSUMER_GYRO_DENSITY_MIN:

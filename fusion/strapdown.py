@@ -6,17 +6,23 @@ sample k held over ``(t_{k-1}, t_k]``::
 
     ω̂ = ω_m − b_g,  f̂ = f_m − b_a
     q_nb ← q(−ω_ie δt) ⊗ q_nb ⊗ q(ω̂ δt)
-    a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n − 2 ω_ie × v_n,   g_n = (0, 0, γ)
+    a_n = ½ (R_nb⁻ + R_nb⁺) f̂ + g_n(p) − 2 ω_ie × v_n,   g_n(p) = γ (−p_N/R, −p_E/R, 1 + 2 p_D/R)
     p_n ← p_n + v_n δt + ½ a_n δt²,  v_n ← v_n + a_n δt
 
 with the earth rate in local axes ``ω_ie = Ω (cos L, 0, −sin L)`` and the normal gravity
 γ(L) of Somigliana's formula (WGS-84) when the earth model is on (navigation-grade IMUs,
 :mod:`adaptnav.fusion.imu_grades`); off, ``ω_ie = 0`` and γ = 9.80665 m/s² (flat,
 non-rotating: the earth rate is below a consumer or tactical gyro's noise over a dive).
+With the earth model the gravity vector also turns with the position (first order in p/R,
+R the Gaussian mean radius of curvature at the origin; Groves 2013 §2.4.7, §5.7): the plumb
+line at 1 km from the origin leans 0.009° in the tangent plane, 1.5 mg horizontally.  Without
+it the local level the vehicle keeps looks like a tilt that grows at v/R, which a DVL-aided
+FOG explains as a heading error of v_N/(R Ω cos L) — the ship gyrocompass's "speed error",
+0.36° at 1.5 m/s and 59° N.  It adds the Schuler loop to the error dynamics.
 
 Error dynamics (global attitude error δθ, see :mod:`adaptnav.fusion.state`)::
 
-    δṗ = δv,  δv̇ = −[R f̂]× δθ − 2[ω_ie]× δv − R δb_a + w_a,  δθ̇ = −[ω_ie]× δθ − R δb_g + w_g,
+    δṗ = δv,  δv̇ = −[R f̂]× δθ − 2[ω_ie]× δv + (γ/R) diag(−1, −1, 2) δp − R δb_a + w_a,  δθ̇ = −[ω_ie]× δθ − R δb_g + w_g,
     δḃ_a = w_ba,  δḃ_g = w_bg,  δċ = w_c,  δk̇ = w_k
 
 The covariance is propagated every ``covariance_step_s`` T (as pyins and ArduPilot do),
@@ -27,9 +33,9 @@ Arrays shared by the kernels (all float64, mutated in place):
 
 - ``x`` (19,) nominal state (:mod:`adaptnav.fusion.state`),
 - ``P`` (18, 18) covariance at time ``clock[1]``,
-- ``acc`` (23,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
+- ``acc`` (24,) step accumulators: Σ R f̂ δt (3), Σ R δt (9, row-major), Σ δt (1),
   latest bias-corrected ω̂_b (3) and f̂_b (3); then the earth model (kept across steps):
-  ω_ie in local axes (3, rad/s) and γ − 9.80665 (1, m/s²) — see :func:`set_earth`,
+  ω_ie in local axes (3, rad/s), γ − 9.80665 (1, m/s²) and γ/R (1, 1/s²) — see :func:`set_earth`,
 - ``clock`` (2,) ``[t_state_s, t_cov_s]``,
 - ``qdiag`` (18,) continuous process noise PSDs per error state.
 """
@@ -42,7 +48,7 @@ from adaptnav.kernels import jit
 
 from .frames import GRAVITY_M_S2
 
-ACC_SIZE = 23
+ACC_SIZE = 24
 # named parts of ``acc`` for Python callers (the kernels index it with literals)
 ACC_OMEGA = slice(13, 16)  # latest bias-corrected ω̂_b (rad/s)
 ACC_F = slice(16, 19)      # latest bias-corrected f̂_b (m/s²)
@@ -51,6 +57,7 @@ EARTH_RATE_RAD_S = 7.292115e-5  # WGS-84 Ω_ie
 _GAMMA_E = 9.7803253359
 _SOMIGLIANA_K = 0.00193185265241
 _E2 = 0.00669437999013
+_A_M = 6378137.0  # WGS-84 semi-major axis
 
 
 def normal_gravity_m_s2(lat_rad: float) -> float:
@@ -62,10 +69,13 @@ def normal_gravity_m_s2(lat_rad: float) -> float:
 def set_earth(acc: np.ndarray, lat_rad: float | None) -> None:
     """Earth model into the accumulator array: ``None`` = flat, non-rotating."""
     if lat_rad is None:
-        acc[19:23] = 0.0
+        acc[19:24] = 0.0
     else:
         acc[19:22] = (EARTH_RATE_RAD_S * math.cos(lat_rad), 0.0, -EARTH_RATE_RAD_S * math.sin(lat_rad))
         acc[22] = normal_gravity_m_s2(lat_rad) - GRAVITY_M_S2
+        s2 = math.sin(lat_rad) ** 2
+        radius_m = _A_M * math.sqrt(1.0 - _E2) / (1.0 - _E2 * s2)  # √(R_N R_E), Gaussian mean radius
+        acc[23] = normal_gravity_m_s2(lat_rad) / radius_m
 
 
 @jit(cache=True, fastmath=False)
@@ -144,6 +154,11 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
             az = a
     az += GRAVITY_M_S2 + acc[22]
     if ex != 0.0 or ey != 0.0 or ez != 0.0:
+        # the plumb line turns with the position: g_n(p) = γ (−p_N/R, −p_E/R, 1 + 2 p_D/R)
+        gr = acc[23]
+        ax -= gr * x[0]
+        ay -= gr * x[1]
+        az += 2.0 * gr * x[2]
         # Coriolis −2 ω_ie × v
         ax -= 2.0 * (ey * x[5] - ez * x[4])
         ay -= 2.0 * (ez * x[3] - ex * x[5])
@@ -198,6 +213,10 @@ def transition(acc, T):
     F[7, 8] += ex
     F[8, 6] += ey
     F[8, 7] -= ex
+    # gravity gradient (the Schuler loop): δv̇ += (γ/R) diag(−1, −1, 2) δp
+    F[3, 0] -= acc[23]
+    F[4, 1] -= acc[23]
+    F[5, 2] += 2.0 * acc[23]
     FT = F * T
     Phi = np.eye(18) + FT + 0.5 * (FT @ FT)
     return Phi
@@ -239,8 +258,8 @@ def core_views(core):
     """(x, P, acc, clock) views of the contiguous core array."""
     x = core[0:19]
     P = core[19:343].reshape((18, 18))
-    acc = core[343:366]
-    clock = core[366:368]
+    acc = core[343:367]  # 343 + ACC_SIZE
+    clock = core[367:369]
     return x, P, acc, clock
 
 

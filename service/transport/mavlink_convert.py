@@ -522,6 +522,9 @@ def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig)
     ang = np.asarray(msg.angle_delta, dtype=float)
     if not np.all(np.isfinite(ang)):
         ang = np.zeros(3)  # not reported: no rotation correction
+    # the BlueOS driver sends differences of Euler angles unwrapped: a heading through ±180°
+    # reads as a turn of ~2π within one delta
+    ang = (ang + math.pi) % (2.0 * math.pi) - math.pi
     if float(np.linalg.norm(ang)) > cfg.dvl_max_angle_delta_rad:
         raise ConversionError("dvl_rotating", f"|angle_delta| = {np.linalg.norm(ang):.3f} rad")
     from scipy.spatial.transform import Rotation
@@ -666,6 +669,8 @@ class MavlinkConverter:
         self.time = MissionClock(self.config.reboot_backjump_s)
         self.autopilot_sysid: int | None = None
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
+        self._imu_lock: tuple[str, tuple[int, int], tuple[int, bool]] | None = None  # (type, source, rank)
+        self.imu_switches = 0  # moves to a better IMU stream (auto)
         self.last_gps_input_t: float | None = None
         self.origin = origin
         self.origin_from: str | None = "config" if origin is not None else None
@@ -855,13 +860,28 @@ class MavlinkConverter:
 
     # handlers -------------------------------------------------------------------
     def _imu(self, msg, mtype, t_s):
-        if self.imu_message is not None and mtype != self.imu_message:
+        """One IMU stream is integrated (two interleaved would corrupt strapdown): a stream is
+        a message type from one (system, component).  ``imu_message = "auto"`` locks on the
+        first with a real sample and moves up to a better one when it appears — float
+        ``HIGHRES_IMU`` over ``SCALED_IMU2`` over int16 ``RAW_IMU``, then a dedicated IMU
+        (a companion's driver) over the autopilot's own — since a real autopilot streams its
+        RAW_IMU at a few Hz whether or not a better IMU is on board."""
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if self.config.imu_message != "auto" and mtype != self.imu_message:
             raise IgnoredMessage(f"another IMU stream ({self.imu_message}) is integrated")
+        rank = (IMU_MESSAGES[::-1].index(mtype), src[1] != self.config.autopilot_component)
+        lock = self._imu_lock if self._imu_lock is not None and self._imu_lock[0] == self.imu_message else None
+        if lock is not None and (mtype, src) != lock[:2] and rank <= lock[2]:
+            raise IgnoredMessage(f"another IMU stream ({lock[0]} from {lock[1][0]}/{lock[1][1]}) is integrated")
         sample = imu_from_highres(msg, t_s) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s)
-        if self.imu_message is None:
-            self.imu_message = mtype  # lock: two IMUs interleaved would corrupt strapdown
-            logging.getLogger(__name__).info("IMU stream: %s (the first with a real sample; others ignored)",
-                                             mtype, extra={"event": {"event": "imu_stream", "message": mtype}})
+        if lock is None or (mtype, src) != lock[:2]:
+            self.imu_switches += lock is not None
+            self._imu_lock = (mtype, src, rank)
+            self.imu_message = mtype
+            logging.getLogger(__name__).info(
+                "IMU stream: %s from %d/%d (%s)", mtype, src[0], src[1],
+                "the first with a real sample" if lock is None else f"better than {lock[0]} from {lock[1][0]}/{lock[1][1]}",
+                extra={"event": {"event": "imu_stream", "message": mtype, "system": src[0], "component": src[1]}})
         return sample
 
     def _pressure(self, msg, mtype, t_s):

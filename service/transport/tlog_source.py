@@ -91,6 +91,7 @@ class TlogSource:
         self._imu_dt: list[float] = []
         self._imu_last_t: float | None = None
         self._imu_type: str | None = None
+        self._imu_switches = 0
         self._dataflash = self.path.suffix.lower() in (".bin", ".log")
         self.has_truth = self._scan_truth()
 
@@ -119,6 +120,9 @@ class TlogSource:
         samples = self.converter.convert(msg)
         if samples and isinstance(samples[0], ImuSample):
             self._imu_type = self.converter.imu_message
+            if self.converter.imu_switches != self._imu_switches:  # a better stream: its own rate
+                self._imu_switches = self.converter.imu_switches
+                self._imu_dt, self._imu_last_t = [], None
         if msg.get_type() == "SIM_STATE":
             samples = samples + self._truth(msg)
         elif self.truth_origin is None and self._truth_held:

@@ -50,9 +50,29 @@ def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
     assert c.rejected["imu_absent"] == 1
     # auto mode locks on the first real IMU stream, then ignores the others
     assert len(c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))) == 1
-    assert c.convert(wire("scaled_imu2_encode", 1200, 1, 2, -1000, 0, 0, 0, 0, 0, 0)) == []
-    acct = c.accounting()["SCALED_IMU2"]  # ignored on purpose, and says why
-    assert acct["status"] == "rejected" and acct["ignored"] == {"another IMU stream (RAW_IMU) is integrated": 1}
+    assert c.convert(wire("scaled_imu3_encode", 1150, 1, 2, -1000, 0, 0, 0, 0, 0, 0)) == []
+    assert c.accounting()["SCALED_IMU3"]["status"] == "ignored"
+
+
+def test_auto_imu_moves_up_to_a_better_stream_and_then_ignores_the_worse():
+    c = converter(imu_message="auto")
+    # the autopilot's int16 RAW_IMU comes first (ArduSub streams it at a few Hz)
+    assert len(c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))) == 1
+    # a float HIGHRES_IMU from the autopilot is better: switched to
+    assert len(c.convert(wire("highres_imu_encode", 1_150_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20,
+                              0x3F))) == 1
+    # a companion's dedicated IMU (component 200) sending HIGHRES_IMU is better still
+    dedicated = wire("highres_imu_encode", 1_160_000, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F,
+                     src=(1, 200))
+    assert len(c.convert(dedicated)) == 1 and c.imu_switches == 2
+    # from then on the autopilot's streams are ignored on purpose, and say why
+    assert c.convert(wire("raw_imu_encode", 1_200_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)) == []
+    assert c.convert(wire("highres_imu_encode", 1_210_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F)) == []
+    acct = c.accounting()["RAW_IMU"]
+    assert acct["ignored"] == {"another IMU stream (HIGHRES_IMU from 1/200) is integrated": 1}
+    (s,) = c.convert(wire("highres_imu_encode", 1_170_000, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F,
+                          src=(1, 200)))
+    assert s.specific_force_b_m_s2[2] == pytest.approx(-9.81)
 
 
 def test_highres_imu_attitude_pressure_distance():

@@ -1,0 +1,282 @@
+"""A real ``.tlog`` of the class "AUV with a navigation-grade IMU and a DVL", built from the
+simulator, with its post-processed truth kept beside it; and the DVL dead reckoning a user
+would compute from the same log (the reference our replay must beat).
+
+What the log holds, as a BlueOS/ArduSub vehicle with a fibre-optic INS on the companion writes it
+(message layout measured on ``../shared/data/mavlink/ardusub-4.1.1-bluerov2-ugps.tlog``):
+
+- ``HIGHRES_IMU`` at 100 Hz from the companion's IMU driver (system 1, component 200
+  ``MAV_COMP_ID_IMU``), ``time_usec`` in UNIX µs of the companion's clock; the navigation grade
+  of :mod:`adaptnav.sim.imu` on the rotating earth (:mod:`adaptnav.sim.navgrade`);
+- ``ATTITUDE`` at 10 Hz and ``SCALED_PRESSURE``/``SCALED_PRESSURE2`` (internal barometer /
+  external depth sensor) at 5 Hz from the autopilot (1, 1) on its boot clock (which runs
+  20 ppm fast against UNIX time); its attitude has a consumer AHRS's errors
+  (:class:`adaptnav.sim.navgrade.AhrsErrors`: magnetic heading off by a few degrees);
+- ``SYSTEM_TIME`` at 1 Hz from the autopilot with ``time_unix_usec = 0`` (an ArduSub without
+  GPS time, as in the real log), optionally with its UNIX time;
+- optionally the autopilot's own ``RAW_IMU`` at 4 Hz (consumer MEMS, int16 mg / mrad/s) — a
+  real ArduSub streams it whether or not anybody uses it;
+- ``VISION_POSITION_DELTA`` at 1 Hz from the BlueOS DVL driver (system 255, component 0):
+  as the Water Linked driver computes it, ``position_delta = v·dt`` with ``v`` the DVL's
+  velocity at the ping (the simulator's 4-beam Janus DVL: scale factor, misalignment, beam
+  biases, outliers, drop-outs) and ``dt`` the time since its previous ping,
+  ``angle_delta`` the difference of the autopilot's Euler angles, ``confidence`` from the
+  figure of merit, ``time_usec = 0``; invalid pings are not sent;
+- one ``GPS_INPUT`` from the underwater GPS extension (1, 220) at the start, the vehicle
+  already under water: ``time_usec = 0``, HDOP only (``ignore_flags = 253``), as in the real log;
+- ``HEARTBEAT`` at 1 Hz from the autopilot, the GCS (255, 190) and the IMU driver.
+
+Each message gets the receive stamp of the companion that records the log (its UNIX clock at
+reception: transport delay 2 ms + exponential 3 ms), in receive order.  No thruster outputs.
+The simulation starts ``lead_in_s`` before the log so the vehicle is already cruising.
+
+Truth (``<name>.truth.csv``): ``t_unix_s, t_boot_s, lat_deg, lon_deg, depth_m, yaw_deg`` at 10 Hz.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
+
+from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin  # noqa: E402
+from adaptnav.sim.imu import IMU_GRADES, triad_errors  # noqa: E402
+from adaptnav.sim.navgrade import AhrsErrors, ahrs_attitude, rotating_earth_imu  # noqa: E402
+
+UNIX0_S = 1_767_000_000.0      # the companion's UNIX time at simulation time 0
+BOOT0_S = 1800.0               # the autopilot booted this long before simulation time 0
+BOOT_DRIFT = 20e-6             # its crystal runs this much fast
+IMU_SRC, AP_SRC, DVL_SRC, UGPS_SRC, GCS_SRC = (1, 200), (1, 1), (255, 0), (1, 220), (255, 190)
+
+
+@dataclass(frozen=True)
+class AuvLog:
+    """One mission of the class (a few variants differ in these)."""
+
+    name: str
+    seed: int
+    pattern: str = "straight"            # sim trajectory.pattern
+    heading_deg: float = 30.0
+    duration_s: float = 900.0            # of the log (the simulation adds lead_in_s)
+    lead_in_s: float = 20.0
+    leg_length_m: float = 300.0
+    leg_spacing_m: float = 40.0
+    speed_m_s: float = 1.5
+    lat_deg: float = 59.4
+    lon_deg: float = 10.5
+    autopilot_raw_imu: bool = True       # the autopilot's own RAW_IMU at 4 Hz in the log too
+    system_time_unix: bool = False       # the autopilot's SYSTEM_TIME carries UNIX time
+
+
+def _boot_s(t_sim: np.ndarray | float) -> np.ndarray | float:
+    return (np.asarray(t_sim) + BOOT0_S) * (1.0 + BOOT_DRIFT)
+
+
+def _scenario(v: AuvLog, rng: np.random.Generator):
+    from adaptnav.sim.scenario import load_scenario
+
+    scale = float(np.clip(0.003 * rng.standard_normal(), -0.008, 0.008))
+    mis = 0.3 * rng.standard_normal(3)
+    return load_scenario("survey", [
+        f"seed={v.seed}", f"duration_s={v.duration_s + v.lead_in_s}", f"trajectory.pattern=\"{v.pattern}\"",
+        f"trajectory.heading_deg={v.heading_deg}", f"trajectory.leg_length_m={v.leg_length_m}",
+        f"trajectory.leg_spacing_m={v.leg_spacing_m}", f"trajectory.speed_m_s={v.speed_m_s}",
+        "trajectory.depth_m=25.0", "trajectory.start_depth_m=25.0", "environment.bottom_depth_m=45.0",
+        f"origin.lat_deg={v.lat_deg}", f"origin.lon_deg={v.lon_deg}",
+        "imu.grade=\"navigation\"", "imu.rate_hz=100.0", "heading.enabled=false", "usbl.enabled=false",
+        "gnss.fix_times_s=[]", "depth.rate_hz=5.0", "truth.rate_hz=10.0",
+        "dvl.enabled=true", "dvl.rate_hz=1.0", f"dvl.scale_factor_error={scale}",
+        f"dvl.misalignment_rpy_deg=[{mis[0]}, {mis[1]}, {mis[2]}]", "dvl.outlier_prob=0.005",
+        "dvl.dropout_prob=0.02",
+    ])
+
+
+class _Writer:
+    """Frames with receive stamps, sorted on write."""
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.records: list[tuple[int, int, bytes]] = []
+        self._mavs: dict = {}
+
+    def emit(self, t_sim: float, src: tuple[int, int], name: str, *args) -> None:
+        mav = self._mavs.get(src)
+        if mav is None:
+            mav = self._mavs[src] = mavlink2.MAVLink(None, srcSystem=src[0], srcComponent=src[1])
+        frame = bytes(getattr(mav, name)(*args).pack(mav))
+        delay = 0.002 + self.rng.exponential(0.003)
+        self.records.append((int(round((UNIX0_S + t_sim + delay) * 1e6)), len(self.records), frame))
+
+    def write(self, path: Path) -> None:
+        self.records.sort()
+        with open(path, "wb") as f:
+            for stamp, _, frame in self.records:
+                f.write(struct.pack(">Q", stamp) + frame)
+
+
+def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
+    """Simulate ``v`` and write ``<name>.tlog`` and ``<name>.truth.csv`` into ``out_dir``."""
+    from adaptnav.sim.simulator import simulate
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng([v.seed, 11])
+    rng_scn, rng_att, rng_ap_imu, rng_fix, rng_link = rng.spawn(5)
+    sc = _scenario(v, rng_scn)
+    res = simulate(sc)
+    origin = sc.origin.geo()
+    d = res.dense
+    f_b, w_b = rotating_earth_imu(d.pos_n_m, d.vel_n_m_s, d.q_nb, origin,
+                                  res.imu.specific_force_b_m_s2, res.imu.omega_b_rad_s)
+    t_imu = res.imu.t_s
+    t0, t1 = v.lead_in_s, v.lead_in_s + v.duration_s
+    w = _Writer(rng_link)
+
+    # heartbeats, system time
+    for t in np.arange(t0, t1, 1.0):
+        w.emit(t, AP_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+               81, 19, mavlink2.MAV_STATE_ACTIVE)
+        w.emit(t + 0.3, GCS_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 192, 0, 4)
+        w.emit(t + 0.5, IMU_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+               mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 4)
+        unix_us = int(round((UNIX0_S + t) * 1e6)) if v.system_time_unix else 0
+        w.emit(t + 0.1, AP_SRC, "system_time_encode", unix_us, int(_boot_s(t + 0.1) * 1000))
+
+    # the companion's navigation-grade IMU, UNIX time
+    keep = (t_imu >= t0) & (t_imu < t1)
+    for t, f, g in zip(t_imu[keep], f_b[keep], w_b[keep]):
+        w.emit(float(t), IMU_SRC, "highres_imu_encode", int(round((UNIX0_S + t) * 1e6)),
+               *map(float, f), *map(float, g), 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 22.0, 0x1FFF, 0)
+
+    # the autopilot's own consumer IMU (RAW_IMU, int16 mg / mrad/s) at 4 Hz
+    if v.autopilot_raw_imu:
+        idx = np.nonzero(keep)[0][::25]
+        g = IMU_GRADES["consumer"]
+        ba, wa = triad_errors(g.accel, len(idx), 0.25, rng_ap_imu)
+        bg, wg = triad_errors(g.gyro, len(idx), 0.25, rng_ap_imu)
+        acc = np.round((f_b[idx] + ba + wa) / (GRAVITY_M_S2 / 1000.0)).astype(int)
+        gyr = np.round((w_b[idx] + bg + wg) / 1e-3).astype(int)
+        for i, a, r in zip(idx, acc, gyr):
+            t = float(t_imu[i])
+            w.emit(t, AP_SRC, "raw_imu_encode", int(_boot_s(t) * 1e6), *map(int, a), *map(int, r), 0, 0, 0, 0, 35)
+
+    # the autopilot's attitude (consumer AHRS) at 10 Hz; the DVL driver differences it too
+    t_att = np.arange(t0, t1, 0.1)
+    i_att = np.minimum(np.round(t_att * sc.imu.rate_hz).astype(int), len(d.t_s) - 1)
+    att = ahrs_attitude(t_att, d.euler_rad[i_att], AhrsErrors(), rng_att)
+    rates = w_b[np.maximum(i_att - 1, 0)]
+    for t, e, r in zip(t_att, att, rates):
+        w.emit(float(t), AP_SRC, "attitude_encode", int(_boot_s(t) * 1000), *map(float, e), *map(float, r))
+
+    # depth sensor (SCALED_PRESSURE2, hPa) and the internal barometer
+    for s in res.samples["depth"]:
+        if t0 <= s.t_s < t1:
+            boot_ms = int(_boot_s(s.t_s) * 1000)
+            w.emit(s.t_s, AP_SRC, "scaled_pressure2_encode", boot_ms, s.pressure_pa / 100.0, 0.0, 1200, 0)
+            w.emit(s.t_s, AP_SRC, "scaled_pressure_encode", boot_ms, 1002.5, 0.0, 3100, 0)
+
+    # the BlueOS DVL driver: v·dt at each valid ping, Euler-angle differences, confidence
+    last_ping_t = None
+    last_att = None
+    for s in res.samples["dvl"]:
+        t = s.t_s
+        j = min(int(np.searchsorted(t_att, t, side="right")) - 1, len(t_att) - 1)
+        cur_att = att[j] if j >= 0 else None
+        dt = None if last_ping_t is None else t - last_ping_t
+        last_ping_t = t
+        if t < t0 or t >= t1 or dt is None or not s.valid or cur_att is None:
+            last_att = cur_att
+            continue
+        v_d = np.asarray(s.vel_d_m_s)
+        # the DVL's figure of merit (its velocity 1-σ): a few mm/s, more with a bad beam
+        fom = 0.004 + 0.5 * max(0.0, float(np.linalg.norm(v_d) - v.speed_m_s) - 0.05)
+        conf = 100.0 * (1.0 - min(0.4, fom) / 0.4)
+        dang = [0.0, 0.0, 0.0] if last_att is None else list(map(float, cur_att - last_att))
+        w.emit(t + 0.05, DVL_SRC, "vision_position_delta_encode", 0, int(round(dt * 1e6)), dang,
+               list(map(float, v_d * dt)), conf)
+        last_att = cur_att
+
+    # one underwater-GPS fix, already under water, 5 s into the log
+    t_fix = t0 + 5.0
+    i_fix = int(round(t_fix * sc.imu.rate_hz))
+    hdop = 1.6
+    ne = d.pos_n_m[i_fix, :2] + hdop * rng_fix.standard_normal(2)
+    lat, lon, _ = origin.to_geodetic(np.array([ne[0], ne[1], 0.0]))
+    w.emit(t_fix + 0.3, UGPS_SRC, "gps_input_encode", 0, 0, 253, 0, 0, 3, int(round(math.degrees(lat) * 1e7)),
+           int(round(math.degrees(lon) * 1e7)), 0.0, hdop, 65535, 0, 0, 0, 0, 0, 0, 12, 0)
+
+    tlog = out / f"{v.name}.tlog"
+    w.write(tlog)
+    truth_path = out / f"{v.name}.truth.csv"
+    t_truth = np.arange(t0, t1, 0.1)
+    i_truth = np.minimum(np.round(t_truth * sc.imu.rate_hz).astype(int), len(d.t_s) - 1)
+    lat, lon, _ = origin.to_geodetic(d.pos_n_m[i_truth])
+    with open(truth_path, "w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow(["t_unix_s", "t_boot_s", "lat_deg", "lon_deg", "depth_m", "yaw_deg"])
+        for k, t in enumerate(t_truth):
+            wr.writerow([f"{UNIX0_S + t:.6f}", f"{_boot_s(t):.6f}", f"{math.degrees(lat[k]):.10f}",
+                         f"{math.degrees(lon[k]):.10f}", f"{d.pos_n_m[i_truth[k], 2]:.4f}",
+                         f"{math.degrees(d.euler_rad[i_truth[k], 2]):.5f}"])
+    return tlog, truth_path
+
+
+# ------------------------------------------------------------------------------ scoring
+def read_truth(path: Path) -> dict[str, np.ndarray]:
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+
+
+def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a user computes from the log without a filter: start at the acoustic fix, then
+    integrate the DVL's velocity — each VISION_POSITION_DELTA's ``position_delta / dt``, rotated
+    to north/east with the autopilot's latest ATTITUDE (roll, pitch, yaw) — over the time since
+    the previous delta (receive stamps: a ping the driver did not send is bridged, not lost).
+    Returns (t_unix_s (K,), lat_rad (K,), lon_rad (K,)) at the receive stamps, from the fix on."""
+    from pymavlink import mavutil
+    from scipy.spatial.transform import Rotation
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    att = None
+    origin = None
+    ne = np.zeros(2)
+    rows = []
+    try:
+        while (m := conn.recv_match()) is not None:
+            kind = m.get_type()
+            if kind == "ATTITUDE":
+                att = (m.roll, m.pitch, m.yaw)
+            elif kind == "GPS_INPUT" and origin is None:
+                origin = GeoOrigin(math.radians(m.lat * 1e-7), math.radians(m.lon * 1e-7), 0.0)
+                rows.append((m._timestamp, 0.0, 0.0))
+            elif kind == "VISION_POSITION_DELTA" and origin is not None and att is not None and m.confidence > 0:
+                R_nb = Rotation.from_euler("ZYX", [att[2], att[1], att[0]])
+                vel_ne = R_nb.apply(np.asarray(m.position_delta, dtype=float) / (m.time_delta_usec * 1e-6))[:2]
+                ne = ne + vel_ne * (m._timestamp - rows[-1][0])
+                rows.append((m._timestamp, ne[0], ne[1]))
+    finally:
+        conn.close()
+    a = np.array(rows)
+    lat, lon, _ = origin.to_geodetic(np.column_stack([a[:, 1], a[:, 2], np.zeros(len(a))]))
+    return a[:, 0], lat, lon
+
+
+def horizontal_errors_m(t_s: np.ndarray, lat_rad: np.ndarray, lon_rad: np.ndarray,
+                        truth_t_s: np.ndarray, truth: dict[str, np.ndarray]) -> np.ndarray:
+    """Horizontal distance (m) of positions at ``t_s`` to the truth interpolated there (both
+    clocks the same: ``truth_t_s`` is the truth's column on the positions' clock)."""
+    o = GeoOrigin(math.radians(truth["lat_deg"][0]), math.radians(truth["lon_deg"][0]), 0.0)
+    tn = o.to_ned(np.radians(truth["lat_deg"]), np.radians(truth["lon_deg"]))
+    p = o.to_ned(lat_rad, lon_rad)
+    inside = (t_s >= truth_t_s[0]) & (t_s <= truth_t_s[-1])
+    n = np.interp(t_s[inside], truth_t_s, tn[:, 0])
+    e = np.interp(t_s[inside], truth_t_s, tn[:, 1])
+    return np.hypot(p[inside, 0] - n, p[inside, 1] - e)
