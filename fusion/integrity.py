@@ -5,6 +5,11 @@ m-dimensional measurement is χ²(m); the sum over the last ``n`` attempts of on
 χ²(n·m) (Bar-Shalom, Li & Kirubarajan 2001, §5.4.2). Above its ``quantile`` the aid says
 the filter's covariance is too small — the solution is then not trustworthy whatever its σ
 says. Gated attempts count too: an aid rejected again and again is exactly that evidence.
+Each attempt counts at most the single-attempt χ²(m) ``quantile`` (winsorised): one outlier
+that the gate caught (a DVL beam on a fish: 0.5 m/s against σ 0.03) is not evidence that the
+covariance lies, yet it alone pushed a 20-attempt sum over the bound and made a sound
+navigation-grade solution invalid for 20 s; a covariance too small by 2× or an aid gated
+again and again still fails the window.
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ class NisMonitor:
             q = self._nis[source] = deque()
             self._sum[source] = 0.0
             self._dof[source] = dof
+        nis = min(nis, self.cap(dof))
         q.append(nis)
         self._sum[source] += nis
         if len(q) > self.window:
@@ -41,6 +47,14 @@ class NisMonitor:
         if b is None:
             b = self._bound[dof] = float(chi2.ppf(self.quantile, self.window * dof))
         return b
+
+    def cap(self, dof: int) -> float:
+        """The most one attempt counts: the single-attempt χ²(dof) ``quantile``."""
+        key = -dof
+        c = self._bound.get(key)
+        if c is None:
+            c = self._bound[key] = float(chi2.ppf(self.quantile, dof))
+        return c
 
     def failing(self) -> list[str]:
         """Sources whose last ``window`` NIS sum exceeds the χ² bound (full windows only)."""

@@ -226,6 +226,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     origin_configured = cfg.origin.lat_deg != 0.0 or cfg.origin.lon_deg != 0.0
+    if hasattr(inp.source, "set_convert"):  # a MAVLink log: converted as the live bridge converts
+        inp.source.set_convert(cfg.mavlink.convert)
     if origin_configured and hasattr(inp.source, "set_origin"):
         inp.source.set_origin(cfg.origin.geo())
     items: Any = iter(inp.source)

@@ -262,6 +262,10 @@ class TlogReplaySource(SampleStreamSource):
         """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE and the truth)."""
         self.tlog.set_origin(origin)
 
+    def set_convert(self, convert: Any) -> None:
+        """The service's ``[mavlink.convert]`` (:class:`ConvertConfig`), as the live bridge uses it."""
+        self.tlog.set_convert(convert)
+
     @property
     def has_truth(self) -> bool:
         """A simulator's SIM_STATE in the log: metrics against it."""

@@ -446,16 +446,23 @@ def servo_pwm(msg: Any, channel: int) -> int:
     return int(getattr(msg, f"servo{channel}_raw", 0) or 0)
 
 
-def rpm_from_servo(msg: Any, t_s: float, thrusters: ThrusterConfig) -> RpmSample:
-    """Mean signed forward (and lateral) RPM of the configured thrusters."""
+def rpm_from_pwm(pwm_us_of: Any, t_s: float, thrusters: ThrusterConfig) -> RpmSample:
+    """Mean signed forward (and lateral) RPM of the configured thrusters; ``pwm_us_of(channel)``
+    is a channel's output (µs, 1-based channel; ≤ 0: not output).  One rule for every reader
+    (SERVO_OUTPUT_RAW, DataFlash RCOU)."""
     rpms = []
     for ch in thrusters.channels:
-        pwm = servo_pwm(msg, ch)
+        pwm = pwm_us_of(ch)
         if pwm <= 0:
-            raise ConversionError("thruster_not_output", f"servo{ch}_raw = 0")
+            raise ConversionError("thruster_not_output", f"channel {ch} = 0")
         rpms.append(thrusters.curve.rpm_of_pwm(pwm))
     sway = float(np.mean(np.multiply(thrusters.lateral_signs, rpms))) if thrusters.lateral_signs else 0.0
     return RpmSample(t_s, float(np.mean(np.multiply(thrusters.forward_signs, rpms))), sway)
+
+
+def rpm_from_servo(msg: Any, t_s: float, thrusters: ThrusterConfig) -> RpmSample:
+    """SERVO_OUTPUT_RAW → :func:`rpm_from_pwm`."""
+    return rpm_from_pwm(lambda ch: servo_pwm(msg, ch), t_s, thrusters)
 
 
 def gnss_from_gps_raw_int(msg: Any, t_s: float, cfg: ConvertConfig) -> GnssSample:

@@ -21,7 +21,7 @@ import heapq
 import logging
 import math
 import statistics
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -30,9 +30,10 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
     ConversionError,
     MavlinkConverter,
     TypeAccount,
+    rpm_from_pwm,
 )
 from adaptnav.fusion.frames import GeoOrigin, wrap_angle
-from adaptnav.fusion.samples import (AttitudeSample, DepthSample, ImuSample, RpmSample, TruthSample,
+from adaptnav.fusion.samples import (AttitudeSample, DepthSample, ImuSample, TruthSample,
                                     replay_order_key)
 
 log = logging.getLogger(__name__)
@@ -133,6 +134,16 @@ class TlogSource:
                 samples = samples + [self._truth_sample(m, t) for m, t in held]
         return samples
 
+    def set_convert(self, convert: ConvertConfig) -> None:
+        """How messages become samples (the service's ``[mavlink.convert]``, as the live
+        bridge uses it); before iteration only."""
+        if self.counters["messages_read"]:
+            raise RuntimeError("set_convert after the log has been read")
+        self.config = replace(self.config, convert=convert)
+        self.converter = MavlinkConverter(convert, self.converter.origin)
+        if self.converter.origin is not None:
+            self.converter.origin_from = "config"
+
     def set_origin(self, origin: GeoOrigin) -> None:
         """The NED origin the replay uses (a configured one); truth is placed around it."""
         self.truth_origin = origin
@@ -210,15 +221,8 @@ class TlogSource:
                 if not msg.Press > 0:
                     raise ConversionError("bad_pressure")
                 return [DepthSample(t_s, float(msg.Press))]
-            if mtype == "RCOU":
-                th = self.config.convert.thrusters
-                rpms = []
-                for ch, sign in zip(th.channels, th.forward_signs):
-                    pwm = getattr(msg, f"C{ch}", 0) or 0
-                    if pwm <= 0:
-                        raise ConversionError("thruster_not_output")
-                    rpms.append(sign * th.curve.rpm_of_pwm(pwm))
-                return [RpmSample(t_s, sum(rpms) / len(rpms))]
+            if mtype == "RCOU":  # forward and lateral RPM as from SERVO_OUTPUT_RAW
+                return [rpm_from_pwm(lambda ch: getattr(msg, f"C{ch}", 0) or 0, t_s, self.config.convert.thrusters)]
         except ConversionError as e:
             self._reject(e.reason)
         return []
