@@ -27,10 +27,10 @@ import pytest
 from .auv_tlog import AuvLog, dvl_dead_reckoning, horizontal_errors_m, read_truth, write_auv_tlog
 
 VARIANTS = (
-    AuvLog("transit", seed=2, pattern="straight", heading_deg=30.0, duration_s=480.0),
-    AuvLog("lawnmower", seed=3, pattern="lawnmower", heading_deg=0.0, leg_length_m=200.0, duration_s=480.0),
+    AuvLog("transit", seed=2, pattern="straight", heading_deg=30.0, duration_s=360.0),
+    AuvLog("lawnmower", seed=3, pattern="lawnmower", heading_deg=0.0, leg_length_m=200.0, duration_s=360.0),
     # heading through ±180°: the driver's Euler-angle differences wrap
-    AuvLog("south", seed=4, pattern="straight", heading_deg=180.0, duration_s=480.0),
+    AuvLog("south", seed=4, pattern="straight", heading_deg=180.0, duration_s=360.0),
 )
 
 
@@ -78,8 +78,10 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         dvl = s["message_types"]["VISION_POSITION_DELTA"]
         assert dvl["status"] == "used" and not dvl.get("rejected"), (name, dvl)
         assert s["valid_fraction"] > 0.99 and not s["warnings"], (name, s["warnings"])
-        # north from the earth rate: the heading ends within 0.15° of the truth
-        assert r["ours_yaw_err_end_deg"] < 0.15, (name, r["ours_yaw_err_end_deg"])
+        # north from the earth rate: after 6 min the heading is within 0.25° of the truth (the
+        # autopilot's compass: degrees; without the earth model it ends 13° off, the speed error
+        # of a gyrocompass without the turning plumb line 0.3–0.4°)
+        assert r["ours_yaw_err_end_deg"] < 0.25, (name, r["ours_yaw_err_end_deg"])
         # what no aid removes (the single fix's error, the DVL's scale factor and misalignment)
         # stays within 1 % of the distance travelled plus the fix's 3σ (HDOP 1.6 m per axis)
         assert r["ours_end_m"] < 0.01 * r["distance_m"] + 3 * 1.6 * math.sqrt(2), (name, r)
