@@ -77,7 +77,9 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         # the DVL is used: from system 255, no delta lost to the driver's unwrapped yaw differences
         dvl = s["message_types"]["VISION_POSITION_DELTA"]
         assert dvl["status"] == "used" and not dvl.get("rejected"), (name, dvl)
-        assert s["valid_fraction"] > 0.99 and not s["warnings"], (name, s["warnings"])
+        # valid throughout; the only warning: the origin rests on the one fix (nothing confirms it)
+        others = [w for w in s["warnings"] if not w.startswith("origin: from a single")]
+        assert s["valid_fraction"] > 0.99 and not others, (name, s["warnings"])
         # north from the earth rate: after 6 min the heading is within 0.25° of the truth (the
         # autopilot's compass: degrees; without the earth model it ends 13° off, the speed error
         # of a gyrocompass without the turning plumb line 0.3–0.4°)
