@@ -593,12 +593,12 @@ _WHY_GCS = "ground-station traffic (commands, parameters, missions, pilot input)
 IGNORED_WHY: dict[str, str] = {
     **{m: _WHY_AUTOPILOT_SOLUTION for m in (
         "AHRS", "AHRS2", "AHRS3", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED",
-        "VFR_HUD", "NAV_CONTROLLER_OUTPUT", "EKF_STATUS_REPORT", "HOME_POSITION", "POSITION_TARGET_GLOBAL_INT",
+        "VFR_HUD", "NAV_CONTROLLER_OUTPUT", "HOME_POSITION", "POSITION_TARGET_GLOBAL_INT",
         "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS", "ODOMETRY", "VISION_POSITION_ESTIMATE")},
     **{m: _WHY_HOUSEKEEPING for m in (
         "SYS_STATUS", "BATTERY_STATUS", "POWER_STATUS", "HWSTATUS", "MEMINFO", "VIBRATION", "SENSOR_OFFSETS",
         "MOUNT_STATUS", "GIMBAL_DEVICE_ATTITUDE_STATUS", "AUTOPILOT_VERSION", "STORAGE_INFORMATION",
-        "VIDEO_STREAM_STATUS", "NAMED_VALUE_FLOAT", "NAMED_VALUE_INT", "STATUSTEXT", "TIMESYNC",
+        "VIDEO_STREAM_STATUS", "NAMED_VALUE_FLOAT", "NAMED_VALUE_INT", "TIMESYNC",
         "MISSION_CURRENT", "RC_CHANNELS", "RC_CHANNELS_RAW", "TERRAIN_REPORT", "TERRAIN_REQUEST",
         "ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8", "CAMERA_INFORMATION", "CAMERA_SETTINGS",
         "EXTENDED_SYS_STATE", "PING", "RADIO_STATUS", "FENCE_STATUS")},
@@ -608,6 +608,8 @@ IGNORED_WHY: dict[str, str] = {
         "MISSION_ACK", "MISSION_COUNT", "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT",
         "SET_MODE", "SET_MESSAGE_INTERVAL", "SET_GPS_GLOBAL_ORIGIN", "RC_CHANNELS_OVERRIDE", "GPS_RTCM_DATA")},
     "HEARTBEAT": "link liveness; gives the autopilot's system id",
+    "EKF_STATUS_REPORT": "the autopilot's EKF health: its attitude flag gates ATTITUDE, no sample",
+    "STATUSTEXT": "text; the autopilot's EKF (re)start and yaw alignment gate ATTITUDE, no sample",
     "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",
     "GPS_GLOBAL_ORIGIN": "the autopilot's EKF origin (places GLOBAL_VISION_POSITION_ESTIMATE), no sample",
     "SIM_STATE": "simulator ground truth (never fused; the log replay makes it the truth of its metrics)",
@@ -687,6 +689,10 @@ class MavlinkConverter:
         self._held: list[tuple[Any, str, float | None]] = []
         self._first_unix_s: float | None = None
         self._first_hold_recv_s: float | None = None
+        # the autopilot's own word on its attitude (None: it said nothing): ATTITUDE is not
+        # passed on while its EKF says its attitude is not aligned — ArduSub sends yaw 0 then
+        # (the filter seeds its heading from the first settled yaw)
+        self.autopilot_attitude_ok: bool | None = None
 
     # ------------------------------------------------------------------ public
     def convert(self, msg: Any) -> list:
@@ -781,6 +787,27 @@ class MavlinkConverter:
             out += self._convert_one(msg, mtype, recv_s, self.types[mtype], releasing=True)
         return out
 
+    def _autopilot_attitude_word(self, msg: Any, mtype: str) -> None:
+        """EKF_STATUS_REPORT's attitude flag (set once tilt and yaw are aligned, ArduPilot
+        EKF3: flags 0 → 167 right after "initial yaw alignment complete"); STATUSTEXT of an
+        EKF (re)start ("initialised": yaw 0 until aligned) and of its yaw alignment."""
+        if not self._is_autopilot(msg):
+            return
+        if mtype == "EKF_STATUS_REPORT":
+            self.autopilot_attitude_ok = bool(msg.flags & mavlink2.EKF_ATTITUDE) \
+                and not msg.flags & mavlink2.EKF_UNINITIALIZED
+            return
+        text = str(getattr(msg, "text", "")).lower()
+        if "ekf" in text and "initialised" in text:
+            self.autopilot_attitude_ok = False
+        elif "yaw alignment complete" in text:
+            self.autopilot_attitude_ok = True
+
+    def _attitude(self, msg, mtype, t_s):
+        if self.autopilot_attitude_ok is False and self._is_autopilot(msg):
+            raise ConversionError("attitude_not_aligned", "the autopilot's EKF says its attitude is not aligned")
+        return attitude_from_attitude(msg, t_s)
+
     def _is_autopilot(self, msg: Any) -> bool:
         return (msg.get_srcComponent() == self.config.autopilot_component
                 and (self.autopilot_sysid is None or msg.get_srcSystem() == self.autopilot_sysid))
@@ -833,6 +860,8 @@ class MavlinkConverter:
             return []
         handler = _HANDLERS.get(mtype)
         if handler is None:
+            if mtype in ("EKF_STATUS_REPORT", "STATUSTEXT"):
+                self._autopilot_attitude_word(msg, mtype)
             if mtype == "GPS_GLOBAL_ORIGIN" and self.origin_from != "config" and self._is_autopilot(msg):
                 self.origin = GeoOrigin(msg.latitude * DEG_E7_TO_RAD, msg.longitude * DEG_E7_TO_RAD,
                                         msg.altitude / 1000.0)
@@ -918,7 +947,7 @@ _HANDLERS = {
     "RAW_IMU": MavlinkConverter._imu,
     "SCALED_IMU2": MavlinkConverter._imu,
     "HIGHRES_IMU": MavlinkConverter._imu,
-    "ATTITUDE": lambda self, m, k, t: attitude_from_attitude(m, t),
+    "ATTITUDE": MavlinkConverter._attitude,
     "SCALED_PRESSURE": MavlinkConverter._pressure,
     "SCALED_PRESSURE2": MavlinkConverter._pressure,
     "SCALED_PRESSURE3": MavlinkConverter._pressure,

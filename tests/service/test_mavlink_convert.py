@@ -221,3 +221,38 @@ def test_odometry_from_the_filter_nav_state():
     f = odometry_fields(s)
     assert (f["x"], f["vx"], f["reset_counter"], f["quality"]) == (1.0, 0.5, 7, 100)
     assert f["pose_covariance"][15] == pytest.approx(0.04)  # roll variance from the ATT block
+
+
+def test_attitude_waits_for_the_autopilots_word_that_its_yaw_is_aligned():
+    """ArduSub sends ATTITUDE with yaw 0 while its EKF3 starts (EKF_STATUS_REPORT flags 1024,
+    then 0) and the aligned yaw once "initial yaw alignment complete" (flags 167): ATTITUDE is
+    passed on only while the autopilot does not say its attitude is unaligned."""
+    c = converter()
+
+    def att(ms, yaw):
+        return c.convert(wire("attitude_encode", ms, 0.0, 0.0, yaw, 0.0, 0.0, 0.0))
+
+    def ekf(flags):
+        c.convert(wire("ekf_status_report_encode", flags, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def text(t):
+        c.convert(wire("statustext_encode", 6, t.encode()))
+
+    assert len(att(1000, 3.0)) == 1  # nothing said yet: the settle test in the filter decides
+    ekf(mavlink2.EKF_UNINITIALIZED)
+    assert att(1100, 0.0) == []
+    ekf(0)
+    assert att(1200, 0.0) == []
+    text("EKF3 IMU0 MAG0 initial yaw alignment complete")
+    assert len(att(1300, 1.2)) == 1
+    ekf(167)
+    assert len(att(1400, 1.2)) == 1
+    text("EKF3 IMU0 initialised")  # an EKF restart (forced reset): yaw 0 again until aligned
+    assert att(1500, 0.0) == []
+    assert c.rejected["attitude_not_aligned"] == 3
+    acct = c.accounting()
+    assert acct["EKF_STATUS_REPORT"]["status"] == "ignored" and "ATTITUDE" in acct["EKF_STATUS_REPORT"]["why"]
+    # a ground station's texts are not the autopilot's word
+    text_gcs = wire("statustext_encode", 6, b"EKF3 IMU0 MAG0 initial yaw alignment complete", src=(255, 190))
+    c.convert(text_gcs)
+    assert att(1600, 0.0) == []
