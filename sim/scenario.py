@@ -203,6 +203,7 @@ class DvlConfig:
 
     enabled: bool = False
     rate_hz: float = 5.0
+    start_s: float = 0.0                # first ping (a DVL's own clock: pings need not fall on motion steps)
     beam_angle_deg: float = 30.0        # Janus beams, from the head's z axis
     beam_sigma_m_s: float = 0.005       # white noise per beam and ping
     scale_factor_error: float = 0.003   # all beams × (1 + this): sound-speed error

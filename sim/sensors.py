@@ -179,7 +179,7 @@ def dvl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[DvlSa
     cfg = scenario.dvl
     if not cfg.enabled:
         return []
-    t = sample_times(cfg.rate_hz, scenario.duration_s)
+    t = sample_times(cfg.rate_hz, scenario.duration_s, cfg.start_s)
     n = len(t)
     rot_nb = truth.rotation(t)
     vel_n = truth.vel(t)

@@ -185,6 +185,9 @@ class ConvertConfig:
     dvl_confidence_fom_max_m_s: float = 0.4
     dvl_min_confidence: float = 1.0  # below: no bottom lock (valid = False)
     dvl_max_angle_delta_rad: float = 0.35  # rotation within one delta above which it is rejected
+    # "ping": BlueOS's DVL driver (delta = the ping's velocity × dt, current frame, valid at the
+    # message); "mean": displacement over the interval in the frame at its start (mid-interval)
+    dvl_delta: Literal["ping", "mean"] = "ping"
     dvl_max_interval_s: float = 5.0
     vision_speed_frame: Literal["body", "ned"] = "body"  # BlueOS sends the DVL's body-frame velocity
     vision_position_sigma_m: float = 2.0  # GLOBAL_VISION_POSITION_ESTIMATE without a covariance
@@ -510,9 +513,16 @@ def usbl_from_gps_input(msg: Any, t_s: float, cfg: ConvertConfig) -> UsblSample:
 def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig) -> DvlSample:
     """VISION_POSITION_DELTA (a DVL driver's displacement over ``time_delta_usec``) → DvlSample.
 
-    The delta is in the body frame at the *start* of the interval (MAVLink: "FRD frame of the
-    previous time step"); the mean velocity is rotated by half the interval's rotation
-    ``angle_delta`` into the body frame at mid-interval, the time of validity of a mean.
+    ``dvl_delta = "ping"`` (default): the Water Linked DVL driver of BlueOS sends
+    ``position_delta = v·dt`` with ``v`` the DVL's velocity at its latest ping, in the current
+    body frame, and ``dt`` the time since the DVL's previous report — so ``delta/dt`` is that
+    velocity, valid when the message was stamped (or received), not rotated.  ``"mean"``: a
+    driver that integrates over the interval in the body frame at its *start*: the mean
+    velocity is rotated by half the interval's rotation ``angle_delta`` into the body frame at
+    mid-interval, the time of validity of a mean.  Taking a BlueOS delta for a mean puts a
+    1 Hz DVL 0.5 s early and half a turn's angle off: on the navigation-grade AUV class
+    (tests/service/test_auv_navgrade.py, pings off the motion steps) end errors 10.0/5.3/9.5 m
+    instead of 2.2/1.0/2.8 m, heading up to 0.84° off.
     ``confidence`` (0–100 %) → ``valid`` (≥ ``dvl_min_confidence``) and the velocity 1-σ
     ``fom = fom_max·(1 − confidence/100)`` (the BlueOS DVL extension's mapping, inverted).
     A rotation above ``dvl_max_angle_delta_rad`` within one delta is rejected: a mean over
@@ -534,12 +544,15 @@ def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig)
     ang = (ang + math.pi) % (2.0 * math.pi) - math.pi
     if float(np.linalg.norm(ang)) > cfg.dvl_max_angle_delta_rad:
         raise ConversionError("dvl_rotating", f"|angle_delta| = {np.linalg.norm(ang):.3f} rad")
+    sigma = cfg.dvl_confidence_fom_max_m_s * (1.0 - min(max(conf, 0.0), 100.0) / 100.0)
+    sigma = sigma if sigma > 0.0 else math.nan
+    valid = conf >= cfg.dvl_min_confidence
+    if cfg.dvl_delta == "ping":
+        return DvlSample(t_end_s, tuple(float(v) for v in dpos / dt), valid, sigma_m_s=sigma)
     from scipy.spatial.transform import Rotation
 
     vel_mid = Rotation.from_rotvec(0.5 * ang).inv().apply(dpos / dt)
-    sigma = cfg.dvl_confidence_fom_max_m_s * (1.0 - min(max(conf, 0.0), 100.0) / 100.0)
-    return DvlSample(t_end_s - 0.5 * dt, tuple(float(v) for v in vel_mid), conf >= cfg.dvl_min_confidence,
-                     sigma_m_s=sigma if sigma > 0.0 else math.nan)
+    return DvlSample(t_end_s - 0.5 * dt, tuple(float(v) for v in vel_mid), valid, sigma_m_s=sigma)
 
 
 def dvl_from_vision_speed(msg: Any, t_s: float, cfg: ConvertConfig, R_nb: np.ndarray | None = None) -> DvlSample:

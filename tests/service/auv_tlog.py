@@ -92,7 +92,7 @@ def _scenario(v: AuvLog, rng: np.random.Generator):
         f"origin.lat_deg={v.lat_deg}", f"origin.lon_deg={v.lon_deg}",
         "imu.grade=\"navigation\"", "imu.rate_hz=100.0", "heading.enabled=false", "usbl.enabled=false",
         "gnss.fix_times_s=[]", "depth.rate_hz=5.0", "truth.rate_hz=10.0",
-        "dvl.enabled=true", "dvl.rate_hz=1.0", f"dvl.scale_factor_error={scale}",
+        "dvl.enabled=true", "dvl.rate_hz=1.0", "dvl.start_s=0.37", f"dvl.scale_factor_error={scale}",
         f"dvl.misalignment_rpy_deg=[{mis[0]}, {mis[1]}, {mis[2]}]", "dvl.outlier_prob=0.005",
         "dvl.dropout_prob=0.02",
     ])

@@ -92,7 +92,8 @@ def test_dvl_from_a_companion_system_255_as_vision_position_delta(tmp_path):
     s.emit(9.0, "vision_position_delta_encode", 0, 400_000, [0.0, 0.0, 0.5], [0.4, 0.0, 0.0], 100.0,
            src=(255, 0))  # spun 29° within one delta: rejected, not averaged
     s.emit(9.1, "vision_position_delta_encode", 0, 400_000, [0, 0, 0], [0.4, 0, 0], 100.0, src=(254, 1))
-    src, samples = read(s.write(tmp_path / "dvl.tlog"))
+    log = s.write(tmp_path / "dvl.tlog")
+    src, samples = read(log, dvl_delta="mean")
     dvl = [x for x in samples if x.KIND == "dvl"]
     assert len(dvl) == 25
     good = [d for d in dvl if d.valid]
@@ -107,6 +108,10 @@ def test_dvl_from_a_companion_system_255_as_vision_position_delta(tmp_path):
     assert src.counters["rejected"]["dvl_rotating"] == 1
     assert src.counters["rejected"]["other_system"] == 1  # system 254 is not configured
     assert src.counters["message_types"]["VISION_POSITION_DELTA"]["status"] == "used"
+    # BlueOS's driver (the default): delta/dt is the ping's velocity in the current frame, at the message
+    _, samples = read(log)
+    ping = [x for x in samples if x.KIND == "dvl" and x.valid][0]
+    assert ping.vel_d_m_s == pytest.approx((1.0, -0.2, 0.0)) and ping.t_s == pytest.approx(5.0, abs=0.01)
 
 
 def test_dvl_confidence_maps_to_sigma_like_blueos():
