@@ -198,8 +198,9 @@ class Estimator:
         self._hist: list[tuple[str, object, _Snapshot]] = []
         self._replaying = False
         self._restored = False
-        # the last position of an earlier run (restore_slow_states): (t_s, pos_n (3), var (3))
-        self._saved_pos: tuple[float, np.ndarray, np.ndarray] | None = None
+        # the last position of an earlier run (restore_slow_states): (t_s, pos_n (3), var (3),
+        # time known to have passed since, s)
+        self._saved_pos: tuple[float, np.ndarray, np.ndarray, float] | None = None
         self._speed_cache: dict[float, float] = {}
         self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
         self._t_release = -math.inf  # state time of the latest calibrator release applied
@@ -452,7 +453,10 @@ class Estimator:
             if not (math.isfinite(t) and pos.shape == (3,) and var.shape == (3,)
                     and np.all(np.isfinite(pos)) and np.all(var > 0) and np.all(np.isfinite(var))):
                 raise ValueError("restore_slow_states: bad position")
-            self._saved_pos = (t, pos, var)
+            # the caller may know more time passed than the data clock says (an autopilot
+            # rebooted meanwhile restarts its boot clock): the σ grows with the longer
+            passed = float(d.get("pos_min_elapsed_s") or 0.0)
+            self._saved_pos = (t, pos, var, passed if math.isfinite(passed) and passed > 0 else 0.0)
 
     def process(self, sample) -> list[AidStatus]:
         """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch).
@@ -809,7 +813,8 @@ class Estimator:
         """Initial position and its horizontal and vertical σ at state time ``t_s``: the latest
         fix; else the position an earlier run persisted (a restart), its σ grown by what the
         vehicle can have moved since — ``position_reset_max_speed_m_s`` × elapsed time taken as
-        the 3σ bound — (only on the same clock: 0 ≤ elapsed ≤ 1 h); else the origin (σ
+        the 3σ bound, elapsed the longer of the data clock's and ``pos_min_elapsed_s`` — (only
+        on the same clock, data time not gone back, and within 1 h); else the origin (σ
         ``initial.sigma_pos_m``). Depth from the latest pressure."""
         pos = np.zeros(3)
         sigma_h = self.config.initial.sigma_pos_m
@@ -817,8 +822,8 @@ class Estimator:
         saved = self._saved_pos
         if self._pending_fix is not None:
             pos[:2], sigma_h = self._pending_fix
-        elif saved is not None and 0.0 <= t_s - saved[0] <= 3600.0:
-            moved = self.config.position_reset_max_speed_m_s * (t_s - saved[0]) / 3.0
+        elif saved is not None and 0.0 <= t_s - saved[0] and max(t_s - saved[0], saved[3]) <= 3600.0:
+            moved = self.config.position_reset_max_speed_m_s * max(t_s - saved[0], saved[3]) / 3.0
             pos[:] = saved[1]
             sigma_h = math.sqrt(float(max(saved[2][0], saved[2][1])) + moved**2)
             sigma_d = math.sqrt(float(saved[2][2]) + moved**2)

@@ -301,6 +301,12 @@ class Daemon:
                 restored = dataclasses.replace(restored, slow_states={})
         if restored is not None and restored.params is not None:
             self.params = restored.params
+        if restored is not None and restored.slow_states.get("pos_saved_unix_s") is not None:
+            # the wall time since the position was saved: at least that long the vehicle may
+            # have moved (the autopilot's clock may have restarted meanwhile)
+            slow = dict(restored.slow_states)
+            slow["pos_min_elapsed_s"] = max(0.0, time.time() - float(slow["pos_saved_unix_s"]))
+            restored = dataclasses.replace(restored, slow_states=slow)
         est = make_estimator(self.cfg, self.params)
         if restored is not None:
             try:
@@ -394,10 +400,17 @@ class Daemon:
         """In the runner thread: copy what persistence needs."""
         self._snapshot_due.clear()
         try:
-            self._snapshot = (t_s, self.params, self.estimator.slow_states())
+            self._snapshot = (t_s, self.params, self._slow_states())
         except Exception:
             log.exception("slow_states() failed; persisting params only")
             self._snapshot = (t_s, self.params, {})
+
+    def _slow_states(self) -> dict:
+        """The estimator's slow states; a position in them is stamped with the wall time."""
+        slow = self.estimator.slow_states()
+        if "pos_n_m" in slow:
+            slow["pos_saved_unix_s"] = time.time()
+        return slow
 
     def _persist(self) -> None:
         snap = self._snapshot
@@ -550,7 +563,7 @@ class Daemon:
         # the runner has ended: the estimator is ours to read
         try:
             t_s = self.estimator.nav_state().t_s if self.estimator.initialized else math.nan
-            self._snapshot = (t_s if math.isfinite(t_s) else 0.0, self.params, self.estimator.slow_states())
+            self._snapshot = (t_s if math.isfinite(t_s) else 0.0, self.params, self._slow_states())
         except Exception:
             log.exception("final snapshot failed")
             self._snapshot = (0.0, self.params, {})

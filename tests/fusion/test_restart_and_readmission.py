@@ -108,6 +108,13 @@ def test_a_restart_is_seeded_from_the_persisted_position_with_sigma_grown_by_the
     assert abs(r.pos_n_m[0] - truth_n) <= 3.0 * sigma_h
     assert r.pos_n_m[0] == pytest.approx(saved["pos_n_m"][0], abs=1.0)
     assert r.pos_n_m[2] == pytest.approx(4.0, abs=0.2)
+    # AND when more time is known to have passed than the data clock says (the daemon's wall
+    # clock: the autopilot may have rebooted meanwhile), σ grows with that
+    longer = _est(cfg)
+    longer.restore_slow_states({**saved, "pos_min_elapsed_s": 300.0})
+    _drive(longer, 60.0, 64.0, lambda t: 0.0, depth_m=4.0)
+    g = longer.nav_state()
+    assert math.sqrt(max(g.cov[0, 0], g.cov[1, 1])) >= cfg.position_reset_max_speed_m_s * 300.0 / 3.0
     # AND a persisted state from another clock (the autopilot rebooted: time went back) is
     # not used: the position starts at the origin with the initial σ
     other = _est(cfg)
