@@ -479,9 +479,7 @@ class Estimator:
 
     def _state_ok(self) -> bool:
         """Nominal state and covariance finite, every variance positive, speed physical."""
-        return bool(np.isfinite(self._x).all() and np.isfinite(self._P).all()
-                    and (np.diagonal(self._P) > 0.0).all() and math.isfinite(self._clock[0])
-                    and (np.abs(self._x[X_VEL]) < _MAX_SPEED_M_S).all())
+        return bool(sd.core_ok(self._core, _MAX_SPEED_M_S))
 
     def _keep_good(self) -> None:
         """Remember the current state as the last good one (once per data second)."""

@@ -47,6 +47,14 @@ import numpy as np
 from adaptnav.kernels import jit
 
 from .frames import GRAVITY_M_S2
+from .state import ATT, BA, BG, N_ERR, N_NOM, POS, VEL, X_BA, X_BG, X_POS, X_Q, X_VEL
+
+# first indices of the state blocks (adaptnav.fusion.state), as plain ints: numba takes
+# module-level ints as compile-time constants, so ``x[_X_VEL + 1]`` costs what ``x[4]`` does
+_X_POS, _X_VEL, _X_Q, _X_BA, _X_BG = X_POS.start, X_VEL.start, X_Q.start, X_BA.start, X_BG.start
+_E_POS, _E_VEL, _E_ATT, _E_BA, _E_BG = POS.start, VEL.start, ATT.start, BA.start, BG.start
+# the slow states follow the attitude in both vectors: error index i is nominal i + 1
+_SLOW_SHIFT = _X_BA - _E_BA
 
 ACC_SIZE = 24
 # named parts of ``acc`` for Python callers (the kernels index it with literals)
@@ -94,13 +102,13 @@ def _dcm(q0, q1, q2, q3, R):
 @jit(cache=True)
 def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     """Advance the nominal state ``x`` by one IMU sample held over ``dt`` seconds."""
-    wx = w_b[0] - x[13]
-    wy = w_b[1] - x[14]
-    wz = w_b[2] - x[15]
-    fx = f_b[0] - x[10]
-    fy = f_b[1] - x[11]
-    fz = f_b[2] - x[12]
-    q0, q1, q2, q3 = x[6], x[7], x[8], x[9]
+    wx = w_b[0] - x[_X_BG]
+    wy = w_b[1] - x[_X_BG + 1]
+    wz = w_b[2] - x[_X_BG + 2]
+    fx = f_b[0] - x[_X_BA]
+    fy = f_b[1] - x[_X_BA + 1]
+    fz = f_b[2] - x[_X_BA + 2]
+    q0, q1, q2, q3 = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
     _dcm(q0, q1, q2, q3, R0)
     # q ← q ⊗ q(ω̂ δt), exact rotation-vector quaternion
     rx, ry, rz = wx * dt, wy * dt, wz * dt
@@ -132,7 +140,7 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     n1 *= inv
     n2 *= inv
     n3 *= inv
-    x[6], x[7], x[8], x[9] = n0, n1, n2, n3
+    x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3] = n0, n1, n2, n3
     _dcm(n0, n1, n2, n3, R1)
     ax = 0.0
     ay = 0.0
@@ -156,19 +164,20 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     if ex != 0.0 or ey != 0.0 or ez != 0.0:
         # the plumb line turns with the position: g_n(p) = γ (−p_N/R, −p_E/R, 1 + 2 p_D/R)
         gr = acc[23]
-        ax -= gr * x[0]
-        ay -= gr * x[1]
-        az += 2.0 * gr * x[2]
+        ax -= gr * x[_X_POS]
+        ay -= gr * x[_X_POS + 1]
+        az += 2.0 * gr * x[_X_POS + 2]
         # Coriolis −2 ω_ie × v
-        ax -= 2.0 * (ey * x[5] - ez * x[4])
-        ay -= 2.0 * (ez * x[3] - ex * x[5])
-        az -= 2.0 * (ex * x[4] - ey * x[3])
-    x[0] += x[3] * dt + 0.5 * ax * dt * dt
-    x[1] += x[4] * dt + 0.5 * ay * dt * dt
-    x[2] += x[5] * dt + 0.5 * az * dt * dt
-    x[3] += ax * dt
-    x[4] += ay * dt
-    x[5] += az * dt
+        vn, ve, vd = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]
+        ax -= 2.0 * (ey * vd - ez * ve)
+        ay -= 2.0 * (ez * vn - ex * vd)
+        az -= 2.0 * (ex * ve - ey * vn)
+    x[_X_POS] += x[_X_VEL] * dt + 0.5 * ax * dt * dt
+    x[_X_POS + 1] += x[_X_VEL + 1] * dt + 0.5 * ay * dt * dt
+    x[_X_POS + 2] += x[_X_VEL + 2] * dt + 0.5 * az * dt * dt
+    x[_X_VEL] += ax * dt
+    x[_X_VEL + 1] += ay * dt
+    x[_X_VEL + 2] += az * dt
     acc[12] += dt
     acc[13] = wx
     acc[14] = wy
@@ -181,44 +190,45 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
 @jit(cache=True)
 def transition(acc, T):
     """Φ (18×18) over the accumulated step of length ``T`` (see module docstring)."""
-    F = np.zeros((18, 18))
+    F = np.zeros((N_ERR, N_ERR))
     a0 = acc[0] / T
     a1 = acc[1] / T
     a2 = acc[2] / T
+    v, th = _E_VEL, _E_ATT
     for i in range(3):
-        F[i, 3 + i] = 1.0
-    # −[a]×
-    F[3, 7] = a2
-    F[3, 8] = -a1
-    F[4, 6] = -a2
-    F[4, 8] = a0
-    F[5, 6] = a1
-    F[5, 7] = -a0
+        F[_E_POS + i, v + i] = 1.0
+    # δv̇ = −[a]× δθ
+    F[v, th + 1] = a2
+    F[v, th + 2] = -a1
+    F[v + 1, th] = -a2
+    F[v + 1, th + 2] = a0
+    F[v + 2, th] = a1
+    F[v + 2, th + 1] = -a0
     for i in range(3):
         for j in range(3):
             r = acc[3 + 3 * i + j] / T
-            F[3 + i, 9 + j] = -r
-            F[6 + i, 12 + j] = -r
+            F[v + i, _E_BA + j] = -r
+            F[th + i, _E_BG + j] = -r
     # earth rotation: δv̇ += −2[ω_ie]× δv, δθ̇ += −[ω_ie]× δθ
     ex, ey, ez = acc[19], acc[20], acc[21]
-    F[3, 4] += 2.0 * ez
-    F[3, 5] -= 2.0 * ey
-    F[4, 3] -= 2.0 * ez
-    F[4, 5] += 2.0 * ex
-    F[5, 3] += 2.0 * ey
-    F[5, 4] -= 2.0 * ex
-    F[6, 7] += ez
-    F[6, 8] -= ey
-    F[7, 6] -= ez
-    F[7, 8] += ex
-    F[8, 6] += ey
-    F[8, 7] -= ex
+    F[v, v + 1] += 2.0 * ez
+    F[v, v + 2] -= 2.0 * ey
+    F[v + 1, v] -= 2.0 * ez
+    F[v + 1, v + 2] += 2.0 * ex
+    F[v + 2, v] += 2.0 * ey
+    F[v + 2, v + 1] -= 2.0 * ex
+    F[th, th + 1] += ez
+    F[th, th + 2] -= ey
+    F[th + 1, th] -= ez
+    F[th + 1, th + 2] += ex
+    F[th + 2, th] += ey
+    F[th + 2, th + 1] -= ex
     # gravity gradient (the Schuler loop): δv̇ += (γ/R) diag(−1, −1, 2) δp
-    F[3, 0] -= acc[23]
-    F[4, 1] -= acc[23]
-    F[5, 2] += 2.0 * acc[23]
+    F[v, _E_POS] -= acc[23]
+    F[v + 1, _E_POS + 1] -= acc[23]
+    F[v + 2, _E_POS + 2] += 2.0 * acc[23]
     FT = F * T
-    Phi = np.eye(18) + FT + 0.5 * (FT @ FT)
+    Phi = np.eye(N_ERR) + FT + 0.5 * (FT @ FT)
     return Phi
 
 
@@ -230,10 +240,10 @@ def propagated_covariance(P, acc, qdiag):
         return P.copy()
     Phi = transition(acc, T)
     Pm = P.copy()
-    for i in range(18):
+    for i in range(N_ERR):
         Pm[i, i] += 0.5 * qdiag[i] * T
     Pn = Phi @ Pm @ Phi.T
-    for i in range(18):
+    for i in range(N_ERR):
         Pn[i, i] += 0.5 * qdiag[i] * T
     return 0.5 * (Pn + Pn.T)
 
@@ -248,19 +258,44 @@ def flush_covariance(P, acc, clock, qdiag):
     clock[1] = clock[0]
 
 
-N_X = 19
-N_P = 18 * 18
+N_X = N_NOM
+N_P = N_ERR * N_ERR
 CORE_SIZE = N_X + N_P + ACC_SIZE + 2
+_CORE_ACC = N_X + N_P          # where acc starts in the core array
+_CORE_CLOCK = _CORE_ACC + ACC_SIZE
 
 
 @jit(cache=True)
 def core_views(core):
     """(x, P, acc, clock) views of the contiguous core array."""
-    x = core[0:19]
-    P = core[19:343].reshape((18, 18))
-    acc = core[343:367]  # 343 + ACC_SIZE
-    clock = core[367:369]
+    x = core[0:N_X]
+    P = core[N_X:_CORE_ACC].reshape((N_ERR, N_ERR))
+    acc = core[_CORE_ACC:_CORE_CLOCK]
+    clock = core[_CORE_CLOCK:CORE_SIZE]
     return x, P, acc, clock
+
+
+@jit(cache=True)
+def core_ok(core, max_speed_m_s):
+    """Nominal state and covariance finite, every variance positive, state time finite
+    and every velocity component below ``max_speed_m_s`` — the estimator's guard after
+    every sample, one pass instead of five numpy reductions (~30 µs, 10 % of a replay)."""
+    x, P, acc, clock = core_views(core)
+    for i in range(N_X):
+        if not np.isfinite(x[i]):
+            return False
+    for i in range(N_ERR):
+        if not P[i, i] > 0.0:
+            return False
+        for j in range(N_ERR):
+            if not np.isfinite(P[i, j]):
+                return False
+    if not np.isfinite(clock[0]):
+        return False
+    for i in range(3):
+        if not abs(x[_X_VEL + i]) < max_speed_m_s:
+            return False
+    return True
 
 
 @jit(cache=True)
@@ -291,9 +326,10 @@ def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
 @jit(cache=True)
 def inject_error(x, dx, P):
     """x ← x ⊕ δx and the ESKF covariance reset ``P ← G P Gᵀ``."""
-    for i in range(6):
-        x[i] += dx[i]
-    rx, ry, rz = dx[6], dx[7], dx[8]
+    for i in range(3):
+        x[_X_POS + i] += dx[_E_POS + i]
+        x[_X_VEL + i] += dx[_E_VEL + i]
+    rx, ry, rz = dx[_E_ATT], dx[_E_ATT + 1], dx[_E_ATT + 2]
     ang = np.sqrt(rx * rx + ry * ry + rz * rz)
     if ang < 1e-6:
         k = 0.5 - ang * ang / 48.0
@@ -302,7 +338,7 @@ def inject_error(x, dx, P):
         k = np.sin(0.5 * ang) / ang
         c = np.cos(0.5 * ang)
     d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
-    q0, q1, q2, q3 = x[6], x[7], x[8], x[9]
+    q0, q1, q2, q3 = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
     # q ← q(δθ) ⊗ q (global perturbation)
     n0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
     n1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
@@ -311,18 +347,19 @@ def inject_error(x, dx, P):
     inv = 1.0 / np.sqrt(n0 * n0 + n1 * n1 + n2 * n2 + n3 * n3)
     if n0 < 0.0:
         inv = -inv
-    x[6], x[7], x[8], x[9] = n0 * inv, n1 * inv, n2 * inv, n3 * inv
-    for i in range(9, 18):
-        x[i + 1] += dx[i]
+    x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3] = n0 * inv, n1 * inv, n2 * inv, n3 * inv
+    for i in range(_E_BA, N_ERR):  # biases, current, k_speed
+        x[i + _SLOW_SHIFT] += dx[i]
     # reset Jacobian for the global attitude error: G_θθ = I + ½[δθ]× (Solà 2017 §7.2 for
     # the local error has the opposite sign)
-    G = np.eye(18)
-    G[6, 7] = -0.5 * rz
-    G[6, 8] = 0.5 * ry
-    G[7, 6] = 0.5 * rz
-    G[7, 8] = -0.5 * rx
-    G[8, 6] = -0.5 * ry
-    G[8, 7] = 0.5 * rx
+    G = np.eye(N_ERR)
+    th = _E_ATT
+    G[th, th + 1] = -0.5 * rz
+    G[th, th + 2] = 0.5 * ry
+    G[th + 1, th] = 0.5 * rz
+    G[th + 1, th + 2] = -0.5 * rx
+    G[th + 2, th] = -0.5 * ry
+    G[th + 2, th + 1] = 0.5 * rx
     P[:, :] = G @ P @ G.T
 
 
@@ -399,7 +436,7 @@ def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
 def dcm_of(x):
     """``R_nb`` (3×3) of the nominal state ``x``."""
     R = np.empty((3, 3))
-    _dcm(x[6], x[7], x[8], x[9], R)
+    _dcm(x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3], R)
     return R
 
 
