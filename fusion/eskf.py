@@ -1079,16 +1079,10 @@ class Estimator:
         yaw_rate = float(R_nb[2] @ self._acc[sd.ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
-        if cfg.adaptive_window_s > 0 and t - self._t_release >= cfg.adaptive_suspend_after_release_s:
-            if adapt:
-                return self._adapt_surge(meas)
-            scale = min(max((self._lv_r_hat or 0.0) / float(meas.R[0, 0]), 1.0), cfg.adaptive_max_scale)
-            R = meas.R.copy()
-            R[0, 0] *= scale
-            return meas._replace(R=R)
-        if adapt and cfg.adaptive_window_s > 0:
-            self._adapt_surge(meas)  # the estimate is kept current either way
-        return meas
+        if cfg.adaptive_window_s <= 0:
+            return meas
+        adapted = self._adapt_surge(meas, update=adapt)  # the estimate is kept current either way
+        return adapted if t - self._t_release >= cfg.adaptive_suspend_after_release_s else meas
 
     def _doubt_motion_model(self, meas: Measurement) -> None:
         """The learned velocity was rejected for ``reset.velocity_after_s``: before the
@@ -1104,23 +1098,27 @@ class Estimator:
         k = KS.start
         self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
 
-    def _adapt_surge(self, meas: Measurement) -> Measurement:
-        """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``.
+    def _adapt_surge(self, meas: Measurement, update: bool = True) -> Measurement:
+        """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``
+        (``update``: this epoch's innovation joins the estimate first).
 
         Gated innovations count too: after a change of water every surge innovation may
         exceed the gate, and those are exactly the ones that say the model is too tight.
         """
         cfg = self.config.learned_velocity
-        P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
-        h = meas.H[0]
-        hph = float(h @ P @ h)
-        y0 = float(meas.z[0] - meas.h[0])
         r_model = float(meas.R[0, 0])
-        if not (math.isfinite(y0) and math.isfinite(hph)):
+        if update:
+            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+            h = meas.H[0]
+            hph = float(h @ P @ h)
+            y0 = float(meas.z[0] - meas.h[0])
+            if not (math.isfinite(y0) and math.isfinite(hph)):
+                return meas
+            alpha = min(1.0, self._lv_period / cfg.adaptive_window_s)
+            sample = min(y0 * y0 - hph, 100.0 * r_model * cfg.adaptive_max_scale)
+            self._lv_r_hat = sample if self._lv_r_hat is None else (1 - alpha) * self._lv_r_hat + alpha * sample
+        if self._lv_r_hat is None:
             return meas
-        alpha = min(1.0, self._lv_period / cfg.adaptive_window_s)
-        sample = min(y0 * y0 - hph, 100.0 * r_model * cfg.adaptive_max_scale)
-        self._lv_r_hat = sample if self._lv_r_hat is None else (1 - alpha) * self._lv_r_hat + alpha * sample
         scale = min(max(self._lv_r_hat / r_model, 1.0), cfg.adaptive_max_scale)
         if scale == 1.0:
             return meas
