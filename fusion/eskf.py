@@ -58,7 +58,7 @@ from .aiding import loop_closure as aid_loop
 from .aiding.common import Measurement
 from .alignment import Aligner
 from .config import FilterConfig
-from .frames import GeoOrigin, euler_to_quat, wrap_angle
+from .frames import GeoOrigin, euler_to_quat, quat_from_rotvec, quat_mul, wrap_angle
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
@@ -873,6 +873,8 @@ class Estimator:
             self._P[SLOW, SLOW] = P_keep[SLOW, SLOW]
         self._acc[:] = 0.0
         sd.set_earth(self._acc, self.origin.lat_rad if self.imu_model.earth_rotation else None)
+        # levelled on the local plumb line: in the tangent plane of the origin that leans by p/R
+        self._x[X_Q] = quat_mul(quat_from_rotvec(sd.plumb_line_rotvec(self._acc, pos)), self._x[X_Q])
         self._clock[:] = self._aligner.t_last_s
         self._mode = "ins"
         self._clones.clear()  # a new alignment: earlier epochs' errors are not this filter's

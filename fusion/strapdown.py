@@ -86,6 +86,22 @@ def set_earth(acc: np.ndarray, lat_rad: float | None) -> None:
         acc[23] = normal_gravity_m_s2(lat_rad) / radius_m
 
 
+def plumb_line_rotvec(acc: np.ndarray, pos_n_m) -> np.ndarray:
+    """Rotation vector (rad) from the local level and north at ``pos_n_m`` to the axes of the
+    origin's tangent plane, in which the earth model's gravity ``g_n(p)`` points:
+    ``(p_E/R, −p_N/R, −p_E tan L/R)`` (the plumb line's lean, and the meridians' convergence);
+    zeros when the earth model is off.  An attitude levelled on the accelerometers at ``p``
+    with a heading from local north is ``Exp(φ) R_nb`` in the mechanisation's frame (else a
+    Schuler oscillation of amplitude ≈ |p|, and a misprojected earth rate)."""
+    g_over_r = float(acc[23])
+    if g_over_r == 0.0:
+        return np.zeros(3)
+    inv_r = g_over_r / (GRAVITY_M_S2 + float(acc[22]))
+    tan_lat = -float(acc[21]) / float(acc[19])
+    p_n, p_e = float(pos_n_m[0]), float(pos_n_m[1])
+    return np.array([p_e * inv_r, -p_n * inv_r, -p_e * tan_lat * inv_r])
+
+
 @jit(cache=True, fastmath=False)
 def _dcm(q0, q1, q2, q3, R):
     R[0, 0] = 1 - 2 * (q2 * q2 + q3 * q3)
