@@ -245,7 +245,10 @@ class Estimator:
             cov = self._P.copy()
         self._add_considered(cov)
         sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
-        valid = self._mode == "ins" and not self.invalid_reasons(sigma_h) and bool(np.all(np.isfinite(x)))
+        reasons = self.invalid_reasons(sigma_h)
+        if self._mode == "ins" and not reasons and not np.all(np.isfinite(x)):
+            reasons = ["non_finite"]
+        valid = self._mode == "ins" and not reasons
         pos, vel = x[X_POS].copy(), x[X_VEL].copy()
         if self._out_arm is not None:
             # reported at the output point: p + R l, v + R (ω̂ × l), P ← J P Jᵀ (J[POS, ATT] = −[R l]×)
@@ -260,7 +263,7 @@ class Estimator:
             t_s=float(self._clock[0]), pos_n_m=pos, vel_n_m_s=vel,
             q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
             current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
-            reset_counter=self._reset_counter)
+            reset_counter=self._reset_counter, invalid_reasons=tuple(reasons))
 
     def _add_considered(self, cov: np.ndarray) -> None:
         """The published covariance (in place) gains what the filter treats as known but is

@@ -78,8 +78,9 @@ class NavState:
     ``cov`` is the 18×18 error-state covariance in the order of the slices above
     (attitude error in the navigation frame, rad). ``valid`` is False while the filter
     is not initialised, runs without IMU (AHRS mode) or its horizontal σ is too large
-    to be used for navigation. ``reset_counter`` increments on every discontinuity
-    (alignment, IMU gap), for MAVLink ODOMETRY.
+    to be used for navigation; ``invalid_reasons`` says why (empty when valid; the names of
+    :meth:`adaptnav.fusion.eskf.Estimator.invalid_reasons`). ``reset_counter`` increments
+    on every discontinuity (alignment, IMU gap), for MAVLink ODOMETRY.
     """
 
     t_s: float
@@ -93,6 +94,7 @@ class NavState:
     cov: np.ndarray
     valid: bool
     reset_counter: int
+    invalid_reasons: tuple[str, ...] = ()
 
     def euler_rad(self) -> tuple[float, float, float]:
         """(roll, pitch, yaw) in rad, ZYX convention."""
@@ -125,4 +127,5 @@ class NavState:
             "cov": arr(self.cov),
             "valid": bool(self.valid),
             "reset_counter": int(self.reset_counter),
+            "invalid_reasons": list(self.invalid_reasons),
         }

@@ -55,10 +55,13 @@ class LifecycleLog(Sink):
                  t, float(p[2]), sigma_h, t_s=t)
         if state.valid != self._valid:
             if self._valid is not None or state.valid:
+                reasons = list(getattr(state, "invalid_reasons", ()) or ())
+                why = f"; why: {', '.join(reasons)}" if reasons else ""
                 emit("solution_valid" if state.valid else "solution_invalid",
-                     "solution %s at data time %.2f s (σ horizontal %.1f m)",
-                     "valid" if state.valid else "INVALID", t, sigma_h,
-                     level=logging.INFO if state.valid else self._warn, t_s=t, sigma_h_m=sigma_h)
+                     "solution %s at data time %.2f s (σ horizontal %.1f m%s)",
+                     "valid" if state.valid else "INVALID", t, sigma_h, why,
+                     level=logging.INFO if state.valid else self._warn, t_s=t, sigma_h_m=sigma_h,
+                     invalid_reasons=reasons)
             self._valid = bool(state.valid)
         rc = int(state.reset_counter)
         if self._reset_counter is not None and rc != self._reset_counter:

@@ -79,7 +79,8 @@ def nav_state_from_dict(doc: dict) -> Any:
                     q_nb=arr("q_nb"), bias_acc_b_m_s2=arr("bias_acc_b_m_s2"),
                     bias_gyro_b_rad_s=arr("bias_gyro_b_rad_s"), current_n_m_s=arr("current_n_m_s"),
                     k_speed=float(doc["k_speed"]), cov=arr("cov", (18, 18)), valid=bool(doc["valid"]),
-                    reset_counter=int(doc["reset_counter"]))
+                    reset_counter=int(doc["reset_counter"]),
+                    invalid_reasons=tuple(doc.get("invalid_reasons", ())))
 
 
 class _Collector:

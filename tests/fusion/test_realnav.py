@@ -178,7 +178,10 @@ def test_solution_invalid_when_an_aid_says_the_covariance_lies():
         return [DepthSample(t, ATM_PA + RHO * GRAVITY_M_S2 * d + rng.normal(0, 50.0))]
 
     _interleave(est, 30.0, att=lambda t: 0.0, extra=depth)
-    assert not est.nav_state().valid and "nis:depth" in est.invalid_reasons()
+    state = est.nav_state()
+    assert not state.valid and "nis:depth" in est.invalid_reasons()
+    # the published state says why (bus payload, lifecycle log)
+    assert "nis:depth" in state.invalid_reasons and "nis:depth" in state.to_dict()["invalid_reasons"]
 
 
 def test_zero_velocity_updates_on_deck_hold_the_position():
