@@ -163,12 +163,16 @@ def plot_params(rec: Any, path: Any, title: str = "", fmt: str | None = None) ->
     return True
 
 
-def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
+def innovations_figure(rec: Any, max_points: int = 20000, width_in: float = 10.0) -> Any:
+    """One panel per aid source: fused normalised innovations ν/√S per component, the
+    rejected ones as their largest |ν/√S|, ±3 marked; None without aid statuses.
+    ``max_points`` per panel (dense sources are decimated)."""
     if not rec.aid_rows:
-        return False
+        return None
     plt = headless_pyplot()
     sources = sorted({r[1] for r in rec.aid_rows})
-    fig, axes = plt.subplots(len(sources), 1, figsize=(10, 1.9 * len(sources) + 1), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(sources), 1, figsize=(width_in, 1.8 * len(sources) + 0.9), sharex=True,
+                             squeeze=False)
     t0 = rec.nav_t[0] if rec.nav_t else rec.aid_rows[0][0]
     for ax, src in zip(axes[:, 0], sources):
         rows = [r for r in rec.aid_rows if r[1] == src]
@@ -178,17 +182,23 @@ def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
         nu = np.full((len(rows), width), np.nan)
         for i, r in enumerate(rows):
             nu[i, :len(r[4])] = r[4]
-        # decimate dense sources: a plot needs no more than ~20k points per panel
-        step = max(1, len(rows) // 20000)
+        step = max(1, len(rows) // max_points)
         for j, name in enumerate(component_names(src, width)):
             ax.plot(t[fused][::step], nu[fused, j][::step], ".", ms=1.5, label=f"{name} fused")
         if np.any(~fused):
             ax.plot(t[~fused], np.nanmax(np.abs(nu[~fused]), axis=1, initial=0.0), "rx", ms=3, label="rejected")
         ax.axhline(3.0, color="k", lw=0.5, ls=":")
         ax.axhline(-3.0, color="k", lw=0.5, ls=":")
-        ax.set_ylabel(f"{src}\nν/√S (–)")
-        ax.legend(loc="upper right", fontsize=7, ncol=4)
-    axes[-1, 0].set_xlabel("time (min)")
+        ax.set_ylabel(f"{src}\nν/√S (–)", fontsize=8)
+        ax.legend(loc="upper right", fontsize=7, ncol=4, markerscale=4)
+    axes[-1, 0].set_xlabel("time since the first state (min)")
+    return fig
+
+
+def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
+    fig = innovations_figure(rec)
+    if fig is None:
+        return False
     fig.suptitle(title or "normalised innovations")
     save_figure(fig, path)
     return True

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from adaptnav.service.tools.plots import headless_pyplot, component_names, error_sigma_series, plot_params
+from adaptnav.service.tools.plots import error_sigma_series, headless_pyplot, plot_params
+from adaptnav.service.tools.plots import innovations_figure as innovations_plot
 
 def _svg(fig: Any) -> str:
     plt = headless_pyplot()
@@ -97,34 +98,9 @@ def error_figure(rec: Any) -> str | None:
 
 
 def innovations_figure(rec: Any) -> str | None:
-    if not rec.aid_rows:
-        return None
-    plt = headless_pyplot()
-    by_source: dict[str, list] = defaultdict(list)
-    for r in rec.aid_rows:
-        by_source[r[1]].append(r)
-    sources = sorted(by_source)
-    fig, axes = plt.subplots(len(sources), 1, figsize=(9, 1.7 * len(sources) + 0.8), sharex=True, squeeze=False)
-    t0 = rec.nav_t[0] if rec.nav_t else rec.aid_rows[0][0]
-    for ax, src in zip(axes[:, 0], sources):
-        rows = by_source[src]
-        width = max(len(r[4]) for r in rows)
-        t = (np.asarray([r[0] for r in rows]) - t0) / 60.0
-        fused = np.asarray([r[2] for r in rows])
-        nu = np.full((len(rows), width), np.nan)
-        for i, r in enumerate(rows):
-            nu[i, :len(r[4])] = r[4]
-        step = max(1, len(rows) // 4000)  # an SVG in a page: a few thousand points per panel
-        for j, name in enumerate(component_names(src, width)):
-            ax.plot(t[fused][::step], nu[fused, j][::step], ".", ms=1.5, label=name)
-        if np.any(~fused):
-            ax.plot(t[~fused], np.nanmax(np.abs(nu[~fused]), axis=1, initial=0.0), "rx", ms=3, label="rejected")
-        ax.axhline(3.0, color="k", lw=0.5, ls=":")
-        ax.axhline(-3.0, color="k", lw=0.5, ls=":")
-        ax.set_ylabel(f"{src}\nν/√S (–)", fontsize=8)
-        ax.legend(loc="upper right", fontsize=7, ncol=4, markerscale=4)
-    axes[-1, 0].set_xlabel("time since the first state (min)")
-    return _svg(fig)
+    # an SVG in a page: a few thousand points per panel
+    fig = innovations_plot(rec, max_points=4000, width_in=9.0)
+    return None if fig is None else _svg(fig)
 
 
 def params_figure(rec: Any) -> str | None:
