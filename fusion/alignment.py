@@ -8,12 +8,29 @@ averaged over the last ``n_samples`` IMU samples of an unbroken run (no gap larg
 than ``imu_gap_s``) whose spread is below ``max_acc_std_m_s2`` (otherwise the vehicle
 is not at rest and the window keeps sliding). Heading cannot be observed by a tactical
 IMU's gyros (earth rate ≪ gyro noise), so it comes from the first heading/attitude aid.
+
+:class:`Alignment` is what the estimator holds before it starts: the samples that came
+before alignment (heading, DVL, position fix, depth) and the state an INS or AHRS-only
+start begins from (:class:`Start`); the estimator only applies it.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
+from typing import NamedTuple
 
 import numpy as np
+
+from . import imu_grades
+from . import strapdown as sd
+from .aiding import AIDS
+from .aiding import depth as aid_depth
+from .aiding.common import dcm
+from .config import FilterConfig
+from .frames import GeoOrigin, euler_to_quat, quat_from_rotvec, quat_mul, wrap_angle
+from .imu_grades import ImuFigures, ResolvedImu
+from .state import (ACC_SIZE, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS_D, POS_NE, VEL, X_Q,
+                    initial_nominal)
 
 
 class Aligner:
@@ -58,3 +75,219 @@ class Aligner:
             return None
         fx, fy, fz = np.mean(self._f, axis=0)
         return math.atan2(-fy, -fz), math.atan2(fx, math.hypot(fy, fz))
+
+
+def initial_covariance(config: FilterConfig, imu: ImuFigures, sigma_pos_h_m: float,
+                       sigma_depth_m: float) -> np.ndarray:
+    """The error-state covariance (18×18) a filter starts from: horizontal and vertical
+    position σ (m) as given, the rest from ``config.initial`` and the IMU's bias σs."""
+    c = config
+    d = np.zeros(N_ERR)
+    d[POS_NE] = sigma_pos_h_m ** 2
+    d[POS_D] = sigma_depth_m ** 2
+    d[VEL] = c.initial.sigma_vel_m_s ** 2
+    d[ATT_TILT] = c.initial.sigma_att_rad ** 2
+    d[ATT_YAW] = c.initial.sigma_yaw_rad ** 2
+    d[BA] = imu.acc_bias_sigma_m_s2 ** 2
+    d[BG] = imu.gyro_bias_sigma_rad_s ** 2
+    d[CUR] = c.initial.sigma_current_m_s ** 2
+    d[KS] = c.initial.sigma_k_speed ** 2
+    return np.diag(d)
+
+
+class Start(NamedTuple):
+    """The state a filter starts from: nominal ``x`` (19,) and covariance ``P`` (18, 18) at
+    ``t_s``; for an INS start also the IMU model decided at rest and the latitude of the
+    earth model (``None``: flat, non-rotating; :func:`adaptnav.fusion.strapdown.set_earth`)."""
+
+    t_s: float
+    x: np.ndarray
+    P: np.ndarray
+    imu_model: ResolvedImu | None = None
+    earth_lat_rad: float | None = None
+
+
+class Alignment:
+    """What the estimator gathers before it starts, and the state it starts from.
+
+    Before alignment every aid sample is kept here (:meth:`observe`): the latest heading
+    (or the autopilot's attitude once its yaw has settled), the latest bottom-locked DVL
+    sample (a moving start), the latest position fix and depth (the initial position);
+    IMU samples fill the levelling window (:meth:`add_imu`). :meth:`ins_start` gives the
+    INS start once the window is at rest and a heading is known; :meth:`ahrs_start` the
+    AHRS-only start when no usable IMU comes. A restart's persisted position
+    (:attr:`saved_pos`) is the initial position when no fix came.
+
+    Parameters
+    ----------
+    config : FilterConfig
+    origin : GeoOrigin
+        Mission origin (fixes are geodetic).
+    R_db : numpy.ndarray
+        (3, 3) DVL head → body rotation of the DVL aid's setup (a moving start's velocity).
+    """
+
+    def __init__(self, config: FilterConfig, origin: GeoOrigin, R_db: np.ndarray):
+        self.config = config
+        self.origin = origin
+        self._R_db = R_db
+        self.aligner = self._new_aligner()
+        self.imu_interval_s = math.inf  # latest IMU sample interval seen before INS mode
+        self.yaw_rad: float | None = None
+        self._att_yaw: deque = deque()  # (t_s, yaw) of recent attitude samples
+        self._t_first_att = math.nan
+        self._dvl = None  # latest bottom-locked DVL sample (velocity seed)
+        self._fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
+        # that fix is a radio fix taken before any depth: void once the depth says under water
+        self._fix_gnss = False
+        self._depth_m: float | None = None
+        # (t_s, (north, east) m, σ m) of that fix: where later fixes must be reachable from
+        self.first_fix: tuple[float, tuple[float, float], float] | None = None
+        # the last position of an earlier run (Estimator.restore_slow_states): (t_s, pos_n (3),
+        # var (3), time known to have passed since, s)
+        self.saved_pos: tuple[float, np.ndarray, np.ndarray, float] | None = None
+
+    def _new_aligner(self) -> Aligner:
+        a = self.config.alignment
+        return Aligner(a.n_samples, a.max_acc_std_m_s2, self.config.imu_gap_s)
+
+    def restart_levelling(self) -> None:
+        """An empty levelling window (the filter starts over from scratch)."""
+        self.aligner = self._new_aligner()
+
+    def add_imu(self, t_s: np.ndarray, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray,
+                t_imu_last_s: float) -> None:
+        """Clean IMU samples (N,), (N, 3), (N, 3) into the levelling window; ``t_imu_last_s``
+        the previous sample's time (the interval says whether the IMU is fast enough)."""
+        prev_t = t_imu_last_s if t_s.size == 1 else float(t_s[-2])
+        self.imu_interval_s = float(t_s[-1]) - prev_t
+        self.aligner.add(t_s, f_b_m_s2, w_b_rad_s)
+
+    def carry_over(self, yaw_rad: float, depth_m: float) -> None:
+        """Heading and depth of the AHRS mode for the INS alignment that replaces it."""
+        self.yaw_rad = yaw_rad
+        self._depth_m = depth_m
+
+    def _settled_yaw(self, t_s: float, yaw_rad: float) -> float | None:
+        """The autopilot's yaw once it has stayed within ``yaw_settle_tol_rad`` for
+        ``yaw_settle_s`` (ArduSub sends 0, its DCM yaw, 0 again, then the EKF's), else None."""
+        a = self.config.alignment
+        hist = self._att_yaw
+        hist.append((t_s, yaw_rad))
+        while len(hist) > 2 and hist[1][0] <= t_s - a.yaw_settle_s:
+            hist.popleft()
+        if t_s - hist[0][0] < a.yaw_settle_s - 1e-9:
+            return None
+        if max(abs(float(wrap_angle(y - yaw_rad))) for _, y in hist) > a.yaw_settle_tol_rad:
+            return None
+        return yaw_rad
+
+    def observe(self, sample, t_imu_last_s: float) -> str:
+        """Keep an aid sample that came before alignment (finite, of an aid kind).
+
+        Returns what the estimator must do besides answering ``not_initialized``:
+        ``"ahrs"`` start in AHRS mode now (attitude samples and no usable IMU for
+        ``alignment.ahrs_after_s``; ``t_imu_last_s`` the latest IMU sample's time),
+        ``"surface_only"`` reject (a radio fix under water), ``"fix"`` a fix became the
+        initial position (:attr:`first_fix`), ``"fix_void"`` the initial fix is void (a radio
+        fix before the first depth, which says under water), else ``""``.
+        """
+        cfg = self.config
+        kind = sample.KIND
+        if kind == "heading":
+            self.yaw_rad = sample.yaw_rad
+        elif kind == "attitude":
+            self.yaw_rad = self._settled_yaw(sample.t_s, sample.yaw_rad)
+            if math.isnan(self._t_first_att):
+                self._t_first_att = sample.t_s
+            # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz), for a while
+            # (an ATTITUDE may come just before the first IMU sample): AHRS mode
+            slow_imu = sample.t_s - t_imu_last_s > cfg.imu_gap_s or self.imu_interval_s > cfg.imu_gap_s
+            if slow_imu and sample.t_s - self._t_first_att >= cfg.alignment.ahrs_after_s:
+                return "ahrs"
+        elif kind == "dvl":
+            bottom = sample.valid and not getattr(sample, "water_track", False)
+            self._dvl = sample if bottom else self._dvl
+        elif kind == "gnss" and self._depth_m is not None and self._depth_m >= cfg.gnss.max_depth_m:
+            # a radio fix below the surface is no position (a simulator keeps its fix under
+            # water): as after alignment (aiding.gnss), it does not seed the position either
+            return "surface_only"
+        elif AIDS[kind].absolute_position:
+            ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
+            self._fix = (ned[:2], sample.sigma_h_m)
+            self._fix_gnss = kind == "gnss" and self._depth_m is None
+            self.first_fix = (float(sample.t_s), (float(ned[0]), float(ned[1])), float(sample.sigma_h_m))
+            return "fix"
+        elif kind == "depth":
+            self._depth_m = float(aid_depth.pressure_to_depth(
+                sample.pressure_pa, cfg.depth.water_density_kg_m3, cfg.depth.atmospheric_pressure_pa))
+            if self._fix_gnss and self._depth_m >= cfg.gnss.max_depth_m:
+                self._fix, self._fix_gnss = None, False  # came before the first depth
+                self.first_fix = None
+                return "fix_void"
+        return ""
+
+    def initial_position(self, t_s: float) -> tuple[np.ndarray, float, float]:
+        """Initial position (3, m) and its horizontal and vertical σ (m) at state time ``t_s``:
+        the latest fix; else the position an earlier run persisted (a restart), its σ grown by
+        what the vehicle can have moved since — ``position_reset_max_speed_m_s`` × elapsed
+        time taken as the 3σ bound, elapsed the longer of the data clock's and
+        ``pos_min_elapsed_s`` — (only on the same clock, data time not gone back, and within
+        1 h); else the origin (σ ``initial.sigma_pos_m``). Depth from the latest pressure."""
+        pos = np.zeros(3)
+        sigma_h = self.config.initial.sigma_pos_m
+        sigma_d = self.config.initial.sigma_pos_m
+        saved = self.saved_pos
+        if self._fix is not None:
+            pos[:2], sigma_h = self._fix
+        elif saved is not None and 0.0 <= t_s - saved[0] and max(t_s - saved[0], saved[3]) <= 3600.0:
+            moved = self.config.position_reset_max_speed_m_s * max(t_s - saved[0], saved[3]) / 3.0
+            pos[:] = saved[1]
+            sigma_h = math.sqrt(float(max(saved[2][0], saved[2][1])) + moved**2)
+            sigma_d = math.sqrt(float(saved[2][2]) + moved**2)
+        if self._depth_m is not None:
+            pos[2], sigma_d = self._depth_m, self.config.depth.sigma_m
+        return pos, sigma_h, sigma_d
+
+    def ahrs_start(self, sample, imu_model: ResolvedImu) -> Start:
+        """No usable IMU: attitude from the AHRS ``sample``, depth from pressure, position
+        from :meth:`initial_position`, at rest; the covariance with ``imu_model``'s biases."""
+        pos, sigma_h, sigma_d = self.initial_position(sample.t_s)
+        q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
+        x = initial_nominal(pos, (0.0, 0.0, 0.0), q)
+        return Start(float(sample.t_s), x, initial_covariance(self.config, imu_model.figures, sigma_h, sigma_d))
+
+    def ins_start(self) -> Start | None:
+        """The INS start once the levelling window is at rest and a heading is known, else None.
+
+        Levelled from the window, heading from the aid; the IMU model is the configured
+        grade's or decided from the window (``imu.grade = "auto"``); velocity zero or, a
+        moving start, the DVL's if its latest sample is at most 1 s old. The attitude is
+        turned from the local plumb line into the origin's tangent axes when the earth
+        model is on (:func:`adaptnav.fusion.strapdown.plumb_line_rotvec`).
+        """
+        level = self.aligner.level()
+        if level is None or self.yaw_rad is None:
+            return None
+        roll, pitch = level
+        t_s = self.aligner.t_last_s
+        # the IMU model: the configured grade's, or decided from the data at rest (auto)
+        imu_model = imu_grades.resolve(self.config.imu, *self.aligner.window())
+        pos, sigma_h, sigma_d = self.initial_position(t_s)
+        q = euler_to_quat(roll, pitch, self.yaw_rad)
+        vel = np.zeros(3)
+        dvl = self._dvl
+        if dvl is not None and t_s - dvl.t_s <= 1.0:
+            # a moving start: the DVL's velocity, not zero (no later aid removes that error)
+            v_b = self._R_db.T @ np.asarray(dvl.vel_d_m_s, dtype=float)
+            vel = dcm(initial_nominal(q_nb=q)) @ v_b
+        x = initial_nominal(pos, vel, q)
+        P = initial_covariance(self.config, imu_model.figures, sigma_h, sigma_d)
+        if dvl is not None and np.any(vel):
+            P[VEL, VEL] = np.eye(3) * self.config.dvl.sigma_m_s ** 2 * 4.0
+        lat = self.origin.lat_rad if imu_model.earth_rotation else None
+        earth = np.zeros(ACC_SIZE)
+        sd.set_earth(earth, lat)
+        # levelled on the local plumb line: in the tangent plane of the origin that leans by p/R
+        x[X_Q] = quat_mul(quat_from_rotvec(sd.plumb_line_rotvec(earth, pos)), x[X_Q])
+        return Start(float(t_s), x, P, imu_model, lat)

@@ -22,14 +22,14 @@ since then with the measurement inserted ("buffer IMU and re-propagate"). Older 
 rejected ``too_late``.
 
 Robustness. The surge variance adapts upwards to the innovations (a change of water
-makes the released model too tight, see :mod:`adaptnav.fusion.aiding.learned_velocity`); an
+makes the released model too tight, :mod:`adaptnav.fusion.adaptive_noise`); an
 absolute position source is trusted again after gate rejections by inflating the position
 covariance (as PX4 EKF2 resets to GNSS) — only on consistent evidence: several gated fixes
 consistent with each other and with the last accepted fix at the vehicle's top speed
 (:meth:`Estimator._fuse_position`), so that a spoofer cannot move the solution.
 
 Modes. ``"none"`` until aligned (aids answered ``not_initialized``; the latest
-position fix and depth become the initial position); ``"ins"`` after levelling from a
+position fix and depth become the initial position, :mod:`adaptnav.fusion.alignment`); ``"ins"`` after levelling from a
 static accelerometer window and a heading aid; ``"ahrs"`` when attitude samples arrive
 and the IMU is absent or too slow to integrate (real ArduSub telemetry): attitude from
 the AHRS, depth from pressure, position a random walk pinned by fixes, never valid. A
@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter, deque
+from collections import Counter
 
 import numpy as np
 
@@ -50,15 +50,15 @@ from . import imu_grades
 from . import strapdown as sd
 from .aiding import AIDS, AidContext
 from .aiding import attitude as aid_attitude
-from .aiding import depth as aid_depth
 from .aiding import dvl as aid_dvl
 from .aiding import heading as aid_heading
 from .aiding import learned_velocity as aid_lv
 from .aiding import loop_closure as aid_loop
 from .aiding.common import Measurement
-from .alignment import Aligner
+from .adaptive_noise import SurgeVariance
+from .alignment import Alignment, Start, initial_covariance
 from .config import FilterConfig
-from .frames import GeoOrigin, euler_to_quat, quat_from_rotvec, quat_mul, wrap_angle
+from .frames import GeoOrigin, euler_to_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
@@ -157,18 +157,7 @@ class Estimator:
         self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
         self._mode = "none"  # "none" | "ins" | "ahrs"
         self._reset_counter = 0
-        self._aligner = Aligner(config.alignment.n_samples, config.alignment.max_acc_std_m_s2,
-                                config.imu_gap_s)
         self._t_imu_last = -math.inf
-        self._imu_interval_s = math.inf  # latest IMU sample interval seen before INS mode
-        self._yaw_for_alignment: float | None = None
-        self._att_yaw: deque = deque()  # (t_s, yaw) of recent attitude samples before alignment
-        self._t_first_att = math.nan
-        self._pending_dvl = None  # latest valid DVL sample before alignment (velocity seed)
-        self._pending_fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
-        # that fix is a radio fix taken before any depth: void once the depth says under water
-        self._pending_fix_gnss = False
-        self._pending_depth: float | None = None
         self._rpm: tuple[float, float, float] | None = None  # (t_s, surge, sway speed m/s)
         self._rpm_raw = math.nan  # latest RPM (rev/min), for stationary detection
         self._next_lv_t = math.nan
@@ -178,6 +167,8 @@ class Estimator:
                          for kind, aid in AIDS.items()}
         # the DVL's scale/misalignment estimate (None when not configured): its aid owns it
         self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
+        # what comes before the start (heading, fix, depth, levelling window) and the start
+        self._alignment = Alignment(config, origin, self._aid_cfg["dvl"][1].R_db)
         # reference points: lever arms are given from the vehicle reference point; the filter
         # navigates the IMU, so each becomes an arm from the IMU (None: at the IMU)
         l_imu = np.asarray(config.imu.lever_arm_b_m, dtype=float)
@@ -197,12 +188,9 @@ class Estimator:
         self._hist_t: list[float] = []
         self._hist: list[tuple[str, object, _Snapshot]] = []
         self._replaying = False
-        self._restored = False
-        # the last position of an earlier run (restore_slow_states): (t_s, pos_n (3), var (3),
-        # time known to have passed since, s)
-        self._saved_pos: tuple[float, np.ndarray, np.ndarray, float] | None = None
+        self._restored = False  # slow states restored: an alignment keeps them
         self._speed_cache: dict[float, float] = {}
-        self._lv_r_hat: float | None = None  # innovation-based surge variance estimate
+        self._surge = SurgeVariance(config.learned_velocity)  # the adaptive surge variance
         self._t_release = -math.inf  # state time of the latest calibrator release applied
         # position-reset evidence: "last_fix" → (t, (n, e), σ) of the last fused fix; per
         # source, the recent gated fixes (tuples: snapshots share them)
@@ -450,7 +438,7 @@ class Estimator:
         self._P[:, KS] = 0.0
         self._P[KS, KS] = vk
         self._restored = True
-        self._saved_pos = None
+        self._alignment.saved_pos = None
         if d.get("pos_n_m") is not None:
             t, pos, var = float(d["pos_t_s"]), np.asarray(d["pos_n_m"], float), np.asarray(d["var_pos_n_m2"], float)
             if not (math.isfinite(t) and pos.shape == (3,) and var.shape == (3,)
@@ -459,7 +447,7 @@ class Estimator:
             # the caller may know more time passed than the data clock says (an autopilot
             # rebooted meanwhile restarts its boot clock): the σ grows with the longer
             passed = float(d.get("pos_min_elapsed_s") or 0.0)
-            self._saved_pos = (t, pos, var, passed if math.isfinite(passed) and passed > 0 else 0.0)
+            self._alignment.saved_pos = (t, pos, var, passed if math.isfinite(passed) and passed > 0 else 0.0)
 
     def process(self, sample) -> list[AidStatus]:
         """Consume one sample (any type of :mod:`adaptnav.fusion.samples`, or an ImuBatch).
@@ -507,11 +495,10 @@ class Estimator:
         if self._good is None:  # nothing good yet: align again from scratch
             self._mode = "none"
             self._x[:] = initial_nominal()
-            self._P[:, :] = self._initial_covariance(self.config.initial.sigma_pos_m,
-                                                     self.config.initial.sigma_pos_m)
+            self._P[:, :] = initial_covariance(self.config, self.imu_model.figures, self.config.initial.sigma_pos_m,
+                                               self.config.initial.sigma_pos_m)
             self._acc[:] = 0.0
-            self._aligner = Aligner(self.config.alignment.n_samples, self.config.alignment.max_acc_std_m_s2,
-                                    self.config.imu_gap_s)
+            self._alignment.restart_levelling()
             self._t_imu_last = -math.inf
             self._reset_counter += 1
             return
@@ -544,7 +531,7 @@ class Estimator:
             self._clock[:] += delta_s
         for name in ("_t_imu_last", "_next_lv_t", "_t_release", "_good_t"):
             setattr(self, name, getattr(self, name) + delta_s)
-        self._aligner.t_last_s += delta_s
+        self._alignment.aligner.t_last_s += delta_s
         self._clones.shift_time(delta_s)
         if self._rpm is not None:
             self._rpm = (self._rpm[0] + delta_s, *self._rpm[1:])  # (t, surge, sway, commanded ...)
@@ -630,20 +617,6 @@ class Estimator:
         q[KS] = c.process.k_speed_rw_rthz ** 2
         return q
 
-    def _initial_covariance(self, sigma_pos_h_m: float, sigma_depth_m: float) -> np.ndarray:
-        c = self.config
-        d = np.zeros(N_ERR)
-        d[0:2] = sigma_pos_h_m ** 2
-        d[2] = sigma_depth_m ** 2
-        d[VEL] = c.initial.sigma_vel_m_s ** 2
-        d[6:8] = c.initial.sigma_att_rad ** 2
-        d[8] = c.initial.sigma_yaw_rad ** 2
-        d[BA] = self.imu_model.figures.acc_bias_sigma_m_s2 ** 2
-        d[BG] = self.imu_model.figures.gyro_bias_sigma_rad_s ** 2
-        d[CUR] = c.initial.sigma_current_m_s ** 2
-        d[KS] = c.initial.sigma_k_speed ** 2
-        return np.diag(d)
-
     def _snapshot(self) -> _Snapshot:
         s = _Snapshot()
         s.core = self._core.copy()
@@ -651,7 +624,7 @@ class Estimator:
         s.next_lv_t = self._next_lv_t
         s.mode = self._mode
         s.reset_counter = self._reset_counter
-        s.lv_r_hat = self._lv_r_hat
+        s.lv_r_hat = self._surge.r_hat_m2_s2
         s.fix_evidence = self._fix_evidence
         s.vel_inertial_n = self._vel_inertial_n.copy()
         s.pos_inertial_n = self._pos_inertial_n.copy()
@@ -668,7 +641,7 @@ class Estimator:
         self._next_lv_t = s.next_lv_t
         self._mode = s.mode
         self._reset_counter = s.reset_counter
-        self._lv_r_hat = s.lv_r_hat
+        self._surge.r_hat_m2_s2 = s.lv_r_hat
         self._fix_evidence = s.fix_evidence
         self._vel_inertial_n[:] = s.vel_inertial_n
         self._pos_inertial_n[:] = s.pos_inertial_n
@@ -754,136 +727,45 @@ class Estimator:
         self.late_fused += 1
         return out
 
-    def _settled_yaw(self, t_s: float, yaw_rad: float) -> float | None:
-        """The autopilot's yaw once it has stayed within ``yaw_settle_tol_rad`` for
-        ``yaw_settle_s`` (ArduSub sends 0, its DCM yaw, 0 again, then the EKF's), else None."""
-        a = self.config.alignment
-        hist = self._att_yaw
-        hist.append((t_s, yaw_rad))
-        while len(hist) > 2 and hist[1][0] <= t_s - a.yaw_settle_s:
-            hist.popleft()
-        if t_s - hist[0][0] < a.yaw_settle_s - 1e-9:
-            return None
-        if max(abs(float(wrap_angle(y - yaw_rad))) for _, y in hist) > a.yaw_settle_tol_rad:
-            return None
-        return yaw_rad
-
     def _before_init(self, sample) -> list[AidStatus]:
-        kind = sample.KIND
-        if kind == "heading":
-            self._yaw_for_alignment = sample.yaw_rad
-        elif kind == "attitude":
-            self._yaw_for_alignment = self._settled_yaw(sample.t_s, sample.yaw_rad)
-            if math.isnan(self._t_first_att):
-                self._t_first_att = sample.t_s
-            # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz), for a while
-            # (an ATTITUDE may come just before the first IMU sample): AHRS mode
-            slow_imu = (sample.t_s - self._t_imu_last > self.config.imu_gap_s
-                        or self._imu_interval_s > self.config.imu_gap_s)
-            waited = sample.t_s - self._t_first_att >= self.config.alignment.ahrs_after_s
-            if slow_imu and waited and self._mode == "none":
-                return self._init_ahrs(sample)
-        elif kind == "dvl":
-            bottom = sample.valid and not getattr(sample, "water_track", False)
-            self._pending_dvl = sample if bottom else self._pending_dvl
-        elif kind == "gnss" and self._pending_depth is not None \
-                and self._pending_depth >= self.config.gnss.max_depth_m:
-            # a radio fix below the surface is no position (a simulator keeps its fix under
-            # water): as after alignment (aiding.gnss), it does not seed the position either
-            return [rejected(sample.t_s, kind, "surface_only")]
-        elif AIDS[kind].absolute_position:
-            ned = self.origin.to_ned(sample.lat_rad, sample.lon_rad)
-            self._pending_fix = (ned[:2], sample.sigma_h_m)
-            self._pending_fix_gnss = kind == "gnss" and self._pending_depth is None
-            # the initial position: where later fixes must be reachable from
-            self._fix_evidence = {"last_fix": (float(sample.t_s), (float(ned[0]), float(ned[1])),
-                                               float(sample.sigma_h_m))}
-        elif kind == "depth":
-            self._pending_depth = float(aid_depth.pressure_to_depth(
-                sample.pressure_pa, self.config.depth.water_density_kg_m3,
-                self.config.depth.atmospheric_pressure_pa))
-            if self._pending_fix_gnss and self._pending_depth >= self.config.gnss.max_depth_m:
-                self._pending_fix, self._pending_fix_gnss = None, False  # came before the first depth
-                self._fix_evidence = {}
-        statuses = [rejected(sample.t_s, kind, "not_initialized")]
-        if self._mode == "none":
-            statuses += self._try_align()
-        return statuses
-
-    def _initial_position(self, t_s: float) -> tuple[np.ndarray, float, float]:
-        """Initial position and its horizontal and vertical σ at state time ``t_s``: the latest
-        fix; else the position an earlier run persisted (a restart), its σ grown by what the
-        vehicle can have moved since — ``position_reset_max_speed_m_s`` × elapsed time taken as
-        the 3σ bound, elapsed the longer of the data clock's and ``pos_min_elapsed_s`` — (only
-        on the same clock, data time not gone back, and within 1 h); else the origin (σ
-        ``initial.sigma_pos_m``). Depth from the latest pressure."""
-        pos = np.zeros(3)
-        sigma_h = self.config.initial.sigma_pos_m
-        sigma_d = self.config.initial.sigma_pos_m
-        saved = self._saved_pos
-        if self._pending_fix is not None:
-            pos[:2], sigma_h = self._pending_fix
-        elif saved is not None and 0.0 <= t_s - saved[0] and max(t_s - saved[0], saved[3]) <= 3600.0:
-            moved = self.config.position_reset_max_speed_m_s * max(t_s - saved[0], saved[3]) / 3.0
-            pos[:] = saved[1]
-            sigma_h = math.sqrt(float(max(saved[2][0], saved[2][1])) + moved**2)
-            sigma_d = math.sqrt(float(saved[2][2]) + moved**2)
-        if self._pending_depth is not None:
-            pos[2], sigma_d = self._pending_depth, self.config.depth.sigma_m
-        return pos, sigma_h, sigma_d
-
-    def _init_ahrs(self, sample) -> list[AidStatus]:
-        """No usable IMU: attitude from the AHRS, depth from pressure, position invalid."""
-        pos, sigma_h, sigma_d = self._initial_position(sample.t_s)
-        q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
-        keep = self._x[X_SLOW].copy() if self._restored else None
-        P_keep = self._P.copy() if keep is not None else None
-        self._x[:] = initial_nominal(pos, (0.0, 0.0, 0.0), q)
-        if keep is not None:
-            self._x[X_SLOW] = keep
-        self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
-        if keep is not None:
-            self._P[SLOW, SLOW] = P_keep[SLOW, SLOW]
-        self._clock[:] = sample.t_s
-        self._mode = "ahrs"
-        self._reset_counter += 1
-        return self._aid(sample)
+        """An aid sample before the start: kept by the alignment, answered ``not_initialized``
+        (the alignment may start the filter: AHRS-only now, or as an INS)."""
+        event = self._alignment.observe(sample, self._t_imu_last)
+        if event == "ahrs":
+            self._start(self._alignment.ahrs_start(sample, self.imu_model), "ahrs")
+            return self._aid(sample)
+        if event == "surface_only":
+            return [rejected(sample.t_s, sample.KIND, "surface_only")]
+        if event == "fix":  # the initial position: where later fixes must be reachable from
+            self._fix_evidence = {"last_fix": self._alignment.first_fix}
+        elif event == "fix_void":
+            self._fix_evidence = {}
+        return [rejected(sample.t_s, sample.KIND, "not_initialized")] + self._try_align()
 
     def _try_align(self) -> list[AidStatus]:
-        level = self._aligner.level()
-        if level is None or self._yaw_for_alignment is None:
+        """Start as an INS when the alignment can (levelled at rest, heading known)."""
+        start = self._alignment.ins_start()
+        if start is None:
             return []
-        roll, pitch = level
-        # the IMU model: the configured grade's, or decided from the data at rest (auto)
-        self.imu_model = imu_grades.resolve(self.config.imu, *self._aligner.window())
+        self.imu_model = start.imu_model
         self._qdiag = self._process_noise()
-        pos, sigma_h, sigma_d = self._initial_position(self._aligner.t_last_s)
-        keep = self._x[X_SLOW].copy() if self._restored else None
-        P_keep = self._P.copy() if keep is not None else None
-        q = euler_to_quat(roll, pitch, self._yaw_for_alignment)
-        vel = np.zeros(3)
-        dvl = self._pending_dvl
-        if dvl is not None and self._aligner.t_last_s - dvl.t_s <= 1.0:
-            # a moving start: the DVL's velocity, not zero (no later aid removes that error)
-            v_b = self._aid_cfg["dvl"][1].R_db.T @ np.asarray(dvl.vel_d_m_s, dtype=float)
-            vel = aid_lv.dcm(initial_nominal(q_nb=q)) @ v_b
-        self._x[:] = initial_nominal(pos, vel, q)
-        self._P[:, :] = self._initial_covariance(sigma_h, sigma_d)
-        if dvl is not None and np.any(vel):
-            self._P[VEL, VEL] = np.eye(3) * self.config.dvl.sigma_m_s ** 2 * 4.0
-        if keep is not None:
-            self._x[X_SLOW] = keep
-            self._P[SLOW, SLOW] = P_keep[SLOW, SLOW]
         self._acc[:] = 0.0
-        sd.set_earth(self._acc, self.origin.lat_rad if self.imu_model.earth_rotation else None)
-        # levelled on the local plumb line: in the tangent plane of the origin that leans by p/R
-        self._x[X_Q] = quat_mul(quat_from_rotvec(sd.plumb_line_rotvec(self._acc, pos)), self._x[X_Q])
-        self._clock[:] = self._aligner.t_last_s
-        self._mode = "ins"
+        sd.set_earth(self._acc, start.earth_lat_rad)
+        self._start(start, "ins")
         self._clones.clear()  # a new alignment: earlier epochs' errors are not this filter's
-        self._reset_counter += 1
         self._next_lv_t = math.floor(self._clock[0] / self._lv_period + 1.0) * self._lv_period
         return []
+
+    def _start(self, start: Start, mode: str) -> None:
+        """Take the alignment's start; restored slow states (a restart) are kept through it."""
+        keep = (self._x[X_SLOW].copy(), self._P[SLOW, SLOW].copy()) if self._restored else None
+        self._x[:] = start.x
+        self._P[:, :] = start.P
+        if keep is not None:
+            self._x[X_SLOW], self._P[SLOW, SLOW] = keep
+        self._clock[:] = start.t_s
+        self._mode = mode
+        self._reset_counter += 1
 
     def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
         """Validate IMU samples (vectorised), then align or propagate them."""
@@ -908,18 +790,15 @@ class Estimator:
             if t.size == 0:
                 return []
         if self._mode != "ins":
-            prev_t = self._t_imu_last if t.size == 1 else float(t[-2])
-            self._imu_interval_s = float(t[-1]) - prev_t
-            self._aligner.add(t, f, w)
+            self._alignment.add_imu(t, f, w, self._t_imu_last)
             self._t_imu_last = float(t[-1])
             was_ahrs = self._mode == "ahrs"
             if was_ahrs:
                 self.rejected["ahrs_mode"] += int(t.size)
-                if self._aligner.level() is not None:
+                if self._alignment.aligner.level() is not None:
                     # a usable IMU rate appeared: re-align as an INS, keeping the AHRS
                     # heading and the depth
-                    self._yaw_for_alignment = aid_heading.predict(self._x)[0]
-                    self._pending_depth = float(self._x[X_DEPTH])
+                    self._alignment.carry_over(aid_heading.predict(self._x)[0], float(self._x[X_DEPTH]))
                     self._mode = "none"
             if self._mode == "none":
                 return self._try_align()
@@ -1070,66 +949,32 @@ class Estimator:
         meas = self._lv_measure(t, adapt=True)
         status = self._fuse(meas, t, "learned_velocity")
         if self._rejected_too_long(status, self.config.reset.velocity_after_s):
-            self._doubt_motion_model(meas)
+            # the learned velocity is in doubt: its surge variance takes the rejected
+            # innovation (re-admitted, not gated again) and k_speed its initial σ again
+            self._surge.doubt(meas)
+            self._doubt_k_speed()
             self._reset_velocity(meas, status)
             # measured again: the innovation before the reset is what the reset removed
             status = self._fuse(self._lv_measure(t, adapt=False), t, "learned_velocity")
         return status
 
     def _lv_measure(self, t: float, adapt: bool) -> Measurement:
-        """The learned-velocity measurement now, its surge variance adapted (``adapt``: the
-        innovation estimate is updated with this epoch)."""
+        """The learned-velocity measurement now, its surge variance adapted
+        (:class:`~adaptnav.fusion.adaptive_noise.SurgeVariance`; ``adapt``: the estimate is
+        updated with this epoch's innovation)."""
         cfg = self.config.learned_velocity
         R_nb = aid_lv.dcm(self._x)
         yaw_rate = float(R_nb[2] @ self._acc[sd.ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
-        if cfg.adaptive_window_s <= 0:
-            return meas
-        adapted = self._adapt_surge(meas, update=adapt)  # the estimate is kept current either way
-        return adapted if t - self._t_release >= cfg.adaptive_suspend_after_release_s else meas
+        P = sd.propagated_covariance(self._P, self._acc, self._qdiag) if adapt and self._surge.enabled else None
+        return self._surge.adapt(meas, P, t - self._t_release)
 
-    def _doubt_motion_model(self, meas: Measurement) -> None:
-        """The learned velocity was rejected for ``reset.velocity_after_s``: before the
-        velocity is reset onto it, its surge variance estimate takes the rejected innovation
-        (so it is re-admitted with a variance that explains it, not gated again) and
-        ``k_speed`` its initial σ again (the RPM → speed scale is in doubt)."""
-        cfg = self.config.learned_velocity
-        y0 = float(meas.innovation()[0])
-        if cfg.adaptive_window_s > 0 and math.isfinite(y0):
-            cap = 100.0 * float(meas.R[0, 0]) * cfg.adaptive_max_scale
-            self._lv_r_hat = max(self._lv_r_hat or 0.0, min(y0 * y0, cap))
+    def _doubt_k_speed(self) -> None:
+        """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt)."""
         sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         k = KS.start
         self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
-
-    def _adapt_surge(self, meas: Measurement, update: bool = True) -> Measurement:
-        """Scale the surge variance to the innovation-based estimate ``E[y²] − H P Hᵀ``
-        (``update``: this epoch's innovation joins the estimate first).
-
-        Gated innovations count too: after a change of water every surge innovation may
-        exceed the gate, and those are exactly the ones that say the model is too tight.
-        """
-        cfg = self.config.learned_velocity
-        r_model = float(meas.R[0, 0])
-        if update:
-            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
-            h = meas.H[0]
-            hph = float(h @ P @ h)
-            y0 = float(meas.z[0] - meas.h[0])
-            if not (math.isfinite(y0) and math.isfinite(hph)):
-                return meas
-            alpha = min(1.0, self._lv_period / cfg.adaptive_window_s)
-            sample = min(y0 * y0 - hph, 100.0 * r_model * cfg.adaptive_max_scale)
-            self._lv_r_hat = sample if self._lv_r_hat is None else (1 - alpha) * self._lv_r_hat + alpha * sample
-        if self._lv_r_hat is None:
-            return meas
-        scale = min(max(self._lv_r_hat / r_model, 1.0), cfg.adaptive_max_scale)
-        if scale == 1.0:
-            return meas
-        R = meas.R.copy()
-        R[0, 0] *= scale
-        return meas._replace(R=R)
 
     def _aid(self, sample) -> list[AidStatus]:
         kind = sample.KIND

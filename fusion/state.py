@@ -28,6 +28,12 @@ BG = slice(12, 15)
 CUR = slice(15, 17)
 KS = slice(17, 18)
 N_ERR = 18
+# parts of blocks: horizontal position and depth; tilt (rotation about north and east) and
+# heading (about down) of the navigation-frame attitude error
+POS_NE = slice(0, 2)
+POS_D = 2
+ATT_TILT = slice(6, 8)
+ATT_YAW = 8
 
 # nominal-state slices
 X_POS = slice(0, 3)
@@ -43,6 +49,22 @@ N_NOM = 19
 X_SLOW = slice(10, 19)
 SLOW = slice(9, 18)
 X_DEPTH = 2  # the down component of X_POS
+X_POS_NE = slice(0, 2)  # north, east of X_POS
+
+# the step accumulator ``acc`` of the propagation kernels (adaptnav.fusion.strapdown,
+# adaptnav.fusion.kalman): what one covariance step sums, the latest bias-corrected IMU
+# sample, and the earth model (kept across steps, adaptnav.fusion.strapdown.set_earth)
+ACC_RF = slice(0, 3)          # Σ R_nb f̂ δt over the step (m/s)
+ACC_R = slice(3, 12)          # Σ R_nb δt over the step, row-major (s)
+ACC_T = 12                    # Σ δt: the step's length (s)
+ACC_STEP = slice(0, 13)       # the sums above: what a covariance flush clears
+ACC_OMEGA = slice(13, 16)     # latest bias-corrected ω̂_b (rad/s)
+ACC_F = slice(16, 19)         # latest bias-corrected f̂_b (m/s²)
+ACC_EARTH = slice(19, 24)     # the earth model (zeros: flat, non-rotating)
+ACC_EARTH_RATE = slice(19, 22)  # ω_ie in local axes (rad/s)
+ACC_DGAMMA = 22               # normal gravity γ(L) − 9.80665 (m/s²)
+ACC_G_OVER_R = 23             # γ/R, the gravity gradient (1/s²)
+ACC_SIZE = 24
 
 NAV_STATE_SCHEMA_VERSION = 1
 

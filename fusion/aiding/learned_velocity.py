@@ -40,7 +40,7 @@ with ``w`` the yaw rate from the gyro, fused at the motion model's step rate (1 
 default: its variances are per step). When the water changes, the released variances
 are too tight until the calibrator catches up; the estimator then scales σ_V² up to the
 innovation-based estimate ``E[y²] − H P Hᵀ`` (Mehra 1972, IEEE TAC 17(5); see
-:meth:`adaptnav.fusion.eskf.Estimator._adapt_surge`), never down — except for
+:class:`adaptnav.fusion.adaptive_noise.SurgeVariance`), never down — except for
 ``adaptive_suspend_after_release_s`` after a release, when the released variance is used as it
 is (the calibrator has caught up). Jacobians (global attitude error)::
 
