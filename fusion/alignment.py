@@ -257,11 +257,12 @@ class Alignment:
         x = initial_nominal(pos, (0.0, 0.0, 0.0), q)
         return Start(float(sample.t_s), x, initial_covariance(self.config, imu_model.figures, sigma_h, sigma_d))
 
-    def ins_start(self) -> Start | None:
+    def ins_start(self, imu_source: str = "") -> Start | None:
         """The INS start once the levelling window is at rest and a heading is known, else None.
 
         Levelled from the window, heading from the aid; the IMU model is the configured
-        grade's or decided from the window (``imu.grade = "auto"``); velocity zero or, a
+        grade's or decided from the window and who measured it (``imu.grade = "auto"``,
+        ``imu_source``: :attr:`adaptnav.fusion.samples.ImuSample.source`); velocity zero or, a
         moving start, the DVL's if its latest sample is at most 1 s old. The attitude is
         turned from the local plumb line into the origin's tangent axes when the earth
         model is on (:func:`adaptnav.fusion.strapdown.plumb_line_rotvec`).
@@ -272,7 +273,7 @@ class Alignment:
         roll, pitch = level
         t_s = self.aligner.t_last_s
         # the IMU model: the configured grade's, or decided from the data at rest (auto)
-        imu_model = imu_grades.resolve(self.config.imu, *self.aligner.window())
+        imu_model = imu_grades.resolve(self.config.imu, *self.aligner.window(), source=imu_source)
         pos, sigma_h, sigma_d = self.initial_position(t_s)
         q = euler_to_quat(roll, pitch, self.yaw_rad)
         vel = np.zeros(3)

@@ -151,6 +151,7 @@ class Estimator:
         sd.set_earth(self._acc, None)
         # the IMU error model: the configured grade, or decided at alignment (``auto``)
         self.imu_model = imu_grades.resolve(config.imu, np.empty((0, 3)), np.empty((0, 3)), math.nan)
+        self._imu_source = ""  # ImuSample.source of the latest IMU sample
         self._qdiag = self._process_noise()
         # past horizontal positions for leg-to-leg loop closures (aiding.loop_closure)
         self._clones = aid_loop.CloneBank(config.loop_closure.clone_period_s, config.loop_closure.clone_horizon_s)
@@ -544,6 +545,8 @@ class Estimator:
         kind = sample.KIND
         if kind in IGNORED_KINDS:
             return []
+        if kind in ("imu", "imu_batch"):
+            self._imu_source = sample.source  # who measured it: the auto IMU grade's prior
         if kind == "imu_batch":
             return self._imu(np.asarray(sample.t_s, dtype=float),
                              np.asarray(sample.specific_force_b_m_s2, dtype=float).reshape(-1, 3),
@@ -744,7 +747,7 @@ class Estimator:
 
     def _try_align(self) -> list[AidStatus]:
         """Start as an INS when the alignment can (levelled at rest, heading known)."""
-        start = self._alignment.ins_start()
+        start = self._alignment.ins_start(self._imu_source)
         if start is None:
             return []
         self.imu_model = start.imu_model

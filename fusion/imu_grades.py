@@ -4,10 +4,15 @@ Conventions as :mod:`adaptnav.fusion.config` (continuous-time densities, Groves 
 Figures are the class's datasheet values, rounded towards the pessimistic side; each
 can be overridden one by one in ``[filter.imu]``.
 
-- ``consumer`` — the MEMS parts in autopilots (Pixhawk / Navigator: InvenSense MPU-6000,
-  TDK ICM-20602 / ICM-20689). MPU-6000 product specification (PS-MPU-6000A-00 rev 3.4):
-  gyro rate noise 0.005 °/s/√Hz, accelerometer noise 400 µg/√Hz; ICM-20602 (DS-000176):
-  0.004 °/s/√Hz, 100 µg/√Hz, gyro zero-rate offset ±1 °/s untrimmed. On a vehicle, through
+- ``consumer`` — the MEMS parts in autopilots. Every flight controller ArduSub/ArduPilot runs on
+  carries them (Pixhawk 1: InvenSense MPU-6000; Pixhawk 4: ICM-20689, BMI055; Pixhawk 6C/6X:
+  ICM-42688-P, BMI055/BMI088; Cube Orange: ICM-20948, ICM-20649, ICM-20602; Blue Robotics
+  Navigator: ICM-20602). Datasheet white-noise densities, gyro / accelerometer:
+  MPU-6000 (PS-MPU-6000A-00 rev 3.4) 0.005 °/s/√Hz, 400 µg/√Hz; ICM-20602 (DS-000176)
+  0.004 °/s/√Hz, 100 µg/√Hz, gyro zero-rate offset ±1 °/s untrimmed; ICM-42688-P (DS-000347)
+  0.0028 °/s/√Hz, 70 µg/√Hz — the quietest of them, 4.9e-5 rad/s/√Hz
+  (:data:`MEMS_GYRO_DENSITY_FLOOR`); Bosch BMI088 (BST-BMI088-DS001) 0.014 °/s/√Hz,
+  175 µg/√Hz. On a vehicle, through
   an autopilot's decimated MAVLink stream, the white noise is far larger: ArduPilot's EKF3
   defaults (EK3_ACC_P_NSE, EK3_GYRO_P_NSE) are used. An autopilot trims the
   gyro offset at boot; what remains over a dive is tens to hundreds of °/h (0.1 °/s taken),
@@ -25,11 +30,29 @@ variance ``q²/12`` per sample, i.e. density ``q √(Δt/12)`` at sample interva
 (Widrow & Kollár, *Quantization Noise*, 2008, ch. 4). It is detected from the data (every
 sample on the 1 mg / 1 mrad/s grid ⇒ an autopilot's integer IMU message ⇒ ``consumer``).
 
-``auto``: quantised samples ⇒ ``consumer``; otherwise the gyro noise measured in the
-alignment window (at rest or cruising: :func:`white_sigma`) picks the class (density above :data:`CONSUMER_GYRO_DENSITY_MIN` ⇒
-consumer, below :data:`NAVIGATION_GYRO_DENSITY_MAX` ⇒ navigation, else tactical). For a
-consumer IMU the white-noise densities used are never below what was measured (vibration
-of an armed vehicle is noise to the filter).
+``auto`` decides from who measured the samples (:attr:`adaptnav.fusion.samples.ImuSample.source`,
+set by the reader: the MAVLink converter marks the autopilot's own IMU messages) and from the
+noise measured in the alignment window (at rest or cruising: :func:`white_sigma`):
+
+1. samples on the RAW_IMU grid, or the autopilot's own IMU (``source = "autopilot"``: RAW_IMU /
+   SCALED_IMU* or HIGHRES_IMU from the flight controller's component, a DataFlash log's IMU) ⇒
+   ``consumer``, whatever the noise measured: the part is a MEMS (above), and what the stream
+   shows of its noise is not the part's — ArduPilot low-pass filters gyro and accelerometer
+   before it streams them (INS_GYRO_FILTER / INS_ACCEL_FILTER, 20 Hz by default), and its
+   simulator's IMU is near noise-free (ArduSub SITL's HIGHRES_IMU at rest: 5.9e-6 rad/s/√Hz,
+   eight times below the quietest MEMS part, which the noise rule would call tactical);
+2. a measured gyro noise below any physical gyro's (:data:`PHYSICAL_GYRO_DENSITY_MIN`, a
+   sixth of the best navigation-grade ARW cited below) is no measurement of a sensor — a
+   simulator's or a re-sampled stream's — and promotes nothing ⇒ ``consumer`` (the class
+   whose larger process noise cannot make the filter overconfident);
+3. otherwise the measured gyro density picks the class (above
+   :data:`CONSUMER_GYRO_DENSITY_MIN` ⇒ consumer, below :data:`NAVIGATION_GYRO_DENSITY_MAX` ⇒
+   navigation, else tactical): a dedicated IMU (``source = "dedicated"``, e.g. a companion's
+   FOG driver) or one of unknown origin.
+
+For a consumer IMU chosen by ``auto`` the white-noise densities used are never below what was
+measured (vibration of an armed vehicle is noise to the filter). :attr:`ResolvedImu.why` says
+which rule decided.
 """
 from __future__ import annotations
 
@@ -54,6 +77,12 @@ RAW_IMU_GYRO_LSB_RAD_S = 1e-3
 # navigation (≤ 1e-6)
 CONSUMER_GYRO_DENSITY_MIN = 7.0e-5
 NAVIGATION_GYRO_DENSITY_MAX = 5.0e-6
+# the quietest MEMS gyro in an autopilot (ICM-42688-P, 0.0028 °/s/√Hz): an autopilot's stream
+# measured below it is filtered or simulated, not a better part
+MEMS_GYRO_DENSITY_FLOOR = 0.0028 * DEG
+# no physical gyro is quieter: a sixth of the navigation class's best ARW (Honeywell HG9900
+# ≤ 0.002 °/√h = 5.8e-7 rad/s/√Hz); a stream measured below it carries no sensor noise
+PHYSICAL_GYRO_DENSITY_MIN = 1.0e-7
 
 
 @dataclass(frozen=True)
@@ -132,11 +161,14 @@ class ResolvedImu:
     measured_acc_density: float
     measured_gyro_density: float
     earth_rotation: bool
+    source: str = ""   # ImuSample.source of the samples it was resolved from
+    why: str = ""      # what decided the grade (configured, or the auto rule that applied)
 
 
-def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float) -> ResolvedImu:
+def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float, source: str = "") -> ResolvedImu:
     """The IMU model from ``cfg`` (:class:`~adaptnav.fusion.config.ImuConfig`) and a window
-    of samples at rest (N, 3) taken ``dt_s`` apart (the alignment window)."""
+    of samples (N, 3) taken ``dt_s`` apart (the alignment window); ``source``: who measured
+    them (:attr:`adaptnav.fusion.samples.ImuSample.source`, ``""`` unknown)."""
     f = np.asarray(f_b_m_s2, float).reshape(-1, 3)
     w = np.asarray(w_b_rad_s, float).reshape(-1, 3)
     dt = dt_s if math.isfinite(dt_s) and dt_s > 0 else 0.01
@@ -144,16 +176,7 @@ def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float) -> Re
     rt = math.sqrt(dt)
     acc_d = white_sigma(f) * rt
     gyro_d = white_sigma(w) * rt
-    grade = cfg.grade
-    if grade == "auto" and len(w) < 3:
-        grade = "tactical"  # nothing measured yet (before alignment): the former default
-    if grade == "auto":
-        if quantized or gyro_d >= CONSUMER_GYRO_DENSITY_MIN:
-            grade = "consumer"
-        elif gyro_d <= NAVIGATION_GYRO_DENSITY_MAX:
-            grade = "navigation"
-        else:
-            grade = "tactical"
+    grade, why = auto_grade(cfg.grade, quantized, gyro_d, source, len(w))
     base = PROFILES[grade]
     q_acc = RAW_IMU_ACC_LSB_M_S2 * math.sqrt(dt / 12.0) if quantized else 0.0
     q_gyro = RAW_IMU_GYRO_LSB_RAD_S * math.sqrt(dt / 12.0) if quantized else 0.0
@@ -175,4 +198,29 @@ def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float) -> Re
     figures = ImuFigures(acc_noise, gyro_noise, pick("acc_bias_sigma_m_s2"), pick("gyro_bias_sigma_rad_s"),
                          pick("acc_bias_rw_m_s3_rthz"), pick("gyro_bias_rw_rad_s2_rthz"))
     earth = cfg.earth_rotation == "on" or (cfg.earth_rotation == "auto" and grade == "navigation")
-    return ResolvedImu(grade, figures, quantized, acc_d, gyro_d, earth)
+    return ResolvedImu(grade, figures, quantized, acc_d, gyro_d, earth, source, why)
+
+
+def auto_grade(configured: str, quantized: bool, gyro_density: float, source: str, n: int) -> tuple[str, str]:
+    """``(grade, why)``: the configured grade, or ``auto``'s choice (module docstring, rules
+    1–3) from the RAW_IMU grid, the measured gyro white-noise density (rad/s/√Hz), the
+    samples' ``source`` and their number ``n``."""
+    if configured != "auto":
+        return configured, "configured"
+    if n < 3:
+        return "tactical", "nothing measured yet (before alignment)"
+    if quantized:
+        return "consumer", "on the RAW_IMU grid (1 mg, 1 mrad/s)"
+    if source == "autopilot":
+        quiet = gyro_density < MEMS_GYRO_DENSITY_FLOOR
+        return "consumer", "the autopilot's own IMU (a flight controller's MEMS)" + (
+            f"; its stream's gyro noise {gyro_density:.2g} rad/s/√Hz is below any MEMS part's: "
+            "filtered or simulated" if quiet else "")
+    if gyro_density < PHYSICAL_GYRO_DENSITY_MIN:
+        return "consumer", f"gyro noise {gyro_density:.2g} rad/s/√Hz: below any physical gyro's, not promoted"
+    measured = f"measured gyro noise {gyro_density:.2g} rad/s/√Hz"
+    if gyro_density >= CONSUMER_GYRO_DENSITY_MIN:
+        return "consumer", measured
+    if gyro_density <= NAVIGATION_GYRO_DENSITY_MAX:
+        return "navigation", measured
+    return "tactical", measured

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 SCHEMA_VERSION = 1
+# who measured an IMU sample (ImuSample.source): unknown, a flight controller's own, a dedicated IMU
+IMU_SOURCES = ("", "autopilot", "dedicated")
 
 Vec3 = tuple[float, float, float]
 
@@ -34,12 +36,21 @@ class SampleError(ValueError):
 
 @dataclass(frozen=True, slots=True)
 class ImuSample:
-    """Strapdown IMU: specific force and angular rate in body FRD."""
+    """Strapdown IMU: specific force and angular rate in body FRD.
+
+    ``source``: who measured it, when the reader knows (one of :data:`IMU_SOURCES`):
+    ``"autopilot"`` — a flight controller's own IMU (its MEMS parts, low-pass filtered by its
+    firmware before they are streamed), ``"dedicated"`` — an IMU or INS of its own (e.g. a
+    companion computer's driver for a fibre-optic IMU), ``""`` — unknown (a simulator, a
+    log without the information).  ``filter.imu.grade = "auto"`` uses it
+    (:mod:`adaptnav.fusion.imu_grades`).
+    """
 
     KIND: ClassVar[str] = "imu"
     t_s: float
     specific_force_b_m_s2: Vec3
     omega_b_rad_s: Vec3
+    source: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,7 +302,7 @@ def replay_order_key(sample: Any, seq: int) -> tuple[float, int, int]:
 
 
 def _field_spec(f: dataclasses.Field) -> tuple[str, int | None]:
-    """('number'|'integer'|'boolean', fixed length or None for scalars)."""
+    """('number'|'integer'|'boolean'|'string', fixed length or None for scalars)."""
     ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
     ann = ann.replace(" ", "")
     if ann in ("float",):
@@ -300,6 +311,8 @@ def _field_spec(f: dataclasses.Field) -> tuple[str, int | None]:
         return "integer", None
     if ann == "bool":
         return "boolean", None
+    if ann == "str":
+        return "string", None
     if ann == "Vec3":
         return "number", 3
     if ann == "tuple[float,float,float,float]":
@@ -363,6 +376,10 @@ def from_dict(data: Any) -> Any:
             if jtype == "boolean":
                 if not isinstance(value, bool):
                     raise SampleError(f"{where}: expected true/false")
+                kwargs[name] = value
+            elif jtype == "string":
+                if not isinstance(value, str):
+                    raise SampleError(f"{where}: expected a string")
                 kwargs[name] = value
             elif jtype == "integer":
                 if isinstance(value, bool) or not isinstance(value, int):
@@ -438,13 +455,15 @@ class ImuBatch:
 
     Not a bus message (the bus carries :class:`ImuSample`); sources that read logs group
     IMU runs between other samples so the estimator can propagate them in one call.
-    ``t_s`` (N,), ``specific_force_b_m_s2`` (N, 3), ``omega_b_rad_s`` (N, 3).
+    ``t_s`` (N,), ``specific_force_b_m_s2`` (N, 3), ``omega_b_rad_s`` (N, 3); ``source``
+    as :attr:`ImuSample.source`, the same for the whole run.
     """
 
     KIND: ClassVar[str] = "imu_batch"
     t_s: Any
     specific_force_b_m_s2: Any
     omega_b_rad_s: Any
+    source: str = ""
 
     def __post_init__(self) -> None:
         # the propagation kernels index the three arrays together: mismatched shapes would
@@ -461,4 +480,4 @@ class ImuBatch:
     def samples(self):
         """The batch as individual :class:`ImuSample` (for code paths without batching)."""
         for t, f, w in zip(self.t_s, self.specific_force_b_m_s2, self.omega_b_rad_s):
-            yield ImuSample(float(t), tuple(map(float, f)), tuple(map(float, w)))
+            yield ImuSample(float(t), tuple(map(float, f)), tuple(map(float, w)), self.source)

@@ -13,6 +13,15 @@ def test_round_trip_through_json():
     assert from_dict(json.loads(json.dumps(to_dict(s)))) == s
 
 
+def test_imu_source_round_trips_and_is_optional():
+    s = ImuSample(1.25, (0.1, 0.2, -9.8), (0.0, 0.01, 0.02), "autopilot")
+    assert from_dict(json.loads(json.dumps(to_dict(s)))) == s
+    older = {k: v for k, v in to_dict(s).items() if k != "source"}  # a recording from before the field
+    assert from_dict(older).source == ""
+    with pytest.raises(SampleError, match="imu.source: expected a string"):
+        from_dict({**to_dict(s), "source": 3})
+
+
 def test_nan_survives_as_null_and_is_flagged():
     s = ImuSample(1.0, (math.nan, 0.0, 0.0), (0.0, 0.0, math.inf))
     d = json.loads(json.dumps(to_dict(s), allow_nan=False))

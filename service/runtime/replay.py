@@ -383,7 +383,8 @@ class ValidityCounter(Sink):
 def _filter_report(estimator: Any) -> dict:
     """The filter's own account: the IMU model it chose, resets, zero-velocity updates."""
     imu = estimator.imu_model
-    return {"imu_grade": imu.grade, "imu_quantized": imu.quantized, "earth_rotation": imu.earth_rotation,
+    return {"imu_grade": imu.grade, "imu_grade_why": imu.why, "imu_source": imu.source,
+            "imu_quantized": imu.quantized, "earth_rotation": imu.earth_rotation,
             "resets": dict(sorted(estimator.resets.items())),
             "zero_velocity_updates": estimator.zero_velocity_updates,
             "invalid_reasons_at_end": estimator.invalid_reasons()}

@@ -215,7 +215,7 @@ class _Loop:
                 if not keep.any():
                     return None
                 if not keep.all():
-                    item = ImuBatch(t[keep], f[keep], w[keep])
+                    item = ImuBatch(t[keep], f[keep], w[keep], item.source)
         else:
             ok, jump = door.check(item)
             if not ok:
@@ -279,7 +279,7 @@ class _Loop:
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
-                t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop])
+                t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop], batch.source)
             self.aid(self.estimator.process(piece))
             if math.isfinite(t[stop - 1]):
                 if stop - start >= 2:

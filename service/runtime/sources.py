@@ -86,6 +86,7 @@ def _batch(run: list[ImuSample]) -> ImuBatch:
         np.fromiter((s.t_s for s in run), dtype=float, count=len(run)),
         np.array([s.specific_force_b_m_s2 for s in run], dtype=float).reshape(-1, 3),
         np.array([s.omega_b_rad_s for s in run], dtype=float).reshape(-1, 3),
+        run[0].source,
     )
 
 
@@ -120,6 +121,9 @@ def order_and_batch(samples: Iterable[Any], counters: SourceCounters, horizon_s:
         else:
             released = item.t_s
         if item.KIND == "imu":
+            if run and item.source != run[0].source:  # a run is one stream (ImuBatch.source)
+                yield _batch(run)
+                run.clear()
             if _imu_ok(item) and (not run or item.t_s > run[-1].t_s):
                 run.append(item)
                 if len(run) >= max_batch:

@@ -127,7 +127,7 @@ def _fast_decoder(cls: type) -> Callable[[dict], Any]:
     spec = []
     for f in dataclasses.fields(cls):
         jtype, length = fs._field_spec(f)
-        spec.append((f.name, {"number": float, "integer": int, "boolean": bool}[jtype], length))
+        spec.append((f.name, {"number": float, "integer": int, "boolean": bool, "string": str}[jtype], length))
     all_keys = frozenset([f.name for f in dataclasses.fields(cls)] + ["type", "schema_version"])
 
     def decode(data: dict) -> Any:

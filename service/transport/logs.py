@@ -79,13 +79,14 @@ def _imu_rows(batch: ImuBatch) -> Iterator[tuple[float, bytes]]:
     finite = bool(np.isfinite(f).all() and np.isfinite(w).all())
     fl, wl = f.tolist(), w.tolist()
     dumps = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
+    source = batch.source
     for i, ti in enumerate(t):
         fi, wi = fl[i], wl[i]
         if not finite:
             fi = [x if math.isfinite(x) else None for x in fi]
             wi = [x if math.isfinite(x) else None for x in wi]
         d = {"type": "imu", "schema_version": SCHEMA_VERSION, "t_s": ti,
-             "specific_force_b_m_s2": fi, "omega_b_rad_s": wi}
+             "specific_force_b_m_s2": fi, "omega_b_rad_s": wi, "source": source}
         yield ti, dumps(d).encode("utf-8")
 
 

@@ -410,24 +410,26 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
-def imu_from_scaled(msg: Any, t_s: float) -> ImuSample:
-    """RAW_IMU / SCALED_IMU(2,3): acc [mg], gyro [mrad/s] → SI, body FRD."""
+def imu_from_scaled(msg: Any, t_s: float, source: str = "autopilot") -> ImuSample:
+    """RAW_IMU / SCALED_IMU(2,3): acc [mg], gyro [mrad/s] → SI, body FRD (``source``:
+    :attr:`ImuSample.source`; these are a flight controller's own IMU messages)."""
     acc = (msg.xacc, msg.yacc, msg.zacc)
     gyro = (msg.xgyro, msg.ygyro, msg.zgyro)
     if not any(acc) and not any(gyro):
         raise ConversionError("imu_absent", f"{msg.get_type()} all zeros (no such IMU)")
-    return ImuSample(t_s, tuple(a * MG_TO_M_S2 for a in acc), tuple(g * MRAD_TO_RAD for g in gyro))
+    return ImuSample(t_s, tuple(a * MG_TO_M_S2 for a in acc), tuple(g * MRAD_TO_RAD for g in gyro), source)
 
 
-def imu_from_highres(msg: Any, t_s: float) -> ImuSample:
-    """HIGHRES_IMU: already m/s² and rad/s; needs the acc and gyro bits of fields_updated."""
+def imu_from_highres(msg: Any, t_s: float, source: str = "") -> ImuSample:
+    """HIGHRES_IMU: already m/s² and rad/s; needs the acc and gyro bits of fields_updated
+    (``source``: :attr:`ImuSample.source`, who sent it)."""
     if msg.fields_updated and (msg.fields_updated & 0x3F) != 0x3F:
         raise ConversionError("imu_partial", "HIGHRES_IMU without all acc/gyro fields updated")
     acc = (float(msg.xacc), float(msg.yacc), float(msg.zacc))
     gyro = (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro))
     if not _finite(*acc, *gyro):
         raise ConversionError("non_finite", "HIGHRES_IMU")
-    return ImuSample(t_s, acc, gyro)
+    return ImuSample(t_s, acc, gyro, source)
 
 
 def attitude_from_attitude(msg: Any, t_s: float) -> AttitudeSample:
@@ -922,7 +924,12 @@ class MavlinkConverter:
         lock = self._imu_lock if self._imu_lock is not None and self._imu_lock[0] == self.imu_message else None
         if lock is not None and (mtype, src) != lock[:2] and rank <= lock[2]:
             raise IgnoredMessage(f"another IMU stream ({lock[0]} from {lock[1][0]}/{lock[1][1]}) is integrated")
-        sample = imu_from_highres(msg, t_s) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s)
+        # who measured it (filter.imu.grade = auto): the autopilot's own component sends its
+        # flight controller's MEMS IMU, whatever the message; RAW_IMU / SCALED_IMU* are that
+        # IMU's messages (int16 mg, mrad/s); HIGHRES_IMU from another component is an IMU of its own
+        own = mtype != "HIGHRES_IMU" or self._is_autopilot(msg)
+        source = "autopilot" if own else "dedicated"
+        sample = imu_from_highres(msg, t_s, source) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s, source)
         if lock is None or (mtype, src) != lock[:2]:
             self.imu_switches += lock is not None
             self._imu_lock = (mtype, src, rank)

@@ -213,7 +213,8 @@ class TlogSource:
         try:
             if mtype == "IMU" and getattr(msg, "I", 0) == 0:
                 self._imu_type = "IMU[0]"
-                return [ImuSample(t_s, (msg.AccX, msg.AccY, msg.AccZ), (msg.GyrX, msg.GyrY, msg.GyrZ))]
+                # a DataFlash log's IMU is the flight controller's own (ImuSample.source)
+                return [ImuSample(t_s, (msg.AccX, msg.AccY, msg.AccZ), (msg.GyrX, msg.GyrY, msg.GyrZ), "autopilot")]
             if mtype == "ATT":
                 return [AttitudeSample(t_s, math.radians(msg.Roll), math.radians(msg.Pitch),
                                        float(wrap_angle(math.radians(msg.Yaw))))]

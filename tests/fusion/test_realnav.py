@@ -127,6 +127,33 @@ def test_auto_grade_from_quantisation_and_measured_noise():
         math.hypot(imu_grades.PROFILES["tactical"].gyro_noise_rad_s_rthz, 1e-3 * math.sqrt(0.02 / 12)))
 
 
+def test_auto_grade_trusts_the_source_over_an_implausibly_quiet_stream():
+    """ArduSub's simulator streams the autopilot's HIGHRES_IMU nearly noise-free (5.9e-6
+    rad/s/√Hz at rest, a tactical gyro's figure): the autopilot's own IMU is a MEMS part
+    whatever its stream shows; a stream quieter than any physical gyro promotes nothing; a
+    dedicated IMU with a FOG's noise is still navigation grade."""
+    rng = np.random.default_rng(5)
+    n, dt = 200, 0.02
+    f = np.array([0, 0, -GRAVITY_M_S2]) + 1e-4 * rng.standard_normal((n, 3))
+    sitl_w = 5.9e-6 / math.sqrt(dt) * rng.standard_normal((n, 3))
+    assert imu_grades.resolve(ImuConfig(), f, sitl_w, dt).grade == "tactical"  # the noise alone
+    ap = imu_grades.resolve(ImuConfig(), f, sitl_w, dt, source="autopilot")
+    assert (ap.grade, ap.earth_rotation, ap.source) == ("consumer", False, "autopilot")
+    assert "autopilot" in ap.why and "below any MEMS" in ap.why
+    # the consumer figures, never below the datasheet class's (the measured noise only raises them)
+    assert ap.figures.gyro_noise_rad_s_rthz == imu_grades.PROFILES["consumer"].gyro_noise_rad_s_rthz
+    # a noise-free stream of unknown origin (a simulator's) is not taken for a FOG
+    for quiet in (np.zeros((n, 3)), 1e-8 * rng.standard_normal((n, 3))):
+        r = imu_grades.resolve(ImuConfig(), f, quiet, dt)
+        assert r.grade == "consumer" and "below any physical gyro" in r.why, r
+    # a FOG's noise from a dedicated IMU (or of unknown origin) is navigation grade
+    fog_w = 7e-7 / math.sqrt(0.01) * rng.standard_normal((n, 3))
+    for source in ("dedicated", ""):
+        assert imu_grades.resolve(ImuConfig(), f, fog_w, 0.01, source=source).grade == "navigation"
+    # a configured grade is the grade, whatever the source
+    assert imu_grades.resolve(ImuConfig(grade="navigation"), f, sitl_w, dt, source="autopilot").grade == "navigation"
+
+
 def _static_navigation_grade(est, lat_rad, duration_s, rate=100.0):
     """A perfect IMU at rest on the rotating earth: it senses the earth rate and normal gravity."""
     w_n = np.array([sd.EARTH_RATE_RAD_S * math.cos(lat_rad), 0.0, -sd.EARTH_RATE_RAD_S * math.sin(lat_rad)])

@@ -57,14 +57,17 @@ def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
 def test_auto_imu_moves_up_to_a_better_stream_and_then_ignores_the_worse():
     c = converter(imu_message="auto")
     # the autopilot's int16 RAW_IMU comes first (ArduSub streams it at a few Hz)
-    assert len(c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))) == 1
+    (raw,) = c.convert(wire("raw_imu_encode", 1_100_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))
     # a float HIGHRES_IMU from the autopilot is better: switched to
-    assert len(c.convert(wire("highres_imu_encode", 1_150_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20,
-                              0x3F))) == 1
+    (own,) = c.convert(wire("highres_imu_encode", 1_150_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F))
     # a companion's dedicated IMU (component 200) sending HIGHRES_IMU is better still
     dedicated = wire("highres_imu_encode", 1_160_000, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F,
                      src=(1, 200))
-    assert len(c.convert(dedicated)) == 1 and c.imu_switches == 2
+    (ded,) = c.convert(dedicated)
+    assert c.imu_switches == 2
+    # each sample says who measured it (the auto IMU grade's prior): both of the autopilot's
+    # streams are its flight controller's MEMS, the other component's is an IMU of its own
+    assert (raw.source, own.source, ded.source) == ("autopilot", "autopilot", "dedicated")
     # from then on the autopilot's streams are ignored on purpose, and say why
     assert c.convert(wire("raw_imu_encode", 1_200_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)) == []
     assert c.convert(wire("highres_imu_encode", 1_210_000, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F)) == []

@@ -25,6 +25,7 @@ def sim30():
 def _examples():
     return [
         ImuSample(0.01, (0.1, -0.2, -9.81), (1e-3, 0.0, -2e-3)),
+        ImuSample(0.02, (0.1, -0.2, -9.81), (1e-3, 0.0, -2e-3), "autopilot"),
         DvlSample(1.0, (1.5, 0.01, -0.02), False, math.nan),
         UsblSample(60.0, 0.75, 0.1, 20.0, 2.0),
         RangeSample(2.0, 3, (10.0, 20.0, 30.0), 45.5, 2.0),
@@ -116,6 +117,23 @@ def test_mcap_round_trip(sim30, tmp_path):
             assert summary.schemas[ch.schema_id].encoding == "jsonschema"
         first = next(reader.iter_messages(topics=["/adaptnav/sensor/imu"]))
         assert first[2].log_time == int(round(sim30.imu.t_s[0] * 1e9))
+
+
+def test_mcap_keeps_who_measured_the_imu(tmp_path):
+    """A recording keeps ImuSample.source (the auto IMU grade's prior): a batch written on the
+    fast path and single samples read back with their source, runs split where it changes."""
+    from adaptnav.service.runtime.sources import SourceCounters, order_and_batch
+
+    path = tmp_path / "imu.mcap"
+    t = np.arange(1, 6) * 0.01
+    f = np.tile([0.0, 0.0, -9.81], (5, 1))
+    w = np.zeros((5, 3))
+    write_mcap(path, [ImuBatch(t, f, w, "autopilot"), ImuSample(0.06, (0.0, 0.0, -9.81), (0.0, 0.0, 0.0), "dedicated"),
+                      ImuSample(0.07, (0.0, 0.0, -9.81), (0.0, 0.0, 0.0))])
+    back = list(read_mcap(path, ReadStats()))
+    assert [s.source for s in back] == ["autopilot"] * 5 + ["dedicated", ""]
+    runs = list(order_and_batch(back, SourceCounters()))
+    assert [(len(r), r.source) for r in runs] == [(5, "autopilot"), (1, "dedicated"), (1, "")]
 
 
 def test_truncated_mcap_yields_the_prefix_then_an_error(sim30, tmp_path):
