@@ -16,7 +16,10 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    Sightings of the same leg are not compared (``min_gap_s``).
 2. **Joint compatibility** (Neira & Tardós 2001, as used for side-scan by Fallon et al.
    ICRA 2011): the navigation error is nearly common to a batch, so true pairs agree on one
-   rigid offset ``δ = e_a − e_b`` (a translation: the heading aid bounds rotation), wrong ones
+   rigid offset ``δ = e_a − e_b`` — on the *jump-free* tracks
+   (:attr:`~adaptnav.sonar.objects.ObjectSighting.smooth_pos_n_m`: a USBL fix or a fused
+   closure between two sightings of one leg moved the filter's position by metres, and split
+   sets that were one; the closure's offset then adds back the jumps at its two times) (a translation: the heading aid bounds rotation), wrong ones
    scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
    keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
    ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
@@ -98,11 +101,17 @@ class AssociationConfig:
     min_objects: int = 4
     min_gap_s: float = 60.0
     attribute_sigmas: float = 3.0
-    height_sigma_m: float = 0.12
-    height_sigma_fraction: float = 0.3
-    length_sigma_m: float = 0.5
-    length_sigma_fraction: float = 0.4
-    relative_sigma_m_s: float = 0.05
+    # measured on the survey (seeds 1 and 4, 258 true cross-leg pairs): the difference of two
+    # heights has σ ≈ 0.08 / 0.14 / 0.21 m at h ≈ 0.3 / 0.6 / 1.1 m, of two along-track
+    # lengths ≈ 0.35 / 0.75 m at 0.9 / 1.8 m (each sighting: ÷ √2)
+    height_sigma_m: float = 0.04
+    height_sigma_fraction: float = 0.12
+    length_sigma_m: float = 0.1
+    length_sigma_fraction: float = 0.25
+    # on the jump-free track (ObjectSighting.jump_n_m) true pairs of one set scatter about
+    # their offset by ≈ 0.2 m within 5 s of the set's centre and 0.8 m at 15–40 s (survey
+    # seed 1): ≈ 0.015 m/s per leg and axis beyond the detector's share
+    relative_sigma_m_s: float = 0.015
     max_candidates_per_object: int = 8
     memory_s: float = 3600.0
     chance_probability: float = 0.1
@@ -146,6 +155,11 @@ class LoopClosure:
                 "nis": self.nis}
 
 
+# how far a pair of sightings got (:attr:`LegAssociator.trace`), in order
+STAGES = ("wide gate", "attributes", "candidate", "too few candidates", "chance bound", "not in the set",
+          "ambiguous", "accepted")
+
+
 class LegAssociator:
     """Keeps object sightings and finds loop closures for each new batch.
 
@@ -165,6 +179,9 @@ class LegAssociator:
         self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
         self.candidates_seen = 0
         self.batches = 0
+        # optional diagnostics (the landmark experiment's error budget): (id(old), id(new)) →
+        # furthest stage the pair reached, see :data:`STAGES`; None: not kept
+        self.trace: dict[tuple[int, int], str] | None = None
 
     @property
     def sightings(self) -> list[ObjectSighting]:
@@ -220,10 +237,25 @@ class LegAssociator:
             m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
             wide = np.flatnonzero((m2 <= c.clutter_scale * self._gate) & ~same_leg)
             agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
+            if self.trace is not None:
+                ok = set(agree)
+                for k in wide:
+                    self._note(self._old[old[k]], b, "candidate" if k in ok and m2[k] <= self._gate
+                               else "attributes" if k not in ok else "wide gate")
             clutter[j] = max(len(agree) - 1, 0) / c.clutter_scale
             for k in [k for k in agree if m2[k] <= self._gate][: c.max_candidates_per_object]:
                 out.append((old[k], j, float(m2[k]), S[k]))
         return out, clutter
+
+    def _note(self, a: ObjectSighting, b: ObjectSighting, stage: str) -> None:
+        key = (id(a), id(b))
+        if STAGES.index(stage) > STAGES.index(self.trace.get(key, STAGES[0])):
+            self.trace[key] = stage
+
+    def _note_all(self, cand, batch, ks, stage: str) -> None:
+        if self.trace is not None:
+            for k in ks:
+                self._note(self._old[cand[k][0]], batch[cand[k][1]], stage)
 
     def _relative(self, t_old: np.ndarray, t_new: float):
         """(covariances (K, 2, 2), known (K,)) of e(t_old) − e(t_new) from ``relative_cov``,
@@ -253,9 +285,12 @@ class LegAssociator:
         cand, clutter = self.candidates(batch)
         self.candidates_seen += len(cand)
         if len(cand) < c.min_objects:
+            self._note_all(cand, batch, range(len(cand)), "too few candidates")
             return None
         old = self._old
-        diffs = np.array([old[i].pos_n_m - batch[j].pos_n_m for i, j, _, _ in cand])
+        # on the jump-free tracks: a fix or a fused closure between two sightings of one leg
+        # moves the filter's position, not the seabed
+        diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
         ta = float(np.median([old[i].t_s for i, _, _, _ in cand]))
         tb = float(np.median([batch[j].t_s for _, j, _, _ in cand]))
         R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _, _ in cand])
@@ -273,7 +308,9 @@ class LegAssociator:
         while n_min <= len(cand) and len(cand) * float(poisson.sf(n_min - 2, lam)) > c.chance_probability:
             n_min += 1
         if n_min > len(cand):
+            self._note_all(cand, batch, range(len(cand)), "chance bound")
             return None
+        self._note_all(cand, batch, range(len(cand)), "not in the set")
         best: tuple[int, float, list[int]] | None = None
         for h in range(len(cand)):
             # the hypothesis is itself one noisy pair: its residuals have about twice the
@@ -295,15 +332,24 @@ class LegAssociator:
                 best = (len(sel), cost, sel)
         if best is None:
             return None
+        self._note_all(cand, batch, best[2], "ambiguous")
         sel = self._unambiguous(cand, diffs, W, best[2])
         if len(sel) < n_min:
             return None
+        self._note_all(cand, batch, sel, "accepted")
         info = W[sel].sum(axis=0)
         cov = np.linalg.inv(info)
         delta = self._mean(diffs, W, sel)
         pairs = tuple((old[cand[k][0]], batch[cand[k][1]]) for k in sel)
-        return LoopClosure(t_a_s=float(np.median([p[0].t_s for p in pairs])),
-                           t_b_s=float(np.median([p[1].t_s for p in pairs])),
+        # the closure refers to the filter's positions at two sightings' times (the median
+        # ones): the jump-free offset plus the jumps the filter had made by then
+        a_med = sorted((p[0] for p in pairs), key=lambda o: o.t_s)[(len(pairs) - 1) // 2]
+        b_med = sorted((p[1] for p in pairs), key=lambda o: o.t_s)[(len(pairs) - 1) // 2]
+        if a_med.jump_n_m is not None:  # (None: no velocity was given, no jumps known)
+            delta = delta + a_med.jump_n_m
+        if b_med.jump_n_m is not None:
+            delta = delta - b_med.jump_n_m
+        return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=best[1])
 
     def _unambiguous(self, cand, diffs, W, sel: list[int]) -> list[int]:

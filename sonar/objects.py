@@ -29,6 +29,13 @@ Detection (:func:`detect_objects`), per side with columns ordered outwards:
    the leading edge and the top; its across-track error is a fraction of the object's
    size (the face seen differs between the two sides), in the covariance.
 
+Near the nadir (``near_range_m``) objects are also taken by their highlight alone followed
+by a darker strip: the shadow there is too short to measure (height NaN).
+
+Jump-free track: :class:`ObjectFrontEnd` given the navigation's velocity accumulates the
+position changes the velocity does not explain (fixes, fused loop closures) in each
+sighting's ``jump_n_m``; the associator compares sightings on ``pos_n_m − jump_n_m``.
+
 SIFT/ORB keypoints (:mod:`adaptnav.sonar.landmarks`) remain for texture-rich seabeds.
 """
 from __future__ import annotations
@@ -73,6 +80,20 @@ class ObjectDetectorConfig:
         Base 1-σ of the reported position (m), before the size-dependent part.
     size_fraction : float
         Position 1-σ grows by this fraction of the object's extent.
+    near_range_m : float
+        Nearer than this (ground range) an object is also sought by its highlight alone
+        (:func:`_detect_near`): near the nadir the rays are steep, a 0.5 m object's shadow is
+        0.25–0.6 m (h g / (H − h) at g = 5–12 m, H = 10 m), too short for the shadow test,
+        while its lit top and face stand out (0 disables). Height is then unknown (NaN).
+    near_highlight_level, near_min_px, near_min_rows, near_mean_level : float, int, int, float
+        A near highlight: pixels above ``near_highlight_level``, at least ``near_min_px`` of
+        them on ``near_min_rows`` rows, mean level at least ``near_mean_level``.
+    near_shadow_level, near_min_contrast, near_min_along_m : float
+        …followed by a darker strip (0.4 m just beyond it, mean level below
+        ``near_shadow_level`` and the blob's mean over it at least ``near_min_contrast``), at
+        least ``near_min_along_m`` long along-track. Measured on survey seabeds (3 seeds,
+        true navigation): objects' blobs have contrast median 2.6 (10 % below 1.7), sediment
+        and speckle blobs 1.6 (90 % below 1.9); along-track 1.2 m vs 0.6 m.
     """
 
     shadow_level: float = 0.5
@@ -89,6 +110,14 @@ class ObjectDetectorConfig:
     sigma_across_m: float = 0.15
     sigma_along_m: float = 0.2
     size_fraction: float = 0.15
+    near_range_m: float = 12.0
+    near_highlight_level: float = 2.2
+    near_min_px: int = 12
+    near_min_rows: int = 3
+    near_mean_level: float = 3.0
+    near_shadow_level: float = 2.0
+    near_min_contrast: float = 2.0
+    near_min_along_m: float = 0.7
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +154,11 @@ class ObjectSighting:
         detector's error.
     heading_rad : float
         Heading at ``t_s`` (rad).
+    jump_n_m : numpy.ndarray or None, shape (2,)
+        The navigation's accumulated jumps up to ``t_s`` (its position minus the integral of
+        its velocity, m; set by the front end when it has the velocity): ``pos_n_m − jump_n_m``
+        is the *jump-free* track, smooth across the filter's updates (a fix, a fused loop
+        closure), on which sightings of different times agree on one rigid offset.
     """
 
     t_s: float
@@ -141,6 +175,14 @@ class ObjectSighting:
     nav_cov: np.ndarray | None = None
     det_cov: np.ndarray | None = None
     heading_rad: float = math.nan
+    jump_n_m: np.ndarray | None = None
+
+    @property
+    def smooth_pos_n_m(self) -> np.ndarray | None:
+        """Position on the jump-free track (``pos_n_m − jump_n_m``; ``pos_n_m`` without it)."""
+        if self.pos_n_m is None or self.jump_n_m is None:
+            return self.pos_n_m
+        return self.pos_n_m - self.jump_n_m
 
     def offset_n_m(self, yaw_rad: float) -> np.ndarray:
         """(north, east) of the object relative to the vehicle at ``t_s`` (m)."""
@@ -219,7 +261,56 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     return sorted(out, key=lambda o: o.t_s)
 
 
+def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
+    """Objects near the nadir by their highlight (see ``ObjectDetectorConfig.near_range_m``)."""
+    ncol = min(int(config.near_range_m / res), lev.shape[1])
+    if ncol <= 0:
+        return []
+    sub = lev[:, :ncol + int(2.0 / res)]
+    lab, n = label(sub > config.near_highlight_level, structure=np.ones((3, 3), bool))
+    out = []
+    for k, sl in enumerate(find_objects(lab), start=1):
+        if sl is None:
+            continue
+        comp = lab[sl] == k
+        rr = np.flatnonzero(comp.any(axis=1))
+        if comp.sum() < config.near_min_px or rr.size < config.near_min_rows:
+            continue
+        c0, c1 = sl[1].start, sl[1].stop
+        if c0 >= ncol or c0 < int(config.min_ground_range_m / res):
+            continue
+        vals = sub[sl][comp]
+        if float(vals.mean()) < config.near_mean_level:
+            continue
+        # behind the blob: darker than the background (a short shadow)
+        far = np.array([sl[1].start + np.flatnonzero(row).max() + 1 for row in comp if row.any()])
+        behind = [lev[r0, f:f + max(int(0.4 / res), 2)] for r0, f in zip(rr + sl[0].start, far)]
+        bmean = float(np.mean(np.concatenate(behind))) if behind else 1.0
+        if bmean > config.near_shadow_level:
+            continue
+        rc = float(sl[0].start + rr.mean())
+        ping = float(np.interp(rc, rows, wf.ping_index))
+        H = float(np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping))
+        length = (float(np.interp(sl[0].stop - 0.5, rows, along) - np.interp(sl[0].start - 0.5, rows, along))
+                  if math.isfinite(along_res) else math.nan)
+        g_lead, g_far = (c0 + 0.5) * res, (float(np.median(far)) + 0.5) * res
+        contrast = float(vals.mean()) / max(bmean, 1e-3)
+        if contrast < config.near_min_contrast or not abs(length) >= config.near_min_along_m:
+            continue
+        out.append(ObjectSighting(
+            t_s=float(np.interp(rc, rows, wf.t_s)), side=side, ground_range_m=0.5 * (g_lead + g_far),
+            height_m=math.nan, shadow_length_m=0.0, length_along_m=abs(length),
+            width_across_m=max(g_far - g_lead, res), contrast=contrast,
+            altitude_m=H, row=rc, heading_rad=float(np.interp(rc, rows, np.unwrap(wf.heading_rad)))))
+    return out
+
+
 def _detect_side(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
+    near = _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) if config.near_range_m > 0 else []
+    return near + _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config)
+
+
+def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
     shadow = lev < config.shadow_level
     lab, n = label(shadow, structure=np.ones((3, 3), bool))
     if n == 0:
@@ -302,7 +393,7 @@ def _merge(objs: list[ObjectSighting], merge_m: float, along_res: float) -> list
 
 
 def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
-                    config: ObjectDetectorConfig = ObjectDetectorConfig()) -> ObjectSighting:
+                    config: ObjectDetectorConfig = ObjectDetectorConfig(), jump_n_m=None) -> ObjectSighting:
     """The sighting placed in the local frame from the vehicle pose at its ping.
 
     Parameters
@@ -313,10 +404,14 @@ def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
         Covariance of that position (m²), e.g. the ESKF's.
     yaw_rad : float
         Heading at ``obj.t_s``.
+    jump_n_m : (2,) array, optional
+        The navigation's accumulated jumps at ``obj.t_s`` (:attr:`ObjectSighting.jump_n_m`).
     """
     p = np.asarray(pos_n_m, float)[:2] + obj.offset_n_m(yaw_rad)
+    jump = None if jump_n_m is None else np.asarray(jump_n_m, float).reshape(2).copy()
     return replace(obj, pos_n_m=p, nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
-                   det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad))
+                   det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
+                   jump_n_m=jump)
 
 
 @dataclass(frozen=True)
@@ -364,14 +459,18 @@ class ObjectFrontEnd:
         self.config = config
         n = config.block_pings + 2 * config.context_pings
         self._pings: deque = deque(maxlen=n)
-        self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4)
+        self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4, jump n, jump e)
         self._n = 0
+        # the navigation's jumps so far (position minus its integrated velocity) and the last
+        # (t, position, velocity) it was measured from
+        self._jump = np.zeros(2)
+        self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
         self._next_emit = 0  # global index of the next block's first ping
         self.blocks = 0
         self.sightings = 0
         self.rejected: dict[str, int] = {}
 
-    def push(self, ping, pos_n_m, nav_cov, yaw_rad: float) -> list[ObjectSighting]:
+    def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None) -> list[ObjectSighting]:
         """Take one ping with the navigation at its time; return a block's sightings when one completes.
 
         Parameters
@@ -383,6 +482,11 @@ class ObjectFrontEnd:
             Its covariance (m²).
         yaw_rad : float
             Heading at ``ping.t_s`` (rad).
+        vel_n_m_s : (2,) array, optional
+            The navigation's horizontal velocity at ``ping.t_s`` (m/s). With it, every change
+            of position that the velocity does not explain (a fix, a fused loop closure) is
+            accumulated as a jump (:attr:`ObjectSighting.jump_n_m`): the associator compares
+            sightings of different times on the jump-free track.
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
         cov = np.asarray(nav_cov, float).reshape(2, 2)
@@ -394,8 +498,15 @@ class ObjectFrontEnd:
                             or ping.slant_range_m != self._pings[-1].slant_range_m):
             self.rejected["out of order or other geometry"] = self.rejected.get("out of order or other geometry", 0) + 1
             return []
+        if vel_n_m_s is not None:
+            v = np.asarray(vel_n_m_s, float).reshape(-1)[:2]
+            if np.all(np.isfinite(v)):
+                if self._last_vel is not None:
+                    t0, p0, v0 = self._last_vel
+                    self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
+                self._last_vel = (float(ping.t_s), p.copy(), v.copy())
         self._pings.append(ping)
-        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4)))
+        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4), *self._jump))
         self._n += 1
         c = self.config
         if self._n < self._next_emit + c.block_pings + c.context_pings:
@@ -435,6 +546,7 @@ class ObjectFrontEnd:
                 continue
             pos = (float(np.interp(li, idx, nav[:, 0])), float(np.interp(li, idx, nav[:, 1])))
             cov = np.array([float(np.interp(li, idx, nav[:, 3 + k])) for k in range(4)]).reshape(2, 2)
-            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector))
+            jump = nav[int(round(li)), 7:9] if self._last_vel is not None else None
+            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector, jump))
         self.sightings += len(out)
         return out

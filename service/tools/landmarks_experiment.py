@@ -118,6 +118,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
 
     est_with, est_without = make(), make()
     fe, assoc = ObjectFrontEnd(), LegAssociator(relative_cov=est_with.relative_position_covariance)
+    assoc.trace = {}
     closures, fused = [], 0
     sightings = []
     for item in res.iter_blocks():
@@ -130,7 +131,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
                 continue
             dt = item.t_s - ns.t_s
             pos = ns.pos_n_m[:2] + ns.vel_n_m_s[:2] * dt
-            batch = fe.push(item, pos, ns.cov[:2, :2], ns.euler_rad()[2])
+            batch = fe.push(item, pos, ns.cov[:2, :2], ns.euler_rad()[2], ns.vel_n_m_s[:2])
             if batch:
                 sightings += batch
                 lc = assoc.add(batch)
@@ -144,10 +145,11 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
         if landmarks and kind == "imu_batch":
             est_with.clone_position()
     return _score(scenario, res, est_with, est_without, sightings, closures, fused,
-                  min_range_m, max_range_m)
+                  min_range_m, max_range_m, assoc)
 
 
-def _score(scenario, res, est_with, est_without, sightings, closures, fused, min_range_m, max_range_m) -> LandmarkScore:
+def _score(scenario, res, est_with, est_without, sightings, closures, fused, min_range_m, max_range_m,
+           assoc=None) -> LandmarkScore:
     dense = res.dense
     t = dense.t_s
     step = max(int(round(1.0 / (t[1] - t[0]))), 1)  # 1 Hz truth is plenty
@@ -173,9 +175,9 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
 
     # objects both of two consecutive legs pass abeam within the usable swath
     common: dict[int, tuple[int, int]] = {}
+    abeam = [_abeam_range(pp[a:b], objs) for a, b in legs]
     for i in range(len(legs) - 1):
-        ga = _abeam_range(pp[legs[i][0]:legs[i][1]], objs)
-        gb = _abeam_range(pp[legs[i + 1][0]:legs[i + 1][1]], objs)
+        ga, gb = abeam[i], abeam[i + 1]
         ok = (ga >= min_range_m) & (ga <= max_range_m) & (gb >= min_range_m) & (gb <= max_range_m)
         for k in np.flatnonzero(ok):
             common.setdefault(int(k), (i, i + 1))
@@ -190,7 +192,12 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
                 continue
             if ka in common and {leg(a.t_s), leg(b.t_s)} == set(common[ka]):
                 found.add(ka)
-    on_obj = sum(truth_object(o) >= 0 for o in sightings)
+    truth = [truth_object(o) for o in sightings]
+    on_obj = sum(k >= 0 for k in truth)
+    extra = {}
+    if assoc is not None and assoc.trace is not None:
+        extra["budget"] = _budget(sightings, truth, [leg(o.t_s) for o in sightings], common, found, abeam,
+                                  assoc, min_range_m, max_range_m)
     t_fix = scenario.usbl.lost_after_s if scenario.usbl.enabled and scenario.usbl.lost_after_s else 0.0
     i0 = int(np.searchsorted(tt, t_fix))
     dist_outage = float(np.sum(np.linalg.norm(np.diff(pp[i0:], axis=0), axis=1)))
@@ -207,7 +214,81 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
         false_pairs=n_false, loop_closures=len(closures), loop_closures_fused=fused,
         distance_km=dist_all / 1000.0, drift_percent_with_landmarks=drift(est_with),
         drift_percent_without_landmarks=drift(est_without), sightings=len(sightings),
-        sightings_on_objects=int(on_obj), seed=int(scenario.seed))
+        sightings_on_objects=int(on_obj), seed=int(scenario.seed), extra=extra)
+
+
+BANDS_M = (5.0, 10.0, 20.0, 30.0, 40.0, 45.0)
+
+
+def _band(g: float) -> str:
+    for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:]):
+        if lo <= g < hi:
+            return f"{lo:.0f}-{hi:.0f}"
+    return "outside"
+
+
+def _budget(sightings, truth, legs_of, common, found, abeam, assoc, min_range_m, max_range_m) -> dict:
+    """Where the objects of the common swath that were not re-associated were lost.
+
+    * ``missed``: not detected on one of the two legs (by that leg's ground-range band), or both;
+    * otherwise the furthest stage the best of their true pairs reached in the associator
+      (:data:`adaptnav.sonar.association.STAGES`; ``outside`` = beyond the wide gate);
+    * ``recall_by_band``: detections / objects abeam of a leg, by ground range, all legs;
+    * ``pair_scatter``: of the true cross-leg pairs, the median and 90th percentile of the
+      height and along-track length differences in the associator's σ units.
+    """
+    from adaptnav.sonar.association import STAGES
+
+    by = {}  # (object, leg) → sightings
+    for o, k, lg in zip(sightings, truth, legs_of):
+        if k >= 0:
+            by.setdefault((k, lg), []).append(o)
+    lost: dict[str, int] = {}
+
+    def count(key):
+        lost[key] = lost.get(key, 0) + 1
+
+    h_dev, l_dev = [], []
+    cfg = assoc.config
+    for k, (i, j) in common.items():
+        sa, sb = by.get((k, i), []), by.get((k, j), [])
+        for a in sa:
+            for b in sb:
+                if math.isfinite(a.height_m) and math.isfinite(b.height_m):
+                    s = math.hypot(cfg.height_sigma_m + cfg.height_sigma_fraction * a.height_m,
+                                   cfg.height_sigma_m + cfg.height_sigma_fraction * b.height_m)
+                    h_dev.append(abs(a.height_m - b.height_m) / s)
+                if math.isfinite(a.length_along_m) and math.isfinite(b.length_along_m):
+                    s = math.hypot(cfg.length_sigma_m + cfg.length_sigma_fraction * a.length_along_m,
+                                   cfg.length_sigma_m + cfg.length_sigma_fraction * b.length_along_m)
+                    l_dev.append(abs(a.length_along_m - b.length_along_m) / s)
+        if k in found:
+            continue
+        if not sa and not sb:
+            count("missed on both legs")
+            continue
+        if not sa or not sb:
+            count(f"missed on one leg at {_band(float(abeam[i if not sa else j][k]))} m")
+            continue
+        best = -1
+        for a in sa:
+            for b in sb:
+                st = assoc.trace.get((id(a), id(b)))
+                best = max(best, STAGES.index(st) if st is not None else -1)
+        count("outside the wide gate" if best < 0 else STAGES[best])
+    recall: dict[str, list[int]] = {}
+    for lg, g in enumerate(abeam):
+        for k in np.flatnonzero((g >= min_range_m) & (g <= max_range_m)):
+            r = recall.setdefault(_band(float(g[k])), [0, 0])
+            r[1] += 1
+            r[0] += int((int(k), lg) in by)
+
+    def q(v):
+        return [float(np.median(v)), float(np.percentile(v, 90))] if v else None
+
+    return {"lost": dict(sorted(lost.items(), key=lambda kv: -kv[1])),
+            "recall_by_band": {b: round(n / m, 3) for b, (n, m) in sorted(recall.items())},
+            "pair_scatter_sigmas": {"height": q(h_dev), "length": q(l_dev)}}
 
 
 def _abeam_range(track: np.ndarray, objs: np.ndarray) -> np.ndarray:

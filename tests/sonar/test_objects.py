@@ -128,6 +128,47 @@ def test_reciprocal_legs_give_one_loop_closure_with_the_navigation_offset(recipr
         assert lc.n_objects >= 3 and lc.t_b_s > lc.t_a_s
 
 
+def test_a_jump_of_the_navigation_mid_leg_does_not_split_the_offset(reciprocal_passes):
+    """A fix (or a fused closure) moves the filter's position in the middle of the second
+    leg: given the navigation's velocity the front end keeps the jump-free track, sets may
+    span the jump, and every closure's offset refers to the filter's positions at its two
+    times (before the jump: e_a − e_b1; after: e_a − e_b2)."""
+    sb, (pa, xa), (pb, xb) = reciprocal_passes
+    e_a, e_b1, e_b2 = np.array([1.0, -0.5]), np.array([-4.0, 2.5]), np.array([2.0, 0.5])
+    sa, _ = _front_end(pa, xa, 0.0, e_a, 2.0)
+    t_shift = pa[-1].t_s + 120.0
+    fe = ObjectFrontEnd()
+    k_jump = 240  # in the middle of the second block of pings
+    vel = np.array([-1.5, 0.0])  # the second pass flies south at 1.5 m/s
+    new, true_pos = [], []
+    for k, (p, q) in enumerate(zip(pb, xb)):
+        err = e_b1 if k < k_jump else e_b2
+        for s in fe.push(replace(p, t_s=p.t_s + t_shift), q + err, np.eye(2) * 16.0, math.pi, vel):
+            new.append(s)
+            true_pos.append(s.pos_n_m - (e_b1 if s.t_s < pb[k_jump].t_s + t_shift else e_b2))
+    assert {tuple(np.round(s.jump_n_m, 6)) for s in new} == {(0.0, 0.0), tuple(e_b2 - e_b1)}
+    truth = dict(zip(map(id, new), true_pos))
+    assoc = LegAssociator()
+    assoc.add(sa)
+    blocks: dict[int, list] = {}
+    for s in new:
+        blocks.setdefault(math.floor((s.t_s - t_shift) / (160 * DS_M / 1.5)), []).append(s)
+    closures = [lc for lc in (assoc.add(b) for _, b in sorted(blocks.items())) if lc is not None]
+    assert closures
+    # a set spans the jump: the same seabed, one offset on the jump-free track
+    t_jump = pb[k_jump].t_s + t_shift
+    assert any(min(b.t_s for _, b in lc.pairs) < t_jump < max(b.t_s for _, b in lc.pairs) for lc in closures)
+    a_true = {id(s): s.pos_n_m - e_a for s in sa}
+    pairs = [p for lc in closures for p in lc.pairs]
+    ka = _truth_match(sb, [a_true[id(p[0])] for p in pairs])
+    kb = _truth_match(sb, [truth[id(p[1])] for p in pairs])
+    assert np.mean((ka == kb) & (ka >= 0)) >= 0.9
+    for lc in closures:
+        e_b = e_b1 if lc.t_b_s < t_jump else e_b2
+        r = lc.offset_n_m - (e_a - e_b)
+        assert float(np.sqrt(r @ np.linalg.solve(lc.cov + 0.25 * np.eye(2), r))) < 3.5, (lc.offset_n_m, e_a - e_b)
+
+
 def test_no_loop_closure_between_different_seabeds(reciprocal_passes):
     sb, (pa, xa), _ = reciprocal_passes
     other = Seabed.survey((150.0, 170.0), np.random.default_rng(99), n_objects=130, wreck=False)
