@@ -1,6 +1,7 @@
 """Compiled kernels: ahead of time when built, else numba's just-in-time compiler.
 
-The hot loops (:mod:`adaptnav.fusion.strapdown`, :mod:`adaptnav.calibration._kernels`) are
+The hot loops (:mod:`adaptnav.fusion.strapdown`, :mod:`adaptnav.fusion.kalman`,
+:mod:`adaptnav.calibration._kernels`) are
 numba ``njit`` functions declared with :func:`jit` instead of ``numba.njit``. Just in time,
 numba costs every process that imports it ~65 MB (llvmlite's LLVM and numba's typing
 registries) plus ~55–90 MB to load the cached kernels, and a fresh install compiles for
@@ -20,7 +21,15 @@ was built for a contiguous float one reads wrong memory), so each comes with a g
 arguments of the recorded types (dtype, dimensions, contiguous and writeable arrays;
 numbers) go to the compiled code, anything else to the just-in-time version. A kernel
 the build did not see called (tests, benchmarks) works the same way: on its first call
-its module's kernels are compiled just in time, in a namespace of their own.
+its module's kernels are compiled just in time, in a namespace of their own (where a
+kernel of another kernel module it calls is that module's just-in-time version too).
+
+Just in time, numba's on-disk cache (``cache=True``) checks a cached kernel against its own
+source file only: a kernel that calls one in another file (:mod:`adaptnav.fusion.kalman`'s
+propagation calls :func:`adaptnav.fusion.strapdown.strapdown_step`) would keep the old
+callee compiled into it after that file changed. :func:`jit` therefore stamps every cached
+kernel with the hash of all kernel sources (:func:`sources_digest`, which also names the
+ahead-of-time module): any change recompiles them all, nothing stale is ever loaded.
 """
 from __future__ import annotations
 
@@ -36,7 +45,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 # the modules whose kernels are declared with jit(); their sources key the compiled module
-KERNEL_MODULES = ("adaptnav.fusion.strapdown", "adaptnav.calibration._kernels")
+KERNEL_MODULES = ("adaptnav.fusion.strapdown", "adaptnav.fusion.kalman", "adaptnav.calibration._kernels")
 
 _registry: dict[str, dict[str, tuple[Callable, dict]]] = {}   # module → name → (py_func, options)
 _jit_namespaces: dict[str, dict[str, Any]] = {}
@@ -51,14 +60,26 @@ def kernel_dirs() -> list[Path]:
     return ([Path(env)] if env else []) + [Path(__file__).parent]
 
 
+_digest: bytes | None = None
+
+
+def sources_digest() -> bytes:
+    """SHA-1 of the sources of :data:`KERNEL_MODULES` (read once per process)."""
+    global _digest
+    if _digest is None:
+        h = hashlib.sha1()
+        for name in KERNEL_MODULES:
+            spec = importlib.util.find_spec(name)
+            h.update(Path(spec.origin).read_bytes())
+        _digest = h.digest()
+    return _digest
+
+
 def aot_name() -> str:
     """Module name of the compiled kernels for the current sources and toolchain."""
     from importlib.metadata import PackageNotFoundError, version
 
-    h = hashlib.sha1()
-    for name in KERNEL_MODULES:
-        spec = importlib.util.find_spec(name)
-        h.update(Path(spec.origin).read_bytes())
+    h = hashlib.sha1(sources_digest())
     try:
         numba_version = version("numba")
     except PackageNotFoundError:
@@ -113,14 +134,26 @@ def jit(**options: Any) -> Callable[[Callable], Any]:
         if aot is None:
             import numba
 
-            return numba.njit(**options)(py_func)
+            return _stamp_cache(numba.njit(**options)(py_func))
         export = exported_name(module, py_func.__name__)
         compiled = getattr(aot, export, None)
         fallback = _Deferred(module, py_func.__name__)
         if compiled is None:
             return fallback
-        return _guarded(compiled, aot.arg_specs[export], fallback)
+        out = _guarded(compiled, aot.arg_specs[export], fallback)
+        out._kernel = (module, py_func.__name__)
+        return out
     return decorate
+
+
+def _stamp_cache(dispatcher: Any) -> Any:
+    """Key ``dispatcher``'s on-disk cache on every kernel source (module docstring): numba
+    compares the stamp its index was written with to this one and recompiles on a
+    difference. A numba without these internals keeps its own per-file stamp."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if cache_file is not None and hasattr(cache_file, "_source_stamp"):
+        cache_file._source_stamp = (cache_file._source_stamp, sources_digest())
+    return dispatcher
 
 
 def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
@@ -164,6 +197,7 @@ class _Deferred:
 
     def __init__(self, module: str, name: str) -> None:
         self.module, self.name = module, name
+        self._kernel = (module, name)
 
     def __call__(self, *args: Any) -> Any:
         return _jit_namespace(self.module)[self.name](*args)
@@ -175,6 +209,12 @@ def _jit_namespace(module: str) -> dict[str, Any]:
         import numba
 
         ns = dict(vars(sys.modules[module]))
+        for key, value in list(ns.items()):
+            # a kernel imported from another kernel module: its just-in-time version (the
+            # compiled one, a Python callable, cannot be called from numba code)
+            origin = getattr(value, "_kernel", None) if callable(value) else None
+            if isinstance(origin, tuple) and origin[0] != module:
+                ns[key] = _jit_namespace(origin[0])[origin[1]]
         for name, (f, options) in _registry[module].items():
             g = types.FunctionType(f.__code__, ns, name, f.__defaults__, f.__closure__)
             g.__module__ = f.__module__

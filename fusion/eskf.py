@@ -1,7 +1,9 @@
 r"""Error-state Kalman filter over strapdown INS with model-aided velocity (DESIGN.md "Fusion").
 
 Nominal state, error state and injection: :mod:`adaptnav.fusion.state`; mechanisation and the
-covariance/update kernels: :mod:`adaptnav.fusion.strapdown`; measurement models: one module per
+earth model: :mod:`adaptnav.fusion.strapdown`; covariance propagation, gated update and error
+injection kernels: :mod:`adaptnav.fusion.kalman`; alignment: :mod:`adaptnav.fusion.alignment`;
+the adaptive surge variance: :mod:`adaptnav.fusion.adaptive_noise`; measurement models: one module per
 source in :mod:`adaptnav.fusion.aiding`. This module does, once for every source (as PX4 EKF2's
 ``estimator_aid_src_*``): chi-square gating of the normalised innovation, Joseph-form
 update, error injection and covariance reset, one :class:`~fusion.status.AidStatus`
@@ -47,6 +49,7 @@ from collections import Counter
 import numpy as np
 
 from . import imu_grades
+from . import kalman
 from . import strapdown as sd
 from .aiding import AIDS, AidContext
 from .aiding import attitude as aid_attitude
@@ -62,9 +65,8 @@ from .frames import GeoOrigin, euler_to_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
-from .state import (ATT, BA, BG, CUR, KS, N_ERR, POS, SLOW, VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_Q,
-                    X_SLOW, X_VEL, NavState,
-                    initial_nominal)
+from .state import (ACC_F, ACC_OMEGA, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW, VEL,
+                    X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
 
 # Both from the sensor table and the aid registry: an aid-role kind without an aid
@@ -92,6 +94,12 @@ def _finite(sample) -> bool:
     if sample.KIND == "usbl" and not math.isfinite(sample.sigma_v_m):
         return all(math.isfinite(v) for v in (sample.t_s, sample.lat_rad, sample.lon_rad, sample.sigma_h_m))
     return is_finite(sample)
+
+
+def _sigma_h_m(P: np.ndarray) -> float:
+    """Horizontal position σ (m) of a covariance (18×18): the larger of north and east."""
+    var_n, var_e = np.diag(P)[POS_NE]
+    return math.sqrt(max(var_n, var_e, 0.0))
 
 
 def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurement:
@@ -140,12 +148,11 @@ class Estimator:
         self.rejected: Counter = Counter()
         # one contiguous array holds all numeric state (views below): a snapshot for
         # late-measurement re-fusion is then a single copy
-        n_x, n_p, n_a = sd.N_X, sd.N_P, sd.ACC_SIZE
-        self._core = np.zeros(sd.CORE_SIZE)
-        self._x = self._core[:n_x]
-        self._P = self._core[n_x:n_x + n_p].reshape(N_ERR, N_ERR)
-        self._acc = self._core[n_x + n_p:n_x + n_p + n_a]
-        self._clock = self._core[n_x + n_p + n_a:]
+        self._core = np.zeros(kalman.CORE_SIZE)
+        self._x = self._core[kalman.CORE_X]
+        self._P = self._core[kalman.CORE_P].reshape(N_ERR, N_ERR)
+        self._acc = self._core[kalman.CORE_ACC]
+        self._clock = self._core[kalman.CORE_CLOCK]
         self._x[:] = initial_nominal()
         self._clock[:] = -math.inf
         sd.set_earth(self._acc, None)
@@ -229,11 +236,11 @@ class Estimator:
         """The current state; the covariance includes the not yet flushed propagation."""
         x = self._x
         if self._mode == "ins":
-            cov = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+            cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         else:
             cov = self._P.copy()
         self._add_considered(cov)
-        sigma_h = math.sqrt(max(cov[0, 0], cov[1, 1], 0.0))
+        sigma_h = _sigma_h_m(cov)
         reasons = self.invalid_reasons(sigma_h)
         if self._mode == "ins" and not reasons and not np.all(np.isfinite(x)):
             reasons = ["non_finite"]
@@ -244,7 +251,7 @@ class Estimator:
             R = aid_lv.dcm(x)
             r = R @ self._out_arm
             pos += r
-            vel += R @ np.cross(self._acc[sd.ACC_OMEGA], self._out_arm)
+            vel += R @ np.cross(self._acc[ACC_OMEGA], self._out_arm)
             J = np.eye(N_ERR)
             J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
             cov = J @ cov @ J.T
@@ -262,10 +269,10 @@ class Estimator:
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
         depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
         if self.dvl_calibration is not None:
-            cov[:2, :2] += self.dvl_calibration.position_cov_ne()
+            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne()
         dep = self.config.depth
         if dep.density_sigma_kg_m3 > 0.0:
-            cov[2, 2] += (float(self._x[X_DEPTH]) * dep.density_sigma_kg_m3 / dep.water_density_kg_m3) ** 2
+            cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * dep.density_sigma_kg_m3 / dep.water_density_kg_m3) ** 2
 
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
@@ -282,8 +289,8 @@ class Estimator:
             return ["ahrs_only"]
         c = self.config.integrity
         if sigma_h_m is None:
-            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
-            sigma_h_m = math.sqrt(max(P[0, 0], P[1, 1], 0.0))
+            P = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+            sigma_h_m = _sigma_h_m(P)
         out = []
         if not sigma_h_m <= self.config.valid_max_sigma_h_m:
             out.append("sigma_h")
@@ -322,7 +329,7 @@ class Estimator:
         if self._clones.t_s and t - self._clones.t_s[-1] < self._clones.period_s:
             return False
         self._clones.flush(self._core, self._qdiag)
-        return self._clones.maybe_clone(t, self._x[0:2], self._P)
+        return self._clones.maybe_clone(t, self._x[X_POS_NE], self._P)
 
     def relative_position_covariance(self, t_a_s: float, t_b_s: float) -> np.ndarray | None:
         """Covariance (2×2, m²) of the horizontal position error difference between the
@@ -370,7 +377,7 @@ class Estimator:
             P = self._P - K @ S @ K.T
             self._P[:, :] = 0.5 * (P + P.T)
             self._clones.apply(a, b, K)
-            sd.inject_error(self._x, dx, self._P)
+            kalman.inject_error(self._x, dx, self._P)
             self._clones.transform(aid_loop.reset_jacobian(dx))
         return AidStatus(float(t_b_s), src, tuple(offset.tolist()), tuple(y.tolist()), tuple(np.diag(S).tolist()),
                          float(nis) / gate, fused, "" if fused else "gate")
@@ -413,7 +420,7 @@ class Estimator:
             "k_speed": float(self._x[X_KS]), "var_k_speed": float(d[KS][0]),
         }
         if self._mode == "ins":
-            P = sd.propagated_covariance(self._P, self._acc, self._qdiag)
+            P = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
             out.update(pos_n_m=self._x[X_POS].tolist(), var_pos_n_m2=np.diag(P)[POS].tolist(),
                        pos_t_s=float(self._clock[0]))
         return out
@@ -471,7 +478,7 @@ class Estimator:
 
     def _state_ok(self) -> bool:
         """Nominal state and covariance finite, every variance positive, speed physical."""
-        return bool(sd.core_ok(self._core, _MAX_SPEED_M_S))
+        return bool(kalman.core_ok(self._core, _MAX_SPEED_M_S))
 
     def _keep_good(self) -> None:
         """Remember the current state as the last good one (once per data second)."""
@@ -512,8 +519,8 @@ class Estimator:
         d = np.zeros(N_ERR)
         d[POS] = c.sigma_pos_m ** 2 + (_BLIND_VEL_RW_M_S_RTHZ ** 2) * dt ** 3 / 3.0
         d[VEL] = c.sigma_vel_m_s ** 2 + (_BLIND_VEL_RW_M_S_RTHZ ** 2) * dt
-        d[6:8] = c.sigma_att_rad ** 2
-        d[8] = c.sigma_yaw_rad ** 2
+        d[ATT_TILT] = c.sigma_att_rad ** 2
+        d[ATT_YAW] = c.sigma_yaw_rad ** 2
         self._P[:, :] += np.diag(d)
         self._acc[:] = 0.0
         self._clock[:] = t_now
@@ -887,7 +894,7 @@ class Estimator:
                 self._clones.propagate(t[start:stop], f[start:stop], w[start:stop], self._core,
                                        self._qdiag, self.config.covariance_step_s)
             else:
-                sd.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
+                kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                                   self._qdiag, self.config.covariance_step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
@@ -926,8 +933,8 @@ class Estimator:
                                _BLIND_ATT_RW_RAD_RTHZ ** 2]) * dt
         self._P[:, :] = Phi @ self._P @ Phi.T + Q
         self._clones.transform(Phi)
-        self._acc[sd.ACC_OMEGA] = np.asarray(w_b) - self._x[X_BG]
-        self._acc[sd.ACC_F] = np.asarray(f_b) - self._x[X_BA]
+        self._acc[ACC_OMEGA] = np.asarray(w_b) - self._x[X_BG]
+        self._acc[ACC_F] = np.asarray(f_b) - self._x[X_BA]
         self._clock[:] = t_s
         self._reset_counter += 1
         self._advance_lv_epoch(t_s)
@@ -967,15 +974,15 @@ class Estimator:
         updated with this epoch's innovation)."""
         cfg = self.config.learned_velocity
         R_nb = aid_lv.dcm(self._x)
-        yaw_rate = float(R_nb[2] @ self._acc[sd.ACC_OMEGA])
+        yaw_rate = float(R_nb[2] @ self._acc[ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
-        P = sd.propagated_covariance(self._P, self._acc, self._qdiag) if adapt and self._surge.enabled else None
+        P = kalman.propagated_covariance(self._P, self._acc, self._qdiag) if adapt and self._surge.enabled else None
         return self._surge.adapt(meas, P, t - self._t_release)
 
     def _doubt_k_speed(self) -> None:
         """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt)."""
-        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         k = KS.start
         self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
 
@@ -997,7 +1004,7 @@ class Estimator:
         if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
             self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
             self._set_k_speed_walk(True)
-        meas = aid.measure(sample, AidContext(self._x, self._acc[sd.ACC_OMEGA], self.origin, config, setup))
+        meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
         if kind in self._arm:
@@ -1025,7 +1032,7 @@ class Estimator:
                 reset = True
             if reset:
                 # measured again: the innovation before the reset is what the reset removed
-                meas = aid.measure(sample, AidContext(self._x, self._acc[sd.ACC_OMEGA], self.origin, config, setup))
+                meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
                 if isinstance(meas, Measurement):
                     status = self._fuse(meas, sample.t_s, kind)
         return [status]
@@ -1052,13 +1059,13 @@ class Estimator:
 
     def _reset_attitude(self, sample, meas: Measurement, status: AidStatus) -> None:
         """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated."""
-        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         roll, pitch, yaw = aid_attitude.predict(self._x)
         if sample.KIND == "attitude":
             roll, pitch = sample.roll_rad, sample.pitch_rad
             var = np.diag(meas.R)
         else:
-            var = np.array([self._P[6, 6], self._P[7, 7], meas.R[0, 0]])
+            var = np.array([*np.diag(self._P)[ATT_TILT], meas.R[0, 0]])
         self._x[X_Q] = euler_to_quat(roll, pitch, sample.yaw_rad)
         self._P[ATT, :] = 0.0
         self._P[:, ATT] = 0.0
@@ -1067,7 +1074,7 @@ class Estimator:
 
     def _reset_velocity(self, meas: Measurement, status: AidStatus) -> None:
         """Velocity to what the aid says (the innovation solved through H's velocity block)."""
-        sd.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         Hv = meas.H[:, VEL]
         dv, *_ = np.linalg.lstsq(Hv, meas.innovation(), rcond=None)
         self._x[X_VEL] += dv
@@ -1145,7 +1152,7 @@ class Estimator:
             self._clones.flush(self._core, self._qdiag)
             P_prior = self._P.copy()
         # a non-finite y, H or R gives a NaN NIS, which the gate rejects before P is touched
-        nis, fused = sd.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
+        nis, fused = kalman.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
                                   self._dx, sdiag, self._mode == "ins")
         if fused and P_prior is not None:
             self._clones.after_update(P_prior, meas.H, meas.R, self._dx)

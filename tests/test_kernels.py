@@ -9,18 +9,18 @@ import pytest
 
 from adaptnav import kernels
 from adaptnav.calibration._kernels import heading_loglik
-from adaptnav.fusion import strapdown as sd
-from adaptnav.fusion.state import N_ERR
+from adaptnav.fusion import kalman
+from adaptnav.fusion.state import ACC_R, ACC_RF, ACC_SIZE, ACC_T, N_ERR, X_POS, initial_nominal
 
 
 def _inputs():
     rng = np.random.default_rng(3)
     a = rng.standard_normal((N_ERR, N_ERR))
     P = a @ a.T + N_ERR * np.eye(N_ERR)
-    acc = np.zeros(sd.ACC_SIZE)
-    acc[0:3] = rng.standard_normal(3) * 0.05        # Σ R f δt
-    acc[3:12] = np.eye(3).ravel() * 0.05              # Σ R δt
-    acc[12] = 0.05                                    # Σ δt
+    acc = np.zeros(ACC_SIZE)
+    acc[ACC_RF] = rng.standard_normal(3) * 0.05     # Σ R f δt
+    acc[ACC_R] = np.eye(3).ravel() * 0.05           # Σ R δt
+    acc[ACC_T] = 0.05                               # Σ δt
     return P, acc, rng.uniform(1e-6, 1e-3, N_ERR)
 
 
@@ -29,18 +29,48 @@ def test_arguments_of_other_types_than_built_for_give_the_same_result():
     Fortran-ordered array, or a read-only one, must go to the just-in-time version
     instead of being read as if contiguous."""
     P, acc, q = _inputs()
-    ref = sd.propagated_covariance(P, acc, q)
+    ref = kalman.propagated_covariance(P, acc, q)
     assert np.all(np.isfinite(ref)) and not np.allclose(ref, P)
-    wide = np.zeros((sd.ACC_SIZE, 2))
+    wide = np.zeros((ACC_SIZE, 2))
     wide[:, 0] = acc
-    np.testing.assert_array_equal(sd.propagated_covariance(P, wide[:, 0], q), ref)
+    np.testing.assert_array_equal(kalman.propagated_covariance(P, wide[:, 0], q), ref)
     poses = np.random.default_rng(4).uniform(-3.0, 3.0, (50, 3))
     ref_h = heading_loglik(poses, 0.3, 0.1, np.log(0.1), 0.5 * np.log(2 * np.pi))
     np.testing.assert_array_equal(heading_loglik(np.asfortranarray(poses), 0.3, 0.1, np.log(0.1),
                                                  0.5 * np.log(2 * np.pi)), ref_h)
     readonly = q.copy()
     readonly.flags.writeable = False
-    np.testing.assert_array_equal(sd.propagated_covariance(P, acc, readonly), ref)
+    np.testing.assert_array_equal(kalman.propagated_covariance(P, acc, readonly), ref)
+
+
+def test_a_kernel_calling_one_of_another_module_gives_the_same_result_just_in_time():
+    """kalman.propagate_imu calls strapdown.strapdown_step: when an argument sends it to the
+    just-in-time version (a read-only array), that version must call strapdown's kernel
+    just in time too (the compiled one cannot be called from numba code)."""
+    rng = np.random.default_rng(5)
+    n = 50
+    t = np.arange(1, n + 1) * 0.01
+    f = np.tile([0.1, 0.0, -9.80665], (n, 1)) + 0.01 * rng.standard_normal((n, 3))
+    w = 0.01 * rng.standard_normal((n, 3))
+    q = rng.uniform(1e-6, 1e-3, N_ERR)
+
+    def run(qdiag):
+        core = np.zeros(kalman.CORE_SIZE)
+        core[kalman.CORE_X] = initial_nominal()
+        core[kalman.CORE_CLOCK] = 0.0
+        kalman.propagate_core(t, f, w, core, qdiag, 0.1)
+        return core
+
+    ref = run(q)
+    assert np.all(np.isfinite(ref)) and ref[kalman.CORE_X][X_POS][0] != 0.0
+    readonly = q.copy()
+    readonly.flags.writeable = False
+    np.testing.assert_array_equal(run(readonly), ref)
+    if kernels.using_aot():
+        # (from numba's on-disk cache the above passes either way: a fresh cache needs this)
+        from numba.core.dispatcher import Dispatcher
+
+        assert isinstance(kernels._jit_namespace("adaptnav.fusion.kalman")["strapdown_step"], Dispatcher)
 
 
 def test_the_service_path_does_not_import_numba_when_compiled_ahead_of_time():

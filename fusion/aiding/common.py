@@ -19,7 +19,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from ..frames import wrap_angle
-from ..state import N_ERR
+from ..state import N_ERR, X_Q
 
 
 class Measurement(NamedTuple):
@@ -109,7 +109,7 @@ def make(z, H, R, h, angular=None) -> Measurement:
 
 def dcm(x: np.ndarray) -> np.ndarray:
     """``R_nb`` of the nominal state (plain Python: cheaper than a jitted call here)."""
-    w, a, b, c = x[6:10].tolist()
+    w, a, b, c = x[X_Q].tolist()
     return np.array([
         [1 - 2 * (b * b + c * c), 2 * (a * b - w * c), 2 * (a * c + w * b)],
         [2 * (a * b + w * c), 1 - 2 * (a * a + c * c), 2 * (b * c - w * a)],

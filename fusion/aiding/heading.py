@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..state import ATT, N_ERR
+from ..state import ATT, N_ERR, X_Q
 from ..config import HeadingConfig
 from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of
 
@@ -29,7 +29,7 @@ def measure(sample, x, sigma_rad) -> Measurement:
     # predict() and jacobian() from one attitude: the same operations on the same floats
     # (R₀₀, R₁₀, R₂₀ as in common.dcm; yaw, pitch as in common.euler_of / euler_jacobian)
     # without building R twice and the full Euler Jacobian (a heading every 0.1 s)
-    w, a, b, c = x[6:10].tolist()
+    w, a, b, c = x[X_Q].tolist()
     r00 = 1 - 2 * (b * b + c * c)
     r10 = 2 * (a * b + w * c)
     r20 = 2 * (a * c - w * b)

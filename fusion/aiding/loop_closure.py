@@ -33,8 +33,8 @@ import math
 
 import numpy as np
 
-from .. import strapdown as sd
-from ..state import ATT, N_ERR
+from .. import kalman
+from ..state import ACC_T, ATT, N_ERR, POS_NE
 
 _NO_FLUSH_S = 1e18  # a covariance step the strapdown kernel never reaches: we flush ourselves
 
@@ -86,23 +86,23 @@ class CloneBank:
 
     def flush(self, core: np.ndarray, qdiag: np.ndarray) -> None:
         """Flush the pending covariance step of the estimator's core array, ``C ← Φ C``."""
-        _, P, acc, clock = sd.core_views(core)
-        T = acc[12]
+        _, P, acc, clock = kalman.core_views(core)
+        T = acc[ACC_T]
         if T > 0.0 and self._ids:
-            self.C = sd.transition(acc, T) @ self.C
-        sd.flush_covariance(P, acc, clock, qdiag)
+            self.C = kalman.transition(acc, T) @ self.C
+        kalman.flush_covariance(P, acc, clock, qdiag)
 
     def propagate(self, t_s, f_b, w_b, core: np.ndarray, qdiag: np.ndarray, cov_step_s: float) -> None:
-        """:func:`adaptnav.fusion.strapdown.propagate_core` with the same covariance steps, each
+        """:func:`adaptnav.fusion.kalman.propagate_core` with the same covariance steps, each
         also applied to the clones' cross-covariances (one kernel call per step)."""
-        _, _, _, clock = sd.core_views(core)
+        _, _, _, clock = kalman.core_views(core)
         n = t_s.shape[0]
         start = 0
         while start < n:
             # the kernel flushes after the first sample with t − t_flush ≥ step − 1e-9
             stop = int(np.searchsorted(t_s, clock[1] + cov_step_s - 1e-9, side="left")) + 1
             stop = min(max(stop, start + 1), n)
-            sd.propagate_core(t_s[start:stop], f_b[start:stop], w_b[start:stop], core, qdiag, _NO_FLUSH_S)
+            kalman.propagate_core(t_s[start:stop], f_b[start:stop], w_b[start:stop], core, qdiag, _NO_FLUSH_S)
             if clock[0] - clock[1] >= cov_step_s - 1e-9:
                 self.flush(core, qdiag)
             start = stop
@@ -137,14 +137,14 @@ class CloneBank:
         self._prune(t_s)
         cid = self._next_id
         self._next_id += 1
-        self._sigma[(cid, cid)] = P[0:2, 0:2].copy()
+        self._sigma[(cid, cid)] = P[POS_NE, POS_NE].copy()
         for k, oid in enumerate(self._ids):
-            # Cov(d_new, d_old) = Cov(δx[0:2], d_old) = C_old[0:2]
-            self._sigma[(cid, oid)] = self.C[0:2, 2 * k:2 * k + 2].copy()
+            # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]
+            self._sigma[(cid, oid)] = self.C[POS_NE, 2 * k:2 * k + 2].copy()
         self._ids.append(cid)
         self.t_s.append(float(t_s))
         self.pos_n_m.append(np.asarray(x_pos_n_m, float)[:2].copy())
-        self.C = np.hstack([self.C, P[:, 0:2]])
+        self.C = np.hstack([self.C, P[:, POS_NE]])
         return True
 
     def _prune(self, t_now: float) -> None:
@@ -196,12 +196,10 @@ class CloneBank:
 
 
 def reset_jacobian(dx: np.ndarray) -> np.ndarray:
-    """``G`` of the ESKF reset after injecting ``dx`` (as :func:`adaptnav.fusion.strapdown.inject_error`)."""
+    """``G`` of the ESKF reset after injecting ``dx`` (as :func:`adaptnav.fusion.kalman.inject_error`)."""
     rx, ry, rz = (float(v) for v in dx[ATT])
     G = np.eye(N_ERR)
-    G[6, 7], G[6, 8] = -0.5 * rz, 0.5 * ry
-    G[7, 6], G[7, 8] = 0.5 * rz, -0.5 * rx
-    G[8, 6], G[8, 7] = -0.5 * ry, 0.5 * rx
+    G[ATT, ATT] += 0.5 * np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
     return G
 
 

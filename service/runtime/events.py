@@ -20,6 +20,9 @@ import logging
 import math
 from typing import Any
 
+import numpy as np
+
+from adaptnav.fusion.state import POS_NE
 from adaptnav.service.runtime.sinks import Sink
 
 log = logging.getLogger("adaptnav.events")
@@ -47,7 +50,7 @@ class LifecycleLog(Sink):
     def on_nav(self, state: Any) -> None:
         t = float(state.t_s)
         cov = state.cov
-        sigma_h = math.sqrt(max(float(cov[0][0] + cov[1][1]), 0.0))
+        sigma_h = math.sqrt(max(float(np.sum(np.diag(np.asarray(cov))[POS_NE])), 0.0))
         if not self._aligned:
             self._aligned = True
             p = state.pos_n_m

@@ -14,6 +14,7 @@ from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.samples import HeadingSample, ImuBatch, UsblSample
+from adaptnav.fusion.state import ACC_G_OVER_R
 from adaptnav.sim.navgrade import rotating_earth_imu
 
 ORIGIN = GeoOrigin(math.radians(59.4), math.radians(10.5), 0.0)
@@ -41,7 +42,7 @@ def _run(pos_n_m, earth_gradient=True):
 
         def no_gradient(acc, lat_rad):
             set_earth(acc, lat_rad)
-            acc[23] = 0.0
+            acc[ACC_G_OVER_R] = 0.0
 
         sd.set_earth = no_gradient
     try:

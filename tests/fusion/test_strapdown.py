@@ -1,21 +1,22 @@
-"""Strapdown mechanisation and error injection against closed-form answers."""
+"""Strapdown mechanisation (adaptnav.fusion.strapdown) and the Kalman kernels' propagation and
+error injection (adaptnav.fusion.kalman) against closed-form answers."""
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adaptnav.fusion import strapdown as sd
+from adaptnav.fusion import kalman
 from adaptnav.fusion.frames import GRAVITY_M_S2, euler_to_quat, quat_to_scipy
 from adaptnav.fusion.state import N_ERR, inject, initial_nominal
 
 
 def _propagate(x, t, f, w, qdiag=None, P=None, cov_step=0.1):
-    core = np.zeros(sd.CORE_SIZE)
-    xv, Pv, acc, clock = sd.core_views(core)
+    core = np.zeros(kalman.CORE_SIZE)
+    xv, Pv, acc, clock = kalman.core_views(core)
     xv[:] = x
     if P is not None:
         Pv[:, :] = P
     clock[:] = 0.0
-    sd.propagate_core(t, f, w, core, np.zeros(N_ERR) if qdiag is None else qdiag, cov_step)
-    sd.flush_covariance(Pv, acc, clock, np.zeros(N_ERR) if qdiag is None else qdiag)
+    kalman.propagate_core(t, f, w, core, np.zeros(N_ERR) if qdiag is None else qdiag, cov_step)
+    kalman.flush_covariance(Pv, acc, clock, np.zeros(N_ERR) if qdiag is None else qdiag)
     return xv.copy(), Pv.copy()
 
 
@@ -87,7 +88,7 @@ def test_injection_kernel_matches_reference_and_rotates_globally():
     ref = inject(x, dx)
     xk = x.copy()
     P = np.eye(N_ERR)
-    sd.inject_error(xk, dx, P)
+    kalman.inject_error(xk, dx, P)
     np.testing.assert_allclose(xk, ref, atol=1e-12)
     # q_new = q(δθ) ⊗ q: the rotation from old to new, in the navigation frame, is δθ
     r = quat_to_scipy(xk[6:10]) * quat_to_scipy(x[6:10]).inv()

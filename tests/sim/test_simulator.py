@@ -214,7 +214,7 @@ def test_project_strapdown_follows_the_truth_with_a_perfect_imu(perfect):
     state = pytest.importorskip("adaptnav.fusion.state")
     d = perfect.dense
     x = state.initial_nominal(d.pos_n_m[0], d.vel_n_m_s[0], d.q_nb[0])
-    acc, r0, r1 = np.zeros(sd.ACC_SIZE), np.zeros((3, 3)), np.zeros((3, 3))
+    acc, r0, r1 = np.zeros(state.ACC_SIZE), np.zeros((3, 3)), np.zeros((3, 3))
     f = np.ascontiguousarray(perfect.imu.specific_force_b_m_s2)
     w = np.ascontiguousarray(perfect.imu.omega_b_rad_s)
     dt = 1.0 / perfect.scenario.imu.rate_hz

@@ -1,0 +1,318 @@
+r"""The Kalman kernels of the ESKF: covariance propagation, error injection and the gated
+update (numba kernels, the hot loop; the mechanisation is :mod:`adaptnav.fusion.strapdown`).
+
+Error dynamics (global attitude error δθ, see :mod:`adaptnav.fusion.state`)::
+
+    δṗ = δv,  δv̇ = −[R f̂]× δθ − 2[ω_ie]× δv + (γ/R) diag(−1, −1, 2) δp − R δb_a + w_a,  δθ̇ = −[ω_ie]× δθ − R δb_g + w_g,
+    δḃ_a = w_ba,  δḃ_g = w_bg,  δċ = w_c,  δk̇ = w_k
+
+The covariance is propagated every ``covariance_step_s`` T (as pyins and ArduPilot do),
+with F built from the step averages of ``R f̂`` and ``R`` that :func:`~adaptnav.fusion.strapdown.strapdown_step`
+sums in ``acc``, and ``Φ = I + F T + (F T)²/2``; ``P ← Φ (P + Q T/2) Φᵀ + Q T/2``
+(trapezoidal noise). A measurement is gated on its normalised innovation (chi-square) and
+fused in Joseph form; the error is injected into the nominal state and the covariance
+reset (:func:`inject_error`).
+
+Arrays shared by the kernels (all float64, mutated in place):
+
+- ``x`` (19,) nominal state (:mod:`adaptnav.fusion.state`),
+- ``P`` (18, 18) covariance at time ``clock[1]``,
+- ``acc`` (24,) step accumulators and earth model (:mod:`adaptnav.fusion.strapdown`; named
+  ``ACC_*`` in :mod:`adaptnav.fusion.state`),
+- ``clock`` (2,) ``[t_state_s, t_cov_s]``,
+- ``qdiag`` (18,) continuous process noise PSDs per error state,
+- ``core`` (:data:`CORE_SIZE`,) all of ``x``, ``P``, ``acc`` and ``clock`` in one array
+  (:data:`CORE_X`, :data:`CORE_P`, :data:`CORE_ACC`, :data:`CORE_CLOCK`): the estimator's
+  state, copied whole for a late-measurement snapshot.
+"""
+from __future__ import annotations
+
+import numpy as np
+from adaptnav.kernels import jit
+
+from .state import (ACC_EARTH_RATE, ACC_G_OVER_R, ACC_R, ACC_RF, ACC_SIZE, ACC_STEP, ACC_T, ATT, BA, BG, N_ERR,
+                    N_NOM, POS, VEL, X_BA, X_POS, X_Q, X_VEL)
+from .strapdown import strapdown_step
+
+# first indices of the state and accumulator blocks (adaptnav.fusion.state), as plain ints:
+# numba takes module-level ints as compile-time constants, so ``x[_X_VEL + 1]`` costs what
+# ``x[4]`` does
+_X_POS, _X_VEL, _X_Q, _X_BA = X_POS.start, X_VEL.start, X_Q.start, X_BA.start
+_E_POS, _E_VEL, _E_ATT, _E_BA, _E_BG = POS.start, VEL.start, ATT.start, BA.start, BG.start
+# the slow states follow the attitude in both vectors: error index i is nominal i + 1
+_SLOW_SHIFT = _X_BA - _E_BA
+_ACC_RF, _ACC_R, _ACC_T, _ACC_STEP_END = ACC_RF.start, ACC_R.start, ACC_T, ACC_STEP.stop
+_ACC_W_IE, _ACC_G_OVER_R = ACC_EARTH_RATE.start, ACC_G_OVER_R
+
+# the core array: x | P (row-major) | acc | clock
+N_X = N_NOM
+N_P = N_ERR * N_ERR
+_CORE_ACC = N_X + N_P          # where acc starts in the core array
+_CORE_CLOCK = _CORE_ACC + ACC_SIZE
+CORE_SIZE = _CORE_CLOCK + 2
+CORE_X = slice(0, N_X)
+CORE_P = slice(N_X, _CORE_ACC)
+CORE_ACC = slice(_CORE_ACC, _CORE_CLOCK)
+CORE_CLOCK = slice(_CORE_CLOCK, CORE_SIZE)
+
+
+@jit(cache=True)
+def transition(acc, T):
+    """Φ (18×18) over the accumulated step of length ``T`` (see module docstring)."""
+    F = np.zeros((N_ERR, N_ERR))
+    a0 = acc[_ACC_RF] / T
+    a1 = acc[_ACC_RF + 1] / T
+    a2 = acc[_ACC_RF + 2] / T
+    v, th = _E_VEL, _E_ATT
+    for i in range(3):
+        F[_E_POS + i, v + i] = 1.0
+    # δv̇ = −[a]× δθ
+    F[v, th + 1] = a2
+    F[v, th + 2] = -a1
+    F[v + 1, th] = -a2
+    F[v + 1, th + 2] = a0
+    F[v + 2, th] = a1
+    F[v + 2, th + 1] = -a0
+    for i in range(3):
+        for j in range(3):
+            r = acc[_ACC_R + 3 * i + j] / T
+            F[v + i, _E_BA + j] = -r
+            F[th + i, _E_BG + j] = -r
+    # earth rotation: δv̇ += −2[ω_ie]× δv, δθ̇ += −[ω_ie]× δθ
+    ex, ey, ez = acc[_ACC_W_IE], acc[_ACC_W_IE + 1], acc[_ACC_W_IE + 2]
+    F[v, v + 1] += 2.0 * ez
+    F[v, v + 2] -= 2.0 * ey
+    F[v + 1, v] -= 2.0 * ez
+    F[v + 1, v + 2] += 2.0 * ex
+    F[v + 2, v] += 2.0 * ey
+    F[v + 2, v + 1] -= 2.0 * ex
+    F[th, th + 1] += ez
+    F[th, th + 2] -= ey
+    F[th + 1, th] -= ez
+    F[th + 1, th + 2] += ex
+    F[th + 2, th] += ey
+    F[th + 2, th + 1] -= ex
+    # gravity gradient (the Schuler loop): δv̇ += (γ/R) diag(−1, −1, 2) δp
+    g_over_r = acc[_ACC_G_OVER_R]
+    F[v, _E_POS] -= g_over_r
+    F[v + 1, _E_POS + 1] -= g_over_r
+    F[v + 2, _E_POS + 2] += 2.0 * g_over_r
+    FT = F * T
+    Phi = np.eye(N_ERR) + FT + 0.5 * (FT @ FT)
+    return Phi
+
+
+@jit(cache=True)
+def propagated_covariance(P, acc, qdiag):
+    """Covariance after the pending accumulated step (P itself is not changed)."""
+    T = acc[_ACC_T]
+    if T <= 0.0:
+        return P.copy()
+    Phi = transition(acc, T)
+    Pm = P.copy()
+    for i in range(N_ERR):
+        Pm[i, i] += 0.5 * qdiag[i] * T
+    Pn = Phi @ Pm @ Phi.T
+    for i in range(N_ERR):
+        Pn[i, i] += 0.5 * qdiag[i] * T
+    return 0.5 * (Pn + Pn.T)
+
+
+@jit(cache=True)
+def flush_covariance(P, acc, clock, qdiag):
+    """Propagate ``P`` over the accumulated step and reset the accumulators."""
+    if acc[_ACC_T] > 0.0:
+        P[:, :] = propagated_covariance(P, acc, qdiag)
+        for i in range(_ACC_STEP_END):
+            acc[i] = 0.0
+    clock[1] = clock[0]
+
+
+
+
+@jit(cache=True)
+def core_views(core):
+    """(x, P, acc, clock) views of the contiguous core array."""
+    x = core[0:N_X]
+    P = core[N_X:_CORE_ACC].reshape((N_ERR, N_ERR))
+    acc = core[_CORE_ACC:_CORE_CLOCK]
+    clock = core[_CORE_CLOCK:CORE_SIZE]
+    return x, P, acc, clock
+
+
+@jit(cache=True)
+def core_ok(core, max_speed_m_s):
+    """Nominal state and covariance finite, every variance positive, state time finite
+    and every velocity component below ``max_speed_m_s`` — the estimator's guard after
+    every sample, one pass instead of five numpy reductions (~30 µs, 10 % of a replay)."""
+    x, P, acc, clock = core_views(core)
+    for i in range(N_X):
+        if not np.isfinite(x[i]):
+            return False
+    for i in range(N_ERR):
+        if not P[i, i] > 0.0:
+            return False
+        for j in range(N_ERR):
+            if not np.isfinite(P[i, j]):
+                return False
+    if not np.isfinite(clock[0]):
+        return False
+    for i in range(3):
+        if not abs(x[_X_VEL + i]) < max_speed_m_s:
+            return False
+    return True
+
+
+@jit(cache=True)
+def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
+    """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch)."""
+    x, P, acc, clock = core_views(core)
+    propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s)
+
+
+@jit(cache=True)
+def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
+    """Propagate over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
+
+    The caller guarantees ``t_s`` strictly increasing, after ``clock[0]``, finite and
+    without gaps (checked vectorised before). Covariance is flushed every
+    ``cov_step_s``.
+    """
+    R0 = np.empty((3, 3))
+    R1 = np.empty((3, 3))
+    for k in range(t_s.shape[0]):
+        dt = t_s[k] - clock[0]
+        strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
+        clock[0] = t_s[k]
+        if clock[0] - clock[1] >= cov_step_s - 1e-9:
+            flush_covariance(P, acc, clock, qdiag)
+
+
+@jit(cache=True)
+def inject_error(x, dx, P):
+    """x ← x ⊕ δx and the ESKF covariance reset ``P ← G P Gᵀ``."""
+    for i in range(3):
+        x[_X_POS + i] += dx[_E_POS + i]
+        x[_X_VEL + i] += dx[_E_VEL + i]
+    rx, ry, rz = dx[_E_ATT], dx[_E_ATT + 1], dx[_E_ATT + 2]
+    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
+    if ang < 1e-6:
+        k = 0.5 - ang * ang / 48.0
+        c = 1.0 - ang * ang / 8.0
+    else:
+        k = np.sin(0.5 * ang) / ang
+        c = np.cos(0.5 * ang)
+    d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
+    q0, q1, q2, q3 = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
+    # q ← q(δθ) ⊗ q (global perturbation)
+    n0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
+    n1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
+    n2 = d0 * q2 - d1 * q3 + d2 * q0 + d3 * q1
+    n3 = d0 * q3 + d1 * q2 - d2 * q1 + d3 * q0
+    inv = 1.0 / np.sqrt(n0 * n0 + n1 * n1 + n2 * n2 + n3 * n3)
+    if n0 < 0.0:
+        inv = -inv
+    x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3] = n0 * inv, n1 * inv, n2 * inv, n3 * inv
+    for i in range(_E_BA, N_ERR):  # biases, current, k_speed
+        x[i + _SLOW_SHIFT] += dx[i]
+    # reset Jacobian for the global attitude error: G_θθ = I + ½[δθ]× (Solà 2017 §7.2 for
+    # the local error has the opposite sign)
+    G = np.eye(N_ERR)
+    th = _E_ATT
+    G[th, th + 1] = -0.5 * rz
+    G[th, th + 2] = 0.5 * ry
+    G[th + 1, th] = 0.5 * rz
+    G[th + 1, th + 2] = -0.5 * rx
+    G[th + 2, th] = -0.5 * ry
+    G[th + 2, th + 1] = 0.5 * rx
+    P[:, :] = G @ P @ G.T
+
+
+@jit(cache=True)
+def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
+    """Chi-square gate, then the Joseph-form update (m ≤ 3 measurements, explicit loops).
+
+    ``P ← (I−KH) P (I−KH)ᵀ + K R Kᵀ``, expanded (valid for any gain K) as
+    ``P − K (PHᵀ)ᵀ − (PHᵀ) Kᵀ + K S Kᵀ``, which costs O(n² m) instead of O(n³).
+    Returns ``(nis, fused)``: ``yᵀ S⁻¹ y`` and whether ``nis ≤ gate`` (NaN ⇒ False);
+    ``dx_out`` ← K y (zeros if rejected), ``s_diag_out`` ← diag S.
+    """
+    n = P.shape[0]
+    m = y.shape[0]
+    PHt = np.zeros((n, m))
+    for i in range(n):
+        for k in range(m):
+            acc = 0.0
+            for j in range(n):
+                acc += P[i, j] * H[k, j]
+            PHt[i, k] = acc
+    S = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            acc = R[a, b]
+            for j in range(n):
+                acc += H[a, j] * PHt[j, b]
+            S[a, b] = acc
+    for a in range(m):
+        for b in range(a + 1, m):
+            v = 0.5 * (S[a, b] + S[b, a])
+            S[a, b] = v
+            S[b, a] = v
+        s_diag_out[a] = S[a, a]
+    Sinv = np.linalg.inv(S) if m > 1 else np.array([[1.0 / S[0, 0]]])
+    nis = 0.0
+    for a in range(m):
+        for b in range(m):
+            nis += y[a] * Sinv[a, b] * y[b]
+    for i in range(n):
+        dx_out[i] = 0.0
+    if not (nis <= gate):
+        return nis, False
+    K = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += PHt[i, a] * Sinv[a, b]
+            K[i, b] = acc
+    KS = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(m):
+                acc += K[i, a] * S[a, b]
+            KS[i, b] = acc
+    for i in range(n):
+        acc = 0.0
+        for a in range(m):
+            acc += K[i, a] * y[a]
+        dx_out[i] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = P[i, j]
+            for a in range(m):
+                acc += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KS[i, a] * K[j, a]
+            P[i, j] = acc
+            P[j, i] = acc
+    return nis, True
+
+
+@jit(cache=True)
+def fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush):
+    """flush (INS mode) → gated Joseph update → error injection, in one call.
+
+    Returns ``(nis, fused)`` as :func:`gated_update`.
+    """
+    if flush:
+        flush_covariance(P, acc, clock, qdiag)
+    nis, fused = gated_update(P, y, H, R, gate, dx, s_diag_out)
+    if fused:
+        inject_error(x, dx, P)
+    return nis, fused
+
+
+@jit(cache=True)
+def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
+    """:func:`fuse` on the core array."""
+    x, P, acc, clock = core_views(core)
+    return fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush)
