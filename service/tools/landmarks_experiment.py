@@ -103,7 +103,8 @@ def _legs(t: np.ndarray, yaw: np.ndarray, min_s: float = 60.0, max_rate_rad_s: f
 def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
         max_range_m: float = 45.0, progress: bool = False) -> LandmarkScore:
     """Simulate ``scenario`` and score the side-scan landmarks (see the module docstring)."""
-    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.fusion.state import POS_NE
+    from adaptnav.service.compose import make_estimator
     from adaptnav.service.runtime.replay import build_config
     from adaptnav.sim.simulator import simulate
     from adaptnav.sonar.association import LegAssociator
@@ -111,12 +112,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
 
     res = simulate(scenario)
     cfg = build_config(scenario)
-    params0 = cfg.motion.params0
-
-    def make():
-        return Estimator(cfg.filter, params0, cfg.motion.rpm_table, cfg.origin.geo())
-
-    est_with, est_without = make(), make()
+    est_with, est_without = make_estimator(cfg), make_estimator(cfg)
     fe, assoc = ObjectFrontEnd(), LegAssociator(relative_cov=est_with.relative_position_covariance)
     assoc.trace = {}
     closures, fused = [], 0
@@ -131,7 +127,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
                 continue
             dt = item.t_s - ns.t_s
             pos = ns.pos_n_m[:2] + ns.vel_n_m_s[:2] * dt
-            batch = fe.push(item, pos, ns.cov[:2, :2], ns.euler_rad()[2], ns.vel_n_m_s[:2])
+            batch = fe.push(item, pos, ns.cov[POS_NE, POS_NE], ns.euler_rad()[2], ns.vel_n_m_s[:2])
             if batch:
                 sightings += batch
                 lc = assoc.add(batch)

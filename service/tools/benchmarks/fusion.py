@@ -16,14 +16,15 @@ import time
 
 import numpy as np
 
-from adaptnav.fusion.config import FilterConfig
-from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin
 from adaptnav.fusion.imu_grades import PROFILES
-from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.samples import DepthSample, HeadingSample, ImuBatch, RpmSample, UsblSample, replay_order_key
+from adaptnav.service.compose import make_estimator
+from adaptnav.service.config import ServiceConfig
 
 ORIGIN = GeoOrigin(np.radians(43.0), np.radians(5.0), 0.0)
+# the service's defaults: the log's sensor noise and RPM table are the filter's
+CONFIG = ServiceConfig()
 SPEED_M_S = 1.5
 CURRENT_N = np.array([0.1, -0.05])
 DEPTH_M = 10.0
@@ -38,7 +39,7 @@ def add_arguments(parser):  # pragma: no cover - argparse wiring
 def make_log(duration_s: float, rate_hz: float = 100.0, seed: int = 0):
     """IMU arrays, truth positions and the aiding samples of the benchmark mission."""
     rng = np.random.default_rng(seed)
-    cfg = FilterConfig()
+    cfg = CONFIG.filter
     n = int(round(duration_s * rate_hz))
     t = np.arange(1, n + 1) / rate_hz
     w0 = 2 * np.pi / 120.0
@@ -56,7 +57,7 @@ def make_log(duration_s: float, rate_hz: float = 100.0, seed: int = 0):
     imu = PROFILES["tactical"]  # the simulated IMU: tactical-grade datasheet figures
     f_b += rng.normal(0, imu.acc_bias_sigma_m_s2, 3) + imu.acc_noise_m_s2_rthz * np.sqrt(rate_hz) * rng.standard_normal((n, 3))
     w_b += rng.normal(0, imu.gyro_bias_sigma_rad_s, 3) + imu.gyro_noise_rad_s_rthz * np.sqrt(rate_hz) * rng.standard_normal((n, 3))
-    rpm = float(RpmSpeedTable().rpm_for_speed(SPEED_M_S))
+    rpm = float(CONFIG.motion.rpm_table.rpm_for_speed(SPEED_M_S))
     aids = []
     for k in range(1, int(duration_s)):
         i = k * int(rate_hz) - 1
@@ -85,7 +86,7 @@ def _events(t, f_b, w_b, aids):
 
 
 def run_adaptnav(t, f_b, w_b, aids):
-    est = Estimator(FilterConfig(), MotionParams(), RpmSpeedTable(), ORIGIN)
+    est = make_estimator(CONFIG, origin=ORIGIN)  # as the daemon and replay build it
     events = _events(t, f_b, w_b, aids)
     t0 = time.perf_counter()
     for e in events:
