@@ -10,8 +10,10 @@ DESIGN.md errata): ``V̂_tj, Ŵ_tj, Ŝ_tj``. With step weights λ_t (exponential
     s_t = v_t² e^{α_1} + w_t² e^{α_2} + e^{α_3},   α = log(σ_Vv², σ_Vw², σ_V1²)
 
 and likewise for the yaw-rate channel (mean ``w_t + b_W``, terms σ_Wv², σ_Ww², σ_W1²).
-Variances are optimised in log space (Newton-CG has no bounds) with
-``scipy.optimize.minimize(method="Newton-CG")`` and the analytic gradient and Hessian:
+Variances are optimised in log space (Newton-CG has no bounds) with the steps of
+``scipy.optimize.minimize(method="Newton-CG")`` in one compiled call
+(:func:`adaptnav.calibration._kernels.newton_cg_variances`: scipy's per-iteration Python
+overhead was ~1.5 ms per fit for at most 3 unknowns) and the analytic gradient and Hessian:
 with ``u_k = d_tk e^{α_k}`` (``d_t = (v_t², w_t², 1)``), ``f = log s + R/s``::
 
     ∂f/∂α_k = (1/s − R/s²) u_k
@@ -78,8 +80,9 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import minimize, nnls
+from scipy.optimize import nnls
 
+from adaptnav.calibration._kernels import newton_cg_variances, variance_objective
 from adaptnav.fusion.motion_model import MotionParams, invert_step
 
 V_TERMS = ("var_vv", "var_vw", "var_v1")
@@ -127,7 +130,15 @@ class MStepResult:
 
 def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tuple[list[int], float]:
     """Indices of columns of ``design`` (T, 3) that can be separated, and their condition number."""
-    norms = np.linalg.norm(design, axis=0)
+    return identifiable_terms_gram(design.T @ design, priority, max_condition)
+
+
+def identifiable_terms_gram(gram: np.ndarray, priority, max_condition: float) -> tuple[list[int], float]:
+    """:func:`identifiable_terms` from the Gram matrix ``DᵀD`` (k, k) of the design: the
+    condition number of the unit-norm columns is √(λ_max / λ_min) of their Gram matrix
+    (the limit of 30 is far from where squaring it loses digits), and a design of many
+    rows (M trajectories × T steps) never has to be built."""
+    norms = np.sqrt(np.maximum(np.diag(gram), 0.0))
     scale = max(norms.max(), 1e-300)
     kept: list[int] = []
     cond = 1.0
@@ -135,9 +146,8 @@ def identifiable_terms(design: np.ndarray, priority, max_condition: float) -> tu
         if norms[k] <= 1e-8 * scale:
             continue
         trial = kept + [k]
-        cols = design[:, trial] / norms[trial]
-        sv = np.linalg.svd(cols, compute_uv=False)
-        c = sv[0] / sv[-1] if sv[-1] > 0 else math.inf
+        ev = np.linalg.eigvalsh(gram[np.ix_(trial, trial)] / np.outer(norms[trial], norms[trial]))
+        c = math.sqrt(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
         if c <= max_condition:
             kept, cond = trial, c
     return kept, cond
@@ -147,7 +157,10 @@ def least_squares_sigmas(weighted_design: np.ndarray) -> np.ndarray:
     """Standard errors of the coefficients of a weighted least-squares problem whose rows are
     already scaled by √weight (weights = inverse variances): √diag((AᵀA)⁻¹); inf for a
     column the rows do not inform."""
-    info = weighted_design.T @ weighted_design
+    return _sigmas_from_information(weighted_design.T @ weighted_design)
+
+
+def _sigmas_from_information(info: np.ndarray) -> np.ndarray:
     try:
         cov = np.linalg.inv(info)
     except np.linalg.LinAlgError:
@@ -164,54 +177,59 @@ def k_v_informed(weighted_design: np.ndarray, free: list[int], max_sigma: float,
     ``n_copies``: the rows are that many draws of the same data (M smoothed trajectories),
     so the information per data set is 1/n_copies of the rows'.
     """
+    return k_v_informed_gram(weighted_design.T @ weighted_design, free, max_sigma, n_copies)
+
+
+def k_v_informed_gram(info: np.ndarray, free: list[int], max_sigma: float,
+                      n_copies: int = 1) -> tuple[bool, float]:
+    """:func:`k_v_informed` from the information matrix ``AᵀA`` of the weighted design."""
     if 0 not in free:
         return False, math.nan
-    sig = least_squares_sigmas(weighted_design[:, free])[free.index(0)] * math.sqrt(n_copies)
+    sig = _sigmas_from_information(info[np.ix_(free, free)])[free.index(0)] * math.sqrt(n_copies)
     return bool(sig <= max_sigma), float(sig)
 
 
 class VarianceObjective:
     """Negative expected log-likelihood of one channel over its free log-variances, with
-    the analytic gradient and Hessian (module docstring). ``resid_sq`` (T,) are the
+    the analytic gradient and Hessian (module docstring; compiled:
+    :func:`adaptnav.calibration._kernels.variance_objective`). ``resid_sq`` (T,) are the
     per-step residuals squared averaged over trajectories; ``lam`` (T,) step weights."""
 
     def __init__(self, design, lam, resid_sq, alpha0, free, prior_tau, prior_center=None):
-        self.design, self.lam, self.resid_sq = design, lam, resid_sq
-        self.alpha0 = np.asarray(alpha0, dtype=float)
-        self.free = np.asarray(free, dtype=int)
-        self.center = self.alpha0 if prior_center is None else np.asarray(prior_center, dtype=float)
+        f64 = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
+        self.design, self.lam, self.resid_sq = f64(design), f64(lam), f64(resid_sq)
+        self.alpha0 = f64(alpha0)
+        self.free = np.ascontiguousarray(free, dtype=np.int64)
+        self.center = self.alpha0 if prior_center is None else f64(prior_center)
         self.inv_tau2 = 0.0 if not math.isfinite(prior_tau) else 1.0 / prior_tau**2
-        self._key = None
 
     def unpack(self, a_free):
         a = self.alpha0.copy()
         a[self.free] = a_free
         return a
 
-    def _parts(self, a_free):
-        key = a_free.tobytes()
-        if key != self._key:  # fun, jac and hess are called at the same points
-            # clip: the line search may probe far-off points; exp must not overflow
-            u = self.design * np.exp(np.clip(self.unpack(a_free), -60.0, 20.0))[None, :]
-            self._key, self._u, self._s = key, u[:, self.free], u.sum(axis=1)
-        return self._u, self._s
+    def _args(self):
+        return self.free, self.alpha0, self.design, self.lam, self.resid_sq, self.center, self.inv_tau2
+
+    def _eval(self, a_free):
+        k = self.free.size
+        grad, hess = np.empty(k), np.empty((k, k))
+        val = variance_objective(np.ascontiguousarray(a_free, dtype=float), *self._args(), grad, hess)
+        return val, grad, hess
 
     def fun(self, a_free):
-        _, s = self._parts(a_free)
-        val = 0.5 * np.sum(self.lam * (np.log(s) + self.resid_sq / s))
-        return val + 0.5 * self.inv_tau2 * np.sum((a_free - self.center[self.free]) ** 2)
+        return self._eval(a_free)[0]
 
     def jac(self, a_free):
-        u, s = self._parts(a_free)
-        f1 = self.lam * (1.0 / s - self.resid_sq / s**2)
-        return 0.5 * (f1 @ u) + self.inv_tau2 * (a_free - self.center[self.free])
+        return self._eval(a_free)[1]
 
     def hess(self, a_free):
-        u, s = self._parts(a_free)
-        f1 = self.lam * (1.0 / s - self.resid_sq / s**2)
-        f2 = self.lam * (-1.0 / s**2 + 2.0 * self.resid_sq / s**3)
-        h = 0.5 * (u.T @ (f2[:, None] * u) + np.diag(f1 @ u))
-        return h + self.inv_tau2 * np.eye(self.free.size)
+        return self._eval(a_free)[2]
+
+    def minimise(self, a_start, xtol: float = 1e-4, maxiter: int = 30):
+        """Newton-CG from ``a_start`` (free log-variances): :func:`adaptnav.calibration._kernels.newton_cg_variances`."""
+        return newton_cg_variances(np.ascontiguousarray(a_start, dtype=float), *self._args(), float(xtol),
+                                   int(maxiter))
 
 
 def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, prior_center=None):
@@ -220,7 +238,6 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, p
     if free.size == 0:
         return alpha0.copy()
     obj = VarianceObjective(design, lam, resid_sq, alpha0, free, prior_tau, prior_center)
-    fun, jac, hess, unpack = obj.fun, obj.jac, obj.hess, obj.unpack
 
     # start from the weighted moment estimate E[r²] ≈ D σ² (non-negative least squares):
     # Newton then converges in a few steps instead of crawling through the region where
@@ -233,11 +250,9 @@ def _fit_log_variances(design, lam, resid_sq, n_traj, alpha0, free, prior_tau, p
         x_start = np.log(np.maximum(lin, 1e-3 * np.exp(alpha0[free])))
     except (ValueError, RuntimeError):
         pass
-    if fun(x_start) > fun(alpha0[free]):
+    if obj.fun(x_start) > obj.fun(alpha0[free]):
         x_start = alpha0[free].copy()
-    res = minimize(fun, x_start, method="Newton-CG", jac=jac, hess=hess,
-                   options={"xtol": 1e-4, "maxiter": 30})
-    a = unpack(res.x)
+    a = obj.unpack(obj.minimise(x_start))
     return a if np.all(np.isfinite(a)) else alpha0.copy()
 
 
@@ -275,30 +290,37 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
     Returns ``(k_v, current (2,), held names, σ of k_V)``.
     """
     M, T = V0.shape
-    wv = np.broadcast_to(lam / s_v, (M, T)).ravel()
-    ws = np.broadcast_to(lam / var_s, (M, T)).ravel()
-    Xv = np.concatenate([np.broadcast_to(v, (M, T))[..., None], gv], axis=-1).reshape(-1, 3)
-    Xs = np.concatenate([np.zeros((M, T, 1)), gs], axis=-1).reshape(-1, 3)
-    X = np.concatenate([Xv, Xs])
-    y = np.concatenate([V0.ravel(), S0.ravel()])
-    wt = np.concatenate([wv, ws])
     theta = np.array([k_v, current[0], current[1]], dtype=float)
     want = [k for k, on in ((0, fit_k_v), (1, fit_current), (2, fit_current)) if on]
     if not want:
         return k_v, np.asarray(current, float), (), math.nan
-    sw = np.sqrt(wt)
+    # normal equations: information AᵀA and AᵀWy summed over the M·T rows of each channel
+    # (rows never built: at M = 100 the (2MT, 3) design cost milliseconds per M-step)
+    wv = lam / s_v
+    ws = lam / var_s
+    Xv = np.empty((M, T, 3))
+    Xv[..., 0] = v
+    Xv[..., 1:] = gv
+    Xv_w = Xv * wv[None, :, None]
+    gs_w = gs * ws[None, :, None]
+    info = Xv_w.reshape(-1, 3).T @ Xv.reshape(-1, 3)
+    info[1:, 1:] += gs_w.reshape(-1, 2).T @ gs.reshape(-1, 2)
+    rhs = Xv_w.reshape(-1, 3).T @ V0.reshape(-1)
+    rhs[1:] += gs_w.reshape(-1, 2).T @ S0.reshape(-1)
     # condition test on the per-step design (trajectory-averaged), not the M-fold copy
-    kept, _ = identifiable_terms((X * sw[:, None])[:, want], list(range(len(want))), max_condition)
+    kept, _ = identifiable_terms_gram(info[np.ix_(want, want)], list(range(len(want))), max_condition)
     free = [want[i] for i in kept]
-    ok, sigma_k = k_v_informed(X * sw[:, None], free, max_k_v_sigma, n_copies=M)
+    ok, sigma_k = k_v_informed_gram(info, free, max_k_v_sigma, n_copies=M)
     if not ok and 0 in free:
         free.remove(0)
     fixed = [k for k in range(3) if k not in free]
     held = tuple(("k_v", "current_n", "current_e")[k] for k in want if k not in free)
     if free:
-        r = y - X[:, fixed] @ theta[fixed]
-        A = X[:, free] * sw[:, None]
-        sol, *_ = np.linalg.lstsq(A, r * sw, rcond=None)
+        b = rhs[free] - info[np.ix_(free, fixed)] @ theta[fixed]
+        try:
+            sol = np.linalg.solve(info[np.ix_(free, free)], b)
+        except np.linalg.LinAlgError:
+            sol = np.full(len(free), math.nan)
         if np.all(np.isfinite(sol)):
             theta[free] = sol
     return float(theta[0]), theta[1:].copy(), held, sigma_k

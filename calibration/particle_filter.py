@@ -22,9 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from adaptnav.fusion.motion_model import MotionParams
-from adaptnav.calibration._kernels import heading_loglik, move, pack, reweight, systematic_from_log
-from adaptnav.calibration.resampling import logsumexp, normalise_log_weights, systematic_resample
-from adaptnav.calibration.sensors import HeadingObservation, LandmarkSighting, ParticleLandmarkMap
+from adaptnav.calibration._kernels import (OBS_FIX, OBS_FIXED_LANDMARK, OBS_HEADING, OBS_RANGE, filter_window,
+                                          heading_loglik, move, pack, pf_advance, pf_weigh, reweight)
+from adaptnav.calibration.resampling import systematic_resample
+from adaptnav.calibration.sensors import (FixedLandmarkObservation, HeadingObservation, LandmarkSighting,
+                                         ParticleLandmarkMap, PositionFix, RangeObservation)
 
 
 @dataclass
@@ -81,11 +83,55 @@ def _reweight(log_w, g):
     return lw, inc, ess_now
 
 
+def pack_observations(observations):
+    """The window's observations as the arrays of :func:`adaptnav.calibration._kernels.filter_window`:
+    ``(obs_ptr (T+2,), obs_kind (K,), obs_off (K,), fdata)``; None when one of them has
+    no packed form (a :class:`LandmarkSighting` updates a per-particle map)."""
+    ptr, kinds, offs, data = [0], [], [], []
+    for obs_list in observations:
+        for ob in obs_list or ():
+            kind = type(ob)
+            offs.append(len(data))
+            if kind is RangeObservation:
+                lm = np.asarray(ob.landmarks_m, dtype=float).reshape(-1, 2)
+                kinds.append(OBS_RANGE)
+                data += [lm.shape[0], ob.sigma_m, *lm[:, 0], *lm[:, 1],
+                         *np.asarray(ob.ranges_m, dtype=float).reshape(-1)]
+            elif kind is PositionFix:
+                kinds.append(OBS_FIX)
+                data += [ob.pos_n_m[0], ob.pos_n_m[1], ob.sigma_m]
+            elif kind is HeadingObservation:
+                kinds.append(OBS_HEADING)
+                data += [ob.yaw_rad, ob.sigma_rad]
+            elif kind is FixedLandmarkObservation:
+                s = ob.sighting
+                kinds.append(OBS_FIXED_LANDMARK)
+                data += [s.along_m, s.across_m, s.sigma_along_m ** 2, s.sigma_across_m ** 2,
+                         *np.asarray(ob.landmark_mean_m, dtype=float).reshape(2),
+                         *np.asarray(ob.landmark_cov_m2, dtype=float).reshape(4)]
+            else:
+                return None
+        ptr.append(len(kinds))
+    return (np.asarray(ptr, dtype=np.int64), np.asarray(kinds, dtype=np.int64),
+            np.asarray(offs, dtype=np.int64), np.asarray(data, dtype=float))
+
+
+def _no_particle_explains(t: int):
+    return FloatingPointError(f"all particle weights are zero (or non-finite) at pose {t}: the observations "
+                              "are impossible under every particle")
+
+
 def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations, init_poses,
                         rng: np.random.Generator, n_particles: int | None = None,
                         ess_fraction: float = 0.5, map_landmarks: bool = False,
                         current_n_m_s=None) -> FilterResult:
     """Run the filter over one window.
+
+    The random numbers are drawn up front from ``rng`` (T·3·N standard normals for the
+    moves, then T uniforms for the resamplings, used or not), and the window runs in one
+    compiled call (:func:`adaptnav.calibration._kernels.filter_window`); with a per-particle
+    landmark map the same kernels run step by step around the map's Python update, with
+    the same draws (so the same particles for the same seed).
 
     Parameters
     ----------
@@ -102,9 +148,9 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     map_landmarks : keep a per-particle map for :class:`LandmarkSighting` (FastSLAM)
     current_n_m_s : optional (2,) sea current (north, east) in m/s added to every move
     """
-    v = np.asarray(v_m_s, dtype=float)
-    w = np.asarray(w_rad_s, dtype=float)
-    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    v = np.ascontiguousarray(v_m_s, dtype=float)
+    w = np.ascontiguousarray(w_rad_s, dtype=float)
+    dt = np.ascontiguousarray(np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape))
     T = v.size
     if len(observations) != T + 1:
         raise ValueError(f"observations: expected T+1 = {T + 1} entries, got {len(observations)}")
@@ -117,29 +163,33 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
     A = np.empty((T, N), dtype=np.int64)
     inc = np.empty(T + 1)
     resampled = np.zeros(T, dtype=bool)
-    lmap = ParticleLandmarkMap(N) if map_landmarks else None
-
     X[0] = init
-    g = _observation_log_lik(observations[0], X[0], lmap)
-    lw, inc[0], ess_now = _reweight(np.full(N, -np.log(N)), g)
-    LW[0] = lw
-    arange = np.arange(N)
-    threshold = ess_fraction * N
+    LW[0] = -math.log(N)
+    z = rng.standard_normal((T, 3, N))
+    u = rng.random(T)
+    threshold = float(ess_fraction * N)
     pvec = pack(params, current_n_m_s)
-    for t in range(T):
-        if ess_now < threshold:
-            idx = systematic_from_log(lw, rng.random())
-            lw = np.full(N, -np.log(N))
-            resampled[t] = True
-            if lmap is not None:
-                lmap.resample(idx)
-        else:
-            idx = arange
-        A[t] = idx
-        X[t + 1] = move(X[t], idx, rng.standard_normal((3, N)), v[t], w[t], dt[t], pvec)
-        g = _observation_log_lik(observations[t + 1], X[t + 1], lmap)
-        lw, inc[t + 1], ess_now = _reweight(lw, g)  # lw is normalised: inc = log Σ W g
-        LW[t + 1] = lw
+    packed = None if map_landmarks else pack_observations(observations)
+    lmap = ParticleLandmarkMap(N) if map_landmarks else None
+    if packed is not None:
+        failed = filter_window(X, LW, A, inc, resampled, v, w, dt, pvec, z, u, threshold, *packed)
+        if failed >= 0:
+            raise _no_particle_explains(int(failed))
+        return FilterResult(X, LW, A, inc, resampled, None)
+    W = np.empty(N)
+    cdf = np.empty(N)
+    ess_now = 0.0
+    for t in range(T + 1):
+        if t > 0:
+            resample = bool(ess_now < threshold)
+            pf_advance(X, LW, W, A, resampled, t - 1, resample, u[t - 1], z[t - 1], v[t - 1], w[t - 1],
+                       dt[t - 1], pvec, cdf)
+            if resample and lmap is not None:
+                lmap.resample(A[t - 1])
+        g = np.ascontiguousarray(_observation_log_lik(observations[t], X[t], lmap), dtype=float)
+        inc[t], ess_now = pf_weigh(LW, W, t, g)  # LW[t] is normalised: inc = log Σ W g
+        if not np.isfinite(inc[t]):
+            raise _no_particle_explains(t)
     return FilterResult(X, LW, A, inc, resampled, lmap)
 
 

@@ -80,12 +80,12 @@ def ffbsi_mcmc(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_t
     ``turn_about_mean`` as :func:`ffbsi_exact`."""
     v, w, dt = _controls(v_m_s, w_rad_s, dt_s)
     T = v.size
-    idx = multinomial_indices(fr.log_w[T], n_traj, rng)
-    props = np.empty((T, n_mcmc, n_traj), dtype=np.int64)
-    for t in range(T):
-        props[t] = multinomial_indices(fr.log_w[t], (n_mcmc, n_traj), rng)
+    # drawn in one go: the ends, every step's proposals (inverse CDF of W_t in the kernel), the acceptances
+    u_last = rng.random(n_traj)
+    u_prop = rng.random((T, n_mcmc, n_traj))
     log_u = np.log(rng.random((T, n_mcmc, n_traj)))
-    return backward_mcmc(fr.poses, fr.ancestors, v, w, dt, pack(params, current_n_m_s, turn_about_mean), idx, props, log_u)
+    return backward_mcmc(fr.poses, np.exp(fr.log_w), fr.ancestors, v, w, dt, pack(params, current_n_m_s, turn_about_mean),
+                         u_last, u_prop, log_u)
 
 
 def ffbsi_mcmc_numpy(fr: FilterResult, params: MotionParams, v_m_s, w_rad_s, dt_s, n_traj: int,

@@ -24,10 +24,11 @@ def add_arguments(parser):
 
 def _exercise_calibration_kernels() -> None:
     """The calibrator kernels one EM window may leave uncalled (range likelihood,
-    resampling, the exact smoother): a small thesis problem runs them all."""
+    resampling, the step-by-step filter, the exact smoother): a small thesis problem runs them all."""
     import numpy as np
 
-    from adaptnav.calibration.particle_filter import run_particle_filter
+    from adaptnav.calibration.particle_filter import filter_step, run_particle_filter
+    from adaptnav.calibration.sensors import HeadingObservation, PositionFix
     from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_mcmc
     from adaptnav.calibration.thesis import ThesisRow, _init_cloud, simulate
 
@@ -35,6 +36,13 @@ def _exercise_calibration_kernels() -> None:
     data = simulate(ThesisRow(steps=12), rng)
     p = data.params_initial
     fr = run_particle_filter(p, data.v, data.w, data.dt, data.observations, _init_cloud(64, rng), rng, 64)
+    # the step-by-step path of a window with a landmark map
+    run_particle_filter(p, data.v, data.w, data.dt, data.observations, _init_cloud(64, rng), rng, 64,
+                        map_landmarks=True)
+    # the online calibrator's per-step filter (a heading alone, then a fix)
+    poses, log_w = fr.poses[-1].copy(), fr.log_w[-1].copy()
+    for obs in ([HeadingObservation(0.0, 0.1)], [PositionFix((0.0, 0.0), 50.0)]):
+        poses, log_w, _ = filter_step(p, poses, log_w, 1.0, 0.1, 1.0, obs, rng)
     ffbsi_exact(fr, p, data.v, data.w, data.dt, 8, rng)
     ffbsi_mcmc(fr, p, data.v, data.w, data.dt, 8, rng)
 

@@ -174,3 +174,45 @@ def test_numba_systematic_resampling_matches_the_reference():
         u = rng.random()
         ref = np.searchsorted(np.concatenate([np.cumsum(w)[:-1], [1.0]]), (u + np.arange(300)) / 300, side="right")
         np.testing.assert_array_equal(systematic_from_log(np.log(w), u), ref)
+
+
+def test_window_kernel_matches_the_step_by_step_filter():
+    """The one-call window (packed observations) and the step-by-step path the landmark
+    map needs draw the same numbers and must give the same particles, weights and
+    log-likelihood, for every observation type the window packs."""
+    from adaptnav.calibration.sensors import FixedLandmarkObservation, HeadingObservation, LandmarkSighting
+
+    data = simulate(ThesisRow(steps=25), np.random.default_rng(21))
+    rng = np.random.default_rng(22)
+    obs = [list(o) for o in data.observations]
+    for t in range(0, 26, 3):
+        obs[t].append(HeadingObservation(float(rng.normal(0, 3)), 0.4))
+    for t in range(1, 26, 4):
+        obs[t].append(PositionFix((float(rng.normal(0, 50)), float(rng.normal(0, 50))), 60.0))
+    for t in range(2, 26, 5):
+        obs[t].append(FixedLandmarkObservation(LandmarkSighting(1, 5.0, -20.0), np.array([0.0, 50.0]),
+                                               np.array([[900.0, 50.0], [50.0, 800.0]])))
+    obs[7] = []
+    outs = []
+    for map_landmarks in (False, True):
+        r = np.random.default_rng(5)
+        fr = run_particle_filter(data.params_initial, data.v, data.w, data.dt, obs, _init_cloud(300, r), r, 300,
+                                 map_landmarks=map_landmarks, current_n_m_s=(0.1, -0.05))
+        outs.append(fr)
+    a, b = outs
+    assert a.landmark_map is None and b.landmark_map is not None  # the two paths really ran
+    assert a.resampled.any() and not a.resampled.all()
+    np.testing.assert_array_equal(a.ancestors, b.ancestors)
+    np.testing.assert_array_equal(a.resampled, b.resampled)
+    np.testing.assert_allclose(a.poses, b.poses, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.log_w, b.log_w, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(a.log_lik_increments, b.log_lik_increments, rtol=1e-10)
+
+
+def test_window_kernel_reports_the_pose_no_particle_explains():
+    data = simulate(ThesisRow(steps=6), np.random.default_rng(2))
+    obs = [list(o) for o in data.observations]
+    obs[4] = [PositionFix((1e6, 0.0), 1e-160)]  # likelihood underflows to 0 for every particle
+    rng = np.random.default_rng(3)
+    with pytest.raises(FloatingPointError, match="pose 4"):
+        run_particle_filter(data.params_initial, data.v, data.w, data.dt, obs, _init_cloud(100, rng), rng, 100)
