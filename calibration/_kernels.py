@@ -45,12 +45,47 @@ def pack(params, current_n_m_s=None, turn_about_mean: bool = False) -> np.ndarra
                      1.0 if turn_about_mean else 0.0])
 
 
+# sin and cos without libm: Cody–Waite reduction by π/2 in three parts (k·π/2 exact for
+# |x| < 2^19·π/2 ≈ 8e5 rad) and fdlibm's minimax polynomials on [−π/4, π/4], quadrant by
+# selects. Branch-free, so the particle loops vectorise: 1.5 ns per (sin, cos) pair here
+# against 23 ns for libm's sin and cos; error ≤ 1 ulp (tests/calibration/test_filter_smoother.py).
+_TWO_OVER_PI = 2.0 / math.pi
+_PIO2_1 = 1.57079632673412561417e+00
+_PIO2_2 = 6.07710050630396597660e-11
+_PIO2_3 = 2.02226624871116645580e-21
+_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
+_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
+_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
+_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
+
+
 @jit(cache=True, inline="always")
-def _chord(W, dt):
-    a = 0.5 * W * dt
+def sincos(x):
+    """``(sin x, cos x)`` (see the comment above; |x| < 8e5 rad)."""
+    k = np.floor(x * _TWO_OVER_PI + 0.5)
+    r = ((x - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
+    z = r * r
+    s = r + r * z * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
+    hz = 0.5 * z
+    w = 1.0 - hz
+    c = w + (((1.0 - w) - hz) + z * z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6))))))
+    q = k - 4.0 * np.floor(0.25 * k)
+    sn = s if q == 0.0 else (c if q == 1.0 else (-s if q == 2.0 else -c))
+    cs = c if q == 0.0 else (-s if q == 1.0 else (-c if q == 2.0 else s))
+    return sn, cs
+
+
+@jit(cache=True, inline="always")
+def _chord_of_half_turn(a, dt):
+    """``c = δt sin(a) / a`` for the half turn ``a = W δt / 2`` (series near 0)."""
     if abs(a) < 1e-8:
         return dt * (1.0 - a * a / 6.0)
-    return dt * math.sin(a) / a
+    return dt * sincos(a)[0] / a
+
+
+@jit(cache=True, inline="always")
+def _chord(W, dt):
+    return _chord_of_half_turn(0.5 * W * dt, dt)
 
 
 @jit(cache=True, inline="always")
@@ -69,20 +104,55 @@ def _step_constants(v, w, dt, p):
 
 
 @jit(cache=True, inline="always")
-def _transition_core(x0, y0, th0, x1, y1, th1, dt, un, ue, ref, mV, mW, iV, iW, iS, const):
+def _invert(x0, y0, th0, x1, y1, th1, dt, un, ue, ref):
+    """The velocities ``(V, W, S)`` carrying pose 0 to pose 1 in ``dt`` with the chord
+    factor ``c`` and the mid-step heading ``φ`` (:func:`adaptnav.fusion.motion_model.invert_step`:
+    heading change on the branch nearest ``ref``, current ``(un, ue)`` m/s removed)."""
     dth = (th1 - th0 - ref + math.pi) % (2.0 * math.pi) - math.pi + ref
     W = dth / dt
     phi = th0 + 0.5 * dth
     c = _chord(W, dt)
     dx = x1 - x0 - un * dt
     dy = y1 - y0 - ue * dt
-    cp = math.cos(phi)
-    sp = math.sin(phi)
-    V = (cp * dx + sp * dy) / c
-    S = (-sp * dx + cp * dy) / c
+    sp, cp = sincos(phi)
+    return (cp * dx + sp * dy) / c, W, (-sp * dx + cp * dy) / c, c, phi
+
+
+@jit(cache=True, inline="always")
+def _transition_core(x0, y0, th0, x1, y1, th1, dt, un, ue, ref, mV, mW, iV, iW, iS, const):
+    V, W, S, c, _ = _invert(x0, y0, th0, x1, y1, th1, dt, un, ue, ref)
     eV = V - mV
     eW = W - mW
     return const - 0.5 * (eV * eV * iV + eW * eW * iW + S * S * iS) - 2.0 * math.log(abs(c))
+
+
+@jit(cache=True)
+def mean_design(traj, dt, ref):
+    """The M-step's regressors (:func:`adaptnav.calibration.mstep._mean_design`) of
+    trajectories ``traj`` (M, T+1, 3), steps ``dt`` (T,), heading-change branch centres
+    ``ref`` (T,): zero-current ``V⁰, W, S⁰`` (M, T) and the current's columns ``gv``,
+    ``gs`` (M, T, 2)."""
+    M = traj.shape[0]
+    T = dt.shape[0]
+    V0 = np.empty((M, T))
+    W = np.empty((M, T))
+    S0 = np.empty((M, T))
+    gv = np.empty((M, T, 2))
+    gs = np.empty((M, T, 2))
+    for m in range(M):
+        for t in range(T):
+            V, Wt, S, c, phi = _invert(traj[m, t, 0], traj[m, t, 1], traj[m, t, 2], traj[m, t + 1, 0],
+                                       traj[m, t + 1, 1], traj[m, t + 1, 2], dt[t], 0.0, 0.0, ref[t])
+            V0[m, t] = V
+            W[m, t] = Wt
+            S0[m, t] = S
+            g = dt[t] / c
+            sp, cp = sincos(phi)
+            gv[m, t, 0] = cp * g
+            gv[m, t, 1] = sp * g
+            gs[m, t, 0] = -sp * g
+            gs[m, t, 1] = cp * g
+    return V0, W, S0, gv, gs
 
 
 @jit(cache=True)
@@ -93,6 +163,11 @@ def transition_logpdf_scalar(x0, y0, th0, x1, y1, th1, v, w, dt, p):
 
 @jit(cache=True)
 def _move_into(poses, idx, z, v, w, dt, p, out):
+    """``out[i]`` ← ``poses[idx[i]]`` moved with the velocities of the normals ``z[:, i]``.
+
+    Three loops: the gathers, the trigonometry (only two input and three output arrays:
+    few enough for LLVM's run-time alias checks, so it vectorises, 2.7× faster than one
+    loop doing everything), the positions."""
     n = idx.shape[0]
     v2 = v * v
     w2 = w * w
@@ -103,19 +178,28 @@ def _move_into(poses, idx, z, v, w, dt, p, out):
     mW = w + p[8]
     dxc = p[9] * dt
     dyc = p[10] * dt
+    th = np.empty(n)
+    half_turn = np.empty(n)   # a = W δt / 2
+    chord = np.empty(n)
+    sin_phi = np.empty(n)
+    cos_phi = np.empty(n)
+    for i in range(n):
+        th[i] = poses[idx[i], 2]
+        half_turn[i] = 0.5 * (mW + sdW * z[1, i]) * dt
+    for i in range(n):
+        a = half_turn[i]
+        chord[i] = _chord_of_half_turn(a, dt)
+        sin_phi[i], cos_phi[i] = sincos(th[i] + a)   # φ = θ + W δt / 2
     for i in range(n):
         j = idx[i]
         V = mV + sdV * z[0, i]
-        W = mW + sdW * z[1, i]
         S = sdS * z[2, i]
-        th = poses[j, 2]
-        phi = th + 0.5 * W * dt
-        c = _chord(W, dt)
-        cp = math.cos(phi)
-        sp = math.sin(phi)
+        c = chord[i]
+        cp = cos_phi[i]
+        sp = sin_phi[i]
         out[i, 0] = poses[j, 0] + c * (cp * V - sp * S) + dxc
         out[i, 1] = poses[j, 1] + c * (sp * V + cp * S) + dyc
-        out[i, 2] = th + W * dt
+        out[i, 2] = th[i] + 2.0 * half_turn[i]
 
 
 @jit(cache=True)
@@ -366,8 +450,7 @@ def _add_observation_loglik(poses, kind, off, fdata, g):
         c10 = fdata[off + 8]
         c11 = fdata[off + 9]
         for i in range(n):
-            c = math.cos(poses[i, 2])
-            s = math.sin(poses[i, 2])
+            s, c = sincos(poses[i, 2])
             ex = poses[i, 0] + c * a - s * b - mx
             ey = poses[i, 1] + s * a + c * b - my
             s00 = c * c * va + s * s * vb + c00

@@ -82,8 +82,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import nnls
 
-from adaptnav.calibration._kernels import newton_cg_variances, variance_objective
-from adaptnav.fusion.motion_model import MotionParams, invert_step
+from adaptnav.calibration._kernels import mean_design, newton_cg_variances, variance_objective
+from adaptnav.fusion.motion_model import MotionParams
 
 V_TERMS = ("var_vv", "var_vw", "var_v1")
 W_TERMS = ("var_wv", "var_ww", "var_w1")
@@ -262,15 +262,21 @@ def _mean_design(trajectories, dt, turn_ref_rad=None):
     With zero-current inversions ``V̂⁰, Ŝ⁰`` (:func:`adaptnav.fusion.motion_model.invert_step`) and
     ``g = δt / c``, the water-relative velocities are ``V̂ = V̂⁰ − g (cos φ u_n + sin φ u_e)``,
     ``Ŝ = Ŝ⁰ − g (−sin φ u_n + cos φ u_e)``. Returns ``V0, W, S0`` (M, T) and the current's
-    columns ``gv = g (cos φ, sin φ)``, ``gs = g (−sin φ, cos φ)`` as (M, T, 2).
+    columns ``gv = g (cos φ, sin φ)``, ``gs = g (−sin φ, cos φ)`` as (M, T, 2)
+    (compiled: :func:`adaptnav.calibration._kernels.mean_design`).
     """
-    th0 = trajectories[:, :-1, 2]
-    V0, W, S0, c = invert_step(trajectories[:, :-1], trajectories[:, 1:], dt[None, :], turn_ref_rad=turn_ref_rad)
-    dtheta = W * dt[None, :]  # the branch invert_step chose
-    phi = th0 + 0.5 * dtheta
-    g = dt[None, :] / c
-    cp, sp = np.cos(phi) * g, np.sin(phi) * g
-    return V0, W, S0, np.stack([cp, sp], axis=-1), np.stack([-sp, cp], axis=-1)
+    T = dt.shape[0]
+    ref = np.zeros(T) if turn_ref_rad is None else np.broadcast_to(np.asarray(turn_ref_rad, dtype=float), (1, T))[0]
+    return mean_design(np.ascontiguousarray(trajectories, dtype=float), np.ascontiguousarray(dt, dtype=float),
+                       np.ascontiguousarray(ref, dtype=float))
+
+
+def _water_relative(V0, S0, gv, gs, current):
+    """``V̂, Ŝ`` (M, T) with the current (2,) m/s removed (:func:`_mean_design`)."""
+    if current[0] == 0.0 and current[1] == 0.0:
+        return V0, S0
+    return (V0 - gv[..., 0] * current[0] - gv[..., 1] * current[1],
+            S0 - gs[..., 0] * current[0] - gs[..., 1] * current[1])
 
 
 def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_current, max_condition,
@@ -298,15 +304,22 @@ def fit_means(V0, S0, gv, gs, v, lam, s_v, var_s, k_v, current, fit_k_v, fit_cur
     # (rows never built: at M = 100 the (2MT, 3) design cost milliseconds per M-step)
     wv = lam / s_v
     ws = lam / var_s
-    Xv = np.empty((M, T, 3))
-    Xv[..., 0] = v
-    Xv[..., 1:] = gv
-    Xv_w = Xv * wv[None, :, None]
-    gs_w = gs * ws[None, :, None]
-    info = Xv_w.reshape(-1, 3).T @ Xv.reshape(-1, 3)
-    info[1:, 1:] += gs_w.reshape(-1, 2).T @ gs.reshape(-1, 2)
-    rhs = Xv_w.reshape(-1, 3).T @ V0.reshape(-1)
-    rhs[1:] += gs_w.reshape(-1, 2).T @ S0.reshape(-1)
+    if fit_current:
+        Xv = np.empty((M, T, 3))
+        Xv[..., 0] = v
+        Xv[..., 1:] = gv
+        Xv_w = Xv * wv[None, :, None]
+        gs_w = gs * ws[None, :, None]
+        info = Xv_w.reshape(-1, 3).T @ Xv.reshape(-1, 3)
+        info[1:, 1:] += gs_w.reshape(-1, 2).T @ gs.reshape(-1, 2)
+        rhs = Xv_w.reshape(-1, 3).T @ V0.reshape(-1)
+        rhs[1:] += gs_w.reshape(-1, 2).T @ S0.reshape(-1)
+    else:  # the current is given: k_V's column alone, against the water-relative V̂
+        V, _ = _water_relative(V0, S0, gv, gs, theta[1:])
+        info = np.zeros((3, 3))
+        rhs = np.zeros(3)
+        info[0, 0] = M * np.sum(wv * v * v)
+        rhs[0] = np.sum(wv * v * V.sum(axis=0))
     # condition test on the per-step design (trajectory-averaged), not the M-fold copy
     kept, _ = identifiable_terms_gram(info[np.ix_(want, want)], list(range(len(want))), max_condition)
     free = [want[i] for i in kept]
@@ -351,10 +364,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
     turn_ref = (w + params.b_w)[None, :] * dt[None, :] if options.turn_about_mean else None
     V0, W, S0, gv, gs = _mean_design(trajectories, dt, turn_ref)
 
-    def water_relative(cur):
-        return V0 - gv @ cur, S0 - gs @ cur
-
-    V, S = water_relative(current)
+    V, S = _water_relative(V0, S0, gv, gs, current)
     design = np.stack([v * v, w * w, np.ones(T)], axis=1)
     sq_lam = np.sqrt(lam)[:, None]
     kept_v, cond_v = identifiable_terms(design * sq_lam, V_PRIORITY, options.max_condition)
@@ -388,7 +398,7 @@ def m_step(trajectories: np.ndarray, v_m_s, w_rad_s, dt_s, params: MotionParams,
                                                             options.fit_k_v, options.fit_current,
                                                             options.max_condition, options.max_k_v_sigma)
             k_v = k_new if k_new > 0 else k_v
-            V, S = water_relative(current)
+            V, S = _water_relative(V0, S0, gv, gs, current)
         if options.fit_b_w:
             b_w = float(np.sum(lam * sum_W / s_w) / (n_traj * np.sum(lam / s_w)))
         # variances given the means
