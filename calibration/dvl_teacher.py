@@ -23,8 +23,15 @@ almost unchanged). Its components are the step's surge ``V̂_k``, sway ``Ŝ_k`` 
 M-step (window-step variances, like EM; the same rules as :mod:`adaptnav.calibration.mstep`),
 each row weighted by the forgetting ``λ_k``:
 
-- ``k_V``: weighted least squares ``V̂ = k_V v + e``, weights ``λ/σ_V²(v, w)``; held when its
-  standard error exceeds ``max_k_v_sigma`` (speeds that do not inform it);
+- ``k_V`` and the turn speed loss ``κ``: weighted least squares ``V̂ = k_V v (1 − κ w²) + e``
+  (linear in ``k_V`` and ``k_V κ``), weights ``λ/σ_V²(v, w)``. A vehicle slows in turns (the
+  sway–yaw coupling drag of the surge equation, :class:`adaptnav.sim.vehicle.Fossen3Dof`); with
+  one scale for legs and turns the model is too slow on the legs, and along a leg the filter
+  puts the difference between the DVL and the model into its current estimate — which the
+  vehicle then carries, wrong, through a DVL outage (dvl_outage: the current at the outage's
+  start was off by 2–5 mm/s along the legs, 3–6 m of the error at its end). ``κ`` is held when
+  the window's turns do not inform it; ``k_V`` is held when its standard error exceeds
+  ``max_k_v_sigma`` (speeds that do not inform it);
 - surge variances: the Newton-CG log-variance fit of ``(V̂ − k_V v)²`` on ``(v², w², 1)``
   with the identifiability test (columns the controls do not separate are held) and the
   prior of the M-step;
@@ -52,9 +59,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from adaptnav.fusion.frames import euler_to_quat, quat_to_dcm
-from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.fusion.motion_model import MotionParams, velocity_means
 from adaptnav.calibration.mstep import (V_PRIORITY, V_TERMS, MStepOptions, _fit_log_variances,
-                                        identifiable_terms, k_v_informed)
+                                        identifiable_terms, k_v_informed, least_squares_sigmas)
 
 
 class DvlWaterVelocity:
@@ -120,14 +127,15 @@ def _surge_design(v, w) -> np.ndarray:
 def rows_log_likelihood(params: MotionParams, v, w, V, S, lam) -> float:
     """Gaussian log-likelihood of the surge and sway rows (window-step variances)."""
     s_v = _surge_design(v, w) @ np.array([params.var_vv, params.var_vw, params.var_v1])
-    r = V - params.k_v * v
+    r = V - velocity_means(params, v, w)[0]
     return -0.5 * float(np.sum(lam * (np.log(2 * math.pi * s_v) + r * r / s_v
                                       + np.log(2 * math.pi * params.var_s) + S * S / params.var_s)))
 
 
 def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MStepOptions(),
           prior_params: MotionParams | None = None, heading_rate_rad_s=None,
-          min_heave_speed_m_s: float = 0.3) -> TeacherResult:
+          min_heave_speed_m_s: float = 0.3, fit_turn_loss: bool = True,
+          max_turn_loss_sigma_s2: float = 1.0) -> TeacherResult:
     """The DVL M-step of the module docstring.
 
     Parameters
@@ -138,6 +146,9 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
     options : the M-step options (identifiability, prior, fit flags, k_V information)
     prior_params : centre of the log-variance prior (window step); default ``params``
     heading_rate_rad_s : (T,) observed yaw rates from headings (NaN where unknown), for b_W
+    fit_turn_loss : fit the turn speed loss κ with k_V when the window's turns inform it
+        (standard error ≤ ``max_turn_loss_sigma_s2``, s²/rad²: 1 s² is 1 % of the speed at
+        0.1 rad/s); otherwise κ is held and k_V fitted with it
     """
     v, w, V, S, H, lam = (np.asarray(a, dtype=float) for a in (v, w, V, S, H, lam))
     ok = np.isfinite(V) & np.isfinite(S) & np.isfinite(H)
@@ -148,12 +159,27 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
     new = params
     design = _surge_design(v, w)
     s_v = design @ np.array([params.var_vv, params.var_vw, params.var_v1])
-    # k_V: weighted least squares through the origin
+    # k_V (and the turn speed loss κ): weighted least squares through the origin
     if options.fit_k_v:
         omega = lam / s_v
-        informed, sig = k_v_informed((np.sqrt(omega) * v)[:, None], [0], options.max_k_v_sigma)
+        kappa = params.turn_speed_loss
+        if fit_turn_loss:
+            design_t = np.column_stack([v, -v * w * w]) * np.sqrt(omega)[:, None]
+            sig_t = least_squares_sigmas(design_t)
+            coef = np.linalg.lstsq(design_t, np.sqrt(omega) * V, rcond=None)[0]
+            sig_kappa = sig_t[1] / coef[0] if coef[0] > 0 else math.inf
+            if sig_t[0] <= options.max_k_v_sigma and sig_kappa <= max_turn_loss_sigma_s2:
+                # a turn cannot speed the vehicle up: a negative estimate is noise about 0
+                kappa = max(float(coef[1] / coef[0]), 0.0)
+                new = replace(new, turn_speed_loss=kappa)
+                teachers["turn_speed_loss"] = "DVL"
+            else:
+                notes.append(f"held turn_speed_loss (the window's turns do not inform it: σ {sig_kappa:.3g} s² > "
+                             f"{max_turn_loss_sigma_s2})")
+        u = v * (1.0 - kappa * w * w)   # the model's speed per unit k_V
+        informed, sig = k_v_informed((np.sqrt(omega) * u)[:, None], [0], options.max_k_v_sigma)
         if informed:
-            new = replace(new, k_v=float(np.sum(omega * v * V) / np.sum(omega * v * v)))
+            new = replace(new, k_v=float(np.sum(omega * u * V) / np.sum(omega * u * u)))
             teachers["k_v"] = "DVL"
         else:
             notes.append(f"held k_v (the window's speeds do not inform it: σ {sig:.3g} > {options.max_k_v_sigma})")
@@ -163,7 +189,7 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
     alpha = np.log([params.var_vv, params.var_vw, params.var_v1])
     pp = params if prior_params is None else prior_params
     center = np.log([pp.var_vv, pp.var_vw, pp.var_v1])
-    resid_sq = (V - new.k_v * v) ** 2
+    resid_sq = (V - velocity_means(new, v, w)[0]) ** 2
     a = _fit_log_variances(design, lam, resid_sq, 1, alpha, kept, options.prior_tau, center)
     ev = np.maximum(np.exp(a), options.var_floor)
     for k, name in enumerate(V_TERMS):

@@ -7,9 +7,17 @@ horizontal part of the local NED frame. Reported controls per step: surge speed
 True velocities (seed §2.1, after Eliazar & Parr 2004 / Yap & Shelton 2008, with the
 mean terms of DESIGN.md and the lateral term of the errata)::
 
-    V ~ N(k_V v,  v² σ_Vv² + w² σ_Vw² + σ_V1²)        surge, m/s
+    V ~ N(k_V v (1 − κ w²),  v² σ_Vv² + w² σ_Vw² + σ_V1²)        surge, m/s
     W ~ N(w + b_W, v² σ_Wv² + w² σ_Ww² + σ_W1²)       yaw rate, rad/s
     S ~ N(0, σ_S²)                                    sway (starboard), m/s
+
+The turn speed loss ``κ`` (s²/rad², ``turn_speed_loss``; beyond the seed): a vehicle in a
+turn slows down — the sway it takes on and the yaw rate add drag through the coupling terms
+``(m + X_vr) v r`` and ``X_rr r²`` of the surge equation (Fossen 2011, "Handbook of Marine
+Craft Hydrodynamics and Motion Control"; Prestero 2001 for the REMUS-100 coefficients; the
+simulator's :class:`adaptnav.sim.vehicle.Fossen3Dof` has them),
+so a single speed scale learned over straight legs *and* turns is too slow on the legs and
+too fast in the turns. ``κ = 0`` is the seed's model.
 
 Pose update with constant body velocity (V, S) and yaw rate W over δt — exact
 integration (the seed's printed arc update is garbled; this is the errata's form plus
@@ -61,7 +69,9 @@ class MotionParams:
     ``var_w1`` σ_W1² (rad²/s²), ``var_s`` σ_S² (m²/s², sway). Means: ``k_v`` speed
     scale (–), ``b_w`` yaw-rate bias (rad/s), ``heave_per_surge`` (–) the body heave per
     unit surge while holding depth, ``tan α`` of the angle of attack (a heavy or trimmed
-    vehicle flies nose-up; learned from the DVL, calibration/dvl_teacher.py).
+    vehicle flies nose-up; learned from the DVL, calibration/dvl_teacher.py);
+    ``turn_speed_loss`` κ (s²/rad², ≥ 0): the surge's mean is ``k_V v (1 − κ w²)``, the speed
+    a turn at yaw rate ``w`` costs (learned from the DVL; 0 = none).
 
     The seed's results name σ_Dd ≡ σ_Vv and σ_Tr ≡ σ_Ww (:attr:`sigma_dd`,
     :attr:`sigma_tr`).
@@ -77,6 +87,7 @@ class MotionParams:
     k_v: float = 1.0
     b_w: float = 0.0
     heave_per_surge: float = 0.0
+    turn_speed_loss: float = 0.0
 
     VARIANCE_NAMES = ("var_vv", "var_vw", "var_v1", "var_wv", "var_ww", "var_w1", "var_s")
 
@@ -90,6 +101,8 @@ class MotionParams:
                 raise ValueError(f"MotionParams.{name} must be > 0, got {getattr(self, name)}")
         if self.k_v <= 0.0:
             raise ValueError(f"MotionParams.k_v must be > 0, got {self.k_v}")
+        if self.turn_speed_loss < 0.0:
+            raise ValueError(f"MotionParams.turn_speed_loss must be ≥ 0, got {self.turn_speed_loss}")
 
     @property
     def sigma_dd(self) -> float:
@@ -124,7 +137,11 @@ class MotionParams:
 
 def velocity_means(params: MotionParams, v, w):
     """Means of (V, W) given reported surge ``v`` (m/s) and yaw rate ``w`` (rad/s)."""
-    return params.k_v * np.asarray(v, dtype=float), np.asarray(w, dtype=float) + params.b_w
+    v = np.asarray(v, dtype=float)
+    w = np.asarray(w, dtype=float)
+    if params.turn_speed_loss == 0.0:  # the seed's model, the same floats
+        return params.k_v * v, w + params.b_w
+    return params.k_v * v * (1.0 - params.turn_speed_loss * w * w), w + params.b_w
 
 
 def velocity_variances(params: MotionParams, v, w):
@@ -160,7 +177,7 @@ def rescale_step(params: MotionParams, from_step_s: float, to_step_s: float) -> 
     ``from_step_s`` seconds (the simulator's ``motion.step_s``; a 1 Hz velocity aid sees
     the same). A step of ``to_step_s = n · from_step_s`` moves with the *mean* of n such
     draws, whose variance is 1/n of one draw's, so every variance is multiplied by
-    ``from_step_s / to_step_s``. The means (``k_v``, ``b_w``) do not change.
+    ``from_step_s / to_step_s``. The means (``k_v``, ``b_w``, ``turn_speed_loss``) do not change.
 
     Parameters
     ----------

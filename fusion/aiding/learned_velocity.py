@@ -19,8 +19,8 @@ new release arrives (:meth:`adaptnav.fusion.eskf.Estimator.set_motion_params`) t
 Measurement (z, h) — the observation is the model's prediction with the learned scale,
 the state-dependent rest goes into h so H stays exact::
 
-    z = (k_V u, k_V u_y, 0),   u = f(rpm), u_y = s_y sign(r_y) f(|r_y|)
-    h(x) = (v_b,x − (k_speed − 1) k_V u,  v_b,y − (k_speed − 1) k_V u_y,  v_b,z − h_w v_b,x)
+    z = (k_V u (1 − κ w²), k_V u_y, 0),   u = f(rpm), u_y = s_y sign(r_y) f(|r_y|)
+    h(x) = (v_b,x − (k_speed − 1) k_V u (1 − κ w²),  v_b,y − (k_speed − 1) k_V u_y,  v_b,z − h_w v_b,x)
     R = diag(σ_V²(u, w), σ_S² + u_y² σ_Vv², σ_heave²)
 
 The third row is the flow angle, not a speed: ``h_w = heave_per_surge = tan α`` (a heavy or
@@ -91,7 +91,8 @@ def jacobian(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0,
 def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: MotionParams,
             sigma_heave_m_s: float, variance_scale: float = 1.0, sway_m_s: float = 0.0) -> Measurement:
     """Measurement for RPM speed ``u = f(rpm)`` (m/s), lateral ``u_y`` (m/s) and gyro yaw rate (rad/s)."""
-    model = params.k_v * speed_m_s
+    # the model's surge k_V u (1 − κ w²): a turn costs speed (motion_model.MotionParams.turn_speed_loss)
+    model = params.k_v * speed_m_s * (1.0 - params.turn_speed_loss * yaw_rate_rad_s**2)
     sway = params.k_v * sway_m_s
     # σ_V²(v, w) of the motion model (velocity_variances), inlined: this runs at the fusion rate
     var_V = speed_m_s**2 * params.var_vv + yaw_rate_rad_s**2 * params.var_vw + params.var_v1

@@ -17,6 +17,8 @@ interpolated linearly onto the estimate's times (only inside the truth's time sp
   ``nees_mean`` and ``nees_fraction_in_95``: the fraction of epochs inside the two-sided
   95 % band of χ²(d), ``[χ²_{0.025}(d), χ²_{0.975}(d)]`` (Bar-Shalom, Li & Kirubarajan,
   *Estimation with Applications to Tracking and Navigation*, 2001, §5.4).
+  ``nees_mean_by_block``: the same with each block's marginal covariance alone (pos, vel, att;
+  d = 3 each, mean 3 when consistent), to say *which* states a too-large NEES comes from.
 
 Through a DVL outage (:func:`dvl_outage_metrics`; the longest stretch without bottom lock,
 at least ``min_outage_s``, from the last sample with lock ``t_a`` to the first again ``t_b``):
@@ -156,6 +158,11 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
     eps = nees(err_pva, track.cov_pva[inside])
     eps_ok = eps[np.isfinite(eps)]
     lo, hi = chi2_band_95(9)
+    by_block = {}
+    for name, sl in (("pos", slice(0, 3)), ("vel", slice(3, 6)), ("att", slice(6, 9))):
+        e_b = nees(err_pva[:, sl], track.cov_pva[inside][:, sl, sl])
+        e_b = e_b[np.isfinite(e_b)]
+        by_block[name] = float(np.mean(e_b)) if len(e_b) else None
 
     final_err = float(err_h[-1])
     return {
@@ -175,6 +182,7 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
         "nees_mean": float(np.mean(eps_ok)) if len(eps_ok) else None,
         "nees_band_95": [lo, hi],
         "nees_fraction_in_95": float(np.mean((eps_ok >= lo) & (eps_ok <= hi))) if len(eps_ok) else None,
+        "nees_mean_by_block": by_block,
         "epochs": int(len(t)),
         "duration_s": tK - t0,
     }

@@ -30,6 +30,42 @@ def test_teacher_recovers_k_v_variances_and_flow_angle_from_rows():
     assert res.teachers["k_v"] == "DVL" and res.ll_new > res.ll_old
 
 
+def test_teacher_learns_the_turn_speed_loss_with_k_v():
+    # GIVEN legs (yaw rate ~0) and turns (±0.1 rad/s) of a vehicle that loses speed in turns:
+    # V = 0.95 v (1 − 3 w²), 3 % slower at 0.1 rad/s
+    rng = np.random.default_rng(7)
+    T = 400
+    v = np.full(T, 1.5)
+    w = np.where(rng.random(T) < 0.2, rng.choice([-0.1, 0.1], T), rng.normal(0.0, 0.01, T))
+    V = 0.95 * v * (1.0 - 3.0 * w * w) + 0.01 * rng.standard_normal(T)
+    S = 0.02 * rng.standard_normal(T)
+    H = np.zeros(T)
+    res = teach(MotionParams(var_vv=1e-4, var_v1=1e-5), v, w, V, S, H, np.ones(T),
+                MStepOptions(prior_tau=math.inf))
+    # THEN both the speed scale of the legs and the loss in turns, taught by the DVL
+    assert res.params.k_v == pytest.approx(0.95, abs=0.002)
+    assert res.params.turn_speed_loss == pytest.approx(3.0, abs=0.3)
+    assert res.teachers["turn_speed_loss"] == "DVL"
+    # AND one scale for legs and turns (the model without the term) is slower than the legs
+    flat = teach(MotionParams(var_vv=1e-4, var_v1=1e-5), v, w, V, S, H, np.ones(T),
+                 MStepOptions(prior_tau=math.inf), fit_turn_loss=False)
+    assert flat.params.turn_speed_loss == 0.0 and flat.params.k_v < 0.95 - 0.003
+
+
+def test_teacher_holds_the_turn_speed_loss_on_a_straight_line():
+    # no turns: the rows cannot tell a turn's cost, κ stays as it was and k_V is fitted with it
+    rng = np.random.default_rng(8)
+    T = 200
+    v = np.full(T, 1.5)
+    w = rng.normal(0.0, 0.002, T)
+    V = 0.95 * v + 0.01 * rng.standard_normal(T)
+    res = teach(MotionParams(var_vv=1e-4, var_v1=1e-5, turn_speed_loss=2.0), v, w, V, np.zeros(T) + 0.01,
+                np.zeros(T), np.ones(T), MStepOptions(prior_tau=math.inf))
+    assert res.params.turn_speed_loss == 2.0 and "turn_speed_loss" not in res.teachers
+    assert any(n.startswith("held turn_speed_loss") for n in res.notes)
+    assert res.params.k_v == pytest.approx(0.95, abs=0.002)
+
+
 def test_teacher_holds_k_v_when_the_speeds_do_not_inform_it():
     # a vehicle at rest: the rows say nothing about the speed per RPM
     rng = np.random.default_rng(1)
