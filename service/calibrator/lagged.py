@@ -1,23 +1,24 @@
 """Replay's calibrator: deterministic application of releases (the release rule).
 
 The release rule, live and in replay. Data time is the latest sample time seen (a
-running maximum; a batch counts with its last sample). A release computed by the
+running maximum; a batch counts with its last sample): the runner's over the items it
+admitted (truth excepted), the calibrator's over the samples it was given. A release computed by the
 calibrator once its data time was ``τ`` is applied by the runner right after the item
 that brings the runner's data time to ``τ + L`` or beyond, ``L`` = ``calibrator.latency_s``.
 Live, :class:`adaptnav.service.calibrator.live.CalibratorProcess` holds releases until
-then and hands them over in ``poll()``.
+then and hands them over in ``poll(data_time_s)``.
 
 Here (:class:`LaggedCalibrator`), the runner, after an item that brings its data time to
-``t``, waits until the calibrator (child process or in-process) has reported that it
-processed every sample up to ``t − L`` (a progress message on the return pipe), so every
-release due by ``t`` is known; :meth:`LaggedCalibrator.schedule` puts it into the item
-stream, where the runner recognises it by its ``KIND`` (``calibration_release``). The
-output does not depend on wall-clock timing: same data and seed ⇒ the same trajectory and
-parameter history, whether the calibrator runs in a child process (``location="process"``,
-the second core) or in-process (``"inline"``), at any machine load. ``L`` is how far the
-runner may run ahead of the calibrator: it should exceed the calibrator's bursts (one EM
-window) in data time at the replay speed. Releases still pending at the end of the data are
-passed after the last item.
+``t``, calls ``poll(t)`` (the same route as the live calibrator's): it waits until the
+calibrator (child process or in-process) has reported that it processed every sample up
+to ``t − L`` (a progress message on the return pipe), so every release due by ``t`` is
+known, and returns those. The output does not depend on wall-clock timing: same data and
+seed ⇒ the same trajectory and parameter history, whether the calibrator runs in a child
+process (``location="process"``, the second core) or in-process (``"inline"``), at any
+machine load. ``L`` is how far the runner may run ahead of the calibrator: it should exceed
+the calibrator's bursts (one EM window) in data time at the replay speed. At the end of the
+data the runner polls with ``t = ∞``: the calibrator finishes and every pending release is
+passed.
 
 Releases cross the process boundary in their codec's JSON form
 (:mod:`adaptnav.service.transport.release`).
@@ -311,10 +312,9 @@ class ProcessBackend:
 class LaggedCalibrator:
     """The runner's calibrator with deterministic application (module docstring).
 
-    Use as ``run(lagged.schedule(source), ..., calibrator=lagged)``: :meth:`observe`
-    forwards samples to the backend, :meth:`poll` returns nothing, and
-    :meth:`schedule` puts each release into the item stream once the data time has
-    reached its ``τ + L``.
+    Use as ``run(source, ..., calibrator=lagged)``: :meth:`observe` forwards samples to the
+    backend, :meth:`poll` returns each release once the runner's data time has reached its
+    ``τ + L``.
 
     Parameters
     ----------
@@ -329,54 +329,34 @@ class LaggedCalibrator:
         self.backend = backend
         self.latency_s = float(latency_s)
         self.released = 0
-        self._now = -math.inf  # the schedule's data time (running maximum, re-based on a clock jump)
         self.observe = backend.send  # the runner calls it for every sample: no extra frame
 
     def observe(self, sample: Any) -> None:  # replaced per instance by backend.send (__init__)
         self.backend.send(sample)
 
-    def poll(self) -> list:
-        return []  # releases go into the stream by schedule()
+    def poll(self, data_time_s: float) -> list:
+        """The releases with ``τ + L ≤ data_time_s`` (the runner's data time), oldest first,
+        once the calibrator has caught up with ``data_time_s − L``; ``data_time_s = ∞``: the
+        data ended, the calibrator finishes and every release is due."""
+        if data_time_s == math.inf:
+            self.backend.finish()
+        else:
+            self.backend.sync(data_time_s - self.latency_s)
+        ready = self.backend.ready
+        due = []
+        while ready and ready[0][0] + self.latency_s <= data_time_s:
+            due.append(ready.pop(0)[1])
+        self.released += len(due)
+        return due
 
     def shift_time(self, delta_s: float) -> None:
         """The runner confirmed a jump of the input's clock by ``delta_s`` (it re-bases the
-        estimator, its clock and health alike): the schedule's data time, the τ of every
-        pending release and the calibrator's own data clock move with it, so releases keep
-        coming ``L`` after their data. Without it a backward jump held every later release
-        for as long as the jump (the running maximum stayed in the old time base)."""
-        self._now += delta_s
+        estimator, its clock, health and its data time alike): the τ of every pending release
+        and the calibrator's own data clock move with it, so releases keep coming ``L`` after
+        their data. Without it a backward jump held every later release for as long as the
+        jump (the running maximum stayed in the old time base)."""
         self.backend.ready[:] = [(tau + delta_s, rel) for tau, rel in self.backend.ready]
         self.backend.shift_time(delta_s)
-
-    def schedule(self, source: Any):
-        """``source``'s items, each release inserted right after the item that brings the
-        data time to its ``τ + L`` (module docstring)."""
-        ready = self.backend.ready
-        lag = self.latency_s
-        sync = self.backend.sync
-        self._now = now = -math.inf  # the runner's data time (as DataClock, inlined: once per item)
-        for item in source:
-            now = self._now  # moved by shift_time() while the runner handled the last item
-            yield item
-            kind = getattr(item, "KIND", None)
-            if kind is None or kind == "truth" or kind == "calibration_release":
-                continue  # releases, truth: not calibrator data (live, they do not exist)
-            if kind != "imu_batch":
-                t = item.t_s
-            else:  # its last time, unless not finite (then data_time looks further back)
-                t = float(item.t_s[-1]) if len(item) else math.nan
-                if not math.isfinite(t):
-                    t = data_time(item)
-            if t > now:  # False for NaN
-                self._now = now = t
-            sync(now - lag)
-            while ready and ready[0][0] + lag <= now:
-                self.released += 1
-                yield ready.pop(0)[1]
-        self.backend.finish()
-        while ready:
-            self.released += 1
-            yield ready.pop(0)[1]
 
     def close(self) -> None:
         self.backend.close()

@@ -5,12 +5,13 @@ never wait for EM, 2 cores).
 What the runner sees as its ``calibrator``: ``observe(sample)`` forwards the sample to the
 child without blocking (batched; a full queue drops and counts — EM can afford a gap,
 fusion cannot afford a stall); a reader thread takes the child's releases (stamped with
-the data time τ they were computed at) and holds them; ``poll()`` hands over those due by
-the release rule (:mod:`adaptnav.service.calibrator.lagged`): once the data time passed to
-``observe`` reaches ``τ + L``. The runner never waits: a release that comes back later
+the data time τ they were computed at) and holds them; ``poll(data_time_s)`` hands over
+those due by the release rule (:mod:`adaptnav.service.calibrator.lagged`): once the runner's
+data time reaches ``τ + L``. The runner never waits: a release that comes back later
 than ``τ + L`` (EM slower than real time) is applied at the first poll after it arrives.
-That is the one route of a release into the live runner, the child's and a remote
-node's (:class:`adaptnav.service.calibrator.node.RemoteCalibrator`) alike.
+That is the one route of a release into the runner, the child's, a remote node's
+(:class:`adaptnav.service.calibrator.node.RemoteCalibrator`) and replay's
+(:class:`adaptnav.service.calibrator.lagged.LaggedCalibrator`) alike.
 
 :meth:`CalibratorProcess.supervise` (called periodically by the daemon) restarts a dead
 child with exponential backoff, warm-started from the latest accepted params.
@@ -109,7 +110,6 @@ class CalibratorProcess:
         self.params = params0
         self.latency_s = float(getattr(cfg.calibrator, "latency_s", 0.0))
         self._held: deque = deque()   # (τ, release) from the reader thread, oldest first
-        self._clock = DataClock()    # the runner's data time, from observe()
         self.batch_s = batch_s
         self.dropped = 0
         self.restarts = 0
@@ -229,7 +229,6 @@ class CalibratorProcess:
     # -- runner interface -----------------------------------------------------------------
     def observe(self, sample: Any) -> None:
         """Forward ``sample`` to the child (batched, never blocking)."""
-        self._clock.advance(sample)  # the runner's data time: when held releases are due
         if self._in_q is None:
             self.dropped += 1
             return
@@ -258,23 +257,23 @@ class CalibratorProcess:
         self._batch = []
 
     def shift_time(self, delta_s: float) -> None:
-        """The runner confirmed a jump of the input's clock by ``delta_s``: the data time
-        of the release rule, the τ of the held releases and the child's own data clock move
-        with it (the child's with its next batch), so a release after a backward jump comes
-        ``L`` after its data, not once the data has caught up with the old time base."""
+        """The runner confirmed a jump of the input's clock by ``delta_s`` (its data time
+        moves with it): the τ of the held releases and the child's own data clock move too
+        (the child's with its next batch), so a release after a backward jump comes ``L``
+        after its data, not once the data has caught up with the old time base."""
         with self._held_lock:
-            self._clock.tau += delta_s
             self._held = deque((tau + delta_s, rel) for tau, rel in self._held)
             self._shift_to_send_s += delta_s
 
-    def poll(self) -> list:
+    def poll(self, data_time_s: float) -> list:
+        """The held releases with ``τ + L ≤ data_time_s`` (the runner's data time), oldest first."""
         # the runner polls after every sample: flushing here unconditionally sent
         # one-sample batches (thousands of queue items per second at the demo's pace,
         # the queue filled and samples were dropped); only a batch older than batch_s goes
         if self._batch and time.monotonic() - self._batch_t0 >= self.batch_s:
             self.flush()
         held, due = self._held, []
-        limit = self._clock.tau - self.latency_s
+        limit = data_time_s - self.latency_s
         while held and held[0][0] <= limit:  # the release rule (module docstring)
             due.append(held.popleft()[1])
         return due

@@ -101,7 +101,8 @@ class RemoteCalibrator:
     def observe(self, sample: Any) -> None:
         """Nothing to send: the node subscribes to the sensor topics."""
 
-    def poll(self) -> list:
+    def poll(self, data_time_s: float) -> list:
+        """Every release received so far (the node stamps no data time to hold them by)."""
         held, out = self._held, []
         while held:
             out.append(held.popleft())

@@ -2,8 +2,7 @@
 with these members fits; nothing inherits from them).
 
 - :class:`Estimator` — :class:`adaptnav.fusion.eskf.Estimator`;
-- :class:`Calibrator` — :class:`~adaptnav.calibration.online.OnlineCalibrator`,
-  :class:`~adaptnav.service.calibrator.lagged.LaggedCalibrator`,
+- :class:`Calibrator` — :class:`~adaptnav.service.calibrator.lagged.LaggedCalibrator`,
   :class:`~adaptnav.service.calibrator.live.CalibratorProcess`,
   :class:`~adaptnav.service.calibrator.node.RemoteCalibrator`;
 - :class:`Sink` — the output side (:class:`adaptnav.service.runtime.sinks.Sink` is the base
@@ -38,11 +37,14 @@ class Estimator(Protocol):
 
 @runtime_checkable
 class Calibrator(Protocol):
-    """Takes samples, returns releases (``calibration_release``) when they are due."""
+    """Takes samples, returns releases (``calibration_release``) when they are due: the one
+    route of a release back to the runner, live and in replay."""
 
     def observe(self, sample: Any) -> None: ...
 
-    def poll(self) -> list: ...
+    def poll(self, data_time_s: float) -> list:
+        """Releases due by the runner's data time ``data_time_s`` (s; ∞ when the data ended)."""
+        ...
 
 
 @runtime_checkable

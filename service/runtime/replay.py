@@ -249,7 +249,6 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         from adaptnav.service.compose import make_lagged_calibrator
 
         calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
-        items = calibrator.schedule(items)
     health = Health(silent_after_s=cfg.health.sensor_timeout_s)
     truth = inp.has_truth
     recorder = SeriesRecorder(initial_params=params0)

@@ -3,10 +3,12 @@
 
 Live: a Zenoh/MAVLink queue source, :class:`~service.clock.LiveClock`, Zenoh and MAVLink
 sinks. Replay: a log or simulator source, :class:`~service.clock.LogClock` (or
-:class:`~service.clock.RealtimeClock`), file sinks. Both hand the runner the calibrator
-of :mod:`adaptnav.service.calibrator.lagged` (a child process): a release computed at data time τ
-comes back from ``calibrator.poll()`` once the runner's data time reaches τ + latency
-(replay waits for the child, so its output does not depend on wall-clock timing).
+:class:`~service.clock.RealtimeClock`), file sinks. A calibrator release has one route
+back, live and in replay: ``calibrator.poll(data_time_s)`` after every item, which returns
+the releases computed at a data time τ with τ + latency ≤ the runner's data time (the
+daemon's child :mod:`adaptnav.service.calibrator.live` and remote node
+:mod:`adaptnav.service.calibrator.node`, replay's :mod:`adaptnav.service.calibrator.lagged`,
+which waits for its calibrator so that the output does not depend on wall-clock timing).
 Nothing else differs.
 
 Per item, in the source's deterministic order (``adaptnav.fusion.samples.replay_order_key``):
@@ -21,11 +23,14 @@ Per item, in the source's deterministic order (``adaptnav.fusion.samples.replay_
    first epoch of every second goes to ``calibrator.observe`` (its surge-noise evidence,
    :mod:`adaptnav.calibration.inertial`) and to the sinks' ``on_inertial`` (the daemon publishes it
    for a remote calibrator);
-2. a calibrator ``Release`` is applied when accepted (``estimator.set_motion_params``)
-   and goes to every sink either way;
-3. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
-   ``on_aid``, then, with a calibrator, ``calibrator.observe(sample)`` and
-   ``calibrator.poll()`` whose releases are handled as in 2.
+2. a sample goes to ``estimator.process`` (truth excepted), its aid statuses to the sinks'
+   ``on_aid``, then, with a calibrator, to ``calibrator.observe(sample)`` (unless the sensor
+   table says the calibrator has no use for its kind);
+3. with a calibrator, after every item but truth: the runner's data time (the latest time
+   of the items it admitted) goes to ``calibrator.poll(data_time_s)``; each release it
+   returns is applied when accepted (``estimator.set_motion_params``) and goes to every
+   sink either way. When the data end (not on a stop), ``poll(inf)``: every release
+   computed from them.
 
 A bad sample never stops the loop: the estimator rejects and counts it; an exception
 raised while handling one item is logged, counted in health (``error:<kind>``) and the
@@ -48,7 +53,6 @@ from adaptnav.fusion.samples import ImuBatch, kinds
 # what the calibrator has no use for is not sent to it (the sensor table says which)
 _CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
-from adaptnav.calibration.online import Release
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
 
@@ -94,7 +98,6 @@ class RunSummary:
         }
 
 
-_RELEASE_KIND = Release.KIND
 
 
 def _stop_requested(stop: Any) -> bool:
@@ -138,6 +141,7 @@ class _Loop:
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
+        self.data_t = -math.inf  # the release rule's data time: latest time of an admitted item
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -237,6 +241,7 @@ class _Loop:
         self.next_k = None
         self.last_emitted_t = -math.inf
         self._next_inertial_t = -math.inf
+        self.data_t += jump_s
 
     # -- items ------------------------------------------------------------------------------
     def aid(self, statuses) -> None:
@@ -310,14 +315,16 @@ class _Loop:
         cal = self.calibrator
         if cal is not None and sample.KIND not in _CALIBRATOR_UNUSED:
             cal.observe(sample)
-            for rel in cal.poll():
-                self.release(rel)
+
+    def releases_due(self, data_t_s: float) -> None:
+        """The runner's data time reached ``data_t_s``: the calibrator's releases due by it."""
+        if data_t_s > self.data_t:  # False for NaN
+            self.data_t = data_t_s
+        for rel in self.calibrator.poll(self.data_t):
+            self.release(rel)
 
     def item(self, item: Any) -> None:
         kind = getattr(item, "KIND", None)
-        if kind == _RELEASE_KIND:  # replay's lagged calibrator puts its releases into the stream
-            self.release(item)
-            return
         is_batch = kind == "imu_batch" and isinstance(item, ImuBatch)
         if is_batch and len(item) == 0:
             return
@@ -326,19 +333,20 @@ class _Loop:
             if item is None:
                 return
         t_s = float(item.t_s[0]) if is_batch else float(item.t_s)
+        t_last = float(item.t_s[-1]) if is_batch else t_s
         if math.isfinite(t_s):
             self.clock.wait_until(t_s)
-        if is_batch:
-            self.imu_batch(item)
-            cal = self.calibrator
-            if cal is not None:
-                cal.observe(item)
-                for rel in cal.poll():
-                    self.release(rel)
-            t_last = float(item.t_s[-1])
-        else:
-            self.sample(item)
-            t_last = t_s
+        cal = self.calibrator
+        try:
+            if is_batch:
+                self.imu_batch(item)
+                if cal is not None:
+                    cal.observe(item)
+            else:
+                self.sample(item)
+        finally:  # the one route of a release back (module docstring), after a failed item too
+            if cal is not None and kind != "truth":
+                self.releases_due(t_last)
         s = self.summary
         if math.isfinite(t_last):
             if not (s.first_t_s <= t_s):
@@ -391,8 +399,8 @@ def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], cloc
     sinks : sequence of :class:`adaptnav.service.runtime.sinks.Sink`
     clock : :class:`adaptnav.service.runtime.clock.Clock`
     calibrator : :class:`adaptnav.service.runtime.protocols.Calibrator`, optional
-        ``observe(sample)`` then ``poll() -> [Release]`` (in-process, the live child, the
-        remote node); replay's lagged calibrator puts its releases into ``source`` instead.
+        ``observe(sample)``, and ``poll(data_time_s) -> [Release]`` after every item (the live
+        child, the remote node, replay's lagged calibrator alike).
     output_rate_hz : float
         Nav-state output rate in data time (Hz).
     stop : threading.Event or callable, optional
@@ -449,6 +457,8 @@ def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], cloc
             if health is not None and qsize is not None:
                 health.queue_depth = int(qsize())
         else:
+            if calibrator is not None and not _stop_requested(stop):
+                loop.releases_due(math.inf)  # the data ended: every release computed from them
             # the last epochs up to the end of the data, then the final state itself
             if loop.next_k is not None and math.isfinite(loop.summary.last_t_s):
                 loop.flush_epochs_before(loop.summary.last_t_s + 1e-9)

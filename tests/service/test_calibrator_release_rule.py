@@ -1,5 +1,5 @@
 """The calibrator release rule live (adaptnav.service.calibrator.live.CalibratorProcess): a
-release computed at data time τ reaches the runner (``poll()``) only once the runner's
+release computed at data time τ reaches the runner (``poll(data_time_s)``) only once the runner's
 data time has reached τ + calibrator.latency_s — real spawn child, real calibrator.
 
 Deterministic at any machine load: the test never paces the child. Where the reference
@@ -69,7 +69,7 @@ def test_live_releases_are_held_until_the_data_time_reaches_tau_plus_the_latency
         for i, it in enumerate(items):
             proc.observe(it)
             prev, now = now, max(now, _t_last(it))
-            got += [(now, prev, r) for r in proc.poll()]
+            got += [(now, prev, r) for r in proc.poll(now)]
             while k < len(at_item) and at_item[k] == i:  # the child releases here too
                 proc.flush()
                 k += 1

@@ -39,7 +39,6 @@ def _run(inp, cfg, calibrate):
     cal = None
     if calibrate:
         cal = make_lagged_calibrator(cfg, cfg.motion.params0, "inline")
-        items = cal.schedule(items)
     try:
         run(items, est, [rec, odo], LogClock(), cal, output_rate_hz=2.0)
     finally:

@@ -272,11 +272,10 @@ def test_a_release_is_applied_at_the_data_time_it_was_computed_at_plus_the_laten
     lagged = LaggedCalibrator(InlineBackend(make_calibrator(cfg, cfg.motion.params0, cfg.calibrator.seed)), lag)
     # THEN each release comes right after the item that brings the data time to τ + L
     k, now, before = 0, -math.inf, -math.inf
-    for it in lagged.schedule(iter(items)):
-        if getattr(it, "KIND", None) == "calibration_release":
+    for it in items:
+        lagged.observe(it)                     # what the runner does with an item ...
+        before, now = now, max(now, t_last(it))
+        for _ in lagged.poll(now):             # ... and then, with its data time
             assert before < tau[k] + lag <= now, (k, tau[k], before, now)
             k += 1
-            continue
-        lagged.observe(it)                     # what the runner does after handling an item
-        before, now = now, max(now, t_last(it))
     assert k == len(tau)

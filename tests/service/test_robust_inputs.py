@@ -20,6 +20,8 @@ from adaptnav.service.runtime.sinks import Sink
 from adaptnav.service.runtime.sources import simulate
 from adaptnav.sim.scenario import load_scenario
 
+from .scripted_releases import ReleasesAt
+
 INJECT_AFTER_S = 30.0
 
 
@@ -183,16 +185,8 @@ def test_a_release_outside_the_calibrators_bounds_is_refused_counted_and_not_per
         def on_release(self, rel):
             seen.append(rel)
 
-    def stream():
-        sent = False
-        for item in result.iter_blocks():
-            if not sent and isinstance(item, ImuBatch) and item.t_s[0] > 20.0:
-                sent = True
-                yield hostile
-            yield item
-
     health = Health()
-    summary = run(stream(), est, [Releases()], LogClock(), health=health)
+    summary = run(result.iter_blocks(), est, [Releases()], LogClock(), ReleasesAt((20.0, hostile)), health=health)
     assert est.motion_params == p0
     assert summary.releases_refused == 1 and summary.releases_accepted == 0
     assert health.rejected_by_reason() == {"release_refused:var_vv": 1}

@@ -21,6 +21,8 @@ from adaptnav.service.runtime.sinks import ParamsCsvSink, Sink, TrajectoryCsvSin
 from adaptnav.service.runtime.sources import simulate
 from adaptnav.sim.scenario import load_scenario
 
+from .scripted_releases import ReleasesAt
+
 DURATION_S = 60.0
 
 
@@ -76,20 +78,11 @@ def test_releases_are_applied_when_accepted_and_all_recorded(sim60, tmp_path):
 
     good = Release(20.0, replace(p0, k_v=0.8), -10.0, True, "ok", 3)
     bad = Release(40.0, replace(p0, k_v=1.4), -99.0, False, "log-likelihood worse", 3)
-
-    def stream():
-        for item in result.iter_blocks():
-            t0 = float(item.t_s[0]) if isinstance(item, ImuBatch) else item.t_s
-            if good is not None and t0 >= good.t_s and not hasattr(stream, "g"):
-                stream.g = True
-                yield good
-            if t0 >= bad.t_s and not hasattr(stream, "b"):
-                stream.b = True
-                yield bad
-            yield item
+    calibrator = ReleasesAt((good.t_s, good), (bad.t_s, bad))
 
     health = Health()
-    summary = run(stream(), est, [ParamsCsvSink(tmp_path / "params.csv", p0)], LogClock(), health=health)
+    summary = run(result.iter_blocks(), est, [ParamsCsvSink(tmp_path / "params.csv", p0)], LogClock(), calibrator,
+                  health=health)
     assert est.motion_params.k_v == 0.8          # the accepted one, not the rejected one
     assert summary.releases == 2 and summary.releases_accepted == 1
     rows = _read_csv(tmp_path / "params.csv")
