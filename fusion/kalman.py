@@ -32,7 +32,7 @@ from adaptnav.kernels import jit
 
 from .state import (ACC_EARTH_RATE, ACC_G_OVER_R, ACC_R, ACC_RF, ACC_SIZE, ACC_STEP, ACC_T, ATT, BA, BG, N_ERR,
                     N_NOM, POS, VEL, X_BA, X_POS, X_Q, X_VEL)
-from .strapdown import strapdown_step
+from .strapdown import rotvec_quat, strapdown_step
 
 # first indices of the state and accumulator blocks (adaptnav.fusion.state), as plain ints:
 # numba takes module-level ints as compile-time constants, so ``x[_X_VEL + 1]`` costs what
@@ -195,14 +195,7 @@ def inject_error(x, dx, P):
         x[_X_POS + i] += dx[_E_POS + i]
         x[_X_VEL + i] += dx[_E_VEL + i]
     rx, ry, rz = dx[_E_ATT], dx[_E_ATT + 1], dx[_E_ATT + 2]
-    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
-    if ang < 1e-6:
-        k = 0.5 - ang * ang / 48.0
-        c = 1.0 - ang * ang / 8.0
-    else:
-        k = np.sin(0.5 * ang) / ang
-        c = np.cos(0.5 * ang)
-    d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
+    d0, d1, d2, d3 = rotvec_quat(rx, ry, rz)
     q0, q1, q2, q3 = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
     # q ← q(δθ) ⊗ q (global perturbation)
     n0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
@@ -226,6 +219,20 @@ def inject_error(x, dx, P):
     G[th + 2, th] = -0.5 * ry
     G[th + 2, th + 1] = 0.5 * rx
     P[:, :] = G @ P @ G.T
+
+
+@jit(cache=True)
+def _times_small(A, B):
+    """``A @ B`` for A (n×m), B (m×m) with m ≤ 3, as explicit loops (no BLAS call)."""
+    n, m = A.shape[0], B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for b in range(m):
+            acc = 0.0
+            for a in range(B.shape[0]):
+                acc += A[i, a] * B[a, b]
+            out[i, b] = acc
+    return out
 
 
 @jit(cache=True)
@@ -268,20 +275,8 @@ def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
         dx_out[i] = 0.0
     if not (nis <= gate):
         return nis, False
-    K = np.zeros((n, m))
-    for i in range(n):
-        for b in range(m):
-            acc = 0.0
-            for a in range(m):
-                acc += PHt[i, a] * Sinv[a, b]
-            K[i, b] = acc
-    KS = np.zeros((n, m))
-    for i in range(n):
-        for b in range(m):
-            acc = 0.0
-            for a in range(m):
-                acc += K[i, a] * S[a, b]
-            KS[i, b] = acc
+    K = _times_small(PHt, Sinv)
+    KS = _times_small(K, S)
     for i in range(n):
         acc = 0.0
         for a in range(m):

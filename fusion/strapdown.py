@@ -105,6 +105,20 @@ def _dcm(q0, q1, q2, q3, R):
 
 
 @jit(cache=True)
+def rotvec_quat(rx, ry, rz):
+    """Quaternion (w, x, y, z) of the rotation vector ``(rx, ry, rz)`` (rad), exact; the
+    series of sin(θ/2)/θ and cos(θ/2) below 1e-6 rad."""
+    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
+    if ang < 1e-6:
+        k = 0.5 - ang * ang / 48.0
+        c = 1.0 - ang * ang / 8.0
+    else:
+        k = np.sin(0.5 * ang) / ang
+        c = np.cos(0.5 * ang)
+    return c, k * rx, k * ry, k * rz
+
+
+@jit(cache=True)
 def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     """Advance the nominal state ``x`` by one IMU sample held over ``dt`` seconds."""
     wx = w_b[0] - x[_X_BG]
@@ -115,16 +129,8 @@ def strapdown_step(x, f_b, w_b, dt, acc, R0, R1):
     fz = f_b[2] - x[_X_BA + 2]
     q0, q1, q2, q3 = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
     _dcm(q0, q1, q2, q3, R0)
-    # q ← q ⊗ q(ω̂ δt), exact rotation-vector quaternion
-    rx, ry, rz = wx * dt, wy * dt, wz * dt
-    ang = np.sqrt(rx * rx + ry * ry + rz * rz)
-    if ang < 1e-6:
-        k = 0.5 - ang * ang / 48.0
-        c = 1.0 - ang * ang / 8.0
-    else:
-        k = np.sin(0.5 * ang) / ang
-        c = np.cos(0.5 * ang)
-    d0, d1, d2, d3 = c, k * rx, k * ry, k * rz
+    # q ← q ⊗ q(ω̂ δt)
+    d0, d1, d2, d3 = rotvec_quat(wx * dt, wy * dt, wz * dt)
     n0 = q0 * d0 - q1 * d1 - q2 * d2 - q3 * d3
     n1 = q0 * d1 + q1 * d0 + q2 * d3 - q3 * d2
     n2 = q0 * d2 - q1 * d3 + q2 * d0 + q3 * d1
