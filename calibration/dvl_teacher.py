@@ -35,7 +35,11 @@ each row weighted by the forgetting ``λ_k``:
 - surge variances: the Newton-CG log-variance fit of ``(V̂ − k_V v)²`` on ``(v², w², 1)``
   with the identifiability test (columns the controls do not separate are held) and the
   prior of the M-step;
-- sway ``σ_S² = Σλ Ŝ² / Σλ``;
+- sway: ``Ŝ = s₀ V̂ + β v w + e`` (weighted least squares, held when the turns do not inform
+  β): the skid of a turning vehicle β and the crab on the straight s₀ the DVL reports (its
+  head's yaw misalignment; the model agrees with its teacher, so the filter's current does
+  not take the difference along each leg), then ``σ_S² = Σλ (Ŝ − s₀ V̂ − β v w)² / Σλ``
+  (without them the skid in the turns made σ_S several times the vehicle's sway noise);
 - flow angle ``heave_per_surge = tan α = Σλ V̂ Ĥ / Σλ V̂²`` (body heave per unit of the
   *measured* surge: a heavy or trimmed vehicle flies nose-up by α to hold depth), what the
   filter's flow-angle row ``v_b,z − tan α · v_b,x = 0`` uses (it carries no speed);
@@ -128,14 +132,16 @@ def rows_log_likelihood(params: MotionParams, v, w, V, S, lam) -> float:
     """Gaussian log-likelihood of the surge and sway rows (window-step variances)."""
     s_v = _surge_design(v, w) @ np.array([params.var_vv, params.var_vw, params.var_v1])
     r = V - velocity_means(params, v, w)[0]
+    r_s = S - params.sway_per_surge * V - params.sway_per_turn * v * w
     return -0.5 * float(np.sum(lam * (np.log(2 * math.pi * s_v) + r * r / s_v
-                                      + np.log(2 * math.pi * params.var_s) + S * S / params.var_s)))
+                                      + np.log(2 * math.pi * params.var_s) + r_s * r_s / params.var_s)))
 
 
 def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MStepOptions(),
           prior_params: MotionParams | None = None, heading_rate_rad_s=None,
           min_heave_speed_m_s: float = 0.3, fit_turn_loss: bool = True,
-          max_turn_loss_sigma_s2: float = 1.0) -> TeacherResult:
+          max_turn_loss_sigma_s2: float = 1.0, max_sway_per_turn_sigma_s: float = 0.05,
+          max_sway_per_surge_sigma: float = 0.01) -> TeacherResult:
     """The DVL M-step of the module docstring.
 
     Parameters
@@ -146,9 +152,11 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
     options : the M-step options (identifiability, prior, fit flags, k_V information)
     prior_params : centre of the log-variance prior (window step); default ``params``
     heading_rate_rad_s : (T,) observed yaw rates from headings (NaN where unknown), for b_W
-    fit_turn_loss : fit the turn speed loss κ with k_V when the window's turns inform it
-        (standard error ≤ ``max_turn_loss_sigma_s2``, s²/rad²: 1 s² is 1 % of the speed at
-        0.1 rad/s); otherwise κ is held and k_V fitted with it
+    fit_turn_loss : fit the turn terms when the window's turns inform them: the speed loss κ
+        with k_V (standard error ≤ ``max_turn_loss_sigma_s2``, s²/rad²: 1 s² is 1 % of the
+        speed at 0.1 rad/s) and the skid β with the crab s₀ (≤ ``max_sway_per_turn_sigma_s``,
+        s: 0.05 s is 7.5 mm/s at 1.5 m/s and 0.1 rad/s; ≤ ``max_sway_per_surge_sigma``);
+        otherwise they are held and the rest fitted with them
     """
     v, w, V, S, H, lam = (np.asarray(a, dtype=float) for a in (v, w, V, S, H, lam))
     ok = np.isfinite(V) & np.isfinite(S) & np.isfinite(H)
@@ -201,7 +209,22 @@ def teach(params: MotionParams, v, w, V, S, H, lam, options: MStepOptions = MSte
             notes.append(f"held {name} ({reason})")
     # sway and flow angle
     if options.fit_var_s:
-        new = replace(new, var_s=float(max(np.sum(lam * S * S) / np.sum(lam), options.var_floor)))
+        beta, s0 = params.sway_per_turn, params.sway_per_surge
+        if fit_turn_loss:
+            x = v * w
+            X = np.column_stack([V, x]) * np.sqrt(lam)[:, None]
+            var_s_now = float(np.sum(lam * (S - s0 * V - beta * x) ** 2) / np.sum(lam))
+            sig = least_squares_sigmas(X) * math.sqrt(var_s_now)
+            coef = np.linalg.lstsq(X, np.sqrt(lam) * S, rcond=None)[0]
+            if sig[1] <= max_sway_per_turn_sigma_s and sig[0] <= max_sway_per_surge_sigma:
+                s0, beta = float(coef[0]), float(coef[1])
+                new = replace(new, sway_per_turn=beta, sway_per_surge=s0)
+                teachers["sway_per_turn"] = teachers["sway_per_surge"] = "DVL"
+            else:
+                notes.append(f"held sway_per_turn, sway_per_surge (the window's turns do not inform β: σ {sig[1]:.3g} s > "
+                             f"{max_sway_per_turn_sigma_s})")
+        r_s = S - s0 * V - beta * v * w
+        new = replace(new, var_s=float(max(np.sum(lam * r_s * r_s) / np.sum(lam), options.var_floor)))
         teachers["var_s"] = "DVL"
     moving = (v >= min_heave_speed_m_s) & (V >= min_heave_speed_m_s)
     if np.sum(lam[moving]) > 0:

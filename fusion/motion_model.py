@@ -17,7 +17,14 @@ turn slows down — the sway it takes on and the yaw rate add drag through the c
 Craft Hydrodynamics and Motion Control"; Prestero 2001 for the REMUS-100 coefficients; the
 simulator's :class:`adaptnav.sim.vehicle.Fossen3Dof` has them),
 so a single speed scale learned over straight legs *and* turns is too slow on the legs and
-too fast in the turns. ``κ = 0`` is the seed's model.
+too fast in the turns. ``κ = 0`` is the seed's model. Likewise a turning vehicle skids: its
+sway has the mean ``β v w`` (``sway_per_turn``; the REMUS-100 of the simulator: β ≈ −0.25 s,
+0.04 m/s at 1.5 m/s and 0.1 rad/s, 93 % of its sway), not 0 — the filter's sway row and the
+DVL teacher use it, with ``s₀ V`` (``sway_per_surge``), the crab on the straight the DVL it
+was taught by reports (a DVL head misaligned by 0.4° reads a sway of 0.7 % of the surge): a
+model that agrees with its teacher leaves the filter's current estimate alone, while a
+disagreement fixed in the body would be put into the current along each leg and carried,
+wrong, through a DVL outage. The sampling and transition density here keep ``S ~ N(0, σ_S²)``.
 
 Pose update with constant body velocity (V, S) and yaw rate W over δt — exact
 integration (the seed's printed arc update is garbled; this is the errata's form plus
@@ -71,7 +78,11 @@ class MotionParams:
     unit surge while holding depth, ``tan α`` of the angle of attack (a heavy or trimmed
     vehicle flies nose-up; learned from the DVL, calibration/dvl_teacher.py);
     ``turn_speed_loss`` κ (s²/rad², ≥ 0): the surge's mean is ``k_V v (1 − κ w²)``, the speed
-    a turn at yaw rate ``w`` costs (learned from the DVL; 0 = none).
+    a turn at yaw rate ``w`` costs (learned from the DVL; 0 = none); ``sway_per_turn`` β (s):
+    the sway's mean is ``β v w``, the sideslip of a turning vehicle (learned from the DVL;
+    used by the filter's learned-velocity aid; 0 = none, the seed's ``S ~ N(0, σ_S²)``);
+    ``sway_per_surge`` s₀ (–): a mean sway ``s₀ V`` on the straight, the crab the DVL that
+    teaches the model sees (its head's yaw misalignment, tan 0.4° = 0.007, or a fin trim).
 
     The seed's results name σ_Dd ≡ σ_Vv and σ_Tr ≡ σ_Ww (:attr:`sigma_dd`,
     :attr:`sigma_tr`).
@@ -88,6 +99,8 @@ class MotionParams:
     b_w: float = 0.0
     heave_per_surge: float = 0.0
     turn_speed_loss: float = 0.0
+    sway_per_turn: float = 0.0
+    sway_per_surge: float = 0.0
 
     VARIANCE_NAMES = ("var_vv", "var_vw", "var_v1", "var_wv", "var_ww", "var_w1", "var_s")
 

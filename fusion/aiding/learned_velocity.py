@@ -19,7 +19,7 @@ new release arrives (:meth:`adaptnav.fusion.eskf.Estimator.set_motion_params`) t
 Measurement (z, h) — the observation is the model's prediction with the learned scale,
 the state-dependent rest goes into h so H stays exact::
 
-    z = (k_V u (1 − κ w²), k_V u_y, 0),   u = f(rpm), u_y = s_y sign(r_y) f(|r_y|)
+    z = (k_V u (1 − κ w²), k_V u_y + β u w + s₀ k_V u (1 − κ w²), 0),   u = f(rpm), u_y = s_y sign(r_y) f(|r_y|)
     h(x) = (v_b,x − (k_speed − 1) k_V u (1 − κ w²),  v_b,y − (k_speed − 1) k_V u_y,  v_b,z − h_w v_b,x)
     R = diag(σ_V²(u, w), σ_S² + u_y² σ_Vv², σ_heave²)
 
@@ -94,6 +94,9 @@ def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: Moti
     # the model's surge k_V u (1 − κ w²): a turn costs speed (motion_model.MotionParams.turn_speed_loss)
     model = params.k_v * speed_m_s * (1.0 - params.turn_speed_loss * yaw_rate_rad_s**2)
     sway = params.k_v * sway_m_s
+    # a turning vehicle skids, β u w, and the teaching DVL sees a crab s₀ on the straight
+    # (MotionParams.sway_per_turn, sway_per_surge); not scaled by k_speed
+    skid = params.sway_per_turn * speed_m_s * yaw_rate_rad_s + params.sway_per_surge * model
     # σ_V²(v, w) of the motion model (velocity_variances), inlined: this runs at the fusion rate
     var_V = speed_m_s**2 * params.var_vv + yaw_rate_rad_s**2 * params.var_vw + params.var_v1
     R = np.zeros((3, 3))
@@ -101,4 +104,4 @@ def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: Moti
     R[1, 1] = (params.var_s + sway_m_s**2 * params.var_vv) * variance_scale
     R[2, 2] = sigma_heave_m_s**2 * variance_scale
     h_w = params.heave_per_surge
-    return make([model, sway, 0.0], jacobian(x, model, sway, h_w), R, predict(x, model, sway, h_w))
+    return make([model, sway + skid, 0.0], jacobian(x, model, sway, h_w), R, predict(x, model, sway, h_w))

@@ -38,7 +38,9 @@ def test_teacher_learns_the_turn_speed_loss_with_k_v():
     v = np.full(T, 1.5)
     w = np.where(rng.random(T) < 0.2, rng.choice([-0.1, 0.1], T), rng.normal(0.0, 0.01, T))
     V = 0.95 * v * (1.0 - 3.0 * w * w) + 0.01 * rng.standard_normal(T)
-    S = 0.02 * rng.standard_normal(T)
+    # AND that skids in turns: sway −0.25 v w (to port in a starboard turn) + 4 mm/s of noise,
+    # seen by a DVL whose head is misaligned by −0.4° (a crab of −0.7 % of the surge)
+    S = -0.007 * V - 0.25 * v * w + 0.004 * rng.standard_normal(T)
     H = np.zeros(T)
     res = teach(MotionParams(var_vv=1e-4, var_v1=1e-5), v, w, V, S, H, np.ones(T),
                 MStepOptions(prior_tau=math.inf))
@@ -46,6 +48,10 @@ def test_teacher_learns_the_turn_speed_loss_with_k_v():
     assert res.params.k_v == pytest.approx(0.95, abs=0.002)
     assert res.params.turn_speed_loss == pytest.approx(3.0, abs=0.3)
     assert res.teachers["turn_speed_loss"] == "DVL"
+    # AND the skid, with the sway noise left once it is removed (not the skid's spread)
+    assert res.params.sway_per_turn == pytest.approx(-0.25, abs=0.01)
+    assert res.params.sway_per_surge == pytest.approx(-0.007, abs=0.001)
+    assert math.sqrt(res.params.var_s) == pytest.approx(0.004, rel=0.15)
     # AND one scale for legs and turns (the model without the term) is slower than the legs
     flat = teach(MotionParams(var_vv=1e-4, var_v1=1e-5), v, w, V, S, H, np.ones(T),
                  MStepOptions(prior_tau=math.inf), fit_turn_loss=False)
@@ -63,6 +69,7 @@ def test_teacher_holds_the_turn_speed_loss_on_a_straight_line():
                 np.zeros(T), np.ones(T), MStepOptions(prior_tau=math.inf))
     assert res.params.turn_speed_loss == 2.0 and "turn_speed_loss" not in res.teachers
     assert any(n.startswith("held turn_speed_loss") for n in res.notes)
+    assert "sway_per_turn" not in res.teachers and any(n.startswith("held sway_per_turn") for n in res.notes)
     assert res.params.k_v == pytest.approx(0.95, abs=0.002)
 
 

@@ -73,6 +73,8 @@ def test_learned_model_carries_the_outage_and_recovers_within_the_covariance(lea
     # and the speed the physical vehicle loses in turns (its sway–yaw coupling drag; measured
     # 3.9 s²: 4 % at 0.1 rad/s), once a window holds turns (a leg is 5 min, the window 8)
     assert 0.5 < taught[-1].params.turn_speed_loss < 10.0
+    # and its skid in turns, to port in a starboard turn (the simulator's REMUS-100: β ≈ −0.25 s)
+    assert -0.4 < taught[-1].params.sway_per_turn < -0.1
     # once the DVL is out (a period of 60 s after its last step) nothing new is released: the
     # windows hold fewer and older DVL rows, a fit from them is only noisier
     assert not [r for r in learned[2] if r.accepted and 840.0 < r.t_s < 1380.0]
