@@ -19,8 +19,8 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    rigid offset ``δ = e_a − e_b`` — on the *jump-free* tracks
    (:attr:`~adaptnav.sonar.objects.ObjectSighting.smooth_pos_n_m`: a USBL fix or a fused
    closure between two sightings of one leg moved the filter's position by metres, and split
-   sets that were one; the closure's offset then adds back the jumps at its two times) (a translation: the heading aid bounds rotation), wrong ones
-   scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
+   sets that were one; the closure's offset then adds back the jumps at its two times; a translation: the heading
+   aid bounds rotation), wrong ones scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
    keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
    ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
    drift over the batch (``relative_sigma_m_s`` × time from the batch centre, on both legs).
