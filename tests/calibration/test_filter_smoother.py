@@ -216,3 +216,19 @@ def test_window_kernel_reports_the_pose_no_particle_explains():
     rng = np.random.default_rng(3)
     with pytest.raises(FloatingPointError, match="pose 4"):
         run_particle_filter(data.params_initial, data.v, data.w, data.dt, obs, _init_cloud(100, rng), rng, 100)
+
+
+def test_compiled_exp_and_sincos_match_libm():
+    """The branch-free exp of the weights and sin/cos of the moves, against numpy (libm)."""
+    from adaptnav.calibration._kernels import WEIGHT_FLUSH_LOG, _exp_flushed_into, sincos
+
+    rng = np.random.default_rng(4)
+    d = np.concatenate([rng.uniform(-70.0, 0.0, 5000), [0.0, -1e-300, WEIGHT_FLUSH_LOG, -800.0, np.nan]])
+    out = np.empty_like(d)
+    _exp_flushed_into(d, out)
+    ref = np.where(d > WEIGHT_FLUSH_LOG, np.exp(d), 0.0)
+    np.testing.assert_allclose(out, ref, rtol=4.5e-16, atol=0.0)
+    assert np.array_equal(out == 0.0, ~(d > WEIGHT_FLUSH_LOG))
+    for x in np.concatenate([rng.uniform(-4.0, 4.0, 2000), rng.uniform(-1e5, 1e5, 2000), [0.0, np.pi / 2, -np.pi]]):
+        s, c = sincos(x)
+        assert abs(s - math.sin(x)) <= 2.3e-16 and abs(c - math.cos(x)) <= 2.3e-16, x
