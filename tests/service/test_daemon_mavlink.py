@@ -45,7 +45,10 @@ def test_sitl_vehicle_through_daemon_and_back(tmp_path):
         vehicle.start()
         odo = wait_until(lambda: vehicle.received["odometry"] >= 5, timeout_s=60)
         navs = col.get(bus.keys.nav_state)
-        health = bus.get("health")
+        # the daemon's counters, once they report both kinds (the first ODOMETRY may come
+        # before the daemon has counted the first depth sample; no pace assumed between them)
+        health = wait_until(lambda: (h := bus.get("health", 0.5)) and {"imu", "depth"} <= set(h["sensors"]) and h,
+                            60) or bus.get("health")
     finally:
         vehicle.stop()
         vehicle.close()
