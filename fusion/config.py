@@ -102,6 +102,11 @@ class DvlConfig:
     # (7 mm/s), 13 with 0.03 (95 % band 2.7–19); drift since the last fix 0.09 % either way
     sigma_m_s: float = 0.03
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # 1-σ per axis of that lever arm (m): the velocity error ω × δl it leaves in turns is added
+    # to the DVL's covariance (fusion/aiding/dvl.py lever_arm_doubt). The default is an arm
+    # nobody measured (a DVL head within about half a metre of the IMU on a small AUV or ROV);
+    # a surveyed installation: its survey's accuracy (≈ 0.01)
+    lever_arm_sigma_m: float = 0.5
     rotation_bd_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)  # R_bd maps d → b
     # scale factor and yaw misalignment, calibrated from fixes vs the DVL's own track
     # (fusion/aiding/dvl.py DvlCalibration): prior 1-σ; 0 for both: no calibration

@@ -94,6 +94,7 @@ def config_raw_from_scenario(scenario: Any) -> dict:
                       "atmospheric_pressure_pa": sc.environment.atmospheric_pressure_pa},
             # the DVL's σ stays the filter's (fusion/config.py: its long-term errors dominate)
             "dvl": {"water_track_sigma_m_s": sc.dvl.water_track_sigma_m_s, "lever_arm_b_m": list(sc.dvl.lever_arm_b_m),
+                    "lever_arm_sigma_m": 0.0,  # the simulated head is where the scenario says
                     "rotation_bd_rpy_rad": [math.radians(v) for v in sc.dvl.mount_rpy_deg]},
             "gnss": {"max_depth_m": sc.gnss.max_depth_m},
         },

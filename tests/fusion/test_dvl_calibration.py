@@ -57,3 +57,19 @@ def test_the_published_depth_sigma_carries_the_water_density_uncertainty():
     assert unsure.cov[2, 2] - known.cov[2, 2] == pytest.approx((20.0 * 10.0 / 1025.0) ** 2, rel=0.01)
     assert unsure.pos_n_m[2] == pytest.approx(known.pos_n_m[2], abs=1e-12)
     assert math.sqrt(known.cov[2, 2]) < 0.05 < math.sqrt(unsure.cov[2, 2])
+
+
+def test_an_unmeasured_lever_arm_enters_the_dvl_covariance_as_omega_cross_its_error():
+    """lever_arm_doubt against the velocity errors ω × δl of drawn lever-arm errors, seen in
+    the head's frame (R_db): zero without rotation, the sway of a turn when turning."""
+    from adaptnav.fusion.aiding.dvl import lever_arm_doubt, rotation_db
+
+    rng = np.random.default_rng(3)
+    R_db = rotation_db((0.02, -0.01, 0.3))
+    omega = np.array([0.01, -0.02, 0.1])  # rad/s: a turn with some roll and pitch rate
+    dl = 0.5 * rng.standard_normal((200_000, 3))
+    dv_d = np.cross(omega, dl) @ R_db.T
+    empirical = np.cov(dv_d.T)
+    C = lever_arm_doubt(omega, 0.5, R_db)
+    assert np.allclose(C, empirical, atol=0.01 * np.max(np.abs(C)))
+    assert np.allclose(lever_arm_doubt(np.zeros(3), 0.5, R_db), 0.0)

@@ -76,6 +76,9 @@ class AuvLog:
     lon_deg: float = 10.5
     autopilot_raw_imu: bool = True       # the autopilot's own RAW_IMU at 4 Hz in the log too
     system_time_unix: bool = False       # the autopilot's SYSTEM_TIME carries UNIX time
+    ahrs: AhrsErrors = AhrsErrors()      # the autopilot's attitude errors
+    sim_overrides: tuple[str, ...] = ()  # scenario overrides after the class's (error bisection)
+    dvl_latency_s: float = 0.05          # the DVL driver sends this long after the ping
 
 
 def _boot_s(t_sim: np.ndarray | float) -> np.ndarray | float:
@@ -97,7 +100,7 @@ def _scenario(v: AuvLog, rng: np.random.Generator):
         "gnss.fix_times_s=[]", "depth.rate_hz=5.0", "truth.rate_hz=10.0",
         "dvl.enabled=true", "dvl.rate_hz=1.0", "dvl.start_s=0.37", f"dvl.scale_factor_error={scale}",
         f"dvl.misalignment_rpy_deg=[{mis[0]}, {mis[1]}, {mis[2]}]", "dvl.outlier_prob=0.005",
-        "dvl.dropout_prob=0.02",
+        "dvl.dropout_prob=0.02", *v.sim_overrides,
     ])
 
 
@@ -173,7 +176,7 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     # the autopilot's attitude (consumer AHRS) at 10 Hz; the DVL driver differences it too
     t_att = np.arange(t0, t1, 0.1)
     i_att = np.minimum(np.round(t_att * sc.imu.rate_hz).astype(int), len(d.t_s) - 1)
-    att = ahrs_attitude(t_att, d.euler_rad[i_att], AhrsErrors(), rng_att)
+    att = ahrs_attitude(t_att, d.euler_rad[i_att], v.ahrs, rng_att)
     rates = w_b[np.maximum(i_att - 1, 0)]
     for t, e, r in zip(t_att, att, rates):
         w.emit(float(t), AP_SRC, "attitude_encode", int(_boot_s(t) * 1000), *map(float, e), *map(float, r))
@@ -202,7 +205,7 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
         fom = 0.004 + 0.5 * max(0.0, float(np.linalg.norm(v_d) - v.speed_m_s) - 0.05)
         conf = 100.0 * (1.0 - min(0.4, fom) / 0.4)
         dang = [0.0, 0.0, 0.0] if last_att is None else list(map(float, cur_att - last_att))
-        w.emit(t + 0.05, DVL_SRC, "vision_position_delta_encode", 0, int(round(dt * 1e6)), dang,
+        w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_position_delta_encode", 0, int(round(dt * 1e6)), dang,
                list(map(float, v_d * dt)), conf)
         last_att = cur_att
 

@@ -14,6 +14,15 @@ Measure::
 
     python -m tests.service.test_auv_navgrade OUT_DIR           # the three variants of the test
     python -m tests.service.test_auv_navgrade OUT_DIR --sweep   # seeds 1-8 × straight/lawnmower
+    python -m tests.service.test_auv_navgrade OUT_DIR --bisect 3 lawnmower  # heading error per source
+
+The bisection (each of the generator's error sources alone, and each removed) on the 6-min
+missions: the heading is a gyrocompass's, σ_yaw ≈ 0.12° after 6 min (the filter's own, and its
+error stays within it); on straight legs the east gyro bias (ε_E/(Ω cos L): 0.02–0.03° each for
+turn-on and instability) and the not-yet-converged loop (0.05–0.07° with error-free sensors);
+in turns the DVL lever arm nobody configured (0.5 m ahead: lawnmower 0.2–0.3° before the
+filter considered it, fusion/aiding/dvl.py lever_arm_doubt) and the DVL's own misalignment,
+beam biases and scale (lawnmower3: 0.14, 0.08, 0.06°), which no state of the filter holds.
 
 On the sweep (6-min missions, heading 30°·seed) the replay beats the dead reckoning in both end
 and RMS error on 13 of 16. The three others cannot be won by any estimator on this log: the
@@ -74,7 +83,8 @@ def run_variant(v: AuvLog, out_dir: Path) -> dict:
             "ours_end_m": float(ours[-1]), "ours_rms_m": float(np.sqrt(np.mean(ours**2))),
             "dr_end_m": float(dr[-1]), "dr_rms_m": float(np.sqrt(np.mean(dr**2))),
             "shared_end_m": float(shared[-1]), "shared_rms_m": float(np.sqrt(np.mean(shared**2))),
-            "ours_yaw_err_end_deg": float(np.mean(np.abs(yaw_err[-300:])))}
+            "ours_yaw_err_end_deg": float(np.mean(np.abs(yaw_err[-300:]))),
+            "ours_yaw_bias_end_deg": float(np.mean(yaw_err[-300:]))}
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +125,65 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
     assert mean["ours_end_m"] < mean["dr_end_m"] and mean["ours_rms_m"] < mean["dr_rms_m"], mean
 
 
+# the generator's error sources, each alone (on a log otherwise error-free but for the IMU's
+# white noise, which auto needs to recognise the grade) and each removed from the full set
+_PERFECT_DVL = ("dvl.scale_factor_error=0.0", "dvl.misalignment_rpy_deg=[0.0, 0.0, 0.0]",
+                "dvl.beam_bias_m_s=[0.0, 0.0, 0.0, 0.0]", "dvl.outlier_prob=0.0", "dvl.dropout_prob=0.0",
+                "dvl.lever_arm_b_m=[0.0, 0.0, 0.0]")
+_SOURCES = {
+    "gyro turn-on bias": ("imu", ("gyro", "turn_on_sigma")),
+    "gyro instability": ("imu", ("gyro", "instability_sigma")),
+    "gyro rate random walk": ("imu", ("gyro", "random_walk_density")),
+    "accel turn-on bias": ("imu", ("accel", "turn_on_sigma")),
+    "accel instability": ("imu", ("accel", "instability_sigma")),
+    "accel random walk": ("imu", ("accel", "random_walk_density")),
+    "DVL scale factor": ("dvl", ("dvl.scale_factor_error=0.0",)),
+    "DVL misalignment": ("dvl", ("dvl.misalignment_rpy_deg=[0.0, 0.0, 0.0]",)),
+    "DVL beam biases": ("dvl", ("dvl.beam_bias_m_s=[0.0, 0.0, 0.0, 0.0]",)),
+    "DVL outliers, drop-outs": ("dvl", ("dvl.outlier_prob=0.0", "dvl.dropout_prob=0.0")),
+    "DVL lever arm": ("dvl", ("dvl.lever_arm_b_m=[0.0, 0.0, 0.0]",)),
+    "AHRS (heading seed)": ("ahrs", None),
+}
+
+
+def bisect(out_dir: str, seed: int, pattern: str) -> None:
+    """Heading error at the end (mean of the last 30 s, signed) with each error source of the
+    generator alone and each removed: which source the heading bias comes from."""
+    from dataclasses import replace
+    from unittest import mock
+
+    from adaptnav.sim.imu import IMU_GRADES
+    from adaptnav.sim.navgrade import AhrsErrors
+
+    nav = IMU_GRADES["navigation"]
+    no_ahrs = AhrsErrors(0.0, 0.0, 0.0, 0.0, 0.0, 300.0, 0.0)
+    white_only = {"gyro": replace(nav.gyro, turn_on_sigma=0.0, instability_sigma=0.0, random_walk_density=0.0),
+                  "accel": replace(nav.accel, turn_on_sigma=0.0, instability_sigma=0.0, random_walk_density=0.0)}
+
+    def run(label: str, imu: dict, dvl: tuple[str, ...], ahrs) -> None:
+        v = AuvLog(f"{pattern}{seed}", seed=seed, pattern=pattern, heading_deg=30.0 * seed, leg_length_m=200.0,
+                   duration_s=360.0, ahrs=ahrs, sim_overrides=dvl)
+        with mock.patch.dict(IMU_GRADES, {"navigation": replace(nav, **imu)}):
+            r = run_variant(v, Path(out_dir))
+        print(f"{label:34s} {r['ours_yaw_bias_end_deg']:+8.3f} {r['ours_end_m']:8.2f} {r['ours_rms_m']:8.2f}", flush=True)
+
+    print(f"{pattern}{seed}: heading error at the end (deg, signed), ours end / RMS (m)")
+    run("all sources", {}, (), AhrsErrors())
+    run("none (IMU white noise only)", white_only, _PERFECT_DVL, no_ahrs)
+    for name, (kind, what) in _SOURCES.items():
+        if kind == "imu":
+            part, field = what
+            alone = dict(white_only, **{part: replace(white_only[part], **{field: getattr(getattr(nav, part), field)})})
+            run(f"only {name}", alone, _PERFECT_DVL, no_ahrs)
+            run(f"all but {name}", {part: replace(getattr(nav, part), **{field: 0.0})}, (), AhrsErrors())
+        elif kind == "dvl":
+            run(f"only {name}", white_only, tuple(o for o in _PERFECT_DVL if o not in what), no_ahrs)
+            run(f"all but {name}", {}, what, AhrsErrors())
+        else:
+            run(f"only {name}", white_only, _PERFECT_DVL, AhrsErrors())
+            run(f"all but {name}", {}, (), no_ahrs)
+
+
 def main(out_dir: str, sweep: bool = False) -> None:
     out = Path(out_dir)
     variants = VARIANTS if not sweep else tuple(
@@ -130,4 +199,8 @@ def main(out_dir: str, sweep: bool = False) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], "--sweep" in sys.argv[2:])
+    if "--bisect" in sys.argv[2:]:  # OUT --bisect SEED PATTERN
+        i = sys.argv.index("--bisect")
+        bisect(sys.argv[1], int(sys.argv[i + 1]), sys.argv[i + 2])
+    else:
+        main(sys.argv[1], "--sweep" in sys.argv[2:])
