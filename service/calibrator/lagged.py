@@ -70,7 +70,6 @@ class InlineBackend:
         pass
 
 
-
 def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any, conn_out: Any) -> None:
     """Child of :class:`ProcessBackend`: per sample observe → poll, releases stamped with
     τ; after each batch a progress message ``(seq of the last sample, τ)``."""
@@ -124,7 +123,6 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
         except OSError:
             pass
         raise
-
 
 
 def _cpu_s(pid: int) -> float:
@@ -183,7 +181,6 @@ def prestart() -> None:
 
     _forkserver_context()
     threading.Thread(target=forkserver.ensure_running, name="forkserver-start", daemon=True).start()
-
 
 
 class ProcessBackend:
@@ -306,7 +303,6 @@ class ProcessBackend:
                 proc.join(1.0)
         self._w.close()
         self._r.close()
-
 
 
 class LaggedCalibrator:

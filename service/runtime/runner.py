@@ -98,8 +98,6 @@ class RunSummary:
         }
 
 
-
-
 def _stop_requested(stop: Any) -> bool:
     if stop is None:
         return False
