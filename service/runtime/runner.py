@@ -13,12 +13,15 @@ Nothing else differs.
 
 Per item, in the source's deterministic order (``adaptnav.fusion.samples.replay_order_key``):
 
-1. output epochs ``t_k = k / output_rate_hz`` that the item's time passes are emitted
-   first: the nav state after all data with ``t ≤ t_k`` goes to every sink's ``on_nav``
-   (an :class:`~fusion.samples.ImuBatch` is split at the epochs, so the rate is exact;
-   a state is not re-emitted while it has not advanced, e.g. in a data gap); an IMU
-   sample that lands exactly on ``t_k`` emits at once — live, the state must not wait
-   for the next sample to learn the epoch is complete (one IMU period of latency);
+1. output epochs ``t_k = k / output_rate_hz``: the state of ``t_k`` is the state at the IMU
+   sample nearest ``t_k`` — the first one at or after ``t_k`` − half an IMU period — and
+   goes to every sink's ``on_nav`` as soon as that sample is processed (an
+   :class:`~fusion.samples.ImuBatch` is split there, so the rate is exact). Live, the state
+   must not wait for the next sample to learn that the epoch is complete (one IMU period of
+   latency): a stamp a hair past ``t_k`` (jitter, float rounding) belongs to ``t_k``
+   all the same. An item more than half an IMU period past an epoch not yet emitted (a
+   gap in the IMU) emits the current state for it first (before an IMU period is known:
+   any item past it); a state is not re-emitted while it has not advanced, e.g. in a gap;
    with a calibrator, the estimator's free-inertial velocity (and its integral) at the
    first epoch of every second goes to ``calibrator.observe`` (its surge-noise evidence,
    :mod:`adaptnav.calibration.inertial`) and to the sinks' ``on_inertial`` (the daemon publishes it
@@ -58,9 +61,9 @@ from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sin
 
 log = logging.getLogger(__name__)
 
-# a next IMU sample predicted this far past an epoch completes it (s): above the rounding
-# of sample times, far below any IMU period or its jitter
-EPOCH_PAST_S = 1e-6
+# before an IMU period is known, a sample this close below an epoch is at it (s): the
+# rounding of sample times
+EPOCH_ROUNDING_S = 1e-9
 
 
 @dataclass
@@ -168,35 +171,38 @@ class _Loop:
                 for f in self._on_inertial:
                     f(inertial)
 
+    def half_window_s(self) -> float:
+        """Half the IMU period (s): how far from an epoch its nearest IMU sample may lie."""
+        p = self.imu_period_s
+        return 0.5 * p if p > 0.0 else EPOCH_ROUNDING_S  # False for NaN
+
+    def due_s(self) -> float:
+        """Time from which an IMU sample completes the next epoch (it is the nearest one)."""
+        return self.epoch(self.next_k) - self.half_window_s()
+
     def flush_epochs_before(self, t_s: float) -> None:
-        """Emit every epoch ``t_k < t_s`` not yet emitted (the state is the same for all)."""
+        """Emit every epoch not yet emitted whose nearest IMU sample lies before ``t_s``
+        (more than half an IMU period before it; the state is the same for all)."""
         if self.next_k is None:
             self.next_k = math.ceil(t_s * self.rate - 1e-9)
-        if self.epoch(self.next_k) < t_s:
+        half = self.half_window_s()
+        if self.epoch(self.next_k) + half < t_s:
             self.emit()
             # skip the epochs of a gap in one step: the state did not change in between
-            self.next_k = max(self.next_k + 1, math.ceil(t_s * self.rate - 1e-9))
-            while self.epoch(self.next_k) < t_s:
+            self.next_k = max(self.next_k + 1, math.ceil((t_s - half) * self.rate - 1e-9))
+            while self.epoch(self.next_k) + half < t_s:
                 self.next_k += 1
 
-    def emit_if_at_epoch(self, t_s: float, t_next_s: float = math.nan) -> None:
-        """Emit now when the IMU has just completed the next epoch: it reached it, or its
-        next sample (``t_next_s``, known inside a batch, else predicted one IMU period
-        ahead) will be past it. Live, the state must not wait for the sample after the
-        epoch to learn that the epoch is complete (one IMU period of latency) — also when
-        the IMU's clock is not aligned with the epochs, or too large a number for the
-        exact test (a UNIX time has 0.2 µs resolution)."""
-        if self.next_k is None:
+    def emit_if_at_epoch(self, t_s: float) -> None:
+        """Emit now when the IMU sample just processed (at ``t_s``) is the one nearest the
+        next epoch: the first at or after its :meth:`due_s`."""
+        if self.next_k is None or not t_s >= self.due_s():
             return
-        epoch = self.epoch(self.next_k)
-        if math.isnan(t_next_s):
-            t_next_s = t_s + self.imu_period_s  # NaN before two IMU samples were seen
-        if t_s >= epoch - 1e-9 or t_next_s > epoch + EPOCH_PAST_S:
-            self.emit()
-            self.next_k = max(self.next_k + 1, math.floor(t_s * self.rate + 1e-9) + 1)
+        self.emit()
+        self.next_k = max(self.next_k + 1, math.floor((t_s + self.half_window_s()) * self.rate + 1e-9) + 1)
 
     def imu_time(self, t_s: float) -> None:
-        """Track the IMU period (the prediction of :meth:`emit_if_at_epoch`)."""
+        """Track the IMU period (the half window of :meth:`due_s`)."""
         dt = t_s - self._last_imu_t
         if 0.0 < dt < 1.0:
             self.imu_period_s = dt
@@ -276,9 +282,9 @@ class _Loop:
             if math.isfinite(t[start]):
                 # emit epochs the first remaining sample is past
                 self.flush_epochs_before(float(t[start]))
-                # samples with t <= next epoch go in this piece
-                stop = int(np.searchsorted(t, self.epoch(self.next_k), side="right"))
-                stop = max(stop, start + 1)
+                # the piece ends with the sample that completes the next epoch
+                stop = int(np.searchsorted(t, self.due_s(), side="left")) + 1
+                stop = min(max(stop, start + 1), n)
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
@@ -288,7 +294,7 @@ class _Loop:
                 if stop - start >= 2:
                     self._last_imu_t = float(t[stop - 2])
                 self.imu_time(float(t[stop - 1]))
-                self.emit_if_at_epoch(float(t[stop - 1]), float(t[stop]) if stop < n else math.nan)
+                self.emit_if_at_epoch(float(t[stop - 1]))
             self.summary.imu_samples += stop - start
             self.summary.samples_used += stop - start
             start = stop
