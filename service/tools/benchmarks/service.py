@@ -2,15 +2,20 @@
 
 Figures (``--quick``: shorter missions, same code):
 
-- ``latency_*``: a simulated survey (IMU 200 Hz, DVL, depth, heading, RPM, USBL) is
-  published on Zenoh in real time by this process; the daemon (``adaptnav run`` in a
-  subprocess, calibrator child process on) publishes nav states at 10 Hz; latency is
-  the wall time from publishing a sample to receiving the nav state it produced.
-  The runner emits the state of output epoch ``t_k`` as soon as the IMU sample at
-  ``t_k`` is processed, so the figure is ``latency_ms``: from publishing the IMU sample
-  at ``t_k`` to the arrival of the state of ``t_k`` in the client's process, before the
-  client decodes it (the service's own processing + 2 Zenoh hops). Peer: the bare Zenoh pub→sub latency between two sessions on the same
-  loopback (``zenoh_floor_*``).
+- ``latency_*``: IMU→nav latency as an outside client sees it. A daemon (``adaptnav run``
+  in a subprocess, calibrator child process on, nav states at 10 Hz) and a client in a
+  third process (:func:`client_main`) publishing a simulated survey in real time (IMU at
+  100 Hz, 200 Hz, 200 Hz with side-scan pings), its IMU stamped ``t += 1 / rate`` (on the
+  epochs' phase, a hair past them about half the time: where an epoch waited for the next
+  sample); the figure is from publishing the IMU sample to the arrival, in the
+  client's process and before it decodes it, of the nav state of that sample's time
+  (the daemon's work + 2 Zenoh hops). The daemon's CPU share over the same window
+  (``daemon_cpu_percent*``, % of one core). Peer, measured just before in the same run:
+  the same client against a plain Zenoh echo process (:func:`echo_main`: a nav-state-sized
+  reply to each IMU sample nearest an epoch, nothing else) — ``zenoh_echo_*`` and
+  ``latency_*_floor_ratio_*``; beside each, the machine's 1-min load average
+  (``load_avg_*``: on a shared 2-core machine the tail is mostly waiting for a core).
+  ``zenoh_floor_*``: bare pub→sub between two sessions of one process.
 - ``replay_*``: a 1 h simulated survey with all sensors (IMU, DVL, depth, heading,
   RPM, USBL, side-scan sonar) replayed through the runner with the calibrator in its
   child process, releases applied deterministically at data time τ + ``latency_s``
@@ -182,21 +187,16 @@ def _pss_mb(pid: int | None) -> float:
     return math.nan
 
 
-def _shifted(stream, offset_s: float):
-    """Samples with ``offset_s`` added to their times: a client's sensor clock is not
-    aligned with the daemon's output epochs (k / 10 Hz) as the simulator's is."""
+def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s: float) -> int:
+    """Entry of the outside client (its own process): publishes a simulated survey in real
+    time (IMU at ``rate_hz``) to the daemon on ``port`` and times each nav state it gets
+    back from the publication of the IMU sample of that state's time. The IMU samples are
+    stamped as a simulated IMU counts its time, ``t += 1 / rate_hz`` from the first
+    sample's time: on the output epochs' phase, float rounding puts about half of the
+    epochs' stamps a hair past them (where an epoch waited for the next sample, one IMU
+    period, issue 17). Prints the figures as one JSON line."""
     import dataclasses
 
-    for sample in stream:
-        yield dataclasses.replace(sample, t_s=sample.t_s + offset_s)
-
-
-def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s: float,
-                offset_s: float) -> int:
-    """Entry of the outside client (its own process): publishes a simulated survey in real
-    time (IMU at ``rate_hz``, times shifted by ``offset_s``) to the daemon on ``port`` and
-    times each nav state it gets back from the publication of the IMU sample of that
-    state's time. Prints the figures as one JSON line."""
     from adaptnav.sim.scenario import load_scenario
 
     from adaptnav.service.config import ZenohConfig
@@ -209,7 +209,7 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
                                              f"duration_s={duration_s + warm_s + 2.0}"])
     # simulated before publishing: generating side-scan pings on the fly made the client
     # fall behind and then publish in bursts, which the latency then measured
-    stream = list(_shifted(_flatten(simulate(scenario).iter_blocks()), offset_s))
+    stream = list(_flatten(simulate(scenario).iter_blocks()))
     bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), vehicle)
     recv: dict[float, float] = {}
 
@@ -224,7 +224,7 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     try:
         time.sleep(0.3)
         wall0 = time.perf_counter()
-        t0 = None
+        t0 = imu_t_s = None
         for sample in stream:
             if t0 is None:
                 t0 = sample.t_s
@@ -239,6 +239,9 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
             if (d := due - time.perf_counter()) > 0:
                 time.sleep(d)
             now = time.perf_counter()
+            if sample.KIND == "imu":
+                imu_t_s = sample.t_s if imu_t_s is None else imu_t_s + 1.0 / rate_hz
+                sample = dataclasses.replace(sample, t_s=imu_t_s)
             bus.publish_sample(sample)
             if sample.KIND == "imu" and sample.t_s - t0 >= warm_s:
                 pub[sample.t_s] = now
@@ -252,6 +255,46 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
                       "max": float(ms.max()) if len(ms) else math.nan, "n": len(lat),
                       "states": len(after), "unmatched": len(after) - len(lat),
                       "window_monotonic_s": window_mono}))
+    return 0
+
+
+NAV_STATE_BYTES = 7985  # a nav state message as the daemon publishes it (18x18 covariance)
+
+
+def echo_main(port: int, vehicle: str, output_rate_hz: float = 10.0) -> int:
+    """Entry of the latency floor's stand-in for the daemon (its own process): a plain
+    Zenoh session listening on ``port`` that answers each IMU sample nearest an output
+    epoch (the first at or after ``t_k`` − half an IMU period, as the runner) with a
+    nav-state-sized message carrying the sample's ``t_s`` — the daemon's processes, hops
+    and payloads without its work. Runs until SIGTERM."""
+    import signal
+
+    import orjson
+
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+
+    bus = Bus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",), scouting=False), vehicle)
+    pad = "0" * (NAV_STATE_BYTES - 60)
+    epoch = {"k": None, "last_t_s": math.nan}
+
+    def on_imu(key: str, payload: bytes) -> None:
+        t_s = float(orjson.loads(payload)["t_s"])
+        dt = t_s - epoch["last_t_s"]
+        epoch["last_t_s"] = t_s
+        half = 0.5 * dt if 0.0 < dt < 1.0 else 1e-9
+        if epoch["k"] is None:
+            epoch["k"] = math.ceil(t_s * output_rate_hz - 1e-9)
+        if t_s >= epoch["k"] / output_rate_hz - half:
+            bus.put(bus.keys.nav_state, orjson.dumps({"type": "nav_state", "t_s": t_s, "pad": pad}))
+            epoch["k"] = max(epoch["k"] + 1, math.floor((t_s + half) * output_rate_hz + 1e-9) + 1)
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    bus.subscribe_raw(bus.keys.sensor("imu"), on_imu)
+    bus.queryable("health", lambda: b"{}")
+    stop.wait()
+    bus.close()
     return 0
 
 
@@ -271,13 +314,14 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def outside_latency(rate_hz: float, sonar: bool, duration_s: float) -> dict:
+def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool = False) -> dict:
     """Latency as an outside client sees it, and the daemon's CPU share meanwhile.
 
-    A daemon (calibrator child on) and a client in a third process
-    (:func:`client_main`): IMU→nav latency percentiles over ``duration_s`` of real time at
-    ``rate_hz``, after 8 s of alignment; CPU of the daemon and its calibrator child over
-    the same window, in % of one core.
+    A daemon (calibrator child on) — or, ``echo``, the plain Zenoh echo of
+    :func:`echo_main` — and a client in a third process (:func:`client_main`): IMU→nav
+    latency percentiles over ``duration_s`` of real time at ``rate_hz``, after 8 s of
+    alignment; CPU of the daemon (the echo) and its calibrator child over the same
+    window, in % of one core; the 1-min load average at the window's start and end.
     """
     from adaptnav.sim.scenario import load_scenario
 
@@ -288,17 +332,24 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float) -> dict:
                                              f"sonar.enabled={str(sonar).lower()}"])
     port = _free_port()
     with tempfile.TemporaryDirectory(prefix="adaptnav-bench-") as tmp:
-        proc = _start_daemon(scenario, port, tmp)
+        if echo:
+            code = ("import sys; from adaptnav.service.tools.benchmarks.service import echo_main; "
+                    f"sys.exit(echo_main({port}, 'bench'))")
+            proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.PIPE)
+        else:
+            proc = _start_daemon(scenario, port, tmp)
         bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
         try:
             _wait_up(bus, proc)
             cal = None
             deadline = time.monotonic() + 60
-            while cal is None and time.monotonic() < deadline:
+            while not echo and cal is None and time.monotonic() < deadline:
                 cal = _calibrator_pid(proc.pid)
                 time.sleep(0.05)
             code = ("import sys; from adaptnav.service.tools.benchmarks.service import client_main; "
-                    f"sys.exit(client_main({port}, 'bench', {rate_hz}, {sonar}, {duration_s}, 0.0037))")
+                    f"sys.exit(client_main({port}, 'bench', {rate_hz}, {sonar}, {duration_s}))")
+            load_start = os.getloadavg()[0]
             # CPU time of both processes sampled through the run; the share is taken over
             # the client's measured window (data flowing, alignment over)
             cpu: list[tuple[float, float, float]] = []
@@ -330,6 +381,7 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float) -> dict:
             fig["daemon_cpu_percent"] = float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall)
             fig["calibrator_cpu_percent"] = float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall)
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
+            fig["load_avg"] = [load_start, os.getloadavg()[0]]
         finally:
             bus.close()
             _stop(proc)
@@ -396,14 +448,24 @@ def simulate_blocks(scenario):
     return simulate(scenario).iter_blocks()
 
 
-def live(latency_s: float, rss_sim_s: float) -> dict:
-    """Outside-client latency and CPU at 100/200 Hz (and with sonar), cold start, then
-    memory with 1 h of data pushed at full speed."""
+def latency(latency_s: float) -> dict:
+    """Outside-client latency and daemon CPU at 100 Hz, 200 Hz and 200 Hz with sonar; at
+    100 and 200 Hz the plain Zenoh echo just before, same client, same window length."""
     out: dict[str, Any] = {}
     for rate, sonar, tag in ((100.0, False, "100hz"), (200.0, False, "200hz"), (200.0, True, "200hz_sonar")):
+        if not sonar:
+            floor = outside_latency(rate, False, latency_s, echo=True)
+            for q in ("p50", "p90", "p99", "max"):
+                out[f"zenoh_echo_{tag}_ms_{q}"] = floor[q]
+            out[f"zenoh_echo_{tag}_cpu_percent"] = floor["daemon_cpu_percent"]
+            out[f"load_avg_{tag}_echo"] = floor["load_avg"]
         fig = outside_latency(rate, sonar, latency_s)
         for q in ("p50", "p90", "p99", "max"):
             out[f"latency_{tag}_ms_{q}"] = fig[q]
+        if not sonar:
+            for q in ("p50", "p99"):
+                out[f"latency_{tag}_floor_ratio_{q}"] = fig[q] / out[f"zenoh_echo_{tag}_ms_{q}"]
+        out[f"load_avg_{tag}"] = fig["load_avg"]
         out[f"latency_{tag}_samples"] = fig["n"]
         out[f"latency_{tag}_unmatched_states"] = fig["unmatched"]
         out[f"daemon_cpu_percent_{tag}"] = fig["daemon_cpu_percent"]
@@ -413,8 +475,6 @@ def live(latency_s: float, rss_sim_s: float) -> dict:
     out["latency_ms_p99"] = max(out["latency_100hz_ms_p99"], out["latency_200hz_ms_p99"])
     out["daemon_cpu_percent"] = out["daemon_cpu_percent_200hz"]
     out["calibrator_cpu_percent"] = out["calibrator_cpu_percent_200hz"]
-    out.update(cold_start())
-    out.update(memory(rss_sim_s))
     return out
 
 
@@ -484,12 +544,26 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     return out
 
 
+PARTS = ("replay", "floor", "latency", "cold_start", "memory")
+
+
 def run(args) -> dict:
     quick = bool(getattr(args, "quick", False))
+    only = getattr(args, "only", None)
+    parts = set(only.split(",")) if only else set(PARTS)
+    if parts - set(PARTS):
+        raise ValueError(f"--only: unknown parts {sorted(parts - set(PARTS))} (known: {', '.join(PARTS)})")
     figures: dict[str, Any] = {}
-    figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
-    figures.update(zenoh_floor(200 if quick else 1000))
-    figures.update(live(latency_s=15.0 if quick else 60.0, rss_sim_s=600.0 if quick else 3600.0))
+    if "replay" in parts:
+        figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
+    if "floor" in parts:
+        figures.update(zenoh_floor(200 if quick else 1000))
+    if "latency" in parts:
+        figures.update(latency(15.0 if quick else 60.0))
+    if "cold_start" in parts:
+        figures.update(cold_start())
+    if "memory" in parts:
+        figures.update(memory(600.0 if quick else 3600.0))
     figures["goal_latency_p99_ms"] = 1.5             # outside client, 100 and 200 Hz (issue 17)
     figures["goal_replay_realtime_factor"] = 1000.0
     figures["goal_rss_total_mb"] = 250.0              # daemon + calibrator child
