@@ -54,13 +54,16 @@ class EMResult:
 
 
 def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particles, current_n_m_s=None):
-    """Replace :class:`LandmarkSighting` by :class:`FixedLandmarkObservation` using a map
+    """Replace :class:`LandmarkSighting` by :class:`FixedLandmarkObservation` using maps
     built by a FastSLAM forward pass; other observations are kept.
 
-    A landmark sighted only once in the window says nothing about the motion (its position
-    is free), but its frozen map position is where the *current* parameters put it, so
-    keeping it would bias both the E-step and the sanity gate's likelihood comparison
-    toward the current parameters: such sightings are dropped.
+    No sighting is scored against a map it helped to build (the information would be
+    counted twice): every re-observation is frozen against the map of the sightings
+    *before* it, as the FastSLAM pass had it then (mean and covariance over the particles,
+    the spread of the earlier poses included: :attr:`ParticleLandmarkMap.before`) — the
+    sequential decomposition ``p(y_1) p(y_2 | y_1) …`` of the landmark's likelihood. A
+    first sighting has no earlier map and says nothing about the motion (its position is
+    free): it is dropped, as are landmarks sighted once in the window.
     """
     counts: dict[int, int] = {}
     for obs in observations:
@@ -75,11 +78,11 @@ def freeze_landmarks(params, v, w, dt, observations, init_poses, rng, n_particle
         return observations
     fr = run_particle_filter(params, v, w, dt, observations, init_poses, rng, n_particles,
                              map_landmarks=True, current_n_m_s=current_n_m_s)
-    lmap = fr.landmark_map.fixed_map(fr.log_w[-1])
+    before = fr.landmark_map.before
     out = []
     for obs in observations:
-        out.append([FixedLandmarkObservation(o, *lmap[o.track_id]) if isinstance(o, LandmarkSighting) else o
-                    for o in (obs or ())])
+        out.append([FixedLandmarkObservation(o, *before[id(o)]) if isinstance(o, LandmarkSighting) else o
+                    for o in (obs or ()) if not isinstance(o, LandmarkSighting) or id(o) in before])
     return out
 
 

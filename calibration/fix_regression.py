@@ -9,6 +9,9 @@ tiny fraction of the way per iteration (EM's rate → 1 when the latent prior is
 Dempster, Laird & Rubin 1977; Meng & Rubin 1993). An ECME step (Liu & Rubin 1994) instead
 maximises the *observed-data* likelihood for some parameters: here that of the fixes for
 (k_V, u) under the linear-Gaussian approximation of dead reckoning between fixes.
+Side-scan objects re-found on another leg add the displacement between their two poses
+(:func:`adaptnav.calibration.sidescan.landmark_pairs`), the same rows without the fixes'
+absolute positions: the fit that still informs k_V and the current when the fixes are gone.
 
 Model. Fixes ``p_a`` at poses a (σ_a, isotropic), headings ``θ_t`` at the poses (the forward
 filter's circular means; the heading aid makes them precise), reported surge ``v_t``. The
@@ -72,7 +75,10 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     lam = np.ones(T) if step_weights is None else np.asarray(step_weights, dtype=float)
     theta0 = np.array([k_v, float(current_n_m_s[0]), float(current_n_m_s[1])])
     fixes = fix_pairs(observations)
-    if len(fixes) < 2:
+    from adaptnav.calibration.sidescan import landmark_pairs
+
+    links = landmark_pairs(observations, th)
+    if len(fixes) < 2 and not links:
         return k_v, (theta0[1], theta0[2]), ("k_v", "current_n", "current_e")
     dth = (np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi
     phi = th[:-1] + 0.5 * dth
@@ -90,6 +96,18 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
         w = lam[b - 1] / var
         rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
         ys += [fb.pos_n_m[0] - fa.pos_n_m[0], fb.pos_n_m[1] - fa.pos_n_m[1]]
+        ws += [w, w]
+    # landmark pairs: the displacement between their poses (calibration.sidescan); the pairs
+    # of one loop closure share their dead reckoning, so they share one weight
+    group_size: dict[int, int] = {}
+    for *_, g in links:
+        group_size[g] = group_size.get(g, 0) + 1
+    for a, b, delta, var_pair, g in links:
+        D = cum_d[b] - cum_d[a]
+        tau = cum_t[b] - cum_t[a]
+        w = lam[b - 1] / (var_pair + (cum_q[b] - cum_q[a])) / (group_size[g] if g >= 0 else 1)
+        rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
+        ys += [float(delta[0]), float(delta[1])]
         ws += [w, w]
     X, y, sw = np.array(rows), np.array(ys), np.sqrt(np.array(ws))
     order = (1, 2, 0)  # current first, then k_V

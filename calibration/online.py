@@ -76,6 +76,7 @@ from adaptnav.calibration.inertial import InertialTrack, surge_increments
 from adaptnav.calibration.resampling import systematic_resample
 from adaptnav.calibration.sensors import (HeadingObservation, LandmarkAssociator, LandmarkSighting,
                                  PositionFix, RangeObservation, sighting_from_sonar)
+from adaptnav.calibration.sidescan import body_sigmas_m
 
 
 # Sample kinds (``KIND``) the calibrator has no use for (``calibrator_uses`` in the sensor
@@ -421,9 +422,13 @@ class OnlineCalibrator:
         self._since_em = 0
         self._assoc = LandmarkAssociator()
         self._pre_fix: list = []  # observations before the grid exists
-        self.sonar_front_end = None  # sonar.stream.SonarFrontEnd, created on the first ping
+        # side-scan (calibration.sidescan): the object front end, created on the first ping
+        self.sonar = None
+        self.sonar_front_end = None
         from adaptnav.sonar.dead_reckoning import AnchoredDeadReckoning
-        self.sonar_nav = AnchoredDeadReckoning()  # ping positions for the front end's association
+        self.sonar_nav = AnchoredDeadReckoning()  # ping positions (the image's row spacing), tied to fixes
+        from adaptnav.calibration.sidescan import LinkIds
+        self._link_ids = LinkIds()
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
@@ -448,6 +453,8 @@ class OnlineCalibrator:
         kind = type(sample).__name__
         if kind == "InertialVelocitySample":
             return self._inertial(sample)
+        if kind == "ObjectBatch":  # back from the filter with its links (not new data: no stepping)
+            return self._links(sample)
         if kind == "ImuBatch":
             t = np.asarray(sample.t_s, dtype=float)
             wz = np.asarray(sample.omega_b_rad_s, dtype=float)[:, 2]
@@ -519,38 +526,49 @@ class OnlineCalibrator:
         self._advance(t)
 
     def _sonar(self, ping):
-        """Side-scan ping → landmark sightings via the front end owned here (sonar.stream).
+        """Side-scan ping → the object front end owned here (:mod:`adaptnav.calibration.sidescan`):
+        a completed block's sightings leave by :meth:`poll` as an :class:`ObjectBatch` for the
+        filter, which associates them across legs and returns the batch with its links
+        (:meth:`_links`). The front end's dead reckoning (ping speed and heading, tied to the
+        fixes) only spaces the image's rows; positions are the filter's."""
+        from adaptnav.calibration.sidescan import CalibratorSonar
 
-        A sighting is abeam of the vehicle at its ping time; its along-track offset is
-        re-referenced to the grid pose it attaches to. Poses are kept open for the front
-        end's latency (+ one step) so that its sightings are not late.
+        if self.sonar is None:
+            self.sonar = CalibratorSonar(self.sonar_nav)
+            self.sonar_front_end = self.sonar.front_end
+        batch = self.sonar.push(ping)
+        if batch is not None:
+            self._pending.append(batch)
 
-        The front end associates sightings by position: the vehicle position at a ping is
-        dead-reckoned from the pings and tied to the position fixes by a small Kalman
-        filter that also tracks the drift (the current; :class:`adaptnav.sonar.stream.AnchoredDeadReckoning`),
-        whose σ widens the gate. Pure ping dead reckoning ignores the current: a landmark
-        seen again a leg later is tens of metres off and never (or wrongly) re-associated.
-        (The particle filter here is no substitute while its model has no current: its
-        mean lags the fixes.)
-        """
-        from adaptnav.sonar.stream import FrontEndConfig, SonarFrontEnd, reference_landmark
-
-        if self.sonar_front_end is None:
-            # no window registration: the calibrator does not use visual motion (it was
-            # a second SIFT pass per window); landmarks detected on the emitted rows only
-            self.sonar_front_end = SonarFrontEnd(FrontEndConfig(register=False, detect_margin_pings=8))
-        fe = self.sonar_front_end
-        speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else self.params.k_v * self._last_speed
-        pos, sigma = self.sonar_nav.push(ping)
-        for ob in fe.push(ping, pos if math.isfinite(sigma) else None, sigma if math.isfinite(sigma) else None):
-            if not hasattr(ob, "ground_range_m") or self._t0 is None:
-                continue  # visual motion is not used by the calibrator
-            t_k = self._t0 + round((ob.t_s - self._t0) / self.config.step_s) * self.config.step_s
-            ob = reference_landmark(ob, t_k, speed)
-            self._add_obs(ob.t_s, sighting_from_sonar(ob, self._assoc.assign(ob), self.config.landmark_sigma_along_m,
-                                                      self.config.landmark_sigma_across_m))
-        if math.isfinite(fe.latency_s):
-            self._lag_s = max(self._lag_s, fe.latency_s + self.config.step_s)
+    def _links(self, batch) -> None:
+        """The filter's cross-leg pairs (``batch.links``, one tuple per loop closure) →
+        :class:`LandmarkSighting` s sharing a track id at the poses of their two sightings,
+        also poses already closed (the window keeps their observations for EM; the running
+        filter does not use landmarks). Along-track offsets from the pose are the model's
+        speed × time (not the ping's speed over ground)."""
+        if self._t0 is None:
+            return
+        c = self.config
+        speed = self.params.k_v * self._last_speed
+        for closure in batch.links:
+            group = self._link_ids.new_group()
+            for a, b in closure:
+                tid, new_a, new_b = self._link_ids.pair(a, b)
+                for o, new in ((a, new_a), (b, new_b)):
+                    if not new:
+                        continue
+                    k = round((o.t_s - self._t0) / c.step_s)
+                    d = speed * (o.t_s - (self._t0 + k * c.step_s))
+                    s_al, s_ac = body_sigmas_m(o)
+                    side = 1.0 if o.side == "starboard" else -1.0
+                    ob = LandmarkSighting(tid, d, side * o.ground_range_m,
+                                          math.hypot(s_al, c.lag_speed_sigma * abs(d)), s_ac, group)
+                    if k > self._closed:
+                        self._obs.setdefault(k, []).append(ob)
+                    elif 0 <= self._closed - k < len(self._win_obs):
+                        self._win_obs[len(self._win_obs) - 1 - (self._closed - k)].append(ob)
+                    else:
+                        self._reject("landmark link older than the window")
 
     def _inertial(self, sample) -> None:
         """Buffer the filter's free-inertial velocity (no stepping: it is a filter output at
@@ -779,7 +797,8 @@ class OnlineCalibrator:
             self._win_params = rescale_step(rel.params, self.config.model_step_s, self.config.step_s)
         self._pending.append(rel)
 
-    def poll(self) -> list[Release]:
-        """Releases (accepted or refused) computed since the last call, oldest first."""
+    def poll(self) -> list:
+        """Releases (accepted or refused) computed since the last call, and the side-scan's
+        :class:`~adaptnav.calibration.sidescan.ObjectBatch` es (for the filter), oldest first."""
         out, self._pending = self._pending, []
         return out

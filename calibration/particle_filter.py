@@ -186,6 +186,8 @@ def run_particle_filter(params: MotionParams, v_m_s, w_rad_s, dt_s, observations
                        dt[t - 1], pvec, cdf)
             if resample and lmap is not None:
                 lmap.resample(A[t - 1])
+        if lmap is not None:
+            lmap.log_w = LW[t]  # the weights carried into pose t (for the map's records)
         g = np.ascontiguousarray(_observation_log_lik(observations[t], X[t], lmap), dtype=float)
         inc[t], ess_now = pf_weigh(LW, W, t, g)  # LW[t] is normalised: inc = log Σ W g
         if not np.isfinite(inc[t]):

@@ -99,7 +99,8 @@ class LandmarkSighting:
     """A side-scan landmark seen from the vehicle, in the body frame.
 
     ``along_m`` forward of the ping's position, ``across_m`` to starboard (negative to
-    port) = ``±ground_range_m``; standard deviations ``sigma_along_m``, ``sigma_across_m``.
+    port) = ``±ground_range_m``; standard deviations ``sigma_along_m``, ``sigma_across_m``;
+    ``group`` the loop closure that linked it (:mod:`adaptnav.calibration.sidescan`; −1: none).
     """
 
     track_id: int
@@ -107,6 +108,7 @@ class LandmarkSighting:
     across_m: float
     sigma_along_m: float = 1.0
     sigma_across_m: float = 0.5
+    group: int = -1
 
     def world_observation(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-particle landmark position ``y`` (N, 2) and its covariance (N, 2, 2)."""
@@ -181,6 +183,11 @@ class ParticleLandmarkMap:
         self.n = n_particles
         self.mean: dict[int, np.ndarray] = {}  # (N, 2)
         self.cov: dict[int, np.ndarray] = {}  # (N, 2, 2)
+        # the particles' normalised log-weights before the current pose's observations (set
+        # by the filter); with them every re-observation records the map it was scored
+        # against — the earlier sightings' alone (:attr:`before`, id(sighting) → (mean, cov))
+        self.log_w: np.ndarray | None = None
+        self.before: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def log_likelihood_and_update(self, poses: np.ndarray, sighting: LandmarkSighting) -> np.ndarray:
         """Weight of each particle for ``sighting`` (0 on first sight), then update its map."""
@@ -191,6 +198,8 @@ class ParticleLandmarkMap:
             self.cov[tid] = r_cov
             return np.zeros(poses.shape[0])
         m, p = self.mean[tid], self.cov[tid]
+        if self.log_w is not None:
+            self.before[id(sighting)] = _posterior(m, p, self.log_w)
         s = p + r_cov
         det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
         inv = np.empty_like(s)
@@ -210,15 +219,17 @@ class ParticleLandmarkMap:
 
     def fixed_map(self, log_w: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Posterior mean (2,) and covariance (2, 2) of every landmark under weights ``log_w``."""
-        w = np.exp(log_w - np.max(log_w))
-        w /= w.sum()
-        out = {}
-        for tid, m in self.mean.items():
-            mu = w @ m
-            d = m - mu
-            cov = np.einsum("n,nij->ij", w, self.cov[tid]) + np.einsum("n,ni,nj->ij", w, d, d)
-            out[tid] = (mu, cov)
-        return out
+        return {tid: _posterior(m, self.cov[tid], log_w) for tid, m in self.mean.items()}
+
+
+def _posterior(mean: np.ndarray, cov: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (2,) and covariance (2, 2) over particles of per-particle Gaussians (N, 2), (N, 2, 2):
+    the spread of the means (the poses' uncertainty) is part of it."""
+    w = np.exp(log_w - np.max(log_w))
+    w /= w.sum()
+    mu = w @ mean
+    d = mean - mu
+    return mu, np.einsum("n,nij->ij", w, cov) + np.einsum("n,ni,nj->ij", w, d, d)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,8 @@
 benchmarks build their estimator, calibrator and sinks here, from one
 :class:`~adaptnav.service.config.ServiceConfig`, so each is built one way.
 
-- :func:`make_estimator` — the ESKF (:class:`adaptnav.fusion.eskf.Estimator`);
+- :func:`make_estimator` — the ESKF (:class:`adaptnav.fusion.eskf.Estimator`; with side-scan
+  loop closures :class:`adaptnav.service.loop_closures.SideScanEstimator`);
 - :func:`make_calibrator` — the EM calibrator in this process
   (:class:`adaptnav.calibration.online.OnlineCalibrator`), as the child processes and the
   calibrator node run it;
@@ -25,11 +26,13 @@ from adaptnav.fusion.motion_model import MotionParams
 
 def make_estimator(cfg: Any, params0: MotionParams | None = None, origin: GeoOrigin | None = None):
     """The navigation filter from a ServiceConfig (``params0`` default
-    ``cfg.motion.params0``; ``origin`` default ``cfg.origin``)."""
-    from adaptnav.fusion.eskf import Estimator
+    ``cfg.motion.params0``; ``origin`` default ``cfg.origin``). It also takes side-scan pings
+    and the object sightings the calibrator returns, and fuses leg-to-leg loop closures
+    (``filter.loop_closure.enabled``; :class:`adaptnav.service.loop_closures.SideScanEstimator`)."""
+    from adaptnav.service.loop_closures import SideScanEstimator
 
-    return Estimator(cfg.filter, cfg.motion.params0 if params0 is None else params0, cfg.motion.rpm_table,
-                     cfg.origin.geo() if origin is None else origin)
+    return SideScanEstimator(cfg.filter, cfg.motion.params0 if params0 is None else params0, cfg.motion.rpm_table,
+                             cfg.origin.geo() if origin is None else origin)
 
 
 def make_calibrator(cfg: Any, params0: MotionParams, seed: int):

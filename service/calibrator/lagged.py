@@ -70,6 +70,14 @@ class InlineBackend:
         pass
 
 
+def child_message(out: Any, tau: float) -> tuple:
+    """A calibrator's output for the return pipe: a release in its codec's JSON form, a side
+    product (side-scan objects for the filter, :mod:`adaptnav.calibration.sidescan`) as it is."""
+    if out.KIND == "calibration_release":
+        return ("release", release_to_dict(out), tau)
+    return ("product", out, tau)
+
+
 def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any, conn_out: Any) -> None:
     """Child of :class:`ProcessBackend`: per sample observe → poll, releases stamped with
     τ; after each batch a progress message ``(seq of the last sample, τ)``."""
@@ -112,7 +120,7 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 if t > tau:  # False for NaN
                     tau = t
                 for rel in calibrator.poll():
-                    out_q.send(("release", release_to_dict(rel), tau))
+                    out_q.send(child_message(rel, tau))
             clock.tau = tau
             out_q.send(("progress", seq + n, clock.tau))
     except BaseException as e:  # the parent must not wait forever for a dead child
@@ -248,8 +256,9 @@ class ProcessBackend:
             kind, body, tau = self._r.recv()
         except (EOFError, OSError):
             raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})") from None
-        if kind == "release":  # computed before a shift the child has not seen yet: re-based here
-            self.ready.append((float(tau) + self._unacked_shift_s, release_from_dict(body)))
+        if kind in ("release", "product"):  # computed before a shift the child has not seen yet: re-based here
+            self.ready.append((float(tau) + self._unacked_shift_s,
+                               release_from_dict(body) if kind == "release" else body))
         elif kind == "progress":
             self._done, self._child_tau = int(body), float(tau) + self._unacked_shift_s
         elif kind == "shifted":

@@ -32,9 +32,9 @@ from typing import Any
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
 from adaptnav.service.calibrator.batching import DataClock, compact_imu
-from adaptnav.service.calibrator.lagged import limit_child_threads
+from adaptnav.service.calibrator.lagged import child_message, limit_child_threads
 from adaptnav.service.compose import make_calibrator
-from adaptnav.service.transport.release import release_from_dict, release_to_dict
+from adaptnav.service.transport.release import release_from_dict
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
             calibrator.observe(sample)
             tau = clock.advance(sample)
             for release in calibrator.poll():  # stamped with the data time it was computed at
-                out_q.put(("release", release_to_dict(release), tau))
+                out_q.put(child_message(release, tau))
 
 
 
@@ -183,6 +183,10 @@ class CalibratorProcess:
                 with self._held_lock:  # stamped before a shift the child had not seen: re-based here
                     self._held.append((float(tau) + self._unacked_shift_s + self._shift_to_send_s, release))
                 self.received += 1
+            elif kind == "product":  # side-scan objects for the filter: the release rule too
+                tau = msg[2] if msg[2] is not None else -math.inf
+                with self._held_lock:
+                    self._held.append((float(tau) + self._unacked_shift_s + self._shift_to_send_s, body))
             elif kind == "shifted":
                 with self._held_lock:
                     self._unacked_shift_s -= float(msg[2])

@@ -54,6 +54,8 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
                 received[getattr(sample, "KIND", type(sample).__name__)] += 1
                 calibrator.observe(sample)
             for release in calibrator.poll():
+                if release.KIND != "calibration_release":
+                    continue  # side-scan objects for a filter: a remote node has none (calibration.sidescan)
                 if release.accepted and release.params is not None:
                     last["params"] = release.params.to_dict()
                 bus.put(bus.keys.params, codec.encode(release))

@@ -331,6 +331,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "first_valid_t_s": validity.first_valid_t_s,
         "filter": _filter_report(estimator),
     }
+    if getattr(estimator, "side_scan", None):  # side-scan loop closures (service.loop_closures)
+        doc["side_scan"] = dict(estimator.side_scan)
     cal = getattr(estimator, "dvl_calibration", None)
     if cal is not None and cal.pairs_used:
         doc["dvl_calibration"] = cal.report()

@@ -33,7 +33,10 @@ Per item, in the source's deterministic order (``adaptnav.fusion.samples.replay_
    of the items it admitted) goes to ``calibrator.poll(data_time_s)``; each release it
    returns is applied when accepted (``estimator.set_motion_params``) and goes to every
    sink either way. When the data end (not on a stop), ``poll(inf)``: every release
-   computed from them.
+   computed from them. What else the calibrator returns by that route is data for the
+   filter (side-scan object sightings, which it detects where its EM runs): it goes to
+   ``estimator.process`` (aid statuses to the sinks, e.g. loop closures) and then back to
+   ``calibrator.observe``.
 
 A bad sample never stops the loop: the estimator rejects and counts it; an exception
 raised while handling one item is logged, counted in health (``error:<kind>``) and the
@@ -324,8 +327,19 @@ class _Loop:
         """The runner's data time reached ``data_t_s``: the calibrator's releases due by it."""
         if data_t_s > self.data_t:  # False for NaN
             self.data_t = data_t_s
-        for rel in self.calibrator.poll(self.data_t):
-            self.release(rel)
+        for out in self.calibrator.poll(self.data_t):
+            if out.KIND == "calibration_release":
+                self.release(out)
+            else:
+                self.product(out)
+
+    def product(self, item: Any) -> None:
+        """A calibrator's side product that is data for the filter (side-scan objects,
+        :mod:`adaptnav.calibration.sidescan`): to the estimator like a sample, its aid
+        statuses to the sinks, then back to the calibrator (with what the estimator
+        made of it)."""
+        self.aid(self.estimator.process(item))
+        self.calibrator.observe(item)
 
     def item(self, item: Any) -> None:
         kind = getattr(item, "KIND", None)

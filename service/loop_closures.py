@@ -1,0 +1,157 @@
+"""Side-scan loop closures in the service: the estimator that takes side-scan object
+sightings like any other input (:class:`SideScanEstimator`, built by
+:func:`adaptnav.service.compose.make_estimator`).
+
+The path, live and in replay (the runner does nothing special for it):
+
+1. every side-scan ping reaches the estimator as a sample does; the estimator has no use for
+   the image, but records its own navigation at the ping (position, its covariance, heading,
+   velocity, and the jumps its updates made — :attr:`adaptnav.sonar.objects.ObjectSighting.jump_n_m`)
+   and keeps horizontal-position clones while pings come
+   (:meth:`adaptnav.fusion.eskf.Estimator.clone_position`);
+2. the calibrator, which gets the pings too, runs the object detector where its EM runs (its
+   child process: off the filter's thread) and returns each block's sightings by the route
+   a release takes (:class:`adaptnav.calibration.sidescan.ObjectBatch`,
+   :meth:`adaptnav.service.runtime.runner._Loop.product`);
+3. the estimator places them with the navigation it recorded at their pings, associates them
+   with the earlier legs inside its own covariance (:class:`adaptnav.sonar.association.LegAssociator`,
+   gated by the covariance of the error difference of its clones), fuses each loop closure
+   (:mod:`adaptnav.fusion.aiding.loop_closure`) and returns its aid status (source
+   ``loop_closure``) like any aid; the accepted pairs go into the batch, which the runner
+   then hands back to the calibrator (it learns k_V and the current from them).
+
+Memory is bounded: the navigation record covers ``nav_keep_s`` of pings, the associator keeps
+sightings for at most the clones' horizon (older ones could not be fused) and at most
+``AssociationConfig.max_sightings``.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.state import POS_NE
+
+# clones are kept (each costs a little per covariance step) while a ping came this recently (s)
+SONAR_ACTIVE_S = 30.0
+
+
+class SideScanEstimator(Estimator):
+    """:class:`~adaptnav.fusion.eskf.Estimator` that also takes side-scan pings and object
+    batches (module docstring). Same constructor, plus:
+
+    Parameters
+    ----------
+    nav_keep_s : float
+        Navigation at pings is kept this long (s): longer than a detection block plus the
+        calibrator's latency (the sightings come back that late).
+    association : adaptnav.sonar.association.AssociationConfig, optional
+        Gates of the association (default: its defaults, memory capped at the clone horizon).
+    """
+
+    def __init__(self, *args: Any, nav_keep_s: float = 300.0, association: Any = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.nav_keep_s = float(nav_keep_s)
+        self._association_config = association
+        self._associator: Any = None  # created with the first batch (imports sonar)
+        # (t, north, east, yaw unwrapped, cov 2×2 (4), jump north, jump east) per ping
+        self._nav: deque = deque()
+        self._jump = np.zeros(2)
+        self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._t_ping = -math.inf
+        self.side_scan = {"pings": 0, "batches": 0, "sightings": 0, "closures": 0, "closures_fused": 0}
+
+    # ---------------------------------------------------------------- the one entry
+    def process(self, sample: Any) -> list:
+        kind = sample.KIND
+        if kind == "sonar":
+            if self.config.loop_closure.enabled:
+                self._ping(sample)
+            return []
+        if kind == "sonar_objects":
+            return self._objects(sample) if self.config.loop_closure.enabled else []
+        out = super().process(sample)
+        if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf \
+                and self._clock[0] - self._t_ping < SONAR_ACTIVE_S:
+            self.clone_position()
+        return out
+
+    def shift_time(self, delta_s: float) -> None:
+        super().shift_time(delta_s)
+        self._nav.clear()  # its times are in the old base; the record refills within a block
+        self._last_vel = None
+
+    # ---------------------------------------------------------------- internals
+    def _ping(self, ping: Any) -> None:
+        """Record the navigation at the ping (extrapolated from the state's time with its velocity)."""
+        t = float(ping.t_s)
+        if not (self.initialized and math.isfinite(t)):
+            return
+        self._t_ping = t
+        self.side_scan["pings"] += 1
+        ns = self.nav_state()
+        if not ns.valid:
+            return
+        vel = ns.vel_n_m_s[:2]
+        pos = ns.pos_n_m[:2] + vel * (t - ns.t_s)
+        if self._last_vel is not None and t > self._last_vel[0]:
+            t0, p0, v0 = self._last_vel
+            self._jump += pos - (p0 + 0.5 * (v0 + vel) * (t - t0))  # what the velocity does not explain
+        self._last_vel = (t, pos.copy(), vel.copy())
+        yaw = float(ns.euler_rad()[2])
+        nav = self._nav
+        if nav:
+            if t <= nav[-1][0]:
+                return
+            yaw = nav[-1][3] + math.remainder(yaw - nav[-1][3], 2.0 * math.pi)
+        cov = ns.cov[POS_NE, POS_NE]
+        nav.append((t, pos[0], pos[1], yaw, cov[0, 0], cov[0, 1], cov[1, 0], cov[1, 1], self._jump[0], self._jump[1]))
+        while nav and nav[0][0] < t - self.nav_keep_s:
+            nav.popleft()
+
+    def _association(self) -> Any:
+        if self._associator is None:
+            import dataclasses
+
+            from adaptnav.sonar.association import AssociationConfig, LegAssociator
+
+            cfg = self._association_config or AssociationConfig()
+            # a pair older than the clones cannot be fused: no need to remember it
+            cfg = dataclasses.replace(cfg, memory_s=min(cfg.memory_s, self.config.loop_closure.clone_horizon_s))
+            self._associator = LegAssociator(cfg, relative_cov=self.relative_position_covariance)
+        return self._associator
+
+    def _objects(self, batch: Any) -> list:
+        """Place, associate, fuse (module docstring); the accepted pairs go into ``batch.links``."""
+        from adaptnav.sonar.objects import ObjectDetectorConfig, with_navigation
+
+        self.side_scan["batches"] += 1
+        if not self._nav or not self.initialized:
+            return []
+        rec = np.array(self._nav)
+        det = ObjectDetectorConfig()
+        placed = []
+        for o in batch.sightings:
+            t = float(o.t_s)
+            if not rec[0, 0] <= t <= rec[-1, 0]:
+                self.rejected["side_scan_no_navigation"] += 1
+                continue
+            row = [float(np.interp(t, rec[:, 0], rec[:, k])) for k in range(1, rec.shape[1])]
+            placed.append(with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9]))
+        if not placed:
+            return []
+        self.side_scan["sightings"] += len(placed)
+        lc = self._association().add(placed)
+        if lc is None:
+            return []
+        self.side_scan["closures"] += 1
+        batch.links.append(tuple(lc.pairs))
+        status = self.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov)
+        self.side_scan["closures_fused"] += int(status.fused)
+        return [status]
+
+
+__all__ = ["SideScanEstimator", "SONAR_ACTIVE_S"]
