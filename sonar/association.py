@@ -23,14 +23,22 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    aid bounds rotation), wrong ones scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
    keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
    ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
-   drift over the batch (``relative_sigma_m_s`` × time from the batch centre, on both legs).
-   Chance agreement is bounded: around each new sighting the wrong old sightings expected in
-   its gate (its *clutter*, counted over a wider area so that its one true match barely
-   counts) fall inside a hypothesis' inlier region with probability ≈ (inlier area / gate
-   area); with λ the sum over the new sightings, a set of ``n`` needs
-   ``H · P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` over the ``H`` hypotheses tried — a
-   cluttered seabed, a wide gate or many candidates ask for more objects, a sparse one does
-   not. A pair whose sighting has a second candidate that also fits the offset is dropped
+   drift (``relative_sigma_m_s`` × time from the hypothesis' two times, on both legs).
+   Each candidate is a hypothesis with its own times ``t_a``, ``t_b``: its set draws on
+   the candidates whose old sighting lies within ``set_span_s`` of ``t_a`` (one stretch of
+   the earlier leg; a candidate on a leg an hour older, whose drift allowance spans metres,
+   would agree with anything), residual covariances growing with the time from ``t_a``,
+   ``t_b``. Chance agreement is bounded per hypothesis, each pair with its own gate: a
+   wrong old sighting lies anywhere in the wide region around its new sighting
+   (``clutter_scale`` × that pair's gate), so it falls in the hypothesis' inlier region with
+   probability (inlier area / wide area), both from that pair's covariances; ``λ``, the sum
+   over the wrong old sightings of all new ones (within the span; per new sighting the
+   likeliest left out — it may be the match), is the number of chance inliers expected, and
+   a set of ``n`` needs ``H · P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` over the ``H``
+   hypotheses tried — a cluttered seabed, a wide gate or many candidates ask for more
+   objects, a sparse one does not. (Counting the clutter of all gates against the smallest
+   gate's area asked a set of 12 true pairs for more than 12 on survey seed 1.)
+   A pair whose sighting has a second candidate that also fits the offset is dropped
    (two neighbouring objects: either could be the match).
    A block often holds only one or two objects of the other leg: when the block alone gives
    no set, the sets are sought among the last ``window_s`` of new sightings not yet used.
@@ -88,6 +96,9 @@ class AssociationConfig:
     clutter_scale : float
         The clutter (wrong sightings a gate may hold) is counted over this many times the
         gate's area, so that the true match is diluted (see :meth:`LegAssociator.candidates`).
+    set_span_s : float
+        A set's old sightings lie within this of its hypothesis' old sighting (s): the new
+        ones span ``window_s`` plus a block, a reciprocal leg flown at the same speed the same.
     window_s : float
         New sightings not yet in an accepted set stay in play this long (s): a block often
         holds one or two objects of the other leg, fewer than a set needs, so the sets are
@@ -117,6 +128,7 @@ class AssociationConfig:
     chance_probability: float = 0.1
     window_s: float = 60.0
     clutter_scale: float = 9.0
+    set_span_s: float = 90.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +168,7 @@ class LoopClosure:
 
 
 # how far a pair of sightings got (:attr:`LegAssociator.trace`), in order
-STAGES = ("wide gate", "attributes", "candidate", "too few candidates", "chance bound", "not in the set",
+STAGES = ("wide gate", "attributes", "candidate", "too few candidates", "not in the set", "chance bound",
           "ambiguous", "accepted")
 
 
@@ -202,19 +214,25 @@ class LegAssociator:
                 return False
         return True
 
-    def candidates(self, batch: list[ObjectSighting]) -> tuple[list[tuple[int, int, float, np.ndarray]], np.ndarray]:
+    def candidates(self, batch: list[ObjectSighting]) -> tuple[list[tuple[int, int, float, np.ndarray]], dict]:
         """Individually compatible pairs and the clutter around each new sighting.
 
         Returns
         -------
         pairs : list of (old index, batch index, Mahalanobis d², gate covariance)
-        clutter : numpy.ndarray, shape (len(batch),)
-            Wrong old sightings expected inside each new sighting's gate: those with
-            agreeing attributes inside ``clutter_scale`` × the gate's area, less the one
-            that may be its match, divided by ``clutter_scale``.
+        clutter : dict of arrays, one entry per (new sighting, old sighting with agreeing
+            attributes inside ``clutter_scale`` × its gate's area — the *wide* region):
+            ``j`` (batch index), ``t_old_s`` (the old sighting's time), ``det_cov`` (the two
+            detector covariances, (n, 2, 2)), ``t_new_s`` and ``area_m2`` (the wide region's
+            area, π · clutter_scale · χ²_gate · √det S, with S that pair's own gate
+            covariance). A wrong old sighting lies anywhere in its wide region; the chance
+            that it agrees with a hypothesis is its inlier region's area over this one
+            (:meth:`associate`).
         """
         c = self.config
-        clutter = np.zeros(len(batch))
+        keys = ("j", "t_old_s", "t_new_s", "det_cov", "area_m2")
+        clutter = {"j": np.zeros(0, int), "t_old_s": np.zeros(0), "t_new_s": np.zeros(0),
+                   "det_cov": np.zeros((0, 2, 2)), "area_m2": np.zeros(0)}
         if not self._old or not batch:
             return [], clutter
         t_new = max(o.t_s for o in batch)
@@ -228,6 +246,7 @@ class LegAssociator:
         t_old = np.array([self._old[i].t_s for i in old])
         rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
         out = []
+        cl: dict[str, list] = {k: [] for k in keys}
         for j, b in enumerate(batch):
             same_leg = t_old >= b.t_s - c.min_gap_s
             d = P_old - b.pos_n_m[None, :]
@@ -242,9 +261,17 @@ class LegAssociator:
                 for k in wide:
                     self._note(self._old[old[k]], b, "candidate" if k in ok and m2[k] <= self._gate
                                else "attributes" if k not in ok else "wide gate")
-            clutter[j] = max(len(agree) - 1, 0) / c.clutter_scale
+            if agree:
+                ag = np.array(agree)
+                cl["j"].append(np.full(ag.size, j))
+                cl["t_old_s"].append(t_old[ag])
+                cl["t_new_s"].append(np.full(ag.size, b.t_s))
+                cl["det_cov"].append(D_old[ag] + b.det_cov[None])
+                cl["area_m2"].append(math.pi * c.clutter_scale * self._gate * np.sqrt(np.linalg.det(S[ag])))
             for k in [k for k in agree if m2[k] <= self._gate][: c.max_candidates_per_object]:
                 out.append((old[k], j, float(m2[k]), S[k]))
+        if cl["j"]:
+            clutter = {k: np.concatenate(v) for k, v in cl.items()}
         return out, clutter
 
     def _note(self, a: ObjectSighting, b: ObjectSighting, stage: str) -> None:
@@ -274,13 +301,53 @@ class LegAssociator:
                 cov[k], ok[k] = c, True
         return cov, ok
 
-    def _residual_cov(self, a: ObjectSighting, b: ObjectSighting, ta: float, tb: float) -> np.ndarray:
+    def _residual_cov(self, t_old_s, t_new_s, det_cov, ta: float, tb: float) -> np.ndarray:
+        """Covariances (n, 2, 2) of pairs' residuals from a set's offset: the two detectors'
+        plus the relative drift from the set's times (``ta`` on the old leg, ``tb`` on the new)."""
         q = self.config.relative_sigma_m_s
-        rel = (q * (a.t_s - ta)) ** 2 + (q * (b.t_s - tb)) ** 2
-        return a.det_cov + b.det_cov + rel * np.eye(2)
+        rel = (q * (np.asarray(t_old_s) - ta)) ** 2 + (q * (np.asarray(t_new_s) - tb)) ** 2
+        return np.asarray(det_cov) + rel[:, None, None] * np.eye(2)[None]
+
+    def _chance_inliers(self, clutter: dict, ta: float, tb: float) -> float:
+        """Wrong old sightings expected to agree with one hypothesis (times ``ta``, ``tb``) by chance.
+
+        For every new sighting: the sum over the old sightings of its wide region (within
+        ``set_span_s`` of ``ta``: the others cannot join the set) of each one's chance of lying
+        in its inlier region — that region's area over its own wide region's area, both from
+        that pair's covariances — less the largest (the one that may be its match).
+        """
+        c = self.config
+        m = np.abs(clutter["t_old_s"] - ta) <= c.set_span_s
+        if not np.any(m):
+            return 0.0
+        R = self._residual_cov(clutter["t_old_s"][m], clutter["t_new_s"][m], clutter["det_cov"][m], ta, tb)
+        p = np.minimum(math.pi * self._inlier * np.sqrt(np.linalg.det(R)) / clutter["area_m2"][m], 1.0)
+        j = clutter["j"][m]
+        n = int(j.max()) + 1
+        tot, top = np.zeros(n), np.zeros(n)
+        np.add.at(tot, j, p)
+        np.maximum.at(top, j, p)
+        return float(np.sum(tot - top))
+
+    def _min_objects(self, lam: float, n_hypotheses: int) -> int:
+        """Smallest set that ``n_hypotheses`` hypotheses with ``lam`` chance inliers each
+        would give by chance with probability at most ``chance_probability`` (union bound;
+        the hypothesis' own pair is not by chance: n − 1)."""
+        c = self.config
+        n = c.min_objects
+        while n_hypotheses * float(poisson.sf(n - 2, lam)) > c.chance_probability:
+            n += 1
+        return n
 
     def associate(self, batch: list[ObjectSighting]) -> LoopClosure | None:
-        """The largest jointly compatible set of candidate pairs for ``batch`` (or None)."""
+        """The largest jointly compatible set of candidate pairs for ``batch`` (or None).
+
+        Every candidate is a hypothesis (its two sightings' times ``t_a``, ``t_b``): the pairs
+        whose old sighting lies within ``set_span_s`` of ``t_a`` and whose residual from the
+        offset is inside the inlier gate (detectors + relative drift from ``t_a``, ``t_b``)
+        form its set, which is accepted when it is jointly compatible and larger than chance
+        agreement allows for that hypothesis (:meth:`_chance_inliers`, :meth:`_min_objects`).
+        """
         c = self.config
         cand, clutter = self.candidates(batch)
         self.candidates_seen += len(cand)
@@ -288,53 +355,47 @@ class LegAssociator:
             self._note_all(cand, batch, range(len(cand)), "too few candidates")
             return None
         old = self._old
+        self._note_all(cand, batch, range(len(cand)), "not in the set")
         # on the jump-free tracks: a fix or a fused closure between two sightings of one leg
         # moves the filter's position, not the seabed
         diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
-        ta = float(np.median([old[i].t_s for i, _, _, _ in cand]))
-        tb = float(np.median([batch[j].t_s for _, j, _, _ in cand]))
-        R = np.array([self._residual_cov(old[i], batch[j], ta, tb) for i, j, _, _ in cand])
-        W = np.linalg.inv(R)
-        S = np.array([c[3] for c in cand])  # each candidate's gate covariance
-        # chance inliers: per new sighting, the wrong old sightings expected in its gate
-        # (its clutter) times the inlier region's share of the gate's area
-        ratio = np.minimum((self._inlier / self._gate) * np.sqrt(np.linalg.det(R) / np.linalg.det(S)), 1.0)
-        lam = 0.0
-        for j in {cj for _, cj, _, _ in cand}:
-            mine = [k for k, cc in enumerate(cand) if cc[1] == j]
-            lam += clutter[j] * float(np.max(ratio[mine]))
-        n_min = c.min_objects
-        # every candidate is tried as the hypothesis: a union bound over them
-        while n_min <= len(cand) and len(cand) * float(poisson.sf(n_min - 2, lam)) > c.chance_probability:
-            n_min += 1
-        if n_min > len(cand):
-            self._note_all(cand, batch, range(len(cand)), "chance bound")
-            return None
-        self._note_all(cand, batch, range(len(cand)), "not in the set")
-        best: tuple[int, float, list[int]] | None = None
+        t_a = np.array([old[i].t_s for i, _, _, _ in cand])
+        t_b = np.array([batch[j].t_s for _, j, _, _ in cand])
+        D = np.array([old[i].det_cov + batch[j].det_cov for i, j, _, _ in cand])
+        best = None  # (size, cost, set, inverse residual covariances, smallest size, span)
         for h in range(len(cand)):
+            span = np.abs(t_a - t_a[h]) <= c.set_span_s
+            if np.count_nonzero(span) < c.min_objects:
+                continue
+            W = np.linalg.inv(self._residual_cov(t_a, t_b, D, t_a[h], t_b[h]))
             # the hypothesis is itself one noisy pair: its residuals have about twice the
             # variance; the inliers it finds re-estimate the offset, which then selects
             r = diffs - diffs[h]
-            inl = self._one_to_one(cand, 0.5 * np.einsum("ki,kij,kj->k", r, W, r))
+            m2 = np.where(span, 0.5 * np.einsum("ki,kij,kj->k", r, W, r), np.inf)
+            inl = self._one_to_one(cand, m2)
             if len(inl) < 2:
                 continue
             r = diffs - self._mean(diffs, W, inl)
-            inl = self._one_to_one(cand, np.einsum("ki,kij,kj->k", r, W, r))
-            if len(inl) < n_min:
+            inl = self._one_to_one(cand, np.where(span, np.einsum("ki,kij,kj->k", r, W, r), np.inf))
+            if len(inl) < c.min_objects:
                 continue
-            sel = self._refine(diffs, W, inl, n_min)
+            sel = self._refine(diffs, W, inl, c.min_objects)
             if sel is None:
+                continue
+            n_min = self._min_objects(self._chance_inliers(clutter, t_a[h], t_b[h]), len(cand))
+            if len(sel) < n_min:
+                self._note_all(cand, batch, sel, "chance bound")
                 continue
             r = diffs[sel] - self._mean(diffs, W, sel)
             cost = float(np.sum(np.einsum("ki,kij,kj->k", r, W[sel], r)))
             if best is None or len(sel) > best[0] or (len(sel) == best[0] and cost < best[1]):
-                best = (len(sel), cost, sel)
+                best = (len(sel), cost, sel, W, n_min, span)
         if best is None:
             return None
+        W = best[3]
         self._note_all(cand, batch, best[2], "ambiguous")
-        sel = self._unambiguous(cand, diffs, W, best[2])
-        if len(sel) < n_min:
+        sel = self._unambiguous(cand, diffs, W, best[2], best[5])
+        if len(sel) < best[4]:
             return None
         self._note_all(cand, batch, sel, "accepted")
         info = W[sel].sum(axis=0)
@@ -352,11 +413,12 @@ class LegAssociator:
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=best[1])
 
-    def _unambiguous(self, cand, diffs, W, sel: list[int]) -> list[int]:
-        """The set without pairs whose new (or old) sighting has a second candidate that
-        also fits the set's offset: two neighbouring objects, either could be the match."""
+    def _unambiguous(self, cand, diffs, W, sel: list[int], span: np.ndarray) -> list[int]:
+        """The set without pairs whose new (or old) sighting has a second candidate (among
+        those that could join it, ``span``) that also fits the set's offset: two
+        neighbouring objects, either could be the match."""
         r = diffs - self._mean(diffs, W, sel)
-        fits = np.einsum("ki,kij,kj->k", r, W, r) <= self._inlier
+        fits = (np.einsum("ki,kij,kj->k", r, W, r) <= self._inlier) & span
         ambiguous = set()
         for k in sel:
             i, j = cand[k][0], cand[k][1]

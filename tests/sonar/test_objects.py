@@ -194,3 +194,34 @@ def test_scotsman_wreck_is_found_by_the_object_detector(scotsman_pings):
     assert near, [(o.side, round(o.row), round(o.ground_range_m, 1)) for o in objs]
     # a wreck stands metres high: the tallest object near the hit is
     assert max(o.height_m for o in near if math.isfinite(o.height_m)) > 0.5
+
+
+def _placed(t_s, pos_n_m, nav_sigma_m, rng, height_m=0.5, length_m=1.0):
+    from adaptnav.sonar.objects import ObjectSighting
+
+    return ObjectSighting(t_s=t_s, side="starboard", ground_range_m=20.0, height_m=height_m, shadow_length_m=1.0,
+                          length_along_m=length_m, width_across_m=0.5, contrast=10.0, altitude_m=ALT_M,
+                          pos_n_m=np.asarray(pos_n_m, float) + rng.normal(0.0, 0.25, 2),
+                          nav_cov=np.eye(2) * nav_sigma_m ** 2, det_cov=np.eye(2) * 0.3 ** 2)
+
+
+def test_an_hour_older_leg_in_the_gates_does_not_veto_a_set_of_true_pairs():
+    """Sightings of a much older leg near the new ones (wide gates, 2 m navigation σ): their
+    drift allowance (0.015 m/s × an hour) makes them agree with any offset, and counting them
+    as clutter against the set's own inlier area asked for more objects than there are; the
+    bound counts, per hypothesis, only the old sightings that could join its set."""
+    rng = np.random.default_rng(4)
+    objs = np.column_stack([np.arange(8) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 8)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    # 45–75 min earlier, three legs: other objects 1–2 m from these (the gates hold them), same attributes
+    for t0 in (400.0, 1200.0, 2000.0):
+        assoc.add([_placed(t0 + 4.0 * i, p + rng.uniform(1.0, 2.0, 2) * rng.choice([-1, 1], 2), 2.0, rng)
+                   for i, p in enumerate(objs)])
+    assoc.add([_placed(3700.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)])
+    new = [_placed(3900.0 + 4.0 * (7 - i), p + e_b, 2.0, rng) for i, p in enumerate(objs)]
+    lc = assoc.add(new)
+    assert lc is not None and lc.n_objects >= 6
+    assert all(a.t_s >= 3700.0 for a, _ in lc.pairs)  # each pair with its own object
+    assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs)
+    assert np.linalg.norm(lc.offset_n_m - (e_a - e_b)) < 0.5
