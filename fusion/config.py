@@ -149,11 +149,33 @@ class AttitudeConfig:
     enabled: bool = True
     sigma_roll_pitch_rad: float = math.radians(0.5)
     sigma_yaw_rad: float = math.radians(2.0)
-    # with a navigation-grade IMU the autopilot's attitude (a consumer AHRS: magnetic heading
-    # off by degrees, correlated over minutes) seeds the heading and is then not fused — fused
-    # as white noise it would pull the INS onto the compass's error; the DVL-aided FOG finds
-    # north from the earth rate (gyrocompassing). "fuse": fused with every grade
-    with_navigation_grade: Literal["seed", "fuse"] = "seed"
+    # with a navigation-grade IMU: "learn" — what the ATTITUDE heading is worth is learned
+    # from its variability against the gyro (fusion/aiding/attitude.py HeadingSource): an
+    # INS-class heading (the vehicle's own PHINS/SPRINT: 0.01–0.1° sec L) is fused, a magnetic
+    # one (a consumer AHRS: degrees off, correlated over minutes, which fused as white noise
+    # would pull the INS onto its error) only seeds the heading and the DVL-aided FOG finds
+    # north from the earth rate. "seed": never fused after the seed; "fuse": fused with
+    # sigma_yaw_rad as with every other grade
+    with_navigation_grade: Literal["learn", "seed", "fuse"] = "learn"
+    # "learn": time constant (s) of the source's variability estimate against the gyro, and
+    # the data (s) it needs before any decision
+    learn_window_s: float = 60.0
+    learn_min_s: float = 20.0
+    # a source varying less than this (1-σ, rad) against a navigation-grade gyro is an INS's
+    # heading: a PHINS varies by milli-degrees (its noise; its error drifts over the Schuler
+    # period), a magnetic heading by ≥ 0.1° (noise, tilt compensation with the vehicle's
+    # motion, the thrusters' fields)
+    ins_max_variability_rad: float = math.radians(0.05)
+    # the absolute heading accuracy assumed for an INS-class source (1-σ at the equator, rad;
+    # × sec L): a constant offset does not show against the gyro. PHINS: 0.01° sec L with DVL
+    # aiding, 0.05° sec L without
+    ins_sigma_yaw_rad: float = math.radians(0.05)
+
+    def validate(self) -> None:
+        if not (0.0 < self.learn_window_s <= 3600.0 and 0.0 <= self.learn_min_s <= 3600.0):
+            raise ValueError("attitude: learn_window_s must be within (0, 3600] s and learn_min_s within [0, 3600] s")
+        if not (0.0 < self.ins_max_variability_rad < 0.1 and 0.0 < self.ins_sigma_yaw_rad < 0.1):
+            raise ValueError("attitude: ins_max_variability_rad and ins_sigma_yaw_rad must be within (0, 0.1) rad")
 
 
 @dataclass(frozen=True)

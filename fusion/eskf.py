@@ -122,7 +122,7 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
 
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
-                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "clones")
+                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones")
 
 
 class Estimator:
@@ -199,6 +199,8 @@ class Estimator:
         self._restored = False  # slow states restored: an alignment keeps them
         self._speed_cache: dict[float, float] = {}
         self._surge = SurgeVariance(config.learned_velocity)  # the adaptive surge variance
+        self._heading_source: aid_attitude.HeadingSource | None = None  # ATTITUDE next to a FOG
+        self._yaw_fix_rad = 0.0  # Σ heading corrections of updates and resets (with a HeadingSource)
         self._t_release = -math.inf  # state time of the latest calibrator release applied
         # position-reset evidence: "last_fix" → (t, (n, e), σ) of the last fused fix; per
         # source, the recent gated fixes (tuples: snapshots share them)
@@ -378,6 +380,8 @@ class Estimator:
             self._P[:, :] = 0.5 * (P + P.T)
             self._clones.apply(a, b, K)
             kalman.inject_error(self._x, dx, self._P)
+            if self._heading_source is not None:
+                self._yaw_fix_rad += self._yaw_of(dx)
             self._clones.transform(aid_loop.reset_jacobian(dx))
         return AidStatus(float(t_b_s), src, tuple(offset.tolist()), tuple(y.tolist()), tuple(np.diag(S).tolist()),
                          float(nis) / gate, fused, "" if fused else "gate")
@@ -642,6 +646,7 @@ class Estimator:
         s.t_release = self._t_release
         s.reject_since = dict(self._reject_since)
         s.t_reset = self._t_reset
+        s.yaw_fix_rad = self._yaw_fix_rad
         s.clones = self._clones.copy() if self._clones.active else None
         return s
 
@@ -659,6 +664,7 @@ class Estimator:
         self._t_release = s.t_release
         self._reject_since = dict(s.reject_since)
         self._t_reset = s.t_reset
+        self._yaw_fix_rad = s.yaw_fix_rad
         if s.clones is not None:
             self._clones = s.clones.copy()
         elif self._clones.active:
@@ -999,8 +1005,8 @@ class Estimator:
         if not config.enabled:
             return [rejected(sample.t_s, kind, "disabled")]
         if kind == "attitude" and self._mode == "ins" and self.imu_model.grade == "navigation" \
-                and config.with_navigation_grade == "seed":
-            return [rejected(sample.t_s, kind, "navigation_grade_ins")]  # the heading seed only
+                and config.with_navigation_grade != "fuse":
+            return [self._ins_class_heading(sample, config)]
         if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
             self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
             self._set_k_speed_walk(True)
@@ -1037,6 +1043,53 @@ class Estimator:
                     status = self._fuse(meas, sample.t_s, kind)
         return [status]
 
+    def heading_source_report(self) -> dict | None:
+        """What the ATTITUDE heading was judged to be next to a navigation-grade INS
+        (``with_navigation_grade = "learn"``): ``{"class": "ins" | "compass" | "undecided",
+        "variability_deg": …}`` (its 1-σ variability against the gyro); None when not judged."""
+        src = self._heading_source
+        if src is None:
+            return None
+        t = float(self._clock[0])
+        var = src.var_rad2
+        judged = t - src.t_first_s >= src.config.learn_min_s and math.isfinite(var)
+        kind = ("ins" if src.r_rad2(t) is not None else "compass") if judged else "undecided"
+        return {"class": kind, "variability_deg": math.degrees(math.sqrt(var)) if math.isfinite(var) else None}
+
+    def _ins_class_heading(self, sample, config) -> AidStatus:
+        """ATTITUDE next to a navigation-grade INS: its heading fused only when it is an
+        INS's (``with_navigation_grade = "learn"``, :class:`~adaptnav.fusion.aiding.attitude.HeadingSource`),
+        with the variance learned, while the filter's heading is less certain than it."""
+        if config.with_navigation_grade == "seed":
+            return rejected(sample.t_s, "attitude", "navigation_grade_ins")  # the heading seed only
+        if self._heading_source is None:
+            # without an origin yet: latitude 0 (the earth rate's vertical part then shows as a
+            # drift of the source against the gyro: judged a compass, the safe side)
+            lat = self.origin.lat_rad if self.origin is not None else 0.0
+            self._heading_source = aid_attitude.HeadingSource(config, lat)
+        src = self._heading_source
+        if not self._replaying:
+            src.observe(sample.t_s, sample.yaw_rad, aid_heading.predict(self._x)[0] - self._yaw_fix_rad)
+        r = src.r_rad2(sample.t_s)
+        if r is None:
+            return rejected(sample.t_s, "attitude", "navigation_grade_ins")  # not an INS's heading
+        meas = aid_heading.measure(sample, self._x, math.sqrt(r))
+        h = meas.H[0]
+        if float(h @ kalman.propagated_covariance(self._P, self._acc, self._qdiag) @ h) <= r:
+            return rejected(sample.t_s, "attitude", "heading_known_better")
+        status = self._fuse(meas, sample.t_s, "attitude")
+        if self._rejected_too_long(status, self.config.reset.attitude_after_s):
+            self._reset_attitude(sample, meas, status)
+            status = self._fuse(aid_heading.measure(sample, self._x, math.sqrt(r)), sample.t_s, "attitude")
+        return status
+
+    def _yaw_of(self, dx: np.ndarray) -> float:
+        """The heading change (rad) of the error-state correction ``dx`` (the heading row of
+        the attitude Jacobian, :func:`adaptnav.fusion.aiding.heading.measure`)."""
+        _, pitch, yaw = aid_attitude.predict(self._x)
+        t = math.tan(pitch)
+        return float(math.cos(yaw) * t * dx[ATT][0] + math.sin(yaw) * t * dx[ATT][1] + dx[ATT][2])
+
     def _rejected_too_long(self, status: AidStatus, after_s: float) -> bool:
         """This aid has been gated continuously for ``after_s`` (the run restarts after a reset)."""
         src = status.source
@@ -1061,11 +1114,12 @@ class Estimator:
         """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated."""
         kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
         roll, pitch, yaw = aid_attitude.predict(self._x)
-        if sample.KIND == "attitude":
+        if meas.z.size == 3:  # the whole attitude (a heading-only measurement keeps the tilt)
             roll, pitch = sample.roll_rad, sample.pitch_rad
             var = np.diag(meas.R)
         else:
             var = np.array([*np.diag(self._P)[ATT_TILT], meas.R[0, 0]])
+        self._yaw_fix_rad += math.remainder(sample.yaw_rad - yaw, 2.0 * math.pi)
         self._x[X_Q] = euler_to_quat(roll, pitch, sample.yaw_rad)
         self._P[ATT, :] = 0.0
         self._P[:, ATT] = 0.0
@@ -1157,6 +1211,8 @@ class Estimator:
         if fused and P_prior is not None:
             self._clones.after_update(P_prior, meas.H, meas.R, self._dx)
         if fused:
+            if self._heading_source is not None:
+                self._yaw_fix_rad += self._yaw_of(self._dx)
             reason = ""
             if self._recovering:
                 self._fused_since_recovery += 1

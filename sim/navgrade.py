@@ -17,13 +17,22 @@ gravity of Somigliana with the free-air gradient ``γ(L, h) ≈ γ(L)(1 − 2h/a
 gyro sees all of it: the earth rate is 15 °/h, the transport rate of a 1.5 m/s vehicle
 0.05 °/h, against a navigation-grade bias of 0.003–0.01 °/h.
 
-The autopilot's attitude (ArduSub's EKF3 ``ATTITUDE``) has a consumer AHRS's errors: roll and
-pitch within a few tenths of a degree, and a magnetic heading whose error is a constant offset
-(declination and calibration residue), a heading-dependent deviation ``A sin ψ + B cos ψ``
-(hard iron: thrusters, batteries), a slow wander (Gauss–Markov) and noise.  Marine magnetic
-compasses after a deviation swing keep 1–2° (IMO A.382); a small vehicle's compass near its
-thrusters does worse (Kinsey, Eustice & Whitcomb, "A survey of underwater vehicle navigation",
-IFAC 2006: 1–10° for magnetic heading sensors on vehicles).
+The autopilot's attitude (``ATTITUDE``) comes from one of two classes of source
+(:class:`AhrsErrors`, the same error model with the class's figures):
+
+- a **compass-grade AHRS** (:data:`COMPASS_AHRS`, ArduSub's EKF3 on a consumer IMU and a
+  magnetometer): roll and pitch within a few tenths of a degree, and a magnetic heading whose
+  error is a constant offset (declination and calibration residue), a heading-dependent
+  deviation ``A sin ψ + B cos ψ`` (hard iron: thrusters, batteries), a slow wander
+  (Gauss–Markov) and noise.  Marine magnetic compasses after a deviation swing keep 1–2°
+  (IMO A.382); a small vehicle's compass near its thrusters does worse (Kinsey, Eustice &
+  Whitcomb, "A survey of underwater vehicle navigation", IFAC 2006: 1–10° for magnetic heading
+  sensors on vehicles);
+- the vehicle's own **navigation-grade INS** (:func:`ins_ahrs_errors`, iXblue PHINS / Sonardyne
+  SPRINT class, its attitude forwarded as ``ATTITUDE``): a gyrocompass, no magnetic terms;
+  heading 0.01–0.1° sec L (PHINS: 0.01° sec L with DVL aiding, 0.05° sec L without;
+  roll/pitch 0.01°), its error a slow oscillation (Schuler 84 min, earth period) modelled as
+  an offset plus a Gauss–Markov wander of half-hour correlation, and a milli-degree noise.
 """
 from __future__ import annotations
 
@@ -86,6 +95,18 @@ class AhrsErrors:
     wander_deg: float = 0.5              # Gauss–Markov wander, stationary 1-σ ...
     wander_time_s: float = 300.0         # ... and correlation time
     heading_noise_deg: float = 0.1
+
+
+COMPASS_AHRS = AhrsErrors()
+
+
+def ins_ahrs_errors(lat_deg: float, heading_sec_lat_deg: float = 0.05) -> AhrsErrors:
+    """A navigation-grade INS's attitude errors (module docstring) at latitude ``lat_deg``:
+    heading 1-σ ``heading_sec_lat_deg · sec L`` (split evenly between an offset and a
+    half-hour wander), roll/pitch 0.01°."""
+    h = heading_sec_lat_deg / math.cos(math.radians(lat_deg)) / math.sqrt(2.0)
+    return AhrsErrors(level_bias_deg=0.01, level_noise_deg=0.002, heading_offset_deg=h, deviation_deg=0.0,
+                      wander_deg=h, wander_time_s=1800.0, heading_noise_deg=0.003)
 
 
 def ahrs_attitude(t_s: np.ndarray, euler_rad: np.ndarray, errors: AhrsErrors,

@@ -5,6 +5,8 @@ Used when logs carry ATTITUDE but no usable IMU rate (real ArduSub telemetry: IM
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..state import ATT, N_ERR
@@ -33,3 +35,95 @@ def _measure(sample, ctx: AidContext) -> Measurement:
 
 
 AID = AidSource("attitude", AttitudeConfig, _measure, without_imu=True)
+
+
+class HeadingSource:
+    r"""What a heading source (the autopilot's ``ATTITUDE`` yaw) is worth next to a
+    navigation-grade INS, learned from the data.
+
+    An ``ATTITUDE`` may come from a compass-grade AHRS (a magnetic heading: 1–3° off, its
+    error wandering with the vehicle's magnetic environment and its tilt compensation) or
+    from the vehicle's own navigation-grade INS (PHINS / SPRINT class: 0.01–0.1° sec L, a
+    gyrocompass whose error drifts over the Schuler and earth periods). Fused as white noise,
+    a compass pulls a FOG's heading onto its offset; ignored, an INS's heading is thrown away
+    while the filter's own gyrocompass needs minutes to converge (and wanders a few tenths of
+    a degree meanwhile). Which one it is shows in the source's heading *relative to the
+    gyro*: a navigation-grade gyro propagates the heading to milli-degrees over minutes, so
+
+        d_k = ψ_src(t_k) − ψ_g(t_k),   ψ_g = ψ_INS − Σ δψ (the INS's heading without the corrections of any update)
+
+    holds the source's own error minus a constant. (ψ_g is the strapdown's own propagation at
+    the IMU rate; integrating the body rate between the source's samples instead aliases the
+    vehicle's rate steps: 0.14° RMS at 10 Hz on a lawnmower.) Its variability over a window, an
+    exponentially weighted variance with time constant ``τ = learn_window_s``::
+
+        m ← m + α (d − m),   v ← (1 − α) (v + α (d − m_prev)²),   α = 1 − exp(−Δt / τ)
+
+    (Finch 2009, "Incremental calculation of weighted mean and variance"; normalised by the
+    weight of the data so far), is the source's short-term heading noise. An INS-class source
+    varies by milli-degrees against the gyro (its heading *is* a gyro's); a magnetic heading
+    by ≥ 0.1°. Once ``learn_min_s`` of data are in, a source with ``√v ≤ ins_max_variability_rad``
+    is taken for an INS and fused with
+
+        R = max(v, (ins_sigma_yaw_rad · sec L)²)
+
+    — bounded below by the class's absolute accuracy, which no comparison with the gyro can
+    show (a constant offset drops out of ``d``) — and only while the filter's own heading
+    variance ``h P hᵀ`` exceeds ``R``: a source whose error is correlated over minutes can
+    bring the heading variance down to its own error variance, not below (fused as white
+    noise at 10 Hz it would claim a hundredfold more). A source that varies more is not
+    fused (a compass next to a FOG: the heading seed only, as before). The decision follows
+    the estimate: a source that starts to vary is dropped again.
+
+    Parameters
+    ----------
+    config : AttitudeConfig
+        ``learn_window_s``, ``learn_min_s``, ``ins_max_variability_rad``, ``ins_sigma_yaw_rad``.
+    lat_rad : float
+        Latitude of the mission origin (sec L of the class's accuracy).
+    """
+
+    def __init__(self, config: AttitudeConfig, lat_rad: float):
+        self.config = config
+        self._r_floor = (config.ins_sigma_yaw_rad / max(math.cos(lat_rad), 0.05)) ** 2
+        self._t = -math.inf        # the latest sample observed
+        self._t_first = math.nan   # the first
+        self.mean_rad = 0.0        # EW mean of d
+        self._var = 0.0            # EW variance of d (unnormalised) ...
+        self._weight = 0.0         # ... and the weight of the data in it
+
+    @property
+    def t_first_s(self) -> float:
+        """The first sample observed (nan before)."""
+        return self._t_first
+
+    @property
+    def var_rad2(self) -> float:
+        """EW variance of ``d`` (rad²), normalised by the weight the data have so far (an
+        average of the first minutes, not pulled towards the zero it started from)."""
+        return self._var / self._weight if self._weight > 0 else math.inf
+
+    def observe(self, t_s: float, yaw_src_rad: float, yaw_gyro_rad: float) -> None:
+        """Take the source's heading at ``t_s`` against the gyro-propagated heading ψ_g (rad);
+        samples not after the latest are ignored (a re-fusion of the past sees them again)."""
+        if not (t_s > self._t and math.isfinite(yaw_src_rad) and math.isfinite(yaw_gyro_rad)):
+            return
+        if not math.isfinite(self._t_first):
+            self._t_first = t_s
+            self.mean_rad = math.remainder(yaw_src_rad - yaw_gyro_rad, 2.0 * math.pi)
+        else:
+            d = self.mean_rad + math.remainder(yaw_src_rad - yaw_gyro_rad - self.mean_rad, 2.0 * math.pi)
+            a = 1.0 - math.exp(-(t_s - self._t) / self.config.learn_window_s)
+            dm = d - self.mean_rad
+            self.mean_rad += a * dm
+            self._var = (1.0 - a) * (self._var + a * dm * dm)
+            self._weight = (1.0 - a) * self._weight + a
+        self._t = t_s
+
+    def r_rad2(self, t_s: float) -> float | None:
+        """The source's heading variance (rad²) if it is an INS-class heading worth fusing at
+        ``t_s``, else None (not yet judged, or a compass)."""
+        cfg = self.config
+        if not (t_s - self._t_first >= cfg.learn_min_s and self.var_rad2 <= cfg.ins_max_variability_rad ** 2):
+            return None
+        return max(self.var_rad2, self._r_floor)

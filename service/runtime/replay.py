@@ -387,6 +387,7 @@ def _filter_report(estimator: Any) -> dict:
     imu = estimator.imu_model
     return {"imu_grade": imu.grade, "imu_grade_why": imu.why, "imu_source": imu.source,
             "imu_quantized": imu.quantized, "earth_rotation": imu.earth_rotation,
+            "attitude_heading": estimator.heading_source_report(),
             "resets": dict(sorted(estimator.resets.items())),
             "zero_velocity_updates": estimator.zero_velocity_updates,
             "invalid_reasons_at_end": estimator.invalid_reasons()}

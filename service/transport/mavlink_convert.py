@@ -189,6 +189,9 @@ class ConvertConfig:
     # message); "mean": displacement over the interval in the frame at its start (mid-interval)
     dvl_delta: Literal["ping", "mean"] = "ping"
     dvl_max_interval_s: float = 5.0
+    # a delta without a time of its own (time_usec = 0, as BlueOS sends it) is placed at its
+    # reception minus this (s): the DVL's and its driver's delivery latency, if known
+    dvl_latency_s: float = 0.0
     vision_speed_frame: Literal["body", "ned"] = "body"  # BlueOS sends the DVL's body-frame velocity
     vision_position_sigma_m: float = 2.0  # GLOBAL_VISION_POSITION_ESTIMATE without a covariance
     # a sample without a placeable time is held at most this long (receive time) before the
@@ -205,6 +208,8 @@ class ConvertConfig:
             raise ValueError("dvl_confidence_fom_max_m_s and vision_position_sigma_m must be > 0")
         if self.hold_max_s <= 0 or self.hold_max_messages <= 0:
             raise ValueError("hold_max_s and hold_max_messages must be > 0")
+        if not 0.0 <= self.dvl_latency_s <= 1.0:
+            raise ValueError("dvl_latency_s must be within [0, 1] s")
 
 
 @dataclass(frozen=True)
@@ -512,7 +517,7 @@ def usbl_from_gps_input(msg: Any, t_s: float, cfg: ConvertConfig) -> UsblSample:
     return UsblSample(t_s, msg.lat * DEG_E7_TO_RAD, msg.lon * DEG_E7_TO_RAD, depth, sigma_h, sigma_v)
 
 
-def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig) -> DvlSample:
+def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig, timed: bool = True) -> DvlSample:
     """VISION_POSITION_DELTA (a DVL driver's displacement over ``time_delta_usec``) → DvlSample.
 
     ``dvl_delta = "ping"`` (default): the Water Linked DVL driver of BlueOS sends
@@ -530,6 +535,12 @@ def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig)
     A rotation above ``dvl_max_angle_delta_rad`` within one delta is rejected: a mean over
     it is not one body-frame velocity.  The body frame is the DVL's frame for the filter
     (``filter.dvl.rotation_bd_rpy_rad`` = 0: the driver has already rotated its head).
+
+    Time: ``t_end_s`` is the end of the interval — the message's own ``time_usec`` when it
+    has one (``timed``), else its reception, which comes ``dvl_latency_s`` after the DVL's
+    measurement (subtracted). A ping is valid at the end, a mean at mid-interval
+    ``t_end − Δt/2``; the estimator fuses either at its own time, against the state then
+    (:mod:`adaptnav.fusion.eskf`, late measurements up to ``filter.max_delay_s``).
     """
     dt = msg.time_delta_usec / 1e6
     if not 0.0 < dt <= cfg.dvl_max_interval_s:
@@ -549,6 +560,8 @@ def dvl_from_vision_position_delta(msg: Any, t_end_s: float, cfg: ConvertConfig)
     sigma = cfg.dvl_confidence_fom_max_m_s * (1.0 - min(max(conf, 0.0), 100.0) / 100.0)
     sigma = sigma if sigma > 0.0 else math.nan
     valid = conf >= cfg.dvl_min_confidence
+    if not timed:
+        t_end_s -= cfg.dvl_latency_s
     if cfg.dvl_delta == "ping":
         return DvlSample(t_end_s, tuple(float(v) for v in dpos / dt), valid, sigma_m_s=sigma)
     from scipy.spatial.transform import Rotation
@@ -836,6 +849,12 @@ class MavlinkConverter:
         comps = self.config.aid_component_ids
         return not comps or msg.get_srcComponent() in comps
 
+    def _timed(self, msg: Any) -> bool:
+        """``msg`` carries a time of its own that :meth:`_stamp` uses (UNIX ``time_usec``, or
+        the autopilot's boot clock), not its reception."""
+        usec = getattr(msg, "time_usec", 0)
+        return usec >= UNIX_EPOCH_MIN_US or (usec > 0 and self._is_autopilot(msg))
+
     def _stamp(self, msg: Any, mtype: str, recv_s: float | None) -> float | None:
         """Mission time of ``msg`` (None: not placeable yet, hold it)."""
         own_clock = self._is_autopilot(msg)
@@ -975,7 +994,7 @@ _HANDLERS = {
     "GPS_RAW_INT": MavlinkConverter._gps_raw,
     "GPS_INPUT": MavlinkConverter._gps_input,
     "DISTANCE_SENSOR": lambda self, m, k, t: altitude_from_distance_sensor(m, t, self.config),
-    "VISION_POSITION_DELTA": lambda self, m, k, t: dvl_from_vision_position_delta(m, t, self.config),
+    "VISION_POSITION_DELTA": lambda self, m, k, t: dvl_from_vision_position_delta(m, t, self.config, self._timed(m)),
     "VISION_SPEED_ESTIMATE": lambda self, m, k, t: dvl_from_vision_speed(m, t, self.config),
     "GLOBAL_VISION_POSITION_ESTIMATE": MavlinkConverter._vision_position,
 }

@@ -21,7 +21,9 @@ What the log holds, as a BlueOS/ArduSub vehicle with a fibre-optic INS on the co
   velocity at the ping (the simulator's 4-beam Janus DVL: scale factor, misalignment, beam
   biases, outliers, drop-outs) and ``dt`` the time since its previous ping,
   ``angle_delta`` the difference of the autopilot's Euler angles, ``confidence`` from the
-  figure of merit, ``time_usec = 0``; invalid pings are not sent;
+  figure of merit, ``time_usec = 0`` (or, ``dvl_time_usec``, the ping's UNIX time, as a
+  driver that forwards the DVL's time of validity would), sent ``dvl_latency_s`` after the
+  ping; invalid pings are not sent;
 - one ``GPS_INPUT`` from the underwater GPS extension (1, 220) at the start, the vehicle
   already under water: ``time_usec = 0``, HDOP only (``ignore_flags = 253``), as in the real log;
 - ``HEARTBEAT`` at 1 Hz from the autopilot, the GCS (255, 190) and the IMU driver.
@@ -79,6 +81,7 @@ class AuvLog:
     ahrs: AhrsErrors = AhrsErrors()      # the autopilot's attitude errors
     sim_overrides: tuple[str, ...] = ()  # scenario overrides after the class's (error bisection)
     dvl_latency_s: float = 0.05          # the DVL driver sends this long after the ping
+    dvl_time_usec: bool = False          # ... stamping it with the ping's UNIX time (BlueOS: 0)
 
 
 def _boot_s(t_sim: np.ndarray | float) -> np.ndarray | float:
@@ -205,7 +208,8 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
         fom = 0.004 + 0.5 * max(0.0, float(np.linalg.norm(v_d) - v.speed_m_s) - 0.05)
         conf = 100.0 * (1.0 - min(0.4, fom) / 0.4)
         dang = [0.0, 0.0, 0.0] if last_att is None else list(map(float, cur_att - last_att))
-        w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_position_delta_encode", 0, int(round(dt * 1e6)), dang,
+        stamp_us = int(round((UNIX0_S + t) * 1e6)) if v.dvl_time_usec else 0
+        w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_position_delta_encode", stamp_us, int(round(dt * 1e6)), dang,
                list(map(float, v_d * dt)), conf)
         last_att = cur_att
 

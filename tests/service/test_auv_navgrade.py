@@ -14,6 +14,7 @@ Measure::
 
     python -m tests.service.test_auv_navgrade OUT_DIR           # the three variants of the test
     python -m tests.service.test_auv_navgrade OUT_DIR --sweep   # seeds 1-8 × straight/lawnmower
+    python -m tests.service.test_auv_navgrade OUT_DIR --sweep --ahrs ins  # ATTITUDE from a PHINS-class INS
     python -m tests.service.test_auv_navgrade OUT_DIR --bisect 3 lawnmower  # heading error per source
 
 The bisection (each of the generator's error sources alone, and each removed) on the 6-min
@@ -184,11 +185,18 @@ def bisect(out_dir: str, seed: int, pattern: str) -> None:
             run(f"all but {name}", {}, (), no_ahrs)
 
 
-def main(out_dir: str, sweep: bool = False) -> None:
+def main(out_dir: str, sweep: bool = False, ahrs: str = "compass") -> None:
+    from dataclasses import replace
+
+    from adaptnav.sim.navgrade import COMPASS_AHRS, ins_ahrs_errors
+
     out = Path(out_dir)
     variants = VARIANTS if not sweep else tuple(
         AuvLog(f"{pattern}{seed}", seed=seed, pattern=pattern, heading_deg=30.0 * seed, leg_length_m=200.0,
                duration_s=360.0) for seed in range(1, 9) for pattern in ("straight", "lawnmower"))
+    # the ATTITUDE's source: a compass-grade AHRS, or the vehicle's own navigation-grade INS
+    variants = tuple(replace(v, name=f"{v.name}_{ahrs}", ahrs=COMPASS_AHRS if ahrs == "compass"
+                             else ins_ahrs_errors(v.lat_deg)) for v in variants)
     print(f"{'variant':10s} {'dist m':>7s} {'ours end':>9s} {'DR end':>8s} {'shared end':>10s} {'ours RMS':>9s} "
           f"{'DR RMS':>8s} {'shared RMS':>10s} {'yaw err':>8s} {'wall s':>7s}")
     for v in variants:
@@ -202,5 +210,6 @@ if __name__ == "__main__":
     if "--bisect" in sys.argv[2:]:  # OUT --bisect SEED PATTERN
         i = sys.argv.index("--bisect")
         bisect(sys.argv[1], int(sys.argv[i + 1]), sys.argv[i + 2])
-    else:
-        main(sys.argv[1], "--sweep" in sys.argv[2:])
+    else:  # OUT [--sweep] [--ahrs compass|ins]
+        ahrs = sys.argv[sys.argv.index("--ahrs") + 1] if "--ahrs" in sys.argv else "compass"
+        main(sys.argv[1], "--sweep" in sys.argv[2:], ahrs)
