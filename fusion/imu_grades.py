@@ -7,19 +7,25 @@ can be overridden one by one in ``[filter.imu]``.
 - ``consumer`` — the MEMS parts in autopilots. Every flight controller ArduSub/ArduPilot runs on
   carries them (Pixhawk 1: InvenSense MPU-6000; Pixhawk 4: ICM-20689, BMI055; Pixhawk 6C/6X:
   ICM-42688-P, BMI055/BMI088; Cube Orange: ICM-20948, ICM-20649, ICM-20602; Blue Robotics
-  Navigator: ICM-20602). Datasheet white-noise densities, gyro / accelerometer:
-  MPU-6000 (PS-MPU-6000A-00 rev 3.4) 0.005 °/s/√Hz, 400 µg/√Hz; ICM-20602 (DS-000176)
-  0.004 °/s/√Hz, 100 µg/√Hz, gyro zero-rate offset ±1 °/s untrimmed; ICM-42688-P (DS-000347)
-  0.0028 °/s/√Hz, 70 µg/√Hz — the quietest of them, 4.9e-5 rad/s/√Hz
-  (:data:`MEMS_GYRO_DENSITY_FLOOR`); Bosch BMI088 (BST-BMI088-DS001) 0.014 °/s/√Hz,
-  175 µg/√Hz. On a vehicle, through
+  Navigator: ICM-20602). Datasheet white-noise densities, gyro / accelerometer (checked
+  2026-11-24 against the datasheets' text as published):
+  MPU-6000 (PS-MPU-6000A-00 rev 3.4, §6.1/6.2) rate noise spectral density 0.005 °/s/√Hz at
+  10 Hz, accelerometer 400 µg/√Hz at 10 Hz; initial zero-rate tolerance ±20 °/s, zero-g
+  ±50 mg (X, Y) and ±80 mg (Z); ICM-20602 (DS-000176 rev 1.0) 4 mdps/√Hz, 100 µg/√Hz;
+  ICM-42688-P (DS-000347 v1.7) 2.8 mdps/√Hz, 70 µg/√Hz — the quietest of them,
+  4.9e-5 rad/s/√Hz (:data:`MEMS_GYRO_DENSITY_FLOOR`); Bosch BMI088 gyro 0.014 °/s/√Hz (Bosch
+  Sensortec's support, the BMG160 gyro it contains; its accelerometer's density was not
+  found in a source we could read). None of these datasheets states an in-run bias
+  instability. On a vehicle, through
   an autopilot's decimated MAVLink stream, the white noise is far larger: ArduPilot's EKF3
   defaults (EK3_ACC_P_NSE, EK3_GYRO_P_NSE) are used. An autopilot trims the
   gyro offset at boot; what remains over a dive is tens to hundreds of °/h (0.1 °/s taken),
-  accelerometer offsets after calibration ~10 mg; in-run instability ~10 °/h, 0.1 mg.
+  accelerometer offsets after calibration ~10 mg; in-run instability ~10 °/h, 0.1 mg (the
+  class's order of magnitude, not a datasheet figure).
 - ``tactical`` — MEMS tactical IMUs: Analog Devices ADIS16495 (ARW 0.12 °/√h, in-run bias
-  0.8 °/h, VRW 0.008 m/s/√h), Safran STIM300 (ARW 0.15 °/√h, bias instability 0.5 °/h,
-  VRW 0.07 m/s/√h, accelerometer bias instability 0.05 mg); bias 1-σ 2 °/h, 0.5 mg.
+  0.8 °/h, VRW 0.008 m/s/√h; not re-checked), Safran STIM300 (datasheet rev 9, 10 g
+  accelerometers: ARW 0.15 °/√h, bias instability 0.5 °/h, VRW 0.06 m/s/√h, accelerometer
+  bias instability 0.05 mg); bias 1-σ 2 °/h, 0.5 mg.
 - ``navigation`` — fibre-optic gyro INS of the iXblue PHINS / Honeywell HG9900 class:
   gyro bias < 0.01 °/h, ARW ≈ 0.0025 °/√h; accelerometer bias ≈ 50 µg, noise ≈ 15 µg/√Hz.
   These see the earth rate (15 °/h): mechanised with earth rate, Coriolis and normal
