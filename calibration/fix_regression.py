@@ -48,8 +48,26 @@ def fix_pairs(observations) -> list[tuple[int, PositionFix]]:
     return out
 
 
+def dead_reckoning(v_m_s, dt_s, headings_rad, params):
+    """Cumulative dead-reckoned displacement at unit speed scale (T+1, 2) (m), time (T+1,) (s)
+    and dead-reckoning variance per axis (T+1,) (m², ``params`` for the step ``dt_s``) from
+    pose 0, for surges ``v_m_s`` (T,) and headings at the poses (T+1,) (module docstring)."""
+    v = np.asarray(v_m_s, dtype=float)
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    th = np.asarray(headings_rad, dtype=float)
+    dth = (np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi
+    phi = th[:-1] + 0.5 * dth
+    c = dt * np.sinc(dth / (2.0 * np.pi))  # 2 sin(Δθ/2)/(Δθ/δt)
+    d = (c * v)[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
+    cum_d = np.vstack([np.zeros(2), np.cumsum(d, axis=0)])
+    cum_t = np.concatenate([[0.0], np.cumsum(dt)])
+    q_step = dt**2 * (v**2 * params.var_vv + params.var_v1 + params.var_s)
+    return cum_d, cum_t, np.concatenate([[0.0], np.cumsum(q_step)])
+
+
 def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, current_n_m_s,
-                   step_weights=None, max_condition: float = 30.0, max_k_v_sigma: float = math.inf):
+                   step_weights=None, max_condition: float = 30.0, max_k_v_sigma: float = math.inf,
+                   landmark_rows=None):
     """(k_V, current (2,), held names) from fixes vs dead reckoning (module docstring).
 
     Parameters
@@ -63,6 +81,9 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     step_weights : (T,) forgetting weights λ_t (default 1)
     max_k_v_sigma : k_V is held when its standard error exceeds this
         (:func:`adaptnav.calibration.mstep.k_v_informed`)
+    landmark_rows : (X (2K, 3), y (2K,), w (2K,)), optional
+        More rows of the same regression with their weights: side-scan pairs
+        (:func:`adaptnav.calibration.sidescan.landmark_rows`, over the calibrator's longer memory)
 
     Returns
     -------
@@ -75,19 +96,10 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     lam = np.ones(T) if step_weights is None else np.asarray(step_weights, dtype=float)
     theta0 = np.array([k_v, float(current_n_m_s[0]), float(current_n_m_s[1])])
     fixes = fix_pairs(observations)
-    from adaptnav.calibration.sidescan import landmark_pairs
-
-    links = landmark_pairs(observations, th)
-    if len(fixes) < 2 and not links:
+    extra = landmark_rows if landmark_rows is not None and len(landmark_rows[1]) else None
+    if len(fixes) < 2 and extra is None:
         return k_v, (theta0[1], theta0[2]), ("k_v", "current_n", "current_e")
-    dth = (np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi
-    phi = th[:-1] + 0.5 * dth
-    c = dt * np.sinc(dth / (2.0 * np.pi))  # 2 sin(Δθ/2)/(Δθ/δt)
-    d = (c * v)[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
-    cum_d = np.vstack([np.zeros(2), np.cumsum(d, axis=0)])
-    cum_t = np.concatenate([[0.0], np.cumsum(dt)])
-    q_step = dt**2 * (v**2 * params.var_vv + params.var_v1 + params.var_s)
-    cum_q = np.concatenate([[0.0], np.cumsum(q_step)])
+    cum_d, cum_t, cum_q = dead_reckoning(v, dt, th, params)
     rows, ys, ws = [], [], []
     for (a, fa), (b, fb) in zip(fixes[:-1], fixes[1:]):
         D = cum_d[b] - cum_d[a]
@@ -97,18 +109,10 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
         rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
         ys += [fb.pos_n_m[0] - fa.pos_n_m[0], fb.pos_n_m[1] - fa.pos_n_m[1]]
         ws += [w, w]
-    # landmark pairs: the displacement between their poses (calibration.sidescan); the pairs
-    # of one loop closure share their dead reckoning, so they share one weight
-    group_size: dict[int, int] = {}
-    for *_, g in links:
-        group_size[g] = group_size.get(g, 0) + 1
-    for a, b, delta, var_pair, g in links:
-        D = cum_d[b] - cum_d[a]
-        tau = cum_t[b] - cum_t[a]
-        w = lam[b - 1] / (var_pair + (cum_q[b] - cum_q[a])) / (group_size[g] if g >= 0 else 1)
-        rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
-        ys += [float(delta[0]), float(delta[1])]
-        ws += [w, w]
+    if extra is not None:  # side-scan pairs (calibration.sidescan.landmark_rows), already weighted
+        rows += [list(r) for r in extra[0]]
+        ys += list(extra[1])
+        ws += list(extra[2])
     X, y, sw = np.array(rows), np.array(ys), np.sqrt(np.array(ws))
     order = (1, 2, 0)  # current first, then k_V
     kept, _ = identifiable_terms(X * sw[:, None], order, max_condition)

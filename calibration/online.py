@@ -151,6 +151,10 @@ class CalibratorConfig:
     use_dvl: bool = True
     min_dvl_steps: int = 24
     min_dvl_samples: int = 3
+    # side-scan pairs (calibration.sidescan) are kept this many steps for the (k_V, current)
+    # fit, beyond the EM window: the two sightings of an object on reciprocal 500 m legs are
+    # up to 12 min apart and the filter's link comes back ~80 s after the later one
+    landmark_memory_steps: int = 192
 
     def validate(self) -> None:
         if self.window_steps < 2 or self.period_steps < 1 or self.min_window_steps < 2:
@@ -213,7 +217,8 @@ def gate_reason(params: MotionParams, config: CalibratorConfig) -> str:
 def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, config: CalibratorConfig,
                      rng: np.random.Generator, t_s: float = math.nan,
                      initial_params: MotionParams | None = None, current_n_m_s=None,
-                     headings_rad=None, inertial: InertialTrack | None = None) -> Release:
+                     headings_rad=None, inertial: InertialTrack | None = None,
+                     landmark_memory=None) -> Release:
     """EM over one window + the sanity gate; returns the :class:`Release` record.
 
     ``params`` (and ``initial_params``, the prior centre when ``config.prior_anchor ==
@@ -224,7 +229,10 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     (:func:`adaptnav.calibration.fix_regression.fix_regression`). With ``inertial`` (the filter's
     free-inertial velocity over the window; the window starts at ``t_s − T·step_s``) the
     IMU's surge increments join the M-step and the log-likelihood
-    (:mod:`adaptnav.calibration.inertial`). The release carries model-step parameters; the gate
+    (:mod:`adaptnav.calibration.inertial`). ``landmark_memory`` = (surges (M,), headings
+    (M+1,), observation lists (M+1,)) over the calibrator's longer memory ending at the
+    window's last pose: its side-scan pairs join the fix regression
+    (:func:`adaptnav.calibration.sidescan.landmark_rows`) and count as position information. The release carries model-step parameters; the gate
     compares with the window log-likelihood of the current ones.
     """
     T = len(v)
@@ -239,6 +247,13 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
 
     n_pos = sum(1 for obs in observations
                 if any(not isinstance(o, HeadingObservation) for o in (obs or ())))
+    lm_rows = None
+    if landmark_memory is not None:
+        from adaptnav.calibration.sidescan import landmark_rows
+        v_h, th_h, obs_h = landmark_memory
+        lam_h = config.forgetting ** np.arange(len(v_h) - 1, -1, -1, dtype=float)
+        lm_rows = landmark_rows(v_h, dt, th_h, obs_h, to_window(params), lam_h)
+        n_pos += len(lm_rows[1]) // 2  # each pair: a displacement between two poses
     if n_pos < config.min_position_poses:
         why = (f"too little position information: {n_pos} pose(s) with fixes/ranges/landmarks "
                f"< {config.min_position_poses}")
@@ -251,7 +266,7 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     if headings_rad is not None and config.fix_regression:
         from adaptnav.calibration.fix_regression import fix_regression
         k_fix, cur_fix, _ = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
-                                           lam, config.max_condition, config.max_k_v_sigma)
+                                           lam, config.max_condition, config.max_k_v_sigma, lm_rows)
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
             start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
             start_cur = cur_fix if config.fit_current else cur0
@@ -305,7 +320,8 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     seen = [o for obs in observations for o in (obs or ())]
     teachers = tuple(t for t, used in (("fixes", any(isinstance(o, PositionFix) for o in seen)),
                                        ("landmarks", any(isinstance(o, (LandmarkSighting, RangeObservation))
-                                                         for o in seen)),
+                                                         for o in seen) or bool(lm_rows is not None
+                                                                                and len(lm_rows[1]))),
                                        ("IMU", inc is not None)) if used)
     return Release(t_s, new, ll_new, True, "ok" + held + note + f"; taught by {', '.join(teachers)}",
                    res.iterations, cur, teachers)
@@ -429,6 +445,10 @@ class OnlineCalibrator:
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions (the image's row spacing), tied to fixes
         from adaptnav.calibration.sidescan import LinkIds
         self._link_ids = LinkIds()
+        # the memory of side-scan pairs: (pose k, surge of step k−1 → k, heading at k) per closed
+        # pose, and the linked sightings by pose (config.landmark_memory_steps)
+        self._lm_poses: deque = deque(maxlen=config.landmark_memory_steps + 1)
+        self._lm_obs: dict[int, list] = {}
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
@@ -563,12 +583,15 @@ class OnlineCalibrator:
                     side = 1.0 if o.side == "starboard" else -1.0
                     ob = LandmarkSighting(tid, d, side * o.ground_range_m,
                                           math.hypot(s_al, c.lag_speed_sigma * abs(d)), s_ac, group)
-                    if k > self._closed:
+                    oldest = self._lm_poses[0][0] if self._lm_poses else self._closed + 1
+                    if k < oldest:
+                        self._reject("landmark link older than the landmark memory")
+                        continue
+                    self._lm_obs.setdefault(k, []).append(ob)
+                    if k > self._closed:  # and in the EM window's observations (its landmark map)
                         self._obs.setdefault(k, []).append(ob)
                     elif 0 <= self._closed - k < len(self._win_obs):
                         self._win_obs[len(self._win_obs) - 1 - (self._closed - k)].append(ob)
-                    else:
-                        self._reject("landmark link older than the window")
 
     def _inertial(self, sample) -> None:
         """Buffer the filter's free-inertial velocity (no stepping: it is a filter output at
@@ -743,6 +766,15 @@ class OnlineCalibrator:
         self._win_obs.append(obs)
         cloud = self._poses[systematic_resample(np.exp(self._log_w), self.rng, c.n_particles)]
         self._clouds.append(cloud)
+        # the heading observed at the pose where there is one: the cloud's lags in a turn (its
+        # yaw-rate control is the latest heading rate; 8-13° at the ends of a 5 s-step turn),
+        # which made the dead-reckoned turn 3-4 % longer than the truth
+        seen = [o.yaw_rad for o in obs if isinstance(o, HeadingObservation)]
+        heading = seen[0] if seen else math.atan2(float(np.mean(np.sin(cloud[:, 2]))),
+                                                  float(np.mean(np.cos(cloud[:, 2]))))
+        self._lm_poses.append((k, self._v[-1] if k > 0 and self._v else math.nan, heading))
+        if self._lm_obs and min(self._lm_obs) < self._lm_poses[0][0]:
+            self._lm_obs = {kk: o for kk, o in self._lm_obs.items() if kk >= self._lm_poses[0][0]}
         n_steps = len(self._v)
         if self._since_em >= c.period_steps and n_steps >= c.min_window_steps:
             self._since_em = 0
@@ -788,7 +820,8 @@ class OnlineCalibrator:
         else:
             rel = calibrate_window(self.params, v, w, self.config.step_s, obs, init, self.config, self.rng, t_s,
                                    initial_params=self.params0, current_n_m_s=self.current_n_m_s,
-                                   headings_rad=circular_mean_headings(clouds), inertial=inertial)
+                                   headings_rad=circular_mean_headings(clouds), inertial=inertial,
+                                   landmark_memory=self._landmark_memory())
         if rel.accepted:
             self._taught_by_dvl = "DVL" in rel.teachers
             self._dvl_steps_new = 0
@@ -796,6 +829,14 @@ class OnlineCalibrator:
             self.current_n_m_s = rel.current_n_m_s
             self._win_params = rescale_step(rel.params, self.config.model_step_s, self.config.step_s)
         self._pending.append(rel)
+
+    def _landmark_memory(self):
+        """(surges, headings, observation lists) over the landmark memory, or None without pairs."""
+        poses = list(self._lm_poses)
+        if len(poses) < 2 or not any(poses[0][0] <= k for k in self._lm_obs):
+            return None
+        return (np.array([p[1] for p in poses[1:]]), np.array([p[2] for p in poses]),
+                [self._lm_obs.get(p[0], []) for p in poses])
 
     def poll(self) -> list:
         """Releases (accepted or refused) computed since the last call, and the side-scan's

@@ -26,9 +26,12 @@ them with the current times the time between the sightings. It enters the calibr
   at the window poses of ``a`` and ``b``, which the EM's landmark map scores (every sighting
   against the map of the *earlier* sightings only: :func:`adaptnav.calibration.em.freeze_landmarks`);
 * as relative-displacement rows of the closed-form (k_V, current) fit that warm-starts EM
-  (:func:`adaptnav.calibration.fix_regression.fix_regression`, :func:`landmark_pairs`): a frozen
+  (:func:`adaptnav.calibration.fix_regression.fix_regression`, :func:`landmark_rows`): a frozen
   map during an outage carries the whole absolute uncertainty of the earlier pose and says
-  little, while the displacement itself is exact in the pair.
+  little, while the displacement itself is exact in the pair. The calibrator keeps the
+  controls, headings and linked sightings over a memory longer than its EM window
+  (``landmark_memory_steps``): the two sightings of a pair of reciprocal 500 m legs are up to
+  12 min apart, and the link comes back a block and the calibrator's latency later.
 
 The pairs of one loop closure share most of their dead-reckoning error (their sightings are
 seconds apart on each leg), so they are one piece of evidence: :attr:`LandmarkSighting.group`
@@ -158,4 +161,51 @@ def landmark_pairs(observations, headings_rad) -> list[tuple[int, int, np.ndarra
     return out
 
 
-__all__ = ["ObjectBatch", "CalibratorSonar", "LinkIds", "landmark_pairs", "body_sigmas_m"]
+def landmark_rows(v_m_s, dt_s, headings_rad, observations, params, step_weights):
+    """Rows of the (k_V, current) regression (:func:`adaptnav.calibration.fix_regression.fix_regression`)
+    from the landmark pairs among ``observations`` (T+1 pose lists) over steps ``v_m_s`` (T,):
+    ``p_b − p_a = k_V D_ab + u τ_ab``, whitened by the covariance of the pair's two sightings
+    plus that of the dead reckoning between the poses, weight ``λ_b`` (forgetting at the later
+    pose) shared by the pairs of a closure.
+
+    The dead reckoning's covariance is not isotropic: the surge noise (``σ_Vv v``, ``σ_V1``)
+    acts along the heading of each step, the sway's (``σ_S``) across it. On reciprocal legs the
+    displacement *across* the legs (the turn) carries k_V, and it is hardly touched by the
+    surge noise of minutes along the legs that makes the along-track part metres uncertain.
+
+    Returns ``(X (2K, 3), y (2K,), w (2K,))``.
+    """
+    from adaptnav.calibration.fix_regression import dead_reckoning
+
+    pairs = landmark_pairs(observations, headings_rad)
+    if not pairs:
+        return np.empty((0, 3)), np.empty(0), np.empty(0)
+    v = np.asarray(v_m_s, dtype=float)
+    dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
+    th = np.asarray(headings_rad, dtype=float)
+    cum_d, cum_t, _ = dead_reckoning(v, dt, th, params)
+    phi = th[:-1] + 0.5 * ((np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi)
+    u = np.column_stack([np.cos(phi), np.sin(phi)])
+    q_along = dt ** 2 * (v ** 2 * params.var_vv + params.var_v1)
+    q_across = dt ** 2 * params.var_s
+    Q = (q_along - q_across)[:, None, None] * np.einsum("ti,tj->tij", u, u) + q_across[:, None, None] * np.eye(2)
+    cum_Q = np.concatenate([np.zeros((1, 2, 2)), np.cumsum(Q, axis=0)])
+    lam = np.asarray(step_weights, dtype=float)
+    group_size: dict[int, int] = {}
+    for *_, g in pairs:
+        group_size[g] = group_size.get(g, 0) + 1
+    X, y, w = [], [], []
+    for a, b, delta, var_pair, g in pairs:
+        D = cum_d[b] - cum_d[a]
+        tau = cum_t[b] - cum_t[a]
+        L = np.linalg.cholesky(var_pair * np.eye(2) + cum_Q[b] - cum_Q[a])
+        Xw = np.linalg.solve(L, np.array([[D[0], tau, 0.0], [D[1], 0.0, tau]]))
+        yw = np.linalg.solve(L, np.asarray(delta, float))
+        wt = lam[b - 1] / (group_size[g] if g >= 0 else 1)
+        X += Xw.tolist()
+        y += yw.tolist()
+        w += [wt, wt]
+    return np.array(X), np.array(y), np.array(w)
+
+
+__all__ = ["ObjectBatch", "CalibratorSonar", "LinkIds", "landmark_pairs", "landmark_rows", "body_sigmas_m"]

@@ -25,6 +25,9 @@ def add_arguments(parser):
     parser.add_argument("--jobs", type=int, default=0,
                         help="worker processes (default: the CPUs this process may use); same output for any number")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    parser.add_argument("--calibrator", action="store_true",
+                        help="landmarks: also run the survey through the runner with the online calibrator "
+                             "(k_speed_error_percent_10min_after_change, ...; service.tools.landmark_learning)")
     parser.add_argument("--plots", metavar="DIR", help="write error-vs-time plots (one per row) into DIR")
     parser.add_argument("--initial", metavar="SDD,STR", help="custom row: initial σ_Dd,σ_Tr")
     parser.add_argument("--changed", metavar="SDD,STR", help="custom row: changed σ*_Dd,σ*_Tr")
@@ -100,6 +103,10 @@ def _run_landmarks(args) -> int:
     except (ConfigError, ValueError) as e:
         raise SystemExit(f"adaptnav experiment landmarks: {e}")
     result = run(scenario).to_dict()
+    if args.calibrator:
+        from adaptnav.service.tools.landmark_learning import run as run_learning
+
+        result.update(run_learning(scenario))
     if args.json:
         print(json.dumps(result))
     else:
