@@ -98,8 +98,8 @@ def _finite(sample) -> bool:
 
 def _sigma_h_m(P: np.ndarray) -> float:
     """Horizontal position σ (m) of a covariance (18×18): the larger of north and east."""
-    var_n, var_e = np.diag(P)[POS_NE]
-    return math.sqrt(max(var_n, var_e, 0.0))
+    n, e = POS_NE.start, POS_NE.start + 1
+    return math.sqrt(max(float(P[n, n]), float(P[e, e]), 0.0))
 
 
 def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurement:
@@ -469,6 +469,14 @@ class Estimator:
         good state with an inflated covariance (:meth:`_recover`), counted in
         ``rejected["filter_recovered"]``; the solution is invalid until it has converged again.
         """
+        kind = sample.KIND
+        if kind in IGNORED_KINDS:
+            return []
+        if kind == "rpm" and _finite(sample):
+            # changes no number of the state (the guard's verdict is the previous sample's)
+            self._record("sample", sample)
+            self._take_rpm(sample)
+            return []
         try:
             out = self._process(sample)
         except np.linalg.LinAlgError:

@@ -49,6 +49,11 @@ class LifecycleLog(Sink):
 
     def on_nav(self, state: Any) -> None:
         t = float(state.t_s)
+        if self._aligned and state.valid == self._valid:  # nothing to say (every state but a few)
+            rc = int(state.reset_counter)
+            if rc != self._reset_counter:
+                self._on_reset(rc, t)
+            return
         cov = state.cov
         sigma_h = math.sqrt(max(float(np.sum(np.diag(np.asarray(cov))[POS_NE])), 0.0))
         if not self._aligned:
@@ -67,7 +72,11 @@ class LifecycleLog(Sink):
                      invalid_reasons=reasons)
             self._valid = bool(state.valid)
         rc = int(state.reset_counter)
-        if self._reset_counter is not None and rc != self._reset_counter:
+        if rc != self._reset_counter:
+            self._on_reset(rc, t)
+
+    def _on_reset(self, rc: int, t: float) -> None:
+        if self._reset_counter is not None:
             emit("reset", "filter reset #%d at data time %.2f s", rc, t, level=self._warn, t_s=t,
                  reset_counter=rc)
         self._reset_counter = rc

@@ -53,7 +53,14 @@ def fmt(value: Any) -> str:
 
 
 def _vec(values: Any) -> str:
-    return ";".join(format(float(v), ".10g") for v in values)
+    # ``%`` formats a number as ``format(float(v), ".10g")`` does, in one call per vector
+    fmt_n = _VEC_FORMATS.get(len(values))
+    if fmt_n is None:
+        return ";".join(format(float(v), ".10g") for v in values)
+    return fmt_n % tuple(values)
+
+
+_VEC_FORMATS = {n: ";".join(["%.10g"] * n) for n in range(1, 7)}
 
 
 def _state_slices():
@@ -176,8 +183,8 @@ class TrajectoryCsvSink(Sink):
         i0 = self._pos.start
         sig = [math.sqrt(max(float(cov[i, i]), 0.0)) for i in (i0, i0 + 1, i0 + 2)]
         cn, ce = _current_xy(state)
-        row = [format(float(x), ".10g") for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
-                                                  pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
+        row = ["%.10g" % x for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
+                                     pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
         row.append("1" if state.valid else "0")
         row += geo_time_columns(state, self.unix_of, self.origin)
         t_s = float(state.t_s)
@@ -209,8 +216,8 @@ class AidStatusCsvSink(Sink):
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
-            self._writer.writerow([format(float(s.t_s), ".10g"), s.source, "1" if s.fused else "0",
-                                   s.reason or "", format(float(s.test_ratio), ".10g"),
+            self._writer.writerow(["%.10g" % s.t_s, s.source, "1" if s.fused else "0",
+                                   s.reason or "", "%.10g" % s.test_ratio,
                                    _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)])
 
     def close(self) -> None:
