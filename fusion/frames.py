@@ -23,6 +23,7 @@ well under 1 m of error within 10 km of the origin, the scale of an AUV mission.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import math
 
@@ -131,25 +132,31 @@ class GeoOrigin:
     alt_m: float = 0.0
 
     def _radii_m(self) -> tuple[float, float]:
+        return self._constants[:2]
+
+    @cached_property
+    def _constants(self) -> tuple[float, float, float]:
+        """Meridian and normal radii (m) and cos(lat) of the origin, computed once (every
+        published nav state converts its position)."""
         s2 = np.sin(self.lat_rad) ** 2
         denom = np.sqrt(1.0 - WGS84_E2 * s2)
         r_meridian = WGS84_A_M * (1.0 - WGS84_E2) / denom**3
         r_normal = WGS84_A_M / denom
-        return r_meridian, r_normal
+        return r_meridian, r_normal, np.cos(self.lat_rad)
 
     def to_ned(self, lat_rad, lon_rad, alt_m=0.0) -> np.ndarray:
         """Geodetic → local NED position (m); vectorised over inputs."""
-        r_m, r_n = self._radii_m()
+        r_m, r_n, cos_lat = self._constants
         north = (np.asarray(lat_rad) - self.lat_rad) * (r_m + self.alt_m)
-        east = (np.asarray(lon_rad) - self.lon_rad) * (r_n + self.alt_m) * np.cos(self.lat_rad)
+        east = (np.asarray(lon_rad) - self.lon_rad) * (r_n + self.alt_m) * cos_lat
         down = self.alt_m - np.asarray(alt_m)
         return np.stack(np.broadcast_arrays(north, east, down), axis=-1).astype(float)
 
     def to_geodetic(self, pos_n_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Local NED position (m) → (lat_rad, lon_rad, alt_m)."""
         pos = np.asarray(pos_n_m, dtype=float)
-        r_m, r_n = self._radii_m()
+        r_m, r_n, cos_lat = self._constants
         lat = self.lat_rad + pos[..., 0] / (r_m + self.alt_m)
-        lon = self.lon_rad + pos[..., 1] / ((r_n + self.alt_m) * np.cos(self.lat_rad))
+        lon = self.lon_rad + pos[..., 1] / ((r_n + self.alt_m) * cos_lat)
         alt = self.alt_m - pos[..., 2]
         return lat, lon, alt

@@ -3,6 +3,7 @@ packed for the process boundary, the data time τ of a sample (the release rule'
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -74,34 +75,86 @@ class DataClock:
 
 
 def pack_batch(batch: list[Any]) -> tuple:
-    """Samples → a compact picklable form for the child: the arrays of every
+    """Samples → a compact picklable form for the child (inverse: :func:`unpack_batch`).
+
+    Pickling each sample object was most of the transport's cost (a side-scan ping 44 µs,
+    a DVL sample 14 µs: the dataclasses' ``__reduce__`` and one array object per echo
+    side), so the message carries plain values: the arrays of every
     :class:`~fusion.samples.ImuBatch` concatenated (three arrays per message instead of three
-    per batch: pickling many small arrays was most of the transport's cost), each batch
-    replaced by its row span; other samples as they are. Inverse: :func:`unpack_batch`."""
+    per batch), each batch replaced by its row span ``(start, stop)``; a dataclass sample
+    as ``[class, field values]`` with its 1-D float32 arrays (the sonar's echoes)
+    concatenated into one buffer, each replaced by its span ``(start, stop)`` (their field
+    indices in a third entry); anything else as it is.
+    """
     items: list[Any] = []
     ts, fs, ws = [], [], []
+    echoes: list[np.ndarray] = []
     row = 0
+    at = 0
     for s in batch:  # not compact_imu: the child must see what an in-process calibrator sees
-        if type(s) is ImuBatch:
+        cls = type(s)
+        if cls is ImuBatch:
             n = len(s)
             ts.append(np.asarray(s.t_s, dtype=float))
             fs.append(np.asarray(s.specific_force_b_m_s2, dtype=float))
             ws.append(np.asarray(s.omega_b_rad_s, dtype=float))
             items.append((row, row + n))
             row += n
-        else:
-            items.append(s)
-    if not ts:
-        return items, None
-    return items, (np.concatenate(ts), np.concatenate(fs), np.concatenate(ws))
+            continue
+        names = _field_names(cls)
+        if names is None or (hasattr(s, "__dict__") and len(s.__dict__) != len(names)):
+            items.append(s)  # not a dataclass, or it carries more than its fields: pickled whole
+            continue
+        values = [getattr(s, name) for name in names]
+        spans = []
+        for i, v in enumerate(values):
+            if type(v) is np.ndarray and v.dtype == np.float32 and v.ndim == 1:
+                echoes.append(v)
+                values[i] = (at, at + v.size)
+                spans.append(i)
+                at += v.size
+        items.append([cls, values, spans] if spans else [cls, values])
+    imu = (np.concatenate(ts), np.concatenate(fs), np.concatenate(ws)) if ts else None
+    return items, imu, (np.concatenate(echoes) if echoes else None)
 
 
 def unpack_batch(packed: tuple) -> list[Any]:
-    """Inverse of :func:`pack_batch` (batches become views of the shared arrays)."""
-    items, arrays = packed
-    if arrays is None:
-        return items
-    t, f, w = arrays
-    return [ImuBatch(t[s[0]:s[1]], f[s[0]:s[1]], w[s[0]:s[1]]) if type(s) is tuple else s for s in items]
+    """Inverse of :func:`pack_batch`: IMU batches and echo arrays become (read-only) views of
+    the shared arrays; dataclass samples are rebuilt field by field, as unpickling does
+    (without ``__post_init__``: they were valid when they were packed)."""
+    items, imu, echoes = packed
+    if echoes is not None:
+        echoes.setflags(write=False)  # as SonarPing keeps its echoes
+    out: list[Any] = []
+    setattr_ = object.__setattr__
+    for s in items:
+        kind = type(s)
+        if kind is tuple:
+            t, f, w = imu
+            out.append(ImuBatch(t[s[0]:s[1]], f[s[0]:s[1]], w[s[0]:s[1]]))
+        elif kind is list:
+            cls, values = s[0], s[1]
+            if len(s) > 2:
+                for i in s[2]:
+                    a, b = values[i]
+                    values[i] = echoes[a:b]
+            obj = object.__new__(cls)
+            for name, v in zip(_field_names(cls), values):
+                setattr_(obj, name, v)
+            out.append(obj)
+        else:
+            out.append(s)
+    return out
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...] | None] = {}
+
+
+def _field_names(cls: type) -> tuple[str, ...] | None:
+    """Field names of a dataclass type in definition order (None for other types)."""
+    try:
+        return _FIELD_NAMES[cls]
+    except KeyError:
+        names = _FIELD_NAMES[cls] = (tuple(f.name for f in dataclasses.fields(cls))
+                                     if dataclasses.is_dataclass(cls) else None)
+        return names
