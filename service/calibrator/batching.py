@@ -150,11 +150,17 @@ def unpack_batch(packed: tuple) -> list[Any]:
 _FIELD_NAMES: dict[type, tuple[str, ...] | None] = {}
 
 
+# the sample types rebuilt field by field (plain frozen dataclasses whose fields are their
+# whole state); anything else is pickled as it is
+_BY_FIELDS_MODULES = ("adaptnav.fusion.samples", "adaptnav.sonar.ping")
+
+
 def _field_names(cls: type) -> tuple[str, ...] | None:
-    """Field names of a dataclass type in definition order (None for other types)."""
+    """Field names of a sample dataclass type in definition order (None for other types)."""
     try:
         return _FIELD_NAMES[cls]
     except KeyError:
         names = _FIELD_NAMES[cls] = (tuple(f.name for f in dataclasses.fields(cls))
-                                     if dataclasses.is_dataclass(cls) else None)
+                                     if dataclasses.is_dataclass(cls) and cls.__module__ in _BY_FIELDS_MODULES
+                                     else None)
         return names
