@@ -112,7 +112,9 @@ class SideScanEstimator(Estimator):
         while nav and nav[0][0] < t - self.nav_keep_s:
             nav.popleft()
 
-    def _association(self) -> Any:
+    @property
+    def associator(self) -> Any:
+        """The cross-leg associator (created on first use: it imports sonar)."""
         if self._associator is None:
             import dataclasses
 
@@ -144,7 +146,7 @@ class SideScanEstimator(Estimator):
         if not placed:
             return []
         self.side_scan["sightings"] += len(placed)
-        lc = self._association().add(placed)
+        lc = self.associator.add(placed)
         if lc is None:
             return []
         self.side_scan["closures"] += 1

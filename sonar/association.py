@@ -93,6 +93,8 @@ class AssociationConfig:
         link on the seeds tried).
     memory_s : float
         Old sightings are forgotten after this long.
+    max_sightings : int
+        …and beyond this many (the oldest first): the store is bounded on any seabed.
     clutter_scale : float
         The clutter (wrong sightings a gate may hold) is counted over this many times the
         gate's area, so that the true match is diluted (see :meth:`LegAssociator.candidates`).
@@ -125,6 +127,7 @@ class AssociationConfig:
     relative_sigma_m_s: float = 0.015
     max_candidates_per_object: int = 8
     memory_s: float = 3600.0
+    max_sightings: int = 5000
     chance_probability: float = 0.1
     window_s: float = 60.0
     clutter_scale: float = 9.0
@@ -478,5 +481,6 @@ class LegAssociator:
         if lc is not None:
             used = {id(b) for _, b in lc.pairs}
             self._pending = [o for o in self._pending if id(o) not in used]
-        self._old = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
+        kept = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
+        self._old = kept[-self.config.max_sightings:]
         return lc
