@@ -66,13 +66,19 @@ class CloneBank:
         return bool(self._ids)
 
     def copy(self) -> "CloneBank":
-        """A copy for the estimator's snapshots (Σ entries are shared: never modified)."""
+        """A copy for the estimator's snapshots (one per input sample while clones exist).
+
+        Shares everything: the lists and ``C`` are never modified in place, only replaced
+        (copy on write), Σ entries are never modified (append-only dict; pruned keys are
+        harmless). Copying ``C`` (18 × 2 per clone, up to 360 columns) for every snapshot
+        was a tenth of a replay with side-scan.
+        """
         out = CloneBank.__new__(CloneBank)
         out.period_s, out.horizon_s = self.period_s, self.horizon_s
-        out.t_s, out.pos_n_m, out._ids = list(self.t_s), list(self.pos_n_m), list(self._ids)
-        out._sigma = self._sigma  # append-only dict; pruned keys are harmless
+        out.t_s, out.pos_n_m, out._ids = self.t_s, self.pos_n_m, self._ids
+        out._sigma = self._sigma
         out._next_id = self._next_id
-        out.C = self.C.copy()
+        out.C = self.C
         return out
 
     def clear(self) -> None:
@@ -112,19 +118,29 @@ class CloneBank:
         if not self._ids:
             return
         PHt = P_prior @ H.T
-        K = PHt @ np.linalg.inv(H @ PHt + R)
-        self.C = self.C - K @ (H @ self.C)
-        self.transform(reset_jacobian(dx))
+        S = H @ PHt + R
+        # a scalar measurement (depth, heading): 1/S, as LAPACK's inverse of a 1 × 1 computes
+        # it (np.linalg.inv's checks cost more than the rest of this update)
+        K = PHt * (1.0 / S[0, 0]) if S.shape[0] == 1 else PHt @ np.linalg.inv(S)
+        C = self.C - K @ (H @ self.C)
+        # the reset G = I + ½[δθ]× on the attitude block (reset_jacobian) changes only the
+        # attitude rows: G C computed on those (3 × n instead of 18 × 18 × n per update)
+        rx, ry, rz = (float(v) for v in dx[ATT])
+        half_skew = 0.5 * np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
+        C[ATT] += half_skew @ C[ATT]
+        self.C = C
 
     def shift_time(self, delta_s: float) -> None:
         self.t_s = [t + delta_s for t in self.t_s]
 
     def scale_rows(self, rows, factor: float) -> None:
         if self._ids:
+            self.C = self.C.copy()  # snapshots share C (copy())
             self.C[rows, :] *= factor
 
     def zero_rows(self, rows) -> None:
         if self._ids:
+            self.C = self.C.copy()
             self.C[rows, :] = 0.0
 
     def maybe_clone(self, t_s: float, x_pos_n_m: np.ndarray, P: np.ndarray) -> bool:
@@ -141,9 +157,10 @@ class CloneBank:
         for k, oid in enumerate(self._ids):
             # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]
             self._sigma[(cid, oid)] = self.C[POS_NE, 2 * k:2 * k + 2].copy()
-        self._ids.append(cid)
-        self.t_s.append(float(t_s))
-        self.pos_n_m.append(np.asarray(x_pos_n_m, float)[:2].copy())
+        # new lists, not appends: snapshots share the old ones (copy())
+        self._ids = self._ids + [cid]
+        self.t_s = self.t_s + [float(t_s)]
+        self.pos_n_m = self.pos_n_m + [np.asarray(x_pos_n_m, float)[:2].copy()]
         self.C = np.hstack([self.C, P[:, POS_NE]])
         return True
 
@@ -191,6 +208,7 @@ class CloneBank:
 
     def apply(self, a: int, b: int, K: np.ndarray) -> None:
         """Cross-covariances after a fused loop closure: ``C_j ← C_j − K (Σ_bj − Σ_aj)``."""
+        self.C = self.C.copy()  # snapshots share C (copy())
         for j in range(len(self._ids)):
             self.C[:, 2 * j:2 * j + 2] -= K @ (self.sigma(b, j) - self.sigma(a, j))
 
