@@ -43,6 +43,7 @@ and IMU gaps are counted in :attr:`Estimator.rejected` and the filter keeps goin
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 from collections import Counter
 
@@ -1054,7 +1055,8 @@ class Estimator:
     def heading_source_report(self) -> dict | None:
         """What the ATTITUDE heading was judged to be next to a navigation-grade INS
         (``with_navigation_grade = "learn"``): ``{"class": "ins" | "compass" | "undecided",
-        "variability_deg": …}`` (its 1-σ variability against the gyro); None when not judged."""
+        "variability_deg": …, "time_offset_s": …}`` (its 1-σ variability against the gyro, and
+        how late its time stamps are against the IMU's); None when not judged."""
         src = self._heading_source
         if src is None:
             return None
@@ -1062,7 +1064,8 @@ class Estimator:
         var = src.var_rad2
         judged = t - src.t_first_s >= src.config.learn_min_s and math.isfinite(var)
         kind = ("ins" if src.r_rad2(t) is not None else "compass") if judged else "undecided"
-        return {"class": kind, "variability_deg": math.degrees(math.sqrt(var)) if math.isfinite(var) else None}
+        return {"class": kind, "variability_deg": math.degrees(math.sqrt(var)) if math.isfinite(var) else None,
+                "time_offset_s": -src.lag_s}
 
     def _ins_class_heading(self, sample, config) -> AidStatus:
         """ATTITUDE next to a navigation-grade INS: its heading fused only when it is an
@@ -1081,6 +1084,7 @@ class Estimator:
         r = src.r_rad2(sample.t_s)
         if r is None:
             return rejected(sample.t_s, "attitude", "navigation_grade_ins")  # not an INS's heading
+        sample = dataclasses.replace(sample, yaw_rad=src.heading_rad(sample.yaw_rad))
         meas = aid_heading.measure(sample, self._x, math.sqrt(r))
         h = meas.H[0]
         if float(h @ kalman.propagated_covariance(self._P, self._acc, self._qdiag) @ h) <= r:

@@ -54,15 +54,18 @@ class HeadingSource:
 
     holds the source's own error minus a constant. (ψ_g is the strapdown's own propagation at
     the IMU rate; integrating the body rate between the source's samples instead aliases the
-    vehicle's rate steps: 0.14° RMS at 10 Hz on a lawnmower.) Its variability over a window, an
-    exponentially weighted variance with time constant ``τ = learn_window_s``::
-
-        m ← m + α (d − m),   v ← (1 − α) (v + α (d − m_prev)²),   α = 1 − exp(−Δt / τ)
-
-    (Finch 2009, "Incremental calculation of weighted mean and variance"; normalised by the
-    weight of the data so far), is the source's short-term heading noise. An INS-class source
-    varies by milli-degrees against the gyro (its heading *is* a gyro's); a magnetic heading
-    by ≥ 0.1°. Once ``learn_min_s`` of data are in, a source with ``√v ≤ ins_max_variability_rad``
+    vehicle's rate steps: 0.14° RMS at 10 Hz on a lawnmower.) Its variability over a window —
+    an exponentially weighted variance, each sample of weight ``α = 1 − exp(−Δt/τ)``,
+    ``τ = learn_window_s``, the past decaying by ``1 − α``, updated by West's weighted
+    incremental algorithm (West 1979, CACM 22(9); ``W ← (1 − α) W + α``,
+    ``m ← m + (α/W)(d − m)``, ``S ← (1 − α) S + α (d − m_prev)(d − m)``, ``v = S/W``), each
+    deviation clipped at 3 ``ins_max_variability_rad`` (one glitch of a good source must not
+    read as a compass for minutes) — less the part a time offset between the source's clock
+    and the IMU's explains (``d ≈ e + β ψ̇`` in turns, ``β`` by the same weighted least squares
+    on the gyro's heading rate, |β| ≤ 0.2 s, and the fused heading shifted by it: a PHINS
+    heading stamped 50 ms off the FOG reads 0.26° off in a 5 °/s turn), is the source's
+    short-term heading noise. An INS-class source varies by milli-degrees against the gyro
+    (its heading *is* a gyro's); a magnetic heading by ≥ 0.1°. Once ``learn_min_s`` of data are in, a source with ``√v ≤ ins_max_variability_rad``
     is taken for an INS and fused with
 
         R = max(v, (ins_sigma_yaw_rad · sec L)²)
@@ -83,14 +86,20 @@ class HeadingSource:
         Latitude of the mission origin (sec L of the class's accuracy).
     """
 
+    _MIN_RATE_VAR = math.radians(0.5) ** 2  # (rad/s)²: below, no turns to see a time offset in
+    _MAX_LAG_S = 0.2  # s: clock mappings are off by tens of ms; more would explain a compass away
+
     def __init__(self, config: AttitudeConfig, lat_rad: float):
         self.config = config
         self._r_floor = (config.ins_sigma_yaw_rad / max(math.cos(lat_rad), 0.05)) ** 2
         self._t = -math.inf        # the latest sample observed
         self._t_first = math.nan   # the first
+        self._psi_g = math.nan     # the gyro heading there (rad)
+        self.rate_rad_s = 0.0      # the gyro's heading rate over the latest interval
         self.mean_rad = 0.0        # EW mean of d
-        self._var = 0.0            # EW variance of d (unnormalised) ...
-        self._weight = 0.0         # ... and the weight of the data in it
+        self._m_rate = 0.0         # EW mean of the rate
+        self._c = np.zeros(3)      # EW co-moments (rate·rate, rate·d, d·d), unnormalised ...
+        self._weight = 0.0         # ... and the weight of the data in them
 
     @property
     def t_first_s(self) -> float:
@@ -98,27 +107,60 @@ class HeadingSource:
         return self._t_first
 
     @property
+    def lag_s(self) -> float:
+        """``β`` of ``d ≈ e + β ψ̇``: the source's heading is ``ψ(t − δ)``, δ = −β, when its
+        time and the IMU's are offset (two clocks mapped onto one); 0 until turns show it."""
+        c_rr, c_rd, _ = self._c
+        if self._weight <= 0 or c_rr / self._weight < self._MIN_RATE_VAR:
+            return 0.0
+        return min(max(c_rd / c_rr, -self._MAX_LAG_S), self._MAX_LAG_S)
+
+    @property
     def var_rad2(self) -> float:
-        """EW variance of ``d`` (rad²), normalised by the weight the data have so far (an
-        average of the first minutes, not pulled towards the zero it started from)."""
-        return self._var / self._weight if self._weight > 0 else math.inf
+        """EW variance of ``d`` (rad²) less what a time offset explains (``lag_s``),
+        normalised by the weight the data have so far (an average of the first minutes, not
+        pulled towards the zero it started from)."""
+        if self._weight <= 0:
+            return math.inf
+        c_rr, c_rd, c_dd = self._c
+        b = self.lag_s
+        return max(c_dd - 2.0 * b * c_rd + b * b * c_rr, 0.0) / self._weight
+
+    def heading_rad(self, yaw_src_rad: float) -> float:
+        """The source's heading at its own time stamp, the time offset removed."""
+        return yaw_src_rad - self.lag_s * self.rate_rad_s
 
     def observe(self, t_s: float, yaw_src_rad: float, yaw_gyro_rad: float) -> None:
         """Take the source's heading at ``t_s`` against the gyro-propagated heading ψ_g (rad);
         samples not after the latest are ignored (a re-fusion of the past sees them again)."""
         if not (t_s > self._t and math.isfinite(yaw_src_rad) and math.isfinite(yaw_gyro_rad)):
             return
-        if not math.isfinite(self._t_first):
+        if not math.isfinite(self._t_first):  # the first sample: nothing to compare yet
             self._t_first = t_s
             self.mean_rad = math.remainder(yaw_src_rad - yaw_gyro_rad, 2.0 * math.pi)
         else:
+            dt = t_s - self._t
+            self.rate_rad_s = math.remainder(yaw_gyro_rad - self._psi_g, 2.0 * math.pi) / dt
             d = self.mean_rad + math.remainder(yaw_src_rad - yaw_gyro_rad - self.mean_rad, 2.0 * math.pi)
-            a = 1.0 - math.exp(-(t_s - self._t) / self.config.learn_window_s)
-            dm = d - self.mean_rad
-            self.mean_rad += a * dm
-            self._var = (1.0 - a) * (self._var + a * dm * dm)
+            # West's weighted incremental co-moments (each sample weight a, the past decaying
+            # by 1 − a): the first samples are averaged, not dominated by the first one
+            a = 1.0 - math.exp(-dt / self.config.learn_window_s)
             self._weight = (1.0 - a) * self._weight + a
-        self._t = t_s
+            self._c *= 1.0 - a
+            # a deviation counts at most 3× the INS-class bound (Huber): one glitch of a
+            # good source must not read as a compass for minutes; a compass's every sample
+            # deviates, and its variance stays above the bound
+            lim = 3.0 * self.config.ins_max_variability_rad
+            if self._weight == a:  # the first difference: its own mean
+                self._m_rate = self.rate_rad_s
+            dr = self.rate_rad_s - self._m_rate
+            b = self.lag_s  # clipped is what the time offset does not explain
+            dd = b * dr + min(max(d - self.mean_rad - b * dr, -lim), lim)
+            g = a / self._weight
+            self.mean_rad += g * dd
+            self._m_rate += g * dr
+            self._c += a * np.array([dr * dr * (1.0 - g), dr * dd * (1.0 - g), dd * dd * (1.0 - g)])
+        self._t, self._psi_g = t_s, yaw_gyro_rad
 
     def r_rad2(self, t_s: float) -> float | None:
         """The source's heading variance (rad²) if it is an INS-class heading worth fusing at

@@ -17,25 +17,26 @@ LAT_DEG = 59.4
 
 
 def _lawnmower_yaw(t_s: np.ndarray) -> np.ndarray:
-    """Legs of 130 s joined by 180° turns of 35 s (the AUV generator's profile), rad, wrapped."""
-    yaw = np.zeros_like(t_s)
-    heading, t_prev = 0.3, t_s[0]
-    for i, t in enumerate(t_s):
-        phase = t % 165.0
-        if phase >= 130.0:  # turning at π/35 rad/s, alternately left and right
-            heading += (-1) ** int(t // 165.0) * math.pi / 35.0 * (t - t_prev)
-        yaw[i] = heading
-        t_prev = t
-    return (yaw + math.pi) % (2 * math.pi) - math.pi
+    """Legs of 130 s joined by 180° turns of 35 s (the AUV generator's profile), alternately
+    left and right, rad, wrapped; exact at any time (a shifted clock is a shifted profile)."""
+    t = np.asarray(t_s, dtype=float)
+    n = np.floor(t / 165.0)
+    phase = t - 165.0 * n
+    done = np.where(n % 2 == 1, math.pi, 0.0)  # the completed turns: +π, −π, +π, ...
+    turning = np.clip(phase - 130.0, 0.0, 35.0) * math.pi / 35.0 * np.where(n % 2 == 0, 1.0, -1.0)
+    return (0.3 + done + turning + math.pi) % (2 * math.pi) - math.pi
 
 
-def _judge(errors, seed: int, duration_s: float = 360.0) -> tuple[HeadingSource, list]:
+def _judge(errors, seed: int, duration_s: float = 360.0, lag_s: float = 0.0) -> tuple[HeadingSource, list]:
     """Feed a source with ``errors`` (sim.navgrade.AhrsErrors) at 10 Hz against a gyro heading
-    that is the truth plus a navigation-grade drift (0.01 °/h); the decisions over time."""
+    that is the truth plus a navigation-grade drift (0.01 °/h); the decisions over time.
+    ``lag_s``: the source's clock is that much late against the IMU's (its heading at ``t`` is
+    the truth at ``t − lag_s``)."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration_s, 0.1)
     yaw = _lawnmower_yaw(t)
-    euler = np.column_stack([0.01 * rng.standard_normal(len(t)), 0.02 + 0.01 * rng.standard_normal(len(t)), yaw])
+    lagged = _lawnmower_yaw(t - lag_s)
+    euler = np.column_stack([0.01 * rng.standard_normal(len(t)), 0.02 + 0.01 * rng.standard_normal(len(t)), lagged])
     src = ahrs_attitude(t, euler, errors, rng)[:, 2]
     gyro = yaw + math.radians(0.01 / 3600.0) * t + 0.7  # any constant: the gyro heading is relative
     hs = HeadingSource(AttitudeConfig(), math.radians(LAT_DEG))
@@ -84,3 +85,15 @@ def test_a_source_that_starts_to_vary_is_dropped_and_a_repeated_time_changes_not
         hs.observe(t, math.pi - 0.001 + math.radians(0.5) * rng.standard_normal(), math.pi - 0.001)
         t += 0.1
     assert hs.r_rad2(t) is None
+
+
+def test_a_time_offset_between_the_source_and_the_imu_is_learned_from_the_turns():
+    # an INS's heading stamped 50 ms late against the FOG (two clocks mapped onto one): 0.26°
+    # off in the turns, which without the offset would read as a compass's variability
+    hs, decisions = _judge(ins_ahrs_errors(LAT_DEG), seed=4, lag_s=0.05, duration_s=310.0)  # ends in a turn
+    assert hs.lag_s == pytest.approx(-0.05, abs=0.01)
+    assert all(d is not None for d in decisions[int(AttitudeConfig().learn_min_s * 10) + 1:])
+    # the heading fused is the source's shifted to its time stamp: the truth there is the
+    # source's plus 50 ms of the turn (−π/35 rad/s, the second turn is to the left)
+    assert hs.rate_rad_s == pytest.approx(-math.pi / 35.0, rel=0.01)
+    assert abs(hs.heading_rad(0.0) - 0.05 * (-math.pi / 35.0)) < math.radians(0.05)
