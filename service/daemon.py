@@ -166,11 +166,16 @@ class QueueSource:
     def _order(self, item: Any, now: float):
         kind = getattr(item, "KIND", None)
         if kind in self.IMU_KINDS:
-            t = np.asarray(item.t_s, dtype=float).ravel()
-            t = t[np.isfinite(t)]
-            if t.size:
-                yield from self._pop_held_before(float(t[0]))
-                self._imu_t = max(self._imu_t, float(t[-1]))
+            t_s = item.t_s
+            if kind == "imu" and isinstance(t_s, (int, float)):  # the live case: one sample, no numpy
+                first = last = float(t_s) if math.isfinite(t_s) else None
+            else:
+                t = np.asarray(t_s, dtype=float).ravel()
+                t = t[np.isfinite(t)]
+                first, last = (float(t[0]), float(t[-1])) if t.size else (None, None)
+            if first is not None:
+                yield from self._pop_held_before(first)
+                self._imu_t = max(self._imu_t, last)
                 self._imu_wall = now
             yield item
             return

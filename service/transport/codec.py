@@ -21,6 +21,8 @@ import json
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import orjson
+
 from adaptnav.fusion import samples as fs
 from adaptnav.fusion.samples import SampleError
 
@@ -204,6 +206,15 @@ def decode_dict(data: Any) -> Any:
 
 def decode(payload: bytes | bytearray | memoryview | str) -> Any:
     """UTF-8 JSON bytes → message; raises :class:`SampleError` on anything malformed."""
+    if isinstance(payload, bytes):
+        # the live hot path (every sample off the bus): orjson parses a sample in ~1 µs
+        # against ~8 for json; anything it refuses (NaN literals, bad UTF-8, deep nesting)
+        # or reads otherwise (an integer beyond 64 bits becomes a float) so that the
+        # message is refused takes the general way below, which decides as it always did
+        try:
+            return decode_dict(orjson.loads(payload))
+        except (orjson.JSONDecodeError, SampleError):
+            pass
     try:
         if isinstance(payload, str):
             text = payload

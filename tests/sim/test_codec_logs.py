@@ -86,6 +86,20 @@ def test_codec_rejects_malformed_payloads_with_sample_error(payload):
         codec.decode(payload)
 
 
+def test_payloads_only_the_lenient_parser_reads_decode_as_before():
+    """The bus decodes with orjson; what it refuses but Python's json reads (a NaN literal,
+    an integer beyond 64 bits, from a third-party publisher) decodes as it always did —
+    the estimator or the door judges the values, the payload is not "malformed"."""
+    nan = codec.decode(b'{"type": "imu", "schema_version": 1, "t_s": 1.5, '
+                       b'"specific_force_b_m_s2": [NaN, 0.0, -9.8], "omega_b_rad_s": [0.0, 0.0, 0.0]}')
+    assert isinstance(nan, ImuSample) and nan.t_s == 1.5 and math.isnan(nan.specific_force_b_m_s2[0])
+    big = codec.decode(b'{"type": "range", "schema_version": 1, "t_s": 2.0, "beacon_id": 123456789012345678901234, '
+                       b'"beacon_pos_n_m": [0.0, 0.0, 0.0], "range_m": 10.0, "sigma_m": 1.0}')
+    assert big.beacon_id == 123456789012345678901234
+    same = codec.encode(ImuSample(0.25, (0.1, 0.2, -9.8), (0.01, 0.0, 0.0)))
+    assert codec.decode(same) == codec.decode(same.decode()) == ImuSample(0.25, (0.1, 0.2, -9.8), (0.01, 0.0, 0.0))
+
+
 def test_registry_adds_kinds():
     codec.register("test_note", lambda o: {"type": "test_note", "schema_version": 1, "t_s": o[0]},
                    lambda d: ("note", float(d["t_s"])), {"type": "object"}, topic="/adaptnav/test/note")
