@@ -215,7 +215,7 @@ def bisect(out_dir: str, seed: int, pattern: str) -> None:
             run(f"all but {name}", {}, (), no_ahrs)
 
 
-def main(out_dir: str, sweep: bool = False, ahrs: str = "compass") -> None:
+def main(out_dir: str, sweep: bool = False, ahrs: str | None = None) -> None:
     from dataclasses import replace
 
     from adaptnav.sim.navgrade import COMPASS_AHRS, ins_ahrs_errors
@@ -225,8 +225,11 @@ def main(out_dir: str, sweep: bool = False, ahrs: str = "compass") -> None:
         AuvLog(f"{pattern}{seed}", seed=seed, pattern=pattern, heading_deg=30.0 * seed, leg_length_m=200.0,
                duration_s=360.0) for seed in range(1, 9) for pattern in ("straight", "lawnmower"))
     # the ATTITUDE's source: a compass-grade AHRS, or the vehicle's own navigation-grade INS
-    variants = tuple(replace(v, name=f"{v.name}_{ahrs}", ahrs=COMPASS_AHRS if ahrs == "compass"
-                             else ins_ahrs_errors(v.lat_deg)) for v in variants)
+    # (default: the sweep's compass, the test's variants their own)
+    if ahrs is not None or sweep:
+        variants = tuple(replace(v, name=f"{v.name.removesuffix('_ins')}_{ahrs or 'compass'}",
+                                 ahrs=ins_ahrs_errors(v.lat_deg) if ahrs == "ins" else COMPASS_AHRS)
+                         for v in variants)
     print(f"{'variant':10s} {'dist m':>7s} {'ours end':>9s} {'DR end':>8s} {'shared end':>10s} {'ours RMS':>9s} "
           f"{'DR RMS':>8s} {'shared RMS':>10s} {'yaw err':>8s} {'wall s':>7s}")
     for v in variants:
@@ -241,5 +244,5 @@ if __name__ == "__main__":
         i = sys.argv.index("--bisect")
         bisect(sys.argv[1], int(sys.argv[i + 1]), sys.argv[i + 2])
     else:  # OUT [--sweep] [--ahrs compass|ins]
-        ahrs = sys.argv[sys.argv.index("--ahrs") + 1] if "--ahrs" in sys.argv else "compass"
+        ahrs = sys.argv[sys.argv.index("--ahrs") + 1] if "--ahrs" in sys.argv else None
         main(sys.argv[1], "--sweep" in sys.argv[2:], ahrs)
