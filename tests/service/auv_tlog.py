@@ -11,7 +11,8 @@ What the log holds, as a BlueOS/ArduSub vehicle with a fibre-optic INS on the co
 - ``ATTITUDE`` at 10 Hz and ``SCALED_PRESSURE``/``SCALED_PRESSURE2`` (internal barometer /
   external depth sensor) at 5 Hz from the autopilot (1, 1) on its boot clock (which runs
   20 ppm fast against UNIX time); its attitude has a consumer AHRS's errors
-  (:class:`adaptnav.sim.navgrade.AhrsErrors`: magnetic heading off by a few degrees);
+  (:data:`adaptnav.sim.navgrade.COMPASS_AHRS`: magnetic heading off by a few degrees) or, with
+  ``ahrs = ins_ahrs_errors(lat)``, the vehicle's own navigation-grade INS's (0.05° sec L);
 - ``SYSTEM_TIME`` at 1 Hz from the autopilot with ``time_unix_usec = 0`` (an ArduSub without
   GPS time, as in the real log), optionally with its UNIX time;
 - optionally the autopilot's own ``RAW_IMU`` at 4 Hz (consumer MEMS, int16 mg / mrad/s) — a
