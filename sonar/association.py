@@ -42,6 +42,9 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    (two neighbouring objects: either could be the match).
    A block often holds only one or two objects of the other leg: when the block alone gives
    no set, the sets are sought among the last ``window_s`` of new sightings not yet used.
+   Failing that, the pairs that continue a closure of the last ``window_s`` (its offset the
+   hypothesis, not drawn from them) are accepted when chance alone would give as many with
+   probability at most ``extend_probability`` (:meth:`LegAssociator.extend`).
 3. A set of at least ``min_objects`` is one **loop closure**: times ``t_a``, ``t_b`` (the
    sightings' median times on each leg), offset ``δ`` and covariance
    ``(Σ W_j)⁻¹`` (``W_j`` the inverse residual covariances), the number of objects.
@@ -101,6 +104,9 @@ class AssociationConfig:
     set_span_s : float
         A set's old sightings lie within this of its hypothesis' old sighting (s): the new
         ones span ``window_s`` plus a block, a reciprocal leg flown at the same speed the same.
+    extend_probability : float
+        Pairs that continue a recent closure (:meth:`LegAssociator.extend`) are accepted when
+        chance would give as many with at most this probability (0: never extended).
     window_s : float
         New sightings not yet in an accepted set stay in play this long (s): a block often
         holds one or two objects of the other leg, fewer than a set needs, so the sets are
@@ -132,6 +138,7 @@ class AssociationConfig:
     window_s: float = 60.0
     clutter_scale: float = 9.0
     set_span_s: float = 90.0
+    extend_probability: float = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,6 +199,9 @@ class LegAssociator:
         self._inlier = float(chi2.ppf(config.inlier_probability, 2))
         self._old: list[ObjectSighting] = []
         self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
+        # recent accepted closures as hypotheses for the next sightings (:meth:`extend`):
+        # (t_a, t_b, offset on the jump-free tracks, its covariance)
+        self._recent: list[tuple[float, float, np.ndarray, np.ndarray]] = []
         self.candidates_seen = 0
         self.batches = 0
         # optional diagnostics (the landmark experiment's error budget): (id(old), id(new)) →
@@ -311,7 +321,7 @@ class LegAssociator:
         rel = (q * (np.asarray(t_old_s) - ta)) ** 2 + (q * (np.asarray(t_new_s) - tb)) ** 2
         return np.asarray(det_cov) + rel[:, None, None] * np.eye(2)[None]
 
-    def _chance_inliers(self, clutter: dict, ta: float, tb: float) -> float:
+    def _chance_inliers(self, clutter: dict, ta: float, tb: float, extra_cov=None, span_s: float | None = None) -> float:
         """Wrong old sightings expected to agree with one hypothesis (times ``ta``, ``tb``) by chance.
 
         For every new sighting: the sum over the old sightings of its wide region (within
@@ -320,10 +330,11 @@ class LegAssociator:
         that pair's covariances — less the largest (the one that may be its match).
         """
         c = self.config
-        m = np.abs(clutter["t_old_s"] - ta) <= c.set_span_s
+        m = np.abs(clutter["t_old_s"] - ta) <= (c.set_span_s if span_s is None else span_s)
         if not np.any(m):
             return 0.0
-        R = self._residual_cov(clutter["t_old_s"][m], clutter["t_new_s"][m], clutter["det_cov"][m], ta, tb)
+        D = clutter["det_cov"][m] if extra_cov is None else clutter["det_cov"][m] + np.asarray(extra_cov)[None]
+        R = self._residual_cov(clutter["t_old_s"][m], clutter["t_new_s"][m], D, ta, tb)
         p = np.minimum(math.pi * self._inlier * np.sqrt(np.linalg.det(R)) / clutter["area_m2"][m], 1.0)
         j = clutter["j"][m]
         n = int(j.max()) + 1
@@ -400,21 +411,82 @@ class LegAssociator:
         sel = self._unambiguous(cand, diffs, W, best[2], best[5])
         if len(sel) < best[4]:
             return None
+        return self._closure(cand, batch, diffs, W, sel, best[1])
+
+    def _closure(self, cand, batch, diffs, W, sel: list[int], nis: float) -> LoopClosure:
+        """The loop closure of the accepted pairs ``sel``; remembered as a hypothesis for
+        the next sightings (:meth:`extend`)."""
         self._note_all(cand, batch, sel, "accepted")
         info = W[sel].sum(axis=0)
         cov = np.linalg.inv(info)
-        delta = self._mean(diffs, W, sel)
+        smooth = self._mean(diffs, W, sel)  # on the jump-free tracks
+        old = self._old
         pairs = tuple((old[cand[k][0]], batch[cand[k][1]]) for k in sel)
         # the closure refers to the filter's positions at two sightings' times (the median
         # ones): the jump-free offset plus the jumps the filter had made by then
         a_med = sorted((p[0] for p in pairs), key=lambda o: o.t_s)[(len(pairs) - 1) // 2]
         b_med = sorted((p[1] for p in pairs), key=lambda o: o.t_s)[(len(pairs) - 1) // 2]
+        delta = smooth.copy()
         if a_med.jump_n_m is not None:  # (None: no velocity was given, no jumps known)
             delta = delta + a_med.jump_n_m
         if b_med.jump_n_m is not None:
             delta = delta - b_med.jump_n_m
+        self._recent.append((float(a_med.t_s), float(b_med.t_s), smooth, cov))
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
-                           offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=best[1])
+                           offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis)
+
+    def extend(self, batch: list[ObjectSighting]) -> LoopClosure | None:
+        """Pairs of ``batch`` that continue a recent loop closure (or None).
+
+        A block past an accepted set often holds one to three objects of the other leg, too
+        few to found a set of their own, while the set just accepted already gives the
+        offset. Each closure of the last ``window_s`` is a hypothesis (not drawn from these
+        pairs): a candidate within ``window_s`` + ``set_span_s`` of its times whose residual
+        from its offset is inside the inlier gate (detectors + the offset's covariance +
+        relative drift from its times) and unambiguous joins; the pairs are accepted when
+        chance alone would give as many with probability at most ``extend_probability``
+        (``P(Poisson(λ) ≥ n)``, λ the chance inliers of that hypothesis, :meth:`_chance_inliers`).
+        The new closure's offset and covariance come from the new pairs alone (the earlier
+        set was fused already).
+        """
+        c = self.config
+        if not self._recent or not batch:
+            return None
+        t_now = max(o.t_s for o in batch)
+        self._recent = [r for r in self._recent if r[1] >= t_now - c.window_s - c.set_span_s]
+        cand, clutter = self.candidates(batch)
+        if not cand or not self._recent:
+            return None
+        old = self._old
+        diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
+        t_a = np.array([old[i].t_s for i, _, _, _ in cand])
+        t_b = np.array([batch[j].t_s for _, j, _, _ in cand])
+        D = np.array([old[i].det_cov + batch[j].det_cov for i, j, _, _ in cand])
+        for ta, tb, offset, cov in reversed(self._recent):
+            span = (np.abs(t_a - ta) <= c.window_s + c.set_span_s) & (np.abs(t_b - tb) <= c.window_s + c.set_span_s)
+            if not np.any(span):
+                continue
+            R = self._residual_cov(t_a, t_b, D + cov[None], ta, tb)
+            r = diffs - offset
+            m2 = np.where(span, np.einsum("ki,kij,kj->k", r, np.linalg.inv(R), r), np.inf)
+            sel = self._one_to_one(cand, m2)
+            sel = self._unambiguous_to(cand, m2, sel)
+            if not sel:
+                continue
+            lam = self._chance_inliers(clutter, ta, tb, extra_cov=cov, span_s=c.window_s + c.set_span_s)
+            if float(poisson.sf(len(sel) - 1, lam)) * len(self._recent) > c.extend_probability:
+                self._note_all(cand, batch, sel, "chance bound")
+                continue
+            W = np.linalg.inv(self._residual_cov(t_a, t_b, D, float(np.median(t_a[sel])), float(np.median(t_b[sel]))))
+            rr = diffs[sel] - self._mean(diffs, W, sel)
+            return self._closure(cand, batch, diffs, W, sel, float(np.sum(np.einsum("ki,kij,kj->k", rr, W[sel], rr))))
+        return None
+
+    def _unambiguous_to(self, cand, m2, sel: list[int]) -> list[int]:
+        """``sel`` without pairs whose new or old sighting has another candidate inside the gate."""
+        fits = m2 <= self._inlier
+        return [k for k in sel if not any(fits[m] and m != k and (cand[m][1] == cand[k][1] or cand[m][0] == cand[k][0])
+                                          for m in range(len(cand)))]
 
     def _unambiguous(self, cand, diffs, W, sel: list[int], span: np.ndarray) -> list[int]:
         """The set without pairs whose new (or old) sighting has a second candidate (among
@@ -478,6 +550,8 @@ class LegAssociator:
         lc = self.associate(list(batch))
         if lc is None and len(self._pending) > len(batch):
             lc = self.associate(list(self._pending))
+        if lc is None and self.config.extend_probability > 0:
+            lc = self.extend(list(self._pending))
         if lc is not None:
             used = {id(b) for _, b in lc.pairs}
             self._pending = [o for o in self._pending if id(o) not in used]

@@ -225,3 +225,26 @@ def test_an_hour_older_leg_in_the_gates_does_not_veto_a_set_of_true_pairs():
     assert all(a.t_s >= 3700.0 for a, _ in lc.pairs)  # each pair with its own object
     assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs)
     assert np.linalg.norm(lc.offset_n_m - (e_a - e_b)) < 0.5
+
+
+@pytest.mark.parametrize("displaced_m", [0.0, 2.5])
+def test_a_block_with_two_objects_continues_the_closure_just_accepted(displaced_m):
+    """Two objects of the other leg are too few for a set of their own; the set accepted a
+    block earlier gives the offset, and they join it only where they fit it (displaced by
+    2.5 m, beyond the detectors' and the drift's allowance, they do not)."""
+    rng = np.random.default_rng(7)
+    objs = np.column_stack([np.arange(10) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 10)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    assoc.add([_placed(1000.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)])
+    # the reciprocal leg: the far end first
+    first = assoc.add([_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
+    assert first is not None and first.n_objects >= 5
+    shift = np.array([displaced_m, 0.0])
+    lc = assoc.add([_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b + shift, 2.0, rng) for i in (2, 3)])
+    if displaced_m == 0.0:
+        assert lc is not None and lc.n_objects == 2
+        assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs)
+        assert np.linalg.norm(lc.offset_n_m - (e_a - e_b)) < 1.0
+    else:
+        assert lc is None
