@@ -1,4 +1,5 @@
-"""`adaptnav bench sonar`: side-scan window registrations per second vs plain SIFT.
+"""`adaptnav bench sonar`: side-scan window registrations per second vs plain SIFT; the
+calibrator's side-scan front end, objects vs SIFT windows (:func:`calibrator_front_ends`).
 
 Two inputs, each turned into a ping-indexed waterfall whose consecutive 200-ping windows
 (step 20 pings) are registered: the real Scotsman survey (1024 samples per side; the
@@ -91,6 +92,40 @@ def _measure(wf, window: int, step: int, n_plain_max: int) -> dict:
     }
 
 
+def calibrator_front_ends(duration_s: float = 300.0) -> dict:
+    """CPU (``time.process_time``, one thread) of the calibrator's side-scan front end per ping
+    and per data second on the landmark survey (seed 1, 10 Hz pings): the object detector it
+    runs (:class:`adaptnav.calibration.sidescan.CalibratorSonar`) against the SIFT landmark
+    windows it ran before (:class:`adaptnav.sonar.stream.SonarFrontEnd`, no registration), both
+    fed the same pings with positions from the same ping dead reckoning."""
+    from adaptnav.calibration.sidescan import CalibratorSonar
+    from adaptnav.sim.scenario import load_scenario
+    from adaptnav.sim.simulator import simulate
+    from adaptnav.sonar.dead_reckoning import AnchoredDeadReckoning
+    from adaptnav.sonar.stream import FrontEndConfig, SonarFrontEnd
+
+    sc = load_scenario("survey", [f"duration_s={duration_s}", "seed=1", "dvl.enabled=false", "sonar.enabled=true"])
+    pings = [it for it in simulate(sc).iter_blocks() if it.KIND == "sonar"]
+    objects = CalibratorSonar()
+    t0 = time.process_time()
+    batches = sum(objects.push(p) is not None for p in pings)
+    t_obj = time.process_time() - t0
+    sift, dr = SonarFrontEnd(FrontEndConfig(register=False, detect_margin_pings=8)), AnchoredDeadReckoning()
+    t0 = time.process_time()
+    for p in pings:
+        pos, sigma = dr.push(p)
+        sift.push(p, pos, None)
+    t_sift = time.process_time() - t0
+    n, secs = len(pings), float(pings[-1].t_s - pings[0].t_s)
+    return {"calibrator_pings": n, "calibrator_objects_ms_per_ping": 1e3 * t_obj / n,
+            "calibrator_objects_ms_per_data_s": 1e3 * t_obj / secs,
+            "calibrator_objects_blocks": objects.front_end.blocks, "calibrator_object_batches": batches,
+            "calibrator_sift_ms_per_ping": 1e3 * t_sift / n, "calibrator_sift_ms_per_data_s": 1e3 * t_sift / secs,
+            "calibrator_sift_windows": sift.windows,
+            "calibrator_sift_ms_per_window": 1e3 * t_sift / max(sift.windows, 1),
+            "calibrator_objects_ms_per_block": 1e3 * t_obj / max(objects.front_end.blocks, 1)}
+
+
 def run(args) -> dict:
     """Figures on the synthetic survey and, when present, the real Scotsman file."""
     from pathlib import Path
@@ -120,6 +155,7 @@ def run(args) -> dict:
                 out[f"scotsman_{k}"] = v
         except SonarFileError as exc:
             out["scotsman_error"] = str(exc)
+    out.update(calibrator_front_ends(120.0 if quick else 300.0))
     src = "scotsman" if "scotsman_registrations" in out else "synthetic"
     out["ours_registrations_per_s"] = out[f"{src}_ours_registrations_per_s"]
     out["plain_sift_registrations_per_s"] = out[f"{src}_plain_sift_registrations_per_s"]
