@@ -20,6 +20,11 @@ The path, live and in replay (the runner does nothing special for it):
    ``loop_closure``) like any aid; the accepted pairs go into the batch, which the runner
    then hands back to the calibrator (it learns k_V and the current from them).
 
+The detector runs where the calibrator runs, so there are loop closures only with a
+calibrator in the same runner: the daemon's child, ``adaptnav replay --calibrate``. A remote
+calibrator node (:mod:`adaptnav.service.calibrator.node`) has no filter to hand its objects
+to and drops them (it still detects them: a cost on the node's computer).
+
 Memory is bounded: the navigation record covers ``nav_keep_s`` of pings, the associator keeps
 sightings for at most the clones' horizon (older ones could not be fused) and at most
 ``AssociationConfig.max_sightings``.
