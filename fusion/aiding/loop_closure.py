@@ -165,10 +165,11 @@ class CloneBank:
         return True
 
     def _prune(self, t_now: float) -> None:
+        if not self.t_s or min(self.t_s) >= t_now - self.horizon_s:
+            return  # nothing to drop (every clone but once a period)
         keep = [k for k, t in enumerate(self.t_s) if t >= t_now - self.horizon_s]
-        if len(keep) == len(self.t_s):
-            return
-        gone = {self._ids[k] for k in range(len(self._ids)) if k not in set(keep)}
+        kept = set(keep)  # (was built again for every clone: quadratic in their number)
+        gone = {self._ids[k] for k in range(len(self._ids)) if k not in kept}
         self._ids = [self._ids[k] for k in keep]
         self.t_s = [self.t_s[k] for k in keep]
         self.pos_n_m = [self.pos_n_m[k] for k in keep]
