@@ -440,7 +440,6 @@ class OnlineCalibrator:
         self._pre_fix: list = []  # observations before the grid exists
         # side-scan (calibration.sidescan): the object front end, created on the first ping
         self.sonar = None
-        self.sonar_front_end = None
         from adaptnav.sonar.dead_reckoning import AnchoredDeadReckoning
         self.sonar_nav = AnchoredDeadReckoning()  # ping positions (the image's row spacing), tied to fixes
         from adaptnav.calibration.sidescan import LinkIds
@@ -555,7 +554,6 @@ class OnlineCalibrator:
 
         if self.sonar is None:
             self.sonar = CalibratorSonar(self.sonar_nav)
-            self.sonar_front_end = self.sonar.front_end
         batch = self.sonar.push(ping)
         if batch is not None:
             self._pending.append(batch)

@@ -11,7 +11,8 @@ import numpy as np
 
 import adaptnav.calibration.online  # noqa: F401 (the import is the point)
 import adaptnav.service.config  # noqa: F401 (the child unpickles a ServiceConfig: pymavlink & co.)
-import adaptnav.sonar.stream  # noqa: F401
+import adaptnav.calibration.sidescan  # noqa: F401 (its object front end, on the first ping)
+import adaptnav.sonar.objects  # noqa: F401
 from adaptnav.calibration.em import EMOptions, run_em
 from adaptnav.calibration.sensors import HeadingObservation, PositionFix
 from adaptnav.fusion.motion_model import MotionParams
