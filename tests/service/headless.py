@@ -10,6 +10,7 @@ import base64
 import contextlib
 import itertools
 import json
+import re
 import shutil
 import subprocess
 import tempfile
@@ -27,10 +28,22 @@ def chromium_path() -> str | None:
     return None
 
 
+# Chromium writes "<port>\n/devtools/browser/<uuid>"; the file can be seen half-written
+_PORT_FILE = re.compile(r"\d+\n/devtools/browser/[0-9a-f-]{36}\s*$")
+
+
+def _port_file_complete(port_file: Path) -> bool:
+    try:
+        return _PORT_FILE.match(port_file.read_text()) is not None
+    except FileNotFoundError:
+        return False
+
+
 class Page:
     """One headless browser with one page. Use as a context manager."""
 
-    def __init__(self, binary: str, timeout_s: float = 60.0) -> None:
+    # generous: a loaded 2-core CI machine starts Chromium slowly; a limit, not a pace
+    def __init__(self, binary: str, timeout_s: float = 180.0) -> None:
         self.binary = binary
         self.timeout_s = timeout_s
         self.errors: list[str] = []
@@ -47,7 +60,7 @@ class Page:
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = Path(self._dir.name) / "DevToolsActivePort"
         deadline = time.monotonic() + self.timeout_s
-        while not (port_file.exists() and len(port_file.read_text().splitlines()) >= 2):
+        while not _port_file_complete(port_file):
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"{self.binary} did not start (exit {self.proc.poll()})")
             time.sleep(0.05)  # waiting for the browser to write its port file, not pacing anything
