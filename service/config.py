@@ -388,6 +388,24 @@ class ServiceConfig:
     foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
     state_dir: str = "/var/lib/adaptnav"
 
+    def validate(self) -> None:
+        # a DVL delta is valid dvl_latency_s before it arrives, a "mean" one another Δt/2
+        # earlier (mid-interval): the filter must still hold that past (late measurements are
+        # re-fused up to filter.max_delay_s, older ones rejected as too late — every sample of
+        # a "mean" DVL slower than 1/(2 max_delay_s) Hz would be, silently but for the count)
+        c = self.mavlink.convert
+        mean = c.dvl_delta == "mean"
+        lag_s = (0.5 * c.dvl_max_interval_s if mean else 0.0) + c.dvl_latency_s
+        if lag_s > self.filter.max_delay_s:
+            fix = (f"lower mavlink.convert.dvl_max_interval_s to {2.0 * (self.filter.max_delay_s - c.dvl_latency_s):g} "
+                   f"(the longest DVL interval it accepts)" if mean and self.filter.max_delay_s > c.dvl_latency_s
+                   else "lower mavlink.convert.dvl_latency_s")
+            raise ValueError(
+                f"mavlink.convert.dvl_delta = \"{c.dvl_delta}\" places a DVL sample up to "
+                f"{'dvl_max_interval_s/2 + ' if mean else ''}dvl_latency_s = {lag_s:g} s before it arrives, beyond "
+                f"filter.max_delay_s = {self.filter.max_delay_s:g} s (older samples are rejected as too late): raise "
+                f"filter.max_delay_s to {lag_s:g} or {fix}")
+
 
 def read_config_file(path: str | Path) -> dict:
     """The raw TOML tree of a config file; :class:`ConfigError` (one line) when it is

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -95,3 +96,56 @@ def test_a_nan_default_may_be_given_as_nan_and_the_shipped_config_loads():
     cfg = load_config(None, ["calibrator.online.origin_lat_deg=nan"])
     assert math.isnan(cfg.calibrator.online.origin_lat_deg)
     load_config(Path(__file__).resolve().parents[2] / "deploy" / "adaptnav.toml")
+
+
+def _mean_dvl_delta(converter, t_boot_s: float, dt_s: float) -> list:
+    """One "mean" VISION_POSITION_DELTA (1 m/s forward over ``dt_s``) from BlueOS's DVL
+    (system 255, ``time_usec = 0``: placed by the boot clock of the ATTITUDE just before)."""
+    from adaptnav.service.transport.mavlink_convert import mavlink2
+
+    ap, dvl = mavlink2.MAVLink(None, 1, 1), mavlink2.MAVLink(None, 255, 0)
+    for mav, msg in ((ap, ap.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                              0, 0, 4)),
+                     (ap, ap.attitude_encode(int(t_boot_s * 1000), 0, 0, 0, 0, 0, 0)),
+                     (dvl, dvl.vision_position_delta_encode(0, int(dt_s * 1e6), [0, 0, 0], [dt_s, 0, 0], 100.0))):
+        out = converter.convert(mav.decode(bytearray(msg.pack(mav))))
+    return out
+
+
+def test_a_mean_dvl_the_filter_would_reject_as_too_late_is_refused_at_load():
+    import numpy as np
+
+    from adaptnav.fusion.eskf import Estimator
+    from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin
+    from adaptnav.fusion.motion_model import RpmSpeedTable
+    from adaptnav.fusion.samples import HeadingSample, ImuBatch
+    from adaptnav.service.transport.mavlink_convert import MavlinkConverter
+
+    # GIVEN "mean" deltas (valid at mid-interval) and the default 5 s longest interval: a
+    # 0.2 Hz DVL's would land 2.5 s in the past, beyond filter.max_delay_s = 1 s
+    with pytest.raises(ConfigError, match=r"max_delay_s = 1 s.*raise filter.max_delay_s to 2.5 or lower "
+                                          r"mavlink.convert.dvl_max_interval_s to 2"):
+        load_config(overrides=['mavlink.convert.dvl_delta="mean"'])
+    # WHEN configured as the error says
+    cfg = load_config(overrides=['mavlink.convert.dvl_delta="mean"', "mavlink.convert.dvl_max_interval_s=2.0"])
+    est = Estimator(cfg.filter, MotionParams(), RpmSpeedTable(), GeoOrigin(math.radians(59.0), math.radians(10.0)))
+    t = 10.0 + np.arange(1, 101) / 100.0
+    est.process(ImuBatch(t, np.tile([0.0, 0.0, -GRAVITY_M_S2], (100, 1)), np.zeros((100, 3))))
+    est.process(HeadingSample(11.0, 0.0))
+    assert est.initialized
+    t = 11.0 + np.arange(1, 301) / 100.0  # the filter at t = 14 s
+    est.process(ImuBatch(t, np.tile([0.0, 0.0, -GRAVITY_M_S2], (300, 1)), np.zeros((300, 3))))
+    # THEN the slowest DVL the converter accepts (0.5 Hz: valid 1 s before it arrives) reaches
+    # the filter in time (fused or gated, never too late) ...
+    conv = MavlinkConverter(cfg.mavlink.convert)
+    (dvl,) = _mean_dvl_delta(conv, 14.0, 2.0)
+    assert dvl.t_s == pytest.approx(13.0)
+    (status,) = est.process(dvl)
+    assert status.reason != "too_late" and est.rejected["too_late"] == 0
+    # ... and a slower one is refused where it is read, with its reason (counted by the source)
+    assert _mean_dvl_delta(conv, 14.0, 2.5) == []
+    assert conv.accounting()["VISION_POSITION_DELTA"]["rejected"] == {"dvl_bad_interval": 1}
+    # (with the old default it came through and was lost in the filter as too late)
+    old = MavlinkConverter(replace(cfg.mavlink.convert, dvl_max_interval_s=5.0))
+    (late,) = _mean_dvl_delta(old, 14.0, 2.5)
+    assert est.process(late)[0].reason == "too_late"
