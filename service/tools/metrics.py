@@ -25,6 +25,11 @@ at least ``min_outage_s``, from the last sample with lock ``t_a`` to the first a
 
 - ``outage_drift_percent = 100 · e(t_b⁻) / D_out``: the horizontal error of the last state
   before the DVL is re-admitted over the truth's path length ``D_out`` in ``[t_a, t_b]``;
+- ``outage_start_error_m``: the horizontal error ``e(t_a)`` of the last state at or before
+  ``t_a`` — what the DVL navigation before the outage left (its scale factor and
+  misalignment, unobservable without fixes); ``outage_growth_m = ‖e⃗(t_b⁻) − e⃗(t_a)‖``: what
+  the outage itself added (the vector difference, so an error the model carries unchanged
+  counts zero);
 - ``recovery_correction_sigma``: the largest position correction after the DVL returns, in
   units of the published covariance just before. The correction is what the published
   position does beyond its own velocity: ``C_j = Σ_{k≤j} (p_k − p_{k−1} − ½(v_k + v_{k−1})Δt)``
@@ -216,8 +221,10 @@ def dvl_outage_metrics(track: TrackArrays, truth: TruthArrays, dvl_t_s: np.ndarr
     if k_before < 1 or distance <= 0:
         return {}
     tb = track.t_s[k_before]
-    p_true = interp_rows(np.array([tb]), truth.t_s, truth.pos_n_m)[0]
-    err = float(np.hypot(*(track.pos_n_m[k_before, :2] - p_true[:2])))
+    k_start = max(int(np.searchsorted(track.t_s, t_a, side="right")) - 1, 0)
+    p_true = interp_rows(track.t_s[[k_start, k_before]], truth.t_s, truth.pos_n_m)
+    e_start, e_end = track.pos_n_m[[k_start, k_before], :2] - p_true[:, :2]
+    err = float(np.hypot(*e_end))
     P_h = track.cov_pva[k_before, :2, :2]
     sel = np.nonzero((track.t_s > tb) & (track.t_s <= t_b + window_s))[0]
     worst_sigma, worst_m = 0.0, 0.0
@@ -233,6 +240,7 @@ def dvl_outage_metrics(track: TrackArrays, truth: TruthArrays, dvl_t_s: np.ndarr
     return {
         "outage_start_s": t_a, "outage_end_s": t_b, "outage_distance_m": distance,
         "outage_error_m": err, "outage_drift_percent": 100.0 * err / distance,
+        "outage_start_error_m": float(np.hypot(*e_start)), "outage_growth_m": float(np.hypot(*(e_end - e_start))),
         "sigma_h_before_recovery_m": float(math.sqrt(max(P_h[0, 0], P_h[1, 1]))),
         "recovery_correction_m": worst_m, "recovery_correction_sigma": worst_sigma,
     }

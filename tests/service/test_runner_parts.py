@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from adaptnav.fusion.samples import DepthSample, ImuBatch, ImuSample, RpmSample, TruthSample
 from adaptnav.service.runtime.clock import LiveClock, LogClock, RealtimeClock
 from adaptnav.service.runtime.health import Health
-from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, horizontal_path_length_m, nees
+from adaptnav.service.tools.metrics import (TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics,
+                                            horizontal_path_length_m, nees)
 from adaptnav.service.runtime.sources import SourceCounters, order_and_batch
 
 
@@ -124,6 +125,26 @@ def test_nees_of_consistent_errors_matches_chi_square():
     # mean of 6000 χ²(9) draws: σ of the mean ≈ sqrt(18/6000) ≈ 0.055
     assert abs(m["nees_mean"] - 9.0) < 0.3
     assert abs(m["nees_fraction_in_95"] - 0.95) < 0.02
+
+
+def test_outage_metrics_split_the_error_left_before_from_what_the_outage_added():
+    truth = _straight_truth()
+    t = np.arange(0.0, 600.0 + 1e-9, 0.1)
+    n = len(t)
+    # 2 m north of the truth up to the outage (t 200-400 s), then also drifting east at 1 cm/s
+    off = np.zeros((n, 3))
+    off[:, 1] = 2.0
+    off[:, 0] = np.clip(t - 200.0, 0.0, 200.0) * 0.01
+    pos = np.stack([1.5 * t, np.zeros(n), np.full(n, 10.0)], axis=1) + off[:, [1, 0, 2]]
+    track = TrackArrays(t, pos, np.tile([1.5, 0.0, 0.0], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                        np.tile(np.eye(9), (n, 1, 1)), np.tile([0.1, 0.0], (n, 1)))
+    dvl_t = np.arange(0.0, 600.0, 0.2)
+    m = dvl_outage_metrics(track, truth, dvl_t, (dvl_t <= 200.0) | (dvl_t >= 400.0))
+    assert m["outage_start_s"] == pytest.approx(200.0) and m["outage_end_s"] == pytest.approx(400.0)
+    assert m["outage_start_error_m"] == pytest.approx(2.0)
+    assert m["outage_growth_m"] == pytest.approx(2.0, abs=0.002)  # 1 cm/s for 200 s, east
+    assert m["outage_error_m"] == pytest.approx(np.hypot(2.0, 2.0), abs=0.002)
+    assert m["outage_drift_percent"] == pytest.approx(100.0 * m["outage_error_m"] / 300.0)
 
 
 def test_nees_skips_singular_covariances():
