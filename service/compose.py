@@ -24,15 +24,18 @@ from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.motion_model import MotionParams
 
 
-def make_estimator(cfg: Any, params0: MotionParams | None = None, origin: GeoOrigin | None = None):
+def make_estimator(cfg: Any, params0: MotionParams | None = None, origin: GeoOrigin | None = None, *,
+                   objects: bool = True):
     """The navigation filter from a ServiceConfig (``params0`` default
     ``cfg.motion.params0``; ``origin`` default ``cfg.origin``). It also takes side-scan pings
     and the object sightings the calibrator returns, and fuses leg-to-leg loop closures
-    (``filter.loop_closure.enabled``; :class:`adaptnav.service.loop_closures.SideScanEstimator`)."""
+    (``filter.loop_closure.enabled``; :class:`adaptnav.service.loop_closures.SideScanEstimator`);
+    ``objects=False`` when no sightings can come (no calibrator in the runner): pings then
+    cost nothing."""
     from adaptnav.service.loop_closures import SideScanEstimator
 
     return SideScanEstimator(cfg.filter, cfg.motion.params0 if params0 is None else params0, cfg.motion.rpm_table,
-                             cfg.origin.geo() if origin is None else origin)
+                             cfg.origin.geo() if origin is None else origin, objects=objects)
 
 
 def make_calibrator(cfg: Any, params0: MotionParams, seed: int):

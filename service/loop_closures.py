@@ -25,6 +25,11 @@ calibrator in the same runner: the daemon's child, ``adaptnav replay --calibrate
 calibrator node (:mod:`adaptnav.service.calibrator.node`) has no filter to hand its objects
 to and drops them (it still detects them: a cost on the node's computer).
 
+Nothing is recorded and no clone kept while no object sightings can come (``objects=False``:
+a replay without a calibrator, whose pings had cost the filter a fifth of its time in
+clones that nothing would ever fuse); the outputs are the same either way (clones are
+consider states: they change no estimate until a closure is fused).
+
 Memory is bounded: the navigation record covers ``nav_keep_s`` of pings, the associator keeps
 sightings for at most the clones' horizon (older ones could not be fused) and at most
 ``AssociationConfig.max_sightings``.
@@ -55,10 +60,15 @@ class SideScanEstimator(Estimator):
         calibrator's latency (the sightings come back that late).
     association : adaptnav.sonar.association.AssociationConfig, optional
         Gates of the association (default: its defaults, memory capped at the clone horizon).
+    objects : bool
+        Object sightings may come (a calibrator in the same runner detects them): record the
+        navigation at pings and keep clones. ``False``: pings are only counted.
     """
 
-    def __init__(self, *args: Any, nav_keep_s: float = 300.0, association: Any = None, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, nav_keep_s: float = 300.0, association: Any = None, objects: bool = True,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.objects = bool(objects)
         self.nav_keep_s = float(nav_keep_s)
         self._association_config = association
         self._associator: Any = None  # created with the first batch (imports sonar)
@@ -95,8 +105,10 @@ class SideScanEstimator(Estimator):
         t = float(ping.t_s)
         if not (self.initialized and math.isfinite(t)):
             return
-        self._t_ping = t
         self.side_scan["pings"] += 1
+        if not self.objects:
+            return  # nothing will place sightings or fuse closures: no record, no clones
+        self._t_ping = t
         ns = self.nav_state()
         if not ns.valid:
             return

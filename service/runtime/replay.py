@@ -244,7 +244,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
     params0 = cfg.motion.params0
-    estimator = make_estimator(cfg, params0)
+    estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None
     if calibrate:
         from adaptnav.service.compose import make_lagged_calibrator
