@@ -162,7 +162,8 @@ class Estimator:
         self._imu_source = ""  # ImuSample.source of the latest IMU sample
         self._qdiag = self._process_noise()
         # past horizontal positions for leg-to-leg loop closures (aiding.loop_closure)
-        self._clones = aid_loop.CloneBank(config.loop_closure.clone_period_s, config.loop_closure.clone_horizon_s)
+        self._clones = aid_loop.CloneBank(config.loop_closure.clone_period_s, config.loop_closure.clone_horizon_s,
+                                          self._core)
         self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
         self._mode = "none"  # "none" | "ins" | "ahrs"
         self._reset_counter = 0
@@ -905,11 +906,8 @@ class Estimator:
                 stop = max(stop, start + 1)
                 lv_due = True
             t0, pos0, vel0 = self._clock[0], self._x[X_POS].copy(), self._x[X_VEL].copy()
-            if self._clones.active:  # each covariance step also carries the clones' cross-covariances
-                self._clones.propagate(t[start:stop], f[start:stop], w[start:stop], self._core,
-                                       self._qdiag, self.config.covariance_step_s)
-            else:
-                kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
+            # (each covariance step also goes into the clones' map while they exist)
+            kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                                   self._qdiag, self.config.covariance_step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
@@ -1213,15 +1211,10 @@ class Estimator:
         y = meas.innovation()
         m = y.size
         sdiag = self._sdiag[:m]
-        P_prior = None
-        if self._clones.active and self._mode == "ins":
-            self._clones.flush(self._core, self._qdiag)
-            P_prior = self._P.copy()
-        # a non-finite y, H or R gives a NaN NIS, which the gate rejects before P is touched
+        # a non-finite y, H or R gives a NaN NIS, which the gate rejects before P is touched;
+        # the clones' cross-covariances follow the flush and the update in the kernel
         nis, fused = kalman.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
-                                  self._dx, sdiag, self._mode == "ins")
-        if fused and P_prior is not None:
-            self._clones.after_update(P_prior, meas.H, meas.R, self._dx)
+                                      self._dx, sdiag, self._mode == "ins")
         if fused:
             if self._heading_source is not None:
                 self._yaw_fix_rad += self._yaw_of(self._dx)

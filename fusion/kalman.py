@@ -23,7 +23,15 @@ Arrays shared by the kernels (all float64, mutated in place):
 - ``qdiag`` (18,) continuous process noise PSDs per error state,
 - ``core`` (:data:`CORE_SIZE`,) all of ``x``, ``P``, ``acc`` and ``clock`` in one array
   (:data:`CORE_X`, :data:`CORE_P`, :data:`CORE_ACC`, :data:`CORE_CLOCK`): the estimator's
-  state, copied whole for a late-measurement snapshot.
+  state, copied whole for a late-measurement snapshot; then the clones' pending map ``M``
+  (18, 18) (:data:`CORE_M`) and its switch (:data:`CORE_TRACK`).
+
+Stochastic clones (:mod:`adaptnav.fusion.aiding.loop_closure`) need their cross-covariances
+``C = Cov(δx, d)`` (18 × 2 per clone) to follow every linear map of the error state:
+``C ← Φ C`` per covariance step, ``C ← G (I − K H) C`` per update. While ``core[CORE_TRACK]``
+is set, the kernels compose those maps into ``M`` instead (``C_true = M C_stored``: 18 × 18
+per step instead of 18 × 2n, and no Python between the steps of an IMU run); the clone bank
+applies ``M`` when it reads ``C`` (a new clone, a closure: every few seconds).
 """
 from __future__ import annotations
 
@@ -49,11 +57,15 @@ N_X = N_NOM
 N_P = N_ERR * N_ERR
 _CORE_ACC = N_X + N_P          # where acc starts in the core array
 _CORE_CLOCK = _CORE_ACC + ACC_SIZE
-CORE_SIZE = _CORE_CLOCK + 2
+_CORE_M = _CORE_CLOCK + 2       # the clones' pending map M (row-major)
+_CORE_TRACK = _CORE_M + N_P     # > 0: the kernels compose the error-state maps into M
+CORE_SIZE = _CORE_TRACK + 1
 CORE_X = slice(0, N_X)
 CORE_P = slice(N_X, _CORE_ACC)
 CORE_ACC = slice(_CORE_ACC, _CORE_CLOCK)
-CORE_CLOCK = slice(_CORE_CLOCK, CORE_SIZE)
+CORE_CLOCK = slice(_CORE_CLOCK, _CORE_M)
+CORE_M = slice(_CORE_M, _CORE_TRACK)
+CORE_TRACK = _CORE_TRACK
 
 
 @jit(cache=True)
@@ -103,12 +115,8 @@ def transition(acc, T):
 
 
 @jit(cache=True)
-def propagated_covariance(P, acc, qdiag):
-    """Covariance after the pending accumulated step (P itself is not changed)."""
-    T = acc[_ACC_T]
-    if T <= 0.0:
-        return P.copy()
-    Phi = transition(acc, T)
+def covariance_step(P, Phi, qdiag, T):
+    """``Φ (P + Q T/2) Φᵀ + Q T/2``, symmetrised (a new array)."""
     Pm = P.copy()
     for i in range(N_ERR):
         Pm[i, i] += 0.5 * qdiag[i] * T
@@ -116,6 +124,15 @@ def propagated_covariance(P, acc, qdiag):
     for i in range(N_ERR):
         Pn[i, i] += 0.5 * qdiag[i] * T
     return 0.5 * (Pn + Pn.T)
+
+
+@jit(cache=True)
+def propagated_covariance(P, acc, qdiag):
+    """Covariance after the pending accumulated step (P itself is not changed)."""
+    T = acc[_ACC_T]
+    if T <= 0.0:
+        return P.copy()
+    return covariance_step(P, transition(acc, T), qdiag, T)
 
 
 @jit(cache=True)
@@ -138,6 +155,22 @@ def core_views(core):
     acc = core[_CORE_ACC:_CORE_CLOCK]
     clock = core[_CORE_CLOCK:CORE_SIZE]
     return x, P, acc, clock
+
+
+@jit(cache=True)
+def flush_core(core, qdiag):
+    """:func:`flush_covariance` on the core array; while clones are tracked, ``M ← Φ M``."""
+    x, P, acc, clock = core_views(core)
+    T = acc[_ACC_T]
+    if T > 0.0:
+        Phi = transition(acc, T)
+        if core[_CORE_TRACK] > 0.0:
+            M = core[_CORE_M:_CORE_TRACK].reshape((N_ERR, N_ERR))
+            M[:, :] = Phi @ M
+        P[:, :] = covariance_step(P, Phi, qdiag, T)
+        for i in range(_ACC_STEP_END):
+            acc[i] = 0.0
+    clock[1] = clock[0]
 
 
 @jit(cache=True)
@@ -165,9 +198,17 @@ def core_ok(core, max_speed_m_s):
 
 @jit(cache=True)
 def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
-    """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch)."""
+    """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch); each
+    covariance step also goes into the clones' map (:func:`flush_core`)."""
     x, P, acc, clock = core_views(core)
-    propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s)
+    R0 = np.empty((3, 3))
+    R1 = np.empty((3, 3))
+    for k in range(t_s.shape[0]):
+        dt = t_s[k] - clock[0]
+        strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
+        clock[0] = t_s[k]
+        if clock[0] - clock[1] >= cov_step_s - 1e-9:
+            flush_core(core, qdiag)
 
 
 @jit(cache=True)
@@ -244,6 +285,12 @@ def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
     Returns ``(nis, fused)``: ``yᵀ S⁻¹ y`` and whether ``nis ≤ gate`` (NaN ⇒ False);
     ``dx_out`` ← K y (zeros if rejected), ``s_diag_out`` ← diag S.
     """
+    return gated_update_gain(P, y, H, R, gate, dx_out, s_diag_out, np.zeros((P.shape[0], y.shape[0])))
+
+
+@jit(cache=True)
+def gated_update_gain(P, y, H, R, gate, dx_out, s_diag_out, k_out):
+    """:func:`gated_update`, the gain K (n × m) also into ``k_out`` when fused."""
     n = P.shape[0]
     m = y.shape[0]
     PHt = np.zeros((n, m))
@@ -276,6 +323,7 @@ def gated_update(P, y, H, R, gate, dx_out, s_diag_out):
     if not (nis <= gate):
         return nis, False
     K = _times_small(PHt, Sinv)
+    k_out[:, :] = K
     KS = _times_small(K, S)
     for i in range(n):
         acc = 0.0
@@ -308,6 +356,37 @@ def fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush):
 
 @jit(cache=True)
 def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
-    """:func:`fuse` on the core array."""
+    """:func:`fuse` on the core array; while clones are tracked, the flush goes into their map
+    (:func:`flush_core`) and so does the update: ``M ← G (I − K H) M``."""
     x, P, acc, clock = core_views(core)
-    return fuse(x, P, acc, clock, qdiag, y, H, R, gate, dx, s_diag_out, flush)
+    if flush:
+        flush_core(core, qdiag)
+    n, m = P.shape[0], y.shape[0]
+    K = np.zeros((n, m))
+    nis, fused = gated_update_gain(P, y, H, R, gate, dx, s_diag_out, K)
+    if fused:
+        inject_error(x, dx, P)
+        if core[_CORE_TRACK] > 0.0:
+            M = core[_CORE_M:_CORE_TRACK].reshape((N_ERR, N_ERR))
+            HM = np.zeros((m, n))
+            for a in range(m):
+                for j in range(n):
+                    acc_ = 0.0
+                    for i in range(n):
+                        acc_ += H[a, i] * M[i, j]
+                    HM[a, j] = acc_
+            for i in range(n):
+                for j in range(n):
+                    acc_ = M[i, j]
+                    for a in range(m):
+                        acc_ -= K[i, a] * HM[a, j]
+                    M[i, j] = acc_
+            # the reset G = I + ½[δθ]× changes the attitude rows only
+            rx, ry, rz = 0.5 * dx[_E_ATT], 0.5 * dx[_E_ATT + 1], 0.5 * dx[_E_ATT + 2]
+            th = _E_ATT
+            for j in range(n):
+                m0, m1, m2 = M[th, j], M[th + 1, j], M[th + 2, j]
+                M[th, j] = m0 - rz * m1 + ry * m2
+                M[th + 1, j] = m1 + rz * m0 - rx * m2
+                M[th + 2, j] = m2 - ry * m0 + rx * m1
+    return nis, fused

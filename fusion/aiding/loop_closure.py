@@ -34,13 +34,17 @@ import math
 import numpy as np
 
 from .. import kalman
-from ..state import ACC_T, ATT, N_ERR, POS_NE
-
-_NO_FLUSH_S = 1e18  # a covariance step the strapdown kernel never reaches: we flush ourselves
+from ..state import ATT, N_ERR, POS_NE
 
 
 class CloneBank:
     """Horizontal-position clones of past epochs and their covariances.
+
+    The cross-covariances are ``C_true = M C`` with ``M`` the map the kernels compose in the
+    estimator's core array while clones exist (:mod:`adaptnav.fusion.kalman`, ``CORE_M``):
+    every covariance step and update costs 18 × 18 there instead of 18 × 2n here (they were
+    a quarter of a replay with side-scan and the calibrator); ``M`` is applied to ``C`` when
+    ``C`` is read (:meth:`_settle`: a new clone, a loop closure).
 
     Parameters
     ----------
@@ -48,18 +52,17 @@ class CloneBank:
         A new clone at most this often (:meth:`maybe_clone`).
     horizon_s : float
         Clones older than this are dropped.
+    core : numpy.ndarray, optional
+        The estimator's core array (``kalman.CORE_SIZE``) that carries ``M`` (a private one
+        when not given).
     """
 
-    def __init__(self, period_s: float = 5.0, horizon_s: float = 900.0) -> None:
+    def __init__(self, period_s: float = 5.0, horizon_s: float = 900.0, core: np.ndarray | None = None) -> None:
         self.period_s = float(period_s)
         self.horizon_s = float(horizon_s)
-        self.t_s: list[float] = []
-        self.pos_n_m: list[np.ndarray] = []
-        # Σ between clones: rows are immutable once created (shared by snapshots)
-        self._sigma: dict[tuple[int, int], np.ndarray] = {}
-        self._ids: list[int] = []
-        self._next_id = 0
-        self.C = np.zeros((N_ERR, 0))  # [C_0 | C_1 | ...], 2 columns per clone
+        self._core = np.zeros(kalman.CORE_SIZE) if core is None else core
+        self._M = self._core[kalman.CORE_M].reshape(N_ERR, N_ERR)
+        self.clear()
 
     @property
     def active(self) -> bool:
@@ -70,78 +73,52 @@ class CloneBank:
 
         Shares everything: the lists and ``C`` are never modified in place, only replaced
         (copy on write), Σ entries are never modified (append-only dict; pruned keys are
-        harmless). Copying ``C`` (18 × 2 per clone, up to 360 columns) for every snapshot
-        was a tenth of a replay with side-scan.
+        harmless); ``M`` is part of the core array the snapshot copies. Copying ``C``
+        (18 × 2 per clone, up to 360 columns) for every snapshot was a tenth of a replay
+        with side-scan.
         """
         out = CloneBank.__new__(CloneBank)
-        out.period_s, out.horizon_s = self.period_s, self.horizon_s
-        out.t_s, out.pos_n_m, out._ids = self.t_s, self.pos_n_m, self._ids
-        out._sigma = self._sigma
-        out._next_id = self._next_id
-        out.C = self.C
+        out.__dict__.update(self.__dict__)
         return out
 
     def clear(self) -> None:
-        self.__init__(self.period_s, self.horizon_s)
+        self.t_s: list[float] = []
+        self.pos_n_m: list[np.ndarray] = []
+        # Σ between clones, a row per clone: id → {id of it or an older clone → 2×2}; rows are
+        # immutable once created (shared by snapshots)
+        self._sigma: dict[int, dict[int, np.ndarray]] = {}
+        self._ids: list[int] = []
+        self._next_id = 0
+        self.C = np.zeros((N_ERR, 0))  # [C_0 | C_1 | ...], 2 columns per clone (times M)
+        self._core[kalman.CORE_TRACK] = 0.0
+        self._M[:, :] = np.eye(N_ERR)
+
+    def _settle(self) -> None:
+        """``C ← M C``, ``M ← I``: the cross-covariances as they are now."""
+        if self._ids:
+            self.C = self._M @ self.C
+        self._M[:, :] = np.eye(N_ERR)
 
     # ---------------------------------------------------------------- hooks
     def transform(self, A: np.ndarray) -> None:
-        """``C ← A C`` (A: Φ, ``I − K H`` or the reset ``G``; 18×18)."""
+        """``C ← A C`` (A: Φ or the reset ``G``; 18×18)."""
         if self._ids:
-            self.C = A @ self.C
+            self._M[:, :] = A @ self._M
 
     def flush(self, core: np.ndarray, qdiag: np.ndarray) -> None:
-        """Flush the pending covariance step of the estimator's core array, ``C ← Φ C``."""
-        _, P, acc, clock = kalman.core_views(core)
-        T = acc[ACC_T]
-        if T > 0.0 and self._ids:
-            self.C = kalman.transition(acc, T) @ self.C
-        kalman.flush_covariance(P, acc, clock, qdiag)
-
-    def propagate(self, t_s, f_b, w_b, core: np.ndarray, qdiag: np.ndarray, cov_step_s: float) -> None:
-        """:func:`adaptnav.fusion.kalman.propagate_core` with the same covariance steps, each
-        also applied to the clones' cross-covariances (one kernel call per step)."""
-        _, _, _, clock = kalman.core_views(core)
-        n = t_s.shape[0]
-        start = 0
-        while start < n:
-            # the kernel flushes after the first sample with t − t_flush ≥ step − 1e-9
-            stop = int(np.searchsorted(t_s, clock[1] + cov_step_s - 1e-9, side="left")) + 1
-            stop = min(max(stop, start + 1), n)
-            kalman.propagate_core(t_s[start:stop], f_b[start:stop], w_b[start:stop], core, qdiag, _NO_FLUSH_S)
-            if clock[0] - clock[1] >= cov_step_s - 1e-9:
-                self.flush(core, qdiag)
-            start = stop
-
-    def after_update(self, P_prior: np.ndarray, H: np.ndarray, R: np.ndarray, dx: np.ndarray) -> None:
-        """Cross-covariances after an ordinary fused update: ``C ← G (I − K H) C``."""
-        if not self._ids:
-            return
-        PHt = P_prior @ H.T
-        S = H @ PHt + R
-        # a scalar measurement (depth, heading): 1/S, as LAPACK's inverse of a 1 × 1 computes
-        # it (np.linalg.inv's checks cost more than the rest of this update)
-        K = PHt * (1.0 / S[0, 0]) if S.shape[0] == 1 else PHt @ np.linalg.inv(S)
-        C = self.C - K @ (H @ self.C)
-        # the reset G = I + ½[δθ]× on the attitude block (reset_jacobian) changes only the
-        # attitude rows: G C computed on those (3 × n instead of 18 × 18 × n per update)
-        rx, ry, rz = (float(v) for v in dx[ATT])
-        half_skew = 0.5 * np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
-        C[ATT] += half_skew @ C[ATT]
-        self.C = C
+        """Flush the pending covariance step of the estimator's core array (and ``C ← Φ C``)."""
+        kalman.flush_core(core, qdiag)
 
     def shift_time(self, delta_s: float) -> None:
         self.t_s = [t + delta_s for t in self.t_s]
 
     def scale_rows(self, rows, factor: float) -> None:
         if self._ids:
-            self.C = self.C.copy()  # snapshots share C (copy())
-            self.C[rows, :] *= factor
+            self._M[rows, :] *= factor
 
     def zero_rows(self, rows) -> None:
         if self._ids:
-            self.C = self.C.copy()
-            self.C[rows, :] = 0.0
+            self._M[rows, :] = 0.0
 
     def maybe_clone(self, t_s: float, x_pos_n_m: np.ndarray, P: np.ndarray) -> bool:
         """Clone the horizontal position if ``period_s`` has passed since the last clone.
@@ -151,12 +128,14 @@ class CloneBank:
         if self.t_s and t_s - self.t_s[-1] < self.period_s:
             return False
         self._prune(t_s)
+        self._settle()
+        self._core[kalman.CORE_TRACK] = 1.0
         cid = self._next_id
         self._next_id += 1
-        self._sigma[(cid, cid)] = P[POS_NE, POS_NE].copy()
-        for k, oid in enumerate(self._ids):
-            # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]
-            self._sigma[(cid, oid)] = self.C[POS_NE, 2 * k:2 * k + 2].copy()
+        # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]
+        row = {oid: self.C[POS_NE, 2 * k:2 * k + 2].copy() for k, oid in enumerate(self._ids)}
+        row[cid] = P[POS_NE, POS_NE].copy()
+        self._sigma[cid] = row
         # new lists, not appends: snapshots share the old ones (copy())
         self._ids = self._ids + [cid]
         self.t_s = self.t_s + [float(t_s)]
@@ -175,15 +154,17 @@ class CloneBank:
         self.pos_n_m = [self.pos_n_m[k] for k in keep]
         cols = np.array([[2 * k, 2 * k + 1] for k in keep], dtype=int).reshape(-1)
         self.C = self.C[:, cols]
-        # Σ entries of dropped clones are dropped here only (snapshots never look them up again)
-        self._sigma = {key: v for key, v in self._sigma.items() if key[0] not in gone and key[1] not in gone}
+        # the rows of dropped clones are dropped here only (snapshots never look them up
+        # again); the live rows keep their entries for dropped clones (bounded, never read):
+        # dropping those too rebuilt every entry per clone, 180² of them an hour in
+        self._sigma = {cid: row for cid, row in self._sigma.items() if cid not in gone}
 
     def sigma(self, i: int, j: int) -> np.ndarray:
         """Σ between clones at list positions ``i`` and ``j`` (2×2)."""
         a, b = self._ids[i], self._ids[j]
         # stored once per pair as (newer, older): ids only grow, so a snapshot restored
         # from before a clone was made never reads an entry written after it
-        return self._sigma[(a, b)] if a >= b else self._sigma[(b, a)].T
+        return self._sigma[a][b] if a >= b else self._sigma[b][a].T
 
     def nearest(self, t_s: float) -> int | None:
         """List position of the clone nearest ``t_s`` (None if there is none within a period)."""
@@ -198,6 +179,7 @@ class CloneBank:
 
         Returns ``(K (18×2), y (2,), S (2×2), nis)``; nothing is changed (see :meth:`apply`).
         """
+        self._settle()
         y = np.asarray(offset_n_m, float).reshape(2)
         S = (self.sigma(a, a) + self.sigma(b, b) - self.sigma(a, b) - self.sigma(b, a)
              + np.asarray(R, float).reshape(2, 2))
@@ -209,6 +191,7 @@ class CloneBank:
 
     def apply(self, a: int, b: int, K: np.ndarray) -> None:
         """Cross-covariances after a fused loop closure: ``C_j ← C_j − K (Σ_bj − Σ_aj)``."""
+        self._settle()
         self.C = self.C.copy()  # snapshots share C (copy())
         for j in range(len(self._ids)):
             self.C[:, 2 * j:2 * j + 2] -= K @ (self.sigma(b, j) - self.sigma(a, j))
