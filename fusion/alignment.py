@@ -146,6 +146,9 @@ class Alignment:
         # the last position of an earlier run (Estimator.restore_slow_states): (t_s, pos_n (3),
         # var (3), time known to have passed since, s)
         self.saved_pos: tuple[float, np.ndarray, np.ndarray, float] | None = None
+        # whether the latest initial_position() came from a fix or a saved state (else the
+        # origin, a guess of initial.sigma_pos_m)
+        self.position_known = False
 
     def _new_aligner(self) -> Aligner:
         a = self.config.alignment
@@ -238,6 +241,7 @@ class Alignment:
         sigma_h = self.config.initial.sigma_pos_m
         sigma_d = self.config.initial.sigma_pos_m
         saved = self.saved_pos
+        self.position_known = True
         if self._fix is not None:
             pos[:2], sigma_h = self._fix
         elif saved is not None and 0.0 <= t_s - saved[0] and max(t_s - saved[0], saved[3]) <= 3600.0:
@@ -245,6 +249,8 @@ class Alignment:
             pos[:] = saved[1]
             sigma_h = math.sqrt(float(max(saved[2][0], saved[2][1])) + moved**2)
             sigma_d = math.sqrt(float(saved[2][2]) + moved**2)
+        else:
+            self.position_known = False
         if self._depth_m is not None:
             pos[2], sigma_d = self._depth_m, self.config.depth.sigma_m
         return pos, sigma_h, sigma_d

@@ -56,6 +56,29 @@ def test_first_position_fix_before_alignment_sets_the_initial_position():
     assert s.cov[0, 0] == pytest.approx(4.0)
 
 
+def test_first_fix_after_the_start_places_the_position_a_later_one_is_fused():
+    # GIVEN a start with no fix (at the origin, σ initial.sigma_pos_m = 10 m), at rest
+    est = _aligned()
+    counter = est.nav_state().reset_counter
+    est.process(_static_batch(1.0, 100))
+    lat, lon, _ = ORIGIN.to_geodetic(np.array([30.0, -20.0, 0.0]))
+    # WHEN the first fix comes: THEN the position is the fix's, its covariance the fix's,
+    # uncorrelated (fused as an update, the arbitrary start would keep 2 %: 0.8 m here)
+    (st,) = est.process(UsblSample(2.0, float(lat), float(lon), 5.0, 1.5))
+    s = est.nav_state()
+    assert st.fused and st.innovation[:2] == pytest.approx((30.0, -20.0), abs=1e-6)
+    np.testing.assert_allclose(s.pos_n_m[:2], [30.0, -20.0], atol=1e-9)
+    np.testing.assert_allclose(s.cov[:2, :2], np.eye(2) * 1.5**2, atol=1e-9)
+    assert not np.any(s.cov[:2, 2:]) and s.reset_counter == counter + 1  # a jump, told to the autopilot
+    # a second fix is an update: the position moves part of the way, σ shrinks
+    est.process(_static_batch(2.0, 100))
+    lat, lon, _ = ORIGIN.to_geodetic(np.array([31.5, -20.0, 0.0]))
+    (st,) = est.process(UsblSample(3.0, float(lat), float(lon), 5.0, 1.5))
+    s = est.nav_state()
+    assert st.fused and 30.5 < s.pos_n_m[0] < 31.0 and s.cov[0, 0] < 0.6 * 1.5**2
+    assert s.reset_counter == counter + 1
+
+
 def test_unused_sample_types_are_ignored():
     est = _aligned()
     assert est.process(TruthSample(1.0, (0, 0, 0), (0, 0, 0), (1, 0, 0, 0), (0, 0, 0), 1.0)) == []
