@@ -374,7 +374,10 @@ def error_budget(tlog: Path, truth: dict[str, np.ndarray], dvl_errors: dict, our
     """Each navigator's error split into what it shares with the other and what is its own:
     ``e(t) = e_shared(t) + ∫ δψ(τ) e_z × v(τ) dτ + rest`` — the errors no aid observes
     (:func:`shared_error_ne_m`), its heading error δψ acting on the true velocity ``v``, and
-    the rest (its integration of the DVL: timing, noise, outliers, turns, its start).
+    the rest (its integration of the DVL: timing, noise, outliers, turns, its start). For a
+    filter whose heading converges (a gyrocompass after a compass seed) the rest also holds
+    the correction its position gets through its correlation with the heading — the two parts
+    then largely cancel, and only their sum means anything.
 
     Parameters
     ----------
