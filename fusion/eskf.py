@@ -249,10 +249,11 @@ class Estimator:
         self._add_considered(cov)
         sigma_h = _sigma_h_m(cov)
         reasons = self.invalid_reasons(sigma_h)
-        if self._mode == "ins" and not reasons and not np.all(np.isfinite(x)):
+        if self._mode == "ins" and not reasons and not np.isfinite(x).all():
             reasons = ["non_finite"]
         valid = self._mode == "ins" and not reasons
-        pos, vel = x[X_POS].copy(), x[X_VEL].copy()
+        x = x.copy()  # one copy; the state's vectors are views of it
+        pos, vel = x[X_POS], x[X_VEL]
         if self._out_arm is not None:
             # reported at the output point: p + R l, v + R (ω̂ × l), P ← J P Jᵀ (J[POS, ATT] = −[R l]×)
             R = aid_lv.dcm(x)
@@ -264,8 +265,8 @@ class Estimator:
             cov = J @ cov @ J.T
         return NavState(
             t_s=float(self._clock[0]), pos_n_m=pos, vel_n_m_s=vel,
-            q_nb=x[X_Q].copy(), bias_acc_b_m_s2=x[X_BA].copy(), bias_gyro_b_rad_s=x[X_BG].copy(),
-            current_n_m_s=x[X_CUR].copy(), k_speed=float(x[X_KS]), cov=cov, valid=valid,
+            q_nb=x[X_Q], bias_acc_b_m_s2=x[X_BA], bias_gyro_b_rad_s=x[X_BG],
+            current_n_m_s=x[X_CUR], k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter, invalid_reasons=tuple(reasons))
 
     def _add_considered(self, cov: np.ndarray) -> None:

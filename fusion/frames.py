@@ -105,7 +105,7 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     state and output row converts its attitude, and a scipy ``Rotation`` round trip costs
     ~15 µs of the output epoch (issue 17); the same angles to 1e-12 away from gimbal lock.
     """
-    w, x, y, z = (float(v) for v in q)
+    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)  # tolist: C speed
     r20 = 2.0 * (x * z - w * y)
     pitch = -math.asin(min(1.0, max(-1.0, r20)))
     roll = math.atan2(2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))

@@ -29,6 +29,7 @@ offset between legs is evidence on the speed scale).
 """
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -168,10 +169,15 @@ class CloneBank:
 
     def nearest(self, t_s: float) -> int | None:
         """List position of the clone nearest ``t_s`` (None if there is none within a period)."""
-        if not self.t_s:
+        ts = self.t_s
+        if not ts:
             return None
-        k = int(np.argmin(np.abs(np.asarray(self.t_s) - t_s)))
-        return k if abs(self.t_s[k] - t_s) <= self.period_s else None
+        # clone times increase: the nearest is one of the two around t_s (the earlier on a
+        # tie, as argmin over all of them; that array per call was 4 % of a replay)
+        k = bisect.bisect_left(ts, t_s)
+        if k == len(ts) or (k > 0 and abs(ts[k - 1] - t_s) <= abs(ts[k] - t_s)):
+            k -= 1
+        return k if abs(ts[k] - t_s) <= self.period_s else None
 
     # ---------------------------------------------------------------- the update
     def closure_update(self, a: int, b: int, offset_n_m, R) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
