@@ -862,10 +862,7 @@ class Estimator:
             return []
         if not math.isfinite(st[0]):
             st[0] = float(t[0])
-        st[1] += t.size
-        st[2:5] += f.sum(axis=0)
-        st[5:8] += (f * f).sum(axis=0)
-        st[8] = max(st[8], float(np.sqrt((w * w).sum(axis=1)).max()))
+        sd.accumulate_rest_window(st, f, w)
         t_end = float(t[-1])
         if t_end - st[0] < c.window_s:
             return []

@@ -34,8 +34,12 @@ class Measurement(NamedTuple):
     def innovation(self) -> np.ndarray:
         y = self.z - self.h
         ang = self.angular
-        if ang is not _NOT_ANGULAR.get(ang.size) and ang.any():  # make()'s shared all-False masks
-            y = np.where(self.angular, wrap_angle(y), y)
+        if ang is _NOT_ANGULAR.get(ang.size):  # make()'s shared all-False masks
+            return y
+        if ang.size == 1:  # a heading: np.where and any() cost more than the wrap
+            return wrap_angle(y) if ang[0] else y
+        if ang.any():
+            y = np.where(ang, wrap_angle(y), y)
         return y
 
 
