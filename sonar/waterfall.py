@@ -288,8 +288,16 @@ def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
     # decided per side for the whole run, not per ping: switching source ping by ping
     # makes the near-range columns flicker
     both = np.isfinite(rec) & np.isfinite(det)
-    disagree = both & (np.abs(rec - det) > cfg.altitude_tolerance * np.maximum(det, 1e-6))
-    side_uses_det = disagree.sum(axis=0) > 0.3 * np.maximum(both.sum(axis=0), 1)
+    off = np.abs(rec - det) > cfg.altitude_tolerance * np.maximum(det, 1e-6)
+    n = 0.3 * np.maximum(both.sum(axis=0), 1)
+    # an echo *before* the altimeter's seabed contradicts it; one after it does not by itself:
+    # right below the sonar the beam pattern leaves the first return weak, and over a dark
+    # (mud) patch the pick comes late on that side only (survey seed 1: 10 of 149 blocks
+    # took a side's altitude 2-4 m too high, placing objects at 10-15 m ground range ~3 m
+    # short). A late echo overrules the altimeter only when both sides see it.
+    early = (both & off & (det < rec)).sum(axis=0) > n
+    late = (both & off & (det > rec)).sum(axis=0) > n
+    side_uses_det = early | (late & bool(late.all()))
     use_det = ~np.isfinite(rec) | side_uses_det[None, :]
     return np.where(use_det, det, rec)
 
