@@ -346,8 +346,7 @@ class Estimator:
         a, b = self._clones.nearest(t_a_s), self._clones.nearest(t_b_s)
         if a is None or b is None:
             return None
-        c = self._clones
-        return c.sigma(a, a) + c.sigma(b, b) - c.sigma(a, b) - c.sigma(b, a)
+        return self._clones.relative_cov(a, b)
 
     def fuse_loop_closure(self, t_a_s: float, t_b_s: float, offset_n_m, cov) -> AidStatus:
         """Fuse a leg-to-leg loop closure: ``offset_n_m ≈ e(t_a) − e(t_b)`` (the navigation's

@@ -312,7 +312,10 @@ class Daemon:
             slow = dict(restored.slow_states)
             slow["pos_min_elapsed_s"] = max(0.0, time.time() - float(slow["pos_saved_unix_s"]))
             restored = dataclasses.replace(restored, slow_states=slow)
-        est = make_estimator(self.cfg, self.params)
+        # side-scan sightings come only from the daemon's own calibrator child: without it
+        # pings cost the filter nothing (no navigation record, no clones)
+        cal = self.cfg.calibrator
+        est = make_estimator(self.cfg, self.params, objects=cal.enabled and cal.location == "process")
         if restored is not None:
             try:
                 if restored.slow_states:

@@ -150,16 +150,23 @@ class SideScanEstimator(Estimator):
         self.side_scan["batches"] += 1
         if not self._nav or not self.initialized:
             return []
-        rec = np.array(self._nav)
         det = ObjectDetectorConfig()
-        placed = []
+        t0, t1 = self._nav[0][0], self._nav[-1][0]
+        inside = []
         for o in batch.sightings:
-            t = float(o.t_s)
-            if not rec[0, 0] <= t <= rec[-1, 0]:
+            if t0 <= float(o.t_s) <= t1:
+                inside.append(o)
+            else:
                 self.rejected["side_scan_no_navigation"] += 1
-                continue
-            row = [float(np.interp(t, rec[:, 0], rec[:, k])) for k in range(1, rec.shape[1])]
-            placed.append(with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9]))
+        if not inside:
+            return []
+        # every sighting of the batch interpolated in one call per column (np.interp is
+        # point by point: the same numbers as one call per sighting and column)
+        rec = np.array(self._nav).T
+        t = np.array([float(o.t_s) for o in inside])
+        rows = np.array([np.interp(t, rec[0], rec[k]) for k in range(1, rec.shape[0])]).T.tolist()
+        placed = [with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9])
+                  for o, row in zip(inside, rows)]
         if not placed:
             return []
         self.side_scan["sightings"] += len(placed)

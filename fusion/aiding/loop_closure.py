@@ -89,6 +89,7 @@ class CloneBank:
         # immutable once created (shared by snapshots)
         self._sigma: dict[int, dict[int, np.ndarray]] = {}
         self._ids: list[int] = []
+        self._rel: dict[tuple[int, int], np.ndarray] = {}  # relative_cov by clone ids
         self._next_id = 0
         self.C = np.zeros((N_ERR, 0))  # [C_0 | C_1 | ...], 2 columns per clone (times M)
         self._core[kalman.CORE_TRACK] = 0.0
@@ -159,6 +160,7 @@ class CloneBank:
         # again); the live rows keep their entries for dropped clones (bounded, never read):
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
         self._sigma = {cid: row for cid, row in self._sigma.items() if cid not in gone}
+        self._rel = {}
 
     def sigma(self, i: int, j: int) -> np.ndarray:
         """Σ between clones at list positions ``i`` and ``j`` (2×2)."""
@@ -166,6 +168,18 @@ class CloneBank:
         # stored once per pair as (newer, older): ids only grow, so a snapshot restored
         # from before a clone was made never reads an entry written after it
         return self._sigma[a][b] if a >= b else self._sigma[b][a].T
+
+    def relative_cov(self, a: int, b: int) -> np.ndarray:
+        """``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` (2×2, read-only): the covariance of ``d_a − d_b`` for
+        clones at list positions ``a`` and ``b``. Kept per pair of clones (their Σ never
+        change): the association asks for it once per candidate pair."""
+        key = (self._ids[a], self._ids[b])
+        out = self._rel.get(key)
+        if out is None:
+            out = self.sigma(a, a) + self.sigma(b, b) - self.sigma(a, b) - self.sigma(b, a)
+            out.setflags(write=False)
+            self._rel[key] = out
+        return out
 
     def nearest(self, t_s: float) -> int | None:
         """List position of the clone nearest ``t_s`` (None if there is none within a period)."""
@@ -187,8 +201,7 @@ class CloneBank:
         """
         self._settle()
         y = np.asarray(offset_n_m, float).reshape(2)
-        S = (self.sigma(a, a) + self.sigma(b, b) - self.sigma(a, b) - self.sigma(b, a)
-             + np.asarray(R, float).reshape(2, 2))
+        S = self.relative_cov(a, b) + np.asarray(R, float).reshape(2, 2)
         S = 0.5 * (S + S.T)
         Sinv = np.linalg.inv(S)
         K = (self.C[:, 2 * b:2 * b + 2] - self.C[:, 2 * a:2 * a + 2]) @ Sinv
