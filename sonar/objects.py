@@ -96,7 +96,11 @@ class ObjectDetectorConfig:
         boulder at 10–20 m (H = 10 m), and there the incidence is steep enough that sand
         ripples hardly cast shadows (the false objects the far range's contrast keeps out).
         Measured (3 survey seabeds, true navigation): recall at 10–20 m 65/90 → 78/90, false
-        detections nearer than 20 m 3 → 17 (of ~100 true).
+        detections nearer than 20 m 3 → 17 (of ~100 true). Contrast 5 once the shadow length
+        is the deep shadow's (``deep_shadow_level``: far fewer false sightings to begin with):
+        survey seeds 1–5, true navigation, objects detected on both legs 759 → 778 of 988,
+        false sightings 70 → 311 (4: 795, 1590); ``adaptnav experiment landmarks``
+        re-associated 72.0/69.9/76.7/73.8/69.4 → 75.7/71.5/75.2/74.9/74.2 %, false links ≤ 1.2 %.
     compact_width_m, compact_min_contrast : float
         Beyond ``short_shadow_range_m`` an object whose highlight runs into its shadow — the
         brightest return of the window at most ``compact_width_m`` before the shadow's start,
@@ -153,7 +157,7 @@ class ObjectDetectorConfig:
     min_height_m: float = 0.15
     short_shadow_range_m: float = 20.0
     short_min_shadow_m: float = 0.3
-    short_min_contrast: float = 6.0
+    short_min_contrast: float = 5.0
     compact_width_m: float = 1.0
     compact_min_contrast: float = 6.0
     merge_m: float = 1.5
