@@ -113,3 +113,21 @@ def test_em_with_side_scan_landmarks_learns_speed_scale(scene):
     res = run_em(start, v, w, dt, observations, init, rng, opts)
     # the re-observed landmarks tie the two legs together: k_V moves from 1.0 towards 0.8
     assert abs(res.params.k_v - 0.8) < 0.1, res.params
+
+
+def test_calibrator_releases_a_k_v_taught_by_landmarks_alone(scene):
+    # GIVEN a window whose only position information is side-scan landmarks seen on both
+    # legs, water with k_V 0.8, and a calibrator still at 1.0
+    from adaptnav.calibration.online import CalibratorConfig, calibrate_window
+
+    truth, v, w, dt, poses, landmarks, sonar, sightings, observations = scene
+    rng = np.random.default_rng(3)
+    init = np.zeros((600, 3)) + 0.05 * rng.standard_normal((600, 3))
+    start = MotionParams(var_vv=0.1**2, k_v=1.0, var_s=0.02**2, var_w1=0.002**2)
+    cfg = CalibratorConfig(n_particles=600, n_smoothed=50, em_iterations=5, fit_b_w=False, step_s=dt,
+                           model_step_s=dt, fit_current=False, ll_tolerance=0)
+    rel = calibrate_window(start, v, w, dt, observations, init, cfg, rng)
+    # THEN EM's k_V toward 0.8 is released with a log-likelihood not below the old one's
+    # (ll_tolerance 0): landmarks alone teach the speed scale through the whole release path
+    assert rel.accepted, rel.reason
+    assert abs(rel.params.k_v - 0.8) < 0.1, rel.params

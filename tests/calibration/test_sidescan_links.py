@@ -20,10 +20,10 @@ LEG_M, SPACING_M = 300.0, 50.0
 ORIGIN = GeoOrigin(math.radians(43.0), math.radians(5.0))
 
 
-def _track(duration_s: float, dt: float = 0.5):
-    """Reciprocal lawnmower (north, turn east, south, ...) at the true speed: t, pos (n, e), yaw."""
+def _track(duration_s: float, dt: float = 0.5, k_before: float = K_TRUE, t_change_s: float = math.inf):
+    """Reciprocal lawnmower (north, turn east, south, ...) at the true speed: t, pos (n, e), yaw.
+    The water's speed scale is ``k_before`` until ``t_change_s``, :data:`K_TRUE` after."""
     table = RpmSpeedTable()
-    speed = K_TRUE * table.speed(RPM)
     r = SPACING_M / 2.0
     t = np.arange(0.0, duration_s, dt)
     pos = np.zeros((t.size, 2))
@@ -31,6 +31,7 @@ def _track(duration_s: float, dt: float = 0.5):
     p, th, along, leg, turning = np.zeros(2), 0.0, 0.0, 0, False
     for i in range(t.size):
         pos[i], yaw[i] = p, th
+        speed = (k_before if t[i] < t_change_s else K_TRUE) * table.speed(RPM)
         ds = speed * dt
         if not turning:
             p = p + ds * np.array([math.cos(th), math.sin(th)])
@@ -84,13 +85,14 @@ def _sightings(t, pos, yaw, rng, t_first_s: float):
     return pairs
 
 
-def _run(with_links: bool, seed: int = 4):
+def _run(with_links: bool, seed: int = 4, k_before: float = K_TRUE, t_change_s: float = math.inf,
+         duration: float = 1500.0):
     rng = np.random.default_rng(seed)
-    duration = 1500.0
-    t, pos, yaw = _track(duration)
+    t, pos, yaw = _track(duration, k_before=k_before, t_change_s=t_change_s)
     cfg = CalibratorConfig(n_particles=200, n_smoothed=30, em_iterations=2, origin_lat_deg=43.0,
                            origin_lon_deg=5.0)
-    cal = OnlineCalibrator(cfg, MotionParams(k_v=1.0), RpmSpeedTable(), np.random.default_rng(seed))
+    cal = OnlineCalibrator(cfg, MotionParams(k_v=k_before if math.isfinite(t_change_s) else 1.0), RpmSpeedTable(),
+                           np.random.default_rng(seed))
     items = [(0.0, 0, GnssSample(0.0, ORIGIN.lat_rad, ORIGIN.lon_rad, 1.0))]  # at the origin
     for ti, yi in zip(t[::2], yaw[::2]):  # 1 Hz
         items.append((float(ti), 1, RpmSample(float(ti), RPM)))
@@ -124,3 +126,17 @@ def test_without_links_k_v_stays():
     k = [r.params.k_v for r in releases if r.accepted]
     # one fix says nothing about the speed scale: k_V is not moved toward 0.9
     assert all(abs(kv - 1.0) < 0.02 for kv in k), k
+
+
+def test_links_follow_a_change_of_water():
+    # GIVEN the right k_V 1.0 until the water changes at 15 min (k_V 0.9), no fix after the
+    # first: pairs of reciprocal legs whose two sightings straddle the change carry the old
+    # k_V out and the new one back (their along-track dead reckoning no longer cancels)
+    t_change = 900.0
+    releases = _run(with_links=True, k_before=1.0, t_change_s=t_change, duration=t_change + 900.0)
+    taught = [r for r in releases if r.accepted and "landmarks" in r.teachers and r.t_s > t_change]
+    assert taught, [r.reason for r in releases]
+    # THEN 15 min after the change the calibrator's k_V is within 3 % of the new water's
+    # (with 6 objects per pair of 300 m legs, 10 min after it leaves 0.96-0.97: the pairs
+    # with both sightings after the change come back only from the third leg on)
+    assert abs(taught[-1].params.k_v - K_TRUE) / K_TRUE < 0.03, [(r.t_s, round(r.params.k_v, 4)) for r in taught]
