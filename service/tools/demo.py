@@ -206,9 +206,16 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
         # the daemon drains its queue; then serve the last ODOMETRY messages
         end_t = vehicle.t_data_s or duration
         deadline = time.monotonic() + 30.0
-        # until the last epoch is out and the daemon's input is empty (a sample held for
-        # data order is released within its hold time): the counts below are final
-        while (collector.last_t() < end_t - 0.5 or daemon.source.qsize() > 0) and time.monotonic() < deadline:
+        # until the last epoch is out, the daemon's input is empty and every published ping
+        # has been taken in (a ping still on the wire, or held for data order, arrives within
+        # its hold time; on a loaded machine that can be after the last epoch): the counts
+        # below are final
+        def pings_taken_in() -> int:
+            sensors = daemon._health_report().get("sensors", {}) if daemon.bus is not None else {}
+            return int(sensors.get("sonar", {}).get("count") or 0)
+
+        while ((collector.last_t() < end_t - 0.5 or daemon.source.qsize() > 0 or pings_taken_in() < sonar_count[0])
+               and time.monotonic() < deadline):
             vehicle.run(linger_s=0.25)  # the samples are exhausted: heartbeats + ODOMETRY only
         vehicle.run(linger_s=0.3)
         health = daemon._health_report() if daemon.bus is not None else {}
