@@ -198,8 +198,11 @@ def core_ok(core, max_speed_m_s):
 
 @jit(cache=True)
 def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
-    """:func:`propagate_imu` on the core array (fewer arguments: cheaper dispatch); each
-    covariance step also goes into the clones' map (:func:`flush_core`)."""
+    """Propagate the core array over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
+
+    The caller guarantees ``t_s`` strictly increasing, after the state time, finite and
+    without gaps (checked vectorised before). The covariance is stepped every
+    ``cov_step_s``; each step also goes into the clones' map (:func:`flush_core`)."""
     x, P, acc, clock = core_views(core)
     R0 = np.empty((3, 3))
     R1 = np.empty((3, 3))
@@ -209,24 +212,6 @@ def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
         clock[0] = t_s[k]
         if clock[0] - clock[1] >= cov_step_s - 1e-9:
             flush_core(core, qdiag)
-
-
-@jit(cache=True)
-def propagate_imu(t_s, f_b, w_b, x, P, acc, clock, qdiag, cov_step_s):
-    """Propagate over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
-
-    The caller guarantees ``t_s`` strictly increasing, after ``clock[0]``, finite and
-    without gaps (checked vectorised before). Covariance is flushed every
-    ``cov_step_s``.
-    """
-    R0 = np.empty((3, 3))
-    R1 = np.empty((3, 3))
-    for k in range(t_s.shape[0]):
-        dt = t_s[k] - clock[0]
-        strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
-        clock[0] = t_s[k]
-        if clock[0] - clock[1] >= cov_step_s - 1e-9:
-            flush_covariance(P, acc, clock, qdiag)
 
 
 @jit(cache=True)

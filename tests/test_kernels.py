@@ -44,7 +44,7 @@ def test_arguments_of_other_types_than_built_for_give_the_same_result():
 
 
 def test_a_kernel_calling_one_of_another_module_gives_the_same_result_just_in_time():
-    """kalman.propagate_imu calls strapdown.strapdown_step: when an argument sends it to the
+    """kalman.propagate_core calls strapdown.strapdown_step: when an argument sends it to the
     just-in-time version (a read-only array), that version must call strapdown's kernel
     just in time too (the compiled one cannot be called from numba code)."""
     rng = np.random.default_rng(5)
