@@ -998,7 +998,7 @@ class Estimator:
 
     def _doubt_k_speed(self) -> None:
         """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt)."""
-        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_core(self._core, self._qdiag)
         k = KS.start
         self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
 
@@ -1125,7 +1125,7 @@ class Estimator:
 
     def _reset_attitude(self, sample, meas: Measurement, status: AidStatus) -> None:
         """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated."""
-        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_core(self._core, self._qdiag)
         roll, pitch, yaw = aid_attitude.predict(self._x)
         if meas.z.size == 3:  # the whole attitude (a heading-only measurement keeps the tilt)
             roll, pitch = sample.roll_rad, sample.pitch_rad
@@ -1141,7 +1141,7 @@ class Estimator:
 
     def _reset_velocity(self, meas: Measurement, status: AidStatus) -> None:
         """Velocity to what the aid says (the innovation solved through H's velocity block)."""
-        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_core(self._core, self._qdiag)
         Hv = meas.H[:, VEL]
         dv, *_ = np.linalg.lstsq(Hv, meas.innovation(), rcond=None)
         self._x[X_VEL] += dv
@@ -1201,7 +1201,7 @@ class Estimator:
         1.6 m fix) — and an origin taken from this very fix (a replay's) counts it twice,
         pulling the position back by that share of the motion since the start (0.1–0.2 m on
         the navigation-grade AUV class, tests/service/test_auv_navgrade.py)."""
-        kalman.flush_covariance(self._P, self._acc, self._clock, self._qdiag)
+        kalman.flush_core(self._core, self._qdiag)
         y = meas.innovation()
         S = meas.H @ self._P @ meas.H.T + meas.R  # reported as for an update
         nis = float(y @ np.linalg.solve(S, y))
