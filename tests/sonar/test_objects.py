@@ -248,3 +248,21 @@ def test_a_block_with_two_objects_continues_the_closure_just_accepted(displaced_
         assert np.linalg.norm(lc.offset_n_m - (e_a - e_b)) < 1.0
     else:
         assert lc is None
+
+
+def test_shadow_length_stops_where_the_deep_shadow_ends_not_the_dark_seabed():
+    """A cast shadow holds only noise (level ~0.05); dark seabed beyond it (0.35) is still
+    below the shadow level but is not shadow: the length is the deep part's (and a
+    component of dark seabed alone is as long as it is, if nothing rises above the level)."""
+    from adaptnav.sonar.objects import _deep_shadow_px
+
+    lev = np.full((3, 60), 1.0)
+    lev[:, 10:20] = 0.05   # the object's shadow: 10 px
+    lev[:, 20:45] = 0.35   # dark seabed the shadow component runs into
+    rows = np.array([0, 1, 2])
+    near, far = np.full(3, 10), np.full(3, 45)
+    assert _deep_shadow_px(lev, rows, near, far, deep_level=0.3) == 10.0
+    assert _deep_shadow_px(lev, rows, near, far, deep_level=1.0) == 35.0
+    lev[1, 20:22] = 0.35   # two lit pixels inside a shadow do not end it (three do):
+    lev[1, 22:30] = 0.05   # row 1's shadow runs 10..30, the longest over the rows
+    assert _deep_shadow_px(lev, rows, near, far, deep_level=0.3) == 20.0

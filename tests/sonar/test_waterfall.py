@@ -146,3 +146,30 @@ def test_masked_median_equals_numpy_nanmedian_on_the_data_pixels():
             got = masked_median(img, data, axis)
             assert got.dtype == ref.dtype
             np.testing.assert_array_equal(got, ref)
+
+
+def _pings_with_returns(port_first_m, stbd_first_m, altimeter_m, n_pings=30):
+    """Flat-seabed pings whose first return starts at the given slant range per side."""
+    n, rng_m = 1000, 30.0
+    r = (np.arange(n) + 0.5) * rng_m / n
+    port = np.where(r > port_first_m, 1.0, 0.01).astype(np.float32)
+    stbd = np.where(r > stbd_first_m, 1.0, 0.01).astype(np.float32)
+    return [SonarPing(t_s=0.5 * i, port=port, starboard=stbd, slant_range_m=rng_m, altitude_m=altimeter_m)
+            for i in range(n_pings)]
+
+
+@pytest.mark.parametrize("port_m, stbd_m, expect_port_m, expect_stbd_m", [
+    (8.5, 6.0, 6.0, 6.0),   # late on one side only (a weak nadir return, mud): the altimeter stays
+    (8.5, 8.5, 8.5, 8.5),   # late on both sides: the echo overrules the altimeter
+    (4.0, 6.0, 4.0, 6.0),   # early on one side: an echo cannot come from below the seabed
+])
+def test_auto_bottom_takes_a_late_echo_over_the_altimeter_only_when_both_sides_see_it(
+        port_m, stbd_m, expect_port_m, expect_stbd_m):
+    from adaptnav.sonar.waterfall import _altitudes
+
+    pings = _pings_with_returns(port_m, stbd_m, altimeter_m=6.0)
+    port = np.stack([p.port for p in pings])
+    stbd = np.stack([p.starboard for p in pings])
+    alt = _altitudes(pings, port, stbd, WaterfallConfig(bottom="auto"))
+    assert np.allclose(alt[:, 0], expect_port_m, atol=0.15), alt[:, 0]
+    assert np.allclose(alt[:, 1], expect_stbd_m, atol=0.15), alt[:, 1]
