@@ -75,11 +75,15 @@ class DvlCalibration:
         self._last_vel_n: np.ndarray | None = None
 
     def report(self) -> dict:
-        """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs used."""
+        """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs used, and whether
+        anything but the prior is known (``"estimated"``; ``"prior"``: no fix pair closed a DVL
+        track, so the DVL navigated uncalibrated and the published covariance carries the
+        prior's σ)."""
         sd = np.sqrt(np.diag(self.P))
         return {"scale_factor_error": float(self.theta[0]), "scale_sigma": float(sd[0]),
                 "misalignment_deg": float(np.degrees(self.theta[1])),
-                "misalignment_sigma_deg": float(np.degrees(sd[1])), "pairs_used": self.pairs_used}
+                "misalignment_sigma_deg": float(np.degrees(sd[1])), "pairs_used": self.pairs_used,
+                "status": "estimated" if self.pairs_used else "prior"}
 
     def position_cov_ne(self) -> np.ndarray:
         """(2, 2) m²: what the scale and misalignment still unknown (their σ, ``P``) make of the

@@ -334,8 +334,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     if getattr(estimator, "side_scan", None):  # side-scan loop closures (service.loop_closures)
         doc["side_scan"] = dict(estimator.side_scan)
     cal = getattr(estimator, "dvl_calibration", None)
-    if cal is not None and cal.pairs_used:
-        doc["dvl_calibration"] = cal.report()
+    if cal is not None and doc["health"]["sensors"].get("dvl", {}).get("count", 0):
+        doc["dvl_calibration"] = cal.report()  # "status": "prior" says the DVL was never calibrated
     if counters.get("message_types"):
         doc["message_types"] = counters["message_types"]
         doc["unknown_message_types"] = sorted(k for k, v in counters["message_types"].items()

@@ -73,3 +73,21 @@ def test_an_unmeasured_lever_arm_enters_the_dvl_covariance_as_omega_cross_its_er
     C = lever_arm_doubt(omega, 0.5, R_db)
     assert np.allclose(C, empirical, atol=0.01 * np.max(np.abs(C)))
     assert np.allclose(lever_arm_doubt(np.zeros(3), 0.5, R_db), 0.0)
+
+
+def test_the_report_says_whether_the_dvl_was_calibrated_or_ran_on_its_prior():
+    # GIVEN a DVL track that no second fix has closed yet
+    cal = DvlCalibration(0.005, 0.01)
+    cal.on_fix(0.0, (0.0, 0.0), 1.0)
+    t = _track(cal, 0.0, (1.5, 0.0), 200)
+    # THEN the report says the scale and misalignment are still the prior's
+    first = cal.report()
+    assert first["status"] == "prior" and first["pairs_used"] == 0
+    assert first["scale_sigma"] == pytest.approx(0.005)
+    # WHEN a fix closes the 300 m track 2 m east of where the DVL put it (a 0.38° misalignment)
+    cal.on_fix(t, (300.0, 2.0), 0.5)
+    # THEN it is calibrated: one pair, the misalignment moved toward the fix, its σ shrank
+    after = cal.report()
+    assert after["status"] == "estimated" and after["pairs_used"] == 1
+    assert after["misalignment_sigma_deg"] < first["misalignment_sigma_deg"]
+    assert abs(after["misalignment_deg"]) > 0.1
