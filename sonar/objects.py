@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.ndimage import find_objects, gaussian_filter, label, uniform_filter
@@ -323,13 +324,14 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
         return []
     sub = lev[:, :ncol + int(2.0 / res)]
     lab, n = label(sub > config.near_highlight_level, structure=np.ones((3, 3), bool))
+    big = np.bincount(lab.ravel(), minlength=n + 1) >= config.near_min_px  # (most blobs are speckle)
     out = []
     for k, sl in enumerate(find_objects(lab), start=1):
-        if sl is None:
+        if sl is None or not big[k]:
             continue
         comp = lab[sl] == k
         rr = np.flatnonzero(comp.any(axis=1))
-        if comp.sum() < config.near_min_px or rr.size < config.near_min_rows:
+        if rr.size < config.near_min_rows:
             continue
         c0, c1 = sl[1].start, sl[1].stop
         if c0 >= ncol or c0 < int(config.min_ground_range_m / res):
@@ -374,50 +376,32 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     min_cols = max(int(round(config.min_shadow_m / res)), 1)
     short_cols = max(int(round(config.short_min_shadow_m / res)), 1)
     min_col0 = int(config.min_ground_range_m / res)
+    # the tests every component must pass before its attributes are measured, for all
+    # components at once (a side has hundreds of speckle components; testing them one by one
+    # in Python was most of the detector's cost): size, shadow length, range, a highlight
+    runs = _component_rows(lab)
+    cand = _shadow_candidates(lab, n, runs, config, res, min_cols, short_cols, min_col0)
+    hl = _highlights(lev, runs, cand, hw, config.highlight_level)
     out = []
-    for k, sl in enumerate(find_objects(lab), start=1):
-        if sl is None:
-            continue
-        comp = lab[sl] == k
-        if comp.sum() < config.min_shadow_px:
-            continue
-        r0, c0 = sl[0].start, sl[1].start
-        has = comp.any(axis=1)
-        comp_rows = np.flatnonzero(has)
-        near = np.argmax(comp, axis=1)[has] + c0             # first shadow column per row
-        far = comp.shape[1] - np.argmax(comp[:, ::-1], axis=1)[has] + c0  # one past the last
-        length_px = far - near
-        short = np.median(near) * res < config.short_shadow_range_m
-        if length_px.max() < (short_cols if short else min_cols) or np.median(near) < min_col0:
-            continue
-        hl_rows, lead, hl_vals = [], [], []
-        for rr, cn in zip(comp_rows + r0, near):
-            a = max(cn - hw, 0)
-            seg = lev[rr, a:cn]
-            if seg.size == 0:
-                continue
-            j = int(np.argmax(seg))
-            if seg[j] > config.highlight_level:
-                hl_rows.append(rr)
-                hl_vals.append(float(seg[j]))
-                # leading edge: the nearest column of the bright run that ends at the shadow
-                bright = seg > 0.5 * (1.0 + config.highlight_level)
-                jj = j
-                while jj > 0 and bright[jj - 1]:
-                    jj -= 1
-                lead.append(a + jj)
-        if len(hl_rows) < config.min_highlight_rows:
-            continue
+    slices = find_objects(lab)
+    hl_label = runs.label[hl.run]
+    for k in np.flatnonzero(np.bincount(hl_label, minlength=n + 1) >= max(config.min_highlight_rows, 1)):
+        sl = slices[k - 1]
+        mine = slice(*np.searchsorted(runs.label, [k, k + 1]))
+        comp_rows, near, far = runs.row[mine], runs.near[mine], runs.far[mine]  # image rows
+        short = _median_int(near) * res < config.short_shadow_range_m
+        lit = slice(*np.searchsorted(hl_label, [k, k + 1]))
+        hl_rows, lead, hl_vals = runs.row[hl.run[lit]].tolist(), hl.lead[lit].tolist(), hl.level[lit].tolist()
         # the object's own rows: the run of highlight rows around the brightest (gaps of up to
         # two rows) and the shadow rows beside them; a shadow component that runs on along-track
         # into dark seabed has rows without a lit face before them
         hl_rows, lead, hl_vals = _object_run(hl_rows, lead, hl_vals)
-        own = (comp_rows + r0 >= hl_rows[0] - 1) & (comp_rows + r0 <= hl_rows[-1] + 1)
+        own = (comp_rows >= hl_rows[0] - 1) & (comp_rows <= hl_rows[-1] + 1)
         comp_rows, near, far = comp_rows[own], near[own], far[own]
-        g_top = (float(np.median(near)) + 0.5) * res
-        g_lead = (float(np.median(lead)) + 0.5) * res
-        L = _deep_shadow_px(lev, comp_rows + r0, near, far, config.deep_shadow_level) * res
-        rc = float(np.mean(np.concatenate([np.asarray(hl_rows, float), comp_rows + r0])))
+        g_top = (_median_int(near) + 0.5) * res
+        g_lead = (_median_int(lead) + 0.5) * res
+        L = _deep_shadow_px(lev, comp_rows, near, far, config.deep_shadow_level) * res
+        rc = float(np.mean(np.concatenate([np.asarray(hl_rows, float), comp_rows])))
         ping = float(np.interp(rc, rows, wf.ping_index))
         H = float(np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping))
         if not math.isfinite(H) or H <= 0:
@@ -426,10 +410,10 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
         height = H * L / (g_top + L) if not touches_end else math.nan
         if height < config.min_height_m:  # (NaN: unknown, kept)
             continue
-        span_rows = (min(hl_rows + [comp_rows[0] + r0]), max(hl_rows + [comp_rows[-1] + r0]))
+        span_rows = (min(hl_rows + [comp_rows[0]]), max(hl_rows + [comp_rows[-1]]))
         length = (float(np.interp(span_rows[1] + 0.5, rows, along) - np.interp(span_rows[0] - 0.5, rows, along))
                   if math.isfinite(along_res) else math.nan)
-        shadow_mean = float(lev[sl][comp].mean())
+        shadow_mean = float(lev[sl][lab[sl] == k].mean())
         contrast = float(np.mean(hl_vals)) / max(shadow_mean, 1e-3)
         compact = g_top - g_lead <= config.compact_width_m
         if contrast < (config.short_min_contrast if short else
@@ -442,6 +426,77 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
             contrast=contrast, altitude_m=H, row=rc,
             heading_rad=float(np.interp(rc, rows, np.unwrap(wf.heading_rad)))))
     return out
+
+
+class _Runs(NamedTuple):
+    """The rows of every connected component, sorted by label then row (arrays of one length)."""
+
+    label: np.ndarray   # component label (1…n)
+    row: np.ndarray     # image row
+    near: np.ndarray    # first column of the component on that row
+    far: np.ndarray     # one past its last column on that row
+
+
+def _component_rows(lab: np.ndarray) -> _Runs:
+    """Per component and row, its first and one-past-last column (:class:`_Runs`)."""
+    flat = np.flatnonzero(lab)
+    ll = lab.ravel()[flat]
+    order = np.argsort(ll, kind="stable")  # by label; raster order (row, then column) kept within
+    flat, ll = flat[order], ll[order]
+    rr, cc = np.divmod(flat, lab.shape[1])
+    brk = np.flatnonzero((ll[1:] != ll[:-1]) | (rr[1:] != rr[:-1])) + 1
+    first = np.concatenate([[0], brk])
+    last = np.concatenate([brk, [ll.size]]) - 1
+    return _Runs(ll[first], rr[first], cc[first], cc[last] + 1)
+
+
+def _shadow_candidates(lab, n, runs: _Runs, config, res, min_cols, short_cols, min_col0) -> np.ndarray:
+    """Indices into ``runs`` of the rows of the components large, long and far enough to
+    be an object's shadow (the per-component tests of :func:`_detect_shadowed`, vectorised)."""
+    n_px = np.bincount(lab.ravel(), minlength=n + 1)
+    start = np.searchsorted(runs.label, np.arange(1, n + 1))  # every label 1…n has rows
+    count = np.diff(np.append(start, runs.label.size))
+    longest = np.maximum.reduceat(runs.far - runs.near, start)
+    # median of the near columns (as numpy's median: the mean of the two middle values)
+    near_sorted = runs.near[np.lexsort((runs.near, runs.label))]
+    med = (near_sorted[start + (count - 1) // 2] + near_sorted[start + count // 2]) / 2.0
+    short = med * res < config.short_shadow_range_m
+    ok = (n_px[1:] >= config.min_shadow_px) & (longest >= np.where(short, short_cols, min_cols)) & (med >= min_col0)
+    return np.flatnonzero(ok[runs.label - 1])
+
+
+class _Highlights(NamedTuple):
+    """The rows of ``runs`` with a highlight before their shadow."""
+
+    run: np.ndarray     # index into the runs
+    lead: np.ndarray    # column of the highlight's leading edge
+    level: np.ndarray   # its brightest level (the image's dtype)
+
+
+def _highlights(lev: np.ndarray, runs: _Runs, cand: np.ndarray, hw: int, level: float) -> _Highlights:
+    """Of the rows ``cand`` of ``runs``: those whose ``hw`` columns before the shadow hold a
+    pixel brighter than ``level``, with the leading edge — the nearest column of the run of
+    bright pixels (above ``(1 + level) / 2``) that holds the brightest one."""
+    cand = cand[runs.near[cand] > 0]  # a shadow from column 0 has nothing before it
+    cn = runs.near[cand]
+    cols = cn[:, None] - hw + np.arange(hw)[None, :]   # the window, columns cn − hw … cn − 1
+    valid = cols >= 0
+    win = np.where(valid, lev[runs.row[cand][:, None], np.maximum(cols, 0)], -np.inf)
+    j = np.argmax(win, axis=1)                          # the first brightest, as argmax on the window
+    top = win[np.arange(cand.size), j]
+    lit = top > level
+    win, j, cols, valid, cand, top = win[lit], j[lit], cols[lit], valid[lit], cand[lit], top[lit]
+    dim = ~(win > 0.5 * (1.0 + level)) | ~valid
+    before = np.where(dim & (np.arange(hw)[None, :] < j[:, None]), np.arange(hw)[None, :], -1)
+    jj = before.max(axis=1) + 1                         # first bright column of the run up to j
+    return _Highlights(cand, cols[np.arange(cand.size), jj], top.astype(lev.dtype))
+
+
+def _median_int(values) -> float:
+    """``numpy.median`` of integers (the mean of the two middle values) without its overhead
+    (called a few times per candidate object)."""
+    v = np.sort(np.asarray(values))
+    return (float(v[(v.size - 1) // 2]) + float(v[v.size // 2])) / 2.0
 
 
 def _object_run(hl_rows: list, lead: list, hl_vals: list) -> tuple[list, list, list]:
@@ -460,12 +515,18 @@ def _deep_shadow_px(lev: np.ndarray, rows: np.ndarray, near: np.ndarray, far: np
                     deep_level: float) -> float:
     """Longest shadow over ``rows`` (pixels): from the near edge until three pixels in a row
     are at least ``deep_level`` (the whole component's run where ``deep_level`` ≥ 1)."""
-    best = 0
-    for rr, cn, cf in zip(rows, near, far):
-        seg = lev[rr, cn:cf] >= deep_level
-        lit3 = seg[:-2] & seg[1:-1] & seg[2:] if seg.size >= 3 else np.zeros(0, bool)
-        best = max(best, int(np.argmax(lit3)) if lit3.any() else seg.size)
-    return float(best)
+    length = np.asarray(far) - np.asarray(near)
+    if length.size == 0:
+        return 0.0
+    width = int(length.max())
+    if width < 3:
+        return float(width)
+    # all rows at once: each row's segment near…far−1, padded with unlit pixels
+    cols = np.asarray(near)[:, None] + np.arange(width)[None, :]
+    inside = cols < np.asarray(far)[:, None]
+    lit = inside & (lev[np.asarray(rows)[:, None], np.minimum(cols, lev.shape[1] - 1)] >= deep_level)
+    lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
+    return float(np.where(lit3.any(axis=1), np.argmax(lit3, axis=1), length).max())
 
 
 def _merge(objs: list[ObjectSighting], merge_m: float, along_res: float) -> list[ObjectSighting]:
