@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -161,9 +162,14 @@ class SideScanEstimator(Estimator):
         if not inside:
             return []
         # every sighting of the batch interpolated in one call per column (np.interp is
-        # point by point: the same numbers as one call per sighting and column)
-        rec = np.array(self._nav).T
+        # point by point: the same numbers as one call per sighting and column), over the
+        # record from the ping at or before the earliest sighting (the same bracketing pings:
+        # the same numbers as over the whole record, which holds minutes more)
         t = np.array([float(o.t_s) for o in inside])
+        nav, first, t_first = self._nav, len(self._nav) - 1, float(t.min())
+        while first > 0 and nav[first][0] > t_first:
+            first -= 1
+        rec = np.array(list(islice(nav, first, None))).T
         rows = np.array([np.interp(t, rec[0], rec[k]) for k in range(1, rec.shape[0])]).T.tolist()
         placed = [with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9])
                   for o, row in zip(inside, rows)]

@@ -198,6 +198,7 @@ class LegAssociator:
         self._gate = float(chi2.ppf(config.gate_probability, 2))
         self._inlier = float(chi2.ppf(config.inlier_probability, 2))
         self._old: list[ObjectSighting] = []
+        self._stored: tuple[list, dict[str, np.ndarray]] | None = None  # (of _old, arrays)
         self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
         # recent accepted closures as hypotheses for the next sightings (:meth:`extend`):
         # (t_a, t_b, offset on the jump-free tracks, its covariance)
@@ -250,13 +251,11 @@ class LegAssociator:
             return [], clutter
         t_new = max(o.t_s for o in batch)
         in_batch = {id(o) for o in batch}
-        old = [i for i, o in enumerate(self._old) if o.t_s < t_new - c.min_gap_s and id(o) not in in_batch]
+        stored = self._stored_arrays()
+        old = np.flatnonzero((stored["t_s"] < t_new - c.min_gap_s) & ~np.isin(stored["id"], list(in_batch))).tolist()
         if not old:
             return [], clutter
-        P_old = np.array([self._old[i].pos_n_m for i in old])
-        C_old = np.array([self._old[i].nav_cov + self._old[i].det_cov for i in old])
-        D_old = np.array([self._old[i].det_cov for i in old])
-        t_old = np.array([self._old[i].t_s for i in old])
+        P_old, C_old, D_old, t_old = (stored[k][old] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
         rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
         out = []
         cl: dict[str, list] = {k: [] for k in keys}
@@ -287,6 +286,18 @@ class LegAssociator:
             clutter = {k: np.concatenate(v) for k, v in cl.items()}
         return out, clutter
 
+    def _stored_arrays(self) -> dict[str, np.ndarray]:
+        """The stored sightings' ``t_s``, ``pos_n_m``, ``cov`` (navigation + detector),
+        ``det_cov`` and ``id`` as arrays, rebuilt when :meth:`add` has replaced the list (the
+        candidates of every hypothesis search of a batch draw on the same ones)."""
+        if self._stored is None or self._stored[0] is not self._old:
+            old = self._old
+            self._stored = (old, {
+                "t_s": np.array([o.t_s for o in old]), "pos_n_m": np.array([o.pos_n_m for o in old]),
+                "cov": np.array([o.nav_cov + o.det_cov for o in old]),
+                "det_cov": np.array([o.det_cov for o in old]), "id": np.array([id(o) for o in old])})
+        return self._stored[1]
+
     def _note(self, a: ObjectSighting, b: ObjectSighting, stage: str) -> None:
         key = (id(a), id(b))
         if STAGES.index(stage) > STAGES.index(self.trace.get(key, STAGES[0])):
@@ -302,17 +313,17 @@ class LegAssociator:
         one call per distinct second of the old sightings (the clones are seconds apart)."""
         if self.relative_cov is None:
             return None
-        cov = np.zeros((t_old.size, 2, 2))
-        ok = np.zeros(t_old.size, bool)
-        cache: dict[int, np.ndarray | None] = {}
-        for k, t in enumerate(t_old):
-            key = int(round(t))
-            if key not in cache:
-                cache[key] = self.relative_cov(float(t), t_new)
-            c = cache[key]
+        first: dict[int, int] = {}  # second → the first old sighting in it (the one asked)
+        seconds = np.array([first.setdefault(round(t), k) for k, t in enumerate(t_old.tolist())], dtype=np.intp)
+        asked = np.array(list(first.values()), dtype=np.intp)
+        cov = np.zeros((asked.size, 2, 2))
+        ok = np.zeros(asked.size, bool)
+        for i, k in enumerate(asked.tolist()):
+            c = self.relative_cov(float(t_old[k]), t_new)
             if c is not None and np.all(np.isfinite(c)):
-                cov[k], ok[k] = c, True
-        return cov, ok
+                cov[i], ok[i] = c, True
+        at = np.searchsorted(asked, seconds)  # (asked is increasing: first sightings in order)
+        return cov[at], ok[at]
 
     def _residual_cov(self, t_old_s, t_new_s, det_cov, ta: float, tb: float) -> np.ndarray:
         """Covariances (n, 2, 2) of pairs' residuals from a set's offset: the two detectors'
