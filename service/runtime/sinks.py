@@ -61,6 +61,11 @@ def _vec(values: Any) -> str:
 
 
 _VEC_FORMATS = {n: ";".join(["%.10g"] * n) for n in range(1, 7)}
+# trajectory.csv's numeric columns t_s … k_speed, and its truth columns (comma-separated)
+_NAV_FORMAT = ",".join(["%.10g"] * 16)
+_TRUTH_FORMAT = ",".join(["%.10g"] * 6)
+# characters that make csv.writer quote a field
+_CSV_SPECIAL = frozenset(',"\r\n')
 
 
 def _state_slices():
@@ -166,11 +171,12 @@ class TrajectoryCsvSink(Sink):
     def _write(self, row: list, truth: Any) -> None:
         if self.truth:
             if truth is not None:
-                row += [format(float(x), ".10g") for x in (*truth.pos_n_m, truth.current_n_m_s[0],
-                                                           truth.current_n_m_s[1], truth.k_v)]
+                row.append(_TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
+                                            truth.k_v))
             else:
                 row += [""] * len(self.TRUTH_COLUMNS)
-        self._writer.writerow(row)
+        # the fields are numbers, never quoted: what csv.writer would write, joined directly
+        self._file.write(",".join(row) + "\n")
 
     def on_nav(self, state: Any) -> None:
         if self._pending is not None:  # its truth did not come before the next state: none
@@ -183,10 +189,9 @@ class TrajectoryCsvSink(Sink):
         i0 = self._pos.start
         sig = [math.sqrt(max(float(cov[i, i]), 0.0)) for i in (i0, i0 + 1, i0 + 2)]
         cn, ce = _current_xy(state)
-        row = ["%.10g" % x for x in (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll,
-                                     pitch, yaw, sig[0], sig[1], sig[2], cn, ce, state.k_speed)]
-        row.append("1" if state.valid else "0")
-        row += geo_time_columns(state, self.unix_of, self.origin)
+        row = [_NAV_FORMAT % (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw, sig[0],
+                              sig[1], sig[2], cn, ce, state.k_speed),
+               "1" if state.valid else "0", *geo_time_columns(state, self.unix_of, self.origin)]
         t_s = float(state.t_s)
         if not self.truth or self._truth_matches(t_s, self._last_truth):
             self._write(row, self._last_truth)
@@ -216,9 +221,12 @@ class AidStatusCsvSink(Sink):
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
-            self._writer.writerow(["%.10g" % s.t_s, s.source, "1" if s.fused else "0",
-                                   s.reason or "", "%.10g" % s.test_ratio,
-                                   _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)])
+            row = ["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "", "%.10g" % s.test_ratio,
+                   _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)]
+            if _CSV_SPECIAL.isdisjoint(row[1]) and _CSV_SPECIAL.isdisjoint(row[3]):
+                self._file.write(",".join(row) + "\n")  # as csv.writer writes it (nothing to quote)
+            else:
+                self._writer.writerow(row)
 
     def close(self) -> None:
         self._file.close()
@@ -286,6 +294,10 @@ class SeriesRecorder(Sink):
         idx = np.arange(st.N_ERR)
         self._pva = np.r_[idx[st.POS], idx[st.VEL], idx[st.ATT]]
         self._pva_ix = np.ix_(self._pva, self._pva)  # built once: np.ix_ per state cost more than the copy
+        a = int(self._pva[0])
+        # one block of the covariance (it is: POS, VEL, ATT follow each other): a sliced copy, cheaper
+        self._pva_block = (slice(a, a + self._pva.size) if np.array_equal(self._pva, np.arange(a, a + self._pva.size))
+                           else None)
         self.nav_t: list[float] = []
         self.nav_pos: list[np.ndarray] = []
         self.nav_vel: list[np.ndarray] = []
@@ -308,7 +320,8 @@ class SeriesRecorder(Sink):
         self.nav_vel.append(np.array(state.vel_n_m_s, dtype=float))
         self.nav_q.append(np.array(state.q_nb, dtype=float))
         cov = np.asarray(state.cov)
-        self.nav_cov_pva.append(cov[self._pva_ix])
+        b = self._pva_block
+        self.nav_cov_pva.append(cov[b, b].copy() if b is not None else cov[self._pva_ix])
         self.nav_current.append(_current_xy(state))
         self.nav_k_speed.append(float(state.k_speed))
 
