@@ -73,6 +73,7 @@ class DvlCalibration:
         self._covered_s = 0.0
         self._last_t: float | None = None
         self._last_vel_n: np.ndarray | None = None
+        self._cov_ne_memo: tuple | None = None  # ((track N, track E, P), position_cov_ne)
 
     def report(self) -> dict:
         """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs used, and whether
@@ -98,8 +99,15 @@ class DvlCalibration:
         if self._fix is None:
             return np.zeros((2, 2))
         D = self._track
-        H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
-        return H @ self.P @ H.T
+        # asked with every published state and side-scan ping, changed by DVL samples and fixes
+        # only: kept with what it was computed from (P is replaced, never changed in place; the
+        # reference kept means a new P cannot take its identity)
+        key = (float(D[0]), float(D[1]), self.P)
+        memo = self._cov_ne_memo
+        if memo is None or memo[0][0] != key[0] or memo[0][1] != key[1] or memo[0][2] is not key[2]:
+            H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
+            memo = self._cov_ne_memo = (key, H @ self.P @ H.T)
+        return memo[1].copy()
 
     def correct(self, vel_d_m_s) -> np.ndarray:
         """The measured head velocity with the estimated scale and misalignment removed."""
