@@ -230,4 +230,7 @@ class Door:
 
 def _over(vec, bound: float) -> bool:
     """Any component beyond ``bound`` in magnitude (NaN is not judged here)."""
-    return any(abs(v) > bound for v in vec)
+    for v in vec:  # a loop, not any(<generator>): the door runs on every live sample
+        if abs(v) > bound:
+            return True
+    return False

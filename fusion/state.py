@@ -126,28 +126,41 @@ class NavState:
         """1-σ of an error-state block, e.g. ``state.sigma(POS)``."""
         return np.sqrt(np.clip(np.diag(self.cov)[sl], 0.0, None))
 
-    def to_dict(self) -> dict:
-        """JSON-ready dict (non-finite floats as None), with ``schema_version``."""
-        def arr(a):
-            a = np.ravel(np.asarray(a, dtype=float))
-            if np.isfinite(a).all():  # the usual case: tolist() makes the floats at C speed
-                return a.tolist()
-            return [v if math.isfinite(v) else None for v in a.tolist()]
+    def fields(self) -> dict:
+        """The fields of :meth:`to_dict`, each vector a flat float64 array (non-finite values
+        kept): for an encoder that writes arrays itself (the daemon's orjson writes them
+        as :meth:`to_dict`'s lists, NaN as null, without a Python float per element)."""
         roll, pitch, yaw = self.euler_rad()
         return {
             "type": "nav_state",
             "schema_version": NAV_STATE_SCHEMA_VERSION,
             "t_s": float(self.t_s),
-            "pos_n_m": arr(self.pos_n_m),
-            "vel_n_m_s": arr(self.vel_n_m_s),
-            "q_nb": arr(self.q_nb),
-            "euler_rad": arr([roll, pitch, yaw]),
-            "bias_acc_b_m_s2": arr(self.bias_acc_b_m_s2),
-            "bias_gyro_b_rad_s": arr(self.bias_gyro_b_rad_s),
-            "current_n_m_s": arr(self.current_n_m_s),
+            "pos_n_m": _flat(self.pos_n_m),
+            "vel_n_m_s": _flat(self.vel_n_m_s),
+            "q_nb": _flat(self.q_nb),
+            "euler_rad": np.array((roll, pitch, yaw), dtype=float),
+            "bias_acc_b_m_s2": _flat(self.bias_acc_b_m_s2),
+            "bias_gyro_b_rad_s": _flat(self.bias_gyro_b_rad_s),
+            "current_n_m_s": _flat(self.current_n_m_s),
             "k_speed": float(self.k_speed),
-            "cov": arr(self.cov),
+            "cov": _flat(self.cov),
             "valid": bool(self.valid),
             "reset_counter": int(self.reset_counter),
             "invalid_reasons": list(self.invalid_reasons),
         }
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (non-finite floats as None), with ``schema_version``."""
+        return {k: _listed(v) if type(v) is np.ndarray else v for k, v in self.fields().items()}
+
+
+def _flat(a) -> np.ndarray:
+    """A vector or matrix as a flat float64 array (a view where it can be)."""
+    return np.asarray(a, dtype=float).ravel()
+
+
+def _listed(a: np.ndarray) -> list:
+    """A flat array as a list of floats, non-finite ones as None."""
+    if np.isfinite(a).all():  # the usual case: tolist() makes the floats at C speed
+        return a.tolist()
+    return [v if math.isfinite(v) else None for v in a.tolist()]

@@ -2,18 +2,22 @@
 
 Threads and processes::
 
-    Zenoh callbacks ──decode──► input queue ──► runner thread (owns the Estimator)
-    MAVLink bridge  ──samples─►      ▲              │ on_nav  → adaptnav/<v>/nav/state (10 Hz)
-    calibrator process ─releases─────┘              │ on_aid  → latest per source
-          ▲ samples (batched, non-blocking) ◄───────┘ observe
+    Zenoh callbacks ──decode──┬─(runner idle)──► runner (owns the Estimator, one
+                              └─► input queue ──► runner thread    thread at a time)
+    MAVLink bridge  ──samples──────►   ▲              │ on_nav  → adaptnav/<v>/nav/state (10 Hz)
+    calibrator process ─releases───────┘              │ on_aid  → latest per source
+          ▲ samples (batched, non-blocking) ◄─────────┘ observe
     housekeeping thread (1 Hz): health + aid statuses published, calibrator supervised
     (restart with backoff), learned state persisted, systemd watchdog fed.
 
-- The runner is :func:`adaptnav.service.runtime.runner.run` with a queue source and a
-  :class:`~service.clock.LiveClock` — the same loop as replay.
+- The runner is :class:`adaptnav.service.runtime.runner.Runner` (the loop of
+  :func:`~adaptnav.service.runtime.runner.run`, item by item) with a
+  :class:`~service.clock.LiveClock` — the same loop as replay. A bus sample that finds
+  the queue empty and the runner idle is run in its Zenoh callback (no thread hand-off
+  on the live path: IMU→nav latency); everything else is queued for the runner thread.
 - Releases are applied between samples in data order (stamped with their data time).
-- Learned params + slow filter states are snapshotted *in the runner thread* (the
-  estimator is not shared) and written by the housekeeping thread atomically
+- Learned params + slow filter states are snapshotted *in the runner* (whichever thread
+  drives it: the estimator is not shared) and written by the housekeeping thread atomically
   (:mod:`adaptnav.service.runtime.persistence`), periodically and on shutdown; restored on start.
 - SIGTERM/SIGINT → clean shutdown. With ``NOTIFY_SOCKET`` set (systemd ``Type=notify``)
   READY/WATCHDOG/STOPPING are sent on a plain datagram socket.
@@ -43,7 +47,7 @@ from adaptnav.fusion.samples import SENSORS, SOURCE_PRIORITY
 from adaptnav.service.compose import make_estimator, make_live_calibrator
 from adaptnav.service.runtime.protocols import Calibrator
 from adaptnav.service.transport import codec
-from adaptnav.service.transport.bus import Bus, encode_sample, message, nonblocking_enqueue
+from adaptnav.service.transport.bus import Bus, encode_sample, message
 from adaptnav.service.runtime.clock import LiveClock
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
@@ -122,8 +126,8 @@ def warm_up_filter(cfg: ServiceConfig, params: MotionParams | None = None) -> fl
 
 
 class QueueSource:
-    """Iterable over the input queue until ``stop`` is set, in data order across transports
-    (``qsize`` for health).
+    """The runner's input queue, put back in data order across transports (``qsize`` for
+    health).
 
     Samples reach the queue over paths of different latency (the MAVLink bridge thread,
     Zenoh callbacks of other drivers): a side-scan ping or a USBL fix can overtake the IMU
@@ -134,6 +138,10 @@ class QueueSource:
     for at most ``max_hold_s`` of wall time (an IMU-less configuration, a stalled link).
     Late samples pass at once (the estimator fuses or rejects them). ``counters``:
     ``held`` (samples reordered), ``released_on_timeout``.
+
+    The runner thread waits (:meth:`wait`) and hands every queued item to the runner
+    (:meth:`drain`); an item that need not wait behind queued ones goes through
+    :meth:`take` directly (the daemon's bus samples, :meth:`Daemon._from_bus`).
     """
 
     IMU_KINDS = ("imu", "imu_batch")
@@ -147,12 +155,22 @@ class QueueSource:
         self._seq = 0
         self._imu_t = -math.inf
         self._imu_wall = -math.inf
+        self._wake = threading.Event()  # set when an item is queued
         # monotonic time the runner last came back for input (processing or waiting on
         # an empty queue): the watchdog's proof that the runner is not wedged
         self.heartbeat_s = time.monotonic()
 
     def qsize(self) -> int:
         return self.q.qsize() + len(self._held)
+
+    def put(self, item: Any) -> bool:
+        """Queue ``item`` without blocking; False when the queue is full."""
+        try:
+            self.q.put_nowait(item)
+        except queue.Full:
+            return False
+        self._wake.set()
+        return True
 
     def _pop_held_before(self, t_s: float):
         while self._held and self._held[0][0] < t_s:
@@ -188,47 +206,74 @@ class QueueSource:
             return
         yield item  # releases, late or on-time samples, NaN times (the estimator rejects them)
 
-    def __iter__(self):
+    def take(self, item: Any, feed: Any) -> None:
+        """``item`` (arrived now) to ``feed`` in data order: with the held samples it
+        passes before it, or held itself; then the held samples whose time is up."""
+        now = time.monotonic()
+        self.heartbeat_s = now
+        for out in self._order(item, now):
+            feed(out)
+        if self._held:
+            for out in self._expired(now):
+                feed(out)
+
+    def wait(self) -> None:
+        """Until an item is queued, or the next look at the held ones (at most 0.1 s)."""
+        self.heartbeat_s = time.monotonic()
+        self._wake.wait(0.05 if self._held else 0.1)
+        self._wake.clear()  # before the queue is read: a later put wakes the next wait
+
+    def drain(self, feed: Any) -> None:
+        """Every queued item to ``feed`` through :meth:`take` (until ``stop``), then the
+        held samples whose time is up."""
         while not self.stop.is_set():
-            self.heartbeat_s = time.monotonic()
             try:
-                item = self.q.get(timeout=0.05 if self._held else 0.1)
+                item = self.q.get_nowait()
             except queue.Empty:
-                yield from self._expired(time.monotonic())
-                continue
-            now = time.monotonic()
-            yield from self._order(item, now)
-            if self._held:
-                yield from self._expired(now)
+                break
+            self.take(item, feed)
+        for out in self._expired(time.monotonic()):
+            feed(out)
 
 
 class BusSink(Sink):
     """Runner sink of the daemon: publishes nav states, keeps the latest of everything.
 
-    Runs in the runner thread: only quick work (JSON + ``put``) happens here.
+    Runs in the runner (its thread or a Zenoh callback): only quick work (JSON + ``put``)
+    happens here.
     """
 
     def __init__(self, daemon: "Daemon") -> None:
         self.d = daemon
         self.origin = daemon.cfg.origin.geo()
-        self.latest_state: dict | None = None
+        self.latest_payload: bytes | None = None  # the last nav state as published
         self.latest_aid: dict[str, Any] = {}
         self.nav_count = 0
         self.state_finite = True  # the last nav state's position and velocity were finite
 
+    @property
+    def latest_state(self) -> dict | None:
+        """The last nav state as published (its JSON read back), or ``None``."""
+        payload = self.latest_payload
+        return None if payload is None else json.loads(payload)
+
     def on_nav(self, state: Any) -> None:
-        self.state_finite = bool(np.isfinite(state.pos_n_m).all() and np.isfinite(state.vel_n_m_s).all())
-        doc = state.to_dict()
+        # the vectors as arrays: orjson writes them (NavState.to_dict's lists cost a
+        # Python float per element of the covariance, on the latency path)
+        doc = state.fields()
+        pos = doc["pos_n_m"]
+        self.state_finite = bool(np.isfinite(pos).all() and np.isfinite(doc["vel_n_m_s"]).all())
         bridge = self.d.bridge
         # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
-        lat, lon, alt = self.origin.to_geodetic(state.pos_n_m)
+        lat, lon, alt = self.origin.to_geodetic(pos)
         doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = (float(np.degrees(lat)), float(np.degrees(lon)),
                                                         float(alt))
         if bridge is not None:  # UNIX time when the MAVLink link gives a wall-clock reference
             doc.update(geo_time_fields(state, bridge.converter.time.unix_of))
-        self.latest_state = doc
+        payload = message("nav_state", doc)
+        self.latest_payload = payload
         self.nav_count += 1
-        self.d.bus.publish(self.d.bus.keys.nav_state, "nav_state", doc)
+        self.d.bus.put(self.d.bus.keys.nav_state, payload)
         if bridge is not None:
             bridge.offer_nav(state)  # ODOMETRY on its fixed schedule
         if self.d._snapshot_due.is_set():
@@ -268,6 +313,10 @@ class Daemon:
         self._snapshot: tuple[float, MotionParams, dict] | None = None
         self.queue: queue.Queue = queue.Queue(maxsize=cfg.health.queue_size)
         self.source = QueueSource(self.queue, self.stop_event)
+        # one thread at a time drives the runner (it owns the estimator): the runner thread
+        # or a Zenoh callback (_from_bus); set while the runner thread runs
+        self._runner_lock = threading.Lock()
+        self._runner: Any = None
         self.overflow: Counter[str] = Counter()
         self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
         self.clock = LiveClock()
@@ -332,10 +381,26 @@ class Daemon:
 
     def enqueue(self, item: Any) -> None:
         """Non-blocking put into the runner's input queue (overflow counted)."""
-        try:
-            self.queue.put_nowait(item)
-        except queue.Full:
+        if not self.source.put(item):
             self.overflow["queue_overflow"] += 1
+
+    def _from_bus(self, item: Any) -> None:
+        """A sample off the bus, in the Zenoh callback that decoded it: handled right here
+        when nothing is queued and no other thread is in the runner, else queued behind
+        what is. The live IMU stream then reaches the filter without a hand-off to the
+        runner thread (a wake-up per sample, and the GIL passed back and forth between the
+        two threads); the lock keeps one thread at a time in the runner, and queued items
+        go first, so the order is the queue's."""
+        lock = self._runner_lock
+        if self.queue.empty() and lock.acquire(blocking=False):
+            try:
+                runner = self._runner
+                if runner is not None and self.queue.empty() and not self.stop_event.is_set():
+                    self.source.take(item, runner.feed)
+                    return
+            finally:
+                lock.release()
+        self.enqueue(item)
 
     def start(self) -> None:
         cfg = self.cfg
@@ -343,13 +408,13 @@ class Daemon:
         self._warm_up()
         self.estimator = self._make_estimator()
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
-        self.bus.subscribe_samples(nonblocking_enqueue(self.queue, self.overflow))
+        self.bus.subscribe_samples(self._from_bus)
         if cfg.calibrator.enabled and cfg.calibrator.location == "remote":
             from adaptnav.service.calibrator.node import RemoteCalibrator
 
             self.calibrator = RemoteCalibrator(self.bus)
             self.health.calibrator_state = "remote"
-        self.bus.queryable("state", lambda: message("nav_state", self.sink.latest_state or {"valid": False}))
+        self.bus.queryable("state", lambda: self.sink.latest_payload or message("nav_state", {"valid": False}))
         self.bus.queryable("params", lambda: message("motion_params", {
             "params": self.params.to_dict(), "restored": self.restored}))
         self.bus.queryable("config", lambda: message("service_config", config_dict(cfg)))
@@ -394,18 +459,32 @@ class Daemon:
             log.debug("re-publishing a MAVLink sample failed: %s", e)
 
     def _run(self) -> None:
+        """The runner thread: queued items (MAVLink, bursts, bus samples that found the
+        runner busy) and the release of held ones; bus samples that find it idle are run
+        in their Zenoh callback (:meth:`_from_bus`)."""
         from adaptnav.service.runtime.events import LifecycleLog
-        from adaptnav.service.runtime.runner import default_release_gate, run
+        from adaptnav.service.runtime.runner import Runner, default_release_gate
 
         sinks = [self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
-        self.summary = run(self.source, self.estimator, sinks,
-                           self.clock, self.calibrator, output_rate_hz=self.cfg.outputs.nav_rate_hz,
-                           stop=self.stop_event, health=self.health, close_sinks=False,
-                           release_gate=default_release_gate(self.cfg.calibrator.online))
+        runner = Runner(self.estimator, sinks, self.clock, self.calibrator,
+                        output_rate_hz=self.cfg.outputs.nav_rate_hz, health=self.health,
+                        release_gate=default_release_gate(self.cfg.calibrator.online), qsize=self.source.qsize)
+        with self._runner_lock:
+            self._runner = runner
+        try:
+            while not self.stop_event.is_set():
+                self.source.wait()
+                with self._runner_lock:
+                    self.source.drain(runner.feed)
+        finally:
+            with self._runner_lock:  # no bus callback in the runner from here on (stop_event)
+                self._runner = None
+                runner.finish(releases=False)  # the epochs up to the last data, the last state
+                self.summary = runner.close(close_sinks=False)
 
     # -- housekeeping ---------------------------------------------------------------------
     def _take_snapshot(self, t_s: float) -> None:
-        """In the runner thread: copy what persistence needs."""
+        """In the runner: copy what persistence needs."""
         self._snapshot_due.clear()
         try:
             self._snapshot = (t_s, self.params, self._slow_states())

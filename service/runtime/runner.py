@@ -400,6 +400,77 @@ def door_for(estimator: Any) -> Any:
                 cfg.depth.atmospheric_pressure_pa)
 
 
+class Runner:
+    """The loop of :func:`run` item by item, for a caller that drives it itself (the live
+    daemon feeds each bus sample in the Zenoh thread it arrives on when the runner is
+    idle, and queued items from its runner thread; the caller serialises the calls).
+
+    Parameters are those of :func:`run` without ``source``, ``stop`` and ``close_sinks``;
+    ``qsize`` is the source's queue depth (for health), if any.
+    """
+
+    def __init__(self, estimator: Estimator, sinks: Sequence[Sink], clock: Clock,
+                 calibrator: Calibrator | None = None, *, output_rate_hz: float = 10.0,
+                 health: Health | None = None, progress: Any = None, door: Any = None,
+                 release_gate: Any = None, qsize: Any = None) -> None:
+        if not (output_rate_hz > 0 and math.isfinite(output_rate_hz)):
+            raise ValueError(f"output_rate_hz must be a positive number, got {output_rate_hz}")
+        if door is None:
+            door = door_for(estimator)
+        if health is not None:
+            health.estimator_rejected = getattr(estimator, "rejected", None)
+            health.door_rejected = getattr(door, "rejected", None)
+            if calibrator is not None and health.calibrator_state == "off":
+                health.calibrator_state = "in-process"
+        if release_gate is None:
+            release_gate = default_release_gate()
+        self.loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door, release_gate)
+        self.summary = self.loop.summary
+        self.health = health
+        self.qsize = qsize
+        self._wall0 = time.monotonic()
+
+    def feed(self, item: Any) -> None:
+        """Handle one item; an exception is logged and counted (``error:<kind>``), never raised."""
+        loop, health = self.loop, self.health
+        loop.summary.items += 1
+        try:
+            loop.item(item)
+        except Exception as exc:  # one bad item must not stop navigation
+            kind = getattr(item, "KIND", type(item).__name__)
+            loop.summary.errors[kind] += 1
+            if health is not None:
+                health.on_rejected(f"error:{kind}")
+            if loop.summary.errors[kind] <= 10:
+                log.exception("runner: error handling %s item at t=%s: %s", kind,
+                              getattr(item, "t_s", "?"), exc)
+        if health is not None and self.qsize is not None:
+            health.queue_depth = int(self.qsize())
+
+    def finish(self, releases: bool = True) -> None:
+        """The data ended: every release computed from them (``releases``: not on a stop),
+        the last epochs up to the end of the data, then the final state itself."""
+        loop = self.loop
+        if releases and loop.calibrator is not None:
+            loop.releases_due(math.inf)
+        if loop.next_k is not None and math.isfinite(loop.summary.last_t_s):
+            loop.flush_epochs_before(loop.summary.last_t_s + 1e-9)
+            loop.emit()
+
+    def close(self, close_sinks: bool = True) -> RunSummary:
+        """The run's wall time; every sink's ``close()`` (``close_sinks``)."""
+        self.summary.wall_s = time.monotonic() - self._wall0
+        if close_sinks:
+            for s in self.loop.sinks:
+                try:
+                    close = getattr(s, "close", None)
+                    if close is not None:
+                        close()
+                except Exception:
+                    log.exception("runner: closing sink %r failed", s)
+        return self.summary
+
+
 def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], clock: Clock,
         calibrator: Calibrator | None = None, *, output_rate_hz: float = 10.0, stop: Any = None,
         health: Health | None = None, progress: Any = None, close_sinks: bool = True,
@@ -442,53 +513,17 @@ def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], cloc
     -------
     RunSummary
     """
-    if not (output_rate_hz > 0 and math.isfinite(output_rate_hz)):
-        raise ValueError(f"output_rate_hz must be a positive number, got {output_rate_hz}")
-    if door is None:
-        door = door_for(estimator)
-    if health is not None:
-        health.estimator_rejected = getattr(estimator, "rejected", None)
-        health.door_rejected = getattr(door, "rejected", None)
-        if calibrator is not None and health.calibrator_state == "off":
-            health.calibrator_state = "in-process"
-    if release_gate is None:
-        release_gate = default_release_gate()
-    loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door, release_gate)
-    qsize = getattr(source, "qsize", None)
-    wall0 = time.monotonic()
+    runner = Runner(estimator, sinks, clock, calibrator, output_rate_hz=output_rate_hz, health=health,
+                    progress=progress, door=door, release_gate=release_gate,
+                    qsize=getattr(source, "qsize", None))
     try:
         for item in source:
             if _stop_requested(stop):
-                loop.summary.stopped = True
+                runner.summary.stopped = True
                 break
-            loop.summary.items += 1
-            try:
-                loop.item(item)
-            except Exception as exc:  # one bad item must not stop navigation
-                kind = getattr(item, "KIND", type(item).__name__)
-                loop.summary.errors[kind] += 1
-                if health is not None:
-                    health.on_rejected(f"error:{kind}")
-                if loop.summary.errors[kind] <= 10:
-                    log.exception("runner: error handling %s item at t=%s: %s", kind,
-                                  getattr(item, "t_s", "?"), exc)
-            if health is not None and qsize is not None:
-                health.queue_depth = int(qsize())
+            runner.feed(item)
         else:
-            if calibrator is not None and not _stop_requested(stop):
-                loop.releases_due(math.inf)  # the data ended: every release computed from them
-            # the last epochs up to the end of the data, then the final state itself
-            if loop.next_k is not None and math.isfinite(loop.summary.last_t_s):
-                loop.flush_epochs_before(loop.summary.last_t_s + 1e-9)
-                loop.emit()
+            runner.finish(releases=not _stop_requested(stop))
     finally:
-        loop.summary.wall_s = time.monotonic() - wall0
-        if close_sinks:
-            for s in loop.sinks:
-                try:
-                    close = getattr(s, "close", None)
-                    if close is not None:
-                        close()
-                except Exception:
-                    log.exception("runner: closing sink %r failed", s)
-    return loop.summary
+        runner.close(close_sinks)
+    return runner.summary

@@ -13,9 +13,11 @@ def _imu(t):
 
 
 def _drain(src, n, timeout_s=60.0):
-    out, it, t0 = [], iter(src), time.monotonic()
+    """What the daemon's runner thread does: wait, then hand everything queued on."""
+    out, t0 = [], time.monotonic()
     while len(out) < n and time.monotonic() - t0 < timeout_s:
-        out.append(next(it))
+        src.wait()
+        src.drain(out.append)
     return out
 
 
@@ -27,7 +29,7 @@ def test_a_sample_ahead_of_the_imu_waits_for_it():
     # arrival order: the depth sample at 0.25 s overtook the IMU samples from 0.22 s on
     for item in (_imu(0.20), _imu(0.21), DepthSample(0.25, 1e5), _imu(0.22), DepthSample(0.10, 1e5),
                  _imu(0.25), _imu(0.26)):
-        q.put(item)
+        assert src.put(item)
     got = _drain(src, 7)
     stop.set()
     assert [(g.KIND, g.t_s) for g in got] == [
@@ -41,8 +43,8 @@ def test_held_samples_go_out_when_the_imu_stalls():
 
     q, stop = queue.Queue(), threading.Event()
     src = QueueSource(q, stop, max_hold_s=0.2)
-    q.put(_imu(1.0))
-    q.put(DepthSample(1.5, 1e5))  # the IMU never gets there
+    assert src.put(_imu(1.0))
+    assert src.put(DepthSample(1.5, 1e5))  # the IMU never gets there
     t0 = time.monotonic()
     got = _drain(src, 2)
     waited = time.monotonic() - t0
