@@ -735,6 +735,7 @@ class Estimator:
                     self._record("gap", payload)
                     self._imu_gap(*payload)
                 elif kind == "loop_closure":
+                    self._record("loop_closure", payload)  # (a later late measurement replays it again)
                     self._loop_closure(*payload)
                 elif kind == "params":
                     self._record("params", payload)
@@ -997,7 +998,11 @@ class Estimator:
         return self._surge.adapt(meas, P, t - self._t_release)
 
     def _doubt_k_speed(self) -> None:
-        """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt)."""
+        """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt).
+
+        An inflation, not a replacement: ``k ← k + w`` with ``w`` independent of everything and
+        ``Var w`` the variance added, so ``Cov(k + w, ·) = Cov(k, ·)`` — its covariances with the
+        other states and with the clones stay as they are (nothing to do to the clones' map)."""
         kalman.flush_core(self._core, self._qdiag)
         k = KS.start
         self._P[k, k] += max(0.0, self.config.initial.sigma_k_speed ** 2 - float(self._P[k, k]))
@@ -1124,8 +1129,16 @@ class Estimator:
         self._nis.clear()
 
     def _reset_attitude(self, sample, meas: Measurement, status: AidStatus) -> None:
-        """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated."""
+        """Attitude (heading: yaw only) to the aid's; its covariance to the aid's, uncorrelated.
+
+        Uncorrelated with the clones too: the attitude error is replaced by one independent of
+        every past epoch, so ``Cov(δθ, d_i) = 0`` — the attitude rows of the clones' pending
+        map are zeroed after the flush (they kept the old cross-covariance, and the next loop
+        closure corrected the new attitude by it). A heading-only reset keeps the tilt but zeroes
+        its correlations as ``P`` does: the joint covariance must stay one matrix, positive
+        semi-definite (the attitude block and the rest, each a principal block of it)."""
         kalman.flush_core(self._core, self._qdiag)
+        self._clones.zero_rows(ATT)
         roll, pitch, yaw = aid_attitude.predict(self._x)
         if meas.z.size == 3:  # the whole attitude (a heading-only measurement keeps the tilt)
             roll, pitch = sample.roll_rad, sample.pitch_rad
@@ -1140,8 +1153,11 @@ class Estimator:
         self._after_reset("attitude", status.source, status.t_s)
 
     def _reset_velocity(self, meas: Measurement, status: AidStatus) -> None:
-        """Velocity to what the aid says (the innovation solved through H's velocity block)."""
+        """Velocity to what the aid says (the innovation solved through H's velocity block),
+        its error independent of everything else: of the clones too (their pending map's
+        velocity rows zeroed after the flush, as in :meth:`_reset_attitude`)."""
         kalman.flush_core(self._core, self._qdiag)
+        self._clones.zero_rows(VEL)
         Hv = meas.H[:, VEL]
         dv, *_ = np.linalg.lstsq(Hv, meas.innovation(), rcond=None)
         self._x[X_VEL] += dv
@@ -1185,6 +1201,8 @@ class Estimator:
             return status
         y = meas.innovation()
         idx = np.arange(y.size)  # position rows: POS is the first block
+        # an inflation (independent noise added to the position error): its covariances with
+        # the other states and with the clones are unchanged (as _doubt_k_speed)
         self._P[np.ix_(idx, idx)] += np.outer(y, y) + meas.R
         self._reset_counter += 1
         self.rejected["position_reset"] += 1

@@ -115,10 +115,14 @@ class CloneBank:
         self.t_s = [t + delta_s for t in self.t_s]
 
     def scale_rows(self, rows, factor: float) -> None:
+        """``C[rows] ← factor · C[rows]`` (a state rescaled: ``k_speed`` at a release)."""
         if self._ids:
             self._M[rows, :] *= factor
 
     def zero_rows(self, rows) -> None:
+        """``C[rows] ← 0``: those states were reset to values independent of every past epoch
+        (the estimator's velocity and attitude resets; call it after the flush, so that the
+        pending step is in ``M`` first)."""
         if self._ids:
             self._M[rows, :] = 0.0
 
@@ -161,6 +165,21 @@ class CloneBank:
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
         self._sigma = {cid: row for cid, row in self._sigma.items() if cid not in gone}
         self._rel = {}
+
+    def joint_covariance(self, P: np.ndarray) -> np.ndarray:
+        """The augmented covariance ``[[P, C], [Cᵀ, Σ]]`` of the error state and the clones
+        ((18 + 2n) square; ``P`` the estimator's, flushed): what the clones stand for, for checks
+        against a filter that carries them as states."""
+        self._settle()
+        n = len(self._ids)
+        J = np.zeros((N_ERR + 2 * n, N_ERR + 2 * n))
+        J[:N_ERR, :N_ERR] = P
+        J[:N_ERR, N_ERR:] = self.C
+        J[N_ERR:, :N_ERR] = self.C.T
+        for i in range(n):
+            for j in range(n):
+                J[N_ERR + 2 * i:N_ERR + 2 * i + 2, N_ERR + 2 * j:N_ERR + 2 * j + 2] = self.sigma(i, j)
+        return J
 
     def sigma(self, i: int, j: int) -> np.ndarray:
         """Σ between clones at list positions ``i`` and ``j`` (2×2)."""

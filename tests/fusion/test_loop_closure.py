@@ -2,10 +2,19 @@
 fused between two past epochs, the drift between them removed, the result consistent."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from adaptnav.fusion import kalman
+from adaptnav.fusion.aiding import attitude as aid_attitude
+from adaptnav.fusion.aiding import loop_closure as aid_loop
+from adaptnav.fusion.aiding.common import make
 from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.samples import HeadingSample, ImuBatch
+from adaptnav.fusion.state import ACC_T, ATT, KS, N_ERR, POS, VEL, X_KS, X_POS, X_POS_NE, X_VEL
+from adaptnav.fusion.status import rejected
 from adaptnav.service.runtime.replay import build_config
 from adaptnav.sim.scenario import load_scenario
 from adaptnav.sim.simulator import simulate
@@ -78,3 +87,134 @@ def test_closure_removes_the_drift_between_the_two_epochs_consistently():
     assert np.mean(errs_after) < np.mean(errs_a) + 2.0
     # consistent: mean NEES of the horizontal position (2 dof) within a generous χ² band
     assert np.mean(nees) < 2.0 * 2.5, nees
+
+
+# ---------------------------------------------------------------- resets while clones exist
+def _filter_with_clones():
+    """An estimator 100 s into the short survey (USBL lost at 60 s), cloning every period,
+    stopped just after a clone: (estimator, clone times, the IMU samples that follow)."""
+    sc = load_scenario("short", ["seed=2", "duration_s=110.0", "usbl.lost_after_s=60.0"])
+    res = simulate(sc)
+    cfg = build_config(sc)
+    est = Estimator(cfg.filter, cfg.motion.params0, cfg.motion.rpm_table, cfg.origin.geo())
+    clone_t = []
+    for item in res.iter_blocks():
+        est.process(item)
+        if item.KIND == "imu_batch" and est.clone_position():
+            clone_t.append(est.nav_state().t_s)
+            if clone_t[-1] > 100.0:
+                break
+    k = int(np.searchsorted(res.imu.t_s, clone_t[-1], side="right"))
+    imu = (res.imu.t_s[k:], res.imu.specific_force_b_m_s2[k:], res.imu.omega_b_rad_s[k:])
+    return est, clone_t, imu
+
+
+def _propagate_part(est, imu, start: int, n: int) -> np.ndarray:
+    """``n`` IMU samples into the state without a covariance step (the pending step grows);
+    returns Φ of the pending step, as the next flush will compute it."""
+    t, f, w = (a[start:start + n] for a in imu)
+    kalman.propagate_core(t, f, w, est._core, est._qdiag, 1e9)
+    assert est._acc[ACC_T] > 0.0
+    return kalman.transition(est._acc.copy(), est._acc[ACC_T])
+
+
+def _flush_bf(J, Phi, qdiag, T):
+    """The brute-force augmented filter's covariance step: the 18 states step, the clones stay."""
+    J = J.copy()
+    J[:N_ERR, :N_ERR] = kalman.covariance_step(J[:N_ERR, :N_ERR], Phi, qdiag, T)
+    J[:N_ERR, N_ERR:] = Phi @ J[:N_ERR, N_ERR:]
+    J[N_ERR:, :N_ERR] = J[:N_ERR, N_ERR:].T
+    return J
+
+
+def _reset(est, what: str):
+    """Apply one of the estimator's resets; returns the error-state rows it replaced (or
+    inflated) and whether they are replaced by independent values (else: noise added)."""
+    x = est._x
+    status = rejected(float(est._clock[0]), "dvl" if what == "velocity" else "attitude", "gate")
+    if what == "velocity":
+        v = x[X_VEL].copy()
+        H = np.zeros((3, N_ERR))
+        H[:, VEL] = np.eye(3)
+        est._reset_velocity(make(v + np.array([0.3, -0.2, 0.05]), H, np.eye(3) * 0.01, v), status)
+        return VEL, True
+    if what == "attitude":
+        roll, pitch, yaw = aid_attitude.predict(x)
+        sample = SimpleNamespace(roll_rad=roll + 0.01, pitch_rad=pitch - 0.01, yaw_rad=yaw + 0.1)
+        z = [sample.roll_rad, sample.pitch_rad, sample.yaw_rad]
+        est._reset_attitude(sample, make(z, np.zeros((3, N_ERR)), np.diag([1e-4, 1e-4, 1e-3]), z), status)
+        return ATT, True
+    est._doubt_k_speed()
+    return KS, False
+
+
+@pytest.mark.parametrize("what", ["velocity", "attitude", "k_speed_doubt"])
+def test_reset_between_clones_and_closure_matches_the_augmented_filter(what):
+    """A reset while clones exist, then a loop closure: the filter's covariance, correction and
+    the clones' cross-covariances equal those of a brute-force filter that carries the clones
+    as (consider) states and applies the same reset to the whole augmented covariance: a
+    replaced state is independent of the clones (its cross-covariances zero), a doubted one
+    only has its variance grown. (Before the fix the clones kept a reset state's old
+    cross-covariances and the closure corrected the new velocity or attitude by them.)"""
+    est, clone_t, imu = _filter_with_clones()
+    bank = est._clones
+    n = len(bank.t_s)
+    a, b = bank.nearest(60.0), n - 1
+    J = bank.joint_covariance(est._P)
+    qdiag = est._qdiag.copy()
+    # part of a covariance step pending: the reset's own flush takes it first
+    Phi, T = _propagate_part(est, imu, 0, 4), float(est._acc[ACC_T])
+    J = _flush_bf(J, Phi, qdiag, T)
+    rows, replaced = _reset(est, what)
+    if replaced:
+        J[rows, :] = 0.0
+        J[:, rows] = 0.0
+    J[rows, rows] = est._P[rows, rows]
+    np.testing.assert_allclose(J[:N_ERR, :N_ERR], est._P, rtol=0, atol=1e-12 * np.abs(J).max())
+    # a pending step again: the zeroed rows must have gone into the clones' map before it
+    Phi, T = _propagate_part(est, imu, 4, 5), float(est._acc[ACC_T])
+    J = _flush_bf(J, Phi, qdiag, T)
+    # the closure (Schmidt: the clones' estimates stay; Joseph form on the augmented state)
+    y, R = np.array([0.6, -0.4]), np.eye(2) * 0.25
+    H = np.zeros((2, J.shape[0]))
+    H[:, N_ERR + 2 * a:N_ERR + 2 * a + 2] = -np.eye(2)
+    H[:, N_ERR + 2 * b:N_ERR + 2 * b + 2] = np.eye(2)
+    S = H @ J @ H.T + R
+    K = np.zeros((J.shape[0], 2))
+    K[:N_ERR] = J[:N_ERR] @ H.T @ np.linalg.inv(S)
+    A = np.eye(J.shape[0]) - K @ H
+    J = A @ J @ A.T + K @ R @ K.T
+    dx = K[:N_ERR] @ y
+    G = np.eye(J.shape[0])
+    G[:N_ERR, :N_ERR] = aid_loop.reset_jacobian(dx)
+    J = G @ J @ G.T
+    x0 = est._x.copy()
+    status = est.fuse_loop_closure(clone_t[a], clone_t[b], y, R)
+    assert status.fused
+    np.testing.assert_allclose(est._x[X_POS] - x0[X_POS], dx[POS], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(est._x[X_VEL] - x0[X_VEL], dx[VEL], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(est._x[X_KS] - x0[X_KS], dx[KS][0], rtol=1e-9, atol=1e-15)
+    scale = np.abs(J).max()
+    np.testing.assert_allclose(est._P, J[:N_ERR, :N_ERR], rtol=0, atol=1e-10 * scale)
+    np.testing.assert_allclose(bank.joint_covariance(est._P), J, rtol=0, atol=1e-10 * scale)
+
+
+def test_loop_closure_survives_a_second_late_measurement():
+    """A late measurement re-runs the inputs since its time, the loop closure among them; a
+    second late one older than the closure re-runs them again: the closure must still be
+    there (it was re-run but not recorded again, and the second re-run lost it)."""
+    ends = []
+    for with_closure in (True, False):
+        est, clone_t, imu = _filter_with_clones()
+        t_end = float(est._clock[0])
+        if with_closure:
+            st = est.fuse_loop_closure(clone_t[-8], clone_t[-1], np.array([3.0, -2.0]), np.eye(2) * 0.25)
+            assert st.fused
+        est.process(ImuBatch(*(a[:50] for a in imu)))
+        yaw = float(aid_attitude.predict(est._x)[2])
+        for dt in (0.2, 0.1):  # both older than the closure's input (state time t_end)
+            est.process(HeadingSample(t_s=t_end - dt, yaw_rad=yaw))
+        assert est.late_fused == 2
+        ends.append(est._x[X_POS_NE].copy())
+    with_end, without_end = ends
+    assert np.linalg.norm(with_end - without_end) > 2.0, (with_end, without_end)
