@@ -44,7 +44,9 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.eskf import Estimator
-from adaptnav.fusion.state import POS_NE
+from adaptnav.fusion.state import POS_NE, VEL
+
+VEL_NE = slice(VEL.start, VEL.start + 2)
 
 # clones are kept (each costs a little per covariance step) while a ping came this recently (s)
 SONAR_ACTIVE_S = 30.0
@@ -77,6 +79,9 @@ class SideScanEstimator(Estimator):
         self._nav: deque = deque()
         self._jump = np.zeros(2)
         self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
+        # clone time → the accumulated jumps then (as at a ping): a closure is referred from its
+        # sightings' times to its clones' (:meth:`_fuse_closure`)
+        self._clone_jump: dict[float, np.ndarray] = {}
         self._t_ping = -math.inf
         self.side_scan = {"pings": 0, "batches": 0, "sightings": 0, "closures": 0, "closures_fused": 0}
 
@@ -91,14 +96,15 @@ class SideScanEstimator(Estimator):
             return self._objects(sample) if self.config.loop_closure.enabled else []
         out = super().process(sample)
         if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf \
-                and self._clock[0] - self._t_ping < SONAR_ACTIVE_S:
-            self.clone_position()
+                and self._clock[0] - self._t_ping < SONAR_ACTIVE_S and self.clone_position():
+            self._keep_clone_jump()
         return out
 
     def shift_time(self, delta_s: float) -> None:
         super().shift_time(delta_s)
         self._nav.clear()  # its times are in the old base; the record refills within a block
         self._last_vel = None
+        self._clone_jump = {t + delta_s: j for t, j in self._clone_jump.items()}
 
     # ---------------------------------------------------------------- internals
     def _ping(self, ping: Any) -> None:
@@ -115,9 +121,7 @@ class SideScanEstimator(Estimator):
             return
         vel = ns.vel_n_m_s[:2]
         pos = ns.pos_n_m[:2] + vel * (t - ns.t_s)
-        if self._last_vel is not None and t > self._last_vel[0]:
-            t0, p0, v0 = self._last_vel
-            self._jump += pos - (p0 + 0.5 * (v0 + vel) * (t - t0))  # what the velocity does not explain
+        self._jump = self._jump_at(t, pos, vel)
         self._last_vel = (t, pos.copy(), vel.copy())
         yaw = float(ns.euler_rad()[2])
         nav = self._nav
@@ -129,6 +133,44 @@ class SideScanEstimator(Estimator):
         nav.append((t, pos[0], pos[1], yaw, cov[0, 0], cov[0, 1], cov[1, 0], cov[1, 1], self._jump[0], self._jump[1]))
         while nav and nav[0][0] < t - self.nav_keep_s:
             nav.popleft()
+
+    def _jump_at(self, t: float, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        """The accumulated jumps at ``t`` (m): those of the last ping plus what the velocity does
+        not explain of the position since (trapezoid)."""
+        if self._last_vel is None or not t > self._last_vel[0]:
+            return self._jump.copy()
+        t0, p0, v0 = self._last_vel
+        return self._jump + (pos - (p0 + 0.5 * (v0 + vel) * (t - t0)))
+
+    def _keep_clone_jump(self) -> None:
+        """The jumps at the clone just made (its time is the state's), as a ping would record them."""
+        ns = self.nav_state()
+        t = float(self._clones.t_s[-1])
+        self._clone_jump[t] = self._jump_at(t, ns.pos_n_m[:2], ns.vel_n_m_s[:2])
+        horizon = t - self._clones.horizon_s
+        if next(iter(self._clone_jump)) < horizon:  # oldest first (insertion order)
+            self._clone_jump = {k: v for k, v in self._clone_jump.items() if k >= horizon}
+
+    def _fuse_closure(self, lc: Any):
+        """Fuse a loop closure at the clones nearest its sightings' times, its offset referred to
+        them (:meth:`adaptnav.sonar.association.LoopClosure.offset_at`).
+
+        A clone lies up to ``clone_period_s`` from a sighting, and an update between the two —
+        a USBL fix — moves the filter's position by metres: fused at the sightings' times, a
+        closure whose clone was on the other side of a fix was that fix's jump off (survey
+        seed 3: 1.9 m across track, 6σ of the closure's covariance). The velocity error over
+        those seconds is added to the covariance (``Δt² P_vv`` at each end)."""
+        cl = self._clones
+        a, b = cl.nearest(lc.t_a_s), cl.nearest(lc.t_b_s)
+        if a is None or b is None:
+            return self.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov)  # too late: rejected
+        t_a, t_b = cl.t_s[a], cl.t_s[b]
+        j_a, j_b = self._clone_jump.get(t_a), self._clone_jump.get(t_b)
+        if j_a is None or j_b is None:
+            return self.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov)
+        p_vv = self._P[VEL_NE, VEL_NE]
+        cov = np.asarray(lc.cov, float) + ((t_a - lc.t_a_s) ** 2 + (t_b - lc.t_b_s) ** 2) * 0.5 * (p_vv + p_vv.T)
+        return self.fuse_loop_closure(t_a, t_b, lc.offset_at(j_a, j_b), cov)
 
     @property
     def associator(self) -> Any:
@@ -181,7 +223,7 @@ class SideScanEstimator(Estimator):
             return []
         self.side_scan["closures"] += 1
         batch.links.append(tuple(lc.pairs))
-        status = self.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov)
+        status = self._fuse_closure(lc)
         self.side_scan["closures_fused"] += int(status.fused)
         return [status]
 

@@ -160,6 +160,9 @@ class LoopClosure:
         The (earlier, new) sightings.
     nis : float
         Joint normalised residual (χ² with 2n − 2 degrees of freedom).
+    jump_a_n_m, jump_b_n_m : numpy.ndarray or None, shape (2,)
+        The navigation's accumulated jumps at ``t_a_s`` and ``t_b_s``
+        (:attr:`~adaptnav.sonar.objects.ObjectSighting.jump_n_m`, in ``offset_n_m``; None: not known).
     """
 
     t_a_s: float
@@ -169,6 +172,21 @@ class LoopClosure:
     n_objects: int
     pairs: tuple = field(default=())
     nis: float = math.nan
+    jump_a_n_m: np.ndarray | None = None
+    jump_b_n_m: np.ndarray | None = None
+
+    def offset_at(self, jump_a_n_m, jump_b_n_m) -> np.ndarray:
+        """The offset between the navigation's errors at two epochs near ``t_a_s`` and ``t_b_s``
+        (a filter's clones, seconds away) whose accumulated jumps are ``jump_a_n_m`` and
+        ``jump_b_n_m`` (m): ``δ + (J′_a − J_a) − (J′_b − J_b)``.
+
+        Between a sighting and the epoch it is fused at, the filter's error changes by the jumps
+        its updates made (a USBL fix: metres) plus its velocity error over those seconds (left
+        to the caller's covariance). Unchanged when the sightings' jumps are not known."""
+        if self.jump_a_n_m is None or self.jump_b_n_m is None:
+            return np.asarray(self.offset_n_m, float).copy()
+        return (np.asarray(self.offset_n_m, float) + (np.asarray(jump_a_n_m, float) - self.jump_a_n_m)
+                - (np.asarray(jump_b_n_m, float) - self.jump_b_n_m))
 
     def to_record(self) -> dict:
         """JSON-ready summary."""
@@ -444,7 +462,8 @@ class LegAssociator:
             delta = delta - b_med.jump_n_m
         self._recent.append((float(a_med.t_s), float(b_med.t_s), smooth, cov))
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
-                           offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis)
+                           offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis,
+                           jump_a_n_m=a_med.jump_n_m, jump_b_n_m=b_med.jump_n_m)
 
     def extend(self, batch: list[ObjectSighting]) -> LoopClosure | None:
         """Pairs of ``batch`` that continue a recent loop closure (or None).

@@ -11,9 +11,13 @@ import json
 import numpy as np
 import pytest
 
+from adaptnav.fusion.samples import ImuBatch
+from adaptnav.service.compose import make_estimator
 from adaptnav.service.runtime.replay import ReplayInput, SimSource, build_config, replay
 from adaptnav.sim.scenario import load_scenario
 from adaptnav.sim.simulator import simulate
+from adaptnav.sonar.association import LoopClosure
+from adaptnav.sonar.ping import SonarPing
 
 # reciprocal legs of 150 m (100 s each) so that a few minutes hold several leg pairs; USBL
 # fixes stop at 200 s; no DVL: the navigation error grows from then on
@@ -59,3 +63,59 @@ def test_replay_fuses_loop_closures_and_reports_them(survey, tmp_path):
     # two detector versions whose RMS ratios were 0.74 / 0.72; seeds 1 and 2 ended at 0.74 and
     # 1.03 with the same code.)
     assert err_with < 0.8 * err_without, (err_with, err_without)
+
+
+def test_closure_is_referred_to_its_clones_across_a_fix():
+    """A clone lies up to a clone period from a sighting; a USBL fix between the two moves the
+    filter by metres. The closure's offset (the filter's error difference at the sightings'
+    times) must be referred to the clones it is fused at: its innovation then equals the true
+    error difference of the clones. (Fused at the sightings' times it was the fix's jump off.)"""
+    sc = load_scenario("short", ["seed=4", "duration_s=240.0", "usbl.lost_after_s=200.0"])
+    res = simulate(sc)
+    est = make_estimator(build_config(sc))
+    dense = res.dense
+    empty = np.zeros(4, np.float32)
+
+    def err(t, pos):
+        return pos - np.array([np.interp(t, dense.t_s, dense.pos_n_m[:, k]) for k in range(2)])
+
+    nav = {}  # ping time → (the filter's error there, the accumulated jumps there)
+    for item in res.iter_blocks():
+        if item.KIND != "imu_batch":
+            est.process(item)
+            continue
+        # a ping after every tenth IMU sample (10 Hz; the filter reads only its time)
+        for k in range(0, len(item.t_s), 10):
+            est.process(ImuBatch(item.t_s[k:k + 10], item.specific_force_b_m_s2[k:k + 10],
+                                 item.omega_b_rad_s[k:k + 10]))
+            t = float(item.t_s[min(k + 9, len(item.t_s) - 1)])
+            if est.initialized:
+                est.process(SonarPing(t, empty, empty, 40.0))
+                if est._nav and est._nav[-1][0] == t:
+                    rec = est._nav[-1]
+                    nav[t] = (err(t, np.array(rec[1:3])), np.array(rec[8:10]))
+    clones = est._clones
+    fixes = [s.t_s for s in res.samples["usbl"] if 60.0 < s.t_s < 200.0]
+    # the ping before a fix whose nearest clone lies after it, with the largest jump
+    cases = []
+    for t_fix in fixes:
+        for t in sorted(nav):
+            if t_fix - 3.0 < t < t_fix:
+                k = clones.nearest(t)
+                if clones.t_s[k] > t_fix:
+                    cases.append((t, k))
+    t_b = max(nav)
+    b = clones.nearest(t_b)
+
+    def clone_err(k):
+        return err(clones.t_s[k], clones.pos_n_m[k])
+
+    t_a, a = max(cases, key=lambda c: np.linalg.norm(clone_err(c[1]) - nav[c[0]][0]))
+    jump = np.linalg.norm(clone_err(a) - nav[t_a][0])
+    assert jump > 0.5, jump  # the fix moved the filter between the sighting and its clone
+    truth_offset = clone_err(a) - clone_err(b)
+    lc = LoopClosure(t_a, t_b, nav[t_a][0] - nav[t_b][0], np.eye(2) * 0.01, 4,
+                     jump_a_n_m=nav[t_a][1], jump_b_n_m=nav[t_b][1])
+    status = est._fuse_closure(lc)
+    assert status.fused
+    assert np.linalg.norm(np.array(status.innovation) - truth_offset) < 0.1 * jump, (status.innovation, truth_offset)
