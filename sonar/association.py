@@ -275,14 +275,16 @@ class LegAssociator:
             return [], clutter
         P_old, C_old, D_old, t_old = (stored[k][old] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
         rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
+        if rel is not None:  # the error difference's own covariance where the filter has it
+            rel_known, rel_D = rel[1][:, None, None], rel[0] + D_old
         out = []
         cl: dict[str, list] = {k: [] for k in keys}
         for j, b in enumerate(batch):
             same_leg = t_old >= b.t_s - c.min_gap_s
             d = P_old - b.pos_n_m[None, :]
             S = C_old + (b.nav_cov + b.det_cov)[None]
-            if rel is not None:  # the error difference's own covariance where the filter has it
-                S = np.where(rel[1][:, None, None], rel[0] + D_old + b.det_cov[None], S)
+            if rel is not None:
+                S = np.where(rel_known, rel_D + b.det_cov[None], S)
             m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
             wide = np.flatnonzero((m2 <= c.clutter_scale * self._gate) & ~same_leg)
             agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
@@ -338,8 +340,10 @@ class LegAssociator:
         ok = np.zeros(asked.size, bool)
         for i, k in enumerate(asked.tolist()):
             c = self.relative_cov(float(t_old[k]), t_new)
-            if c is not None and np.all(np.isfinite(c)):
+            if c is not None:
                 cov[i], ok[i] = c, True
+        ok &= np.isfinite(cov).all(axis=(1, 2))  # a non-finite one is not known
+        cov[~ok] = 0.0
         at = np.searchsorted(asked, seconds)  # (asked is increasing: first sightings in order)
         return cov[at], ok[at]
 

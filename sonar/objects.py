@@ -383,12 +383,11 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     cand = _shadow_candidates(lab, n, runs, config, res, min_cols, short_cols, min_col0)
     hl = _highlights(lev, runs, cand, hw, config.highlight_level)
     out = []
-    slices = find_objects(lab)
     hl_label = runs.label[hl.run]
     for k in np.flatnonzero(np.bincount(hl_label, minlength=n + 1) >= max(config.min_highlight_rows, 1)):
-        sl = slices[k - 1]
         mine = slice(*np.searchsorted(runs.label, [k, k + 1]))
         comp_rows, near, far = runs.row[mine], runs.near[mine], runs.far[mine]  # image rows
+        sl = (slice(int(comp_rows[0]), int(comp_rows[-1]) + 1), slice(int(near.min()), int(far.max())))  # its box
         short = _median_int(near) * res < config.short_shadow_range_m
         lit = slice(*np.searchsorted(hl_label, [k, k + 1]))
         hl_rows, lead, hl_vals = runs.row[hl.run[lit]].tolist(), hl.lead[lit].tolist(), hl.level[lit].tolist()
@@ -642,7 +641,7 @@ class ObjectFrontEnd:
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
         cov = np.asarray(nav_cov, float).reshape(2, 2)
-        if not (math.isfinite(ping.t_s) and np.all(np.isfinite(p)) and np.all(np.isfinite(cov))
+        if not (math.isfinite(ping.t_s) and np.isfinite(p).all() and np.isfinite(cov).all()
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
             return []

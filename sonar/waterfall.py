@@ -181,8 +181,8 @@ def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     bad = [i for i, p in enumerate(pings) if p.n_samples != n]
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
-    port = np.stack([p.port for p in pings]).astype(np.float32)
-    stbd = np.stack([p.starboard for p in pings]).astype(np.float32)
+    port = np.stack([p.port for p in pings]).astype(np.float32, copy=False)  # (a new array already)
+    stbd = np.stack([p.starboard for p in pings]).astype(np.float32, copy=False)
     np.nan_to_num(port, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     np.nan_to_num(stbd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     return port, stbd
@@ -211,14 +211,14 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     numpy.ndarray, shape (P,)
         Slant range (m) of the first return; NaN when a ping has no return.
     """
-    sm = uniform_filter1d(samples.astype(np.float32), 5, axis=1)
+    sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
     level = np.percentile(sm, 75, axis=1)
     above = sm > (fraction * level)[:, None]
     above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
     idx = np.argmax(above, axis=1)
     # the 5-sample smoothing fires up to 2 samples early on a sharp onset: move to the
     # first raw sample above the threshold within ±2 samples
-    raw = samples.astype(np.float32)
+    raw = samples.astype(np.float32, copy=False)  # read only
     offs = np.arange(-2, 3)
     cols = np.clip(idx[:, None] + offs[None, :], 0, raw.shape[1] - 1)
     raw_above = np.take_along_axis(raw, cols, axis=1) > (fraction * level)[:, None]
