@@ -28,6 +28,8 @@ class NisMonitor:
         self._sum: dict[str, float] = {}
         self._dof: dict[str, int] = {}
         self._bound: dict[int, float] = {}
+        self._failing: list[str] | None = None  # failing() until the next add/clear
+
 
     def add(self, source: str, nis: float, dof: int) -> None:
         """One attempt's NIS (finite) of a ``dof``-dimensional measurement."""
@@ -37,6 +39,7 @@ class NisMonitor:
             self._sum[source] = 0.0
             self._dof[source] = dof
         nis = min(nis, self.cap(dof))
+        self._failing = None
         q.append(nis)
         self._sum[source] += nis
         if len(q) > self.window:
@@ -58,11 +61,16 @@ class NisMonitor:
 
     def failing(self) -> list[str]:
         """Sources whose last ``window`` NIS sum exceeds the χ² bound (full windows only)."""
-        return sorted(s for s, q in self._nis.items()
-                      if len(q) >= self.window and self._sum[s] > self.bound(self._dof[s]))
+        # asked with every published state (the validity), changed by add/clear only
+        out = self._failing
+        if out is None:
+            out = self._failing = sorted(s for s, q in self._nis.items()
+                                         if len(q) >= self.window and self._sum[s] > self.bound(self._dof[s]))
+        return list(out)
 
     def clear(self, source: str | None = None) -> None:
         """Forget (after a reset: the old innovations say nothing about the new state)."""
+        self._failing = None
         for s in ([source] if source is not None else list(self._nis)):
             self._nis.pop(s, None)
             self._sum.pop(s, None)

@@ -262,7 +262,6 @@ class BusSink(Sink):
         # Python float per element of the covariance, on the latency path)
         doc = state.fields()
         pos = doc["pos_n_m"]
-        self.state_finite = bool(np.isfinite(pos).all() and np.isfinite(doc["vel_n_m_s"]).all())
         bridge = self.d.bridge
         # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
         lat, lon, alt = self.origin.to_geodetic(pos)
@@ -274,6 +273,7 @@ class BusSink(Sink):
         self.latest_payload = payload
         self.nav_count += 1
         self.d.bus.put(self.d.bus.keys.nav_state, payload)
+        self.state_finite = bool(np.isfinite(pos).all() and np.isfinite(doc["vel_n_m_s"]).all())
         if bridge is not None:
             bridge.offer_nav(state)  # ODOMETRY on its fixed schedule
         if self.d._snapshot_due.is_set():
@@ -391,11 +391,11 @@ class Daemon:
         runner thread (a wake-up per sample, and the GIL passed back and forth between the
         two threads); the lock keeps one thread at a time in the runner, and queued items
         go first, so the order is the queue's."""
-        lock = self._runner_lock
-        if self.queue.empty() and lock.acquire(blocking=False):
+        lock, queued = self._runner_lock, self.queue.queue  # its deque: len() without the queue's lock
+        if not queued and lock.acquire(blocking=False):
             try:
                 runner = self._runner
-                if runner is not None and self.queue.empty() and not self.stop_event.is_set():
+                if runner is not None and not queued and not self.stop_event.is_set():
                     self.source.take(item, runner.feed)
                     return
             finally:
@@ -468,7 +468,8 @@ class Daemon:
         sinks = [self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
         runner = Runner(self.estimator, sinks, self.clock, self.calibrator,
                         output_rate_hz=self.cfg.outputs.nav_rate_hz, health=self.health,
-                        release_gate=default_release_gate(self.cfg.calibrator.online), qsize=self.source.qsize)
+                        release_gate=default_release_gate(self.cfg.calibrator.online))
+        # (no qsize: the health report reads the queue depth itself, not after every item)
         with self._runner_lock:
             self._runner = runner
         try:

@@ -199,10 +199,14 @@ class _Loop:
     def emit_if_at_epoch(self, t_s: float) -> None:
         """Emit now when the IMU sample just processed (at ``t_s``) is the one nearest the
         next epoch: the first at or after its :meth:`due_s`."""
-        if self.next_k is None or not t_s >= self.due_s():
+        k = self.next_k
+        if k is None:
+            return
+        half = self.half_window_s()
+        if not t_s >= k / self.rate - half:  # due_s(), written out: every live IMU sample asks
             return
         self.emit()
-        self.next_k = max(self.next_k + 1, math.floor((t_s + self.half_window_s()) * self.rate + 1e-9) + 1)
+        self.next_k = max(k + 1, math.floor((t_s + half) * self.rate + 1e-9) + 1)
 
     def imu_time(self, t_s: float) -> None:
         """Track the IMU period (the half window of :meth:`due_s`)."""
