@@ -26,6 +26,17 @@ weighted least-squares problem in (k_V, u_n, u_e), weights λ (forgetting at the
 Columns the pairs cannot separate (k_V and the along-track current on one straight leg at
 constant speed) are held (:func:`adaptnav.calibration.mstep.identifiable_terms`, priority u_n, u_e, k_V:
 the current is what EM cannot find by itself).
+
+A k_V that changes. Side-scan pairs span up to 16 min (the landmark memory) and carry k_V
+where the vehicle turned between their two poses; under one k_V with forgetting by the later
+pose, a pair whose earlier leg was in the old water counts its old k_V as new, and after a
+change of water the fit lagged by ~4 % for 10 min (landmark survey, k_V 1.0 → 0.9). With
+``k_v_walk_var_per_step`` > 0 (and side-scan rows present) k_V is a random walk along the
+steps instead: the k_V column of every row is split by step, the walk's increments join
+as rows ``(k_{t+1} − k_t)/√q``, and the fit returns k_V at the last pose, its σ from the
+same least squares (held when above ``max_k_v_sigma``). The walk is the forgetting then, and
+the rows are not weighted by λ. Fixes alone keep one k_V under forgetting: a fix pair spans a
+minute, and its forgetting weight is at the right time.
 """
 from __future__ import annotations
 
@@ -67,7 +78,7 @@ def dead_reckoning(v_m_s, dt_s, headings_rad, params):
 
 def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, current_n_m_s,
                    step_weights=None, max_condition: float = 30.0, max_k_v_sigma: float = math.inf,
-                   landmark_rows=None):
+                   landmark_rows=None, k_v_walk_var_per_step: float = 0.0):
     """(k_V, current (2,), held names) from fixes vs dead reckoning (module docstring).
 
     Parameters
@@ -81,9 +92,14 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     step_weights : (T,) forgetting weights λ_t (default 1)
     max_k_v_sigma : k_V is held when its standard error exceeds this
         (:func:`adaptnav.calibration.mstep.k_v_informed`)
-    landmark_rows : (X (2K, 3), y (2K,), w (2K,)), optional
+    landmark_rows : (X (2K, 3), y (2K,), w (2K,), X_k (2K, M)), optional
         More rows of the same regression with their weights: side-scan pairs
-        (:func:`adaptnav.calibration.sidescan.landmark_rows`, over the calibrator's longer memory)
+        (:func:`adaptnav.calibration.sidescan.landmark_rows`, over the calibrator's longer memory
+        of M steps ending at the window's last pose); ``X_k`` their k_V column split by step
+    k_v_walk_var_per_step : float
+        > 0: k_V is a random walk along the steps with this variance per step (module docstring,
+        "A k_V that changes"); ``step_weights`` are then not used (the walk is the forgetting)
+        and the k_V returned is the one at the window's last pose. 0: one k_V for all rows.
 
     Returns
     -------
@@ -99,8 +115,14 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
     extra = landmark_rows if landmark_rows is not None and len(landmark_rows[1]) else None
     if len(fixes) < 2 and extra is None:
         return k_v, (theta0[1], theta0[2]), ("k_v", "current_n", "current_e")
+    walk = k_v_walk_var_per_step > 0.0 and extra is not None
+    if walk:
+        lam = np.ones(T)
     cum_d, cum_t, cum_q = dead_reckoning(v, dt, th, params)
-    rows, ys, ws = [], [], []
+    d_step = np.diff(cum_d, axis=0)
+    M = extra[3].shape[1] if extra is not None else T  # steps of the landmark memory
+    N = max(T, M)  # steps of the walk, aligned at the last pose
+    rows, ys, ws, k_rows = [], [], [], []
     for (a, fa), (b, fb) in zip(fixes[:-1], fixes[1:]):
         D = cum_d[b] - cum_d[a]
         tau = cum_t[b] - cum_t[a]
@@ -109,18 +131,32 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
         rows += [[D[0], tau, 0.0], [D[1], 0.0, tau]]
         ys += [fb.pos_n_m[0] - fa.pos_n_m[0], fb.pos_n_m[1] - fa.pos_n_m[1]]
         ws += [w, w]
+        if walk:
+            per_step = np.zeros((2, N))
+            per_step[:, N - T + a:N - T + b] = d_step[a:b].T
+            k_rows.append(per_step)
     if extra is not None:  # side-scan pairs (calibration.sidescan.landmark_rows), already weighted
         rows += [list(r) for r in extra[0]]
         ys += list(extra[1])
         ws += list(extra[2])
+        if walk:
+            k_rows.append(np.pad(extra[3], ((0, 0), (N - M, 0))))
     X, y, sw = np.array(rows), np.array(ys), np.sqrt(np.array(ws))
     order = (1, 2, 0)  # current first, then k_V
     kept, _ = identifiable_terms(X * sw[:, None], order, max_condition)
     free = sorted(kept)
+    theta = theta0.copy()
+    if walk and 0 in free:
+        k_end, cur, sigma = _walk_solution(np.vstack(k_rows), X, y, sw, free, theta0, k_v_walk_var_per_step)
+        if math.isfinite(k_end) and sigma <= max_k_v_sigma:
+            theta[0] = k_end
+            theta[[i for i in free if i]] = cur
+            return float(theta[0]), (float(theta[1]), float(theta[2])), \
+                tuple(("k_v", "current_n", "current_e")[k] for k in range(3) if k not in free)
+        free.remove(0)
     if not k_v_informed(X * sw[:, None], free, max_k_v_sigma)[0] and 0 in free:
         free.remove(0)
     fixed = [k for k in range(3) if k not in free]
-    theta = theta0.copy()
     if free:
         r = y - X[:, fixed] @ theta0[fixed]
         sol, *_ = np.linalg.lstsq(X[:, free] * sw[:, None], r * sw, rcond=None)
@@ -128,6 +164,32 @@ def fix_regression(v_m_s, dt_s, headings_rad, observations, params, k_v: float, 
             theta[free] = sol
     held = tuple(("k_v", "current_n", "current_e")[k] for k in fixed)
     return float(theta[0]), (float(theta[1]), float(theta[2])), held
+
+
+def _walk_solution(Xk, X, y, sw, free, theta0, q_step):
+    """(k_V at the last step, the free currents, σ of that k_V) for a k_V that is a random walk
+    of variance ``q_step`` per step: least squares over the rows (k_V columns ``Xk`` (R, N)
+    by step, current columns of ``X`` (R, 3)) and the walk's increments
+    ``(k_{t+1} − k_t)/√q_step``; held currents are moved to the right-hand side."""
+    R, N = Xk.shape
+    cur_free = [i for i in free if i]
+    cur_fixed = [i for i in (1, 2) if i not in free]
+    r = y - X[:, cur_fixed] @ theta0[cur_fixed]
+    A = np.hstack([Xk, X[:, cur_free]]) * sw[:, None]
+    P = np.zeros((N - 1, N + len(cur_free)))
+    i = np.arange(N - 1)
+    P[i, i], P[i, i + 1] = -1.0, 1.0
+    A = np.vstack([A, P / math.sqrt(q_step)])
+    b = np.concatenate([r * sw, np.zeros(N - 1)])
+    info = A.T @ A
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return math.nan, np.zeros(len(cur_free)), math.inf
+    sol = cov @ (A.T @ b)
+    if not (np.all(np.isfinite(sol)) and cov[N - 1, N - 1] > 0):
+        return math.nan, np.zeros(len(cur_free)), math.inf
+    return float(sol[N - 1]), sol[N:], math.sqrt(cov[N - 1, N - 1])
 
 
 def circular_mean_headings(clouds) -> np.ndarray:

@@ -25,6 +25,11 @@ value and released with the parameters (:attr:`Release.current_n_m_s`). Before E
 current are warm-started by the closed-form fit of the window's fixes against dead reckoning
 (:mod:`adaptnav.calibration.fix_regression`, an ECME step): the smoother alone barely shows a
 cross-track current because the sway prior is tight, so EM would follow it far too slowly.
+In a window without two fixes, where k_V's only information is the side-scan pairs'
+displacements (:mod:`adaptnav.calibration.sidescan`), the fit's k_V is also the one released:
+it is their observed-data maximum, while EM's smoother sees them only through a landmark map
+frozen with the whole uncertainty of the earlier pose, and its M-step k_V is the start plus
+Monte Carlo noise (landmark survey: consecutive releases scattered ±3-4 % around the fit).
 
 Step length. :class:`MotionParams` are defined for the model's reference step
 ``model_step_s`` (1 s); the window's steps are ``step_s`` long, so the filter and EM run with
@@ -155,6 +160,11 @@ class CalibratorConfig:
     # fit, beyond the EM window: the two sightings of an object on reciprocal 500 m legs are
     # up to 12 min apart and the filter's link comes back ~80 s after the later one
     landmark_memory_steps: int = 192
+    # with side-scan pairs in the closed-form (k_V, current) fit (calibration.fix_regression),
+    # k_V is a random walk of this rate, 1/√s (the filter's k_speed_rw_rthz without a DVL): old
+    # rows weigh by what the walk allows since, not by the forgetting λ, and the k_V fitted is
+    # the one at the window's end. 0: one k_V under the forgetting
+    k_v_walk_rthz: float = 1.5e-3
 
     def validate(self) -> None:
         if self.window_steps < 2 or self.period_steps < 1 or self.min_window_steps < 2:
@@ -163,6 +173,8 @@ class CalibratorConfig:
             raise ValueError("step_s and model_step_s must be > 0")
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError("forgetting must be in (0, 1]")
+        if not self.k_v_walk_rthz >= 0.0:
+            raise ValueError("k_v_walk_rthz must be ≥ 0")
         if self.n_particles < 10 or self.n_smoothed < 1 or self.em_iterations < 1:
             raise ValueError("n_particles ≥ 10, n_smoothed ≥ 1, em_iterations ≥ 1 required")
 
@@ -251,7 +263,8 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
     if landmark_memory is not None:
         from adaptnav.calibration.sidescan import landmark_rows
         v_h, th_h, obs_h = landmark_memory
-        lam_h = config.forgetting ** np.arange(len(v_h) - 1, -1, -1, dtype=float)
+        lam_h = (np.ones(len(v_h)) if config.k_v_walk_rthz > 0  # the walk is the forgetting
+                 else config.forgetting ** np.arange(len(v_h) - 1, -1, -1, dtype=float))
         lm_rows = landmark_rows(v_h, dt, th_h, obs_h, to_window(params), lam_h)
         n_pos += len(lm_rows[1]) // 2  # each pair: a displacement between two poses
     if n_pos < config.min_position_poses:
@@ -263,19 +276,26 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         return _inertial_only(params, inc, config, t_s, initial_params, cur0, why)
     win_params = to_window(params)
     start_params, start_cur = win_params, cur0
+    k_from_pairs = False
     if headings_rad is not None and config.fix_regression:
-        from adaptnav.calibration.fix_regression import fix_regression
-        k_fix, cur_fix, _ = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
-                                           lam, config.max_condition, config.max_k_v_sigma, lm_rows)
+        from adaptnav.calibration.fix_regression import fix_pairs, fix_regression
+        k_fix, cur_fix, held_fix = fix_regression(v, dt, headings_rad, observations, win_params, params.k_v, cur0,
+                                           lam, config.max_condition, config.max_k_v_sigma, lm_rows,
+                                           config.k_v_walk_rthz ** 2 * dt)
         if config.k_v_min <= k_fix <= config.k_v_max and all(abs(x) <= config.max_current_m_s for x in cur_fix):
             start_params = replace(win_params, k_v=k_fix) if config.fit_k_v else win_params
             start_cur = cur_fix if config.fit_current else cur0
+            # without two fixes the pairs' fit is k_V's observed-data maximum and is released as
+            # it is (ECME, Liu & Rubin 1994; module docstring)
+            k_from_pairs = (config.fit_k_v and "k_v" not in held_fix and lm_rows is not None
+                            and len(lm_rows[1]) > 0 and len(fix_pairs(observations)) < 2)
     inc = increments(start_cur)
     try:
         anchor = to_window(initial_params) if config.prior_anchor == "initial" and initial_params is not None else None
         res = run_em(start_params, v, w, dt, observations, init_cloud, rng, config.em_options(),
                      step_weights=lam, prior_params=anchor, current_n_m_s=start_cur, surge_increments=inc)
-        new = to_model(res.params)
+        fitted = replace(res.params, k_v=start_params.k_v) if k_from_pairs else res.params
+        new = to_model(fitted)
     except (ValueError, FloatingPointError) as e:  # MotionParams refuses non-finite values
         return Release(t_s, params, math.nan, False, f"EM failed: {e}", 0, cur0)
     cur = tuple(float(x) for x in res.current_n_m_s)
@@ -292,8 +312,8 @@ def calibrate_window(params: MotionParams, v, w, dt, observations, init_cloud, c
         if start_params is not win_params or start_cur is not cur0:  # EM started elsewhere: the reference
             ll_old = run_particle_filter(win_params, v, w, dt, obs, init_cloud, rng, config.n_particles,
                                          current_n_m_s=cur0).log_likelihood + imu_ll(win_params)
-        ll_new = run_particle_filter(res.params, v, w, dt, obs, init_cloud, rng, config.n_particles,
-                                     current_n_m_s=cur).log_likelihood + imu_ll(res.params)
+        ll_new = run_particle_filter(fitted, v, w, dt, obs, init_cloud, rng, config.n_particles,
+                                     current_n_m_s=cur).log_likelihood + imu_ll(fitted)
     except FloatingPointError as e:
         return Release(t_s, new, -math.inf, False, f"filter failed with new parameters: {e}", res.iterations, cur)
     if not math.isfinite(ll_new):

@@ -173,17 +173,21 @@ def landmark_rows(v_m_s, dt_s, headings_rad, observations, params, step_weights)
     displacement *across* the legs (the turn) carries k_V, and it is hardly touched by the
     surge noise of minutes along the legs that makes the along-track part metres uncertain.
 
-    Returns ``(X (2K, 3), y (2K,), w (2K,))``.
+    Returns ``(X (2K, 3), y (2K,), w (2K,), X_k (2K, T))``: ``X_k`` is the k_V column of ``X``
+    split by step (column t: the whitened unit-speed displacement of step t when it lies between
+    the pair's poses; ``X_k.sum(axis=1) == X[:, 0]``), for a k_V that changes along the memory
+    (:func:`adaptnav.calibration.fix_regression.fix_regression`, ``k_v_walk_var_per_step``).
     """
     from adaptnav.calibration.fix_regression import dead_reckoning
 
     pairs = landmark_pairs(observations, headings_rad)
-    if not pairs:
-        return np.empty((0, 3)), np.empty(0), np.empty(0)
     v = np.asarray(v_m_s, dtype=float)
+    if not pairs:
+        return np.empty((0, 3)), np.empty(0), np.empty(0), np.empty((0, v.size))
     dt = np.broadcast_to(np.asarray(dt_s, dtype=float), v.shape)
     th = np.asarray(headings_rad, dtype=float)
     cum_d, cum_t, _ = dead_reckoning(v, dt, th, params)
+    d_step = np.diff(cum_d, axis=0)  # (T, 2) unit-speed displacement of each step
     phi = th[:-1] + 0.5 * ((np.diff(th) + np.pi) % (2.0 * np.pi) - np.pi)
     u = np.column_stack([np.cos(phi), np.sin(phi)])
     q_along = dt ** 2 * (v ** 2 * params.var_vv + params.var_v1)
@@ -194,18 +198,21 @@ def landmark_rows(v_m_s, dt_s, headings_rad, observations, params, step_weights)
     group_size: dict[int, int] = {}
     for *_, g in pairs:
         group_size[g] = group_size.get(g, 0) + 1
-    X, y, w = [], [], []
+    X, y, w, Xk = [], [], [], []
     for a, b, delta, var_pair, g in pairs:
         D = cum_d[b] - cum_d[a]
         tau = cum_t[b] - cum_t[a]
         L = np.linalg.cholesky(var_pair * np.eye(2) + cum_Q[b] - cum_Q[a])
         Xw = np.linalg.solve(L, np.array([[D[0], tau, 0.0], [D[1], 0.0, tau]]))
         yw = np.linalg.solve(L, np.asarray(delta, float))
+        per_step = np.zeros((2, v.size))
+        per_step[:, a:b] = np.linalg.solve(L, d_step[a:b].T)
         wt = lam[b - 1] / (group_size[g] if g >= 0 else 1)
         X += Xw.tolist()
         y += yw.tolist()
         w += [wt, wt]
-    return np.array(X), np.array(y), np.array(w)
+        Xk.append(per_step)
+    return np.array(X), np.array(y), np.array(w), np.vstack(Xk)
 
 
 __all__ = ["ObjectBatch", "CalibratorSonar", "LinkIds", "landmark_pairs", "landmark_rows", "body_sigmas_m"]

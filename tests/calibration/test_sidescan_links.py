@@ -140,3 +140,22 @@ def test_links_follow_a_change_of_water():
     # (with 6 objects per pair of 300 m legs, 10 min after it leaves 0.96-0.97: the pairs
     # with both sightings after the change come back only from the third leg on)
     assert abs(taught[-1].params.k_v - K_TRUE) / K_TRUE < 0.03, [(r.t_s, round(r.params.k_v, 4)) for r in taught]
+
+
+def test_links_follow_a_change_of_water_within_ten_minutes():
+    # GIVEN the right k_V 1.0 until the water changes at 15 min (k_V 0.9), no fix after the
+    # first, on 8 draws of the objects and the heading noise
+    t_change = 900.0
+    errors = []
+    for seed in range(1, 9):
+        releases = _run(with_links=True, seed=seed, k_before=1.0, t_change_s=t_change, duration=t_change + 600.0)
+        taught = [r for r in releases if r.accepted and "landmarks" in r.teachers and r.t_s > t_change]
+        assert taught, [r.reason for r in releases]
+        errors.append(abs(taught[-1].params.k_v - K_TRUE) / K_TRUE)
+    # THEN 10 min after the change the calibrator's k_V is within 4 % of the new water's on
+    # every draw (2 % on average): the fit takes k_V as a random walk (the pairs straddling the
+    # change tell the new k_V from the old one instead of averaging them under the forgetting
+    # of their later pose) and the release keeps the fit's k_V (ECME: EM's smoother sees the
+    # pairs only through a frozen map). With one k_V under forgetting and EM's k_V released:
+    # mean 3.4 %, worst 8.2 %.
+    assert max(errors) < 0.04 and np.mean(errors) < 0.02, np.round(errors, 4)
