@@ -174,10 +174,9 @@ def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
         if len(args) == n:
             for a, (is_array, dtype, ndim, contiguous, types_ok) in zip(args, checks):
                 if is_array:
-                    if type(a) is not ndarray or a.dtype.char != dtype or a.ndim != ndim:
-                        break
-                    flags = a.flags
-                    if not flags.writeable or not flags.aligned or (contiguous and not flags.c_contiguous):
+                    # flags.carray: C-contiguous, aligned and writeable; flags.behaved: the last two
+                    if type(a) is not ndarray or a.dtype.char != dtype or a.ndim != ndim or not (
+                            a.flags.carray if contiguous else a.flags.behaved):
                         break
                 elif not isinstance(a, types_ok):
                     break
