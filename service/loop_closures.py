@@ -80,7 +80,7 @@ class SideScanEstimator(Estimator):
         self._jump = np.zeros(2)
         self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
         # clone time → the accumulated jumps then (as at a ping): a closure is referred from its
-        # sightings' times to its clones' (:meth:`_fuse_closure`)
+        # sightings' times to its clones' (:meth:`fuse_closure`)
         self._clone_jump: dict[float, np.ndarray] = {}
         self._t_ping = -math.inf
         self.side_scan = {"pings": 0, "batches": 0, "sightings": 0, "closures": 0, "closures_fused": 0}
@@ -151,7 +151,7 @@ class SideScanEstimator(Estimator):
         if next(iter(self._clone_jump)) < horizon:  # oldest first (insertion order)
             self._clone_jump = {k: v for k, v in self._clone_jump.items() if k >= horizon}
 
-    def _fuse_closure(self, lc: Any):
+    def fuse_closure(self, lc: Any):
         """Fuse a loop closure at the clones nearest its sightings' times, its offset referred to
         them (:meth:`adaptnav.sonar.association.LoopClosure.offset_at`).
 
@@ -223,7 +223,7 @@ class SideScanEstimator(Estimator):
             return []
         self.side_scan["closures"] += 1
         batch.links.append(tuple(lc.pairs))
-        status = self._fuse_closure(lc)
+        status = self.fuse_closure(lc)
         self.side_scan["closures_fused"] += int(status.fused)
         return [status]
 

@@ -9,7 +9,8 @@ side by side:
   covariance, heading); :class:`adaptnav.sonar.objects.ObjectFrontEnd` detects objects in
   blocks, :class:`adaptnav.sonar.association.LegAssociator` associates each block with the
   earlier legs inside the filter's covariance, and every loop closure is fused by the filter
-  (:meth:`adaptnav.fusion.eskf.Estimator.fuse_loop_closure`, stochastic clones);
+  at its clones (:meth:`adaptnav.service.loop_closures.SideScanEstimator.fuse_closure`, which
+  also gets the pings: its navigation and jumps there);
 * **without**: the same filter without the side-scan.
 
 Scored against the simulator's truth (the seabed's objects, the true track):
@@ -122,6 +123,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
         if kind == "sonar":
             if not (landmarks and est_with.initialized):
                 continue
+            est_with.process(item)  # the navigation and its jumps at the ping; clones while pings come
             ns = est_with.nav_state()
             if not ns.valid:
                 continue
@@ -133,13 +135,11 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
                 lc = assoc.add(batch)
                 if lc is not None:
                     closures.append(lc)
-                    if est_with.fuse_loop_closure(lc.t_a_s, lc.t_b_s, lc.offset_n_m, lc.cov).fused:
+                    if est_with.fuse_closure(lc).fused:  # at the clones, the offset referred to them
                         fused += 1
             continue
         est_with.process(item)
         est_without.process(item)
-        if landmarks and kind == "imu_batch":
-            est_with.clone_position()
     return _score(scenario, res, est_with, est_without, sightings, closures, fused,
                   min_range_m, max_range_m, assoc)
 

@@ -116,6 +116,6 @@ def test_closure_is_referred_to_its_clones_across_a_fix():
     truth_offset = clone_err(a) - clone_err(b)
     lc = LoopClosure(t_a, t_b, nav[t_a][0] - nav[t_b][0], np.eye(2) * 0.01, 4,
                      jump_a_n_m=nav[t_a][1], jump_b_n_m=nav[t_b][1])
-    status = est._fuse_closure(lc)
+    status = est.fuse_closure(lc)
     assert status.fused
     assert np.linalg.norm(np.array(status.innovation) - truth_offset) < 0.1 * jump, (status.innovation, truth_offset)
