@@ -435,7 +435,13 @@ class Estimator:
         return out
 
     def restore_slow_states(self, d: dict) -> None:
-        """Inverse of :meth:`slow_states` (also before initialisation: kept through it)."""
+        """Inverse of :meth:`slow_states` (also before initialisation: kept through it).
+
+        The restored states replace the filter's, uncorrelated with everything: with the
+        clones too, if any (their rows of the clones' map zeroed after the flush, as in
+        :meth:`_reset_attitude`)."""
+        kalman.flush_core(self._core, self._qdiag)
+        self._clones.zero_rows(SLOW)
         for name, xs, block, var in (("bias_acc_b_m_s2", X_BA, BA, "var_bias_acc"),
                                      ("bias_gyro_b_rad_s", X_BG, BG, "var_bias_gyro"),
                                      ("current_n_m_s", X_CUR, CUR, "var_current")):

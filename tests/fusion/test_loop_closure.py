@@ -13,7 +13,7 @@ from adaptnav.fusion.aiding import loop_closure as aid_loop
 from adaptnav.fusion.aiding.common import make
 from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.samples import HeadingSample, ImuBatch
-from adaptnav.fusion.state import ACC_T, ATT, KS, N_ERR, POS, VEL, X_KS, X_POS, X_POS_NE, X_VEL
+from adaptnav.fusion.state import ACC_T, ATT, KS, N_ERR, POS, SLOW, VEL, X_KS, X_POS, X_POS_NE, X_VEL
 from adaptnav.fusion.status import rejected
 from adaptnav.service.runtime.replay import build_config
 from adaptnav.sim.scenario import load_scenario
@@ -144,11 +144,16 @@ def _reset(est, what: str):
         z = [sample.roll_rad, sample.pitch_rad, sample.yaw_rad]
         est._reset_attitude(sample, make(z, np.zeros((3, N_ERR)), np.diag([1e-4, 1e-4, 1e-3]), z), status)
         return ATT, True
+    if what == "slow_states":  # a restart's saved biases, current and k_speed
+        saved = est.slow_states()
+        saved.update(current_n_m_s=[0.05, -0.02], k_speed=1.05)
+        est.restore_slow_states(saved)
+        return SLOW, True
     est._doubt_k_speed()
     return KS, False
 
 
-@pytest.mark.parametrize("what", ["velocity", "attitude", "k_speed_doubt"])
+@pytest.mark.parametrize("what", ["velocity", "attitude", "slow_states", "k_speed_doubt"])
 def test_reset_between_clones_and_closure_matches_the_augmented_filter(what):
     """A reset while clones exist, then a loop closure: the filter's covariance, correction and
     the clones' cross-covariances equal those of a brute-force filter that carries the clones
