@@ -80,3 +80,25 @@ def test_the_service_path_does_not_import_numba_when_compiled_ahead_of_time():
             "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_the_guard_takes_the_compiled_function_only_for_the_types_it_was_built_for():
+    """adaptnav.kernels._guarded, the test in front of every compiled kernel: contiguous
+    writeable float64 arrays of the built dimensions and scalars of the built kinds go to
+    the compiled function; anything else (dtype, ndim, order, read-only, a scalar of
+    another kind, another number of arguments) to the just-in-time fallback."""
+    specs = [("array", "d", 2, True), ("array", "d", 1, False), ("float", None, None, None),
+             ("int", None, None, None), ("bool", None, None, None)]
+    call = kernels._guarded(lambda *a: "compiled", specs, lambda *a: "fallback")
+    m, v = np.zeros((3, 3)), np.zeros(4)
+    assert call(m, v, 0.5, 2, True) == "compiled"
+    assert call(m, v[::2], np.float64(0.5), np.int64(2), np.bool_(False)) == "compiled"  # v: any order
+    readonly = np.zeros(4)
+    readonly.flags.writeable = False
+    for args in ((m.astype(np.float32), v, 0.5, 2, True), (v, v, 0.5, 2, True), (m.T, v, 0.5, 2, True),
+                 (m, readonly, 0.5, 2, True), (m, v, "0.5", 2, True), (m, v, 0.5, 2.0, True),
+                 (m, v, 0.5, 2, None), (m, v, 0.5, 2), (list(m), v, 0.5, 2, True)):
+        assert call(*args) == "fallback"
+    assert kernels._guarded(lambda: "compiled", [], lambda: "fallback")() == "compiled"
+    assert kernels._guarded(lambda *a: "compiled", [("other", None, None, None)], lambda *a: "fallback")(1) \
+        == "fallback"
