@@ -27,6 +27,7 @@ class NisMonitor:
         self._nis: dict[str, deque] = {}
         self._sum: dict[str, float] = {}
         self._dof: dict[str, int] = {}
+        self._limit: dict[str, float] = {}  # per source: bound(its dof)
         self._bound: dict[int, float] = {}
         self._failing: list[str] | None = None  # failing() until the next add/clear
 
@@ -38,6 +39,7 @@ class NisMonitor:
             q = self._nis[source] = deque()
             self._sum[source] = 0.0
             self._dof[source] = dof
+            self._limit[source] = self.bound(dof)
         nis = min(nis, self.cap(dof))
         self._failing = None
         q.append(nis)
@@ -64,8 +66,9 @@ class NisMonitor:
         # asked with every published state (the validity), changed by add/clear only
         out = self._failing
         if out is None:
+            window, total, limit = self.window, self._sum, self._limit
             out = self._failing = sorted(s for s, q in self._nis.items()
-                                         if len(q) >= self.window and self._sum[s] > self.bound(self._dof[s]))
+                                         if len(q) >= window and total[s] > limit[s])
         return list(out)
 
     def clear(self, source: str | None = None) -> None:
@@ -75,3 +78,4 @@ class NisMonitor:
             self._nis.pop(s, None)
             self._sum.pop(s, None)
             self._dof.pop(s, None)
+            self._limit.pop(s, None)
