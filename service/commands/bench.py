@@ -19,7 +19,7 @@ def add_arguments(parser):
     parser.add_argument("--quick", action="store_true", help="smaller problem sizes (smoke run)")
     parser.add_argument("--only", metavar="PARTS", default=None,
                         help="service: comma-separated parts to measure (replay, floor, latency, cold_start, "
-                             "memory; default all)")
+                             "memory, live_work; default all)")
     from adaptnav.service.tools.benchmarks import soak
 
     soak.add_arguments(parser)  # --minutes, --sample-s

@@ -21,6 +21,13 @@ Figures (``--quick``: shorter missions, same code):
   child process, releases applied deterministically at data time τ + ``latency_s``
   (:func:`adaptnav.service.runtime.replay.replay`), as fast as possible; peer: the same replay without
   the calibrator, alternating with it in the same run (best of ``replay_repeats``).
+- ``live_work_*``: the daemon's work per live sample, independent of the machine's load
+  (:func:`live_work`): a daemon's bus hand-off, runner, estimator and nav-state output in
+  this process (a real Zenoh session, nobody subscribed) fed the 200 Hz survey's encoded
+  samples as its Zenoh callback gets them; Python bytecodes executed per item (decode
+  included) and the hot-loop time per item, for a plain IMU sample and one that completes
+  an output epoch (the latency path). A sample every 5 ms finds its caches cold: live, each
+  costs several times its hot-loop time, about in proportion to the work.
 - ``rss_*``: the daemon's resident memory while 1 h of simulated data is pushed through
   it at full speed (flow-controlled on its queue depth): at half time, at the end, and
   the growth over the last half; the calibrator child's RSS alongside.
@@ -558,7 +565,79 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     return out
 
 
-PARTS = ("replay", "floor", "latency", "cold_start", "memory")
+def _live_daemon(cfg):
+    """A daemon as started, without its threads: estimator, bus session, sinks, the runner
+    set as its runner thread sets it (so its bus callback, ``_from_bus``, runs it)."""
+    from adaptnav.service.daemon import Daemon
+    from adaptnav.service.runtime.events import LifecycleLog
+    from adaptnav.service.runtime.runner import Runner
+    from adaptnav.service.transport.bus import Bus
+
+    d = Daemon(cfg)
+    d.estimator = d._make_estimator()
+    d.bus = Bus(cfg.zenoh, cfg.vehicle.name)
+    d._runner = Runner(d.estimator, [d.sink, LifecycleLog()], d.clock, None,
+                       output_rate_hz=cfg.outputs.nav_rate_hz, health=d.health)
+    return d
+
+
+def live_work(sim_s: float) -> dict:
+    """Work per live sample of the daemon (module docstring, ``live_work_*``): ``sim_s`` of
+    the 200 Hz survey (DVL on, calibrator off) after 60 s (alignment) that are not counted;
+    bytecodes in one pass (traced), hot-loop time in a second one (untraced)."""
+    import collections
+    import sys as _sys
+
+    from adaptnav.fusion.typed_config import as_dict, build
+
+    from adaptnav.service.config import ServiceConfig
+    from adaptnav.service.runtime.replay import build_config
+    from adaptnav.service.transport.bus import decode_sample, encode_sample
+    from adaptnav.sim.scenario import load_scenario
+
+    scenario = load_scenario(LIVE_SCENARIO, ["imu.rate_hz=200", "dvl.enabled=true", "sonar.enabled=false",
+                                             f"duration_s={60.0 + sim_s}"])
+    payloads = [(s.t_s >= 60.0 and s.KIND == "imu", encode_sample(s)) for s in _flatten(simulate_blocks(scenario))]
+    count = [0]
+
+    def tracer(frame, event, arg):
+        frame.f_trace_opcodes = True
+        if event == "opcode":
+            count[0] += 1
+        return tracer
+
+    work: dict[str, list] = collections.defaultdict(list)
+    with tempfile.TemporaryDirectory(prefix="adaptnav-bench-") as tmp:
+        cfg = build(ServiceConfig, as_dict(build_config(scenario, None, [
+            f'zenoh.listen=["tcp/127.0.0.1:{_free_port()}"]', "zenoh.scouting=false", f'state_dir="{tmp}"',
+            "vehicle.name=bench", "calibrator.enabled=false"])))
+        for traced in (True, False):
+            d = _live_daemon(cfg)
+            summary = d._runner.summary
+            try:
+                for counted, payload in payloads:
+                    n0 = summary.nav_states
+                    count[0] = 0
+                    t0 = time.perf_counter()
+                    if counted and traced:
+                        _sys.settrace(tracer)
+                    d._from_bus(decode_sample(payload))  # what the Zenoh callback does
+                    _sys.settrace(None)
+                    dt_us = (time.perf_counter() - t0) * 1e6
+                    if counted:
+                        tag = "_epoch" if summary.nav_states > n0 else ""
+                        work[("bytecodes" if traced else "us") + tag].append(count[0] if traced else dt_us)
+            finally:
+                _sys.settrace(None)
+                d.bus.close()
+    return {"live_work_bytecodes_imu": _pct(work["bytecodes"], 50),
+            "live_work_bytecodes_epoch": _pct(work["bytecodes_epoch"], 50),
+            "live_work_us_imu_p50": _pct(work["us"], 50),
+            "live_work_us_epoch_p50": _pct(work["us_epoch"], 50),
+            "live_work_samples": len(work["us"]) + len(work["us_epoch"])}
+
+
+PARTS = ("replay", "floor", "latency", "cold_start", "memory", "live_work")
 
 
 def run(args) -> dict:
@@ -574,6 +653,8 @@ def run(args) -> dict:
         figures.update(zenoh_floor(200 if quick else 1000))
     if "latency" in parts:
         figures.update(latency(15.0 if quick else 60.0))
+    if "live_work" in parts:
+        figures.update(live_work(15.0 if quick else 60.0))
     if "cold_start" in parts:
         figures.update(cold_start())
     if "memory" in parts:
