@@ -124,32 +124,36 @@ def _fast_decoder(cls: type) -> Callable[[dict], Any]:
     log replay and of every sample off the bus). It returns ``None`` for anything unusual
     (ints for floats, nulls, missing/unknown fields ...), which then goes to the strict
     generic decoder :func:`adaptnav.fusion.samples.from_dict` for the verdict and its error
-    message. Written out per type (one test per field, the sample built from positional
-    arguments): a loop over the field specs took ~235 bytecodes for an IMU sample."""
+    message. A loop over the field specs: a decoder generated per type with ``exec`` saved
+    ~0.5 µs of an IMU sample's ~100 µs, not worth code nobody can read or step through."""
     import dataclasses
 
-    fields = dataclasses.fields(cls)
-    env: dict[str, Any] = {"cls": cls, "SCHEMA_VERSION": fs.SCHEMA_VERSION,
-                           "all_keys": frozenset([f.name for f in fields] + ["type", "schema_version"])}
-    lines = ["def decode(data):",
-             "    if data.keys() != all_keys or data['schema_version'] != SCHEMA_VERSION:",
-             "        return None"]
-    args = []
-    for i, f in enumerate(fields):
+    spec = []
+    for f in dataclasses.fields(cls):
         jtype, length = fs._field_spec(f)
-        typ = {"number": "float", "integer": "int", "boolean": "bool", "string": "str"}[jtype]
-        lines.append(f"    v{i} = data[{f.name!r}]")
-        if length is None:
-            lines += [f"    if type(v{i}) is not {typ}:", "        return None"]
-            args.append(f"v{i}")
-        else:  # a list of exactly ``length`` elements (any number when ``length`` is -1)
-            cond = f"type(v{i}) is not list" + (f" or len(v{i}) != {length}" if length > 0 else "")
-            lines += [f"    if {cond}:", "        return None",
-                      f"    for x in v{i}:", f"        if type(x) is not {typ}:", "            return None"]
-            args.append(f"tuple(v{i})")
-    lines.append(f"    return cls({', '.join(args)})")
-    exec("\n".join(lines) + "\n", env)
-    return env["decode"]
+        spec.append((f.name, {"number": float, "integer": int, "boolean": bool, "string": str}[jtype], length))
+    all_keys = frozenset([f.name for f in dataclasses.fields(cls)] + ["type", "schema_version"])
+
+    def decode(data: dict) -> Any:
+        if data.keys() != all_keys or data["schema_version"] != fs.SCHEMA_VERSION:
+            return None
+        kwargs = {}
+        for name, typ, length in spec:
+            v = data[name]
+            if length is None:
+                if type(v) is not typ:
+                    return None
+            else:
+                if type(v) is not list or (length > 0 and len(v) != length):
+                    return None
+                for x in v:
+                    if type(x) is not typ:
+                        return None
+                v = tuple(v)
+            kwargs[name] = v
+        return cls(**kwargs)
+
+    return decode
 
 
 _FAST = {kind: _fast_decoder(cls) for kind, cls in fs.SAMPLE_TYPES.items()}
