@@ -65,6 +65,8 @@ def run(scenario: Any, *, after_s: float = 600.0, location: str = "inline") -> d
     cfg = build_config(scenario)
     t_change = scenario.change_at_s
     t_eval = t_change + after_s if math.isfinite(t_change) else math.nan
+    if not t_eval <= scenario.duration_s:  # no change, or the run ends before it is scored: no k_V figures
+        t_eval = math.nan
     k_true = scenario.params_after().k_v
     est = make_estimator(cfg)
     cal = make_lagged_calibrator(cfg, cfg.motion.params0, location)

@@ -21,8 +21,13 @@ def test_landmarks_experiment_prints_one_json_object_with_the_scores():
     assert out.returncode == 0, out.stderr[-2000:]
     r = json.loads(out.stdout)
     for key in ("objects_in_common_swath", "objects_reassociated_fraction", "false_link_fraction", "links_per_km",
-                "drift_percent_with_landmarks", "drift_percent_without_landmarks"):
+                "drift_percent_with_landmarks", "drift_percent_without_landmarks",
+                "drift_percent_with_landmarks_filter_only"):
         assert key in r, key
+    # with landmarks = in the filter and the calibrator (issue 14): the calibrator's run took them too
+    assert r["calibrator_loop_closures_fused"] > 0
+    # the run ends before the change of water + 10 min: no k_V figure rather than one against a change never made
+    assert r["k_speed_error_percent_10min_after_change"] is None
     assert r["seed"] == 3
     assert r["objects_in_common_swath"] >= 20
     assert 0.1 < r["objects_reassociated_fraction"] <= 1.0 and r["links_per_km"] > 0
@@ -34,3 +39,11 @@ def test_landmarks_experiment_prints_one_json_object_with_the_scores():
 def test_landmarks_experiment_rejects_unknown_keys():
     out = _adaptnav("experiment", "landmarks", "--set", "no_such_key=1", "--json")
     assert out.returncode != 0 and "no_such_key" in out.stderr
+
+
+def test_landmarks_experiment_without_the_calibrator_says_so_by_leaving_its_keys_out():
+    out = _adaptnav("experiment", "landmarks", *SHORT, "--set", "seed=3", "--json", "--no-calibrator")
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout)
+    assert "drift_percent_with_landmarks" not in r and "calibrator_loop_closures" not in r
+    assert r["drift_percent_with_landmarks_filter_only"] >= 0.0
