@@ -26,8 +26,13 @@ Figures (``--quick``: shorter missions, same code):
   this process (a real Zenoh session, nobody subscribed) fed the 200 Hz survey's encoded
   samples as its Zenoh callback gets them; Python bytecodes executed per item (decode
   included) and the hot-loop time per item, for a plain IMU sample and one that completes
-  an output epoch (the latency path). A sample every 5 ms finds its caches cold: live, each
-  costs several times its hot-loop time, about in proportion to the work.
+  an output epoch (the latency path); ``*_to_publish``: the same up to the nav state's
+  ``put`` on the bus (what the client waits for; the rest of the item follows it);
+  ``*_epoch_1s*``: the epoch of each whole second, where the once-a-second work of the
+  filter falls (the learned-velocity fusion); ``live_work_bytecodes_epoch_to_publish_max``:
+  the costliest epoch up to its publication (the tail). A sample every 5 ms finds its
+  caches cold: live, each costs several times its hot-loop time, about in proportion to
+  the work.
 - ``rss_*``: the daemon's resident memory while 1 h of simulated data is pushed through
   it at full speed (flow-controlled on its queue depth): at half time, at the end, and
   the growth over the last half; the calibrator child's RSS alongside.
@@ -584,7 +589,9 @@ def _live_daemon(cfg):
 def live_work(sim_s: float) -> dict:
     """Work per live sample of the daemon (module docstring, ``live_work_*``): ``sim_s`` of
     the 200 Hz survey (DVL on, calibrator off) after 60 s (alignment) that are not counted;
-    bytecodes in one pass (traced), hot-loop time in a second one (untraced)."""
+    bytecodes in one pass (traced), hot-loop time in a second one (untraced). An item that
+    completes an epoch is also measured up to its nav state's ``put`` on the bus; an epoch
+    within half an IMU period of a whole second is an ``epoch_1s``."""
     import collections
     import sys as _sys
 
@@ -592,18 +599,24 @@ def live_work(sim_s: float) -> dict:
 
     from adaptnav.service.config import ServiceConfig
     from adaptnav.service.runtime.replay import build_config
-    from adaptnav.service.transport.bus import decode_sample, encode_sample
+    from adaptnav.service.transport.bus import Bus, decode_sample, encode_sample
     from adaptnav.sim.scenario import load_scenario
 
-    scenario = load_scenario(LIVE_SCENARIO, ["imu.rate_hz=200", "dvl.enabled=true", "sonar.enabled=false",
+    rate_hz = 200.0
+    scenario = load_scenario(LIVE_SCENARIO, [f"imu.rate_hz={rate_hz:g}", "dvl.enabled=true", "sonar.enabled=false",
                                              f"duration_s={60.0 + sim_s}"])
     payloads = [(s.t_s >= 60.0 and s.KIND == "imu", encode_sample(s)) for s in _flatten(simulate_blocks(scenario))]
     count = [0]
+    published: list = [None]  # the count, or the time, at the nav state's put on the bus
+    nav_key = [""]
+    put_code = Bus.put.__code__
 
     def tracer(frame, event, arg):
         frame.f_trace_opcodes = True
         if event == "opcode":
             count[0] += 1
+        elif event == "call" and frame.f_code is put_code and frame.f_locals.get("key") == nav_key[0]:
+            published[0] = count[0]
         return tracer
 
     work: dict[str, list] = collections.defaultdict(list)
@@ -613,28 +626,52 @@ def live_work(sim_s: float) -> dict:
             "vehicle.name=bench", "calibrator.enabled=false"])))
         for traced in (True, False):
             d = _live_daemon(cfg)
-            summary = d._runner.summary
+            summary, loop = d._runner.summary, d._runner.loop
+            nav_key[0] = d.bus.keys.nav_state
+            if not traced:
+                put = d.bus.put
+
+                def put_timed(key, payload):  # where the nav state leaves: the client's wait ends
+                    if key == nav_key[0]:
+                        published[0] = time.perf_counter()
+                    return put(key, payload)
+
+                d.bus.put = put_timed
             try:
                 for counted, payload in payloads:
                     n0 = summary.nav_states
                     count[0] = 0
+                    published[0] = None
                     t0 = time.perf_counter()
                     if counted and traced:
                         _sys.settrace(tracer)
                     d._from_bus(decode_sample(payload))  # what the Zenoh callback does
                     _sys.settrace(None)
-                    dt_us = (time.perf_counter() - t0) * 1e6
-                    if counted:
-                        tag = "_epoch" if summary.nav_states > n0 else ""
-                        work[("bytecodes" if traced else "us") + tag].append(count[0] if traced else dt_us)
+                    t1 = time.perf_counter()
+                    if not counted:
+                        continue
+                    unit = "bytecodes" if traced else "us"
+                    if summary.nav_states == n0:
+                        work[unit].append(count[0] if traced else (t1 - t0) * 1e6)
+                        continue
+                    to_publish = published[0] if traced else (published[0] - t0) * 1e6
+                    tags = ["_epoch"]
+                    if abs(loop.last_emitted_t - round(loop.last_emitted_t)) < 0.5 / rate_hz:
+                        tags.append("_epoch_1s")
+                    for tag in tags:
+                        work[unit + tag].append(count[0] if traced else (t1 - t0) * 1e6)
+                        work[unit + tag + "_to_publish"].append(to_publish)
             finally:
                 _sys.settrace(None)
                 d.bus.close()
-    return {"live_work_bytecodes_imu": _pct(work["bytecodes"], 50),
-            "live_work_bytecodes_epoch": _pct(work["bytecodes_epoch"], 50),
-            "live_work_us_imu_p50": _pct(work["us"], 50),
-            "live_work_us_epoch_p50": _pct(work["us_epoch"], 50),
-            "live_work_samples": len(work["us"]) + len(work["us_epoch"])}
+    out = {"live_work_bytecodes_imu": _pct(work["bytecodes"], 50),
+           "live_work_us_imu_p50": _pct(work["us"], 50),
+           "live_work_samples": len(work["us"]) + len(work["us_epoch"])}
+    for tag in ("_epoch", "_epoch_to_publish", "_epoch_1s", "_epoch_1s_to_publish"):
+        out[f"live_work_bytecodes{tag}"] = _pct(work["bytecodes" + tag], 50)
+        out[f"live_work_us{tag}_p50"] = _pct(work["us" + tag], 50)
+    out["live_work_bytecodes_epoch_to_publish_max"] = float(max(work["bytecodes_epoch_to_publish"], default=math.nan))
+    return out
 
 
 PARTS = ("replay", "floor", "latency", "cold_start", "memory", "live_work")
