@@ -34,6 +34,9 @@ class Estimator(Protocol):
 
     def inertial_velocity(self) -> Any: ...
 
+    # optional: ``settle()``, the work of the last ``process`` that none of its outputs
+    # depends on, called by the runner once the item's outputs are out
+
 
 @runtime_checkable
 class Calibrator(Protocol):

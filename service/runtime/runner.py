@@ -429,6 +429,8 @@ class Runner:
         if release_gate is None:
             release_gate = default_release_gate()
         self.loop = _Loop(estimator, sinks, clock, calibrator, output_rate_hz, health, progress, door, release_gate)
+        # the estimator's work that no output of the item depends on, once they are out
+        self._settle = getattr(estimator, "settle", None)
         self.summary = self.loop.summary
         self.health = health
         self.qsize = qsize
@@ -440,6 +442,8 @@ class Runner:
         loop.summary.items += 1
         try:
             loop.item(item)
+            if self._settle is not None:
+                self._settle()
         except Exception as exc:  # one bad item must not stop navigation
             kind = getattr(item, "KIND", type(item).__name__)
             loop.summary.errors[kind] += 1

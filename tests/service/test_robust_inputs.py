@@ -139,15 +139,16 @@ def test_a_far_future_imu_stamp_does_not_hang_the_estimator(sim60):
     assert est.nav_state().t_s == pytest.approx(t_2100)
 
 
-def test_the_filter_recovers_from_a_non_finite_state(sim60, baseline):
-    """No door (the estimator alone): one IMU sample of 1e308 m/s² made the state NaN for
-    good and every later IMU sample raise; now the last good state comes back."""
+def _recovering_run(sim60, settle: bool):
+    """The estimator alone through ``sim60`` with one IMU sample of 1e308 m/s² after
+    ``INJECT_AFTER_S``; ``settle``: :meth:`Estimator.settle` after every item, as the
+    runner calls it (else :meth:`Estimator.process` does it first). Returns the estimator,
+    the validity after the injection and the nav state after every item from then on."""
     scenario, result = sim60
     cfg = build_config(scenario)
     est = Estimator(cfg.filter, cfg.motion.params0, cfg.motion.rpm_table, cfg.origin.geo())
-    base, _, _, _ = baseline
     injected = False
-    valid_after = []
+    valid_after, states = [], []
     for it in result.iter_blocks():
         if it.KIND == "truth":
             continue
@@ -159,12 +160,36 @@ def test_the_filter_recovers_from_a_non_finite_state(sim60, baseline):
             assert not est.nav_state().valid  # until it has converged again
         else:
             est.process(it)
+        if settle:
+            est.settle()
         if injected:
-            valid_after.append(est.nav_state().valid)
+            states.append(est.nav_state())
+            valid_after.append(states[-1].valid)
+    return est, valid_after, states
+
+
+def test_the_filter_recovers_from_a_non_finite_state(sim60, baseline):
+    """No door (the estimator alone): one IMU sample of 1e308 m/s² made the state NaN for
+    good and every later IMU sample raise; now the last good state comes back."""
+    base, _, _, _ = baseline
+    est, valid_after, _ = _recovering_run(sim60, settle=False)
     end = est.nav_state()
     assert np.all(np.isfinite(end.pos_n_m)) and np.all(np.isfinite(end.cov))
     assert valid_after[-1] and not valid_after[0]
     assert np.linalg.norm(end.pos_n_m[:2] - base[-1].pos_n_m[:2]) < 3.0 * math.sqrt(end.cov[0, 0] + end.cov[1, 1])
+
+
+def test_the_last_good_state_is_the_same_checked_after_the_output_or_before_the_next_sample(sim60):
+    """The last good state's check (a Cholesky of its covariance) was on the way to the nav
+    state; it runs after the item's output now (``settle``, as the runner calls it), else
+    first thing in the next ``process``: the filter recovers to the same state either way."""
+    est_a, _, states_a = _recovering_run(sim60, settle=True)
+    est_b, _, states_b = _recovering_run(sim60, settle=False)
+    assert est_a.rejected == est_b.rejected and len(states_a) == len(states_b) > 100
+    for a, b in zip(states_a, states_b):
+        assert a.t_s == b.t_s and a.valid == b.valid
+        np.testing.assert_array_equal(a.pos_n_m, b.pos_n_m)
+        np.testing.assert_array_equal(a.cov, b.cov)
 
 
 def test_a_release_outside_the_calibrators_bounds_is_refused_counted_and_not_persisted(sim60):
