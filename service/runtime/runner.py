@@ -311,16 +311,18 @@ class _Loop:
     def sample(self, sample: Any) -> None:
         if math.isfinite(sample.t_s):  # a NaN time goes to the estimator, which rejects it
             self.flush_epochs_before(sample.t_s)
-        if self.health is not None:
-            self.health.on_sample(sample.KIND, sample.t_s)
-        if sample.KIND != "truth":
-            self.aid(self.estimator.process(sample))
-            self.summary.samples_used += 1
-            if sample.KIND == "imu":
-                self.summary.imu_samples += 1
-                if math.isfinite(sample.t_s):
-                    self.imu_time(sample.t_s)
-                    self.emit_if_at_epoch(sample.t_s)
+        try:
+            if sample.KIND != "truth":
+                self.aid(self.estimator.process(sample))
+                self.summary.samples_used += 1
+                if sample.KIND == "imu":
+                    self.summary.imu_samples += 1
+                    if math.isfinite(sample.t_s):
+                        self.imu_time(sample.t_s)
+                        self.emit_if_at_epoch(sample.t_s)
+        finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
+            if self.health is not None:
+                self.health.on_sample(sample.KIND, sample.t_s)
         for f in self._on_sample:
             f(sample)
         cal = self.calibrator
