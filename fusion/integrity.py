@@ -29,7 +29,9 @@ class NisMonitor:
         self._dof: dict[str, int] = {}
         self._limit: dict[str, float] = {}  # per source: bound(its dof)
         self._bound: dict[int, float] = {}
-        self._failing: list[str] | None = None  # failing() until the next add/clear
+        # the sources above their bound (full windows only): a source's verdict changes only
+        # when it adds an attempt, and failing() is asked with every published state
+        self._failing: set[str] = set()
 
 
     def add(self, source: str, nis: float, dof: int) -> None:
@@ -41,11 +43,14 @@ class NisMonitor:
             self._dof[source] = dof
             self._limit[source] = self.bound(dof)
         nis = min(nis, self.cap(dof))
-        self._failing = None
         q.append(nis)
-        self._sum[source] += nis
+        total = self._sum[source] = self._sum[source] + nis
         if len(q) > self.window:
-            self._sum[source] -= q.popleft()
+            total = self._sum[source] = total - q.popleft()
+        if len(q) >= self.window and total > self._limit[source]:
+            self._failing.add(source)
+        else:
+            self._failing.discard(source)
 
     def bound(self, dof: int) -> float:
         b = self._bound.get(dof)
@@ -63,18 +68,12 @@ class NisMonitor:
 
     def failing(self) -> list[str]:
         """Sources whose last ``window`` NIS sum exceeds the χ² bound (full windows only)."""
-        # asked with every published state (the validity), changed by add/clear only
-        out = self._failing
-        if out is None:
-            window, total, limit = self.window, self._sum, self._limit
-            out = self._failing = sorted(s for s, q in self._nis.items()
-                                         if len(q) >= window and total[s] > limit[s])
-        return list(out)
+        return sorted(self._failing) if self._failing else []
 
     def clear(self, source: str | None = None) -> None:
         """Forget (after a reset: the old innovations say nothing about the new state)."""
-        self._failing = None
         for s in ([source] if source is not None else list(self._nis)):
+            self._failing.discard(s)
             self._nis.pop(s, None)
             self._sum.pop(s, None)
             self._dof.pop(s, None)

@@ -192,6 +192,32 @@ def test_nis_monitor_flags_an_aid_whose_innovations_exceed_its_covariance():
     assert mon.failing() == ["usbl"]
 
 
+def test_nis_monitor_verdicts_are_those_of_the_last_window_whatever_the_order_of_calls():
+    """failing() is kept up to date by add() and clear() (it is asked with every published
+    state): against the sums of the last window recomputed from scratch."""
+    rng = np.random.default_rng(3)
+    window = 5
+    mon = NisMonitor(window, 0.99)
+    seen: dict[str, list] = {}
+    for _ in range(3000):
+        r = rng.uniform()
+        source = str(rng.choice(["dvl", "depth", "usbl"]))
+        if r < 0.01:
+            mon.clear(source)
+            seen.pop(source, None)
+        elif r < 0.012:
+            mon.clear()
+            seen.clear()
+        else:
+            dof = {"dvl": 3, "depth": 1, "usbl": 2}[source]
+            nis = float(rng.chisquare(dof) * rng.choice([1.0, 4.0]))
+            mon.add(source, nis, dof)
+            seen.setdefault(source, []).append(min(nis, mon.cap(dof)))
+        expected = sorted(s for s, v in seen.items()
+                          if len(v) >= window and sum(v[-window:]) > mon.bound({"dvl": 3, "depth": 1, "usbl": 2}[s]))
+        assert mon.failing() == expected
+
+
 def test_solution_invalid_when_an_aid_says_the_covariance_lies():
     # GIVEN a depth sensor that wanders by 0.5 m while the filter is told σ = 0.05 m
     cfg = replace(FilterConfig(), integrity=IntegrityConfig(nis_window=10))
