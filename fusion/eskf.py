@@ -1019,7 +1019,7 @@ class Estimator:
         R_nb = aid_lv.dcm(self._x)
         yaw_rate = float(R_nb[2] @ self._acc[ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
-                              cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2])
+                              cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2], R_nb=R_nb)
         P = kalman.propagated_covariance(self._P, self._acc, self._qdiag) if adapt and self._surge.enabled else None
         return self._surge.adapt(meas, P, t - self._t_release)
 

@@ -56,28 +56,41 @@ from ..state import ATT, CUR, KS, N_ERR, VEL, X_CUR, X_KS, X_VEL
 from .common import Measurement, dcm, make, skew
 
 
-def water_velocity_b(x: np.ndarray) -> np.ndarray:
-    """``v_b`` (3,), water-relative velocity in body axes, m/s."""
+def _frame(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``R_nb`` (3, 3) and the water-relative velocity ``v_n − c`` (3,), m/s."""
     rel = x[X_VEL].copy()
     rel[:2] -= x[X_CUR]
-    return dcm(x).T @ rel
+    return dcm(x), rel
+
+
+def water_velocity_b(x: np.ndarray) -> np.ndarray:
+    """``v_b`` (3,), water-relative velocity in body axes, m/s."""
+    R, rel = _frame(x)
+    return R.T @ rel
 
 
 def predict(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0,
             heave_per_surge: float = 0.0) -> np.ndarray:
     """h(x) for a model speed ``k_V u``, sway ``k_V u_y`` (m/s) and flow angle ``tan α``."""
-    v_b = water_velocity_b(x)
+    return _predict(*_frame(x), x, model_speed_m_s, model_sway_m_s, heave_per_surge)
+
+
+def jacobian(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0,
+             heave_per_surge: float = 0.0) -> np.ndarray:
+    return _jacobian(*_frame(x), model_speed_m_s, model_sway_m_s, heave_per_surge)
+
+
+def _predict(R: np.ndarray, rel: np.ndarray, x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float,
+             heave_per_surge: float) -> np.ndarray:
+    v_b = R.T @ rel
     v_b[2] -= heave_per_surge * v_b[0]
     v_b[0] -= (x[X_KS] - 1.0) * model_speed_m_s
     v_b[1] -= (x[X_KS] - 1.0) * model_sway_m_s
     return v_b
 
 
-def jacobian(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0,
-             heave_per_surge: float = 0.0) -> np.ndarray:
-    R = dcm(x)
-    rel = x[X_VEL].copy()
-    rel[:2] -= x[X_CUR]
+def _jacobian(R: np.ndarray, rel: np.ndarray, model_speed_m_s: float, model_sway_m_s: float,
+              heave_per_surge: float) -> np.ndarray:
     H = np.zeros((3, N_ERR))
     H[:, VEL] = R.T
     H[:, ATT] = R.T @ skew(rel)
@@ -89,8 +102,10 @@ def jacobian(x: np.ndarray, model_speed_m_s: float, model_sway_m_s: float = 0.0,
 
 
 def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: MotionParams,
-            sigma_heave_m_s: float, variance_scale: float = 1.0, sway_m_s: float = 0.0) -> Measurement:
-    """Measurement for RPM speed ``u = f(rpm)`` (m/s), lateral ``u_y`` (m/s) and gyro yaw rate (rad/s)."""
+            sigma_heave_m_s: float, variance_scale: float = 1.0, sway_m_s: float = 0.0,
+            R_nb: np.ndarray | None = None) -> Measurement:
+    """Measurement for RPM speed ``u = f(rpm)`` (m/s), lateral ``u_y`` (m/s) and gyro yaw rate (rad/s);
+    ``R_nb``: ``dcm(x)`` when the caller has it."""
     # the model's surge k_V u (1 − κ w²): a turn costs speed (motion_model.MotionParams.turn_speed_loss)
     model = params.k_v * speed_m_s * (1.0 - params.turn_speed_loss * yaw_rate_rad_s**2)
     sway = params.k_v * sway_m_s
@@ -104,4 +119,12 @@ def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: Moti
     R[1, 1] = (params.var_s + sway_m_s**2 * params.var_vv) * variance_scale
     R[2, 2] = sigma_heave_m_s**2 * variance_scale
     h_w = params.heave_per_surge
-    return make([model, sway + skid, 0.0], jacobian(x, model, sway, h_w), R, predict(x, model, sway, h_w))
+    # the rotation and the water-relative velocity once for h and H (once a second on the
+    # way to the nav state: each small NumPy step there costs ~1 µs, several cold)
+    if R_nb is None:
+        R_nb, rel = _frame(x)
+    else:
+        rel = x[X_VEL].copy()
+        rel[:2] -= x[X_CUR]
+    return make([model, sway + skid, 0.0], _jacobian(R_nb, rel, model, sway, h_w), R,
+                _predict(R_nb, rel, x, model, sway, h_w))

@@ -1,13 +1,15 @@
-"""heading.measure and dvl.measure build z, H, R, h in one pass (one attitude matrix, no
-np.cross); they must give exactly — bit for bit — what predict() and jacobian() give, so
+"""heading.measure, dvl.measure and learned_velocity.measure build z, H, R, h in one pass
+(one attitude matrix, no np.cross); they must give exactly — bit for bit — what predict() and jacobian() give, so
 that replay output does not depend on which path the estimator takes."""
 import math
 
 import numpy as np
 import pytest
 
-from adaptnav.fusion.aiding import dvl, heading
+from adaptnav.fusion.aiding import dvl, heading, learned_velocity
+from adaptnav.fusion.aiding.common import dcm
 from adaptnav.fusion.frames import euler_to_quat
+from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.fusion.samples import DvlSample, HeadingSample
 from adaptnav.fusion.state import N_ERR, initial_nominal
 
@@ -39,3 +41,20 @@ def test_dvl_measure_is_predict_and_jacobian_exactly():
         assert np.array_equal(m.H, dvl.jacobian(x, LEVER, R_DB))
         assert np.array_equal(m.h, dvl.predict(x, OMEGA, LEVER, R_DB))
         assert np.array_equal(m.R, np.eye(3) * 0.02**2) and not m.angular.any()
+
+
+@pytest.mark.parametrize("h_w", [0.0, 0.08, -0.05])
+def test_learned_velocity_measure_is_predict_and_jacobian_exactly(h_w):
+    """One rotation and water-relative velocity for h and H, or the caller's rotation (the
+    estimator has it for the yaw rate): the numbers of predict() and jacobian()."""
+    params = MotionParams(heave_per_surge=h_w)
+    for k, x in enumerate(_states()):
+        x[16:18] = (0.2, -0.1)
+        x[18] = 1.0 + 0.01 * k
+        m = learned_velocity.measure(x, 1.4, 0.05, params, 0.05)
+        model = float(m.z[0])  # k_V u (1 − κ w²)
+        assert np.array_equal(m.H, learned_velocity.jacobian(x, model, 0.0, h_w))
+        assert np.array_equal(m.h, learned_velocity.predict(x, model, 0.0, h_w))
+        given = learned_velocity.measure(x, 1.4, 0.05, params, 0.05, R_nb=dcm(x))
+        for a, b in zip(m, given):
+            assert a.tobytes() == b.tobytes()
