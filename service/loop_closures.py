@@ -75,7 +75,7 @@ class SideScanEstimator(Estimator):
         self.nav_keep_s = float(nav_keep_s)
         self._association_config = association
         self._associator: Any = None  # created with the first batch (imports sonar)
-        # (t, north, east, yaw unwrapped, cov 2×2 (4), jump north, jump east) per ping
+        # (t, north, east, yaw unwrapped, cov 2×2 (4), jump north, jump east, velocity cov 2×2 (4)) per ping
         self._nav: deque = deque()
         self._jump = np.zeros(2)
         self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
@@ -129,8 +129,9 @@ class SideScanEstimator(Estimator):
             if t <= nav[-1][0]:
                 return
             yaw = nav[-1][3] + math.remainder(yaw - nav[-1][3], 2.0 * math.pi)
-        cov = ns.cov[POS_NE, POS_NE]
-        nav.append((t, pos[0], pos[1], yaw, cov[0, 0], cov[0, 1], cov[1, 0], cov[1, 1], self._jump[0], self._jump[1]))
+        cov, vcov = ns.cov[POS_NE, POS_NE], ns.cov[VEL_NE, VEL_NE]
+        nav.append((t, pos[0], pos[1], yaw, cov[0, 0], cov[0, 1], cov[1, 0], cov[1, 1], self._jump[0], self._jump[1],
+                    vcov[0, 0], vcov[0, 1], vcov[1, 0], vcov[1, 1]))
         while nav and nav[0][0] < t - self.nav_keep_s:
             nav.popleft()
 
@@ -213,7 +214,7 @@ class SideScanEstimator(Estimator):
             first -= 1
         rec = np.array(list(islice(nav, first, None))).T
         rows = np.array([np.interp(t, rec[0], rec[k]) for k in range(1, rec.shape[0])]).T.tolist()
-        placed = [with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9])
+        placed = [with_navigation(o, row[0:2], np.array(row[3:7]).reshape(2, 2), row[2], det, row[7:9], row[9:13])
                   for o, row in zip(inside, rows)]
         if not placed:
             return []

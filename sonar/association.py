@@ -21,33 +21,40 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    closure between two sightings of one leg moved the filter's position by metres, and split
    sets that were one; the closure's offset then adds back the jumps at its two times; a translation: the heading
    aid bounds rotation), wrong ones scatter. RANSAC over the candidates (every candidate a hypothesis; one pair per object)
-   keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate in
-   ``D_a + D_b + Q_rel`` and jointly within χ²₂ₙ₋₂; ``Q_rel`` is the navigation's relative
-   drift (``relative_sigma_m_s`` × time from the hypothesis' two times, on both legs).
+   keeps the largest set whose residuals ``p̂_a − p̂_b − δ`` are each within the gate and
+   jointly within χ²₂ₙ₋₂. A jump-free track drifts with the navigation's velocity error,
+   nearly constant over a set's minute (before the first fix ~0.2 m/s, in an outage
+   ~0.02 m/s): the offset is ``δ₀ + u_a (t_a − t_a0) − u_b (t_b − t_b0)`` (:class:`Drift`),
+   the velocity errors ``u`` with the navigation's velocity covariance at the sightings
+   (:attr:`~adaptnav.sonar.objects.ObjectSighting.vel_cov`) as prior, fitted on the set: the
+   first gate is the prior's (``D_a + D_b`` + the drift it allows), the next ones the
+   fitted drift's (``D_a + D_b`` + its prediction's covariance). (A fixed 0.015 m/s
+   allowance split the early legs' sets, whose pairs' offsets spread by metres, and cut
+   true pairs in the outage, where it is exceeded by 7–15 % of one leg's sighting pairs.)
    Each candidate is a hypothesis with its own times ``t_a``, ``t_b``: its set draws on
    the candidates whose old sighting lies within ``set_span_s`` of ``t_a`` (one stretch of
    the earlier leg; a candidate on a leg an hour older, whose drift allowance spans metres,
-   would agree with anything), residual covariances growing with the time from ``t_a``,
-   ``t_b``. Chance agreement is bounded per hypothesis, each pair with its own gate: a
+   would agree with anything). Chance agreement is bounded per hypothesis, each pair with its own gate: a
    wrong old sighting lies anywhere in the wide region around its new sighting
    (``clutter_scale`` × that pair's gate), so it falls in the hypothesis' inlier region with
    probability (inlier area / wide area), both from that pair's covariances; ``λ``, the sum
    over the wrong old sightings of all new ones (within the span; per new sighting the
    likeliest left out — it may be the match), is the number of chance inliers expected, and
    a set of ``n`` needs ``H · P(Poisson(λ) ≥ n − 1) ≤ chance_probability`` over the ``H``
-   hypotheses tried — a cluttered seabed, a wide gate or many candidates ask for more
+   hypotheses tried (or the same with the fitted drift's inlier regions, see
+   :meth:`LegAssociator._min_objects`: wrong pairs that set the drift are paid for) — a cluttered seabed, a wide gate or many candidates ask for more
    objects, a sparse one does not. (Counting the clutter of all gates against the smallest
    gate's area asked a set of 12 true pairs for more than 12 on survey seed 1.)
    A pair whose sighting has a second candidate that also fits the offset is dropped
    (two neighbouring objects: either could be the match).
    A block often holds only one or two objects of the other leg: when the block alone gives
    no set, the sets are sought among the last ``window_s`` of new sightings not yet used.
-   Failing that, the pairs that continue a closure of the last ``window_s`` (its offset the
-   hypothesis, not drawn from them) are accepted when chance alone would give as many with
+   Failing that, the pairs that continue a closure of the last ``window_s`` (its fitted
+   drift the hypothesis, not drawn from them) are accepted when chance alone would give as many with
    probability at most ``extend_probability`` (:meth:`LegAssociator.extend`).
 3. A set of at least ``min_objects`` is one **loop closure**: times ``t_a``, ``t_b`` (the
-   times of one pair's two sightings, the median on the new leg), offset ``δ`` and covariance
-   ``(Σ W_j)⁻¹`` (``W_j`` the inverse residual covariances), the number of objects.
+   times of one pair's two sightings, the median on the new leg), the fitted drift's offset
+   there and its covariance, the number of objects.
 
 Reciprocal legs need nothing special here: attributes are view-independent and positions
 are in the local frame (the image is not matched, so its along-track order does not matter).
@@ -55,7 +62,7 @@ are in the local frame (the image is not matched, so its along-track order does 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import chi2, poisson
@@ -86,7 +93,8 @@ class AssociationConfig:
     length_sigma_m, length_sigma_fraction : float
         1-σ of an along-track length.
     relative_sigma_m_s : float
-        Relative navigation drift within a batch (m/s of time from its centre, per axis).
+        The velocity error's σ (m/s, per axis) assumed for sightings without the
+        navigation's velocity covariance (:class:`Drift`).
     max_candidates_per_object : int
         The nearest (Mahalanobis) old sightings kept per new one.
     chance_probability : float
@@ -194,6 +202,105 @@ class LoopClosure:
         return {"t_a_s": self.t_a_s, "t_b_s": self.t_b_s, "offset_n_m": [float(v) for v in self.offset_n_m],
                 "cov": [float(v) for v in np.asarray(self.cov).reshape(4)], "n_objects": self.n_objects,
                 "nis": self.nis}
+
+
+def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis lengths of residuals ``r`` (n, 2) in covariances ``R`` (n, 2, 2)."""
+    return np.einsum("ki,kij,kj->k", r, np.linalg.inv(R), r)
+
+
+def _block_diag(*blocks: np.ndarray) -> np.ndarray:
+    out = np.zeros((2 * len(blocks), 2 * len(blocks)))
+    for i, b in enumerate(blocks):
+        out[2 * i:2 * i + 2, 2 * i:2 * i + 2] = b
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Drift:
+    r"""How a set's offset changes along its two legs on the jump-free tracks.
+
+    A jump-free track drifts with the navigation's velocity error, nearly constant over a
+    set's minute: ``δ(t_a, t_b) = δ₀ + u_a (t_a − t_a0) − u_b (t_b − t_b0)``, with
+    ``θ = (δ₀, u_a, u_b)`` (m, m/s, m/s; north, east each). The velocity errors' prior is
+    the navigation's velocity covariance at the hypothesis' two sightings; fitted on a set's
+    pairs they are known far better than that prior (the drift of true pairs about their
+    set's offset, not a fixed allowance: before the first fix the velocity error is
+    ~0.2 m/s, in an outage ~0.02 m/s).
+
+    Attributes
+    ----------
+    t_a_s, t_b_s : float
+        Reference times on the earlier and the new leg (s).
+    theta : numpy.ndarray, shape (6,)
+    cov : numpy.ndarray, shape (6, 6)
+        Covariance of ``theta``.
+    prior_mean, prior_info : numpy.ndarray, shapes (6,), (6, 6)
+        The prior :meth:`fit` combines with pairs (information form; ``δ₀`` free).
+    """
+
+    t_a_s: float
+    t_b_s: float
+    theta: np.ndarray
+    cov: np.ndarray
+    prior_mean: np.ndarray
+    prior_info: np.ndarray
+
+    @classmethod
+    def prior(cls, t_a_s: float, t_b_s: float, offset_n_m, det_cov, vel_cov_a, vel_cov_b) -> "Drift":
+        """The hypothesis of one pair (its offset, detectors' covariance) and the velocity
+        covariances at its two sightings (m²/s²)."""
+        theta = np.concatenate([np.asarray(offset_n_m, float), np.zeros(4)])
+        info = _block_diag(np.zeros((2, 2)), np.linalg.inv(vel_cov_a), np.linalg.inv(vel_cov_b))
+        return cls(float(t_a_s), float(t_b_s), theta, _block_diag(det_cov, vel_cov_a, vel_cov_b), theta.copy(), info)
+
+    def design(self, t_a, t_b) -> np.ndarray:
+        """(n, 2, 6): ``∂δ/∂θ`` at the times ``t_a``, ``t_b`` (s)."""
+        ta = np.asarray(t_a, float).reshape(-1) - self.t_a_s
+        tb = np.asarray(t_b, float).reshape(-1) - self.t_b_s
+        J = np.zeros((ta.size, 2, 6))
+        J[:, 0, 0] = J[:, 1, 1] = 1.0
+        J[:, 0, 2] = J[:, 1, 3] = ta
+        J[:, 0, 4] = J[:, 1, 5] = -tb
+        return J
+
+    def predict(self, t_a, t_b) -> np.ndarray:
+        """Offsets (n, 2) at the times ``t_a``, ``t_b``."""
+        return self.design(t_a, t_b) @ self.theta
+
+    def residual_cov(self, t_a, t_b, det_cov) -> np.ndarray:
+        """Covariances (n, 2, 2) of pairs' offsets about :meth:`predict`: the detectors' plus
+        the prediction's."""
+        J = self.design(t_a, t_b)
+        return np.asarray(det_cov) + np.einsum("kij,jl,kml->kim", J, self.cov, J)
+
+    def residuals(self, diffs, t_a, t_b, det_cov) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs' offsets ``diffs`` (n, 2) less the prediction, and their covariances."""
+        return np.asarray(diffs) - self.predict(t_a, t_b), self.residual_cov(t_a, t_b, det_cov)
+
+    def at(self, t_a_s: float, t_b_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The offset at one pair of times and its covariance (2, 2)."""
+        J = self.design([t_a_s], [t_b_s])[0]
+        return J @ self.theta, J @ self.cov @ J.T
+
+    def fit(self, diffs, W, t_a, t_b, sel) -> tuple["Drift", float]:
+        """The prior combined with the pairs ``sel`` (offsets ``diffs``, inverse detector
+        covariances ``W``, times ``t_a``, ``t_b``): the posterior (same prior) and its χ²
+        (2n − 2 degrees of freedom: 2n offsets and 4 velocity priors, 6 parameters)."""
+        J = self.design(t_a[sel], t_b[sel])
+        JtW = np.einsum("kji,kjl->kil", J, W[sel])
+        info = np.einsum("kil,klm->im", JtW, J) + self.prior_info
+        cov = np.linalg.inv(info)
+        theta = cov @ (np.einsum("kil,kl->i", JtW, diffs[sel]) + self.prior_info @ self.prior_mean)
+        r = diffs[sel] - J @ theta
+        d = theta - self.prior_mean
+        cost = float(np.einsum("ki,kij,kj->", r, W[sel], r) + d @ self.prior_info @ d)
+        return Drift(self.t_a_s, self.t_b_s, theta, 0.5 * (cov + cov.T), self.prior_mean, self.prior_info), cost
+
+    def update(self, diffs, W, t_a, t_b, sel) -> "Drift":
+        """This drift (its estimate the prior) updated with more pairs."""
+        return Drift(self.t_a_s, self.t_b_s, self.theta, self.cov, self.theta,
+                     np.linalg.inv(self.cov)).fit(diffs, W, t_a, t_b, sel)[0]
 
 
 # how far a pair of sightings got (:attr:`LegAssociator.trace`), in order
@@ -348,45 +455,39 @@ class LegAssociator:
         at = np.searchsorted(asked, seconds)  # (asked is increasing: first sightings in order)
         return cov[at], ok[at]
 
-    def _residual_cov(self, t_old_s, t_new_s, det_cov, ta: float, tb: float, filter_drift: bool = False) -> np.ndarray:
-        """Covariances (n, 2, 2) of pairs' residuals from a set's offset: the two detectors'
-        plus the relative drift from the set's times (``ta`` on the old leg, ``tb`` on the new),
-        :meth:`_drift_cov` on each leg (``filter_drift``: the filter's own where it is larger)."""
-        return (np.asarray(det_cov) + self._drift_cov(t_old_s, ta, filter_drift)
-                + self._drift_cov(t_new_s, tb, filter_drift))
+    def _vel_cov(self, o: ObjectSighting) -> np.ndarray:
+        """The velocity covariance at a sighting (m²/s²): the navigation's, or
+        ``relative_sigma_m_s``² per axis when it gave none."""
+        if o.vel_cov is not None:
+            return o.vel_cov
+        return self.config.relative_sigma_m_s ** 2 * np.eye(2)
 
-    def _drift_cov(self, t_s, t_ref: float, filter_drift: bool) -> np.ndarray:
-        """Covariances (n, 2, 2) of the navigation's drift ``e(t) − e(t_ref)`` for the times ``t_s``.
+    def _arrays(self, cand, batch):
+        """Per candidate: offset on the jump-free tracks, the two times, the detectors' covariance
+        and the two velocity covariances."""
+        old = self._old
+        diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
+        t_a = np.array([old[i].t_s for i, _, _, _ in cand])
+        t_b = np.array([batch[j].t_s for _, j, _, _ in cand])
+        D = np.array([old[i].det_cov + batch[j].det_cov for i, j, _, _ in cand])
+        Va = np.array([self._vel_cov(old[i]) for i, _, _, _ in cand])
+        Vb = np.array([self._vel_cov(batch[j]) for _, j, _, _ in cand])
+        return diffs, t_a, t_b, D, Va, Vb
 
-        The filter's own (``relative_cov``, its clones) where it has both epochs, never less
-        than ``relative_sigma_m_s`` × |t − t_ref| per axis: before the first fix the velocity
-        error is ~0.2 m/s, an order of magnitude above that constant (survey seed 3: a set of
-        sightings 9–31 s into the dive extended with a pair 6.6 m off in truth), and a fix
-        between the two epochs decorrelates them."""
-        t = np.asarray(t_s, float).reshape(-1)
-        q = self.config.relative_sigma_m_s
-        cov = ((q * (t - t_ref)) ** 2)[:, None, None] * np.eye(2)[None]
-        rel = self._relative(t, t_ref) if filter_drift else None
-        if rel is not None:
-            known = rel[1] & (np.trace(rel[0], axis1=1, axis2=2) > np.trace(cov, axis1=1, axis2=2))
-            cov = np.where(known[:, None, None], rel[0], cov)
-        return cov
-
-    def _chance_inliers(self, clutter: dict, ta: float, tb: float, extra_cov=None, span_s: float | None = None,
-                        filter_drift: bool = False) -> float:
+    def _chance_inliers(self, clutter: dict, ta: float, tb: float, rcov, span_s: float | None = None) -> float:
         """Wrong old sightings expected to agree with one hypothesis (times ``ta``, ``tb``) by chance.
 
         For every new sighting: the sum over the old sightings of its wide region (within
         ``set_span_s`` of ``ta``: the others cannot join the set) of each one's chance of lying
-        in its inlier region — that region's area over its own wide region's area, both from
-        that pair's covariances — less the largest (the one that may be its match).
+        in its inlier region — that region's area (``rcov(t_old, t_new, detector covariances)``,
+        the residual covariances (n, 2, 2) of the test the set's pairs pass) over its own wide
+        region's area — less the largest (the one that may be its match).
         """
         c = self.config
         m = np.abs(clutter["t_old_s"] - ta) <= (c.set_span_s if span_s is None else span_s)
         if not np.any(m):
             return 0.0
-        D = clutter["det_cov"][m] if extra_cov is None else clutter["det_cov"][m] + np.asarray(extra_cov)[None]
-        R = self._residual_cov(clutter["t_old_s"][m], clutter["t_new_s"][m], D, ta, tb, filter_drift)
+        R = rcov(clutter["t_old_s"][m], clutter["t_new_s"][m], clutter["det_cov"][m])
         p = np.minimum(math.pi * self._inlier * np.sqrt(np.linalg.det(R)) / clutter["area_m2"][m], 1.0)
         j = clutter["j"][m]
         n = int(j.max()) + 1
@@ -395,13 +496,21 @@ class LegAssociator:
         np.maximum.at(top, j, p)
         return float(np.sum(tot - top))
 
-    def _min_objects(self, lam: float, n_hypotheses: int) -> int:
-        """Smallest set that ``n_hypotheses`` hypotheses with ``lam`` chance inliers each
-        would give by chance with probability at most ``chance_probability`` (union bound;
-        the hypothesis' own pair is not by chance: n − 1)."""
+    def _min_objects(self, lam_prior: float, lam_fit, n_hypotheses: int) -> int:
+        """Smallest set that ``n_hypotheses`` hypotheses would give by chance with probability
+        at most ``chance_probability`` (union bound; the hypothesis' own pair is not by chance).
+
+        Two bounds, the smaller taken: every pair within the prior's gate of the hypothesis
+        (``lam_prior`` chance inliers: ``P(Poisson ≥ n − 1)``), or within the gate of the drift
+        fitted on the set — which wrong pairs could have set: its four velocity errors take two
+        more pairs, chosen among the ``lam_prior`` wrong ones, and the drift they give is known
+        as well as from three pairs (``lam_fit``: the chance inliers with the covariance of the
+        drift fitted on the set's n pairs × n / 3): ``max(1, λ_prior)² P(Poisson(λ_fit) ≥ n − 3)``."""
         c = self.config
         n = c.min_objects
-        while n_hypotheses * float(poisson.sf(n - 2, lam)) > c.chance_probability:
+        while n_hypotheses * min(float(poisson.sf(n - 2, lam_prior)),
+                                 max(1.0, lam_prior) ** 2 * float(poisson.sf(n - 4, lam_fit))) \
+                > c.chance_probability:
             n += 1
         return n
 
@@ -409,10 +518,12 @@ class LegAssociator:
         """The largest jointly compatible set of candidate pairs for ``batch`` (or None).
 
         Every candidate is a hypothesis (its two sightings' times ``t_a``, ``t_b``): the pairs
-        whose old sighting lies within ``set_span_s`` of ``t_a`` and whose residual from the
-        offset is inside the inlier gate (detectors + relative drift from ``t_a``, ``t_b``)
-        form its set, which is accepted when it is jointly compatible and larger than chance
-        agreement allows for that hypothesis (:meth:`_chance_inliers`, :meth:`_min_objects`).
+        whose old sighting lies within ``set_span_s`` of ``t_a`` and whose offset lies within
+        the inlier gate of the hypothesis' — detectors plus the drift its velocity covariance
+        allows (:class:`Drift`) — are fitted with the drift (offset and the two legs'
+        velocity errors), the pairs within the fitted drift's gate re-selected (three rounds),
+        then made jointly compatible; the set is accepted when larger than chance agreement
+        allows for that hypothesis (:meth:`_chance_inliers`, :meth:`_min_objects`).
         """
         c = self.config
         cand, clutter = self.candidates(batch)
@@ -420,72 +531,77 @@ class LegAssociator:
         if len(cand) < c.min_objects:
             self._note_all(cand, batch, range(len(cand)), "too few candidates")
             return None
-        old = self._old
         self._note_all(cand, batch, range(len(cand)), "not in the set")
         # on the jump-free tracks: a fix or a fused closure between two sightings of one leg
         # moves the filter's position, not the seabed
-        diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
-        t_a = np.array([old[i].t_s for i, _, _, _ in cand])
-        t_b = np.array([batch[j].t_s for _, j, _, _ in cand])
-        D = np.array([old[i].det_cov + batch[j].det_cov for i, j, _, _ in cand])
-        best = None  # (size, cost, set, inverse residual covariances, smallest size, span)
+        diffs, t_a, t_b, D, Va, Vb = self._arrays(cand, batch)
+        W = np.linalg.inv(D)
+        best = None  # (size, cost, set, drift, smallest size, span)
         for h in range(len(cand)):
             span = np.abs(t_a - t_a[h]) <= c.set_span_s
             if np.count_nonzero(span) < c.min_objects:
                 continue
-            W = np.linalg.inv(self._residual_cov(t_a, t_b, D, t_a[h], t_b[h]))
-            # the hypothesis is itself one noisy pair: its residuals have about twice the
-            # variance; the inliers it finds re-estimate the offset, which then selects
-            r = diffs - diffs[h]
-            m2 = np.where(span, 0.5 * np.einsum("ki,kij,kj->k", r, W, r), np.inf)
-            inl = self._one_to_one(cand, m2)
+            prior = Drift.prior(t_a[h], t_b[h], diffs[h], D[h], Va[h], Vb[h])
+            r, R = prior.residuals(diffs, t_a, t_b, D)
+            inl = self._one_to_one(cand, np.where(span, _m2(r, R), np.inf))
             if len(inl) < 2:
                 continue
-            r = diffs - self._mean(diffs, W, inl)
-            inl = self._one_to_one(cand, np.where(span, np.einsum("ki,kij,kj->k", r, W, r), np.inf))
+            for _ in range(3):  # the drift from these pairs; the pairs within its gate
+                drift = prior.fit(diffs, W, t_a, t_b, inl)[0]
+                r, R = drift.residuals(diffs, t_a, t_b, D)
+                again = self._one_to_one(cand, np.where(span, _m2(r, R), np.inf))
+                if sorted(again) == sorted(inl):
+                    break
+                inl = again
+                if len(inl) < 2:
+                    break
             if len(inl) < c.min_objects:
                 continue
-            sel = self._refine(diffs, W, inl, c.min_objects)
-            if sel is None:
+            fit = self._refine(prior, diffs, W, t_a, t_b, inl, c.min_objects)
+            if fit is None:
                 continue
-            n_min = self._min_objects(self._chance_inliers(clutter, t_a[h], t_b[h]), len(cand))
+            sel, drift, cost = fit
+            lam_prior = self._chance_inliers(clutter, t_a[h], t_b[h], prior.residual_cov)
+            # the drift as well known as from three pairs (what wrong pairs need to set it)
+            three = replace(drift, cov=drift.cov * max(1.0, len(sel) / 3.0))
+            lam_fit = self._chance_inliers(clutter, t_a[h], t_b[h], three.residual_cov)
+            n_min = self._min_objects(lam_prior, lam_fit, len(cand))
             if len(sel) < n_min:
                 self._note_all(cand, batch, sel, "chance bound")
                 continue
-            r = diffs[sel] - self._mean(diffs, W, sel)
-            cost = float(np.sum(np.einsum("ki,kij,kj->k", r, W[sel], r)))
             if best is None or len(sel) > best[0] or (len(sel) == best[0] and cost < best[1]):
-                best = (len(sel), cost, sel, W, n_min, span)
+                best = (len(sel), cost, sel, drift, n_min, span, prior)
         if best is None:
             return None
-        W = best[3]
-        self._note_all(cand, batch, best[2], "ambiguous")
-        sel = self._unambiguous(cand, diffs, W, best[2], best[5])
-        if len(sel) < best[4]:
+        _, cost, sel, drift, n_min, span, prior = best
+        self._note_all(cand, batch, sel, "ambiguous")
+        r, R = drift.residuals(diffs, t_a, t_b, D)
+        sel = self._unambiguous_to(cand, np.where(span, _m2(r, R), np.inf), sel)
+        if len(sel) < n_min:
             return None
-        return self._closure(cand, batch, diffs, W, sel, best[1])
+        drift, cost = prior.fit(diffs, W, t_a, t_b, sel)
+        return self._closure(cand, batch, diffs, sel, drift, drift, cost)
 
-    def _closure(self, cand, batch, diffs, W, sel: list[int], nis: float) -> LoopClosure:
-        """The loop closure of the accepted pairs ``sel``; remembered as a hypothesis for
-        the next sightings (:meth:`extend`)."""
+    def _closure(self, cand, batch, diffs, sel: list[int], drift: "Drift", keep: "Drift",
+                 nis: float) -> LoopClosure:
+        """The loop closure of the accepted pairs ``sel`` and their fitted ``drift``; ``keep``
+        is remembered as a hypothesis for the next sightings (:meth:`extend`)."""
         self._note_all(cand, batch, sel, "accepted")
-        info = W[sel].sum(axis=0)
-        cov = np.linalg.inv(info)
-        smooth = self._mean(diffs, W, sel)  # on the jump-free tracks
         old = self._old
         pairs = tuple((old[cand[k][0]], batch[cand[k][1]]) for k in sel)
         # the closure refers to the filter's positions at the two sightings of one pair (the
-        # median on the new leg): the jump-free offset plus the jumps the filter had made by
-        # then. (The median times of the two legs taken separately came from different pairs;
+        # median on the new leg): the jump-free offset there plus the jumps the filter had made
+        # by then. (The median times of the two legs taken separately came from different pairs;
         # with a fix between the old sightings, or a fast drift, that pair of times was not
         # one the jump-free offset holds for: survey seed 3, 2.1 m off the truth.)
         a_med, b_med = sorted(pairs, key=lambda p: p[1].t_s)[(len(pairs) - 1) // 2]
+        smooth, cov = drift.at(a_med.t_s, b_med.t_s)
         delta = smooth.copy()
         if a_med.jump_n_m is not None:  # (None: no velocity was given, no jumps known)
             delta = delta + a_med.jump_n_m
         if b_med.jump_n_m is not None:
             delta = delta - b_med.jump_n_m
-        self._recent.append((float(a_med.t_s), float(b_med.t_s), smooth, cov))
+        self._recent.append((float(a_med.t_s), float(b_med.t_s), keep))
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis,
                            jump_a_n_m=a_med.jump_n_m, jump_b_n_m=b_med.jump_n_m)
@@ -495,14 +611,16 @@ class LegAssociator:
 
         A block past an accepted set often holds one to three objects of the other leg, too
         few to found a set of their own, while the set just accepted already gives the
-        offset. Each closure of the last ``window_s`` is a hypothesis (not drawn from these
-        pairs): a candidate within ``window_s`` + ``set_span_s`` of its times whose residual
-        from its offset is inside the inlier gate (detectors + the offset's covariance +
-        relative drift from its times) and unambiguous joins; the pairs are accepted when
-        chance alone would give as many with probability at most ``extend_probability``
-        (``P(Poisson(λ) ≥ n)``, λ the chance inliers of that hypothesis, :meth:`_chance_inliers`).
-        The new closure's offset and covariance come from the new pairs alone (the earlier
-        set was fused already).
+        offset and how it drifts (:class:`Drift`, fitted on its pairs). Each closure of the
+        last ``window_s`` is a hypothesis (not drawn from these pairs): a candidate within
+        ``window_s`` + ``set_span_s`` of its times whose offset lies within the gate of that
+        drift's prediction (detectors + the prediction's covariance, which grows with the
+        time from the set as the velocity errors' covariance allows) and unambiguous joins;
+        the pairs are accepted when chance alone would give as many with probability at
+        most ``extend_probability`` (``P(Poisson(λ) ≥ n)``, λ the chance inliers of that
+        hypothesis, :meth:`_chance_inliers`). The new closure's offset and covariance come
+        from the new pairs alone (the earlier set was fused already); the hypothesis kept for
+        the next sightings is the drift updated with them.
         """
         c = self.config
         if not self._recent or not batch:
@@ -512,50 +630,34 @@ class LegAssociator:
         cand, clutter = self.candidates(batch)
         if not cand or not self._recent:
             return None
-        old = self._old
-        diffs = np.array([old[i].smooth_pos_n_m - batch[j].smooth_pos_n_m for i, j, _, _ in cand])
-        t_a = np.array([old[i].t_s for i, _, _, _ in cand])
-        t_b = np.array([batch[j].t_s for _, j, _, _ in cand])
-        D = np.array([old[i].det_cov + batch[j].det_cov for i, j, _, _ in cand])
-        for ta, tb, offset, cov in reversed(self._recent):
-            span = (np.abs(t_a - ta) <= c.window_s + c.set_span_s) & (np.abs(t_b - tb) <= c.window_s + c.set_span_s)
+        diffs, t_a, t_b, D, Va, Vb = self._arrays(cand, batch)
+        W = np.linalg.inv(D)
+        reach = c.window_s + c.set_span_s
+        for ta, tb, drift in reversed(self._recent):
+            span = (np.abs(t_a - ta) <= reach) & (np.abs(t_b - tb) <= reach)
             if not np.any(span):
                 continue
-            R = self._residual_cov(t_a, t_b, D + cov[None], ta, tb, filter_drift=True)
-            r = diffs - offset
-            m2 = np.where(span, np.einsum("ki,kij,kj->k", r, np.linalg.inv(R), r), np.inf)
-            sel = self._one_to_one(cand, m2)
-            sel = self._unambiguous_to(cand, m2, sel)
+            r, R = drift.residuals(diffs, t_a, t_b, D)
+            m2 = np.where(span, _m2(r, R), np.inf)
+            sel = self._unambiguous_to(cand, m2, self._one_to_one(cand, m2))
             if not sel:
                 continue
-            lam = self._chance_inliers(clutter, ta, tb, extra_cov=cov, span_s=c.window_s + c.set_span_s,
-                                       filter_drift=True)
+            lam = self._chance_inliers(clutter, ta, tb, drift.residual_cov, span_s=reach)
             if float(poisson.sf(len(sel) - 1, lam)) * len(self._recent) > c.extend_probability:
                 self._note_all(cand, batch, sel, "chance bound")
                 continue
-            W = np.linalg.inv(self._residual_cov(t_a, t_b, D, float(np.median(t_a[sel])), float(np.median(t_b[sel]))))
-            rr = diffs[sel] - self._mean(diffs, W, sel)
-            return self._closure(cand, batch, diffs, W, sel, float(np.sum(np.einsum("ki,kij,kj->k", rr, W[sel], rr))))
+            h = sel[len(sel) // 2]
+            own, cost = Drift.prior(t_a[h], t_b[h], diffs[h], D[h], Va[h], Vb[h]).fit(diffs, W, t_a, t_b, sel)
+            return self._closure(cand, batch, diffs, sel, own, drift.update(diffs, W, t_a, t_b, sel), cost)
         return None
 
     def _unambiguous_to(self, cand, m2, sel: list[int]) -> list[int]:
-        """``sel`` without pairs whose new or old sighting has another candidate inside the gate."""
+        """``sel`` without pairs whose new or old sighting has another candidate inside the
+        gate (``m2``: each candidate's from the set's offset): two neighbouring objects, either
+        could be the match."""
         fits = m2 <= self._inlier
         return [k for k in sel if not any(fits[m] and m != k and (cand[m][1] == cand[k][1] or cand[m][0] == cand[k][0])
                                           for m in range(len(cand)))]
-
-    def _unambiguous(self, cand, diffs, W, sel: list[int], span: np.ndarray) -> list[int]:
-        """The set without pairs whose new (or old) sighting has a second candidate (among
-        those that could join it, ``span``) that also fits the set's offset: two
-        neighbouring objects, either could be the match."""
-        r = diffs - self._mean(diffs, W, sel)
-        fits = (np.einsum("ki,kij,kj->k", r, W, r) <= self._inlier) & span
-        ambiguous = set()
-        for k in sel:
-            i, j = cand[k][0], cand[k][1]
-            if any(fits[m] and m != k and (cand[m][1] == j or cand[m][0] == i) for m in range(len(cand))):
-                ambiguous.add(k)
-        return [k for k in sel if k not in ambiguous]
 
     def _one_to_one(self, cand, m2) -> list[int]:
         """Inliers (m² within the inlier gate), each old and new sighting used once (best first)."""
@@ -571,20 +673,16 @@ class LegAssociator:
             out.append(int(k))
         return out
 
-    @staticmethod
-    def _mean(diffs, W, sel) -> np.ndarray:
-        info = W[sel].sum(axis=0)
-        return np.linalg.solve(info, np.einsum("kij,kj->i", W[sel], diffs[sel]))
-
-    def _refine(self, diffs, W, sel: list[int], n_min: int) -> list[int] | None:
-        """Drop the worst pair until the set is jointly compatible (χ² with 2n − 2 dof)."""
+    def _refine(self, prior: "Drift", diffs, W, t_a, t_b, sel: list[int], n_min: int):
+        """Drop the worst pair until the set is jointly compatible (χ² with 2n − 2 dof: 2n
+        offsets and the 4 velocity errors' priors, 6 parameters); (set, drift, χ²) or None."""
         sel = list(sel)
         while len(sel) >= n_min:
-            r = diffs[sel] - self._mean(diffs, W, sel)
+            drift, cost = prior.fit(diffs, W, t_a, t_b, sel)
+            r = diffs[sel] - drift.predict(t_a[sel], t_b[sel])
             m2 = np.einsum("ki,kij,kj->k", r, W[sel], r)
-            if float(m2.sum()) <= chi2.ppf(self.config.joint_probability, 2 * len(sel) - 2) \
-                    and float(m2.max()) <= self._inlier:
-                return sel
+            if cost <= chi2.ppf(self.config.joint_probability, 2 * len(sel) - 2) and float(m2.max()) <= self._inlier:
+                return sel, drift, cost
             sel.pop(int(np.argmax(m2)))
         return None
 

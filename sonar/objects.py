@@ -215,6 +215,9 @@ class ObjectSighting:
         its velocity, m; set by the front end when it has the velocity): ``pos_n_m − jump_n_m``
         is the *jump-free* track, smooth across the filter's updates (a fix, a fused loop
         closure), on which sightings of different times agree on one rigid offset.
+    vel_cov : numpy.ndarray or None, shape (2, 2)
+        Covariance of the navigation's horizontal velocity at ``t_s`` (m²/s²): the jump-free
+        track drifts from its value at ``t_s`` by about the velocity error times the time.
     """
 
     t_s: float
@@ -232,6 +235,7 @@ class ObjectSighting:
     det_cov: np.ndarray | None = None
     heading_rad: float = math.nan
     jump_n_m: np.ndarray | None = None
+    vel_cov: np.ndarray | None = None
 
     @property
     def smooth_pos_n_m(self) -> np.ndarray | None:
@@ -544,7 +548,8 @@ def _merge(objs: list[ObjectSighting], merge_m: float, along_res: float) -> list
 
 
 def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
-                    config: ObjectDetectorConfig = ObjectDetectorConfig(), jump_n_m=None) -> ObjectSighting:
+                    config: ObjectDetectorConfig = ObjectDetectorConfig(), jump_n_m=None,
+                    vel_cov=None) -> ObjectSighting:
     """The sighting placed in the local frame from the vehicle pose at its ping.
 
     Parameters
@@ -557,12 +562,16 @@ def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
         Heading at ``obj.t_s``.
     jump_n_m : (2,) array, optional
         The navigation's accumulated jumps at ``obj.t_s`` (:attr:`ObjectSighting.jump_n_m`).
+    vel_cov : (2, 2) array, optional
+        Covariance of its horizontal velocity (m²/s², :attr:`ObjectSighting.vel_cov`; not kept
+        when not finite).
     """
     p = np.asarray(pos_n_m, float)[:2] + obj.offset_n_m(yaw_rad)
     jump = None if jump_n_m is None else np.asarray(jump_n_m, float).reshape(2).copy()
+    vc = None if vel_cov is None else np.asarray(vel_cov, float).reshape(2, 2).copy()
     return replace(obj, pos_n_m=p, nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
                    det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
-                   jump_n_m=jump)
+                   jump_n_m=jump, vel_cov=vc if vc is not None and np.isfinite(vc).all() else None)
 
 
 @dataclass(frozen=True)
@@ -610,7 +619,7 @@ class ObjectFrontEnd:
         self.config = config
         n = config.block_pings + 2 * config.context_pings
         self._pings: deque = deque(maxlen=n)
-        self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4, jump n, jump e)
+        self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4, jump n, jump e, vel cov 4)
         self._n = 0
         # the navigation's jumps so far (position minus its integrated velocity) and the last
         # (t, position, velocity) it was measured from
@@ -621,7 +630,7 @@ class ObjectFrontEnd:
         self.sightings = 0
         self.rejected: dict[str, int] = {}
 
-    def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None) -> list[ObjectSighting]:
+    def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None, vel_cov=None) -> list[ObjectSighting]:
         """Take one ping with the navigation at its time; return a block's sightings when one completes.
 
         Parameters
@@ -638,6 +647,9 @@ class ObjectFrontEnd:
             of position that the velocity does not explain (a fix, a fused loop closure) is
             accumulated as a jump (:attr:`ObjectSighting.jump_n_m`): the associator compares
             sightings of different times on the jump-free track.
+        vel_cov : (2, 2) array, optional
+            Its covariance (m²/s²): how fast the jump-free track may drift
+            (:attr:`ObjectSighting.vel_cov`).
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
         cov = np.asarray(nav_cov, float).reshape(2, 2)
@@ -657,7 +669,8 @@ class ObjectFrontEnd:
                     self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
                 self._last_vel = (float(ping.t_s), p.copy(), v.copy())
         self._pings.append(ping)
-        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4), *self._jump))
+        vc = np.full(4, np.nan) if vel_cov is None else np.asarray(vel_cov, float).reshape(4)
+        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4), *self._jump, *vc))
         self._n += 1
         c = self.config
         if self._n < self._next_emit + c.block_pings + c.context_pings:
@@ -698,6 +711,7 @@ class ObjectFrontEnd:
             pos = (float(np.interp(li, idx, nav[:, 0])), float(np.interp(li, idx, nav[:, 1])))
             cov = np.array([float(np.interp(li, idx, nav[:, 3 + k])) for k in range(4)]).reshape(2, 2)
             jump = nav[int(round(li)), 7:9] if self._last_vel is not None else None
-            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector, jump))
+            vc = nav[int(round(li)), 9:13].reshape(2, 2)
+            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector, jump, vc))
         self.sightings += len(out)
         return out

@@ -104,7 +104,7 @@ def _legs(t: np.ndarray, yaw: np.ndarray, min_s: float = 60.0, max_rate_rad_s: f
 def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
         max_range_m: float = 45.0, progress: bool = False) -> LandmarkScore:
     """Simulate ``scenario`` and score the side-scan landmarks (see the module docstring)."""
-    from adaptnav.fusion.state import POS_NE
+    from adaptnav.fusion.state import POS_NE, VEL
     from adaptnav.service.compose import make_estimator
     from adaptnav.service.runtime.replay import build_config
     from adaptnav.sim.simulator import simulate
@@ -129,7 +129,8 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
                 continue
             dt = item.t_s - ns.t_s
             pos = ns.pos_n_m[:2] + ns.vel_n_m_s[:2] * dt
-            batch = fe.push(item, pos, ns.cov[POS_NE, POS_NE], ns.euler_rad()[2], ns.vel_n_m_s[:2])
+            batch = fe.push(item, pos, ns.cov[POS_NE, POS_NE], ns.euler_rad()[2], ns.vel_n_m_s[:2],
+                            ns.cov[VEL, VEL][:2, :2])
             if batch:
                 sightings += batch
                 lc = assoc.add(batch)
