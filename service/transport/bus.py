@@ -34,6 +34,7 @@ import zenoh
 from adaptnav.fusion.samples import SampleError
 
 from adaptnav.service.config import ZenohConfig
+from adaptnav.service.transport import codec
 
 log = logging.getLogger(__name__)
 
@@ -262,8 +263,6 @@ def _decode_as(kind: str) -> Callable[[dict], BusMessage]:
 
 
 def _register_service_kinds() -> None:
-    from adaptnav.service.transport import codec
-
     for kind, (topic, description) in SERVICE_KINDS.items():
         codec.register(kind, lambda m: m.body, _decode_as(kind), _schema(kind, description), topic)
 
@@ -272,15 +271,11 @@ _register_service_kinds()
 
 
 def encode_sample(sample: Any) -> bytes:
-    from adaptnav.service.transport import codec
-
     return codec.encode(sample)
 
 
 def decode_sample(payload: bytes) -> Any:
     """Bytes → sample; :class:`SampleError` on anything malformed."""
-    from adaptnav.service.transport import codec
-
     try:
         return codec.decode(payload)
     except SampleError:
