@@ -279,13 +279,6 @@ class BusSink(Sink):
         if self.d._snapshot_due.is_set():
             self.d._take_snapshot(state.t_s)
 
-    def on_inertial(self, sample: Any) -> None:
-        """A remote calibrator node gets the filter's free-inertial velocity over the bus
-        (its surge-noise evidence, :mod:`adaptnav.calibration.inertial`)."""
-        cal = self.d.cfg.calibrator
-        if cal.enabled and cal.location == "remote":
-            self.d.bus.put(self.d.bus.keys.nav_inertial, encode_sample(sample))
-
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
             self.latest_aid[s.source] = s
@@ -296,6 +289,18 @@ class BusSink(Sink):
             self.d._snapshot_due.set()  # persist what was learned soon
         if self.d.cfg.calibrator.location == "process":  # remote: the node publishes
             self.d.bus.put(self.d.bus.keys.params, codec.encode(release))
+
+
+class InertialSink(Sink):
+    """A remote calibrator node gets the filter's free-inertial velocity over the bus (its
+    surge-noise evidence, :mod:`adaptnav.calibration.inertial`); a sink of its own, in the
+    runner only then: the runner computes that velocity once a second for whoever takes it."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+
+    def on_inertial(self, sample: Any) -> None:
+        self.bus.put(self.bus.keys.nav_inertial, encode_sample(sample))
 
 
 class Daemon:
@@ -458,15 +463,23 @@ class Daemon:
             self.overflow["republish_failed"] += 1
             log.debug("re-publishing a MAVLink sample failed: %s", e)
 
+    def sinks(self) -> list:
+        """The runner's sinks: the bus (nav state, latest aid statuses, releases), the
+        lifecycle log, the Foxglove view when on, the free-inertial velocity for a remote
+        calibrator when there is one."""
+        from adaptnav.service.runtime.events import LifecycleLog
+
+        cal = self.cfg.calibrator
+        return ([self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
+                + ([InertialSink(self.bus)] if cal.enabled and cal.location == "remote" else []))
+
     def _run(self) -> None:
         """The runner thread: queued items (MAVLink, bursts, bus samples that found the
         runner busy) and the release of held ones; bus samples that find it idle are run
         in their Zenoh callback (:meth:`_from_bus`)."""
-        from adaptnav.service.runtime.events import LifecycleLog
         from adaptnav.service.runtime.runner import Runner, default_release_gate
 
-        sinks = [self.sink, LifecycleLog()] + ([self.foxglove.sink] if self.foxglove is not None else [])
-        runner = Runner(self.estimator, sinks, self.clock, self.calibrator,
+        runner = Runner(self.estimator, self.sinks(), self.clock, self.calibrator,
                         output_rate_hz=self.cfg.outputs.nav_rate_hz, health=self.health,
                         release_gate=default_release_gate(self.cfg.calibrator.online))
         # (no qsize: the health report reads the queue depth itself, not after every item)

@@ -574,14 +574,13 @@ def _live_daemon(cfg):
     """A daemon as started, without its threads: estimator, bus session, sinks, the runner
     set as its runner thread sets it (so its bus callback, ``_from_bus``, runs it)."""
     from adaptnav.service.daemon import Daemon
-    from adaptnav.service.runtime.events import LifecycleLog
     from adaptnav.service.runtime.runner import Runner
     from adaptnav.service.transport.bus import Bus
 
     d = Daemon(cfg)
     d.estimator = d._make_estimator()
     d.bus = Bus(cfg.zenoh, cfg.vehicle.name)
-    d._runner = Runner(d.estimator, [d.sink, LifecycleLog()], d.clock, None,
+    d._runner = Runner(d.estimator, d.sinks(), d.clock, None,
                        output_rate_hz=cfg.outputs.nav_rate_hz, health=d.health)
     return d
 
