@@ -1020,7 +1020,12 @@ class Estimator:
         yaw_rate = float(R_nb[2] @ self._acc[ACC_OMEGA])
         meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2], R_nb=R_nb)
-        P = kalman.propagated_covariance(self._P, self._acc, self._qdiag) if adapt and self._surge.enabled else None
+        P = None
+        if adapt and self._surge.enabled:
+            # the prior covariance, propagated in place: the update (_fuse) starts from it and
+            # would flush it itself; propagated into a copy here, it was computed twice
+            kalman.flush_core(self._core, self._qdiag)
+            P = self._P
         return self._surge.adapt(meas, P, t - self._t_release)
 
     def _doubt_k_speed(self) -> None:
