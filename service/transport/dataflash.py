@@ -36,7 +36,7 @@ from typing import Any, NamedTuple
 from adaptnav.fusion.frames import wrap_angle
 from adaptnav.fusion.samples import AltitudeSample, AttitudeSample, DepthSample, GnssSample, ImuSample
 
-from .mavlink_convert import (ConversionError, ConvertConfig, MavlinkConverter, TypeAccount,
+from .mavlink_convert import (ConversionError, ConvertConfig, MavlinkConverter, TypeAccount, _WindowMin,
                               attitude_word_from_text, rpm_from_pwm)
 
 # GPS time (GWk, GMS) → UNIX: the GPS epoch 1980-01-06 in UNIX seconds, and GPS − UTC
@@ -44,6 +44,7 @@ from .mavlink_convert import (ConversionError, ConvertConfig, MavlinkConverter, 
 GPS_EPOCH_UNIX_S = 315_964_800.0
 GPS_WEEK_S = 604_800.0
 GPS_UTC_LEAP_S = 18.0
+GPS_TIME_WINDOW_S = 10.0  # the least-delayed fix of this span pairs GPS time with the boot clock
 RFND_STATUS_GOOD = 4  # AP_RangeFinder::Status::Good
 DOWNWARD = 25  # ROTATION_PITCH_270
 
@@ -103,6 +104,9 @@ class DataflashConverter:
         self.baro_instance = baro_instance
         self._gps_h_acc_m: dict[int, float] = {}  # latest GPA HAcc per GPS instance
         self._sim_vel_n_m_s: tuple[float, float, float] | None = None
+        # −(UNIX − t_s) of the recent fixes: a fix is logged when it arrives, after its time of
+        # validity by the receiver's latency (≥ 0, jittering); the least delayed of a window is the best pair
+        self._gps_delay = _WindowMin(GPS_TIME_WINDOW_S)
         self.imu_instance = 0
 
     def convert(self, msg: Any) -> tuple[list, list[SimTruth]]:
@@ -201,9 +205,10 @@ class DataflashConverter:
         week, ms = getattr(msg, "GWk", 0), getattr(msg, "GMS", 0)
         if week > 0:
             # GPS time of the fix, logged on arrival: the UNIX time of the log (its rows'
-            # t_unix_s) to the receiver's latency (~0.1 s), the best clock a BIN carries
+            # t_unix_s), the best clock a BIN carries — late by the least latency of the window
             unix_s = GPS_EPOCH_UNIX_S + week * GPS_WEEK_S + ms / 1000.0 - GPS_UTC_LEAP_S
-            self.mav.time.pair_unix(unix_s, t_s, "GPS")
+            offset_s = -self._gps_delay.push(t_s, t_s - unix_s)
+            self.mav.time.pair_unix(t_s + offset_s, t_s, "GPS")
         # the GPA written with the previous fix: accuracy changes slowly, and GPA follows GPS
         h_acc = self._gps_h_acc_m.get(inst)
         if h_acc is not None:

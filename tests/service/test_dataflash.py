@@ -128,3 +128,21 @@ def test_every_record_type_is_used_ignored_with_why_or_unknown(tmp_path):
         assert types[ignored]["status"] == "ignored" and word in types[ignored]["why"], (ignored, types[ignored])
     assert types["ZZZZ"]["status"] == "unknown"
     assert [k for k, v in types.items() if v["status"] == "unknown"] == ["ZZZZ"]
+
+
+def test_unix_time_comes_from_the_least_delayed_gps_fix(tmp_path):
+    """A fix is logged when it arrives, after its time of validity by the receiver's latency
+    (tens of ms, jittering): the pairing takes the least delayed fix of the recent ones, not the
+    last one."""
+    w = ardusub_formats(DataflashWriter(tmp_path / "latency.BIN"))
+    delays_s = (0.12, 0.05, 0.09, 0.15, 0.07)
+    for k in range(50):  # fix k valid at mission time 50 + 0.2 k, i.e. GPS time GPS_MS0 + 200 k ms
+        t_fix = 50.0 + 0.2 * k
+        w.write("IMU", round(t_fix * 1e6), 0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.80665)
+        w.write("GPS", round((t_fix + delays_s[k % 5]) * 1e6), 0, 6, GPS_MS0 + 200 * k, GPS_WEEK, 10, 0.8,
+                LAT0, LON0, 0.0, 0.0)
+    src, _ = _read(w.close())
+    clock = src.counters["clock"]
+    # THEN UNIX = mission time + (UNIX of GPS_MS0 − 50 s − the least delay, 0.05 s)
+    assert clock["unix_reference"] == "GPS"
+    assert clock["unix_offset_s"] == pytest.approx(UNIX_OF_GPS_MS0 - 50.0 - 0.05, abs=1e-4)
