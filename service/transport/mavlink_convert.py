@@ -302,7 +302,7 @@ class MissionClock:
         self.last_boot_s: float | None = None
         self.now_s: float | None = None  # latest mission time mapped
         self.unix_offset_s: float | None = None
-        self.unix_reference: str | None = None  # "SYSTEM_TIME" | "receive" | "epoch"
+        self.unix_reference: str | None = None  # "SYSTEM_TIME" | "GPS" (a DataFlash log) | "receive" | "epoch"
         self.recv_offset_s: float | None = None
         self.base: str | None = None  # "boot" | "unix"
         self.reboots = 0
@@ -351,7 +351,7 @@ class MissionClock:
                     self.boot_offset_s = max(recv_s - self.recv_offset_s, last_t) - boot_s
                 else:
                     self.boot_offset_s = last_t - boot_s  # continue the mission clock
-                if self.unix_reference == "SYSTEM_TIME":
+                if self.unix_reference in ("SYSTEM_TIME", "GPS"):
                     self.unix_reference = "receive"  # the old pair is void until the next one
                     self.unix_offset_s = self.recv_offset_s
         if self.last_boot_s is None or boot_s > self.last_boot_s or boot_s < self.last_boot_s - self.reboot_backjump_s:
@@ -384,7 +384,12 @@ class MissionClock:
     def pair_system_time(self, unix_s: float, boot_s: float, recv_s: float | None = None) -> None:
         """The autopilot's SYSTEM_TIME: an exact (UNIX, boot) pair."""
         t = self.map_boot_s(boot_s, recv_s)
-        self._set_unix_offset(unix_s - t, "SYSTEM_TIME")
+        self.pair_unix(unix_s, t, "SYSTEM_TIME")
+
+    def pair_unix(self, unix_s: float, t_s: float, reference: str) -> None:
+        """A (UNIX, mission time) pair from the source's own clocks (``reference``: SYSTEM_TIME,
+        or a DataFlash log's GPS time): it outranks the receive relation until a reboot."""
+        self._set_unix_offset(unix_s - t_s, reference)
 
     def from_unix_s(self, unix_s: float) -> float | None:
         """UNIX time → ``t_s`` (None while no reference links UNIX to the mission clock)."""
@@ -647,6 +652,18 @@ IGNORED_WHY: dict[str, str] = {
 }
 
 
+def attitude_word_from_text(text: str) -> bool | None:
+    """What an autopilot's text (STATUSTEXT, DataFlash MSG) says of its attitude: False on an
+    EKF (re)start ("EKF3 IMU0 initialised": yaw 0 until aligned), True on its yaw alignment,
+    None when it says nothing about it."""
+    text = text.lower()
+    if "ekf" in text and "initialised" in text:
+        return False
+    if "yaw alignment complete" in text:
+        return True
+    return None
+
+
 class IgnoredMessage(Exception):
     """A handled message type that is not for us in this instance (``why`` says why)."""
 
@@ -750,20 +767,24 @@ class MavlinkConverter:
         self._held = []
         return out
 
-    def accounting(self) -> dict[str, dict]:
+    def accounting(self, handlers: Any = None, ignored_why: dict[str, str] | None = None) -> dict[str, dict]:
         """Per message type: ``status`` (used | rejected | ignored | unknown), ``why``,
-        ``messages``, ``samples``, ``rejected``/``ignored`` by reason, ``rate_hz`` (mission clock)."""
+        ``messages``, ``samples``, ``rejected``/``ignored`` by reason, ``rate_hz`` (mission clock).
+        ``handlers`` / ``ignored_why``: the types converted and the types ignored on purpose
+        (default: this converter's MAVLink tables; a DataFlash log passes its records')."""
+        handlers = _HANDLERS if handlers is None else handlers
+        ignored_why = IGNORED_WHY if ignored_why is None else ignored_why
         out = {}
         for mtype, a in sorted(self.types.items()):
-            handled = mtype in _HANDLERS
+            handled = mtype in handlers
             if a.samples:
                 status, why = "used", None
             elif handled and a.rejected:
                 status, why = "rejected", "every message rejected (see rejected)"
             elif a.ignored:
                 status, why = "ignored", "; ".join(sorted(a.ignored))
-            elif mtype in IGNORED_WHY:
-                status, why = "ignored", IGNORED_WHY[mtype]
+            elif mtype in ignored_why:
+                status, why = "ignored", ignored_why[mtype]
             elif handled:
                 status, why = "held", "no time reference yet"
             else:
@@ -825,11 +846,9 @@ class MavlinkConverter:
             self.autopilot_attitude_ok = bool(msg.flags & mavlink2.EKF_ATTITUDE) \
                 and not msg.flags & mavlink2.EKF_UNINITIALIZED
             return
-        text = str(getattr(msg, "text", "")).lower()
-        if "ekf" in text and "initialised" in text:
-            self.autopilot_attitude_ok = False
-        elif "yaw alignment complete" in text:
-            self.autopilot_attitude_ok = True
+        word = attitude_word_from_text(str(getattr(msg, "text", "")))
+        if word is not None:
+            self.autopilot_attitude_ok = word
 
     def _attitude(self, msg, mtype, t_s):
         if self.autopilot_attitude_ok is False and self._is_autopilot(msg):

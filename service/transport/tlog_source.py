@@ -2,7 +2,8 @@
 
 pymavlink opens a log with the same ``mavutil.mavlink_connection`` API as a live link,
 so the messages go through the same :class:`adaptnav.service.transport.mavlink_convert.MavlinkConverter`
-as the bridge.  Data time comes from the autopilot's ``time_boot_ms``/``time_usec``
+as the bridge; a DataFlash log's records (DFReader) through
+:class:`adaptnav.service.transport.dataflash.DataflashConverter` on the same clock and accounts.  Data time comes from the autopilot's ``time_boot_ms``/``time_usec``
 (the tlog's own ``_timestamp`` is the wall clock of the recording computer and is not
 used).  Samples are released in the deterministic replay order
 ``(t_s, source priority, seq)`` through a bounded re-order buffer of
@@ -27,14 +28,13 @@ from typing import Any, Iterator
 
 from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 before pymavlink loads
     ConvertConfig,
-    ConversionError,
     MavlinkConverter,
-    TypeAccount,
-    rpm_from_pwm,
 )
-from adaptnav.fusion.frames import GeoOrigin, wrap_angle
-from adaptnav.fusion.samples import (AttitudeSample, DepthSample, ImuSample, TruthSample,
-                                    replay_order_key)
+from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
+from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
+from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
+from adaptnav.fusion.frames import GeoOrigin
+from adaptnav.fusion.samples import ImuSample, TruthSample, replay_order_key
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +94,7 @@ class TlogSource:
         self._imu_type: str | None = None
         self._imu_switches = 0
         self._dataflash = self.path.suffix.lower() in (".bin", ".log")
+        self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
 
     # --------------------------------------------------------------------- helpers
@@ -117,21 +118,25 @@ class TlogSource:
 
     def _convert(self, msg: Any) -> list:
         if self._dataflash:
-            return self._convert_dataflash(msg)
-        samples = self.converter.convert(msg)
-        if samples and isinstance(samples[0], ImuSample):
-            self._imu_type = self.converter.imu_message
-            if self.converter.imu_switches != self._imu_switches:  # a better stream: its own rate
-                self._imu_switches = self.converter.imu_switches
-                self._imu_dt, self._imu_last_t = [], None
-        if msg.get_type() == "SIM_STATE":
-            samples = samples + self._truth(msg)
+            samples, truths = self.dataflash.convert(msg)
+            if samples and isinstance(samples[0], ImuSample):
+                self._imu_type = f"IMU[{self.dataflash.imu_instance}]"
+        else:
+            samples = self.converter.convert(msg)
+            if samples and isinstance(samples[0], ImuSample):
+                self._imu_type = self.converter.imu_message
+                if self.converter.imu_switches != self._imu_switches:  # a better stream: its own rate
+                    self._imu_switches = self.converter.imu_switches
+                    self._imu_dt, self._imu_last_t = [], None
+            truths = self._sim_state(msg) if msg.get_type() == "SIM_STATE" else []
+        if truths:
+            samples = samples + self._truth(truths)
         elif self.truth_origin is None and self._truth_held:
             fix = next((x for x in samples if x.KIND in ("gnss", "usbl") and math.isfinite(x.lat_rad)), None)
             if fix is not None:  # the replay's rule: the first position fix is the NED origin
                 self.truth_origin = GeoOrigin(fix.lat_rad, fix.lon_rad, 0.0)
                 held, self._truth_held = self._truth_held, []
-                samples = samples + [self._truth_sample(m, t) for m, t in held]
+                samples = samples + [self._truth_sample(t) for t in held]
         return samples
 
     def set_convert(self, convert: ConvertConfig) -> None:
@@ -141,6 +146,7 @@ class TlogSource:
             raise RuntimeError("set_convert after the log has been read")
         self.config = replace(self.config, convert=convert)
         self.converter = MavlinkConverter(convert, self.converter.origin)
+        self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         if self.converter.origin is not None:
             self.converter.origin_from = "config"
 
@@ -149,36 +155,42 @@ class TlogSource:
         self.truth_origin = origin
         self.converter.origin, self.converter.origin_from = origin, "config"
 
-    def _truth(self, msg: Any) -> list:
-        """SIM_STATE (a simulator's ground truth; no time field: its receive time) → TruthSample
-        around the NED origin, held until the origin is known (the first fix, as the replay's)."""
+    def _sim_state(self, msg: Any) -> list[SimTruth]:
+        """SIM_STATE (a simulator's ground truth; no time field: its receive time)."""
         t_s = self.converter.time.from_receive(getattr(msg, "_timestamp", None))
         if t_s is None:
             return []
-        if self.truth_origin is None:
-            self._truth_held.append((msg, t_s))
-            return []
-        return [self._truth_sample(msg, t_s)]
-
-    def _truth_sample(self, msg: Any, t_s: float) -> TruthSample:
         lat, lon = msg.lat_int * 1e-7, msg.lon_int * 1e-7
         if lat == 0.0 and lon == 0.0:  # older SIM_STATE without the integer fields
             lat, lon = msg.lat, msg.lon
-        pos = self.truth_origin.to_ned(math.radians(lat), math.radians(lon), msg.alt)
-        q = (msg.q1, msg.q2, msg.q3, msg.q4)  # w, x, y, z
+        return [SimTruth(t_s, lat, lon, float(msg.alt), (float(msg.vn), float(msg.ve), float(msg.vd)),
+                         (float(msg.q1), float(msg.q2), float(msg.q3), float(msg.q4)))]
+
+    def _truth(self, truths: list[SimTruth]) -> list:
+        """A simulator's truth (SIM_STATE, DataFlash SIM) → TruthSample around the NED origin,
+        held until the origin is known (the first fix, as the replay's)."""
+        if self.truth_origin is None:
+            self._truth_held.extend(truths)
+            return []
+        return [self._truth_sample(t) for t in truths]
+
+    def _truth_sample(self, t: SimTruth) -> TruthSample:
+        pos = self.truth_origin.to_ned(math.radians(t.lat_deg), math.radians(t.lon_deg), t.alt_m)
         self.counters["truth_samples"] = self.counters.get("truth_samples", 0) + 1
-        return TruthSample(t_s, tuple(float(v) for v in pos), (float(msg.vn), float(msg.ve), float(msg.vd)),
-                           tuple(float(v) for v in q), (0.0, 0.0, 0.0), math.nan)
+        return TruthSample(t.t_s, tuple(float(v) for v in pos), t.vel_n_m_s, t.q_nb, (0.0, 0.0, 0.0), math.nan)
 
     def _scan_truth(self, max_messages: int = 20_000) -> bool:
-        """Does the log carry a simulator's truth (SIM_STATE) near its start?"""
-        if self._dataflash:
-            return False
+        """Does the log carry a simulator's truth (SIM_STATE near its start; a DataFlash SIM record)?"""
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
         except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
             return False
         try:
+            if self._dataflash:  # DFReader indexes the file by record type: no scan
+                try:
+                    return conn.recv_match(type="SIM") is not None
+                except Exception:  # a damaged log: the reading pass reports it
+                    return False
             for _ in range(max_messages):
                 try:
                     m = conn.recv_match()
@@ -191,42 +203,6 @@ class TlogSource:
             return False
         finally:
             conn.close()
-
-    def _convert_dataflash(self, msg: Any) -> list:
-        """DataFlash records (already SI apart from degrees): IMU, ATT, BARO, RCOU."""
-        mtype = msg.get_type()
-        acc = self.converter.types.setdefault(mtype, TypeAccount())
-        acc.messages += 1
-        t_us = getattr(msg, "TimeUS", None)
-        if t_us is None or mtype not in ("IMU", "ATT", "BARO", "RCOU"):
-            acc.ignored["DataFlash record not used"] = acc.messages
-            return []
-        t_s = self.converter.time.map_boot_s(t_us / 1e6)
-        acc.stamp(t_s)
-        out = self._dataflash_samples(msg, mtype, t_s)
-        acc.samples += len(out)
-        if not out:
-            acc.ignored["other instance"] = acc.ignored.get("other instance", 0) + 1
-        return out
-
-    def _dataflash_samples(self, msg: Any, mtype: str, t_s: float) -> list:
-        try:
-            if mtype == "IMU" and getattr(msg, "I", 0) == 0:
-                self._imu_type = "IMU[0]"
-                # a DataFlash log's IMU is the flight controller's own (ImuSample.source)
-                return [ImuSample(t_s, (msg.AccX, msg.AccY, msg.AccZ), (msg.GyrX, msg.GyrY, msg.GyrZ), "autopilot")]
-            if mtype == "ATT":
-                return [AttitudeSample(t_s, math.radians(msg.Roll), math.radians(msg.Pitch),
-                                       float(wrap_angle(math.radians(msg.Yaw))))]
-            if mtype == "BARO" and getattr(msg, "I", 0) == self.config.dataflash_baro_instance:
-                if not msg.Press > 0:
-                    raise ConversionError("bad_pressure")
-                return [DepthSample(t_s, float(msg.Press))]
-            if mtype == "RCOU":  # forward and lateral RPM as from SERVO_OUTPUT_RAW
-                return [rpm_from_pwm(lambda ch: getattr(msg, f"C{ch}", 0) or 0, t_s, self.config.convert.thrusters)]
-        except ConversionError as e:
-            self._reject(e.reason)
-        return []
 
     # --------------------------------------------------------------------- iteration
     def _messages(self) -> Iterator[Any]:
@@ -301,7 +277,8 @@ class TlogSource:
             self.counters["rejected"][reason] = self.counters["rejected"].get(reason, 0) + n
         self.counters["duration_s"] = 0.0 if t_first is None else t_last - t_first
         self.counters["reboots"] = self.converter.time.reboots
-        self.counters["message_types"] = self.converter.accounting()
+        self.counters["message_types"] = (self.converter.accounting(DATAFLASH_USED, DATAFLASH_IGNORED_WHY)
+                                          if self._dataflash else self.converter.accounting())
         self.counters["clock"] = self.converter.clock_report()
         self.missing = self._diagnose()
 
@@ -316,12 +293,15 @@ class TlogSource:
                            f"for strapdown (< {self.config.min_imu_rate_hz:g} Hz); {fallback}")
             else:
                 out.append("no IMU stream")
+        df = self._dataflash  # the records' names in a DataFlash log, the messages' in a tlog
         if not by_kind.get("attitude"):
-            out.append("no attitude (ATTITUDE)")
+            out.append("no attitude (ATT)" if df else "no attitude (ATTITUDE)")
         if not by_kind.get("depth"):
-            out.append(f"no depth ({self.config.convert.depth_message} absent or invalid)")
+            out.append(f"no depth (BARO[{self.config.dataflash_baro_instance}] absent or invalid)" if df
+                       else f"no depth ({self.config.convert.depth_message} absent or invalid)")
         if not by_kind.get("rpm"):
-            out.append("no thruster RPM (SERVO_OUTPUT_RAW)")
+            out.append("no thruster RPM (RCOU)" if df else "no thruster RPM (SERVO_OUTPUT_RAW)")
         if not (by_kind.get("usbl") or by_kind.get("gnss")):
-            out.append("no position fixes (GPS_INPUT / GPS_RAW_INT with a fix)")
+            out.append("no position fixes (GPS with a 3D fix)" if df
+                       else "no position fixes (GPS_INPUT / GPS_RAW_INT with a fix)")
         return out

@@ -12,7 +12,10 @@ travelled is the truth's horizontal path length from the log's start to that epo
 Usage (the figures quoted in the README)::
 
     adaptnav replay ../shared/data/mavlink/ardusub-sitl-freedrive.tlog --out OUT
-    python -m tests.fusion.freedrive OUT
+    python -m tests.fusion.freedrive OUT [LOG]
+
+``LOG`` (default: that tlog) may be an ArduSub DataFlash ``.BIN`` of the simulator: its truth
+is then the ``SIM`` records (``TimeUS`` boot time, ``Lat``/``Lng`` degrees, ``Alt`` m up).
 """
 from __future__ import annotations
 
@@ -29,14 +32,19 @@ FREEDRIVE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "ma
 
 
 def sim_state_truth(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(t_s (M,), lat_rad (M,), lon_rad (M,), depth_m (M,)) of the log's SIM_STATE."""
+    """(t_s (M,), lat_rad (M,), lon_rad (M,), depth_m (M,)) of the log's SIM_STATE — or, for a
+    DataFlash ``.BIN``, of its ``SIM`` records (stamped by their own ``TimeUS``, boot time)."""
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
 
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     rows, boot_s = [], None
+    dataflash = Path(tlog).suffix.lower() in (".bin", ".log")
     try:
-        while (msg := conn.recv_match()) is not None:
+        while dataflash and (msg := conn.recv_match(type="SIM")) is not None:
+            # SIM: Lat/Lng in degrees (DFReader applies the format's 1e-7), Alt m up
+            rows.append((msg.TimeUS / 1e6, math.radians(msg.Lat), math.radians(msg.Lng), -float(msg.Alt)))
+        while not dataflash and (msg := conn.recv_match()) is not None:
             if msg.get_srcComponent() != 1:
                 continue
             if hasattr(msg, "time_boot_ms"):
@@ -91,4 +99,4 @@ def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float 
 
 
 if __name__ == "__main__":
-    print(json.dumps(score(sys.argv[1]), indent=2))
+    print(json.dumps(score(sys.argv[1], *(Path(a) for a in sys.argv[2:3])), indent=2))

@@ -1,0 +1,225 @@
+"""ArduPilot DataFlash logs (``.BIN``, read with pymavlink's DFReader): records → samples.
+
+A DataFlash log is the autopilot's own record, written on board while armed (ArduSub's
+``LOG_DISARMED`` is 0): every record carries ``TimeUS``, the boot clock in µs, so it needs no
+reception stamps.  DFReader applies each format's multipliers: values are SI apart from
+degrees (``Lat``/``Lng`` in degrees, attitude in degrees).  Records used (ArduSub 4.1–4.7):
+
+======  ====================================================  =========================================
+record  fields → sample                                       notes
+======  ====================================================  =========================================
+IMU     AccX..Z [m/s²], GyrX..Z [rad/s] → ImuSample            instance ``I`` 0 only (one stream is
+                                                              integrated); 25 Hz with the default
+                                                              ``LOG_BITMASK`` (MASK_LOG_IMU), the loop
+                                                              rate with IMU_FAST
+ATT     Roll, Pitch, Yaw [deg] → AttitudeSample                10 Hz (ATTITUDE_MED); withheld while the
+                                                              EKF's word (MSG) says it is not aligned
+BARO    Press [Pa] → DepthSample                              instance ``baro_instance`` (ArduSub: 1,
+                                                              the external water-pressure sensor)
+RCOU    C1..C14 [µs] → RpmSample                              as SERVO_OUTPUT_RAW
+GPS     Lat, Lng [deg], Status → GnssSample                   instance 0, Status ≥ 3D fix; σ from the
+                                                              latest GPA's HAcc [m], else HDop; GWk/GMS
+                                                              (GPS time) give the log's UNIX time
+RFND    Dist [m], Orient, Stat → AltitudeSample                downward (orientation 25), status Good
+SIM     Lat, Lng [deg], Alt [m up], Q1..Q4 → truth             a simulator's ground truth, never fused;
+                                                              the velocity from the latest SIM2
+======  ====================================================  =========================================
+
+Every other record type is accounted for: ignored with the reason in :data:`IGNORED_WHY`, or
+``unknown`` (a type this table does not know).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+from adaptnav.fusion.frames import wrap_angle
+from adaptnav.fusion.samples import AltitudeSample, AttitudeSample, DepthSample, GnssSample, ImuSample
+
+from .mavlink_convert import (ConversionError, ConvertConfig, MavlinkConverter, TypeAccount, _WindowMin,
+                              attitude_word_from_text, rpm_from_pwm)
+
+# GPS time (GWk, GMS) → UNIX: the GPS epoch 1980-01-06 in UNIX seconds, and GPS − UTC
+# (18 s since 2017-01-01, IERS Bulletin C; no leap second announced since)
+GPS_EPOCH_UNIX_S = 315_964_800.0
+GPS_WEEK_S = 604_800.0
+GPS_UTC_LEAP_S = 18.0
+GPS_TIME_WINDOW_S = 10.0  # the least-delayed fix of this span pairs GPS time with the boot clock
+RFND_STATUS_GOOD = 4  # AP_RangeFinder::Status::Good
+DOWNWARD = 25  # ROTATION_PITCH_270
+
+USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG")
+
+_WHY_ESTIMATE = "the autopilot's own estimate (an output of its EKF/AHRS, not a sensor)"
+_WHY_CONTROL = "the autopilot's controllers, pilot input and modes (no navigation content)"
+_WHY_HOUSEKEEPING = "log format / housekeeping (no navigation content)"
+IGNORED_WHY: dict[str, str] = {
+    **{r: _WHY_ESTIMATE for r in (
+        "AHR2", "DCM", "EAHR", "POS", "ORGN", "XKF0", "XKF1", "XKF2", "XKF3", "XKF4", "XKF5", "XKFS", "XKFD",
+        "XKFM", "XKQ", "XKT", "XKTV", "XKV1", "XKV2", "XKY0", "XKY1", "NKF1", "NKF2", "NKF3", "NKF4", "NKF5",
+        "NKQ", "NKT", "NKV1", "NKV2", "NKY0", "NKY1", "EKF1", "EKF2", "EKF3", "EKF4", "AHRS", "TERR")},
+    **{r: _WHY_CONTROL for r in (
+        "ANG", "ATSC", "CTUN", "CTRL", "PIDA", "PIDP", "PIDR", "PIDY", "PIDN", "PIDE", "PSCD", "PSCN", "PSCE",
+        "RATE", "RCIN", "RCI2", "MODE", "CMD", "MOTB", "MNT", "FTN", "FTN1", "FTN2", "ARM", "EV", "ERR",
+        "MAVC", "GUIP", "JOYS")},
+    **{r: _WHY_HOUSEKEEPING for r in (
+        "FMT", "FMTU", "UNIT", "MULT", "PARM", "VER", "FILE", "DSF", "DU32", "PM", "MAV", "UART", "BAT", "POWR",
+        "MCU", "VIBE", "RAD", "TSYN", "ESC", "ESCX", "SRTL", "PRX", "BCN", "DMS", "OFG", "MON", "STAK", "RALY",
+        "SIMS", "SITL")},
+    "MAG": "magnetometer: the heading comes from ATT (the autopilot's compass-aided attitude)",
+    "GYR": "raw gyro at the sensor rate (IMU_RAW), before the autopilot's filters: IMU is integrated",
+    "ACC": "raw accelerometer at the sensor rate (IMU_RAW), before the autopilot's filters: IMU is integrated",
+    "ISBH": "IMU batch sampler (vibration analysis): IMU is integrated",
+    "ISBD": "IMU batch sampler (vibration analysis): IMU is integrated",
+    "RCO2": "servo outputs 15–32 (the thrusters are on RCOU)",
+    "RCO3": "servo outputs 15–32 (the thrusters are on RCOU)",
+    "GPA": "the GPS's accuracy: gives the σ of the next GPS fix, no sample of its own",
+    "SIM2": "simulator truth (velocity): completes SIM's truth, never fused",
+    "MSG": "text; the autopilot's EKF (re)start and yaw alignment gate ATT, no sample",
+}
+
+
+class SimTruth(NamedTuple):
+    """A simulator's ground truth as it is logged (geodetic), placed on the NED frame later."""
+
+    t_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float  # up
+    vel_n_m_s: tuple[float, float, float]
+    q_nb: tuple[float, float, float, float]  # w, x, y, z
+
+
+class DataflashConverter:
+    """DataFlash records → samples (module docstring), on the clock and accounts of ``mav``.
+
+    Shares the :class:`MavlinkConverter`'s :class:`MissionClock` (``TimeUS`` is the boot
+    clock, so reboots and jumps are handled as for a link), its per-type accounts
+    (``summary.json``'s ``message_types``) and its rejection counters.
+    """
+
+    def __init__(self, mav: MavlinkConverter, baro_instance: int = 1):
+        self.mav = mav
+        self.config: ConvertConfig = mav.config
+        self.baro_instance = baro_instance
+        self._gps_h_acc_m: dict[int, float] = {}  # latest GPA HAcc per GPS instance
+        self._sim_vel_n_m_s: tuple[float, float, float] | None = None
+        # −(UNIX − t_s) of the recent fixes: a fix is logged when it arrives, after its time of
+        # validity by the receiver's latency (≥ 0, jittering); the least delayed of a window is the best pair
+        self._gps_delay = _WindowMin(GPS_TIME_WINDOW_S)
+        self.imu_instance = 0
+
+    def convert(self, msg: Any) -> tuple[list, list[SimTruth]]:
+        """``(samples, truths)`` of one record."""
+        mtype = msg.get_type()
+        acc = self.mav.types.setdefault(mtype, TypeAccount())
+        acc.messages += 1
+        t_us = getattr(msg, "TimeUS", None)
+        if mtype not in USED:
+            if mtype in IGNORED_WHY:
+                acc.ignored[IGNORED_WHY[mtype]] = acc.ignored.get(IGNORED_WHY[mtype], 0) + 1
+            return [], []  # unknown: counted in messages, reported as such
+        if t_us is None:
+            self.mav._count_reject(acc, "no_time")
+            return [], []
+        # SIM2 is written on the simulator's physics step (hundreds of Hz), slightly out of
+        # step with the others: it teaches the clock nothing, it only carries velocity
+        if mtype == "SIM2":
+            self._sim_vel_n_m_s = (float(msg.VN), float(msg.VE), float(msg.VD))
+            acc.ignored[IGNORED_WHY[mtype]] = acc.ignored.get(IGNORED_WHY[mtype], 0) + 1
+            return [], []
+        t_s = self.mav.time.map_boot_s(t_us / 1e6)
+        try:
+            if mtype == "SIM":
+                acc.stamp(t_s)
+                acc.ignored["simulator truth (never fused; the replay's metrics)"] = acc.messages
+                return [], [self._sim(msg, t_s)]
+            out = self._samples(msg, mtype, t_s, acc)
+        except ConversionError as e:
+            self.mav._count_reject(acc, e.reason)
+            return [], []
+        except (AttributeError, TypeError, ValueError, OverflowError):
+            self.mav._count_reject(acc, "malformed")
+            return [], []
+        if out:
+            acc.stamp(t_s)
+            acc.samples += len(out)
+        return out, []
+
+    # ------------------------------------------------------------------ records
+    def _ignore(self, acc: TypeAccount, why: str) -> list:
+        acc.ignored[why] = acc.ignored.get(why, 0) + 1
+        return []
+
+    def _samples(self, msg: Any, mtype: str, t_s: float, acc: TypeAccount) -> list:
+        if mtype == "IMU":
+            if getattr(msg, "I", 0) != self.imu_instance:
+                return self._ignore(acc, f"other instance (IMU {self.imu_instance} is integrated)")
+            f = (msg.AccX, msg.AccY, msg.AccZ)
+            w = (msg.GyrX, msg.GyrY, msg.GyrZ)
+            if not all(math.isfinite(v) for v in (*f, *w)):
+                raise ConversionError("non_finite", "IMU")
+            # a DataFlash log's IMU is the flight controller's own (ImuSample.source)
+            return [ImuSample(t_s, f, w, "autopilot")]
+        if mtype == "ATT":
+            if self.mav.autopilot_attitude_ok is False:
+                raise ConversionError("attitude_not_aligned", "the autopilot's EKF says its attitude is not aligned")
+            r, p, y = math.radians(msg.Roll), math.radians(msg.Pitch), math.radians(msg.Yaw)
+            if not all(math.isfinite(v) for v in (r, p, y)):
+                raise ConversionError("non_finite", "ATT")
+            return [AttitudeSample(t_s, r, p, float(wrap_angle(y)))]
+        if mtype == "BARO":
+            if getattr(msg, "I", 0) != self.baro_instance:
+                return self._ignore(acc, f"other instance (BARO {self.baro_instance} is the water sensor)")
+            if not msg.Press > 0:
+                raise ConversionError("bad_pressure", f"Press={msg.Press}")
+            return [DepthSample(t_s, float(msg.Press))]
+        if mtype == "RCOU":  # forward and lateral RPM as from SERVO_OUTPUT_RAW
+            return [rpm_from_pwm(lambda ch: getattr(msg, f"C{ch}", 0) or 0, t_s, self.config.thrusters)]
+        if mtype == "GPA":
+            h_acc = float(getattr(msg, "HAcc", 0.0) or 0.0)
+            if h_acc > 0 and math.isfinite(h_acc):
+                self._gps_h_acc_m[int(getattr(msg, "I", 0))] = h_acc
+            return self._ignore(acc, IGNORED_WHY["GPA"])
+        if mtype == "GPS":
+            return self._gps(msg, t_s, acc)
+        if mtype == "RFND":
+            if getattr(msg, "Orient", DOWNWARD) != DOWNWARD:
+                raise ConversionError("distance_not_down", f"Orient={msg.Orient}")
+            if getattr(msg, "Stat", RFND_STATUS_GOOD) != RFND_STATUS_GOOD:
+                raise ConversionError("distance_invalid", f"Stat={msg.Stat}")
+            return [AltitudeSample(t_s, float(msg.Dist))]
+        if mtype == "MSG":
+            word = attitude_word_from_text(str(getattr(msg, "Message", "")))
+            if word is not None:
+                self.mav.autopilot_attitude_ok = word
+            return self._ignore(acc, IGNORED_WHY["MSG"])
+        raise AssertionError(f"record {mtype} listed as used without a handler")
+
+    def _gps(self, msg: Any, t_s: float, acc: TypeAccount) -> list:
+        inst = int(getattr(msg, "I", 0))
+        if inst != 0:
+            return self._ignore(acc, "other instance (GPS 0 is used)")
+        if msg.Status < self.config.gnss_min_fix_type:
+            raise ConversionError("gnss_no_fix", f"Status={msg.Status}")
+        week, ms = getattr(msg, "GWk", 0), getattr(msg, "GMS", 0)
+        if week > 0:
+            # GPS time of the fix, logged on arrival: the UNIX time of the log (its rows'
+            # t_unix_s), the best clock a BIN carries — late by the least latency of the window
+            unix_s = GPS_EPOCH_UNIX_S + week * GPS_WEEK_S + ms / 1000.0 - GPS_UTC_LEAP_S
+            offset_s = -self._gps_delay.push(t_s, t_s - unix_s)
+            self.mav.time.pair_unix(t_s + offset_s, t_s, "GPS")
+        # the GPA written with the previous fix: accuracy changes slowly, and GPA follows GPS
+        h_acc = self._gps_h_acc_m.get(inst)
+        if h_acc is not None:
+            sigma = h_acc
+        elif 0 < msg.HDop < 99:
+            sigma = msg.HDop * self.config.gnss_sigma_per_hdop_m
+        else:
+            raise ConversionError("gnss_no_accuracy", "neither GPA.HAcc nor HDop")
+        return [GnssSample(t_s, math.radians(msg.Lat), math.radians(msg.Lng), float(sigma))]
+
+    def _sim(self, msg: Any, t_s: float) -> SimTruth:
+        q = (float(msg.Q1), float(msg.Q2), float(msg.Q3), float(msg.Q4))
+        vel = self._sim_vel_n_m_s if self._sim_vel_n_m_s is not None else (math.nan, math.nan, math.nan)
+        return SimTruth(t_s, float(msg.Lat), float(msg.Lng), float(msg.Alt), vel, q)

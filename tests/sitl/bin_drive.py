@@ -1,0 +1,133 @@
+"""Drive a real ArduSub (SITL) through a dive, lanes and turns, and collect its DataFlash log.
+
+This is the recording half of ``test_ardusub_bin.py``: no navigation daemon takes part (the
+autopilot runs with its own defaults, as a user's vehicle), the ground station of
+:mod:`tests.sitl.ardusub` arms, dives, drives and surfaces, then disarms — ArduSub writes
+``logs/*.BIN`` in its working directory while armed (``LOG_DISARMED`` 0), with the simulator's
+truth in its ``SIM``/``SIM2`` records.  ``log_bitmask`` None keeps the defaults of
+``sub.parm`` (180222: IMU at 25 Hz, ATT at 10 Hz, RCOU at 10 Hz, GPS, BARO; no IMU_FAST, no
+ATTITUDE_FAST) — what a real user's log carries.
+
+Usage (writes OUT/ardusub.BIN and OUT/session.tlog)::
+
+    python -m tests.sitl.bin_drive OUT [--log-bitmask N] [--leg-s 60] [--legs 4]
+    python -m tests.sitl.bin_drive --excerpt LOG.BIN EXCERPT.BIN   # the small copy for tests/data
+
+:func:`excerpt` keeps, record for record (pymavlink's DFReader, ``get_msgbuf``: the bytes as
+written), what the replay reads and the log's low-rate records, and drops the high-rate records
+it ignores (EKF, controllers, magnetometer, housekeeping: 5 of the 15.7 MB of a 5.5 min log) and
+all but 10 Hz of SIM2 (the simulator's 250 Hz physics step, 7.9 MB; the truth's velocity).
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import time
+from pathlib import Path
+
+from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, Gcs, free_udp_port
+
+# what the ground station records alongside (a tlog is handy to compare the two paths)
+RECORDED = ("RAW_IMU", "HIGHRES_IMU", "ATTITUDE", "SCALED_PRESSURE2", "SERVO_OUTPUT_RAW", "GPS_RAW_INT",
+            "SYSTEM_TIME", "SIM_STATE", "LOCAL_POSITION_NED")
+GCS_RATES = {"RAW_IMU": 50, "ATTITUDE": 50, "SCALED_PRESSURE2": 10, "SERVO_OUTPUT_RAW": 10,
+             "GPS_RAW_INT": 5, "SYSTEM_TIME": 1, "SIM_STATE": 10}
+
+
+def drive(gcs: Gcs, legs: int, leg_s: float) -> None:
+    """Dive in MANUAL, lanes and turns under depth hold, a sideways leg, surface."""
+    gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
+    gcs.mode(MODE_MANUAL)
+    gcs.arm()
+    gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
+    gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
+    gcs.hold_sticks(14, z=200)  # dive
+    gcs.mode(MODE_ALT_HOLD)
+    gcs.hold_sticks(3)
+    for leg in range(legs):
+        gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 450)
+        if leg < legs - 1:
+            gcs.hold_sticks(6, r=500 if leg % 2 == 0 else -500)
+    gcs.hold_sticks(20, y=400)  # a sideways leg (lateral thrusters)
+    gcs.hold_sticks(5)
+    gcs.mode(MODE_MANUAL)
+    gcs.hold_sticks(20, z=800)  # surface
+    gcs.hold_sticks(5)
+
+
+def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: float = 60.0) -> Path:
+    """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``."""
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / "ardusub-work"
+    work.mkdir(exist_ok=True)
+    gcs_port, bridge_port = free_udp_port(), free_udp_port()
+    sub = ArduSub(work, gcs_port, bridge_port).start()
+    gcs = Gcs(gcs_port, keep=RECORDED, tlog=out / "session.tlog")
+    try:
+        gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
+        gcs.set_param("ARMING_CHECK", 0)
+        if log_bitmask is not None:
+            gcs.set_param("LOG_BITMASK", log_bitmask)
+        for mtype, hz in GCS_RATES.items():
+            gcs.interval(mtype, hz)
+        # EKF3 aligned on its GPS before arming, as a pilot waits for it
+        gcs.wait_text("EKF3 IMU0 is using GPS", 120)
+        time.sleep(5.0)
+        drive(gcs, legs, leg_s)
+        gcs.command(400, 0, 21196)  # MAV_CMD_COMPONENT_ARM_DISARM: disarm (the log closes)
+        time.sleep(3.0)
+    finally:
+        gcs.close()
+        sub.stop()
+    bins = sorted((work / "logs").glob("*.BIN"), key=lambda p: p.stat().st_mtime)
+    if not bins:
+        raise RuntimeError(f"ArduSub wrote no DataFlash log in {work / 'logs'}")
+    dest = out / "ardusub.BIN"
+    shutil.copyfile(bins[-1], dest)
+    return dest
+
+
+# the excerpt: every record of these types (what the replay reads, and the log's low-rate
+# records: format, parameters, text, modes, events, EKF origin and timing)
+EXCERPT_TYPES = ("FMT", "FMTU", "UNIT", "MULT", "PARM", "MSG", "VER", "MODE", "EV", "ARM", "CMD", "ORGN", "MAVC",
+                 "PM", "DSF", "DU32", "XKT", "XKV1", "XKV2", "IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM")
+EXCERPT_SIM2_PERIOD_S = 0.1
+
+
+def excerpt(src: Path, dst: Path) -> dict[str, int]:
+    """Copy the records of :data:`EXCERPT_TYPES` and SIM2 at 10 Hz from ``src`` to ``dst``;
+    returns the records written by type."""
+    from collections import Counter
+
+    from pymavlink import DFReader
+
+    log = DFReader.DFReader_binary(str(src), zero_time_base=True)
+    kept: Counter = Counter()
+    last_sim2_us = -1e18
+    with open(dst, "wb") as f:
+        while (m := log.recv_msg()) is not None:
+            mtype = m.get_type()
+            if mtype == "SIM2":
+                if m.TimeUS - last_sim2_us < EXCERPT_SIM2_PERIOD_S * 1e6:
+                    continue
+                last_sim2_us = m.TimeUS
+            elif mtype not in EXCERPT_TYPES:
+                continue
+            f.write(m.get_msgbuf())
+            kept[mtype] += 1
+    return dict(kept)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:2] == ["--excerpt"]:
+        print(excerpt(Path(sys.argv[2]), Path(sys.argv[3])))
+        sys.exit(0)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--log-bitmask", type=int)
+    ap.add_argument("--legs", type=int, default=4)
+    ap.add_argument("--leg-s", type=float, default=60.0)
+    a = ap.parse_args()
+    print(record(a.out, a.log_bitmask, a.legs, a.leg_s))
