@@ -21,7 +21,8 @@ can be overridden one by one in ``[filter.imu]``.
   defaults (EK3_ACC_P_NSE, EK3_GYRO_P_NSE) are used. An autopilot trims the
   gyro offset at boot; what remains over a dive is tens to hundreds of °/h (0.1 °/s taken),
   accelerometer offsets after calibration ~10 mg; in-run instability ~10 °/h, 0.1 mg (the
-  class's order of magnitude, not a datasheet figure).
+  class's order of magnitude, not a datasheet figure) — but the gyro's bias also moves with
+  temperature over a dive, so its random walk is EKF3's (EK3_GBIAS_P_NSE), not the instability's.
 - ``tactical`` — MEMS tactical IMUs: Analog Devices ADIS16495 (ARW 0.12 °/√h, in-run bias
   0.8 °/h, VRW 0.008 m/s/√h; not re-checked), Safran STIM300 (datasheet rev 9, 10 g
   accelerometers: ARW 0.15 °/√h, bias instability 0.5 °/h, VRW 0.06 m/s/√h, accelerometer
@@ -115,7 +116,13 @@ PROFILES: dict[str, ImuFigures] = {
         acc_bias_sigma_m_s2=10 * MG,
         gyro_bias_sigma_rad_s=0.1 * DEG,                   # 360 °/h after boot trimming
         acc_bias_rw_m_s3_rthz=0.1 * MG * math.sqrt(2.0 / 100.0),   # 0.1 mg over ~100 s
-        gyro_bias_rw_rad_s2_rthz=10 * DEG / HOUR * math.sqrt(2.0 / 100.0),  # 10 °/h over ~100 s
+        # EKF3's EK3_GBIAS_P_NSE = 1e-3 rad/s² per 10 ms step (×√0.01 s): 1e-4 rad/s²/√Hz, ~1 mrad/s
+        # (200 °/h) a minute. An autopilot's MEMS drifts with its temperature (a hull warming, a dive
+        # into cold water), and ArduSub's SITL models it (SIM_DRIFT_SPEED 0.05 °/s per minute, a
+        # 5 min ramp): its DataFlash log (float IMU; RAW_IMU's int mrad/s hides most of it) showed
+        # the bias go 0.7 → 4.3 mrad/s in 4 min, which the former 10 °/h over 100 s (6.9e-6) could
+        # not follow — the lag went into tilt and the current, 5.25 % of distance, now 1.80 %
+        gyro_bias_rw_rad_s2_rthz=1.0e-3 * math.sqrt(0.01),
     ),
     "tactical": ImuFigures(                                # STIM300 / ADIS16495 class
         acc_noise_m_s2_rthz=0.0006,                        # ≈ 0.036 m/s/√h

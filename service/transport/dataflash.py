@@ -132,7 +132,8 @@ class DataflashConverter:
         try:
             if mtype == "SIM":
                 acc.stamp(t_s)
-                acc.ignored["simulator truth (never fused; the replay's metrics)"] = acc.messages
+                why = "simulator truth (never fused; the replay's metrics)"
+                acc.ignored[why] = acc.ignored.get(why, 0) + 1
                 return [], [self._sim(msg, t_s)]
             out = self._samples(msg, mtype, t_s, acc)
         except ConversionError as e:

@@ -122,9 +122,10 @@ def test_with_the_vehicle_profile_the_solution_is_valid_under_water_and_within_1
     assert summary["filter"]["resets"] == {}
 
 
-@pytest.mark.xfail(strict=True, reason="5.25 % (7.3 m of 139.7 m): with no minute at rest before the dive the "
-                                       "filter's current (unobservable under water) absorbs the IMU's errors, "
-                                       "0.017 m/s east by the end; the same run's tlog from its arming: 2.7 %")
 def test_with_the_vehicle_profile_the_end_error_is_within_5_percent(profiled):
+    """The simulated gyro's bias ramps 0.05 °/s per minute (SIM_DRIFT_SPEED: 0.7 → 4.3 mrad/s in
+    the 4 min of lanes) and the log starts at arming, 5 s before the dive: the filter must follow
+    the bias under way (with a bias random walk of 10 °/h per 100 s it lagged, the lag went into
+    tilt and the water current: 5.25 %, max 7.3 m)."""
     s = score(profiled[3], DRIVE)
-    assert s["end_error_percent"] <= 5.0, s
+    assert s["end_error_percent"] <= 5.0 and s["max_error_submerged_m"] <= 5.0, s

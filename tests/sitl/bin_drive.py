@@ -25,7 +25,7 @@ import shutil
 import time
 from pathlib import Path
 
-from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, Gcs, free_udp_port
+from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, Gcs, free_udp_port, mav
 
 # what the ground station records alongside (a tlog is handy to compare the two paths)
 RECORDED = ("RAW_IMU", "HIGHRES_IMU", "ATTITUDE", "SCALED_PRESSURE2", "SERVO_OUTPUT_RAW", "GPS_RAW_INT",
@@ -74,7 +74,7 @@ def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: floa
         gcs.wait_text("EKF3 IMU0 is using GPS", 120)
         time.sleep(5.0)
         drive(gcs, legs, leg_s)
-        gcs.command(400, 0, 21196)  # MAV_CMD_COMPONENT_ARM_DISARM: disarm (the log closes)
+        gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # disarm (forced): the log closes
         time.sleep(3.0)
     finally:
         gcs.close()

@@ -50,4 +50,4 @@ def test_a_moving_ardusub_s_dataflash_log_replays_and_navigates(tmp_path):
         assert r["exit_code"] == 0 and r["unknown_message_types"] == [] and r["unix_reference"] == "GPS", r
         assert r["distance_travelled_m"] > 100.0 and r["max_error_submerged_m"] <= 15.0, r
     assert report["defaults"]["end_error_percent"] <= 5.0, report
-    assert report["profile"]["valid_fraction_submerged"] > 0.9, report
+    assert report["profile"]["end_error_percent"] <= 5.0 and report["profile"]["valid_fraction_submerged"] > 0.9, report
