@@ -8,7 +8,10 @@ interpolated linearly onto the estimate's times (only inside the truth's time sp
 - ``distance_travelled_m``: horizontal path length of the truth, ``Σ ‖p_{j+1} − p_j‖``;
 - ``drift_percent_since_fix = 100 · e_K / D_fix`` where ``D_fix`` is the truth's
   horizontal path length since the last *fused* absolute position fix (USBL/GNSS);
-  without any fix, since the start (the initial position is the fix);
+  without any fix, since the start (the initial position is the fix). A percentage of a
+  path shorter than :data:`MIN_PERCENT_PATH_M` says nothing (a log that ends with surface
+  fixes: a few mm since the last one, 800 %): then ``None``, as for
+  ``percent_distance_travelled`` of a vehicle that hardly moved;
 - ``current_error_m_s``: ``‖ĉ[N,E] − c[N,E]‖`` at the end (and at the last fix);
 - NEES ``ε_k = δx_kᵀ P_k⁻¹ δx_k`` over the navigation states position, velocity and
   attitude (d = 9): ``δp = p̂ − p``, ``δv = v̂ − v`` and the attitude error in the
@@ -69,6 +72,15 @@ class TruthArrays:
     vel_n_m_s: np.ndarray
     q_nb: np.ndarray
     current_n_m_s: np.ndarray
+
+
+# the shortest path a drift is given as a percentage of (m): an error of metres over a few
+# metres of path is a position error, not a drift rate
+MIN_PERCENT_PATH_M = 10.0
+
+
+def _percent_of_path(err_m: float, path_m: float) -> float | None:
+    return 100.0 * err_m / path_m if path_m >= MIN_PERCENT_PATH_M else None
 
 
 def interp_rows(t_query_s: np.ndarray, t_s: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -177,9 +189,8 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
         "distance_travelled_m": distance,
         "last_fix_t_s": None if last_fix_t_s is None else float(last_fix_t_s),
         "distance_since_fix_m": distance_since_fix,
-        "drift_percent_since_fix": (100.0 * final_err / distance_since_fix
-                                    if distance_since_fix > 0 else None),
-        "percent_distance_travelled": 100.0 * final_err / distance if distance > 0 else None,
+        "drift_percent_since_fix": _percent_of_path(final_err, distance_since_fix),
+        "percent_distance_travelled": _percent_of_path(final_err, distance),
         "current_error_m_s": float(cur_err[-1]),
         "current_error_at_last_fix_m_s": float(cur_err[max(i_fix, 0)]),
         "nees_dim": 9,

@@ -105,6 +105,12 @@ def test_metrics_of_a_known_offset_track():
     assert m["current_error_m_s"] == pytest.approx(0.05)
     assert m["nees_mean"] == pytest.approx(9.0)  # only the 3 m east error, unit covariance
 
+    # a log that ends with fixes: a few cm of path since the last one is no base for a percentage
+    m = compute_metrics(track, truth, last_fix_t_s=float(t[-1]) - 0.01)
+    assert m["distance_since_fix_m"] == pytest.approx(0.015)
+    assert m["drift_percent_since_fix"] is None
+    assert m["percent_distance_travelled"] == pytest.approx(100.0 * 3.0 / 900.0)
+
 
 def test_nees_of_consistent_errors_matches_chi_square():
     rng = np.random.default_rng(7)
