@@ -115,7 +115,7 @@ class AssociationConfig:
     extend_probability : float
         Pairs that continue a recent closure (:meth:`LegAssociator.extend`) are accepted when
         chance would give as many with at most this probability (0: never extended).
-    weak_clutter_per_m2, weak_likelihood_ratio : float
+    weak_clutter_per_m2, weak_likelihood_ratio, weak_density_radius_m : float
         A pair with a weak sighting (:attr:`~adaptnav.sonar.objects.ObjectSighting.weak`) joins
         an accepted set only where its residual from the set's prediction is at least this
         many times likelier for the object seen again than for a false weak sighting lying
@@ -125,7 +125,11 @@ class AssociationConfig:
         their inlier regions 27–180 m² (predictions far from their sets), the true ones' ≤ 15 m²;
         a bound on the region's area (≤ 13 m²) kept seeds 1–5 clean, but held-out seed 7 had
         5 false weak pairs of 193, at small regions and residuals near the gate's edge (m² 3–9);
-        with the ratio ≥ 10 seeds 1–10 have 4 false weak pairs in 150.
+        with the ratio ≥ 10 (weak sightings nearer than 20 m) seeds 1–10 had 4 false weak pairs
+        in 150. False weak sightings gather on rough seabed: the density is the larger of
+        ``weak_clutter_per_m2`` and the weak sightings' own within ``weak_density_radius_m`` of
+        the pair's weak one (weak sightings over the whole swath, seeds 6–10: false weak pairs
+        11 of 104 → 6 of 99; seeds 1–5 1 of 109 → 1 of 107).
     """
 
     gate_probability: float = 0.999
@@ -153,10 +157,11 @@ class AssociationConfig:
     clutter_scale: float = 9.0
     set_span_s: float = 90.0
     extend_probability: float = 0.01
-    # false weak sightings per m² of seabed nearer than ObjectDetectorConfig.fine_range_m
-    # (survey seeds 1-5: ~900 a seed on 2 x 16 m x 3.6 km)
+    # false weak sightings per m² of seabed nearer than 20 m, where most are (survey seeds 1-5:
+    # ~900 a seed on 2 x 16 m x 3.6 km; beyond 20 m ~50 a seed)
     weak_clutter_per_m2: float = 0.0077
     weak_likelihood_ratio: float = 10.0
+    weak_density_radius_m: float = 15.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -779,25 +784,41 @@ class LegAssociator:
                if abs(o.t_s - ta) <= reach and id(o) not in in_set]
         new = [o for o in self._pending + self._weak_pending
                if abs(o.t_s - tb) <= reach and id(o) not in in_set]
-        cand = []
-        for i, a in enumerate(old):
-            for j, b in enumerate(new):
-                if not (a.weak or b.weak) or b.t_s - a.t_s < c.min_gap_s:
-                    continue
-                cand.append((i, j))
+        if not old or not new:
+            return lc
+        # pairs with a weak sighting, of two legs, near the set's offset (within 10 m: the
+        # inlier gates are a metre or two)
+        p_old = np.array([o.smooth_pos_n_m for o in old])
+        p_new = np.array([o.smooth_pos_n_m for o in new])
+        w_old = np.array([o.weak for o in old])
+        w_new = np.array([o.weak for o in new])
+        t_old = np.array([o.t_s for o in old])
+        t_new = np.array([o.t_s for o in new])
+        near = np.linalg.norm(p_old[:, None] - p_new[None] - drift.predict([ta], [tb])[0], axis=2) <= 10.0
+        near &= (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s)
+        cand = list(zip(*(v.tolist() for v in np.nonzero(near))))
         if not cand:
             return lc
-        diffs = np.array([old[i].smooth_pos_n_m - new[j].smooth_pos_n_m for i, j in cand])
-        t_a = np.array([old[i].t_s for i, _ in cand])
-        t_b = np.array([new[j].t_s for _, j in cand])
+        ii, jj = (np.array(v) for v in zip(*cand))
+        diffs = p_old[ii] - p_new[jj]
         D = np.array([old[i].det_cov + new[j].det_cov for i, j in cand])
-        r, R = drift.residuals(diffs, t_a, t_b, D)
+        r, R = drift.residuals(diffs, t_old[ii], t_new[jj], D)
         m2 = _m2(r, R)
         # the object seen again, against a false weak sighting that happens to lie there: the
         # residual's density under the set's prediction over the false ones' density (a
         # prediction far from the set, or a drift known poorly, spreads over metres, where one
-        # lies by chance; so does a residual at the edge of the gate)
-        lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * c.weak_clutter_per_m2)
+        # lies by chance; so does a residual at the edge of the gate). False weak sightings
+        # gather where the seabed is rough (ripples, gravel): the density is the larger of the
+        # measured mean and the weak sightings' own around the pair's weak one
+        rho = np.full(len(cand), c.weak_clutter_per_m2)
+        if self._weak_old:
+            p_weak = np.array([o.smooth_pos_n_m for o in self._weak_old])
+            rad = c.weak_density_radius_m
+            for k, (i, j) in enumerate(cand):
+                w = new[j] if new[j].weak else old[i]
+                n = int(np.count_nonzero(np.sum((p_weak - w.smooth_pos_n_m) ** 2, axis=1) <= rad * rad)) - 1
+                rho[k] = max(rho[k], n / (math.pi * rad * rad))
+        lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
         inside = np.flatnonzero(m2 <= self._inlier)
         likely = [k for k in inside if lr[k] >= c.weak_likelihood_ratio]
         fit = [k for k in likely if self._attributes_agree(old[cand[k][0]], new[cand[k][1]])]
