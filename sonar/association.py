@@ -56,6 +56,12 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
    times of one pair's two sightings, the median on the new leg), the fitted drift's offset
    there and its covariance, the number of objects.
 
+Weak sightings (:attr:`~adaptnav.sonar.objects.ObjectSighting.weak`, the detector's finds on
+the unfiltered image: mostly speckle) take no part in steps 1–3; once a set is accepted, a pair
+with a weak sighting joins its pairs where the set's fitted drift predicts it, the residual far
+likelier for the object than for a false weak sighting lying there
+(:meth:`LegAssociator._with_weak`). The closure's offset stays the set's.
+
 Reciprocal legs need nothing special here: attributes are view-independent and positions
 are in the local frame (the image is not matched, so its along-track order does not matter).
 """

@@ -34,6 +34,13 @@ Detection (:func:`detect_objects`), per side with columns ordered outwards:
 Near the nadir (``near_range_m``) objects are also taken by their highlight alone followed
 by a darker strip: the shadow there is too short to measure (height NaN).
 
+Weak sightings (``fine_range_m``): the shadowed-object test also runs on the waterfall before
+its 3×3 median, which fills in the 1–3 px shadow of a small object near the nadir (a tyre's:
+the dark hole inside its ring) and dims a tyre's one- or two-pixel tread further out. What it
+finds that is not one of the usual sightings is marked :attr:`ObjectSighting.weak`: many are
+speckle, so the associator never founds a set on them, and only adds them to a set the others
+established, where its fitted drift predicts them (:class:`~adaptnav.sonar.association.LegAssociator`).
+
 Jump-free track: :class:`ObjectFrontEnd` given the navigation's velocity accumulates the
 position changes the velocity does not explain (fixes, fused loop closures) in each
 sighting's ``jump_n_m``; the associator compares sightings on ``pos_n_m − jump_n_m``.

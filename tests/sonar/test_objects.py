@@ -284,6 +284,29 @@ def test_weak_sightings_never_found_a_set_but_join_one_where_they_fit_it(displac
     assert again is None or not any(b.weak or a.weak for a, b in again.pairs)
 
 
+@pytest.mark.parametrize("clutter", [0, 12])
+def test_a_weak_sighting_among_many_weak_ones_does_not_join(clutter):
+    """The same weak sighting of an object, where the set predicts it, joins the set on a
+    clean seabed; with a dozen more weak sightings within 15 m of it (rough seabed, where false
+    ones gather: a few times the mean density) one lying there by chance is as likely as the
+    object, and it does not."""
+    rng = np.random.default_rng(7)
+    objs = np.column_stack([np.arange(10) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 10)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    assoc.add([_placed(1000.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)])
+    weak = replace(_placed(1300.0 + 4.0 * 7, objs[2] + e_b, 2.0, rng), weak=True)
+    # the clutter: weak sightings of the new leg around it, not near any old sighting's place
+    far = objs[2] + e_b + np.array([0.0, 12.0])
+    noise = [replace(_placed(1300.0 + 4.0 * 7 + k, far + rng.uniform(-3.0, 3.0, 2), 2.0, rng), weak=True)
+             for k in range(clutter)]
+    assert assoc.add([weak] + noise) is None
+    lc = assoc.add([_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
+    assert lc is not None
+    joined = [b for _, b in lc.pairs if b.weak]
+    assert joined == ([weak] if clutter == 0 else [])
+
+
 @pytest.mark.parametrize("displaced_m", [0.0, 2.5])
 def test_a_block_with_two_objects_continues_the_closure_just_accepted(displaced_m):
     """Two objects of the other leg are too few for a set of their own; the set accepted a
