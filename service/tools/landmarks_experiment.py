@@ -25,7 +25,9 @@ Scored against the simulator's truth (the seabed's objects, the true track):
 * ``sightings`` / ``sightings_on_objects``: the detector's sightings that may found a set (and of
   them on a true object); ``weak_sightings`` / ``weak_sightings_on_objects``: the weak ones
   (:attr:`adaptnav.sonar.objects.ObjectSighting.weak`, only added to accepted sets), ``weak_pairs``
-  / ``weak_false_pairs``: accepted pairs with a weak sighting (in ``pairs`` / ``false_pairs`` too);
+  / ``weak_false_pairs``: the closures' pairs with a weak sighting
+  (:attr:`adaptnav.sonar.association.LoopClosure.weak_pairs`: scored like the others, in ``pairs``
+  and ``false_pairs`` too, but not fused nor given to the calibrator);
 * ``drift_percent_with_landmarks`` / ``drift_percent_without_landmarks``: horizontal error
   at the end / distance travelled since the last USBL fix, %.
 """
@@ -185,7 +187,7 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
     found: set[int] = set()
     n_pairs = n_false = 0
     for lc in closures:
-        for a, b in lc.pairs:
+        for a, b in tuple(lc.pairs) + tuple(lc.weak_pairs):
             n_pairs += 1
             ka, kb = truth_object(a), truth_object(b)
             if ka < 0 or ka != kb:
@@ -198,7 +200,7 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
     # others founded: the detector's precision is the others', the weak ones reported apart
     on_obj = sum(k >= 0 for k, o in zip(truth, sightings) if not o.weak)
     n_weak = sum(o.weak for o in sightings)
-    weak_pairs = [(a, b) for lc in closures for a, b in lc.pairs if a.weak or b.weak]
+    weak_pairs = [(a, b) for lc in closures for a, b in lc.weak_pairs]
     extra = {"weak_sightings": n_weak,
              "weak_sightings_on_objects": sum(k >= 0 for k, o in zip(truth, sightings) if o.weak),
              "weak_pairs": len(weak_pairs),
