@@ -399,8 +399,13 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     if cfg.gain_normalise:
         image = normalise_gain(image)
     if cfg.median_ksize and cfg.median_ksize > 1:
-        image = cv2.medianBlur(np.ascontiguousarray(image, dtype=np.float32), int(cfg.median_ksize))
+        image = median_filtered(image, cfg.median_ksize)
     return Waterfall(image.astype(np.float32), res, along_res, t, dist, heading, ping_index, alt)
+
+
+def median_filtered(image: np.ndarray, ksize: int) -> np.ndarray:
+    """The ``ksize`` × ``ksize`` median of a waterfall image (step 5 of :func:`build_waterfall`), float32."""
+    return cv2.medianBlur(np.ascontiguousarray(image, dtype=np.float32), int(ksize))
 
 
 def to_uint8(image: np.ndarray, *, clip_percentile: float = 99.5) -> np.ndarray:

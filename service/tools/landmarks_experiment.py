@@ -22,6 +22,12 @@ Scored against the simulator's truth (the seabed's objects, the true track):
   whose two sightings are truly that object, one from each of the two legs;
 * ``false_link_fraction``: accepted pairs whose sightings are not the same object;
 * ``links_per_km``: loop closures per km travelled;
+* ``sightings`` / ``sightings_on_objects``: the detector's sightings that may found a set (and of
+  them on a true object); ``weak_sightings`` / ``weak_sightings_on_objects``: the weak ones
+  (:attr:`adaptnav.sonar.objects.ObjectSighting.weak`, only added to accepted sets), ``weak_pairs``
+  / ``weak_false_pairs``: the closures' pairs with a weak sighting
+  (:attr:`adaptnav.sonar.association.LoopClosure.weak_pairs`: scored like the others, in ``pairs``
+  and ``false_pairs`` too, but not fused nor given to the calibrator);
 * ``drift_percent_with_landmarks`` / ``drift_percent_without_landmarks``: horizontal error
   at the end / distance travelled since the last USBL fix, %.
 """
@@ -181,7 +187,7 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
     found: set[int] = set()
     n_pairs = n_false = 0
     for lc in closures:
-        for a, b in lc.pairs:
+        for a, b in tuple(lc.pairs) + tuple(lc.weak_pairs):
             n_pairs += 1
             ka, kb = truth_object(a), truth_object(b)
             if ka < 0 or ka != kb:
@@ -190,8 +196,15 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
             if ka in common and {leg(a.t_s), leg(b.t_s)} == set(common[ka]):
                 found.add(ka)
     truth = [truth_object(o) for o in sightings]
-    on_obj = sum(k >= 0 for k in truth)
-    extra = {}
+    # weak sightings (ObjectSighting.weak: near the nadir, unfiltered image) only join sets the
+    # others founded: the detector's precision is the others', the weak ones reported apart
+    on_obj = sum(k >= 0 for k, o in zip(truth, sightings) if not o.weak)
+    n_weak = sum(o.weak for o in sightings)
+    weak_pairs = [(a, b) for lc in closures for a, b in lc.weak_pairs]
+    extra = {"weak_sightings": n_weak,
+             "weak_sightings_on_objects": sum(k >= 0 for k, o in zip(truth, sightings) if o.weak),
+             "weak_pairs": len(weak_pairs),
+             "weak_false_pairs": sum(truth_object(a) < 0 or truth_object(a) != truth_object(b) for a, b in weak_pairs)}
     if assoc is not None and assoc.trace is not None:
         extra["budget"] = _budget(sightings, truth, [leg(o.t_s) for o in sightings], common, found, abeam,
                                   assoc, min_range_m, max_range_m)
@@ -210,7 +223,7 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
         objects_in_common_swath=len(common), objects_reassociated=len(found), pairs=n_pairs,
         false_pairs=n_false, loop_closures=len(closures), loop_closures_fused=fused,
         distance_km=dist_all / 1000.0, drift_percent_with_landmarks=drift(est_with),
-        drift_percent_without_landmarks=drift(est_without), sightings=len(sightings),
+        drift_percent_without_landmarks=drift(est_without), sightings=len(sightings) - n_weak,
         sightings_on_objects=int(on_obj), seed=int(scenario.seed), extra=extra)
 
 
@@ -230,7 +243,8 @@ def _budget(sightings, truth, legs_of, common, found, abeam, assoc, min_range_m,
     * ``missed``: not detected on one of the two legs (by that leg's ground-range band), or both;
     * otherwise the furthest stage the best of their true pairs reached in the associator
       (:data:`adaptnav.sonar.association.STAGES`; ``outside`` = beyond the wide gate);
-    * ``recall_by_band``: detections / objects abeam of a leg, by ground range, all legs;
+    * ``recall_by_band``: detections / objects abeam of a leg, by ground range, all legs
+      (``recall_by_band_without_weak``: not counting weak sightings);
     * ``pair_scatter``: of the true cross-leg pairs, the median and 90th percentile of the
       height and along-track length differences in the associator's σ units.
     """
@@ -240,6 +254,7 @@ def _budget(sightings, truth, legs_of, common, found, abeam, assoc, min_range_m,
     for o, k, lg in zip(sightings, truth, legs_of):
         if k >= 0:
             by.setdefault((k, lg), []).append(o)
+    strong = {key for key, v in by.items() if any(not o.weak for o in v)}
     lost: dict[str, int] = {}
 
     def count(key):
@@ -276,15 +291,17 @@ def _budget(sightings, truth, legs_of, common, found, abeam, assoc, min_range_m,
     recall: dict[str, list[int]] = {}
     for lg, g in enumerate(abeam):
         for k in np.flatnonzero((g >= min_range_m) & (g <= max_range_m)):
-            r = recall.setdefault(_band(float(g[k])), [0, 0])
+            r = recall.setdefault(_band(float(g[k])), [0, 0, 0])
             r[1] += 1
             r[0] += int((int(k), lg) in by)
+            r[2] += int((int(k), lg) in strong)
 
     def q(v):
         return [float(np.median(v)), float(np.percentile(v, 90))] if v else None
 
     return {"lost": dict(sorted(lost.items(), key=lambda kv: -kv[1])),
-            "recall_by_band": {b: round(n / m, 3) for b, (n, m) in sorted(recall.items())},
+            "recall_by_band": {b: round(n / m, 3) for b, (n, m, _) in sorted(recall.items())},
+            "recall_by_band_without_weak": {b: round(n / m, 3) for b, (_, m, n) in sorted(recall.items())},
             "pair_scatter_sigmas": {"height": q(h_dev), "length": q(l_dev)}}
 
 

@@ -11,7 +11,7 @@ import pytest
 from adaptnav.sim.seabed import OBJECT_KINDS, Seabed
 from adaptnav.sim.sidescan import SidescanRenderer
 from adaptnav.sonar.association import LegAssociator
-from adaptnav.sonar.objects import ObjectFrontEnd, detect_objects
+from adaptnav.sonar.objects import ObjectDetectorConfig, ObjectFrontEnd, detect_objects
 from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall
 
 DS_M = 0.375      # along-track metres per ping (1.5 m/s, 4 Hz)
@@ -83,6 +83,10 @@ def test_detector_finds_most_objects_with_few_false_ones_and_measures_height(rec
     found, in_swath, n_true, n_false, h_err = set(), set(), 0, 0, []
     for (pings, pos), yaw in (((pa, xa), 0.0), ((pb, xb), math.pi)):
         s, tp = _front_end(pings, pos, yaw, np.zeros(2), 1.0)
+        # the sightings that may found a loop closure (weak ones only join an accepted set:
+        # test_weak_sightings_near_the_nadir_find_objects_the_median_erased)
+        tp = [q for q, o in zip(tp, s) if not o.weak]
+        s = [o for o in s if not o.weak]
         k = _truth_match(sb, tp)
         n_true += int((k >= 0).sum())
         n_false += int((k < 0).sum())
@@ -99,6 +103,28 @@ def test_detector_finds_most_objects_with_few_false_ones_and_measures_height(rec
     # height from the shadow, seen from either side: biased low (the shadow's ends are
     # soft) but the right size
     assert -0.5 < float(np.median(h_err)) < 0.1
+
+
+def test_weak_sightings_near_the_nadir_find_objects_the_median_erased(reciprocal_passes):
+    """Nearer than 20 m a tyre's or small boulder's shadow is 1–3 px, which the waterfall's
+    3×3 median fills in: sought on the unfiltered image too (weak sightings), more of the
+    objects at 5–20 m are found (here 24 → 31 of 44; none without the fine image)."""
+    sb, (pa, xa), (pb, xb) = reciprocal_passes
+    gained, weak, weak_true = 0, 0, 0
+    for (pings, pos), yaw in (((pa, xa), 0.0), ((pb, xb), math.pi)):
+        s, tp = _front_end(pings, pos, yaw, np.zeros(2), 1.0)
+        k = _truth_match(sb, tp)
+        g = np.abs(sb.objects_n_m[:, 1] - pos[0, 1])
+        near = set(np.flatnonzero((g > 5.0) & (g < 20.0) & (sb.objects_n_m[:, 0] > pos[:, 0].min() + 9)
+                                  & (sb.objects_n_m[:, 0] < pos[:, 0].max() - 9)).tolist())
+        strong = {int(j) for o, j in zip(s, k) if j in near and not o.weak}
+        gained += len({int(j) for o, j in zip(s, k) if j in near and o.weak} - strong)
+        weak += sum(o.weak for o in s)
+        weak_true += sum(o.weak and j >= 0 for o, j in zip(s, k))
+        assert all(o.ground_range_m < ObjectDetectorConfig().fine_range_m for o in s if o.weak)
+    assert gained >= 5, gained
+    # most weak sightings are false (why they may not found a set), but not all
+    assert weak_true >= 0.15 * weak, (weak_true, weak)
 
 
 def test_reciprocal_legs_give_one_loop_closure_with_the_navigation_offset(reciprocal_passes):
@@ -225,6 +251,60 @@ def test_an_hour_older_leg_in_the_gates_does_not_veto_a_set_of_true_pairs():
     assert all(a.t_s >= 3700.0 for a, _ in lc.pairs)  # each pair with its own object
     assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs)
     assert np.linalg.norm(lc.offset_n_m - (e_a - e_b)) < 0.5
+
+
+@pytest.mark.parametrize("displaced_m", [0.0, 4.0])
+def test_weak_sightings_never_found_a_set_but_join_one_where_they_fit_it(displaced_m):
+    """Weak sightings of ten objects agree on one offset with the earlier leg, yet found no
+    loop closure (false weak ones are too frequent); once six sightings that may found one
+    give a set, the weak ones of the other four objects join it — only where they fit its
+    offset (displaced by 4 m they do not: the drift extrapolated 4–20 s beyond the set allows
+    ~2 m), and never twice."""
+    rng = np.random.default_rng(7)
+    objs = np.column_stack([np.arange(10) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 10)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    assoc.add([_placed(1000.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)])
+    shift = np.array([displaced_m, 0.0])
+    weak = [replace(_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b + (shift if i < 4 else 0.0), 2.0, rng), weak=True)
+            for i in range(10)]
+    assert assoc.add(weak) is None
+    lc = assoc.add([_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
+    assert lc is not None
+    joined = list(lc.weak_pairs)
+    # the set's own pairs (what is fused and goes to the calibrator) have no weak sighting
+    assert len(lc.pairs) >= 5 and lc.n_objects == len(lc.pairs) and not any(b.weak for _, b in lc.pairs)
+    assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs + lc.weak_pairs)
+    if displaced_m == 0.0:
+        assert len(joined) == 4 and {id(b) for _, b in joined} == {id(o) for o in weak[:4]}
+    else:
+        assert not joined
+    # the next set (the same objects again, a minute on) takes no weak pair twice
+    again = assoc.add([_placed(1360.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
+    assert again is None or not (again.weak_pairs or any(b.weak or a.weak for a, b in again.pairs))
+
+
+@pytest.mark.parametrize("clutter", [0, 12])
+def test_a_weak_sighting_among_many_weak_ones_does_not_join(clutter):
+    """The same weak sighting of an object, where the set predicts it, joins the set on a
+    clean seabed; with a dozen more weak sightings within 15 m of it (rough seabed, where false
+    ones gather: a few times the mean density) one lying there by chance is as likely as the
+    object, and it does not."""
+    rng = np.random.default_rng(7)
+    objs = np.column_stack([np.arange(10) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 10)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    assoc.add([_placed(1000.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)])
+    weak = replace(_placed(1300.0 + 4.0 * 7, objs[2] + e_b, 2.0, rng), weak=True)
+    # the clutter: weak sightings of the new leg around it, not near any old sighting's place
+    far = objs[2] + e_b + np.array([0.0, 12.0])
+    noise = [replace(_placed(1300.0 + 4.0 * 7 + k, far + rng.uniform(-3.0, 3.0, 2), 2.0, rng), weak=True)
+             for k in range(clutter)]
+    assert assoc.add([weak] + noise) is None
+    lc = assoc.add([_placed(1300.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
+    assert lc is not None
+    joined = [b for _, b in lc.weak_pairs]
+    assert joined == ([weak] if clutter == 0 else [])
 
 
 @pytest.mark.parametrize("displaced_m", [0.0, 2.5])
