@@ -856,6 +856,14 @@ class OnlineCalibrator:
         return (np.array([p[1] for p in poses[1:]]), np.array([p[2] for p in poses]),
                 [self._lm_obs.get(p[0], []) for p in poses])
 
+    def finish(self) -> None:
+        """The data ended: what is still held for completion leaves by :meth:`poll` — the
+        side-scan's last, incomplete block of pings (:meth:`CalibratorSonar.finish`)."""
+        if self.sonar is not None:
+            batch = self.sonar.finish()
+            if batch is not None:
+                self._pending.append(batch)
+
     def poll(self) -> list:
         """Releases (accepted or refused) computed since the last call, and the side-scan's
         :class:`~adaptnav.calibration.sidescan.ObjectBatch` es (for the filter), oldest first."""

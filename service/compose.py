@@ -63,6 +63,7 @@ def make_lagged_calibrator(cfg: Any, params0: MotionParams, location: str = "pro
     from adaptnav.service.calibrator.lagged import InlineBackend, LaggedCalibrator, ProcessBackend
 
     lag = cfg.calibrator.latency_s if latency_s is None else latency_s
+    product_lag = min(cfg.calibrator.product_latency_s, lag)
     seed = cfg.calibrator.seed
     if location == "inline":
         backend: Any = InlineBackend(make_calibrator(cfg, params0, seed))
@@ -70,7 +71,7 @@ def make_lagged_calibrator(cfg: Any, params0: MotionParams, location: str = "pro
         backend = ProcessBackend(cfg, params0, seed)
     else:
         raise ValueError(f"calibrator location {location!r}: expected 'process' or 'inline'")
-    return LaggedCalibrator(backend, lag)
+    return LaggedCalibrator(backend, lag, product_lag)
 
 
 def make_live_calibrator(cfg: Any, params0: MotionParams, batch_s: float = 0.05):

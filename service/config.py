@@ -295,6 +295,8 @@ class CalibratorSection:
     release computed from data up to data time τ is applied once the runner's data time
     reaches τ + latency_s, live and in replay (replay waits for the calibrator's
     progress, so its output is deterministic; see :mod:`adaptnav.service.calibrator.lagged`).
+    ``product_latency_s``: the same rule for the calibrator's side products, the side-scan
+    objects it detects for the filter (≤ ``latency_s``).
     """
 
     enabled: bool = True
@@ -304,11 +306,20 @@ class CalibratorSection:
     queue_size: int = 20000
     seed: int = 0
     latency_s: float = 60.0  # > one EM window's run time × the replay speed-up (deploy/adaptnav.toml)
+    # side-scan objects are measurements for the filter, due as soon as a block is detected:
+    # held for latency_s, a loop closure reached the filter a minute after its sightings and
+    # the closures in between were associated and fused on a track a minute less corrected
+    # (landmark survey seed 2, no release applied: drift 0.217 % against 0.092 % with the
+    # objects fused as detected). A detection block takes the child well under a second live;
+    # in replay with side-scan the runner waits for the child to be within this of its data
+    product_latency_s: float = 5.0
     online: CalibratorConfig = field(default_factory=CalibratorConfig)
 
     def validate(self) -> None:
         if not (math.isfinite(self.latency_s) and self.latency_s >= 0.0):
             raise ValueError("latency_s must be a finite number ≥ 0")
+        if not 0.0 <= self.product_latency_s <= self.latency_s:
+            raise ValueError("product_latency_s must be within [0, latency_s]")
         if not 0.0 < self.restart_backoff_s <= self.restart_backoff_max_s <= 3600.0:
             raise ValueError("restart backoff: need 0 < restart_backoff_s ≤ restart_backoff_max_s ≤ 3600 s")
         _check_queue_size("queue_size", self.queue_size)

@@ -40,6 +40,7 @@ from adaptnav.service.transport.release import release_from_dict, release_to_dic
 
 _STOP = "__stop__"
 _SHIFT = "__shift__"
+_FINISH = "__finish__"  # the data ended: the calibrator hands over what it holds for completion
 
 
 class InlineBackend:
@@ -64,7 +65,13 @@ class InlineBackend:
         self.clock.tau += delta_s
 
     def finish(self) -> None:
-        pass
+        """The data ended: what the calibrator still holds (:meth:`OnlineCalibrator.finish`)
+        is ready at the data time reached."""
+        finish = getattr(self.calibrator, "finish", None)
+        if finish is not None:
+            finish()
+            for rel in self.calibrator.poll():
+                self.ready.append((self.clock.tau, rel))
 
     def close(self) -> None:
         pass
@@ -106,6 +113,12 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 return
             if isinstance(msg, str) and msg == _STOP:
                 return
+            if isinstance(msg, str) and msg == _FINISH:  # the data ended (InlineBackend.finish)
+                calibrator.finish()
+                for rel in calibrator.poll():
+                    out_q.send(child_message(rel, clock.tau))
+                out_q.send(("finished", None, clock.tau))
+                continue
             if msg[0] == _SHIFT:  # the runner re-based a clock jump: τ moves with the data
                 clock.tau += msg[1]
                 out_q.send(("shifted", None, msg[1]))
@@ -231,6 +244,7 @@ class ProcessBackend:
         self.wait_s = 0.0       # wall time spent waiting for the child
         self._unacked_shift_s = 0.0  # clock shifts sent to the child it has not confirmed yet
         self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
+        self._finished = False  # the child handed over what it held at the end of the data
 
     def send(self, sample: Any) -> None:
         self._batch.append(sample)
@@ -263,6 +277,8 @@ class ProcessBackend:
             self._done, self._child_tau = int(body), float(tau) + self._unacked_shift_s
         elif kind == "shifted":
             self._unacked_shift_s -= float(tau)
+        elif kind == "finished":
+            self._finished = True
         elif kind == "error":
             raise RuntimeError(f"calibrator process failed: {body}")
         return True
@@ -291,11 +307,19 @@ class ProcessBackend:
         self._child_tau += delta_s
 
     def finish(self) -> None:
-        """Wait for the child to process everything observed."""
+        """Wait for the child to process everything observed, then for what it still holds
+        (:meth:`InlineBackend.finish`)."""
         self._flush()
         t0 = time.monotonic()
         while self._done < self._sent:
             self._read(block=True)
+        if not self._finished:
+            try:
+                self._w.send(_FINISH)
+            except (BrokenPipeError, OSError) as e:
+                raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+            while not self._finished:
+                self._read(block=True)
         self.wait_s += time.monotonic() - t0
         self.child_cpu_s = _cpu_s(self._proc.pid)
 
@@ -326,31 +350,54 @@ class LaggedCalibrator:
     backend : InlineBackend or ProcessBackend
     latency_s : float
         ``L`` (data seconds, ≥ 0).
+    product_latency_s : float, optional
+        ``L_p`` ≤ ``L`` for the side products (side-scan objects for the filter); default ``L``.
     """
 
-    def __init__(self, backend: Any, latency_s: float) -> None:
+    def __init__(self, backend: Any, latency_s: float, product_latency_s: float | None = None) -> None:
         if not (math.isfinite(latency_s) and latency_s >= 0):
             raise ValueError(f"calibrator latency_s must be a finite number ≥ 0, got {latency_s}")
+        lp = latency_s if product_latency_s is None else float(product_latency_s)
+        if not 0.0 <= lp <= latency_s:
+            raise ValueError(f"calibrator product_latency_s must be within [0, latency_s], got {lp}")
         self.backend = backend
         self.latency_s = float(latency_s)
+        self.product_latency_s = lp
+        # how far behind the runner the calibrator may be: L until products can come (they
+        # come only from side-scan pings), then L_p — a replay without side-scan never
+        # waits for the calibrator more than before
+        self._sync_lag_s = self.latency_s
         self.released = 0
         self.observe = backend.send  # the runner calls it for every sample: no extra frame
+        if lp < latency_s:
+            self.observe = self._observe
 
-    def observe(self, sample: Any) -> None:  # replaced per instance by backend.send (__init__)
+    def _observe(self, sample: Any) -> None:
+        if sample.KIND == "sonar":
+            self._sync_lag_s = self.product_latency_s
+            self.observe = self.backend.send
         self.backend.send(sample)
 
     def poll(self, data_time_s: float) -> list:
-        """The releases with ``τ + L ≤ data_time_s`` (the runner's data time), oldest first,
-        once the calibrator has caught up with ``data_time_s − L``; ``data_time_s = ∞``: the
-        data ended, the calibrator finishes and every release is due."""
+        """The releases with ``τ + L ≤ data_time_s`` (the runner's data time) and the side
+        products with ``τ + L_p ≤ data_time_s``, oldest first, once the calibrator has caught
+        up with ``data_time_s − L`` (``− L_p`` once products can come); ``data_time_s = ∞``:
+        the data ended, the calibrator finishes and everything is due."""
         if data_time_s == math.inf:
             self.backend.finish()
         else:
-            self.backend.sync(data_time_s - self.latency_s)
+            self.backend.sync(data_time_s - self._sync_lag_s)
         ready = self.backend.ready
-        due = []
-        while ready and ready[0][0] + self.latency_s <= data_time_s:
-            due.append(ready.pop(0)[1])
+        if not ready or ready[0][0] + self.product_latency_s > data_time_s:  # the usual poll: nothing due
+            return []
+        due, keep = [], []
+        for tau, out in ready:
+            lag = self.latency_s if out.KIND == "calibration_release" else self.product_latency_s
+            if tau + lag <= data_time_s:
+                due.append(out)
+            else:
+                keep.append((tau, out))
+        ready[:] = keep
         self.released += len(due)
         return due
 

@@ -109,6 +109,9 @@ class CalibratorProcess:
         self.cfg = cfg
         self.params = params0
         self.latency_s = float(getattr(cfg.calibrator, "latency_s", 0.0))
+        # side products (side-scan objects for the filter) are due sooner (config.CalibratorSection)
+        self.product_latency_s = min(float(getattr(cfg.calibrator, "product_latency_s", self.latency_s)),
+                                     self.latency_s)
         self._held: deque = deque()   # (τ, release) from the reader thread, oldest first
         self.batch_s = batch_s
         self.dropped = 0
@@ -270,16 +273,25 @@ class CalibratorProcess:
             self._shift_to_send_s += delta_s
 
     def poll(self, data_time_s: float) -> list:
-        """The held releases with ``τ + L ≤ data_time_s`` (the runner's data time), oldest first."""
+        """The held releases with ``τ + L ≤ data_time_s`` (the runner's data time) and side
+        products with ``τ + L_p ≤ data_time_s``, oldest first."""
         # the runner polls after every sample: flushing here unconditionally sent
         # one-sample batches (thousands of queue items per second at the demo's pace,
         # the queue filled and samples were dropped); only a batch older than batch_s goes
         if self._batch and time.monotonic() - self._batch_t0 >= self.batch_s:
             self.flush()
         held, due = self._held, []
+        if not held or held[0][0] > data_time_s - self.product_latency_s:  # the usual poll: nothing due
+            return due
         limit = data_time_s - self.latency_s
-        while held and held[0][0] <= limit:  # the release rule (module docstring)
-            due.append(held.popleft()[1])
+        with self._held_lock:  # the release rule (module docstring), products with their own latency
+            keep = deque()
+            for tau, out in self._held:
+                if tau <= (limit if out.KIND == "calibration_release" else data_time_s - self.product_latency_s):
+                    due.append(out)
+                else:
+                    keep.append((tau, out))
+            self._held = keep
         return due
 
     def stop(self, timeout_s: float = 3.0) -> None:
