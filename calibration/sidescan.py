@@ -91,25 +91,14 @@ class CalibratorSonar:
         return ObjectBatch(float(ping.t_s), tuple(sightings)) if sightings else None
 
     def finish(self) -> ObjectBatch | None:
-        """The data ended: the objects in the pings of the block not yet complete that have as
-        many pings after them as a complete block gives its objects (``context_pings``; nearer
-        the end an object may be cut off). A block completes only with the next one's context
-        pings, so without this the objects of the last 16-18 s were never detected (landmark
-        survey seed 7: the inline pipeline's last loop closure, which its block boundary
-        happened to catch, corrected the end position by 2.3 m). None when there is no such
-        ping or no such object."""
-        fe = self.front_end
-        c = fe.config
-        # ObjectFrontEnd has no end-of-stream call of its own: its block of the pings from the
-        # next block's first on (``_block`` keeps the objects from ``start`` on)
-        start, n = fe._next_emit, fe._n
-        first = n - len(fe._pings)
-        if n - start <= c.context_pings or start < first:
-            return None
-        fe._next_emit = n
-        t_last = float(fe._pings[-1 - c.context_pings].t_s)  # the last ping with a full context after it
-        sightings = tuple(o for o in fe._block(start) if float(o.t_s) <= t_last)
-        return ObjectBatch(float(fe._pings[-1].t_s), sightings) if sightings else None
+        """The data ended: the objects of the block not yet complete
+        (:meth:`adaptnav.sonar.objects.ObjectFrontEnd.flush`). A block completes only with the
+        next one's context pings, so without this the objects of the last 16-18 s were never
+        detected (landmark survey seed 7: the inline pipeline's last loop closure, which its
+        block boundary happened to catch, corrected the end position by 2.3 m). None when
+        there is no such object."""
+        sightings, t_last_ping_s = self.front_end.flush()
+        return ObjectBatch(t_last_ping_s, tuple(sightings)) if sightings else None
 
 
 def body_sigmas_m(sighting) -> tuple[float, float]:

@@ -754,6 +754,21 @@ class ObjectFrontEnd:
         self._next_emit += c.block_pings
         return self._block(start)
 
+    def flush(self) -> tuple[list[ObjectSighting], float]:
+        """The stream ended: the sightings of the block not yet complete that have as many
+        pings after them as a complete block gives its objects (``context_pings``; nearer the
+        end an object may be cut off), and the last ping's time (s; NaN without pings).
+        Further pushes start a new block after them."""
+        c = self.config
+        t_last_ping_s = float(self._pings[-1].t_s) if self._pings else math.nan
+        start, n = self._next_emit, self._n
+        first = n - len(self._pings)  # global index of the buffer's first ping
+        if n - start <= c.context_pings or start < first:
+            return [], t_last_ping_s
+        self._next_emit = n
+        t_context_s = float(self._pings[-1 - c.context_pings].t_s)  # the last ping with a full context after it
+        return [o for o in self._block(start) if float(o.t_s) <= t_context_s], t_last_ping_s
+
     def _block(self, start: int) -> list[ObjectSighting]:
         from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall, median_filtered
 
