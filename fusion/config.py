@@ -133,6 +133,15 @@ class DepthConfig:
     # published covariance carries it ((depth · σ_ρ/ρ)², Estimator._add_considered). 0: known.
     density_sigma_kg_m3: float = 0.0
     atmospheric_pressure_pa: float = 101325.0
+    # the depth noise σ used is the sensor's own, measured from the depth signal's
+    # high-frequency residual (fusion/aiding/depth.py DepthNoise: why this and not the
+    # innovations, why 0.5 m), never below sigma_m and never above this bound (m); a sensor
+    # noisier than the bound fails the integrity test (nis:depth). 0: sigma_m as configured
+    adaptive_max_sigma_m: float = 0.5
+
+    def validate(self) -> None:
+        if not 0.0 <= self.adaptive_max_sigma_m <= 10.0:
+            raise ValueError("depth: adaptive_max_sigma_m must be within [0, 10] m (0: off)")
     # body-frame (FRD) position of the sensor relative to the vehicle reference point (m);
     # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -54,6 +54,7 @@ from . import kalman
 from . import strapdown as sd
 from .aiding import AIDS, AidContext
 from .aiding import attitude as aid_attitude
+from .aiding import depth as aid_depth
 from .aiding import dvl as aid_dvl
 from .aiding import heading as aid_heading
 from .aiding import learned_velocity as aid_lv
@@ -202,6 +203,8 @@ class Estimator:
         self._speed_cache: dict[float, float] = {}
         self._surge = SurgeVariance(config.learned_velocity)  # the adaptive surge variance
         self._heading_source: aid_attitude.HeadingSource | None = None  # ATTITUDE next to a FOG
+        # the depth sensor's own noise (the σ it is fused with)
+        self.depth_noise = aid_depth.DepthNoise(config.depth)
         self._yaw_fix_rad = 0.0  # Σ heading corrections of updates and resets (with a HeadingSource)
         self._t_release = -math.inf  # state time of the latest calibrator release applied
         # position-reset evidence: "last_fix" → (t, (n, e), σ) of the last fused fix; per
@@ -1059,6 +1062,8 @@ class Estimator:
         meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
+        if kind == "depth":
+            meas = self.depth_noise.adapt(meas, sample.t_s)
         if kind in self._arm:
             meas = _at_lever(meas, self._x, self._arm[kind])
         if aid.absolute_position:

@@ -3,8 +3,15 @@ r"""Depth from absolute pressure (hydrostatic): ``d = (p − p_atm) / (ρ g)``; 
 Water density ρ (kg/m³) and atmospheric pressure (Pa) come from the config (sea water
 ≈ 1025, fresh ≈ 1000; UNESCO 1983 gives the full equation of state, unnecessary at
 AUV depths for a 0.05 m sensor).
+
+The noise σ the depth is fused with is the sensor's own (:class:`DepthNoise`): measured from
+the depth signal's high-frequency residual, bounded below by ``depth.sigma_m`` and above by
+``depth.adaptive_max_sigma_m``.
 """
 from __future__ import annotations
+
+import math
+from collections import deque
 
 import numpy as np
 
@@ -46,3 +53,112 @@ def _measure(sample, ctx: AidContext) -> Measurement:
 
 
 AID = AidSource("depth", DepthConfig, _measure, without_imu=True)
+
+
+class DepthNoise:
+    r"""The depth sensor's white noise, measured from its own signal, and the σ fused with.
+
+    The default ``sigma_m`` (5 cm) is a Bar30's class with margin (a real one in
+    ``ardusub-4.1.0-small.BIN`` shows 3 mm per sample); other pressure sensors are noisier
+    (ArduSub's simulated one: 0.115 m per sample, white), and against a σ too small the
+    integrity test fails ``nis:depth`` all along: a solution never valid, though sound. So the
+    noise is measured as the IMU grade ``auto`` measures the IMU's: from second differences of
+    consecutive depths (``Δ²z = z_k − 2 z_{k−1} + z_{k−2}``, evenly spaced samples), in which
+    the vehicle's own depth changes drop out (a heave acceleration of 0.5 m/s² moves Δ²z by
+    5 mm at 10 Hz) and white noise of σ leaves ``Var Δ²z = 6 σ²``. The scale is robust — the
+    median of ``|Δ²z|`` over the last :data:`WINDOW` differences, ``σ̂ = med|Δ²z| / (0.6745 √6)``
+    — and the σ fused is ``min(σ̂, adaptive_max_sigma_m)`` once σ̂ exceeds ``sigma_m`` by more
+    than :data:`DEADBAND` (the estimate's own sampling spread: over the simulator's hour-long
+    survey, depth noise 0.05 m, σ̂ stayed within 0.82–1.18 × 0.05; a sensor as good as
+    configured keeps its configured σ), else ``sigma_m``.
+
+    Why this and not the innovations (Mehra 1972, as the learned velocity's surge variance):
+    innovations take whatever the sensor does wrong into its variance — a step or a drift
+    would be absorbed as "noise" and never fail the integrity test. The high-frequency
+    residual sees only noise: a **step** is one or two outlying differences in the median's
+    window (σ̂ unchanged: the step's innovations are gated and fail ``nis:depth`` as before);
+    a **drift** or any slow error has no second difference at all (σ̂ unchanged); a **stuck**
+    sensor has none either (σ̂ → 0: the configured ``sigma_m`` again, the strictest σ).
+
+    The bound, ``adaptive_max_sigma_m`` (0.5 m by default): the noisiest sensor the defaults
+    accept as a depth sensor. It is 4× the simulated sensor's 0.115 m and 10× the default
+    σ; wave pressure a few metres down stays below it (second differences at 10 Hz see
+    ``A ω² Δt²``, a few cm for a metre of swell). A sensor noisier than that — failing,
+    in the surf, a baro in a flooded housing — is not made consistent by a larger σ: its σ
+    stays at the bound, its innovations exceed it and ``nis:depth`` makes the solution
+    invalid, as it would the sensor's owner. The σ used, the measured σ̂ and the bound are
+    reported (:meth:`report`; the replay's ``summary.json`` ``filter.depth_noise``).
+
+    Deterministic under late-measurement re-fusion: a depth seen before answers the σ it
+    had (by its time stamp).
+    """
+
+    WINDOW = 600       # second differences in the median (60 s at 10 Hz)
+    MIN_COUNT = 50     # before: the configured sigma_m (5 s at 10 Hz)
+    # σ̂ within this factor of sigma_m: sigma_m (sampling spread, above); 1.25 in σ is 1.56 in
+    # variance, which the integrity test's window tolerates (its 20-attempt χ² bound at 0.9999
+    # is 2.6 × the expected sum): below it the test does not fail, there is nothing to adapt
+    DEADBAND = 1.25
+    MAX_GAP_S = 1.0    # a triple spanning a longer gap says nothing about the white noise
+    MAX_UNEVEN = 0.25  # nor one whose two intervals differ by more than this fraction
+    _MEMO = 512        # depths remembered for re-fusion
+
+    def __init__(self, config: DepthConfig):
+        self.floor_m = float(config.sigma_m)
+        self.bound_m = float(config.adaptive_max_sigma_m)
+        self._last: deque = deque(maxlen=2)        # (t_s, depth_m) of the two latest depths
+        self._abs_d2: deque = deque(maxlen=self.WINDOW)
+        self._memo: dict[float, float] = {}
+        self._memo_t: deque = deque()
+        self.measured_sigma_m = math.nan  # σ̂ (m), nan before MIN_COUNT differences
+        self.sigma_m = self.floor_m       # the σ fused with now (m)
+        self.max_used_sigma_m = self.floor_m
+        self.samples = 0
+        self.samples_at_bound = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.bound_m > self.floor_m
+
+    def sigma_at(self, t_s: float, depth_m: float) -> float:
+        """The σ (m) to fuse the depth ``depth_m`` measured at ``t_s`` with."""
+        memo = self._memo.get(t_s)
+        if memo is not None:
+            return memo
+        if not (math.isfinite(depth_m) and (not self._last or t_s > self._last[-1][0])):
+            return self.sigma_m  # out of order or not finite: the current σ, the estimate untouched
+        if len(self._last) == 2:
+            (t0, z0), (t1, z1) = self._last
+            dt1, dt2 = t1 - t0, t_s - t1
+            if 0.0 < dt1 <= self.MAX_GAP_S and 0.0 < dt2 <= self.MAX_GAP_S and \
+                    abs(dt2 - dt1) <= self.MAX_UNEVEN * max(dt1, dt2):
+                self._abs_d2.append(abs(depth_m - 2.0 * z1 + z0))
+        self._last.append((t_s, depth_m))
+        if len(self._abs_d2) >= self.MIN_COUNT:
+            self.measured_sigma_m = float(np.median(self._abs_d2)) / (0.6745 * math.sqrt(6.0))
+            if self.enabled:  # off: measured (reported), not used
+                noisier = self.measured_sigma_m > self.DEADBAND * self.floor_m
+                self.sigma_m = min(self.measured_sigma_m, self.bound_m) if noisier else self.floor_m
+        self.samples += 1
+        self.samples_at_bound += self.enabled and self.sigma_m >= self.bound_m
+        self.max_used_sigma_m = max(self.max_used_sigma_m, self.sigma_m)
+        self._memo[t_s] = self.sigma_m
+        self._memo_t.append(t_s)
+        if len(self._memo_t) > self._MEMO:
+            self._memo.pop(self._memo_t.popleft(), None)
+        return self.sigma_m
+
+    def adapt(self, meas: Measurement, t_s: float) -> Measurement:
+        """``meas`` (from :func:`measure`) with the depth noise σ of :meth:`sigma_at`."""
+        if not self.enabled:
+            return meas
+        s = self.sigma_at(t_s, float(meas.z[0]))
+        return meas if s == self.floor_m else meas._replace(R=np.array([[s * s]]))
+
+    def report(self) -> dict:
+        """What was used: the configured σ, the bound, the latest measured σ̂, the σ in use and
+        the largest used (m), and the share of depths fused at the bound."""
+        return {"configured_sigma_m": self.floor_m, "max_sigma_m": self.bound_m if self.enabled else None,
+                "measured_sigma_m": None if math.isnan(self.measured_sigma_m) else self.measured_sigma_m,
+                "sigma_m": self.sigma_m, "max_used_sigma_m": self.max_used_sigma_m,
+                "fraction_at_bound": self.samples_at_bound / self.samples if self.samples and self.enabled else 0.0}

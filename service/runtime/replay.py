@@ -388,6 +388,7 @@ def _filter_report(estimator: Any) -> dict:
     return {"imu_grade": imu.grade, "imu_grade_why": imu.why, "imu_source": imu.source,
             "imu_quantized": imu.quantized, "earth_rotation": imu.earth_rotation,
             "attitude_heading": estimator.heading_source_report(),
+            "depth_noise": estimator.depth_noise.report(),
             "resets": dict(sorted(estimator.resets.items())),
             "zero_velocity_updates": estimator.zero_velocity_updates,
             "invalid_reasons_at_end": estimator.invalid_reasons()}
@@ -422,6 +423,12 @@ def replay_warnings(summary: dict) -> list[str]:
         out.append(f"the input's time base jumped {len(jumps)} time(s) "
                    f"({', '.join(f'{j:+.3f} s' for j in jumps[:5])}{', ...' if len(jumps) > 5 else ''}): "
                    "navigation re-based each one; times in the outputs follow the input's")
+    depth = (summary.get("filter") or {}).get("depth_noise") or {}
+    if depth.get("fraction_at_bound"):
+        out.append(f"the depth sensor was noisier than the bound of {depth['max_sigma_m']} m "
+                   f"({100 * depth['fraction_at_bound']:.1f} % of depths, latest measured σ "
+                   f"{depth['measured_sigma_m']:.3g} m): fused at the bound, "
+                   "its innovations fail the integrity test (filter.depth.adaptive_max_sigma_m)")
     unknown = summary.get("unknown_message_types") or []
     if unknown:
         out.append(f"{len(unknown)} message type(s) not understood (counted, not used): {', '.join(unknown)}")

@@ -55,3 +55,19 @@ def test_a_jump_of_the_time_base_is_a_summary_warning(tmp_path, mission):
     assert all(f"{j:+.3f} s" in jumps[0] for j in summary["clock_jumps_s"])
     # navigation went on through the re-basing (the filter's held thrust moved with it)
     assert summary["errors"] == {} and summary["nav_states"] > 0
+
+
+def test_a_depth_sensor_noisier_than_the_bound_is_a_summary_warning(tmp_path, mission):
+    from adaptnav.fusion.frames import GRAVITY_M_S2
+    from adaptnav.fusion.samples import DepthSample
+
+    # the mission's pressure sensor with 1 m of white noise (the bound: filter.depth.adaptive_max_sigma_m 0.5)
+    rng = np.random.default_rng(4)
+    noisy = [replace(i, pressure_pa=i.pressure_pa + 1025.0 * GRAVITY_M_S2 * rng.standard_normal())
+             if isinstance(i, DepthSample) else i for i in mission]
+    summary = _replay(tmp_path, noisy)
+    depth = summary["filter"]["depth_noise"]
+    assert depth["sigma_m"] == depth["max_sigma_m"] == 0.5 and depth["fraction_at_bound"] > 0.5, depth
+    assert any(w.startswith("the depth sensor was noisier than the bound of 0.5 m") for w in summary["warnings"])
+    (tmp_path / "clean").mkdir()
+    assert not any("depth sensor" in w for w in _replay(tmp_path / "clean", mission)["warnings"])

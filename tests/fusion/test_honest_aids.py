@@ -1,0 +1,106 @@
+"""Honest aids on autopilot telemetry (issue #11): a noisier depth sensor than the default σ gives
+a consistent, valid filter while a sensor that goes bad is still caught."""
+import math
+
+import numpy as np
+import pytest
+
+from adaptnav.fusion.aiding.depth import DepthNoise
+from adaptnav.fusion.config import DepthConfig, FilterConfig
+from adaptnav.fusion.eskf import Estimator
+from adaptnav.fusion.frames import GRAVITY_M_S2
+from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuBatch
+
+from .mission import ATM_PA, ORIGIN, RHO
+
+IMU_HZ = 50.0
+DEPTH_M = 5.0
+
+
+def _pressure(depth_m: float) -> float:
+    return ATM_PA + RHO * GRAVITY_M_S2 * depth_m
+
+
+def _run(est, t0, t1, depth_of=None, att_hz=IMU_HZ, att_yaw_rad=0.0):
+    """A level vehicle at rest under water: IMU at 50 Hz, ATTITUDE (yaw ``att_yaw_rad``) at
+    ``att_hz``, depth at 10 Hz from ``depth_of(t)``; returns (t, valid, invalid reasons) at each depth."""
+    out = []
+    k0 = int(round(t0 * IMU_HZ))
+    every = int(round(IMU_HZ / att_hz))
+    for k in range(k0, int(round(t1 * IMU_HZ))):
+        t = k / IMU_HZ
+        if k % every == 0:
+            est.process(AttitudeSample(t + 0.001, 0.0, 0.0, att_yaw_rad))
+        if depth_of is not None and k % 5 == 0:
+            est.process(DepthSample(t + 0.002, _pressure(depth_of(t))))
+            s = est.nav_state()
+            out.append((t, s.valid, tuple(est.invalid_reasons())))
+        est.process(ImuBatch(np.array([t + 1.0 / IMU_HZ]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
+                             np.zeros((1, 3))))
+    return out
+
+
+def _noisy_depth(sigma_m, seed=1, step_at_s=math.inf, step_m=0.0):
+    rng = np.random.default_rng(seed)
+    return lambda t: DEPTH_M + sigma_m * rng.standard_normal() + (step_m if t >= step_at_s else 0.0)
+
+
+def _est(cfg=None):
+    return Estimator(cfg or FilterConfig(), MotionParams(), RpmSpeedTable(), ORIGIN)
+
+
+# ArduSub SITL's pressure sensor: 0.115 m per sample, white (BARO[1] against SIM in
+# tests/data/ardusub-4.7-sitl-drive.BIN), against the default σ of 5 cm
+SITL_DEPTH_NOISE_M = 0.115
+
+
+def test_a_noisier_depth_sensor_than_the_default_sigma_gives_a_valid_solution():
+    est = _est()
+    rows = _run(est, 0.0, 60.0, _noisy_depth(SITL_DEPTH_NOISE_M))
+    late = [r for r in rows if r[0] >= 20.0]
+    # THEN the filter is valid (with the fixed 5 cm, nis:depth made it invalid all along) ...
+    assert sum(v for _, v, _ in late) / len(late) > 0.95, {r for _, _, r in late}
+    assert not any("nis:depth" in r for _, _, r in late)
+    # ... because it fuses the depth with the sensor's own noise, reported
+    rep = est.depth_noise.report()
+    assert rep["sigma_m"] == pytest.approx(SITL_DEPTH_NOISE_M, rel=0.2)
+    assert rep["configured_sigma_m"] == 0.05 and rep["max_sigma_m"] == 0.5 and rep["fraction_at_bound"] == 0.0
+
+
+def test_a_depth_sensor_that_steps_is_still_caught_by_the_integrity_test():
+    est = _est()
+    # WHEN the noisy sensor steps by 1 m at t = 40 s (the innovations' variance would absorb it)
+    rows = _run(est, 0.0, 60.0, _noisy_depth(SITL_DEPTH_NOISE_M, step_at_s=40.0, step_m=1.0))
+    before = [v for t, v, _ in rows if 20.0 <= t < 40.0]
+    after = [r for t, _, r in rows if 40.0 <= t < 45.0]
+    assert sum(before) / len(before) > 0.95
+    # THEN the integrity test says so, and the measured noise did not take the step in
+    assert any("nis:depth" in r for r in after)
+    assert est.depth_noise.sigma_m < 1.3 * SITL_DEPTH_NOISE_M
+
+
+def test_depth_noise_sees_noise_only_not_drift_steps_or_a_stuck_sensor():
+    cfg = DepthConfig()
+    t = np.arange(0.0, 30.0, 0.1)
+    rng = np.random.default_rng(2)
+    noise = 0.1 * rng.standard_normal(t.size)
+    cases = {
+        # a dive at 0.3 m/s and a drift of 1 m/min: no second difference, noise alone is measured
+        "dive_and_drift": (2.0 + 0.3 * t + t / 60.0 + noise, 0.1),
+        # steps of 2 m every 5 s: outliers of the median, noise alone is measured
+        "steps": (2.0 + 2.0 * np.floor(t / 5.0) + noise, 0.1),
+        # stuck: nothing measured, the configured σ (the strictest) is used
+        "stuck": (np.full(t.size, 3.0), cfg.sigma_m),
+        # noisier than the bound: fused at the bound (the integrity test judges the rest)
+        "beyond_bound": (3.0 + 2.0 * rng.standard_normal(t.size), cfg.adaptive_max_sigma_m),
+    }
+    for name, (z, expected) in cases.items():
+        dn = DepthNoise(cfg)
+        for ti, zi in zip(t, z):
+            dn.sigma_at(float(ti), float(zi))
+        assert dn.sigma_m == pytest.approx(expected, rel=0.2), name
+    # off (bound not above the configured σ): the configured σ whatever the data
+    dn = DepthNoise(DepthConfig(adaptive_max_sigma_m=0.0))
+    for ti, zi in zip(t, cases["beyond_bound"][0]):
+        assert dn.sigma_at(float(ti), float(zi)) == cfg.sigma_m
