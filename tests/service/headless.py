@@ -10,8 +10,10 @@ import base64
 import contextlib
 import itertools
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -52,12 +54,15 @@ class Page:
     def __enter__(self) -> "Page":
         from websockets.sync.client import connect
 
-        self._dir = tempfile.TemporaryDirectory(prefix="adaptnav-chromium-")
+        # the profile is the browser's scratch: a helper process still writing to it as it is
+        # removed must not fail the test that used the page (seen under load: 'Default' not empty)
+        self._dir = tempfile.TemporaryDirectory(prefix="adaptnav-chromium-", ignore_cleanup_errors=True)
         self.proc = subprocess.Popen(
             [self.binary, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
              "--disable-extensions", "--disable-background-networking", "--remote-debugging-port=0",
              f"--user-data-dir={self._dir.name}", "--window-size=1280,1600", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            start_new_session=True)  # its own process group: its helper processes end with it
         port_file = Path(self._dir.name) / "DevToolsActivePort"
         deadline = time.monotonic() + self.timeout_s
         while not _port_file_complete(port_file):
@@ -78,13 +83,20 @@ class Page:
         try:
             self._stack.close()
         finally:
-            self.proc.terminate()
+            self._signal_group(signal.SIGTERM)
             try:
                 self.proc.wait(10)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+                pass
+            self._signal_group(signal.SIGKILL)  # the renderer, GPU and utility processes too
+            self.proc.wait()
             self._dir.cleanup()
+
+    def _signal_group(self, sig: int) -> None:
+        try:
+            os.killpg(self.proc.pid, sig)
+        except ProcessLookupError:
+            pass
 
     # -- protocol ------------------------------------------------------------------------
     def _event(self, msg: dict) -> None:
