@@ -59,7 +59,8 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
 Weak sightings (:attr:`~adaptnav.sonar.objects.ObjectSighting.weak`, the detector's finds on
 the unfiltered image: mostly speckle) take no part in steps 1–3; once a set is accepted, a pair
 with a weak sighting joins its pairs where the set's fitted drift predicts it, the residual far
-likelier for the object than for a false weak sighting lying there
+likelier for the object than for a false weak sighting lying there once weighed by the prior odds
+that the other sighting's object is there to be seen (a weak sighting is itself an object once in 25)
 (:meth:`LegAssociator._with_weak`): the closure's ``weak_pairs``; its pairs and offset stay the set's.
 
 Reciprocal legs need nothing special here: attributes are view-independent and positions
@@ -121,21 +122,33 @@ class AssociationConfig:
     extend_probability : float
         Pairs that continue a recent closure (:meth:`LegAssociator.extend`) are accepted when
         chance would give as many with at most this probability (0: never extended).
-    weak_clutter_per_m2, weak_likelihood_ratio, weak_density_radius_m : float
+    weak_clutter_per_m2, weak_density_radius_m : float
         A pair with a weak sighting (:attr:`~adaptnav.sonar.objects.ObjectSighting.weak`) joins
-        an accepted set only where its residual from the set's prediction is at least this
-        many times likelier for the object seen again than for a false weak sighting lying
-        there by chance (density ``weak_clutter_per_m2``: ``N(r; 0, R) / ρ``,
-        :meth:`LegAssociator._with_weak`). Measured (``adaptnav experiment landmarks``): with
-        the inlier gate alone, seed 1 re-associated 81.0 % with 4 false links of 187 (2.1 %),
-        their inlier regions 27–180 m² (predictions far from their sets), the true ones' ≤ 15 m²;
-        a bound on the region's area (≤ 13 m²) kept seeds 1–5 clean, but held-out seed 7 had
-        5 false weak pairs of 193, at small regions and residuals near the gate's edge (m² 3–9);
-        with the ratio ≥ 10 (weak sightings nearer than 20 m) seeds 1–10 had 4 false weak pairs
-        in 150. False weak sightings gather on rough seabed: the density is the larger of
-        ``weak_clutter_per_m2`` and the weak sightings' own within ``weak_density_radius_m`` of
-        the pair's weak one (weak sightings over the whole swath, seeds 6–10: false weak pairs
-        11 of 104 → 6 of 99; seeds 1–5 1 of 109 → 1 of 107).
+        an accepted set only where its residual from the set's prediction is far likelier for the
+        object seen again than for a false weak sighting lying there by chance: the likelihood
+        ratio ``N(r; 0, R) / ρ`` (:meth:`LegAssociator._with_weak`), ``ρ`` the false weak
+        sightings' density, the larger of ``weak_clutter_per_m2`` and the weak sightings' own
+        within ``weak_density_radius_m`` of the pair's weak one (false ones gather on rough
+        seabed: weak sightings over the whole swath, seeds 6–10, false weak pairs 11 of 104 → 6 of 99).
+    weak_prior_odds, weak_weak_prior_odds, weak_posterior_odds : float
+        The likelihood ratio is weighed by the prior odds that the object the other sighting
+        marks was seen (weakly) there at all: a pair joins when ``prior odds × ratio ≥
+        weak_posterior_odds`` (9: at most a 10 % chance that it is false, for the least likely
+        pair accepted). The prior odds depend on what the other sighting is: an ordinary
+        sighting is an object nine times in ten, a weak one once in 25 (~1000 weak sightings a
+        seed, ~40 on objects). Measured (``adaptnav experiment landmarks``, seeds 1–13, the
+        pairs inside the gate with agreeing attributes, true/false by the simulator's truth, by
+        ratio 1–3 / 3–10 / 10–15 / 15–20): the other sighting ordinary, P(true) 0.56 / 0.73 /
+        0.89 / 0.75, odds over ratio 0.74 / 0.49 / 0.65 / 0.17 → ``weak_prior_odds`` 0.5; both
+        weak, 1 true of 45 / 0 of 38 / 1 of 4 / 1 of 3, odds 0.013 / 0 / 0.027 / 0.029 →
+        ``weak_weak_prior_odds`` 0.03 (a ratio ≥ 300: the largest seen is ~130). With the ratio
+        alone ≥ 10 (d8b6e69) seeds 1–15 had 10 false weak pairs of 283 (seed 12: 3 of 18, 2.1 %
+        false links): all with ratios 10–17, five of them both weak; the pairs' gates (√det R
+        0.22–1.24 m²), residuals, local clutter and attributes overlapped the true ones'. With
+        the prior odds: seeds 1–15 false weak pairs 10 of 283 → 0 of 225, false links ≤ 0.54 %
+        (was ≤ 2.11 %), re-associated 0–2.1 points less (seed 7 0.744 → 0.725); held out,
+        evaluated once (seeds 16–25): false weak pairs 7 of 170 → 0 of 132, false links ≤ 1.04 %
+        (was 2.08 % on seed 20), re-associated 0.766–0.849 → 0.736–0.837.
     """
 
     gate_probability: float = 0.999
@@ -166,7 +179,9 @@ class AssociationConfig:
     # false weak sightings per m² of seabed nearer than 20 m, where most are (survey seeds 1-5:
     # ~900 a seed on 2 x 16 m x 3.6 km; beyond 20 m ~50 a seed)
     weak_clutter_per_m2: float = 0.0077
-    weak_likelihood_ratio: float = 10.0
+    weak_prior_odds: float = 0.5
+    weak_weak_prior_odds: float = 0.03
+    weak_posterior_odds: float = 9.0
     weak_density_radius_m: float = 15.0
 
 
@@ -785,8 +800,11 @@ class LegAssociator:
         (the navigation and the calibrator get what they got without weak sightings). Only the sightings within
         ``window_s`` + ``set_span_s`` of the set's times are tried, and a pair only where
         its residual is far likelier for the object than for a false weak sighting lying there
-        (``weak_likelihood_ratio``: far from the set, or with a drift known poorly, the
-        prediction spans metres; at the gate's edge the residual is unlikely for the object).
+        (far from the set, or with a drift known poorly, the prediction spans metres; at the
+        gate's edge the residual is unlikely for the object), weighed by the prior odds that the
+        other sighting's object was seen there at all (``weak_prior_odds``; a weak sighting is
+        itself an object only once in 25: ``weak_weak_prior_odds``), the posterior odds at least
+        ``weak_posterior_odds``.
         """
         c = self.config
         if not (self._weak_old or self._weak_pending) or not self._recent:
@@ -834,7 +852,11 @@ class LegAssociator:
                 rho[k] = max(rho[k], n / (math.pi * rad * rad))
         lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
         inside = np.flatnonzero(m2 <= self._inlier)
-        likely = [k for k in inside if lr[k] >= c.weak_likelihood_ratio]
+        # posterior odds: the prior odds that the other sighting's object is there to be seen
+        # (an ordinary sighting is an object nine times in ten, a weak one once in 25)
+        prior = np.array([c.weak_weak_prior_odds if (old[i].weak and new[j].weak) else c.weak_prior_odds
+                          for i, j in cand])
+        likely = [k for k in inside if prior[k] * lr[k] >= c.weak_posterior_odds]
         fit = [k for k in likely if self._attributes_agree(old[cand[k][0]], new[cand[k][1]])]
         # the only candidate of both its sightings (two objects near one place: either could be it)
         n_old = np.bincount([cand[k][0] for k in fit], minlength=len(old))

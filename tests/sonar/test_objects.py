@@ -276,12 +276,18 @@ def test_weak_sightings_never_found_a_set_but_join_one_where_they_fit_it(displac
     assert len(lc.pairs) >= 5 and lc.n_objects == len(lc.pairs) and not any(b.weak for _, b in lc.pairs)
     assert all(np.allclose(a.pos_n_m - e_a, b.pos_n_m - e_b, atol=1.5) for a, b in lc.pairs + lc.weak_pairs)
     if displaced_m == 0.0:
-        assert len(joined) == 4 and {id(b) for _, b in joined} == {id(o) for o in weak[:4]}
+        # (3 of the 4: the farthest from the set, extrapolated 20 s, is too likely a chance
+        # sighting once weighed by the prior odds that the object was seen weakly at all)
+        assert len(joined) >= 3 and {id(b) for _, b in joined} <= {id(o) for o in weak[:4]}
     else:
         assert not joined
     # the next set (the same objects again, a minute on) takes no weak pair twice
     again = assoc.add([_placed(1360.0 + 4.0 * (9 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 10)])
-    assert again is None or not (again.weak_pairs or any(b.weak or a.weak for a, b in again.pairs))
+    taken = {id(b) for _, b in joined}
+    assert again is None or not (any(id(b) in taken for _, b in again.weak_pairs)
+                                 or any(b.weak or a.weak for a, b in again.pairs))
+    if again is not None:  # (a weak sighting the first set left out may join a later one, where it fits)
+        assert {id(b) for _, b in again.weak_pairs} <= {id(o) for o in weak[:4]} - taken
 
 
 @pytest.mark.parametrize("clutter", [0, 12])
@@ -305,6 +311,29 @@ def test_a_weak_sighting_among_many_weak_ones_does_not_join(clutter):
     assert lc is not None
     joined = [b for _, b in lc.weak_pairs]
     assert joined == ([weak] if clutter == 0 else [])
+
+
+@pytest.mark.parametrize("old_weak", [False, True])
+def test_two_weak_sightings_that_fit_the_set_do_not_join_it(old_weak):
+    """An eleventh object seen on the earlier leg and weakly on the new one, where the set
+    predicts it: paired with an ordinary sighting it joins the set; when the earlier sighting
+    is weak too it does not — a weak sighting is an object only once in 25, so two of them
+    agreeing is likelier chance than the object seen twice (with the likelihood ratio alone,
+    seeds 1–15 had 5 false weak pairs of 22 with two weak sightings)."""
+    rng = np.random.default_rng(7)
+    objs = np.column_stack([np.arange(11) * 7.0, 20.0 + rng.uniform(-3.0, 3.0, 11)])
+    e_a, e_b = np.array([0.5, -1.0]), np.array([-2.5, 1.5])
+    assoc = LegAssociator()
+    first = [_placed(1000.0 + 4.0 * i, p + e_a, 2.0, rng) for i, p in enumerate(objs)]
+    if old_weak:
+        first[2] = replace(first[2], weak=True)
+    assoc.add(first)
+    weak = replace(_placed(1300.0 + 4.0 * 8, objs[2] + e_b, 2.0, rng), weak=True)
+    assert assoc.add([weak]) is None
+    lc = assoc.add([_placed(1300.0 + 4.0 * (10 - i), objs[i] + e_b, 2.0, rng) for i in range(4, 11)])
+    assert lc is not None
+    joined = [(a, b) for a, b in lc.weak_pairs]
+    assert joined == ([] if old_weak else [(first[2], weak)])
 
 
 @pytest.mark.parametrize("displaced_m", [0.0, 2.5])
