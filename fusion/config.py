@@ -138,13 +138,13 @@ class DepthConfig:
     # innovations, why 0.5 m), never below sigma_m and never above this bound (m); a sensor
     # noisier than the bound fails the integrity test (nis:depth). 0: sigma_m as configured
     adaptive_max_sigma_m: float = 0.5
+    # body-frame (FRD) position of the sensor relative to the vehicle reference point (m);
+    # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def validate(self) -> None:
         if not 0.0 <= self.adaptive_max_sigma_m <= 10.0:
             raise ValueError("depth: adaptive_max_sigma_m must be within [0, 10] m (0: off)")
-    # body-frame (FRD) position of the sensor relative to the vehicle reference point (m);
-    # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
-    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)

@@ -122,6 +122,11 @@ class AssociationConfig:
     extend_probability : float
         Pairs that continue a recent closure (:meth:`LegAssociator.extend`) are accepted when
         chance would give as many with at most this probability (0: never extended).
+    window_s : float
+        New sightings not yet in an accepted set stay in play this long (s): a block often
+        holds one or two objects of the other leg, fewer than a set needs, so the sets are
+        sought among the last ``window_s`` of sightings; a sighting in an accepted set leaves
+        the window (each pair enters one loop closure only).
     weak_clutter_per_m2, weak_density_radius_m : float
         A pair with a weak sighting (:attr:`~adaptnav.sonar.objects.ObjectSighting.weak`) joins
         an accepted set only where its residual from the set's prediction is far likelier for the

@@ -379,7 +379,7 @@ def _detect_fine(image, strong, res, along, along_res, rows, wf, config) -> list
 
 
 def _near_any(o: ObjectSighting, others: list[ObjectSighting], merge_m: float, along_res: float) -> bool:
-    """``o`` within the merge distance of one of ``others`` (same side), as :func:`_merge` tests."""
+    """``o`` within the merge distance of one of ``others`` (same side): the same object."""
     row_m = along_res if math.isfinite(along_res) and along_res > 0 else 0.4
     return any(k.side == o.side and abs(k.ground_range_m - o.ground_range_m) <= merge_m + 0.5 * k.width_across_m
                and abs(k.row - o.row) * row_m <= merge_m + 0.5 * (k.length_along_m if math.isfinite(k.length_along_m) else 0)
@@ -609,16 +609,11 @@ def _deep_shadow_px(lev: np.ndarray, rows: np.ndarray, near: np.ndarray, far: np
 
 def _merge(objs: list[ObjectSighting], merge_m: float, along_res: float) -> list[ObjectSighting]:
     """One detection per object: of those within ``merge_m`` (same side), the longest shadow."""
-    row_m = along_res if math.isfinite(along_res) and along_res > 0 else 0.4
     order = sorted(range(len(objs)), key=lambda i: -objs[i].shadow_length_m)
     kept: list[ObjectSighting] = []
     for i in order:
-        o = objs[i]
-        if any(k.side == o.side and abs(k.ground_range_m - o.ground_range_m) <= merge_m + 0.5 * k.width_across_m
-               and abs(k.row - o.row) * row_m <= merge_m + 0.5 * (k.length_along_m if math.isfinite(k.length_along_m) else 0)
-               for k in kept):
-            continue
-        kept.append(o)
+        if not _near_any(objs[i], kept, merge_m, along_res):
+            kept.append(objs[i])
     return kept
 
 

@@ -1,5 +1,6 @@
 """What goes to the calibrator, and its data time: IMU runs compacted into batches, batches
-packed for the process boundary, the data time τ of a sample (the release rule's clock).
+packed for the process boundary, the data time τ of a sample (the release rule's clock), and
+what of the calibrator's outputs is due by that rule.
 """
 from __future__ import annotations
 
@@ -164,3 +165,17 @@ def _field_names(cls: type) -> tuple[str, ...] | None:
                                      if dataclasses.is_dataclass(cls) and cls.__module__ in _BY_FIELDS_MODULES
                                      else None)
         return names
+
+
+def split_due(held: Any, data_time_s: float, latency_s: float, product_latency_s: float) -> tuple[list, list]:
+    """The release rule over ``held`` ((τ, output) pairs, oldest first): ``(due, kept)`` —
+    a release is due once ``τ + latency_s ≤ data_time_s``, a side product (side-scan objects
+    for the filter) once ``τ + product_latency_s ≤ data_time_s``; both lists keep the order."""
+    due, kept = [], []
+    for tau, out in held:
+        lag = latency_s if out.KIND == "calibration_release" else product_latency_s
+        if tau + lag <= data_time_s:
+            due.append(out)
+        else:
+            kept.append((tau, out))
+    return due, kept

@@ -34,7 +34,7 @@ from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
-from adaptnav.service.calibrator.batching import DataClock, data_time, pack_batch, unpack_batch
+from adaptnav.service.calibrator.batching import DataClock, data_time, pack_batch, split_due, unpack_batch
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
 
@@ -390,13 +390,7 @@ class LaggedCalibrator:
         ready = self.backend.ready
         if not ready or ready[0][0] + self.product_latency_s > data_time_s:  # the usual poll: nothing due
             return []
-        due, keep = [], []
-        for tau, out in ready:
-            lag = self.latency_s if out.KIND == "calibration_release" else self.product_latency_s
-            if tau + lag <= data_time_s:
-                due.append(out)
-            else:
-                keep.append((tau, out))
+        due, keep = split_due(ready, data_time_s, self.latency_s, self.product_latency_s)
         ready[:] = keep
         self.released += len(due)
         return due

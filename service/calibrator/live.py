@@ -31,7 +31,7 @@ from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
-from adaptnav.service.calibrator.batching import DataClock, compact_imu
+from adaptnav.service.calibrator.batching import DataClock, compact_imu, split_due
 from adaptnav.service.calibrator.lagged import child_message, limit_child_threads
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict
@@ -283,15 +283,9 @@ class CalibratorProcess:
         held, due = self._held, []
         if not held or held[0][0] > data_time_s - self.product_latency_s:  # the usual poll: nothing due
             return due
-        limit = data_time_s - self.latency_s
         with self._held_lock:  # the release rule (module docstring), products with their own latency
-            keep = deque()
-            for tau, out in self._held:
-                if tau <= (limit if out.KIND == "calibration_release" else data_time_s - self.product_latency_s):
-                    due.append(out)
-                else:
-                    keep.append((tau, out))
-            self._held = keep
+            due, keep = split_due(self._held, data_time_s, self.latency_s, self.product_latency_s)
+            self._held = deque(keep)
         return due
 
     def stop(self, timeout_s: float = 3.0) -> None:

@@ -117,7 +117,7 @@ class DataflashConverter:
         t_us = getattr(msg, "TimeUS", None)
         if mtype not in USED:
             if mtype in IGNORED_WHY:
-                acc.ignored[IGNORED_WHY[mtype]] = acc.ignored.get(IGNORED_WHY[mtype], 0) + 1
+                self._ignore(acc, IGNORED_WHY[mtype])
             return [], []  # unknown: counted in messages, reported as such
         if t_us is None:
             self.mav._count_reject(acc, "no_time")
@@ -126,14 +126,13 @@ class DataflashConverter:
         # step with the others: it teaches the clock nothing, it only carries velocity
         if mtype == "SIM2":
             self._sim_vel_n_m_s = (float(msg.VN), float(msg.VE), float(msg.VD))
-            acc.ignored[IGNORED_WHY[mtype]] = acc.ignored.get(IGNORED_WHY[mtype], 0) + 1
+            self._ignore(acc, IGNORED_WHY[mtype])
             return [], []
         t_s = self.mav.time.map_boot_s(t_us / 1e6)
         try:
             if mtype == "SIM":
                 acc.stamp(t_s)
-                why = "simulator truth (never fused; the replay's metrics)"
-                acc.ignored[why] = acc.ignored.get(why, 0) + 1
+                self._ignore(acc, "simulator truth (never fused; the replay's metrics)")
                 return [], [self._sim(msg, t_s)]
             out = self._samples(msg, mtype, t_s, acc)
         except ConversionError as e:
