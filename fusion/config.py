@@ -179,8 +179,17 @@ class AttitudeConfig:
     # × sec L): a constant offset does not show against the gyro. PHINS: 0.01° sec L with DVL
     # aiding, 0.05° sec L without
     ins_sigma_yaw_rad: float = math.radians(0.05)
+    # the absolute accuracy of the autopilot's own heading (1-σ, rad), an error that stays for
+    # minutes (a compass's residual deviation, its EKF's yaw): ATTITUDE fused at 10–50 Hz holds
+    # the filter's yaw within ~0.2° of the autopilot's, so the filter navigates in the
+    # autopilot's heading frame and the published covariance carries that frame's offset as a
+    # consider parameter (fusion/aiding/attitude.py ReferenceYaw). ArduSub SITL: 0.6° rms with
+    # correlation 0.7–0.9 after a minute (tests/fusion/test_attitude_reference.py); 0: off
+    reference_yaw_sigma_rad: float = math.radians(2.0)
 
     def validate(self) -> None:
+        if not (0.0 <= self.reference_yaw_sigma_rad < 0.5):
+            raise ValueError("attitude: reference_yaw_sigma_rad must be within [0, 0.5) rad")
         if not (0.0 < self.learn_window_s <= 3600.0 and 0.0 <= self.learn_min_s <= 3600.0):
             raise ValueError("attitude: learn_window_s must be within (0, 3600] s and learn_min_s within [0, 3600] s")
         if not (0.0 < self.ins_max_variability_rad < 0.1 and 0.0 < self.ins_sigma_yaw_rad < 0.1):

@@ -124,7 +124,8 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
 
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
-                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown")
+                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
+                 "anchor_ne", "yaw_frame")
 
 
 class Estimator:
@@ -214,6 +215,11 @@ class Estimator:
         # the horizontal position has no information yet (started at the origin, no fix, no
         # restored state): the first fix places it (_seed_position)
         self._pos_unknown = False
+        # the horizontal position the dead-reckoned track is counted from (the start, then
+        # each fused absolute fix) and whether ATTITUDE holds the yaw (the autopilot's heading
+        # frame, a consider parameter of the published covariance: _add_considered)
+        self._anchor_ne = (0.0, 0.0)
+        self._yaw_frame = False
         # velocity/attitude resets: when each aid's current run of rejections began
         self._reject_since: dict[str, float] = {}
         self._t_reset = -math.inf  # state time of the latest velocity/attitude reset
@@ -276,12 +282,17 @@ class Estimator:
     def _add_considered(self, cov: np.ndarray) -> None:
         """The published covariance (in place) gains what the filter treats as known but is
         not (*consider* parameters): the DVL's scale and misalignment on its track since the
-        last fix (:meth:`DvlCalibration.position_cov_ne`), and the water density the depth is
+        last fix (:meth:`DvlCalibration.position_cov_ne`), the autopilot's heading frame while
+        ATTITUDE holds the yaw (:func:`~adaptnav.fusion.aiding.attitude.reference_yaw_covariance`,
+        ``attitude.reference_yaw_sigma_rad``), and the water density the depth is
         converted with, a depth scale ``(d σ_ρ/ρ)²`` (``depth.density_sigma_kg_m3``;
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
         depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
         if self.dvl_calibration is not None:
             cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne()
+        sigma_b = self.config.attitude.reference_yaw_sigma_rad
+        if self._yaw_frame and sigma_b > 0.0:
+            cov += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)
         dep = self.config.depth
         if dep.density_sigma_kg_m3 > 0.0:
             cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * dep.density_sigma_kg_m3 / dep.water_density_kg_m3) ** 2
@@ -690,6 +701,8 @@ class Estimator:
         s.t_reset = self._t_reset
         s.yaw_fix_rad = self._yaw_fix_rad
         s.pos_unknown = self._pos_unknown
+        s.anchor_ne = self._anchor_ne
+        s.yaw_frame = self._yaw_frame
         s.clones = self._clones.copy() if self._clones.active else None
         return s
 
@@ -709,6 +722,8 @@ class Estimator:
         self._t_reset = s.t_reset
         self._yaw_fix_rad = s.yaw_fix_rad
         self._pos_unknown = s.pos_unknown
+        self._anchor_ne = s.anchor_ne
+        self._yaw_frame = s.yaw_frame
         if s.clones is not None:
             self._clones = s.clones.copy()
         elif self._clones.active:
@@ -828,6 +843,8 @@ class Estimator:
         self._mode = mode
         self._reset_counter += 1
         self._pos_unknown = not self._alignment.position_known
+        self._anchor_ne = (float(self._x[0]), float(self._x[1]))
+        self._yaw_frame = False
 
     def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
         """Validate IMU samples (vectorised), then align or propagate them."""
@@ -1078,6 +1095,8 @@ class Estimator:
         status = self._fuse(meas, sample.t_s, kind)
         if kind == "dvl" and status.fused:
             self._t_dvl_fused = sample.t_s
+        elif kind == "attitude" and status.fused:
+            self._yaw_frame = True
         if self._mode == "ins":
             c = self.config.reset
             reset = False
@@ -1226,6 +1245,7 @@ class Estimator:
         sigma = math.sqrt(max(float(meas.R[0, 0]), float(meas.R[1, 1])))
         if status.fused:
             self._fix_evidence = {"last_fix": (float(t_s), ne, sigma)}
+            self._anchor_ne = (float(self._x[0]), float(self._x[1]))
             return status
         if status.reason != "gate":
             return status

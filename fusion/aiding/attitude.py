@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from ..state import ATT, N_ERR
+from ..state import ATT, ATT_YAW, N_ERR, POS_NE, VEL, X_POS_NE, X_VEL
 from ..config import AttitudeConfig
 from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of, make
 
@@ -35,6 +35,36 @@ def _measure(sample, ctx: AidContext) -> Measurement:
 
 
 AID = AidSource("attitude", AttitudeConfig, _measure, without_imu=True)
+
+
+def reference_yaw_covariance(x: np.ndarray, anchor_ne_m, sigma_rad: float) -> np.ndarray:
+    r"""What the autopilot's heading frame adds to the covariance (18×18, m², rad²) when the
+    filter's yaw is held to ATTITUDE: ``σ_b² s sᵀ`` with ``s = ∂δx/∂b``.
+
+    ATTITUDE is the autopilot's EKF estimate, fused at 10–50 Hz: the filter's yaw follows it
+    within its own σ (0.17–0.28° on the ArduSub logs) while the autopilot's yaw is off the
+    truth by an error ``b`` that stays for minutes (ArduSub SITL: 0.6° rms, correlation
+    0.7–0.9 after 60 s; a compass's residual deviation, heading-dependent, on a real vehicle).
+    Nothing on board observes ``b``; fused as white noise at the stream's rate it vanished
+    from the covariance (yaw NEES 70–95 on the SITL logs). The filter therefore navigates in
+    the autopilot's frame, rotated by ``b`` about the vertical, and ``b`` is a *consider*
+    parameter (Schmidt 1966; Groves 2013 §3.4.3), as the DVL's scale and misalignment are
+    (:class:`adaptnav.fusion.aiding.dvl.DvlCalibration`): its effect on the error state is
+
+    .. math:: δθ_D = 1,\quad δp_{NE} = J (\hat p − a),\quad δv_{NE} = J \hat v,
+              \qquad J = \begin{pmatrix}0 & −1\\ 1 & 0\end{pmatrix}
+
+    per unit of ``−b`` (``δx = x_true − x̂``, ``q_true = q(δθ) ⊗ q̂``): the dead-reckoned track
+    since the last absolute fix ``a`` (``anchor_ne_m``) turns with the frame. Exact for a
+    constant offset; a wandering one moves less than that.
+    """
+    d = np.asarray(x[X_POS_NE], float) - np.asarray(anchor_ne_m, float)
+    v = x[X_VEL]
+    s = np.zeros(N_ERR)
+    s[POS_NE] = (-d[1], d[0])
+    s[VEL.start:VEL.start + 2] = (-float(v[1]), float(v[0]))
+    s[ATT_YAW] = 1.0
+    return sigma_rad ** 2 * np.outer(s, s)
 
 
 class HeadingSource:
