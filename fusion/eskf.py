@@ -1240,6 +1240,8 @@ class Estimator:
         velocity-related states follow; it is recorded in :attr:`position_resets` as
         ``(t_s, source, size_m)``.
         """
+        if not self._pos_unknown:
+            self._fold_heading_frame()
         status = self._seed_position(meas, t_s, source) if self._pos_unknown else self._fuse(meas, t_s, source)
         ne = (float(meas.z[0]), float(meas.z[1]))
         sigma = math.sqrt(max(float(meas.R[0, 0]), float(meas.R[1, 1])))
@@ -1265,6 +1267,22 @@ class Estimator:
         self.position_resets.append((float(t_s), source, float(np.hypot(y[0], y[1]))))
         self._fix_evidence = {k: v for k, v in self._fix_evidence.items() if k != source}
         return self._fuse(meas, t_s, source)
+
+    def _fold_heading_frame(self) -> None:
+        """Before an absolute fix: the track the autopilot's heading frame has turned since the
+        last fix (:func:`~adaptnav.fusion.aiding.attitude.reference_yaw_covariance`, its position
+        block) becomes position uncertainty of the state, and the track is counted again from
+        here. The fix is then gated and fused against what the published covariance says
+        (against the internal one, a correct fix 1.8° × 450 m off after a long track on the
+        autopilot's heading was refused or pulled the position only part of the way). Added as
+        independent noise: its covariances with the other states and with the clones are
+        unchanged (as :meth:`_doubt_k_speed`), and no later ATTITUDE can explain it away."""
+        sigma_b = self.config.attitude.reference_yaw_sigma_rad
+        if not (self._yaw_frame and sigma_b > 0.0 and self._mode == "ins"):
+            return
+        kalman.flush_core(self._core, self._qdiag)
+        self._P[POS_NE, POS_NE] += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)[POS_NE, POS_NE]
+        self._anchor_ne = (float(self._x[0]), float(self._x[1]))
 
     def _seed_position(self, meas: Measurement, t_s: float, source: str) -> AidStatus:
         """The first fix when the horizontal position has no information (the start took the
