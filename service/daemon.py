@@ -325,7 +325,8 @@ class Daemon:
         self.overflow: Counter[str] = Counter()
         self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
         self.clock = LiveClock()
-        self.params: MotionParams = cfg.motion.params0
+        # with the MAVLink bridge the thrust is the autopilot's PWM (motion.prior "auto")
+        self.params, self.motion_prior = cfg.motion.initial_params(autopilot_thrust=cfg.mavlink.enabled)
         self.restored = False
         self.bridge: Any = None
         self.foxglove: Any = None  # LiveServer when [foxglove] is enabled
@@ -410,6 +411,7 @@ class Daemon:
     def start(self) -> None:
         cfg = self.cfg
         log_effective(cfg)
+        log.info("motion model: %s", self.motion_prior)
         self._warm_up()
         self.estimator = self._make_estimator()
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
@@ -572,6 +574,7 @@ class Daemon:
             rep["calibrator"].update(state=cal.state, pid=cal.pid(), restarts=cal.restarts,
                                      dropped_samples=cal.dropped)
         rep["params"] = self.params.to_dict()
+        rep["motion_prior"] = self.motion_prior
         rep["type"] = "health"
         return rep
 

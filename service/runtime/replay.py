@@ -243,7 +243,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                               lon_deg=math.degrees(fix.lon_rad)))
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
-    params0 = cfg.motion.params0
+    # a MAVLink or DataFlash log: the thrust is an autopilot's PWM
+    params0, motion_prior = cfg.motion.initial_params(autopilot_thrust=hasattr(inp.source, "set_convert"))
+    log.info("motion model: %s", motion_prior)
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None
     if calibrate:
@@ -330,6 +332,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "valid_fraction": validity.fraction,
         "first_valid_t_s": validity.first_valid_t_s,
         "filter": _filter_report(estimator),
+        "motion_prior": motion_prior,
     }
     if getattr(estimator, "side_scan", None):  # side-scan loop closures (service.loop_closures)
         doc["side_scan"] = dict(estimator.side_scan)

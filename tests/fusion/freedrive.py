@@ -75,14 +75,19 @@ def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float 
         rows = list(csv.DictReader(f))
     t = np.array([float(r["t_s"]) for r in rows])
     est = np.array([[float(r["north_m"]), float(r["east_m"])] for r in rows])
+    sigma = np.array([[float(r["sigma_north_m"]), float(r["sigma_east_m"])] for r in rows])
     valid = np.array([r["valid"] in ("1", "True", "true") for r in rows])
     inside = (t >= t_true[0]) & (t <= t_true[-1])
-    t, est, valid = t[inside], est[inside], valid[inside]
+    t, est, sigma, valid = t[inside], est[inside], sigma[inside], valid[inside]
     true_ne = np.stack([np.interp(t, t_true, ned[:, 0]), np.interp(t, t_true, ned[:, 1])], axis=1)
     sub = np.interp(t, t_true, depth) > submerged_depth_m
     if not sub.any():
         raise ValueError("the truth is never submerged")
     err = np.hypot(*(est - true_ne).T)
+    # the error normalised by the published north/east σ (the CSV has no cross term): beyond
+    # χ²₂'s 99 % point while valid, the solution claimed a position it did not have
+    q = np.sum(((est - true_ne) / sigma) ** 2, axis=1)
+    valid_sub = valid & sub
     k_last = int(np.flatnonzero(sub)[-1])
     steps = np.hypot(np.diff(ned[:, 0]), np.diff(ned[:, 1]))
     path = np.concatenate([[0.0], np.cumsum(steps)])
@@ -94,6 +99,7 @@ def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float 
         "max_error_submerged_m": float(err[sub].max()),
         "rms_error_submerged_m": float(np.sqrt(np.mean(err[sub] ** 2))),
         "valid_fraction_submerged": float(valid[sub].mean()),
+        "valid_outside_99_fraction": float(np.mean(q[valid_sub] > 9.21)) if valid_sub.any() else 0.0,
         "t_last_submerged_s": float(t[k_last]),
     }
 

@@ -149,3 +149,26 @@ def test_a_mean_dvl_the_filter_would_reject_as_too_late_is_refused_at_load():
     old = MavlinkConverter(replace(cfg.mavlink.convert, dvl_max_interval_s=5.0))
     (late,) = _mean_dvl_delta(old, 14.0, 2.5)
     assert est.process(late)[0].reason == "too_late"
+
+
+def test_motion_prior_widens_the_embedded_table_for_an_autopilot_only():
+    from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+    from adaptnav.service.config import MotionConfig
+
+    embedded = MotionConfig()
+    # an autopilot's thrust through the embedded table: surge σ 10 % of speed, sway 0.05 m/s
+    p, why = embedded.initial_params(autopilot_thrust=True)
+    assert why.startswith("uncalibrated") and p.var_vv == pytest.approx(0.1 ** 2) and p.var_s == pytest.approx(0.05 ** 2)
+    assert p.k_v == embedded.params0.k_v and p.var_ww == embedded.params0.var_ww  # nothing else
+    # the simulator's or a DVL vehicle's RPM, a vehicle's own table, or said calibrated: as given
+    assert embedded.initial_params(autopilot_thrust=False)[0] == embedded.params0
+    own = MotionConfig(rpm_table=RpmSpeedTable((0.0, 1000.0), (0.0, 1.0)))
+    assert own.initial_params(autopilot_thrust=True) == (own.params0, "calibrated (auto: motion.rpm_table is this vehicle's)")
+    assert MotionConfig(prior="calibrated").initial_params(True)[0] == embedded.params0
+    # widened, never narrowed: a looser params0 stays as it is
+    loose = MotionConfig(prior="uncalibrated", params0=MotionParams(var_vv=0.3 ** 2))
+    assert loose.initial_params(False)[0].var_vv == pytest.approx(0.3 ** 2)
+    with pytest.raises(ConfigError, match="uncalibrated_sigma_surge"):
+        load_config(None, ["motion.uncalibrated_sigma_surge=0"])
+    with pytest.raises(ConfigError, match="prior"):
+        load_config(None, ["motion.prior=maybe"])
