@@ -771,7 +771,9 @@ class ObjectFrontEnd:
         first = self._n - len(self._pings)  # global index of the buffer's first ping
         pings = list(self._pings)
         nav = np.array(self._nav)
-        wcfg = WaterfallConfig(ground_res_m=c.ground_res_m, resample_along=False)
+        # line_removal: a ping with the horizontal-line noise (an additive offset, 2 % of the
+        # simulator's pings) came out of the gain normalisation as a flat row, its objects lost
+        wcfg = WaterfallConfig(ground_res_m=c.ground_res_m, resample_along=False, line_removal=True)
         fine = c.detector.fine_range_m > 0 and wcfg.median_ksize > 1
         try:
             # near the nadir the detector also looks at the image before the median filter
