@@ -60,6 +60,9 @@ class WaterfallConfig:
         Column and row median normalisation.
     median_ksize : int
         Median filter size (odd, 1 = off).
+    line_removal : bool
+        Subtract each ping's additive offset measured in its water column (:func:`remove_lines`)
+        before the slant-to-ground step (the object detector's waterfall: ``ObjectFrontEnd``).
     """
 
     ground_res_m: float | None = None
@@ -71,6 +74,7 @@ class WaterfallConfig:
     altitude_tolerance: float = 0.2
     gain_normalise: bool = True
     median_ksize: int = 3
+    line_removal: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -304,6 +308,40 @@ def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
     return np.where(use_det, det, rec)
 
 
+def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
+                 blanking_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Subtract each ping's additive offset (the horizontal-line noise) measured in its water column.
+
+    Between the transmit blanking and the first bottom return (slant range < 0.8 × the altitude)
+    a ping holds only noise; a ping-wide additive offset (interference, a gain glitch) raises it
+    there as much as everywhere. Its excess over the run's median of the same level is taken off
+    the whole ping (both sides: the offset is common), floored at a quarter of that median.
+    Pings without a water column (unknown altitude) are left as they are.
+    """
+    h = np.nanmin(altitude_m, axis=1) if altitude_m.ndim == 2 else np.asarray(altitude_m, float)
+    h = np.nan_to_num(h, nan=0.0)
+    n = port.shape[1]
+    k0 = int(math.ceil(blanking_m / sample_spacing_m))
+    k1 = np.minimum((0.8 * h / sample_spacing_m).astype(int), n)
+    ok = k1 - k0 >= 8
+    if ok.sum() < 3:
+        return port, stbd
+    both = np.concatenate([port, stbd], axis=1)
+    cols = np.concatenate([np.arange(n), np.arange(n)])
+    water = (cols[None, :] >= k0) & (cols[None, :] < k1[:, None])
+    level = masked_median(both, water, axis=1)
+    base = float(np.nanmedian(level[ok]))
+    if not base > 0:
+        return port, stbd
+    excess = np.where(ok & np.isfinite(level), np.maximum(level - base, 0.0), 0.0).astype(np.float32)
+    if not np.any(excess > 0):
+        return port, stbd
+    floor = np.float32(0.25 * base)
+    port = np.maximum(port - excess[:, None], floor).astype(np.float32)
+    stbd = np.maximum(stbd - excess[:, None], floor).astype(np.float32)
+    return port, stbd
+
+
 def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
     """Distance travelled at each ping from speed × time (trapezoid); NaN if unknown.
 
@@ -371,6 +409,8 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     res = float(cfg.ground_res_m or dr)
     n_side = int(math.ceil(pings[0].slant_range_m / res))
     alt = _altitudes(pings, port, stbd, cfg)
+    if cfg.line_removal:
+        port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
     g_port = slant_to_ground(port, dr, alt[:, 0], res, n_side)
     g_stbd = slant_to_ground(stbd, dr, alt[:, 1], res, n_side)
     image = np.hstack([g_port[:, ::-1], g_stbd])
