@@ -41,6 +41,7 @@ from adaptnav.service.transport.release import release_from_dict, release_to_dic
 _STOP = "__stop__"
 _SHIFT = "__shift__"
 _FINISH = "__finish__"  # the data ended: the calibrator hands over what it holds for completion
+PROGRESS_EVERY = 32     # samples between the child's progress messages inside a batch
 
 
 class InlineBackend:
@@ -125,7 +126,11 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 continue
             seq, n, packed = msg
             tau = clock.tau
-            for sample in unpack_batch(packed):
+            # progress also every PROGRESS_EVERY samples inside the batch: the runner waits
+            # for a τ just past its data time − L_p, which the first samples of a batch it
+            # sent only then already give (with one message per batch it waited for the whole
+            # batch, ~L_p of data with side-scan: the two processes ran in lock-step)
+            for i, sample in enumerate(unpack_batch(packed), start=1):
                 calibrator.observe(sample)
                 t = sample.t_s  # DataClock.advance inlined (once per sample)
                 if type(t) is not float:
@@ -134,6 +139,8 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                     tau = t
                 for rel in calibrator.poll():
                     out_q.send(child_message(rel, tau))
+                if i % PROGRESS_EVERY == 0 and i < n:
+                    out_q.send(("progress", seq + i, tau))
             clock.tau = tau
             out_q.send(("progress", seq + n, clock.tau))
     except BaseException as e:  # the parent must not wait forever for a dead child
@@ -232,6 +239,7 @@ class ProcessBackend:
         child_in, self._w = ctx.Pipe(duplex=False)
         self._r, child_out = ctx.Pipe(duplex=False)
         _enlarge_pipe(self._w)
+        _enlarge_pipe(self._r)  # progress messages queue up there while the runner needs none
         self._proc = ctx.Process(target=_lagged_child_main, name="adaptnav-calibrator", daemon=True,
                                  args=(cfg, params0, seed, child_in, child_out))
         start_ignoring_sigint(self._proc)
