@@ -297,6 +297,12 @@ class ProcessBackend:
         order) or every sample observed so far."""
         if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
             return
+        # what the child reported already may do (its progress comes every PROGRESS_EVERY
+        # samples): read it before sending the batch, which would otherwise go out a few
+        # samples long after every progress message
+        while self._read(block=False):
+            if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
+                return
         self._flush()
         t0 = time.monotonic()
         while not (self._child_tau > t_s or self._done >= self._sent):
