@@ -782,6 +782,11 @@ class ObjectFrontEnd:
         self._next_emit += c.block_pings
         return self._block(start)
 
+    def pings_to_block(self) -> int:
+        """How many more pings complete the next block (the push that returns its sightings)."""
+        c = self.config
+        return self._next_emit + c.block_pings + c.context_pings - self._n
+
     def flush(self) -> tuple[list[ObjectSighting], float]:
         """The stream ended: the sightings of the block not yet complete that have as many
         pings after them as a complete block gives its objects (``context_pings``; nearer the
