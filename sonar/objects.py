@@ -462,7 +462,8 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     least = min(config.short_min_contrast, config.compact_min_contrast, config.min_contrast)
     rows_ok = np.bincount(hl_label, minlength=n + 1) >= max(config.min_highlight_rows, 1)
     todo = np.flatnonzero(rows_ok & (bound >= least * (1 - 1e-6)))
-    todo = todo[_may_be_high(todo, runs, lev.shape[1], alt_per_ping, res, config.min_height_m)]
+    deep = _deep_shadow_rows(lev, runs, config.deep_shadow_level)
+    todo = todo[_may_be_high(todo, runs, deep, lev.shape[1], alt_per_ping, res, config.min_height_m)]
     heading_u = None  # np.unwrap(wf.heading_rad), once the first sighting needs it
     for k in todo:
         mine = slice(*np.searchsorted(runs.label, [k, k + 1]))
@@ -479,7 +480,8 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
         comp_rows, near, far = comp_rows[own], near[own], far[own]
         g_top = (_median_int(near) + 0.5) * res
         g_lead = (_median_int(lead) + 0.5) * res
-        L = _deep_shadow_px(lev, comp_rows, near, far, config.deep_shadow_level) * res
+        own_deep = deep[mine][own]  # _deep_shadow_px of the own rows, from every run's at once
+        L = (float(own_deep.max()) if own_deep.size else 0.0) * res
         rc = float(np.mean(np.concatenate([np.asarray(hl_rows, float), comp_rows])))
         ping = float(np.interp(rc, rows, wf.ping_index))
         H = float(np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping))
@@ -509,11 +511,33 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     return out
 
 
-def _may_be_high(ks: np.ndarray, runs: "_Runs", n_cols: int, alt_per_ping: np.ndarray, res: float,
-                 min_height_m: float) -> np.ndarray:
+def _deep_shadow_rows(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.ndarray:
+    """Per run (row of a component): its shadow length in pixels as :func:`_deep_shadow_px`
+    measures a row — from the near edge to the first of three pixels in a row at least
+    ``deep_level`` inside the run, the run's whole length if there are none — for all runs at
+    once; ``_deep_shadow_px`` of a set of rows is the largest of theirs."""
+    near, far = runs.near, runs.far
+    length = far - near
+    n_cols = lev.shape[1]
+    if n_cols < 3 or near.size == 0:
+        return length
+    lit = lev >= deep_level
+    lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
+    # the first column ≥ c where three lit pixels start, per row and column c
+    first = np.where(lit3, np.arange(n_cols - 2), n_cols)
+    first = np.minimum.accumulate(first[:, ::-1], axis=1)[:, ::-1]
+    start = np.minimum(near, n_cols - 3)
+    j = first[runs.row, start]
+    inside = (near <= n_cols - 3) & (j <= far - 3)  # the three pixels lie within the run
+    return np.where(inside, j - near, length)
+
+
+def _may_be_high(ks: np.ndarray, runs: "_Runs", deep: np.ndarray, n_cols: int, alt_per_ping: np.ndarray,
+                 res: float, min_height_m: float) -> np.ndarray:
     """Of the components ``ks``, those whose height (``H L / (g + L)``, :func:`_detect_shadowed`)
-    can reach ``min_height_m``: an upper bound from the highest altitude, the component's longest
-    row (≥ its deep shadow ``L``) and its nearest column (≤ its shadow's near edge ``g``); a
+    can reach ``min_height_m``: an upper bound from the highest altitude, the component's deepest
+    shadow over all its rows (``deep``, :func:`_deep_shadow_rows`; ≥ that of its own rows, ``L``)
+    and its nearest column (≤ its shadow's near edge ``g``); a
     component touching the image's end (height unknown, kept) always passes. Three in four
     candidates failed the height test after their attributes were measured one by one."""
     if ks.size == 0:
@@ -525,7 +549,7 @@ def _may_be_high(ks: np.ndarray, runs: "_Runs", n_cols: int, alt_per_ping: np.nd
     h_max = float(alt[fin].max())
     # per label 1…n (every label has rows; runs are sorted by label), then the candidates'
     start = np.searchsorted(runs.label, np.arange(1, int(runs.label[-1]) + 1))
-    longest = np.maximum.reduceat(runs.far - runs.near, start)[ks - 1]
+    longest = np.maximum.reduceat(deep, start)[ks - 1]
     near_min = np.minimum.reduceat(runs.near, start)[ks - 1]
     far_max = np.maximum.reduceat(runs.far, start)[ks - 1]
     L = longest * res
