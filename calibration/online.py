@@ -856,6 +856,11 @@ class OnlineCalibrator:
         return (np.array([p[1] for p in poses[1:]]), np.array([p[2] for p in poses]),
                 [self._lm_obs.get(p[0], []) for p in poses])
 
+    def pings_to_block(self) -> int | None:
+        """Side-scan pings still needed before the object front end completes its next block
+        (and runs the detector); None before the first ping."""
+        return None if self.sonar is None else self.sonar.front_end.pings_to_block()
+
     def finish(self) -> None:
         """The data ended: what is still held for completion leaves by :meth:`poll` — the
         side-scan's last, incomplete block of pings (:meth:`CalibratorSonar.finish`)."""

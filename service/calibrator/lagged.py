@@ -41,6 +41,7 @@ from adaptnav.service.transport.release import release_from_dict, release_to_dic
 _STOP = "__stop__"
 _SHIFT = "__shift__"
 _FINISH = "__finish__"  # the data ended: the calibrator hands over what it holds for completion
+PROGRESS_EVERY = 32     # samples between the child's progress messages inside a batch
 
 
 class InlineBackend:
@@ -101,6 +102,15 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
             pass
         calibrator = make_calibrator(cfg, params0, seed)
         clock = DataClock()
+        pings = 0  # side-scan pings observed
+        to_block = getattr(calibrator, "pings_to_block", lambda: None)
+
+        def progress(done: int, tau: float) -> tuple:
+            # with the pings seen and how many more complete the detector's next block, so
+            # that the runner sends the one that does at once (ProcessBackend.send)
+            k = to_block()
+            return ("progress", done if k is None else (done, pings + k), tau)
+
         # the modules forked from the server (numpy, scipy, numba, OpenCV: ~10⁵ objects)
         # stay out of the garbage collector's full passes: they were rescanned at every
         # one, a quarter of the child's CPU (1 h survey with sonar: 18.4 → 13.7–14.0 s)
@@ -125,7 +135,13 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 continue
             seq, n, packed = msg
             tau = clock.tau
-            for sample in unpack_batch(packed):
+            # progress also every PROGRESS_EVERY samples inside the batch: the runner waits
+            # for a τ just past its data time − L_p, which the first samples of a batch it
+            # sent only then already give (with one message per batch it waited for the whole
+            # batch, ~L_p of data with side-scan: the two processes ran in lock-step)
+            for i, sample in enumerate(unpack_batch(packed), start=1):
+                if sample.KIND == "sonar":
+                    pings += 1
                 calibrator.observe(sample)
                 t = sample.t_s  # DataClock.advance inlined (once per sample)
                 if type(t) is not float:
@@ -134,8 +150,10 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                     tau = t
                 for rel in calibrator.poll():
                     out_q.send(child_message(rel, tau))
+                if i % PROGRESS_EVERY == 0 and i < n:
+                    out_q.send(progress(seq + i, tau))
             clock.tau = tau
-            out_q.send(("progress", seq + n, clock.tau))
+            out_q.send(progress(seq + n, clock.tau))
     except BaseException as e:  # the parent must not wait forever for a dead child
         import traceback
 
@@ -232,6 +250,7 @@ class ProcessBackend:
         child_in, self._w = ctx.Pipe(duplex=False)
         self._r, child_out = ctx.Pipe(duplex=False)
         _enlarge_pipe(self._w)
+        _enlarge_pipe(self._r)  # progress messages queue up there while the runner needs none
         self._proc = ctx.Process(target=_lagged_child_main, name="adaptnav-calibrator", daemon=True,
                                  args=(cfg, params0, seed, child_in, child_out))
         start_ignoring_sigint(self._proc)
@@ -245,9 +264,20 @@ class ProcessBackend:
         self._unacked_shift_s = 0.0  # clock shifts sent to the child it has not confirmed yet
         self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
         self._finished = False  # the child handed over what it held at the end of the data
+        self._pings_out = 0     # side-scan pings sent (or batched)
+        self._block_ping = -1   # the count of the ping that completes the child's next block
 
     def send(self, sample: Any) -> None:
         self._batch.append(sample)
+        if sample.KIND == "sonar":
+            self._pings_out += 1
+            if self._pings_out == self._block_ping:
+                # the ping that completes the child's next detector block (as its last
+                # progress said): sent now, so that the child detects while the runner goes
+                # on; held back, it reached the child only when the runner needed its
+                # progress, and the runner waited for the whole detection
+                self._flush()
+                return
         if len(self._batch) >= self.batch_size:
             self._flush()
 
@@ -274,6 +304,8 @@ class ProcessBackend:
             self.ready.append((float(tau) + self._unacked_shift_s,
                                release_from_dict(body) if kind == "release" else body))
         elif kind == "progress":
+            if type(body) is tuple:
+                body, self._block_ping = body
             self._done, self._child_tau = int(body), float(tau) + self._unacked_shift_s
         elif kind == "shifted":
             self._unacked_shift_s -= float(tau)
@@ -289,6 +321,12 @@ class ProcessBackend:
         order) or every sample observed so far."""
         if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
             return
+        # what the child reported already may do (its progress comes every PROGRESS_EVERY
+        # samples): read it before sending the batch, which would otherwise go out a few
+        # samples long after every progress message
+        while self._read(block=False):
+            if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
+                return
         self._flush()
         t0 = time.monotonic()
         while not (self._child_tau > t_s or self._done >= self._sent):
