@@ -85,6 +85,9 @@ def config_raw_from_scenario(scenario: Any) -> dict:
             "rpm_table": {"rpm": list(sc.rpm.table_rpm), "speed_m_s": list(sc.rpm.table_speed_m_s)},
             # the filter is given the pre-change model (learning it is the calibrator's job)
             "params0": sc.params_before().to_dict(),
+            # the simulated vehicle's own table and variances, also when its thrust reaches the
+            # daemon as an autopilot's PWM (the demo's simulated ArduSub)
+            "prior": "calibrated",
         },
         "filter": {
             "imu": _imu_filter_raw(sc.imu.grade),

@@ -172,3 +172,14 @@ def test_motion_prior_widens_the_embedded_table_for_an_autopilot_only():
         load_config(None, ["motion.uncalibrated_sigma_surge=0"])
     with pytest.raises(ConfigError, match="prior"):
         load_config(None, ["motion.prior=maybe"])
+
+
+def test_a_simulated_vehicle_is_calibrated_even_behind_a_simulated_autopilot():
+    # the demo's daemon gets the simulated AUV's thrust as PWM from a simulated ArduSub: the
+    # embedded table is that vehicle's own (taken as uncalibrated, the demo's learned row went
+    # ~3 → ~5.5 m)
+    from adaptnav.service.runtime.replay import build_config
+    from adaptnav.sim.scenario import load_scenario
+
+    cfg = build_config(load_scenario("demo"), None, ["mavlink.enabled=true"])
+    assert cfg.motion.initial_params(autopilot_thrust=True) == (cfg.motion.params0, "calibrated (motion.prior)")
