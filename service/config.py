@@ -286,8 +286,9 @@ class MotionConfig:
     T200 curve) its shape is not the vehicle's, so with ``k_speed`` fitted to one thrust level the
     surge is 17 % slow at another, and the sway 0.07 m/s off, where the calibrated σ say 5 % and
     0.01 m/s: 5.9–8.2 % of the valid epochs of those logs lay outside their own 99 % ellipse.
-    10 % and 0.05 m/s is the smallest pair tried that left none there on four ArduSub logs (and
-    kept them within issue 11's 5 % / 15 m; 20 % and 0.1 m/s cost the DataFlash drive 3.7 → 6.7 %).
+    7 % and 0.03 m/s left at most 0.9 % there (what a consistent filter leaves: 1 %) on five
+    ArduSub logs and kept them within issue 11's 5 % / 15 m; 10 % and 0.05 m/s left none but
+    took a fresh DataFlash drive to 5.1 % (3.8 % with the calibrated σ).
     ``auto``: uncalibrated when the
     thrust comes from an autopilot (MAVLink/DataFlash) and ``rpm_table`` is the embedded one
     (nobody calibrated this vehicle), else calibrated.
@@ -296,8 +297,8 @@ class MotionConfig:
     rpm_table: RpmSpeedTable = field(default_factory=RpmSpeedTable)
     params0: MotionParams = field(default_factory=MotionParams)
     prior: Literal["auto", "calibrated", "uncalibrated"] = "auto"
-    uncalibrated_sigma_surge: float = 0.1
-    uncalibrated_sigma_sway_m_s: float = 0.05
+    uncalibrated_sigma_surge: float = 0.07
+    uncalibrated_sigma_sway_m_s: float = 0.03
 
     def validate(self) -> None:
         if not (0.0 < self.uncalibrated_sigma_surge <= 1.0 and 0.0 < self.uncalibrated_sigma_sway_m_s <= 2.0):

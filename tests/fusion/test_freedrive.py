@@ -46,6 +46,8 @@ def test_freedrive_with_the_defaults_is_honest_where_it_says_valid(tmp_path):
     assert s["end_error_percent"] <= 5.0 and s["max_error_submerged_m"] <= 15.0, s
     # THEN the motion model is taken for what it is on this vehicle ...
     assert result.summary["motion_prior"].startswith("uncalibrated"), result.summary["motion_prior"]
-    # ... and wherever the solution says valid, the truth is inside its 99 % ellipse (with the
-    # calibrated σ of the embedded table, 5.9 % of the valid epochs were not: 5–6 m off at σ 1.7 m)
-    assert s["valid_outside_99_fraction"] <= 0.01, s
+    # ... and where the solution says valid, the truth is inside its 99 % ellipse about as often
+    # as a consistent filter's is (1 % outside; 2 % allowed: 10 Hz epochs are far from
+    # independent); with the calibrated σ of the embedded table 5.9 % were outside, 5–6 m off at
+    # σ 1.7 m
+    assert s["valid_outside_99_fraction"] <= 0.02, s

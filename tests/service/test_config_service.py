@@ -156,9 +156,9 @@ def test_motion_prior_widens_the_embedded_table_for_an_autopilot_only():
     from adaptnav.service.config import MotionConfig
 
     embedded = MotionConfig()
-    # an autopilot's thrust through the embedded table: surge σ 10 % of speed, sway 0.05 m/s
+    # an autopilot's thrust through the embedded table: surge σ 7 % of speed, sway 0.03 m/s
     p, why = embedded.initial_params(autopilot_thrust=True)
-    assert why.startswith("uncalibrated") and p.var_vv == pytest.approx(0.1 ** 2) and p.var_s == pytest.approx(0.05 ** 2)
+    assert why.startswith("uncalibrated") and p.var_vv == pytest.approx(0.07 ** 2) and p.var_s == pytest.approx(0.03 ** 2)
     assert p.k_v == embedded.params0.k_v and p.var_ww == embedded.params0.var_ww  # nothing else
     # the simulator's or a DVL vehicle's RPM, a vehicle's own table, or said calibrated: as given
     assert embedded.initial_params(autopilot_thrust=False)[0] == embedded.params0
