@@ -183,7 +183,7 @@ class AttitudeConfig:
     # minutes (a compass's residual deviation, its EKF's yaw): ATTITUDE fused at 10–50 Hz holds
     # the filter's yaw within ~0.2° of the autopilot's, so the filter navigates in the
     # autopilot's heading frame and the published covariance carries that frame's offset as a
-    # consider parameter (fusion/aiding/attitude.py ReferenceYaw). ArduSub SITL: 0.6° rms with
+    # consider parameter (fusion/aiding/attitude.py reference_yaw_covariance). ArduSub SITL: 0.6° rms with
     # correlation 0.7–0.9 after a minute (tests/fusion/test_attitude_reference.py); 0: off
     reference_yaw_sigma_rad: float = math.radians(2.0)
 

@@ -1095,8 +1095,6 @@ class Estimator:
         status = self._fuse(meas, sample.t_s, kind)
         if kind == "dvl" and status.fused:
             self._t_dvl_fused = sample.t_s
-        elif kind == "attitude" and status.fused:
-            self._yaw_frame = True
         if self._mode == "ins":
             c = self.config.reset
             reset = False
@@ -1111,6 +1109,8 @@ class Estimator:
                 meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
                 if isinstance(meas, Measurement):
                     status = self._fuse(meas, sample.t_s, kind)
+        if kind == "attitude" and status.fused:
+            self._yaw_frame = True  # the yaw now follows the autopilot's (also after a reset onto it)
         return [status]
 
     def heading_source_report(self) -> dict | None:
