@@ -478,6 +478,7 @@ class OnlineCalibrator:
         self._dvl_bins: dict = {}
         self._dvl_rows: deque = deque(maxlen=config.window_steps)
         self._filter_current = (0.0, 0.0)  # the filter's current estimate (from its inertial samples)
+        self._dvl_correction = (0.0, 0.0)  # the filter's DVL scale factor error and misalignment (rad)
         self._taught_by_dvl = False  # the latest accepted release came from the DVL teacher
         self._dvl_steps_new = 0  # steps with DVL rows since the latest accepted DVL-taught release
 
@@ -625,6 +626,9 @@ class OnlineCalibrator:
         cur = getattr(sample, "current_n_m_s", None)
         if cur is not None and math.isfinite(cur[0]) and math.isfinite(cur[1]):
             self._filter_current = (float(cur[0]), float(cur[1]))
+        cal = getattr(sample, "dvl_scale_misalignment", None)
+        if cal is not None and math.isfinite(cal[0]) and math.isfinite(cal[1]) and cal[0] > -0.5:
+            self._dvl_correction = (float(cal[0]), float(cal[1]))
         keep_s = (self.config.window_steps + 2) * self.config.step_s + self._lag_s
         while buf and buf[0][0] < t - keep_s:
             buf.popleft()
@@ -636,6 +640,10 @@ class OnlineCalibrator:
         vel = sample.vel_d_m_s
         if not all(math.isfinite(x) for x in vel):
             return self._reject("non-finite dvl")
+        if self._dvl_correction != (0.0, 0.0):  # the head's scale and misalignment, as the filter knows them
+            from adaptnav.fusion.aiding.dvl import correct_velocity
+
+            vel = correct_velocity(vel, *self._dvl_correction)
         k = math.floor((t - self._t0) / self.config.step_s)
         if k < max(self._closed, 0):
             return self._reject("late dvl")

@@ -112,6 +112,15 @@ class DvlConfig:
     # (fusion/aiding/dvl.py DvlCalibration): prior 1-σ; 0 for both: no calibration
     scale_sigma: float = 0.005
     misalignment_sigma_rad: float = 0.01
+    # does the hull sideslip through the water on a straight leg? "none" (a torpedo AUV, no
+    # lateral thrust): the DVL's lateral velocity on straights is its misalignment plus the
+    # current, and reciprocal legs give the misalignment without fixes (DvlCalibration,
+    # StraightLegs); "free" (an ROV with lateral thrusters, a tethered vehicle: a steady crab
+    # would be taken for misalignment); "auto": free when the thrust is an autopilot's
+    # (ArduSub's vectored ROVs), else none
+    hull_sideslip: Literal["auto", "none", "free"] = "auto"
+    # 1-σ of such a hull's mean sway over a straight-leg segment (≤ 1 min): waves, control (m/s)
+    hull_sway_sigma_m_s: float = 0.003
     water_track: bool = True                   # fuse water-track velocities (relative to the water)
     water_track_sigma_m_s: float = 0.03
     # k_speed random walk (1/√s) on a vehicle whose DVL has had bottom lock, instead of

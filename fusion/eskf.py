@@ -336,9 +336,11 @@ class Estimator:
         yaw = aid_heading.predict(self._x)[0]
         v, p = self._vel_inertial_n, self._pos_inertial_n
         c = self._x[X_CUR]
+        cal = self.dvl_calibration
+        dvl_cal = (float(cal.theta[0]), float(cal.theta[1])) if cal is not None else (0.0, 0.0)
         return InertialVelocitySample(float(self._clock[0]), (float(v[0]), float(v[1]), float(v[2])),
                                       (float(p[0]), float(p[1]), float(p[2])), float(yaw),
-                                      int(self._reset_counter), (float(c[0]), float(c[1]), 0.0))
+                                      int(self._reset_counter), (float(c[0]), float(c[1]), 0.0), dvl_cal)
 
     def clone_position(self) -> bool:
         """Keep the current horizontal position as a clone for later loop closures

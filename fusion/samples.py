@@ -190,7 +190,10 @@ class InertialVelocitySample:
     IMU gap (no increments while coasting). The calibrator's surge-noise evidence
     (:mod:`adaptnav.calibration.inertial`): mean velocities over steps are differences of ``pos_n_m``.
     ``current_n_m_s`` is the filter's sea-current estimate (north, east, 0): the DVL teacher
-    turns DVL ground velocities into water-relative ones with it (:mod:`adaptnav.calibration.dvl_teacher`).
+    turns DVL ground velocities into water-relative ones with it (:mod:`adaptnav.calibration.dvl_teacher`),
+    after removing the filter's DVL scale factor error (–) and yaw misalignment (rad),
+    ``dvl_scale_misalignment`` (:class:`adaptnav.fusion.aiding.dvl.DvlCalibration`), so that the
+    model learns the vehicle, not the head's mounting.
     """
 
     KIND: ClassVar[str] = "inertial_velocity"
@@ -200,6 +203,7 @@ class InertialVelocitySample:
     yaw_rad: float
     reset_counter: int = 0
     current_n_m_s: Vec3 = (0.0, 0.0, 0.0)
+    dvl_scale_misalignment: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -317,6 +321,8 @@ def _field_spec(f: dataclasses.Field) -> tuple[str, int | None]:
         return "number", 3
     if ann == "tuple[float,float,float,float]":
         return "number", 4
+    if ann == "tuple[float,float]":
+        return "number", 2
     if ann == "tuple[float,...]":
         return "number", -1
     raise TypeError(f"unsupported field annotation {ann!r}")

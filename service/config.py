@@ -443,6 +443,20 @@ class ServiceConfig:
     foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
     state_dir: str = "/var/lib/adaptnav"
 
+    def resolved(self, autopilot_thrust: bool) -> "ServiceConfig":
+        """This configuration with the "auto" choices that depend on the vehicle class decided.
+
+        ``autopilot_thrust``: the thrust comes from an autopilot's outputs (a MAVLink or
+        DataFlash log, the live MAVLink bridge) — ArduSub's vectored ROVs, whose hull may crab on
+        a straight (lateral thrusters, a tether): ``filter.dvl.hull_sideslip`` "auto" → "free";
+        otherwise (propeller RPM, a torpedo AUV) → "none".
+        """
+        dvl = self.filter.dvl
+        if dvl.hull_sideslip != "auto":
+            return self
+        dvl = replace(dvl, hull_sideslip="free" if autopilot_thrust else "none")
+        return replace(self, filter=replace(self.filter, dvl=dvl))
+
     def validate(self) -> None:
         # a DVL delta is valid dvl_latency_s before it arrives, a "mean" one another Δt/2
         # earlier (mid-interval): the filter must still hold that past (late measurements are

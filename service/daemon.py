@@ -312,6 +312,7 @@ class Daemon:
     """
 
     def __init__(self, cfg: ServiceConfig) -> None:
+        cfg = cfg.resolved(autopilot_thrust=cfg.mavlink.enabled)  # the thrust is the autopilot's PWM
         self.cfg = cfg
         self.stop_event = threading.Event()
         self._snapshot_due = threading.Event()

@@ -30,9 +30,32 @@ What the scale and misalignment cost there (counterfactual runs of the simulator
 1.8–2.4 m the filter carries into the outage at minute 29 (seeds 1–3), 0.4° of misalignment
 makes ~1.9 m (across the eastward cross legs) and 0.3 % of scale ~0.8 m; the beam biases,
 the IMU's errors and the current 0.15–0.3 m each.
+
+Straight legs (:class:`StraightLegs`, ``hull_sideslip = "none"``): a vehicle with no lateral
+thrust (a torpedo AUV) does not sideslip through the water on a straight — at steady state
+nothing pushes it sideways, so its hull points along its water-relative velocity (the angle
+between heading and course is the current's, not the hull's). Its DVL's lateral velocity
+there, in the heading-aligned level frame, is then the head's misalignment and the current::
+
+    l̄ = −ψ ū + (−sin h̄, cos h̄) · c_ne          (ū the mean forward speed, h̄ the heading)
+
+so reciprocal legs (the current's part changes sign, the misalignment's does not) observe ψ
+without any fix — dvl_outage: 0.4° of misalignment was ~1.9 m of the 1.8–2.4 m the filter
+carried into the outage. The current ``c_ne`` is a nuisance state of this estimator
+(a random walk; the filter's own current estimate is not used, it is fitted to the DVL the
+misalignment is in). Each leg is cut into segments of at most ``max_s`` (turn transients
+left out: ``settle_s`` after the yaw rate falls), each a scalar measurement whose σ is the
+segment's own scatter plus ``hull_sway_sigma_m_s`` (what a real hull's sway wanders
+by over a minute: waves, control). A vehicle that does crab on a straight (an ROV with lateral
+thrusters, a tethered one) must say ``"free"``: a constant crab would be taken for
+misalignment. The filter applies the new estimate from then on; what its earlier part of
+the track since the last fix was corrected with too little is a known error, carried in the
+published covariance (:meth:`DvlCalibration.position_cov_ne`), not moved.
 """
 from __future__ import annotations
 
+import math
+from collections import deque
 from typing import NamedTuple
 
 import numpy as np
@@ -48,8 +71,112 @@ def rotation_z(psi_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+class StraightSegment(NamedTuple):
+    """A stretch of a straight leg: its mid time (s), mean forward and lateral DVL velocity in
+    the heading-aligned level frame (m/s, uncorrected), the variance of that lateral mean
+    ((m/s)²), the mean heading (rad) and the filter's current along it (m/s)."""
+
+    t_s: float
+    forward_m_s: float
+    lateral_m_s: float
+    lateral_var: float
+    heading_rad: float
+    current_along_m_s: float
+
+
+class StraightLegs:
+    """Cuts the DVL's bottom-track samples into :class:`StraightSegment` (module docstring).
+
+    Parameters
+    ----------
+    max_yaw_rate_rad_s : a sample turning faster, by its heading ``rate_window_s`` earlier (the
+        gyro's own rate is noisy per sample and the vehicle's heading loop oscillates), is not
+        on a straight
+    max_heading_change_rad : a segment ends when the heading leaves its first value by more
+    min_speed_m_s : slower samples say too little of the misalignment (ψ ū)
+    settle_s : after a turn, the hull's skid decays before a segment starts
+    min_s, max_s : segment length (a long leg gives several; the current may change)
+    max_gap_s : a longer gap between samples ends the segment
+    """
+
+    def __init__(self, max_yaw_rate_rad_s: float = 0.01, max_heading_change_rad: float = math.radians(5.0),
+                 min_speed_m_s: float = 0.5, settle_s: float = 10.0, min_s: float = 20.0, max_s: float = 60.0,
+                 max_gap_s: float = 2.0, rate_window_s: float = 5.0):
+        self.max_yaw_rate_rad_s = max_yaw_rate_rad_s
+        self.rate_window_s = rate_window_s
+        self._headings: deque[tuple[float, float]] = deque()
+        self.max_heading_change_rad = max_heading_change_rad
+        self.min_speed_m_s = min_speed_m_s
+        self.settle_s, self.min_s, self.max_s, self.max_gap_s = settle_s, min_s, max_s, max_gap_s
+        self._straight_since: float | None = None
+        self._last_t: float | None = None
+        self._sums: list[float] | None = None  # t0, t1, n, Σf, Σl, Σl², Σsin h, Σcos h, Σc∥
+        self._h0 = 0.0
+
+    def _close(self) -> StraightSegment | None:
+        sums, self._sums = self._sums, None
+        if sums is None:
+            return None
+        t0, t1, n, sf, sl, sl2, ss, sc, sca = sums
+        if t1 - t0 < self.min_s or n < 3:
+            return None
+        mean_l = sl / n
+        var = max(sl2 - n * mean_l * mean_l, 0.0) / (n - 1)
+        # the scatter is partly the vehicle's own (control, waves), correlated over seconds:
+        # one independent sample per 2 s, not per ping
+        n_eff = max(min(n, (t1 - t0) / 2.0), 1.0)
+        return StraightSegment(0.5 * (t0 + t1), sf / n, mean_l, var / n_eff, math.atan2(ss, sc), sca / n)
+
+    def add(self, t_s: float, forward_m_s: float, lateral_m_s: float, heading_rad: float,
+            yaw_rate_rad_s: float, current_along_m_s: float = 0.0) -> StraightSegment | None:
+        """One bottom-track sample; a segment when this sample closes one. ``yaw_rate_rad_s``
+        is not used (see ``max_yaw_rate_rad_s``); it is kept for the caller's record."""
+        gap = self._last_t is None or t_s - self._last_t > self.max_gap_s
+        self._last_t = t_s
+        hist = self._headings
+        if gap:
+            hist.clear()
+        hist.append((t_s, heading_rad))
+        while t_s - hist[0][0] > self.rate_window_s:
+            hist.popleft()
+        span = t_s - hist[0][0]
+        rate = abs(math.remainder(heading_rad - hist[0][1], 2.0 * math.pi)) / span if span > 0 else 0.0
+        straight = (span >= 0.5 * self.rate_window_s and rate <= self.max_yaw_rate_rad_s
+                    and forward_m_s >= self.min_speed_m_s)
+        if self._sums is not None and straight and not gap:
+            dh = math.remainder(heading_rad - self._h0, 2.0 * math.pi)
+            straight = abs(dh) <= self.max_heading_change_rad
+        if not straight or gap:
+            out = self._close()
+            self._straight_since = t_s if straight else None
+            return out
+        if self._straight_since is None:
+            self._straight_since = t_s
+        if t_s - self._straight_since < self.settle_s:
+            return None
+        out = None
+        if self._sums is not None and t_s - self._sums[0] >= self.max_s:
+            out = self._close()
+        if self._sums is None:
+            self._sums = [t_s, t_s, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+            self._h0 = heading_rad
+        s = self._sums
+        s[1] = t_s
+        s[2] += 1
+        s[3] += forward_m_s
+        s[4] += lateral_m_s
+        s[5] += lateral_m_s * lateral_m_s
+        s[6] += math.sin(heading_rad)
+        s[7] += math.cos(heading_rad)
+        s[8] += current_along_m_s
+        return out
+
+
 class DvlCalibration:
     """Scale factor ``s`` and yaw misalignment ``ψ`` of the DVL head (module docstring).
+
+    State ``(s, ψ, c_N, c_E)``: the current ``c`` is the straight legs' nuisance (a random
+    walk, ``current_rw_m_s_rthz``), untouched by fix pairs.
 
     Parameters
     ----------
@@ -57,38 +184,60 @@ class DvlCalibration:
     misalignment_sigma_rad : prior 1-σ of ``ψ`` (rad)
     max_gap_fraction : a fix-to-fix interval with more of its time without DVL is not used
     min_track_m : intervals with a shorter DVL track carry too little information
+    straight_legs : cut the DVL's samples into straight-leg segments and estimate ψ from them
+        (a hull that does not sideslip, ``hull_sideslip = "none"``); None: fixes only
+    hull_sway_sigma_m_s : 1-σ of the hull's own mean sway over a segment (m/s)
+    current_sigma_m_s, current_rw_m_s_rthz : the current's prior σ and random walk (a tidal
+        current turning over 6 h changes by a few mm/s per leg)
+    along_current_sigma_m_s : 1-σ of the filter's along-heading current on a segment
     """
 
     _BRIDGE_S = 2.0  # drop-outs up to this long are bridged by the trapezoid
+    _GATE = 16.0     # a segment 4 σ off its prediction (a turn the rate test missed, fish) is not used
 
     def __init__(self, scale_sigma: float, misalignment_sigma_rad: float,
-                 max_gap_fraction: float = 0.2, min_track_m: float = 20.0):
-        self.theta = np.zeros(2)  # (s, ψ)
-        self.P = np.diag([scale_sigma**2, misalignment_sigma_rad**2])
+                 max_gap_fraction: float = 0.2, min_track_m: float = 20.0,
+                 straight_legs: StraightLegs | None = None, hull_sway_sigma_m_s: float = 0.003,
+                 current_sigma_m_s: float = 0.5, current_rw_m_s_rthz: float = 2.0e-4,
+                 along_current_sigma_m_s: float = 0.01):
+        self.theta = np.zeros(4)  # (s, ψ, c_N, c_E)
+        self.P = np.diag([scale_sigma**2, misalignment_sigma_rad**2, current_sigma_m_s**2, current_sigma_m_s**2])
         self.max_gap_fraction = max_gap_fraction
         self.min_track_m = min_track_m
+        self.straight_legs = straight_legs if misalignment_sigma_rad > 0 else None
+        self.hull_sway_sigma_m_s = hull_sway_sigma_m_s
+        self.current_rw_m_s_rthz = current_rw_m_s_rthz
+        self.along_current_sigma_m_s = along_current_sigma_m_s
         self.pairs_used = 0
+        self.segments_used = 0
+        self.segments_rejected = 0
+        self._t_theta: float | None = None  # time of the last straight-leg update (current walk)
         self._fix: tuple[float, np.ndarray, float] | None = None  # (t, NE, σ)
         self._track = np.zeros(2)     # Σ R_nd v_m Δt since the last fix (n frame, N/E)
+        self._applied = np.zeros(2)   # Σ H(d) θ̂ at the time: the correction the filter applied
         self._covered_s = 0.0
         self._last_t: float | None = None
         self._last_vel_n: np.ndarray | None = None
         self._cov_ne_memo: tuple | None = None  # ((track N, track E, P), position_cov_ne)
 
     def report(self) -> dict:
-        """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs used, and whether
-        anything but the prior is known (``"estimated"``; ``"prior"``: no fix pair closed a DVL
-        track, so the DVL navigated uncalibrated and the published covariance carries the
-        prior's σ)."""
+        """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs and straight-leg
+        segments used, and whether anything but the prior is known (``"estimated"``;
+        ``"prior"``: neither a fix pair nor a straight leg informed it, so the DVL navigated
+        uncalibrated and the published covariance carries the prior's σ)."""
         sd = np.sqrt(np.diag(self.P))
         return {"scale_factor_error": float(self.theta[0]), "scale_sigma": float(sd[0]),
                 "misalignment_deg": float(np.degrees(self.theta[1])),
                 "misalignment_sigma_deg": float(np.degrees(sd[1])), "pairs_used": self.pairs_used,
-                "status": "estimated" if self.pairs_used else "prior"}
+                "straight_segments_used": self.segments_used,
+                "straight_segments_rejected": self.segments_rejected,
+                "status": "estimated" if self.pairs_used or self.segments_used else "prior"}
 
     def position_cov_ne(self) -> np.ndarray:
         """(2, 2) m²: what the scale and misalignment still unknown (their σ, ``P``) make of the
-        DVL's track since the last fix, ``H P Hᵀ`` with ``H = ∂(Δp − D)/∂(s, ψ)``.
+        DVL's track since the last fix, ``H P Hᵀ`` with ``H = ∂(Δp − D)/∂(s, ψ)``, plus ``k kᵀ``
+        for the known part ``k = H θ̂ − Σ H(d) θ̂_then`` (the earlier track corrected with an
+        older estimate).
 
         The filter fuses the corrected DVL as if (s, ψ) were exact, so its position covariance
         misses this correlated error (0.3 % and 0.4° leave ±1–2 m along and across a 345 m leg
@@ -106,12 +255,13 @@ class DvlCalibration:
         memo = self._cov_ne_memo
         if memo is None or memo[0][0] != key[0] or memo[0][1] != key[1] or memo[0][2] is not key[2]:
             H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
-            memo = self._cov_ne_memo = (key, H @ self.P @ H.T)
+            k = H @ self.theta[:2] - self._applied
+            memo = self._cov_ne_memo = (key, H @ self.P[:2, :2] @ H.T + np.outer(k, k))
         return memo[1].copy()
 
     def correct(self, vel_d_m_s) -> np.ndarray:
         """The measured head velocity with the estimated scale and misalignment removed."""
-        return rotation_z(self.theta[1]) @ np.asarray(vel_d_m_s, dtype=float) / (1.0 + self.theta[0])
+        return correct_velocity(vel_d_m_s, self.theta[0], self.theta[1])
 
     def on_dvl(self, t_s: float, vel_n_m_s: np.ndarray | None) -> None:
         """A DVL sample at ``t_s``: its *uncorrected* velocity rotated to n (None: no lock).
@@ -125,10 +275,57 @@ class DvlCalibration:
         if self._last_t is not None:
             dt = t_s - self._last_t
             if dt <= self._BRIDGE_S:
-                self._track += 0.5 * (self._last_vel_n[:2] + v[:2]) * dt
+                self._add_track(0.5 * (self._last_vel_n[:2] + v[:2]) * dt)
                 self._covered_s += dt
         self._last_t = t_s
         self._last_vel_n = v
+
+    def _add_track(self, d: np.ndarray) -> None:
+        self._track += d
+        s, psi = self.theta[0], self.theta[1]
+        self._applied += (-s * d[0] - psi * d[1], -s * d[1] + psi * d[0])
+
+    def on_straight(self, t_s: float, forward_m_s: float, lateral_m_s: float, heading_rad: float,
+                    yaw_rate_rad_s: float, current_along_m_s: float = 0.0) -> None:
+        """A bottom-track sample in the heading-aligned level frame (uncorrected), with the
+        filter's current along the heading; updates ``ψ`` and the current when it closes a
+        straight-leg segment.
+
+        Two scalar rows per segment: the lateral mean (above), and the filter's along-heading
+        current ``(cos h̄, sin h̄)·c = c∥`` (σ ``along_current_sigma_m_s``). The second pins the
+        current's component that the lateral rows barely see: on a lawnmower the vehicle
+        heads a few degrees into a cross current (−3° and −177° on dvl_outage's north-south
+        legs), so the along-leg current enters both legs' lateral rows with the same sign, as
+        ψ does (0.05 c_N against 1.5 ψ: a current prior of 0.5 m/s would leave ψ at ±1°). The
+        filter's along-track current is the DVL's speed against the motion model's — the
+        misalignment does not enter it (to first order it is across the track).
+        """
+        if self.straight_legs is None:
+            return
+        seg = self.straight_legs.add(t_s, forward_m_s, lateral_m_s, heading_rad, yaw_rate_rad_s, current_along_m_s)
+        if seg is None:
+            return
+        P = self.P.copy()
+        if self._t_theta is not None and seg.t_s > self._t_theta:
+            P[2:, 2:] += np.eye(2) * self.current_rw_m_s_rthz**2 * (seg.t_s - self._t_theta)
+        self._t_theta = seg.t_s
+        ch, sh = math.cos(seg.heading_rad), math.sin(seg.heading_rad)
+        theta = self.theta
+        H = np.array([0.0, 0.0, ch, sh])  # the filter's along-heading current
+        K = P @ H / (float(H @ P @ H) + self.along_current_sigma_m_s**2)
+        theta = theta + K * (seg.current_along_m_s - float(H @ theta))
+        P = P - np.outer(K, H @ P)
+        H = np.array([0.0, -seg.forward_m_s, -sh, ch])  # the lateral mean
+        y = seg.lateral_m_s - float(H @ theta)
+        S = float(H @ P @ H) + seg.lateral_var + self.hull_sway_sigma_m_s**2
+        if y * y / S > self._GATE:
+            self.segments_rejected += 1
+            return  # the current's walk is lost with it: the next segment starts from the last one's
+        K = P @ H / S
+        self.theta = theta + K * y
+        P = P - np.outer(K, H @ P)
+        self.P = 0.5 * (P + P.T)
+        self.segments_used += 1
 
     def on_fix(self, t_s: float, ne_m: np.ndarray, sigma_m: float) -> None:
         """An absolute horizontal fix: closes the interval since the previous one."""
@@ -137,7 +334,7 @@ class DvlCalibration:
             return
         bridged = self._last_t is not None and 0.0 <= t_s - self._last_t <= self._BRIDGE_S
         if bridged:  # carry the track from the last sample up to the fix's time
-            self._track += self._last_vel_n[:2] * (t_s - self._last_t)
+            self._add_track(self._last_vel_n[:2] * (t_s - self._last_t))
             self._covered_s += t_s - self._last_t
         if self._fix is not None:
             t0, ne0, s0 = self._fix
@@ -145,21 +342,29 @@ class DvlCalibration:
             D = self._track
             if (span > 0 and self._covered_s >= (1.0 - self.max_gap_fraction) * span
                     and np.hypot(*D) >= self.min_track_m):
-                H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
+                H = np.zeros((2, 4))
+                H[:, :2] = [[-D[0], -D[1]], [-D[1], D[0]]]
                 y = (ne - ne0) - D - H @ self.theta
                 R = np.eye(2) * (sigma_m**2 + s0**2)
                 S = H @ self.P @ H.T + R
                 K = self.P @ H.T @ np.linalg.inv(S)
                 if float(y @ np.linalg.solve(S, y)) < 25.0:  # a wild fix says nothing about the DVL
                     self.theta = self.theta + K @ y
-                    self.P = (np.eye(2) - K @ H) @ self.P
+                    self.P = (np.eye(4) - K @ H) @ self.P
                     self.P = 0.5 * (self.P + self.P.T)
                     self.pairs_used += 1
         self._fix = (t_s, ne, sigma_m)
         self._track = np.zeros(2)
+        self._applied = np.zeros(2)
         self._covered_s = 0.0
         if bridged:  # the next interval starts at the fix
             self._last_t = t_s
+
+
+def correct_velocity(vel_d_m_s, scale_factor_error: float, misalignment_rad: float) -> np.ndarray:
+    """A head velocity with a scale factor error and yaw misalignment removed:
+    ``R_z(ψ) v_m / (1 + s)``."""
+    return rotation_z(misalignment_rad) @ np.asarray(vel_d_m_s, dtype=float) / (1.0 + scale_factor_error)
 
 
 def rotation_db(rotation_bd_rpy_rad) -> np.ndarray:
@@ -235,7 +440,10 @@ class DvlSetup(NamedTuple):
 def _setup(config: DvlConfig) -> DvlSetup:
     cal = None
     if config.scale_sigma > 0 or config.misalignment_sigma_rad > 0:
-        cal = DvlCalibration(config.scale_sigma, config.misalignment_sigma_rad)
+        # "auto" not resolved by a service (a library user): the default vehicle, a torpedo AUV
+        legs = StraightLegs() if config.hull_sideslip in ("none", "auto") else None
+        cal = DvlCalibration(config.scale_sigma, config.misalignment_sigma_rad, straight_legs=legs,
+                             hull_sway_sigma_m_s=config.hull_sway_sigma_m_s)
     return DvlSetup(np.asarray(config.lever_arm_b_m, dtype=float), rotation_db(config.rotation_bd_rpy_rad), cal)
 
 
@@ -256,7 +464,17 @@ def _measure(sample, ctx: AidContext) -> Measurement | str:
         return measure_water_track(z, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.water_track_sigma_m_s)
     z = None
     if cal is not None:
-        cal.on_dvl(sample.t_s, dcm(ctx.x) @ (R_db.T @ vel_d))
+        R_nb = dcm(ctx.x)
+        v_b = R_db.T @ vel_d
+        cal.on_dvl(sample.t_s, R_nb @ v_b)
+        if cal.straight_legs is not None:
+            omega = np.asarray(ctx.omega_b_rad_s, dtype=float)
+            vn, ve = (R_nb @ (v_b - np.cross(omega, lever_b)))[:2]
+            h = math.atan2(R_nb[1, 0], R_nb[0, 0])
+            ch, sh = math.cos(h), math.sin(h)
+            cur = ctx.x[X_CUR]
+            cal.on_straight(sample.t_s, ch * vn + sh * ve, -sh * vn + ch * ve, h, float(R_nb[2] @ omega),
+                            ch * float(cur[0]) + sh * float(cur[1]))
         z = cal.correct(vel_d)
     meas = measure(sample, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.sigma_m_s, z)
     if meas is None or c.lever_arm_sigma_m <= 0.0:

@@ -247,7 +247,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
     # a MAVLink or DataFlash log: the thrust is an autopilot's PWM
-    params0, motion_prior = cfg.motion.initial_params(autopilot_thrust=hasattr(inp.source, "set_convert"))
+    autopilot_thrust = hasattr(inp.source, "set_convert")
+    cfg = cfg.resolved(autopilot_thrust)
+    params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None

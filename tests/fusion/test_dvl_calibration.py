@@ -91,3 +91,110 @@ def test_the_report_says_whether_the_dvl_was_calibrated_or_ran_on_its_prior():
     assert after["status"] == "estimated" and after["pairs_used"] == 1
     assert after["misalignment_sigma_deg"] < first["misalignment_sigma_deg"]
     assert abs(after["misalignment_deg"]) > 0.1
+
+
+def _lawnmower_dvl(cal, misalignment_rad, current_ne, rng, headings_deg=(0.0, 180.0), legs=8, leg_s=230.0,
+                   speed_m_s=1.5, turn_rate_rad_s=0.1, scale=0.003, along_sigma_m_s=0.005):
+    """Feed ``cal.on_straight`` a lawnmower's bottom track at 5 Hz: straight legs (heading into
+    the cross current so that the ground track is the leg's), turns between them. The head
+    reports ``(1 + s) R_z(ψ)ᵀ`` of the body's ground velocity, beam noise 1 cm/s; the
+    "filter's" along-heading current is the truth plus a bias of ``along_sigma_m_s``."""
+    from adaptnav.fusion.aiding.dvl import rotation_z
+
+    c = np.asarray(current_ne, dtype=float)
+    t = 0.0
+    along_bias = along_sigma_m_s * rng.standard_normal()
+    heading = math.radians(headings_deg[0])
+    for leg in range(legs):
+        course = math.radians(headings_deg[leg % len(headings_deg)])
+        # crab into the current: the across-course component of u (cos h, sin h) cancels c's
+        across = -math.sin(course) * c[0] + math.cos(course) * c[1]
+        target = course - math.asin(across / speed_m_s)
+        while abs(math.remainder(target - heading, 2 * math.pi)) > 1e-3:  # the turn
+            step = math.copysign(min(turn_rate_rad_s * 0.2, abs(math.remainder(target - heading, 2 * math.pi))),
+                                 math.remainder(target - heading, 2 * math.pi))
+            heading += step
+            t += 0.2
+            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias, rotation_z)
+        for _ in range(int(leg_s / 0.2)):
+            t += 0.2
+            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias, rotation_z)
+    return cal
+
+
+def _ping(cal, t, heading, speed, c, psi, scale, rng, along_bias, rotation_z):
+    ch, sh = math.cos(heading), math.sin(heading)
+    ground = speed * np.array([ch, sh]) + c
+    body = np.array([ch * ground[0] + sh * ground[1], -sh * ground[0] + ch * ground[1], 0.0])
+    meas = (1.0 + scale) * rotation_z(psi).T @ body + 0.01 * rng.standard_normal(3)
+    cal.on_straight(t, meas[0], meas[1], heading, 0.0, ch * c[0] + sh * c[1] + along_bias)
+
+
+@pytest.mark.parametrize("psi_deg,current_ne", [(0.4, (0.07, 0.07)), (-0.3, (0.0, -0.15)), (0.0, (0.1, 0.05))])
+def test_reciprocal_straight_legs_give_the_misalignment_without_any_fix(psi_deg, current_ne):
+    from adaptnav.fusion.aiding.dvl import StraightLegs
+
+    # GIVEN a torpedo AUV's DVL on a lawnmower in a cross current, no fix at all
+    cal = _lawnmower_dvl(DvlCalibration(0.005, 0.01, straight_legs=StraightLegs()), math.radians(psi_deg),
+                         current_ne, np.random.default_rng(int(10 * psi_deg) + 7))
+    rep = cal.report()
+    # THEN the reciprocal legs separate the head's misalignment from the current: within
+    # 3 σ of the truth, and σ far below the 0.57° prior
+    assert rep["status"] == "estimated" and rep["pairs_used"] == 0 and rep["straight_segments_used"] >= 20
+    assert rep["misalignment_sigma_deg"] < 0.1
+    assert abs(rep["misalignment_deg"] - psi_deg) < 3.0 * rep["misalignment_sigma_deg"]
+    np.testing.assert_allclose(cal.theta[2:], current_ne, atol=0.01)
+
+
+def test_one_heading_only_leaves_the_misalignment_at_its_prior():
+    from adaptnav.fusion.aiding.dvl import StraightLegs
+
+    # GIVEN legs all on one heading (a transit): the cross current and the misalignment are
+    # one lateral velocity, which no single heading splits
+    cal = _lawnmower_dvl(DvlCalibration(0.005, 0.01, straight_legs=StraightLegs()), math.radians(0.4),
+                         (0.0, 0.1), np.random.default_rng(3), headings_deg=(30.0,), legs=3)
+    rep = cal.report()
+    # THEN the estimate does not claim to know ψ (its σ stays near the prior's 0.57°)
+    assert rep["misalignment_sigma_deg"] > 0.4
+    assert abs(rep["misalignment_deg"] - 0.4) < 3.0 * rep["misalignment_sigma_deg"]
+
+
+def test_a_vehicle_that_may_crab_does_not_take_its_dvl_lateral_for_misalignment():
+    from adaptnav.fusion.aiding.dvl import AID
+    from adaptnav.fusion.config import DvlConfig
+    from adaptnav.service.config import ServiceConfig
+
+    # an ROV (thrust from an autopilot: ArduSub's vectored frames) resolves "auto" to "free"
+    rov, auv = ServiceConfig().resolved(autopilot_thrust=True), ServiceConfig().resolved(autopilot_thrust=False)
+    assert rov.filter.dvl.hull_sideslip == "free" and auv.filter.dvl.hull_sideslip == "none"
+    assert AID.setup(rov.filter.dvl).calibration.straight_legs is None
+    assert AID.setup(auv.filter.dvl).calibration.straight_legs is not None
+    # a configured choice is kept
+    cfg = ServiceConfig()
+    cfg = replace(cfg, filter=replace(cfg.filter, dvl=replace(cfg.filter.dvl, hull_sideslip="none")))
+    assert cfg.resolved(autopilot_thrust=True).filter.dvl.hull_sideslip == "none"
+    with pytest.raises(ValueError):
+        from adaptnav.fusion.typed_config import build
+
+        build(DvlConfig, {"hull_sideslip": "torpedo"})
+
+
+def test_the_track_corrected_with_an_older_misalignment_stays_in_the_published_covariance():
+    # GIVEN a fix, then 300 m of DVL track north corrected with ψ = 0
+    cal = DvlCalibration(0.005, 0.01)
+    cal.on_fix(0.0, (0.0, 0.0), 1.0)
+    t = _track(cal, 0.0, (1.5, 0.0), 200)
+    before = cal.position_cov_ne()
+    # WHEN the estimate learns ψ = 0.5° and its σ shrinks to 0.05° (a straight-leg update)
+    cal.theta = np.array([0.0, math.radians(0.5), 0.0, 0.0])
+    cal.P = np.diag([0.005**2, math.radians(0.05)**2, 0.01, 0.01])
+    after = cal.position_cov_ne()
+    # THEN the 300 m already travelled with ψ = 0 keep their 2.6 m across-track error in the
+    # covariance (known, not moved): σ_E stays ≥ 300 m × 0.5°, not 300 m × 0.05°
+    assert math.sqrt(after[1, 1]) >= 300.0 * math.radians(0.5) * 0.99
+    assert after[1, 1] < before[1, 1]
+    # AND a further 300 m corrected with the new ψ add only its σ's share
+    _track(cal, t, (1.5, 0.0), 200)
+    grown = cal.position_cov_ne()
+    assert math.sqrt(grown[1, 1]) == pytest.approx(math.hypot(300.0 * math.radians(0.5), 600.0 * math.radians(0.05)),
+                                                   rel=0.02)
