@@ -12,13 +12,15 @@ water track ``−R_db R_nbᵀ[:, :2]`` (δc).
 Scale factor and misalignment (:class:`DvlCalibration`): a real head reports
 ``v_m ≈ (1 + s) R_z(ψ)ᵀ v`` (sound-speed scale error ``s``, a yaw misalignment ``ψ`` left
 by the installation survey; 0.1–1 % and tenths of a degree, sim/sensors.py). Neither is
-observable from the DVL and the IMU over straight legs; both are from absolute fixes: the
+observable from the DVL and the IMU over straight legs; absolute fixes see both: the
 DVL's own track between two fixes, ``D = Σ R_nd v_m Δt``, against the fixes' displacement
 ``Δp`` gives ``Δp − D ≈ −s D + ψ (e_z × D)`` (horizontal, linear in (s, ψ); the track-to-fix
-calibration of Kinsey & Whitcomb, IEEE JOE 31(2), 2006). A two-state Kalman filter with
-prior σ (``scale_sigma``, ``misalignment_sigma_rad``) accumulates those pairs; the
-measurement is corrected with the current estimate, so without fixes (GNSS at the surface
-only) the correction stays at the prior's zero — "estimated where observable".
+calibration of Kinsey & Whitcomb, IEEE JOE 31(2), 2006), and so does the vehicle's own
+hydrodynamics when its hull does not sideslip ("Straight legs" below: ψ only). A Kalman
+filter with prior σ (``scale_sigma``, ``misalignment_sigma_rad``) accumulates both; the
+measurement is corrected with the current estimate, so with neither (GNSS at the surface
+only, a vehicle that may crab) the correction stays at the prior's zero — "estimated where
+observable".
 
 Through turns the IMU sees them in principle: the DVL's error ``−s v + ψ e_z × v`` turns
 with the velocity, so across a reversal at 1.5 m/s a 0.4° misalignment is a 21 mm/s jump
@@ -27,9 +29,10 @@ does not pay: the aided filter's free-inertial velocity wanders ±30 mm/s over a
 turn (60–70 s with its transients), and lines fitted to it on the straights either side of
 5 reversals (seed 1) missed the jump by ~80 mm/s RMS — a turn says less than the prior.
 What the scale and misalignment cost there (counterfactual runs of the simulator): of the
-1.8–2.4 m the filter carries into the outage at minute 29 (seeds 1–3), 0.4° of misalignment
-makes ~1.9 m (across the eastward cross legs) and 0.3 % of scale ~0.8 m; the beam biases,
-the IMU's errors and the current 0.15–0.3 m each.
+1.8–2.4 m the filter carried into the outage at minute 29 (seeds 1–3) before the straight
+legs below, 0.4° of misalignment made ~1.9 m (across the eastward cross legs) and 0.3 % of
+scale ~0.8 m; the beam biases, the IMU's errors and the current 0.15–0.3 m each. With the
+straight legs the estimate is 0.32–0.34° ± 0.04° by then and the error 0.10–0.58 m (seeds 1–10).
 
 Straight legs (:class:`StraightLegs`, ``hull_sideslip = "none"``): a vehicle with no lateral
 thrust (a torpedo AUV) does not sideslip through the water on a straight — at steady state
