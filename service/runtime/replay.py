@@ -249,6 +249,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     # a MAVLink or DataFlash log: the thrust is an autopilot's PWM
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust=hasattr(inp.source, "set_convert"))
     log.info("motion model: %s", motion_prior)
+    cfg = replace(cfg, filter=cfg.motion.prior_filter(cfg.filter, motion_prior))
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None
     if calibrate:
