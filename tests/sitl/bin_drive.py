@@ -151,7 +151,7 @@ PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs
             "stops": drive_stops}
 
 
-def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: float = 60.0,
+def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
            pattern: str = "default") -> Path:
     """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -171,9 +171,9 @@ def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: floa
         gcs.wait_text("EKF3 IMU0 is using GPS", 120)
         time.sleep(5.0)
         if pattern == "default":
-            drive(gcs, legs, leg_s)
-        else:  # the variants take their own lane counts and lengths
-            PATTERNS[pattern](gcs)
+            drive(gcs, 4 if legs is None else legs, 60.0 if leg_s is None else leg_s)
+        else:  # the variants take their own lane counts and lengths unless given
+            PATTERNS[pattern](gcs, **{k: v for k, v in (("legs", legs), ("leg_s", leg_s)) if v is not None})
         gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # disarm (forced): the log closes
         time.sleep(3.0)
     finally:
@@ -227,9 +227,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("out", type=Path)
     ap.add_argument("--log-bitmask", type=int)
-    ap.add_argument("--legs", type=int, default=4)
-    ap.add_argument("--leg-s", type=float, default=60.0)
-    ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default",
-                    help="drive shape; the variants ignore --legs/--leg-s")
+    ap.add_argument("--legs", type=int, help="lanes (default 4; a variant's own without it)")
+    ap.add_argument("--leg-s", type=float, help="seconds per lane (default 60; a variant's own without it)")
+    ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default", help="drive shape")
     a = ap.parse_args()
     print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern))
