@@ -44,21 +44,24 @@ class SurgeVariance:
     def enabled(self) -> bool:
         return self.config.adaptive_window_s > 0
 
-    def adapt(self, meas: Measurement, P_prior: np.ndarray | None, since_release_s: float) -> Measurement:
+    def adapt(self, meas: Measurement, P_prior: np.ndarray | None, since_release_s: float,
+              extra_var: float = 0.0) -> Measurement:
         """``meas`` with its surge variance scaled to the estimate.
 
         ``P_prior`` (18, 18) the covariance before this epoch's update: its innovation joins
         the estimate first (None: the estimate is used as it is, e.g. for the re-measurement
         after a reset). ``since_release_s`` the state time since the latest calibrator
         release (s): within ``adaptive_suspend_after_release_s`` the estimate is kept
-        current but ``meas`` is returned unchanged.
+        current but ``meas`` is returned unchanged. ``extra_var`` (m²/s²): surge variance
+        the caller adds to ``meas`` for a known cause (a thrust transient): taken out of this
+        epoch's innovation sample, so the steady-state estimate does not take it.
         """
         if not self.enabled:
             return meas
-        adapted = self._scaled(meas, P_prior)
+        adapted = self._scaled(meas, P_prior, extra_var)
         return adapted if since_release_s >= self.config.adaptive_suspend_after_release_s else meas
 
-    def _scaled(self, meas: Measurement, P_prior: np.ndarray | None) -> Measurement:
+    def _scaled(self, meas: Measurement, P_prior: np.ndarray | None, extra_var: float = 0.0) -> Measurement:
         cfg = self.config
         r_model = float(meas.R[0, 0])
         if P_prior is not None:
@@ -68,7 +71,7 @@ class SurgeVariance:
             if not (math.isfinite(y0) and math.isfinite(hph)):
                 return meas
             alpha = min(1.0, self.period_s / cfg.adaptive_window_s)
-            sample = min(y0 * y0 - hph, 100.0 * r_model * cfg.adaptive_max_scale)
+            sample = min(y0 * y0 - hph - extra_var, 100.0 * r_model * cfg.adaptive_max_scale)
             self.r_hat_m2_s2 = sample if self.r_hat_m2_s2 is None else (1 - alpha) * self.r_hat_m2_s2 + alpha * sample
         if self.r_hat_m2_s2 is None:
             return meas

@@ -81,6 +81,12 @@ class LearnedVelocityConfig:
     # the vehicle's speed follows a thrust change with this first-order time constant (s)
     # (mass over linear drag); 0: at once
     response_time_s: float = 0.0
+    # a vehicle whose response to thrust is not known (the uncalibrated motion prior): while a
+    # thrust change settles, its speed lies anywhere between the command's and the command's
+    # through a first-order lag of this time constant (s), and the surge and sway variances take
+    # that gap, (k_speed k_V (u − u_slow))², so a coasting stop or a spin-up is not read as a
+    # speed-scale error. 0: off (a calibrated vehicle: response_time_s models it)
+    transient_time_s: float = 0.0
     # innovation-based adaptive surge variance (Mehra 1972): R̂ = E[y²] − H P Hᵀ over this
     # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
     adaptive_window_s: float = 120.0

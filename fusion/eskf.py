@@ -170,7 +170,8 @@ class Estimator:
         self._mode = "none"  # "none" | "ins" | "ahrs"
         self._reset_counter = 0
         self._t_imu_last = -math.inf
-        self._rpm: tuple[float, float, float] | None = None  # (t_s, surge, sway speed m/s)
+        # (t_s, surge, sway, commanded surge, commanded sway, slow surge, slow sway) m/s: see _take_rpm
+        self._rpm: tuple[float, ...] | None = None
         self._rpm_raw = math.nan  # latest RPM (rev/min), for stationary detection
         self._next_lv_t = math.nan
         self._lv_period = 1.0 / config.learned_velocity.rate_hz
@@ -644,24 +645,36 @@ class Estimator:
 
     # ------------------------------------------------------------------ internals
     def _take_rpm(self, sample) -> None:
-        """Latest thrust: ``_rpm = (t, surge, sway, commanded surge, commanded sway)`` m/s.
+        """Latest thrust: ``_rpm = (t, surge, sway, commanded surge, commanded sway, slow surge,
+        slow sway)`` m/s.
 
         The speeds follow the commanded ones with the vehicle's first-order response
         (``learned_velocity.response_time_s``; the command held constant between samples):
-        a vehicle does not stop the instant its thrusters do.
+        a vehicle does not stop the instant its thrusters do. The slow ones follow them with
+        ``learned_velocity.transient_time_s`` (the bound of an unknown response: the learned
+        velocity's variance takes the gap, :meth:`_lv_measure`).
         """
         cfg = self.config.learned_velocity
         r_y = float(sample.sway_rpm)
         sway = 0.0
         if r_y != 0.0:
             sway = math.copysign(self._speed(abs(r_y)), r_y) * cfg.sway_speed_scale
-        surge = self._speed(sample.rpm)
+        # astern as ahead, mirrored (the table starts at 0 RPM: astern thrust was speed 0, and
+        # an ROV backing at 0.5 m/s was "stopped" — gated, then reset onto 0)
+        rpm = float(sample.rpm)
+        surge = math.copysign(self._speed(abs(rpm)), rpm) if rpm < 0.0 else self._speed(rpm)
         prev = self._rpm
         if cfg.response_time_s > 0 and prev is not None and sample.t_s > prev[0]:
             a = 1.0 - math.exp(-(sample.t_s - prev[0]) / cfg.response_time_s)
-            self._rpm = (sample.t_s, prev[1] + a * (prev[3] - prev[1]), prev[2] + a * (prev[4] - prev[2]), surge, sway)
+            now = (prev[1] + a * (prev[3] - prev[1]), prev[2] + a * (prev[4] - prev[2]))
         else:
-            self._rpm = (sample.t_s, surge, sway, surge, sway)
+            now = (surge, sway)
+        if cfg.transient_time_s > 0 and prev is not None and sample.t_s > prev[0]:
+            b = 1.0 - math.exp(-(sample.t_s - prev[0]) / cfg.transient_time_s)
+            slow = (prev[5] + b * (prev[3] - prev[5]), prev[6] + b * (prev[4] - prev[6]))
+        else:
+            slow = (surge, sway)
+        self._rpm = (sample.t_s, *now, surge, sway, *slow)
         self._rpm_raw = max(abs(float(sample.rpm)), abs(r_y))
 
     def _speed(self, rpm: float) -> float:
@@ -1048,7 +1061,22 @@ class Estimator:
             # would flush it itself; propagated into a copy here, it was computed twice
             kalman.flush_core(self._core, self._qdiag)
             P = self._P
-        return self._surge.adapt(meas, P, t - self._t_release)
+        transient = None
+        if cfg.transient_time_s > 0:
+            # a thrust change settling in a vehicle of unknown response: the speed is anywhere
+            # between the model's now and the model's through the slow lag (1σ = the gap)
+            scale = abs(float(self._x[X_KS])) * self.motion_params.k_v
+            transient = ((scale * (self._rpm[1] - self._rpm[5])) ** 2,
+                         (scale * (self._rpm[2] - self._rpm[6])) ** 2)
+            if transient == (0.0, 0.0):
+                transient = None
+        meas = self._surge.adapt(meas, P, t - self._t_release, extra_var=transient[0] if transient else 0.0)
+        if transient is not None:
+            R = meas.R.copy()
+            R[0, 0] += transient[0]
+            R[1, 1] += transient[1]
+            meas = meas._replace(R=R)
+        return meas
 
     def _doubt_k_speed(self) -> None:
         """``k_speed`` back to its initial σ (the RPM → speed scale is in doubt).

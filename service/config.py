@@ -299,11 +299,36 @@ class MotionConfig:
     prior: Literal["auto", "calibrated", "uncalibrated"] = "auto"
     uncalibrated_sigma_surge: float = 0.07
     uncalibrated_sigma_sway_m_s: float = 0.03
+    # what else an uncalibrated vehicle leaves unknown (the filter's own keys are raised to
+    # these, never lowered: :meth:`prior_filter`). On drives of other shapes than the one the
+    # figures above were set on (python -m tests.sitl.bin_drive OUT --pattern survey|brisk|arcs|stops),
+    # two things the embedded table does not know about a BlueROV2 moved the scale: the vehicle's
+    # response to a thrust change (a stop coasts for ~10 s, quadratic drag: 0.35 / 0.17 / 0.12 /
+    # 0.06 m/s 1 / 2 / 3 / 5 s after the cut; fused as "speed 0 ± 0.01 m/s" at once it cut
+    # k_speed by 4–8 % and moved the position back 2–3 m at every stop: the stops drive ended
+    # 14.8 % off), and the initial k_speed (the table is 1.7× this vehicle's speed: k ≈ 0.58
+    # against the prior's 1 ± 0.1, a 4σ start that only those stops had been pulling down).
+    uncalibrated_sigma_k_speed: float = 0.3          # filter.initial.sigma_k_speed
+    uncalibrated_transient_time_s: float = 2.0       # filter.learned_velocity.transient_time_s
 
     def validate(self) -> None:
         if not (0.0 < self.uncalibrated_sigma_surge <= 1.0 and 0.0 < self.uncalibrated_sigma_sway_m_s <= 2.0):
             raise ValueError("motion: uncalibrated_sigma_surge must be within (0, 1] and "
                              "uncalibrated_sigma_sway_m_s within (0, 2] m/s")
+        if not (self.uncalibrated_sigma_k_speed >= 0.0 and self.uncalibrated_transient_time_s >= 0.0):
+            raise ValueError("motion: uncalibrated_sigma_k_speed and uncalibrated_transient_time_s must be ≥ 0")
+
+    def prior_filter(self, filt: FilterConfig, why: str) -> FilterConfig:
+        """``filt`` with what an uncalibrated prior (``why`` from :meth:`initial_params`) leaves
+        unknown: the initial ``k_speed`` σ and the thrust-transient time raised to the
+        ``uncalibrated_*`` figures (never lowered); a calibrated prior: ``filt`` as it is."""
+        if not why.startswith("uncalibrated"):
+            return filt
+        lv = filt.learned_velocity
+        return replace(
+            filt,
+            initial=replace(filt.initial, sigma_k_speed=max(filt.initial.sigma_k_speed, self.uncalibrated_sigma_k_speed)),
+            learned_velocity=replace(lv, transient_time_s=max(lv.transient_time_s, self.uncalibrated_transient_time_s)))
 
     def initial_params(self, autopilot_thrust: bool) -> tuple[MotionParams, str]:
         """``params0`` as the filter and the calibrator start from, and why (see ``prior``).

@@ -251,6 +251,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     cfg = cfg.resolved(autopilot_thrust)
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
+    cfg = replace(cfg, filter=cfg.motion.prior_filter(cfg.filter, motion_prior))
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None
     if calibrate:

@@ -10,7 +10,7 @@ ATTITUDE_FAST) — what a real user's log carries.
 
 Usage (writes OUT/ardusub.BIN and OUT/session.tlog)::
 
-    python -m tests.sitl.bin_drive OUT [--log-bitmask N] [--leg-s 60] [--legs 4]
+    python -m tests.sitl.bin_drive OUT [--log-bitmask N] [--leg-s 60] [--legs 4] [--pattern NAME]
     python -m tests.sitl.bin_drive --excerpt LOG.BIN EXCERPT.BIN   # the small copy for tests/data
 
 :func:`excerpt` keeps, record for record (pymavlink's DFReader, ``get_msgbuf``: the bytes as
@@ -21,6 +21,7 @@ all but 10 Hz of SIM2 (the simulator's 250 Hz physics step, 7.9 MB; the truth's 
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import time
 from pathlib import Path
@@ -55,7 +56,103 @@ def drive(gcs: Gcs, legs: int, leg_s: float) -> None:
     gcs.hold_sticks(5)
 
 
-def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: float = 60.0) -> Path:
+def _yaw(gcs: Gcs) -> float | None:
+    att = gcs.messages["ATTITUDE"]
+    return float(att[-1][1].yaw) if att else None
+
+
+def turn_by(gcs: Gcs, deg: float, r: int = 500, x: int = 0, timeout_s: float = 30.0) -> None:
+    """Yaw by ``deg`` (positive clockwise, seen from above) with the yaw stick at ``|r|``, closed
+    on the autopilot's ATTITUDE yaw (the pilot watches the compass), then sticks neutral."""
+    sign = 1 if deg > 0 else -1
+    prev, turned = _yaw(gcs), 0.0
+    gcs.stick = {"x": x, "y": 0, "z": 500, "r": sign * abs(r)}
+    t_end = time.time() + timeout_s
+    while time.time() < t_end and abs(turned) < abs(math.radians(deg)):
+        time.sleep(0.02)
+        now = _yaw(gcs)
+        if prev is not None and now is not None:
+            turned += (now - prev + math.pi) % (2 * math.pi) - math.pi
+        prev = now
+    gcs.stick = {"x": x, "y": 0, "z": 500, "r": 0}
+
+
+def _dive(gcs: Gcs) -> None:
+    gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
+    gcs.mode(MODE_MANUAL)
+    gcs.arm()
+    gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
+    gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
+    gcs.hold_sticks(14, z=200)  # dive
+    gcs.mode(MODE_ALT_HOLD)
+    gcs.hold_sticks(3)
+
+
+def _surface(gcs: Gcs) -> None:
+    gcs.hold_sticks(5)
+    gcs.mode(MODE_MANUAL)
+    gcs.hold_sticks(20, z=800)  # surface
+    gcs.hold_sticks(5)
+
+
+def drive_survey(gcs: Gcs, legs: int = 5, leg_s: float = 80.0) -> None:
+    """(a) A slow survey: a lawnmower of long lanes at low throttle (x 530/520), 90° turns and
+    short cross legs (12 s), alternating right/left pairs; ~8.5 min submerged at 5 x 80 s."""
+    _dive(gcs)
+    for leg in range(legs):
+        gcs.hold_sticks(leg_s, x=530 if leg % 2 == 0 else 520)
+        if leg < legs - 1:
+            d = 90 if leg % 2 == 0 else -90
+            turn_by(gcs, d, r=400)
+            gcs.hold_sticks(12, x=530)
+            turn_by(gcs, d, r=400)
+    _surface(gcs)
+
+
+def drive_brisk(gcs: Gcs, legs: int = 6, leg_s: float = 40.0) -> None:
+    """(b) A brisk drive: x 750-800, turns both ways (90-180°, some while moving), and depth
+    changes under ALT_HOLD with the z stick in the middle of lanes (down, then up as much)."""
+    _dive(gcs)
+    turns = [120, -90, 180, -150, 90, -120]
+    for leg in range(legs):
+        x = 800 if leg % 2 == 0 else 750
+        third = leg_s / 3
+        gcs.hold_sticks(third, x=x)
+        gcs.hold_sticks(third, x=x, z=300 if leg % 2 == 0 else 700)  # descend / climb while driving
+        gcs.hold_sticks(third, x=x)
+        if leg < legs - 1:
+            turn_by(gcs, turns[leg], r=600, x=300 if leg % 3 == 2 else 0)  # every third turn on the move
+    _surface(gcs)
+
+
+def drive_arcs(gcs: Gcs, legs: int = 5, leg_s: float = 55.0) -> None:
+    """(c) Continuous gentle yaw: lanes at x 600 with r ±150-250 held throughout (arcs,
+    circles), the sign and rate changing each lane; no straight line."""
+    _dive(gcs)
+    rates = [200, -150, 250, -200, 150]
+    for leg in range(legs):
+        gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 550, r=rates[leg % len(rates)])
+    _surface(gcs)
+
+
+def drive_stops(gcs: Gcs, legs: int = 4, leg_s: float = 50.0, hover_s: float = 30.0) -> None:
+    """(d) Drive, hover, drive again: lanes at x 600/500 each followed by a 30 s hover with the
+    sticks neutral (depth hold), a 90° turn from the hover, then the next lane."""
+    _dive(gcs)
+    for leg in range(legs):
+        gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 500)
+        gcs.hold_sticks(hover_s)
+        if leg < legs - 1:
+            turn_by(gcs, 90 if leg % 2 == 0 else -90, r=500)
+    _surface(gcs)
+
+
+PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs": drive_arcs,
+            "stops": drive_stops}
+
+
+def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
+           pattern: str = "default") -> Path:
     """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``."""
     out.mkdir(parents=True, exist_ok=True)
     work = out / "ardusub-work"
@@ -73,7 +170,10 @@ def record(out: Path, log_bitmask: int | None = None, legs: int = 4, leg_s: floa
         # EKF3 aligned on its GPS before arming, as a pilot waits for it
         gcs.wait_text("EKF3 IMU0 is using GPS", 120)
         time.sleep(5.0)
-        drive(gcs, legs, leg_s)
+        if pattern == "default":
+            drive(gcs, 4 if legs is None else legs, 60.0 if leg_s is None else leg_s)
+        else:  # the variants take their own lane counts and lengths unless given
+            PATTERNS[pattern](gcs, **{k: v for k, v in (("legs", legs), ("leg_s", leg_s)) if v is not None})
         gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # disarm (forced): the log closes
         time.sleep(3.0)
     finally:
@@ -127,7 +227,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("out", type=Path)
     ap.add_argument("--log-bitmask", type=int)
-    ap.add_argument("--legs", type=int, default=4)
-    ap.add_argument("--leg-s", type=float, default=60.0)
+    ap.add_argument("--legs", type=int, help="lanes (default 4; a variant's own without it)")
+    ap.add_argument("--leg-s", type=float, help="seconds per lane (default 60; a variant's own without it)")
+    ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default", help="drive shape")
     a = ap.parse_args()
-    print(record(a.out, a.log_bitmask, a.legs, a.leg_s))
+    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern))
