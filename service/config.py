@@ -474,13 +474,15 @@ class ServiceConfig:
         ``autopilot_thrust``: the thrust comes from an autopilot's outputs (a MAVLink or
         DataFlash log, the live MAVLink bridge) — ArduSub's vectored ROVs, whose hull may crab on
         a straight (lateral thrusters, a tether): ``filter.dvl.hull_sideslip`` "auto" → "free";
-        otherwise (propeller RPM, a torpedo AUV) → "none".
+        otherwise (propeller RPM, a torpedo AUV) → "none"; and the filter's figures an
+        uncalibrated motion prior raises (:meth:`MotionConfig.prior_filter`). Idempotent.
         """
-        dvl = self.filter.dvl
-        if dvl.hull_sideslip != "auto":
-            return self
-        dvl = replace(dvl, hull_sideslip="free" if autopilot_thrust else "none")
-        return replace(self, filter=replace(self.filter, dvl=dvl))
+        filt = self.filter
+        if filt.dvl.hull_sideslip == "auto":
+            filt = replace(filt, dvl=replace(filt.dvl, hull_sideslip="free" if autopilot_thrust else "none"))
+        # and what an uncalibrated motion prior leaves unknown (MotionConfig.prior_filter)
+        filt = self.motion.prior_filter(filt, self.motion.initial_params(autopilot_thrust)[1])
+        return replace(self, filter=filt)
 
     def validate(self) -> None:
         # a DVL delta is valid dvl_latency_s before it arrives, a "mean" one another Δt/2

@@ -328,7 +328,6 @@ class Daemon:
         self.clock = LiveClock()
         # with the MAVLink bridge the thrust is the autopilot's PWM (motion.prior "auto")
         self.params, self.motion_prior = cfg.motion.initial_params(autopilot_thrust=cfg.mavlink.enabled)
-        self.cfg = cfg = dataclasses.replace(cfg, filter=cfg.motion.prior_filter(cfg.filter, self.motion_prior))
         self.restored = False
         self.bridge: Any = None
         self.foxglove: Any = None  # LiveServer when [foxglove] is enabled

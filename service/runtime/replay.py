@@ -246,12 +246,12 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                               lon_deg=math.degrees(fix.lon_rad)))
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
-    # a MAVLink or DataFlash log: the thrust is an autopilot's PWM
-    autopilot_thrust = hasattr(inp.source, "set_convert")
+    # the thrust is an autopilot's PWM: a MAVLink or DataFlash log, or a recording of a daemon
+    # whose MAVLink bridge was on (replayed with its config: the daemon's own rule)
+    autopilot_thrust = hasattr(inp.source, "set_convert") or cfg.mavlink.enabled
     cfg = cfg.resolved(autopilot_thrust)
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
-    cfg = replace(cfg, filter=cfg.motion.prior_filter(cfg.filter, motion_prior))
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
     calibrator = None
     if calibrate:

@@ -159,26 +159,6 @@ def test_one_heading_only_leaves_the_misalignment_at_its_prior():
     assert abs(rep["misalignment_deg"] - 0.4) < 3.0 * rep["misalignment_sigma_deg"]
 
 
-def test_a_vehicle_that_may_crab_does_not_take_its_dvl_lateral_for_misalignment():
-    from adaptnav.fusion.aiding.dvl import AID
-    from adaptnav.fusion.config import DvlConfig
-    from adaptnav.service.config import ServiceConfig
-
-    # an ROV (thrust from an autopilot: ArduSub's vectored frames) resolves "auto" to "free"
-    rov, auv = ServiceConfig().resolved(autopilot_thrust=True), ServiceConfig().resolved(autopilot_thrust=False)
-    assert rov.filter.dvl.hull_sideslip == "free" and auv.filter.dvl.hull_sideslip == "none"
-    assert AID.setup(rov.filter.dvl).calibration.straight_legs is None
-    assert AID.setup(auv.filter.dvl).calibration.straight_legs is not None
-    # a configured choice is kept
-    cfg = ServiceConfig()
-    cfg = replace(cfg, filter=replace(cfg.filter, dvl=replace(cfg.filter.dvl, hull_sideslip="none")))
-    assert cfg.resolved(autopilot_thrust=True).filter.dvl.hull_sideslip == "none"
-    with pytest.raises(ValueError):
-        from adaptnav.fusion.typed_config import build
-
-        build(DvlConfig, {"hull_sideslip": "torpedo"})
-
-
 def test_the_track_corrected_with_an_older_misalignment_stays_in_the_published_covariance():
     # GIVEN a fix, then 300 m of DVL track north corrected with ψ = 0
     cal = DvlCalibration(0.005, 0.01)
@@ -198,3 +178,4 @@ def test_the_track_corrected_with_an_older_misalignment_stays_in_the_published_c
     grown = cal.position_cov_ne()
     assert math.sqrt(grown[1, 1]) == pytest.approx(math.hypot(300.0 * math.radians(0.5), 600.0 * math.radians(0.05)),
                                                    rel=0.02)
+

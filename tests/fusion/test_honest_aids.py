@@ -104,3 +104,28 @@ def test_depth_noise_sees_noise_only_not_drift_steps_or_a_stuck_sensor():
     dn = DepthNoise(DepthConfig(adaptive_max_sigma_m=0.0))
     for ti, zi in zip(t, cases["beyond_bound"][0]):
         assert dn.sigma_at(float(ti), float(zi)) == cfg.sigma_m
+
+
+def test_astern_thrust_is_a_speed_astern_not_a_stop():
+    from adaptnav.fusion.samples import RpmSample
+
+    # GIVEN a vehicle at rest, aligned, WHEN its thrusters run astern at the RPM that makes
+    # 1.5 m/s ahead (the embedded table's 1200; an ROV backing out; the table starts at 0 RPM)
+    rpm = 1200.0
+    est = _est()
+    _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
+    statuses = []
+    for k in range(3):
+        est.process(RpmSample(12.0 + k, -rpm))
+        statuses += [s for s in est.process(ImuBatch(np.array([12.05 + k]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
+                                                     np.zeros((1, 3)))) if s.source == "learned_velocity"]
+        statuses += [s for s in _noop(est, 12.05 + k, 13.0 + k) if s.source == "learned_velocity"]
+    # THEN the learned velocity observes 1.5 m/s astern (it was "0": the vehicle stopped)
+    assert statuses and all(s.observation[0] == pytest.approx(-1.5, abs=1e-6) for s in statuses)
+
+
+def _noop(est, t0, t1):
+    out = []
+    for t in np.arange(t0, t1, 1.0 / IMU_HZ)[1:]:
+        out += est.process(ImuBatch(np.array([t]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]), np.zeros((1, 3))))
+    return out

@@ -183,3 +183,35 @@ def test_a_simulated_vehicle_is_calibrated_even_behind_a_simulated_autopilot():
 
     cfg = build_config(load_scenario("demo"), None, ["mavlink.enabled=true"])
     assert cfg.motion.initial_params(autopilot_thrust=True) == (cfg.motion.params0, "calibrated (motion.prior)")
+
+
+def test_a_vehicle_that_may_crab_does_not_take_its_dvl_lateral_for_misalignment():
+    from adaptnav.fusion.aiding.dvl import AID
+
+    # an ROV (thrust from an autopilot: ArduSub's vectored frames) resolves "auto" to "free"
+    rov, auv = ServiceConfig().resolved(autopilot_thrust=True), ServiceConfig().resolved(autopilot_thrust=False)
+    assert rov.filter.dvl.hull_sideslip == "free" and auv.filter.dvl.hull_sideslip == "none"
+    assert AID.setup(rov.filter.dvl).calibration.straight_legs is None
+    assert AID.setup(auv.filter.dvl).calibration.straight_legs is not None
+    # a configured choice is kept
+    cfg = ServiceConfig()
+    cfg = replace(cfg, filter=replace(cfg.filter, dvl=replace(cfg.filter.dvl, hull_sideslip="none")))
+    assert cfg.resolved(autopilot_thrust=True).filter.dvl.hull_sideslip == "none"
+    with pytest.raises(ConfigError, match="hull_sideslip"):
+        load_config(None, ['filter.dvl.hull_sideslip="torpedo"'])
+
+
+def test_an_uncalibrated_vehicle_gets_the_wider_k_speed_and_the_thrust_transient():
+    from adaptnav.fusion.config import FilterConfig
+
+    # the thrust of an autopilot through the embedded table: uncalibrated (motion.prior auto)
+    rov = ServiceConfig().resolved(autopilot_thrust=True).filter
+    auv = ServiceConfig().resolved(autopilot_thrust=False).filter
+    assert rov.initial.sigma_k_speed == pytest.approx(0.3) and rov.learned_velocity.transient_time_s == 2.0
+    # a calibrated vehicle keeps the filter's own figures
+    base = FilterConfig()
+    assert auv.initial.sigma_k_speed == base.initial.sigma_k_speed
+    assert auv.learned_velocity.transient_time_s == base.learned_velocity.transient_time_s == 0.0
+    # resolving twice changes nothing
+    once = ServiceConfig().resolved(autopilot_thrust=True)
+    assert once.resolved(autopilot_thrust=True) == once
