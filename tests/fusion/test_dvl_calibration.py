@@ -127,7 +127,7 @@ def _ping(cal, t, heading, speed, c, psi, scale, rng, along_bias, rotation_z):
     ground = speed * np.array([ch, sh]) + c
     body = np.array([ch * ground[0] + sh * ground[1], -sh * ground[0] + ch * ground[1], 0.0])
     meas = (1.0 + scale) * rotation_z(psi).T @ body + 0.01 * rng.standard_normal(3)
-    cal.on_straight(t, meas[0], meas[1], heading, 0.0, ch * c[0] + sh * c[1] + along_bias)
+    cal.on_straight(t, meas[0], meas[1], heading, ch * c[0] + sh * c[1] + along_bias)
 
 
 @pytest.mark.parametrize("psi_deg,current_ne", [(0.4, (0.07, 0.07)), (-0.3, (0.0, -0.15)), (0.0, (0.1, 0.05))])
