@@ -87,6 +87,23 @@ class LearnedVelocityConfig:
     # that gap, (k_speed k_V (u − u_slow))², so a coasting stop or a spin-up is not read as a
     # speed-scale error. 0: off (a calibrated vehicle: response_time_s models it)
     transient_time_s: float = 0.0
+    # a vehicle whose skid in a turn is not known (the uncalibrated motion prior): the sway
+    # of a turning vehicle, β u w (MotionParams.sway_per_turn), with β unknown, σ_β (s): the
+    # sway variance takes (σ_β k_speed k_V u w)², u the model's surge speed and w the gyro's
+    # yaw rate. 0: off (a calibrated vehicle: sway_per_turn models it)
+    skid_sigma_s: float = 0.0
+    # ... at most this fraction of the model's speed (the tangent of the sideslip angle's σ,
+    # 0.2 ≈ 11°): a skid saturates (sway drag grows with the square of the sway: ArduSub's
+    # BlueROV2 skids 8° at 4°/s and 13° at both 8 and 12°/s), and a pivot at a high yaw rate
+    # with the speed coasting down does not skid faster than it moves
+    skid_max_fraction: float = 0.2
+    # a vehicle that may change depth on vertical thrusters (an ROV) rather than by pitching (an
+    # AUV) — not known under the uncalibrated motion prior: the heave variance takes
+    # (this × v_d)², v_d the filter's vertical speed (the depth sensor's). ArduSub's BlueROV2
+    # descends at 0.35 m/s level: "heave 0 ± 0.05" held the filter's v_d at half of that and
+    # its innovations (0.2-0.3 m/s) failed the integrity test for 25 % of the submerged time
+    # (brisk drive). 0: off (heave ≈ 0 ± sigma_heave_m_s)
+    heave_sigma_per_vertical_speed: float = 0.0
     # innovation-based adaptive surge variance (Mehra 1972): R̂ = E[y²] − H P Hᵀ over this
     # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
     adaptive_window_s: float = 120.0
@@ -368,6 +385,10 @@ class FilterConfig:
             raise ValueError("max_delay_s must be within [0, 60] s and imu_gap_s within (0, 60] s")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
+        if not (self.learned_velocity.skid_sigma_s >= 0.0 and 0.0 < self.learned_velocity.skid_max_fraction <= 1.0):
+            raise ValueError("learned_velocity.skid_sigma_s must be ≥ 0 and skid_max_fraction within (0, 1]")
+        if not self.learned_velocity.heave_sigma_per_vertical_speed >= 0.0:
+            raise ValueError("learned_velocity.heave_sigma_per_vertical_speed must be ≥ 0")
         if self.position_reset_after_rejections < 1:
             raise ValueError("position_reset_after_rejections must be ≥ 1")
         if not (0 < self.position_reset_max_speed_m_s <= 100.0 and 0 < self.position_reset_window_s <= 86400.0):

@@ -310,25 +310,34 @@ class MotionConfig:
     # against the prior's 1 ± 0.1, a 4σ start that only those stops had been pulling down).
     uncalibrated_sigma_k_speed: float = 0.3          # filter.initial.sigma_k_speed
     uncalibrated_transient_time_s: float = 2.0       # filter.learned_velocity.transient_time_s
+    uncalibrated_skid_sigma_s: float = 2.0           # filter.learned_velocity.skid_sigma_s
+    uncalibrated_heave_sigma_per_vertical_speed: float = 1.0  # filter.learned_velocity.heave_sigma_per_vertical_speed
 
     def validate(self) -> None:
         if not (0.0 < self.uncalibrated_sigma_surge <= 1.0 and 0.0 < self.uncalibrated_sigma_sway_m_s <= 2.0):
             raise ValueError("motion: uncalibrated_sigma_surge must be within (0, 1] and "
                              "uncalibrated_sigma_sway_m_s within (0, 2] m/s")
-        if not (self.uncalibrated_sigma_k_speed >= 0.0 and self.uncalibrated_transient_time_s >= 0.0):
-            raise ValueError("motion: uncalibrated_sigma_k_speed and uncalibrated_transient_time_s must be ≥ 0")
+        if not (self.uncalibrated_sigma_k_speed >= 0.0 and self.uncalibrated_transient_time_s >= 0.0
+                and self.uncalibrated_skid_sigma_s >= 0.0 and self.uncalibrated_heave_sigma_per_vertical_speed >= 0.0):
+            raise ValueError("motion: uncalibrated_sigma_k_speed, uncalibrated_transient_time_s, "
+                             "uncalibrated_skid_sigma_s and uncalibrated_heave_sigma_per_vertical_speed must be ≥ 0")
 
     def prior_filter(self, filt: FilterConfig, why: str) -> FilterConfig:
         """``filt`` with what an uncalibrated prior (``why`` from :meth:`initial_params`) leaves
-        unknown: the initial ``k_speed`` σ and the thrust-transient time raised to the
-        ``uncalibrated_*`` figures (never lowered); a calibrated prior: ``filt`` as it is."""
+        unknown: the initial ``k_speed`` σ, the thrust-transient time, the skid σ in a turn and
+        the heave σ per vertical speed raised to the ``uncalibrated_*`` figures (never lowered);
+        a calibrated prior: ``filt`` as it is."""
         if not why.startswith("uncalibrated"):
             return filt
         lv = filt.learned_velocity
         return replace(
             filt,
             initial=replace(filt.initial, sigma_k_speed=max(filt.initial.sigma_k_speed, self.uncalibrated_sigma_k_speed)),
-            learned_velocity=replace(lv, transient_time_s=max(lv.transient_time_s, self.uncalibrated_transient_time_s)))
+            learned_velocity=replace(lv, transient_time_s=max(lv.transient_time_s, self.uncalibrated_transient_time_s),
+                                     skid_sigma_s=max(lv.skid_sigma_s, self.uncalibrated_skid_sigma_s),
+                                     heave_sigma_per_vertical_speed=max(
+                                         lv.heave_sigma_per_vertical_speed,
+                                         self.uncalibrated_heave_sigma_per_vertical_speed)))
 
     def initial_params(self, autopilot_thrust: bool) -> tuple[MotionParams, str]:
         """``params0`` as the filter and the calibrator start from, and why (see ``prior``).

@@ -208,10 +208,14 @@ def test_an_uncalibrated_vehicle_gets_the_wider_k_speed_and_the_thrust_transient
     rov = ServiceConfig().resolved(autopilot_thrust=True).filter
     auv = ServiceConfig().resolved(autopilot_thrust=False).filter
     assert rov.initial.sigma_k_speed == pytest.approx(0.3) and rov.learned_velocity.transient_time_s == 2.0
+    assert rov.learned_velocity.skid_sigma_s == 2.0  # the unknown skid in a turn
+    assert rov.learned_velocity.heave_sigma_per_vertical_speed == 1.0  # may heave on vertical thrusters
     # a calibrated vehicle keeps the filter's own figures
     base = FilterConfig()
     assert auv.initial.sigma_k_speed == base.initial.sigma_k_speed
     assert auv.learned_velocity.transient_time_s == base.learned_velocity.transient_time_s == 0.0
+    assert auv.learned_velocity.skid_sigma_s == base.learned_velocity.skid_sigma_s == 0.0
+    assert auv.learned_velocity.heave_sigma_per_vertical_speed == 0.0
     # resolving twice changes nothing
     once = ServiceConfig().resolved(autopilot_thrust=True)
     assert once.resolved(autopilot_thrust=True) == once

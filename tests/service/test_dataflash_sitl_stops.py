@@ -11,7 +11,9 @@ said "speed 0" the instant the thrust was cut while the vehicle coasted for seco
 back 2–5 m: 13.7 % of the distance at the end, 16.1 m at most. Now an uncalibrated vehicle's
 learned velocity carries the gap to a 2 s lag of the command as variance
 (``filter.learned_velocity.transient_time_s``, ``motion.uncalibrated_transient_time_s``) and its
-k_speed starts at σ 0.3 (the embedded table is another vehicle's).
+k_speed starts at σ 0.3 (the embedded table is another vehicle's); its heave is 0 ± the
+vertical speed (``motion.uncalibrated_heave_sigma_per_vertical_speed``: it may change depth on
+vertical thrusters).
 """
 import json
 from pathlib import Path
@@ -33,4 +35,7 @@ def test_stop_and_go_stays_within_5_percent_of_distance_and_15_m_with_the_defaul
     assert s["end_error_percent"] <= 5.0 and s["max_error_submerged_m"] <= 15.0, s
     # and honest: the valid epochs' errors within their 99 % ellipse (a consistent filter: ~1 %)
     assert s["valid_outside_99_fraction"] <= 0.02, s
-    assert s["valid_fraction_submerged"] > 0.8, s
+    # valid while it descends and climbs level on its vertical thrusters (measured 99 %; 91 %
+    # while the learned velocity held its heave to 0 ± 0.05 m/s: the integrity test failed it
+    # at every depth change)
+    assert s["valid_fraction_submerged"] > 0.95, s
