@@ -37,23 +37,13 @@ GCS_RATES = {"RAW_IMU": 50, "ATTITUDE": 50, "SCALED_PRESSURE2": 10, "SERVO_OUTPU
 
 def drive(gcs: Gcs, legs: int, leg_s: float) -> None:
     """Dive in MANUAL, lanes and turns under depth hold, a sideways leg, surface."""
-    gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
-    gcs.mode(MODE_MANUAL)
-    gcs.arm()
-    gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
-    gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
-    gcs.hold_sticks(14, z=200)  # dive
-    gcs.mode(MODE_ALT_HOLD)
-    gcs.hold_sticks(3)
+    _dive(gcs)
     for leg in range(legs):
         gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 450)
         if leg < legs - 1:
             gcs.hold_sticks(6, r=500 if leg % 2 == 0 else -500)
     gcs.hold_sticks(20, y=400)  # a sideways leg (lateral thrusters)
-    gcs.hold_sticks(5)
-    gcs.mode(MODE_MANUAL)
-    gcs.hold_sticks(20, z=800)  # surface
-    gcs.hold_sticks(5)
+    _surface(gcs)
 
 
 def _yaw(gcs: Gcs) -> float | None:
