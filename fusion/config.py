@@ -84,9 +84,14 @@ class LearnedVelocityConfig:
     # a vehicle whose response to thrust is not known (the uncalibrated motion prior): while a
     # thrust change settles, its speed lies anywhere between the command's and the command's
     # through a first-order lag of this time constant (s), and the surge and sway variances take
-    # that gap, (k_speed k_V (u − u_slow))², so a coasting stop or a spin-up is not read as a
+    # that gap, (g k_speed k_V (u − u_slow))², so a coasting stop or a spin-up is not read as a
     # speed-scale error. 0: off (a calibrated vehicle: response_time_s models it)
     transient_time_s: float = 0.0
+    # g: the gap's 1-σ multiple. A coast is not a first-order lag (quadratic drag leaves a slow
+    # tail) and the gap is a scale of the error, not its bound: at 1 each 1 Hz update of a coast
+    # still moved the position back 0.4–0.6 m through k_speed's covariance with it (ArduSub stop-
+    # and-go drives, README "Drives of other shapes": worst log 4.87 % at 1, 4.34 % at 2, 4.15 % at 3)
+    transient_sigma_per_gap: float = 3.0
     # a vehicle whose skid in a turn is not known (the uncalibrated motion prior): the sway
     # of a turning vehicle, β u w (MotionParams.sway_per_turn), with β unknown, σ_β (s): the
     # sway variance takes (σ_β k_speed k_V u w)², u the model's surge speed and w the gyro's

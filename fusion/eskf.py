@@ -1064,8 +1064,9 @@ class Estimator:
         transient = None
         if cfg.transient_time_s > 0:
             # a thrust change settling in a vehicle of unknown response: the speed is anywhere
-            # between the model's now and the model's through the slow lag (1σ = the gap)
-            scale = abs(float(self._x[X_KS])) * self.motion_params.k_v
+            # between the model's now and the model's through the slow lag (1σ = a multiple of
+            # the gap, transient_sigma_per_gap)
+            scale = abs(float(self._x[X_KS])) * self.motion_params.k_v * cfg.transient_sigma_per_gap
             transient = ((scale * (self._rpm[1] - self._rpm[5])) ** 2,
                          (scale * (self._rpm[2] - self._rpm[6])) ** 2)
             if transient == (0.0, 0.0):
