@@ -627,6 +627,7 @@ class OnlineCalibrator:
         if cur is not None and math.isfinite(cur[0]) and math.isfinite(cur[1]):
             self._filter_current = (float(cur[0]), float(cur[1]))
         cal = getattr(sample, "dvl_scale_misalignment", None)
+        # (a scale error of −50 % or worse is no DVL's: correcting by it would divide by ~0)
         if cal is not None and math.isfinite(cal[0]) and math.isfinite(cal[1]) and cal[0] > -0.5:
             self._dvl_correction = (float(cal[0]), float(cal[1]))
         keep_s = (self.config.window_steps + 2) * self.config.step_s + self._lag_s

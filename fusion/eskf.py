@@ -1061,32 +1061,32 @@ class Estimator:
             # would flush it itself; propagated into a copy here, it was computed twice
             kalman.flush_core(self._core, self._qdiag)
             P = self._P
-        transient = None
+        extra = None  # (surge, sway) variance the model leaves unknown on this vehicle
         if cfg.transient_time_s > 0:
             # a thrust change settling in a vehicle of unknown response: the speed is anywhere
             # between the model's now and the model's through the slow lag (1σ = a multiple of
             # the gap, transient_sigma_per_gap)
             scale = abs(float(self._x[X_KS])) * self.motion_params.k_v * cfg.transient_sigma_per_gap
-            transient = ((scale * (self._rpm[1] - self._rpm[5])) ** 2,
-                         (scale * (self._rpm[2] - self._rpm[6])) ** 2)
-            if transient == (0.0, 0.0):
-                transient = None
+            extra = ((scale * (self._rpm[1] - self._rpm[5])) ** 2,
+                     (scale * (self._rpm[2] - self._rpm[6])) ** 2)
+            if extra == (0.0, 0.0):
+                extra = None
         if cfg.skid_sigma_s > 0:
             # a turning vehicle of unknown skid: sway β u w with β ~ N(0, σ_β²), its σ at most
             # skid_max_fraction of the speed (LearnedVelocityConfig.skid_sigma_s)
             skid = (abs(float(self._x[X_KS])) * self.motion_params.k_v * self._rpm[1]
                     * min(cfg.skid_sigma_s * abs(yaw_rate), cfg.skid_max_fraction)) ** 2
             if skid > 0.0:
-                transient = (transient[0], transient[1] + skid) if transient else (0.0, skid)
-        meas = self._surge.adapt(meas, P, t - self._t_release, extra_var=transient[0] if transient else 0.0)
+                extra = (extra[0], extra[1] + skid) if extra else (0.0, skid)
+        meas = self._surge.adapt(meas, P, t - self._t_release, extra_var=extra[0] if extra else 0.0)
         # a vehicle that may heave on vertical thrusters: heave ≈ 0 ± (c v_d)
         # (LearnedVelocityConfig.heave_sigma_per_vertical_speed; 0: 0.0, the same floats)
         heave = (cfg.heave_sigma_per_vertical_speed * float(self._x[X_VEL][2])) ** 2
-        if transient is not None or heave > 0.0:
+        if extra is not None or heave > 0.0:
             R = meas.R.copy()
-            if transient is not None:
-                R[0, 0] += transient[0]
-                R[1, 1] += transient[1]
+            if extra is not None:
+                R[0, 0] += extra[0]
+                R[1, 1] += extra[1]
             R[2, 2] += heave
             meas = meas._replace(R=R)
         return meas

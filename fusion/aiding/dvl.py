@@ -69,11 +69,6 @@ from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
 from .common import AidContext, AidSource, Measurement, dcm, make, skew
 
 
-def rotation_z(psi_rad: float) -> np.ndarray:
-    c, s = np.cos(psi_rad), np.sin(psi_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 class StraightSegment(NamedTuple):
     """A stretch of a straight leg: its mid time (s), mean forward and lateral DVL velocity in
     the heading-aligned level frame (m/s, uncorrected), the variance of that lateral mean
@@ -313,6 +308,7 @@ class DvlCalibration:
         if self._t_theta is not None and seg.t_s > self._t_theta:
             P[2:, 2:] += np.eye(2) * self.current_rw_m_s_rthz**2 * (seg.t_s - self._t_theta)
         self._t_theta = seg.t_s
+        P_walked = P
         ch, sh = math.cos(seg.heading_rad), math.sin(seg.heading_rad)
         theta = self.theta
         H = np.array([0.0, 0.0, ch, sh])  # the filter's along-heading current
@@ -324,7 +320,8 @@ class DvlCalibration:
         S = float(H @ P @ H) + seg.lateral_var + self.hull_sway_sigma_m_s**2
         if y * y / S > self._GATE:
             self.segments_rejected += 1
-            return  # the current's walk is lost with it: the next segment starts from the last one's
+            self.P = P_walked  # the segment says nothing, but the current walked meanwhile
+            return
         K = P @ H / S
         self.theta = theta + K * y
         P = P - np.outer(K, H @ P)

@@ -99,8 +99,6 @@ def _lawnmower_dvl(cal, misalignment_rad, current_ne, rng, headings_deg=(0.0, 18
     the cross current so that the ground track is the leg's), turns between them. The head
     reports ``(1 + s) R_z(ψ)ᵀ`` of the body's ground velocity, beam noise 1 cm/s; the
     "filter's" along-heading current is the truth plus a bias of ``along_sigma_m_s``."""
-    from adaptnav.fusion.aiding.dvl import rotation_z
-
     c = np.asarray(current_ne, dtype=float)
     t = 0.0
     along_bias = along_sigma_m_s * rng.standard_normal()
@@ -115,18 +113,19 @@ def _lawnmower_dvl(cal, misalignment_rad, current_ne, rng, headings_deg=(0.0, 18
                                  math.remainder(target - heading, 2 * math.pi))
             heading += step
             t += 0.2
-            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias, rotation_z)
+            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias)
         for _ in range(int(leg_s / 0.2)):
             t += 0.2
-            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias, rotation_z)
+            _ping(cal, t, heading, speed_m_s, c, misalignment_rad, scale, rng, along_bias)
     return cal
 
 
-def _ping(cal, t, heading, speed, c, psi, scale, rng, along_bias, rotation_z):
+def _ping(cal, t, heading, speed, c, psi, scale, rng, along_bias):
     ch, sh = math.cos(heading), math.sin(heading)
+    rotation_z = np.array([[math.cos(psi), -math.sin(psi), 0.0], [math.sin(psi), math.cos(psi), 0.0], [0.0, 0.0, 1.0]])
     ground = speed * np.array([ch, sh]) + c
     body = np.array([ch * ground[0] + sh * ground[1], -sh * ground[0] + ch * ground[1], 0.0])
-    meas = (1.0 + scale) * rotation_z(psi).T @ body + 0.01 * rng.standard_normal(3)
+    meas = (1.0 + scale) * rotation_z.T @ body + 0.01 * rng.standard_normal(3)
     cal.on_straight(t, meas[0], meas[1], heading, ch * c[0] + sh * c[1] + along_bias)
 
 
