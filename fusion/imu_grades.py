@@ -42,7 +42,9 @@ set by the reader: the MAVLink converter marks the autopilot's own IMU messages)
 noise measured in the alignment window (at rest or cruising: :func:`white_sigma`):
 
 1. samples on the RAW_IMU grid, or the autopilot's own IMU (``source = "autopilot"``: RAW_IMU /
-   SCALED_IMU* or HIGHRES_IMU from the flight controller's component, a DataFlash log's IMU) ⇒
+   SCALED_IMU*, a DataFlash log's IMU, or HIGHRES_IMU from the flight controller's component
+   on its boot clock — a UNIX-stamped one, or one from a "generic autopilot", is a vehicle
+   computer's IMU of its own) ⇒
    ``consumer``, whatever the noise measured: the part is a MEMS (above), and what the stream
    shows of its noise is not the part's — ArduPilot low-pass filters gyro and accelerometer
    before it streams them (INS_GYRO_FILTER / INS_ACCEL_FILTER, 20 Hz by default), and its

@@ -722,6 +722,7 @@ class MavlinkConverter:
         self.config = config or ConvertConfig()
         self.time = MissionClock(self.config.reboot_backjump_s)
         self.autopilot_sysid: int | None = None
+        self.autopilot_firmware: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
         self._imu_lock: tuple[str, tuple[int, int], tuple[int, bool]] | None = None  # (type, source, rank)
         self.imu_switches = 0  # moves to a better IMU stream (auto)
@@ -904,6 +905,8 @@ class MavlinkConverter:
         if mtype == "HEARTBEAT":
             if self.autopilot_sysid is None and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
                 self.autopilot_sysid = msg.get_srcSystem()
+            if self._is_autopilot(msg):
+                self.autopilot_firmware = msg.autopilot
             return []
         if mtype == "SYSTEM_TIME":
             if self._is_autopilot(msg) and msg.time_unix_usec >= UNIX_EPOCH_MIN_US and msg.time_boot_ms > 0:
@@ -962,10 +965,14 @@ class MavlinkConverter:
         lock = self._imu_lock if self._imu_lock is not None and self._imu_lock[0] == self.imu_message else None
         if lock is not None and (mtype, src) != lock[:2] and rank <= lock[2]:
             raise IgnoredMessage(f"another IMU stream ({lock[0]} from {lock[1][0]}/{lock[1][1]}) is integrated")
-        # who measured it (filter.imu.grade = auto): the autopilot's own component sends its
-        # flight controller's MEMS IMU, whatever the message; RAW_IMU / SCALED_IMU* are that
-        # IMU's messages (int16 mg, mrad/s); HIGHRES_IMU from another component is an IMU of its own
-        own = mtype != "HIGHRES_IMU" or self._is_autopilot(msg)
+        # who measured it (filter.imu.grade = auto): RAW_IMU / SCALED_IMU* are a flight
+        # controller's MEMS (int16 mg, mrad/s); so is HIGHRES_IMU from the autopilot's component
+        # when that is a flight-controller firmware — ArduPilot and PX4 stamp it on their boot
+        # clock. A HIGHRES_IMU in UNIX time, from another component, or from a vehicle computer
+        # whose heartbeat says "generic autopilot" is an IMU of its own (the noise decides its class)
+        own = mtype != "HIGHRES_IMU" or (
+            self._is_autopilot(msg) and msg.time_usec < UNIX_EPOCH_MIN_US
+            and self.autopilot_firmware != mavlink2.MAV_AUTOPILOT_GENERIC)
         source = "autopilot" if own else "dedicated"
         sample = imu_from_highres(msg, t_s, source) if mtype == "HIGHRES_IMU" else imu_from_scaled(msg, t_s, source)
         if lock is None or (mtype, src) != lock[:2]:

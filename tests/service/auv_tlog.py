@@ -84,6 +84,9 @@ class AuvLog:
     sim_overrides: tuple[str, ...] = ()  # scenario overrides after the class's (error bisection)
     dvl_latency_s: float = 0.05          # the DVL driver sends this long after the ping
     dvl_time_usec: bool = False          # ... stamping it with the ping's UNIX time (BlueOS: 0)
+    # the IMU's sender: "companion" (its driver, component 200) or "vehicle_computer" (the
+    # vehicle's own computer, component 1, whose heartbeat says generic autopilot, not ArduPilot)
+    imu_sender: str = "companion"
 
 
 def _boot_s(t_sim: np.ndarray | float) -> np.ndarray | float:
@@ -169,9 +172,11 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     w = _Writer(rng_link)
 
     # heartbeats, system time
+    own_computer = v.imu_sender == "vehicle_computer"
+    imu_src = AP_SRC if own_computer else IMU_SRC
+    firmware = mavlink2.MAV_AUTOPILOT_GENERIC if own_computer else mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
     for t in np.arange(t0, t1, 1.0):
-        w.emit(t, AP_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-               81, 19, mavlink2.MAV_STATE_ACTIVE)
+        w.emit(t, AP_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_SUBMARINE, firmware, 81, 19, mavlink2.MAV_STATE_ACTIVE)
         w.emit(t + 0.3, GCS_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 192, 0, 4)
         w.emit(t + 0.5, IMU_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
                mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 4)
@@ -181,7 +186,7 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     # the companion's navigation-grade IMU, UNIX time
     keep = (t_imu >= t0) & (t_imu < t1)
     for t, f, g in zip(t_imu[keep], f_b[keep], w_b[keep]):
-        w.emit(float(t), IMU_SRC, "highres_imu_encode", int(round((UNIX0_S + t) * 1e6)),
+        w.emit(float(t), imu_src, "highres_imu_encode", int(round((UNIX0_S + t) * 1e6)),
                *map(float, f), *map(float, g), 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 22.0, 0x1FFF, 0)
 
     # the autopilot's own consumer IMU (RAW_IMU, int16 mg / mrad/s) at 4 Hz

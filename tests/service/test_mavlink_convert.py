@@ -44,6 +44,23 @@ def test_raw_imu_is_mg_and_mrad_per_s():
     assert s.omega_b_rad_s == pytest.approx((0.015, -0.017, 0.003))
 
 
+
+def test_highres_imu_from_the_autopilot_component_is_a_flight_controllers_only_on_its_boot_clock():
+    """ArduPilot and PX4 stamp HIGHRES_IMU on their boot clock; an AUV's vehicle computer that
+    streams its FOG from component 1 in UNIX time, or says it is a generic autopilot, is not a
+    flight controller's MEMS (filter.imu.grade = auto would otherwise call a FOG consumer)."""
+    def highres(usec, src=(1, 1)):
+        return wire("highres_imu_encode", usec, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F, src=src)
+
+    (boot,) = converter().convert(highres(2_000_000))
+    c = converter()
+    # held until the UNIX clock can be placed on the boot clock, then released at the end
+    (unix,) = c.convert(highres(1_767_000_000_000_000)) + c.flush()
+    generic = MavlinkConverter(ConvertConfig())
+    generic.convert(wire("heartbeat_encode", mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_GENERIC, 0, 0, 4))
+    (gen,) = generic.convert(highres(2_000_000))
+    assert (boot.source, unix.source, gen.source) == ("autopilot", "dedicated", "dedicated")
+
 def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
     c = converter(imu_message="auto")
     assert c.convert(wire("scaled_imu2_encode", 1000, 0, 0, 0, 0, 0, 0, 5, 6, 7)) == []
