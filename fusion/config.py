@@ -24,6 +24,7 @@ from typing import Literal
 
 from scipy import special
 
+from .integrity import chi2_quantile
 from .plausibility import PlausibilityConfig
 
 
@@ -402,7 +403,5 @@ class FilterConfig:
 
     def gate_threshold(self, dof: int) -> float:
         """Chi-square gate for ``dof`` dimensions at the ``gate_sigma`` two-sided level."""
-        # scipy.stats' norm.sf and chi2.ppf, through the special functions they call
-        # (the same floats; scipy.stats costs the service ~20 MB and ~1 s of import)
-        p = 1.0 - 2.0 * special.ndtr(-self.gate_sigma)
-        return float(2.0 * special.gammaincinv(dof / 2.0, p))
+        # scipy.stats' norm.sf through the special function it calls (see chi2_quantile)
+        return chi2_quantile(1.0 - 2.0 * float(special.ndtr(-self.gate_sigma)), dof)

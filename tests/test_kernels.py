@@ -102,3 +102,14 @@ def test_the_guard_takes_the_compiled_function_only_for_the_types_it_was_built_f
     assert kernels._guarded(lambda: "compiled", [], lambda: "fallback")() == "compiled"
     assert kernels._guarded(lambda *a: "compiled", [("other", None, None, None)], lambda *a: "fallback")(1) \
         == "fallback"
+
+
+def test_the_service_path_does_not_import_scipy_stats():
+    """scipy.stats costs each service process ~20 MB of resident memory (issue 17's budget is
+    250 MB for the daemon and its calibrator together); its χ² quantiles come from the special
+    function it calls (:func:`adaptnav.fusion.integrity.chi2_quantile`)."""
+    code = ("import sys, adaptnav.service.daemon, adaptnav.fusion.eskf, adaptnav.service.compose, "
+            "adaptnav.service.loop_closures, adaptnav.service.calibrator.live;"
+            "print('scipy.stats' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", out.stdout
