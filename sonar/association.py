@@ -72,9 +72,16 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.stats import chi2, poisson
+from scipy import special
 
+from adaptnav.fusion.integrity import chi2_quantile
 from adaptnav.sonar.objects import ObjectSighting
+
+
+def poisson_sf(k: float, mu: float) -> float:
+    """P(Poisson(``mu``) > ``k``): scipy.stats' ``poisson.sf`` through the special function it
+    calls (the same floats; scipy.stats costs the service ~20 MB of resident memory)."""
+    return 1.0 if k < 0 else float(special.pdtrc(math.floor(k), mu))
 
 
 @dataclass(frozen=True)
@@ -370,8 +377,8 @@ class LegAssociator:
         # (t_a, t_b) → covariance of the navigation's error difference e(t_a) − e(t_b) (2×2),
         # or None: the filter knows the correlation of its errors at two epochs (its clones)
         self.relative_cov = relative_cov
-        self._gate = float(chi2.ppf(config.gate_probability, 2))
-        self._inlier = float(chi2.ppf(config.inlier_probability, 2))
+        self._gate = chi2_quantile(config.gate_probability, 2)
+        self._inlier = chi2_quantile(config.inlier_probability, 2)
         self._old: list[ObjectSighting] = []
         self._stored: tuple[list, dict[str, np.ndarray]] | None = None  # (of _old, arrays)
         self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
@@ -562,8 +569,8 @@ class LegAssociator:
         drift fitted on the set's n pairs × n / 3): ``max(1, λ_prior)² P(Poisson(λ_fit) ≥ n − 3)``."""
         c = self.config
         n = c.min_objects
-        while n_hypotheses * min(float(poisson.sf(n - 2, lam_prior)),
-                                 max(1.0, lam_prior) ** 2 * float(poisson.sf(n - 4, lam_fit))) \
+        while n_hypotheses * min(poisson_sf(n - 2, lam_prior),
+                                 max(1.0, lam_prior) ** 2 * poisson_sf(n - 4, lam_fit)) \
                 > c.chance_probability:
             n += 1
         return n
@@ -697,7 +704,7 @@ class LegAssociator:
             if not sel:
                 continue
             lam = self._chance_inliers(clutter, ta, tb, drift.residual_cov, span_s=reach)
-            if float(poisson.sf(len(sel) - 1, lam)) * len(self._recent) > c.extend_probability:
+            if poisson_sf(len(sel) - 1, lam) * len(self._recent) > c.extend_probability:
                 self._note_all(cand, batch, sel, "chance bound")
                 continue
             h = sel[len(sel) // 2]
@@ -744,7 +751,7 @@ class LegAssociator:
             # (a pair that alone sets some of the drift has C ≈ 0 there: it cannot be tested)
             m2 = np.einsum("ki,kij,kj->k", r, np.linalg.pinv(C, hermitian=True, rcond=1e-9), r)
             m2 = np.where(np.linalg.det(C) > 1e-9 * np.linalg.det(D[sel]), m2, np.inf)
-            if cost <= chi2.ppf(self.config.joint_probability, 2 * len(sel) - 2) and float(m2.max()) <= self._inlier:
+            if cost <= chi2_quantile(self.config.joint_probability, 2 * len(sel) - 2) and float(m2.max()) <= self._inlier:
                 return sel, drift, cost
             sel.pop(int(np.argmax(m2)))
         return None

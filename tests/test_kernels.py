@@ -109,7 +109,7 @@ def test_the_service_path_does_not_import_scipy_stats():
     250 MB for the daemon and its calibrator together); its χ² quantiles come from the special
     function it calls (:func:`adaptnav.fusion.integrity.chi2_quantile`)."""
     code = ("import sys, adaptnav.service.daemon, adaptnav.fusion.eskf, adaptnav.service.compose, "
-            "adaptnav.service.loop_closures, adaptnav.service.calibrator.live;"
+            "adaptnav.service.loop_closures, adaptnav.service.calibrator.live, adaptnav.sonar.association;"
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", out.stdout
