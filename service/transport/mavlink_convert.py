@@ -163,6 +163,9 @@ class ConvertConfig:
 
     # "auto": lock on the first IMU message type that carries a real (non-zero) sample
     imu_message: Literal["auto", "RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"] = "auto"
+    # the integrated IMU stream silent this long (mission time, s): another stream, of any rank,
+    # takes over (an autopilot's IMU failover changes HIGHRES_IMU's id; a driver restarts)
+    imu_stream_silent_s: float = 1.0
     depth_message: Literal["SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3"] = "SCALED_PRESSURE2"
     thrusters: ThrusterConfig = field(default_factory=ThrusterConfig)
     gnss_min_fix_type: int = 3  # GPS_FIX_TYPE_3D_FIX
@@ -210,6 +213,8 @@ class ConvertConfig:
             raise ValueError("hold_max_s and hold_max_messages must be > 0")
         if not 0.0 <= self.dvl_latency_s <= 1.0:
             raise ValueError("dvl_latency_s must be within [0, 1] s")
+        if not self.imu_stream_silent_s > 0.0:
+            raise ValueError("imu_stream_silent_s must be > 0")
 
 
 @dataclass(frozen=True)
@@ -724,8 +729,9 @@ class MavlinkConverter:
         self.autopilot_sysid: int | None = None
         self.autopilot_firmware: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
-        self._imu_lock: tuple[str, tuple[int, int], tuple[int, bool]] | None = None  # (type, source, rank)
-        self.imu_switches = 0  # moves to a better IMU stream (auto)
+        self._imu_lock: tuple[str, tuple[int, int, int], tuple[int, bool]] | None = None  # (type, source, rank)
+        self.imu_switches = 0  # moves to a better IMU stream, or off a silent one (auto)
+        self._imu_lock_t = -math.inf  # mission time of the integrated stream's latest sample
         self.last_gps_input_t: float | None = None
         self.origin = origin
         self.origin_from: str | None = "config" if origin is not None else None
@@ -958,13 +964,16 @@ class MavlinkConverter:
         ``HIGHRES_IMU`` over ``SCALED_IMU2`` over int16 ``RAW_IMU``, then a dedicated IMU
         (a companion's driver) over the autopilot's own — since a real autopilot streams its
         RAW_IMU at a few Hz whether or not a better IMU is on board."""
-        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        # a stream is also one IMU: HIGHRES_IMU's id (MAVLink 2 extension) tells a component's
+        # IMUs apart, and two interleaved in one strapdown would corrupt it
+        src = (msg.get_srcSystem(), msg.get_srcComponent(), int(getattr(msg, "id", 0) or 0))
         if self.config.imu_message != "auto" and mtype != self.imu_message:
             raise IgnoredMessage(f"another IMU stream ({self.imu_message}) is integrated")
         rank = (IMU_MESSAGES[::-1].index(mtype), src[1] != self.config.autopilot_component)
         lock = self._imu_lock if self._imu_lock is not None and self._imu_lock[0] == self.imu_message else None
-        if lock is not None and (mtype, src) != lock[:2] and rank <= lock[2]:
-            raise IgnoredMessage(f"another IMU stream ({lock[0]} from {lock[1][0]}/{lock[1][1]}) is integrated")
+        silent = lock is not None and t_s - self._imu_lock_t > self.config.imu_stream_silent_s
+        if lock is not None and (mtype, src) != lock[:2] and rank <= lock[2] and not silent:
+            raise IgnoredMessage(f"another IMU stream ({lock[0]} from {_stream_name(lock[1])}) is integrated")
         # who measured it (filter.imu.grade = auto): RAW_IMU / SCALED_IMU* are a flight
         # controller's MEMS (int16 mg, mrad/s); so is HIGHRES_IMU from the autopilot's component
         # when that is a flight-controller firmware — ArduPilot and PX4 stamp it on their boot
@@ -979,10 +988,14 @@ class MavlinkConverter:
             self.imu_switches += lock is not None
             self._imu_lock = (mtype, src, rank)
             self.imu_message = mtype
+            why = ("the first with a real sample" if lock is None else
+                   f"{lock[0]} from {_stream_name(lock[1])} silent" if rank <= lock[2] else
+                   f"better than {lock[0]} from {_stream_name(lock[1])}")
             logging.getLogger(__name__).info(
-                "IMU stream: %s from %d/%d (%s)", mtype, src[0], src[1],
-                "the first with a real sample" if lock is None else f"better than {lock[0]} from {lock[1][0]}/{lock[1][1]}",
-                extra={"event": {"event": "imu_stream", "message": mtype, "system": src[0], "component": src[1]}})
+                "IMU stream: %s from %s (%s)", mtype, _stream_name(src), why,
+                extra={"event": {"event": "imu_stream", "message": mtype, "system": src[0], "component": src[1],
+                                 "imu_id": src[2]}})
+        self._imu_lock_t = t_s
         return sample
 
     def _pressure(self, msg, mtype, t_s):
@@ -1006,6 +1019,11 @@ class MavlinkConverter:
         if self.origin is None:
             raise ConversionError("no_origin", "GLOBAL_VISION_POSITION_ESTIMATE before any origin")
         return usbl_from_global_vision(msg, t_s, self.origin, self.config)
+
+
+def _stream_name(src: tuple[int, int, int]) -> str:
+    """``system/component`` of an IMU stream, ``#id`` added for a component's further IMUs."""
+    return f"{src[0]}/{src[1]}" + (f" #{src[2]}" if src[2] else "")
 
 
 _HANDLERS = {

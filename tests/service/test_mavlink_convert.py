@@ -276,3 +276,24 @@ def test_attitude_waits_for_the_autopilots_word_that_its_yaw_is_aligned():
     text_gcs = wire("statustext_encode", 6, b"EKF3 IMU0 MAG0 initial yaw alignment complete", src=(255, 190))
     c.convert(text_gcs)
     assert att(1600, 0.0) == []
+
+
+def test_a_components_second_imu_is_another_stream_and_a_silent_stream_is_replaced():
+    """HIGHRES_IMU's id tells a component's IMUs apart: two interleaved in one strapdown would
+    corrupt it, so the second is ignored while the first streams; when the integrated stream
+    goes silent (an autopilot's IMU failover, a driver restart) another takes over."""
+    def highres(usec, imu_id, az=-9.81):
+        return wire("highres_imu_encode", usec, 0, 0, az, 0, 0, 0, 0, 0, 0, 0, 0, 0, 20, 0x3F, imu_id)
+
+    c = converter()
+    (first,) = c.convert(highres(1_000_000, 0))
+    assert c.convert(highres(1_005_000, 1, az=-9.7)) == []
+    assert c.accounting()["HIGHRES_IMU"]["ignored"] == {"another IMU stream (HIGHRES_IMU from 1/1) is integrated": 1}
+    (again,) = c.convert(highres(1_010_000, 0))
+    assert c.imu_switches == 0
+    # IMU 0 stops; IMU 1 goes on: ignored until the first has been silent for imu_stream_silent_s
+    assert c.convert(highres(1_900_000, 1, az=-9.7)) == []
+    (taken,) = c.convert(highres(2_100_000, 1, az=-9.7))
+    assert c.imu_switches == 1 and taken.specific_force_b_m_s2[2] == pytest.approx(-9.7)
+    # and now IMU 0 is the other stream
+    assert c.convert(highres(2_105_000, 0)) == []
