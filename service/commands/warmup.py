@@ -47,6 +47,17 @@ def _exercise_calibration_kernels() -> None:
     ffbsi_mcmc(fr, p, data.v, data.w, data.dt, 8, rng)
 
 
+def _exercise_sonar_kernels() -> None:
+    """The side-scan object detector's kernels (the calibrator's child runs them on every
+    block of pings): a small image through :func:`adaptnav.sonar.objects.local_level`."""
+    import numpy as np
+
+    from adaptnav.sonar.objects import ObjectDetectorConfig, local_level
+
+    image = np.random.default_rng(0).random((64, 128)).astype(np.float32)
+    local_level(image, 0.1, 0.15, ObjectDetectorConfig(), {})
+
+
 def run(args):
     import os
     import shutil
@@ -80,6 +91,7 @@ def run(args):
             warm_up_filter(cfg)
             warm_kernels()
             _exercise_calibration_kernels()
+            _exercise_sonar_kernels()
             print(f"adaptnav warmup: kernels just in time {time.monotonic() - t0:.1f} s")
 
         if args.jit_only:
