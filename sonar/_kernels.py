@@ -178,3 +178,24 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             v = np.float32(np.float64(img[i, k]) / np.float64(bg if ok else one))
             v = v if ok else one
             lev[i, k] = v if data[i, k] else one
+
+
+@jit(cache=True)
+def deep_shadow_rows(lev, row, near, far, deep_level):
+    """:func:`adaptnav.sonar.objects._deep_shadow_rows` run by run: per run (image ``row``,
+    columns ``near`` … ``far`` − 1 of ``lev``, any strides) the columns from ``near`` to the
+    first of three pixels in a row at least ``deep_level`` (compared in float32) lying within
+    the run, else the run's length; the same integers as the whole-image scan it replaces."""
+    n_cols = lev.shape[1]
+    level = np.float32(deep_level)
+    out = np.empty(near.shape[0], np.int64)
+    for q in range(near.shape[0]):
+        r, a, b = row[q], near[q], far[q]
+        out[q] = b - a
+        if a > n_cols - 3:
+            continue
+        for c in range(a, b - 2):  # the three pixels c, c + 1, c + 2 lie within the run
+            if lev[r, c] >= level and lev[r, c + 1] >= level and lev[r, c + 2] >= level:
+                out[q] = c - a
+                break
+    return out

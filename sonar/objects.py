@@ -583,6 +583,13 @@ def _deep_shadow_rows(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.n
     n_cols = lev.shape[1]
     if n_cols < 3 or near.size == 0:
         return length
+    if lev.dtype == np.float32 and lev.flags.aligned and lev.flags.writeable and type(deep_level) is float \
+            and near.dtype == np.int64 and far.dtype == np.int64 and runs.row.dtype == np.int64:
+        from adaptnav.sonar import _kernels
+
+        # run by run instead of a scan of the whole image (the same integers)
+        return _kernels.deep_shadow_rows(lev, np.ascontiguousarray(runs.row), np.ascontiguousarray(near),
+                                         np.ascontiguousarray(far), float(deep_level))
     lit = lev >= deep_level
     lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
     # the first column ≥ c where three lit pixels start, per row and column c

@@ -63,3 +63,35 @@ def test_local_level_of_a_strided_read_only_or_float64_image_is_the_scipy_one():
     for im in (view, frozen, image.astype(np.float64)):
         ref = _scipy_local_level(im, 0.1, 0.15, config)
         assert np.array_equal(local_level(im, 0.1, 0.15, config, {}).view(np.uint32), ref.view(np.uint32))
+
+
+def _deep_shadow_rows_numpy(lev, runs, deep_level):
+    """sonar.objects._deep_shadow_rows as it scanned the whole image (the reference)."""
+    near, far = runs.near, runs.far
+    length = far - near
+    n_cols = lev.shape[1]
+    lit = lev >= deep_level
+    lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
+    first = np.where(lit3, np.arange(n_cols - 2), n_cols)
+    first = np.minimum.accumulate(first[:, ::-1], axis=1)[:, ::-1]
+    start = np.minimum(near, n_cols - 3)
+    j = first[runs.row, start]
+    inside = (near <= n_cols - 3) & (j <= far - 3)
+    return np.where(inside, j - near, length)
+
+
+def test_deep_shadow_rows_run_by_run_are_the_whole_image_scan():
+    from adaptnav.sonar.objects import _deep_shadow_rows, _Runs
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        lev = rng.random((30, 80)).astype(np.float32) * 0.6
+        lev[rng.random(lev.shape) < 0.02] = np.nan
+        w = 40
+        for side in (lev[:, w:], lev[:, w - 1::-1], np.ascontiguousarray(lev)):
+            n = int(rng.integers(1, 60))
+            near = rng.integers(0, side.shape[1], n)
+            far = np.minimum(near + rng.integers(1, 30, n), side.shape[1])
+            runs = _Runs(rng.integers(1, 9, n), rng.integers(0, side.shape[0], n), near, far)
+            for level in (0.3, 0.45, 0.1):
+                assert np.array_equal(_deep_shadow_rows(side, runs, level), _deep_shadow_rows_numpy(side, runs, level))
