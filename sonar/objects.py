@@ -348,9 +348,8 @@ def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
             scratch = None if work is None else work.get(shape)
             if scratch is None:
                 scratch = (np.empty((5,) + shape, np.float32), np.empty(shape, bool))
-                if work is not None:
-                    if len(work) >= 4:  # a detector's blocks come in one or two shapes
-                        work.clear()
+                if work is not None:  # one shape kept (~4 MB for 200 pings of 1000 columns): a
+                    work.clear()          # detector's blocks but the first and the last share it
                     work[shape] = scratch
             lev = np.empty(shape, np.float32)
             if not image.flags.carray:  # contiguous and writeable: what the compiled kernel takes
