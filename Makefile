@@ -4,7 +4,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # kernels compiled ahead of time (adaptnav/kernels.py), rebuilt when their sources change
 KERNELS := $(VENV)/.kernels
-KERNEL_SOURCES := fusion/strapdown.py fusion/kalman.py calibration/_kernels.py adaptnav/kernels.py
+KERNEL_SOURCES := fusion/strapdown.py fusion/kalman.py calibration/_kernels.py sonar/_kernels.py adaptnav/kernels.py
 
 .PHONY: demo test test-sitl bench golden browser clean
 

@@ -45,7 +45,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 # the modules whose kernels are declared with jit(); their sources key the compiled module
-KERNEL_MODULES = ("adaptnav.fusion.strapdown", "adaptnav.fusion.kalman", "adaptnav.calibration._kernels")
+KERNEL_MODULES = ("adaptnav.fusion.strapdown", "adaptnav.fusion.kalman", "adaptnav.calibration._kernels",
+                  "adaptnav.sonar._kernels")
 
 _registry: dict[str, dict[str, tuple[Callable, dict]]] = {}   # module → name → (py_func, options)
 _jit_namespaces: dict[str, dict[str, Any]] = {}

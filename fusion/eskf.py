@@ -63,7 +63,7 @@ from .aiding.common import Measurement
 from .adaptive_noise import SurgeVariance
 from .alignment import Alignment, Start, initial_covariance
 from .config import FilterConfig
-from .frames import GeoOrigin, euler_to_quat
+from .frames import GeoOrigin, euler_to_quat, quat_to_euler
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
@@ -88,6 +88,11 @@ _MAX_SPEED_M_S = 1000.0
 _FUSIONS_TO_CONVERGE = 10
 # Roll/pitch random walk across an IMU gap (AUVs stay near level), rad/√s.
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
+
+
+# north, east of the velocity: in the nominal state, in the error state
+_X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)
+_VEL_NE = slice(VEL.start, VEL.start + 2)
 
 
 def _finite(sample) -> bool:
@@ -200,6 +205,11 @@ class Estimator:
         # taken before each and its state time
         self._hist_t: list[float] = []
         self._hist: list[tuple[str, object, _Snapshot]] = []
+        # False: whoever feeds the filter guarantees that no sample comes later than the
+        # filter's time (a source in time order: a simulation), so no history is kept — a
+        # snapshot of the state before every input, a twentieth of a replay's process for
+        # nothing. A late sample all the same is rejected as too late (nothing to re-fuse it in).
+        self.keep_history = True
         self._replaying = False
         self._restored = False  # slow states restored: an alignment keeps them
         self._speed_cache: dict[float, float] = {}
@@ -279,6 +289,31 @@ class Estimator:
             q_nb=x[X_Q], bias_acc_b_m_s2=x[X_BA], bias_gyro_b_rad_s=x[X_BG],
             current_n_m_s=x[X_CUR], k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter, invalid_reasons=tuple(reasons))
+
+    def horizontal_nav(self) -> tuple | None:
+        """What a side-scan ping records of the current state
+        (:meth:`adaptnav.service.loop_closures.SideScanEstimator._ping`): ``None`` when
+        :meth:`nav_state` would not be valid, else ``(t, pos NE, vel NE, yaw, cov POS_NE,
+        cov VEL_NE)`` — the same numbers, without building the whole state (the ping's
+        record was a tenth of the replaying process with side-scan). Where the published
+        state needs more than these blocks (an output lever arm, the autopilot's heading
+        frame), it is :meth:`nav_state` itself."""
+        if self._mode != "ins":
+            return None
+        if self._out_arm is not None or (self._yaw_frame and self.config.attitude.reference_yaw_sigma_rad > 0.0):
+            ns = self.nav_state()
+            if not ns.valid:
+                return None
+            return (ns.t_s, ns.pos_n_m[:2], ns.vel_n_m_s[:2], ns.euler_rad()[2],
+                    ns.cov[POS_NE, POS_NE], ns.cov[_VEL_NE, _VEL_NE])
+        x = self._x
+        cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+        if self.dvl_calibration is not None:  # _add_considered's terms of these blocks
+            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne()
+        if self.invalid_reasons(_sigma_h_m(cov)) or not np.isfinite(x).all():
+            return None
+        return (float(self._clock[0]), x[X_POS_NE].copy(), x[_X_VEL_NE].copy(), quat_to_euler(x[X_Q])[2],
+                cov[POS_NE, POS_NE], cov[_VEL_NE, _VEL_NE])
 
     def _add_considered(self, cov: np.ndarray) -> None:
         """The published covariance (in place) gains what the filter treats as known but is
@@ -746,7 +781,7 @@ class Estimator:
 
     def _record(self, kind: str, payload) -> None:
         """Remember an input (and the state before it) for late-measurement re-fusion."""
-        if self._mode != "ins" or self.config.max_delay_s <= 0:
+        if self._mode != "ins" or self.config.max_delay_s <= 0 or not self.keep_history:
             return
         t = float(self._clock[0])
         self._hist_t.append(t)

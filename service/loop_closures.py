@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.eskf import Estimator
-from adaptnav.fusion.state import POS_NE, VEL
+from adaptnav.fusion.state import VEL
 
 VEL_NE = slice(VEL.start, VEL.start + 2)
 
@@ -116,22 +116,23 @@ class SideScanEstimator(Estimator):
         if not self.objects:
             return  # nothing will place sightings or fuse closures: no record, no clones
         self._t_ping = t
-        ns = self.nav_state()
-        if not ns.valid:
+        ns = self.horizontal_nav()  # the numbers of nav_state(), what the record needs of it
+        if ns is None:  # not valid
             return
-        vel = ns.vel_n_m_s[:2]
-        pos = ns.pos_n_m[:2] + vel * (t - ns.t_s)
+        t_s, pos, vel, yaw, cov, vcov = ns
+        pos = pos + vel * (t - t_s)
         self._jump = self._jump_at(t, pos, vel)
-        self._last_vel = (t, pos.copy(), vel.copy())
-        yaw = float(ns.euler_rad()[2])
+        self._last_vel = (t, pos, vel)  # fresh arrays, not kept elsewhere
+        yaw = float(yaw)
         nav = self._nav
         if nav:
             if t <= nav[-1][0]:
                 return
             yaw = nav[-1][3] + math.remainder(yaw - nav[-1][3], 2.0 * math.pi)
-        cov, vcov = ns.cov[POS_NE, POS_NE], ns.cov[VEL_NE, VEL_NE]
-        nav.append((t, pos[0], pos[1], yaw, cov[0, 0], cov[0, 1], cov[1, 0], cov[1, 1], self._jump[0], self._jump[1],
-                    vcov[0, 0], vcov[0, 1], vcov[1, 0], vcov[1, 1]))
+        (c00, c01), (c10, c11) = cov.tolist()
+        (v00, v01), (v10, v11) = vcov.tolist()
+        j0, j1 = self._jump.tolist()
+        nav.append((t, *pos.tolist(), yaw, c00, c01, c10, c11, j0, j1, v00, v01, v10, v11))
         while nav and nav[0][0] < t - self.nav_keep_s:
             nav.popleft()
 

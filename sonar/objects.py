@@ -315,18 +315,51 @@ class ObjectSighting:
         return R @ np.diag([s_al ** 2, s_ac ** 2]) @ R.T
 
 
+def _gaussian_weights(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """The weights of ``scipy.ndimage.gaussian_filter1d`` (order 0, its default radius)."""
+    radius = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
+    return (phi / phi.sum())[::-1].copy()
+
+
+_THRESHOLDS = (1e-3, 1e-3, 1e-6)  # the weight, count and background below which a pixel has none
+
+
 def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
-                config: ObjectDetectorConfig) -> np.ndarray:
+                config: ObjectDetectorConfig, work: dict | None = None) -> np.ndarray:
     """Image divided by its local background (box mean over ``background_m``), smoothed.
 
-    Pixels without data (0) stay 1 (neither shadow nor highlight).
+    Pixels without data (0) stay 1 (neither shadow nor highlight). A float32 image larger
+    than the filters is done by :func:`adaptnav.sonar._kernels.local_level` (the numbers of
+    the scipy filters below, bit for bit); ``work``, a dict the caller keeps (one per
+    detector), holds its scratch arrays from call to call.
     """
+    along = along_res_m if math.isfinite(along_res_m) and along_res_m > 0 else ground_res_m
+    box = (max(int(round(config.background_m / along)), 3), max(int(round(config.background_m / ground_res_m)), 3))
+    s_rows, s_cols = (float(v) for v in np.broadcast_to(np.asarray(config.smooth_px, float), (2,)))
+    if image.ndim == 2 and image.dtype == np.float32 and min(s_rows, s_cols) > 1e-15:
+        w_rows, w_cols = _gaussian_weights(s_rows), _gaussian_weights(s_cols)
+        shape = image.shape
+        if w_rows.size // 2 <= shape[0] and w_cols.size // 2 <= shape[1] and box[0] <= shape[0] \
+                and box[1] <= shape[1]:
+            from adaptnav.sonar import _kernels
+
+            scratch = None if work is None else work.get(shape)
+            if scratch is None:
+                scratch = (np.empty((5,) + shape, np.float32), np.empty(shape, bool))
+                if work is not None:  # one shape kept (~4 MB for 200 pings of 1000 columns): a
+                    work.clear()          # detector's blocks but the first and the last share it
+                    work[shape] = scratch
+            lev = np.empty(shape, np.float32)
+            if not image.flags.carray:  # contiguous and writeable: what the compiled kernel takes
+                image = np.array(image, order="C")
+            _kernels.local_level(image, w_rows, w_cols, box[0], box[1], *_THRESHOLDS, scratch[0], scratch[1], lev)
+            return lev
     data = image > 0
     img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
     wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
     img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
-    along = along_res_m if math.isfinite(along_res_m) and along_res_m > 0 else ground_res_m
-    box = (max(int(round(config.background_m / along)), 3), max(int(round(config.background_m / ground_res_m)), 3))
     num = uniform_filter(np.where(data, img, 0.0), box)
     den = uniform_filter(data.astype(np.float32), box)
     bg = np.divide(num, den, out=np.ones_like(num), where=den > 1e-3)
@@ -337,7 +370,7 @@ def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
 
 def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
                    config: ObjectDetectorConfig = ObjectDetectorConfig(),
-                   unfiltered: np.ndarray | None = None) -> list[ObjectSighting]:
+                   unfiltered: np.ndarray | None = None, work: dict | None = None) -> list[ObjectSighting]:
     """Highlight → shadow objects of a ground-range waterfall (see the module docstring).
 
     Parameters
@@ -351,6 +384,8 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     unfiltered : numpy.ndarray, optional
         The waterfall's image before its median filter (same shape): nearer than
         ``config.fine_range_m`` objects are also sought there, as weak sightings.
+    work : dict, optional
+        Scratch arrays kept from call to call (:func:`local_level`): one per detector.
 
     Returns
     -------
@@ -365,7 +400,7 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     step = np.diff(along)
     along_res = float(np.median(step)) if step.size and np.all(np.isfinite(step)) else math.nan
     res = waterfall.ground_res_m
-    lev = local_level(img, res, along_res, config)
+    lev = local_level(img, res, along_res, config, work)
     w = waterfall.n_side
     rows = np.arange(n_rows, dtype=float)
     out: list[ObjectSighting] = []
@@ -374,7 +409,7 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
         out += _detect_side(sub, side, res, along, along_res, rows, waterfall, alt, config)
     out = _merge(out, config.merge_m, along_res)
     if unfiltered is not None and config.fine_range_m > 0:
-        out += _detect_fine(unfiltered, out, res, along, along_res, rows, waterfall, config)
+        out += _detect_fine(unfiltered, out, res, along, along_res, rows, waterfall, config, work)
         if config.short_strong_contrast > config.short_min_contrast:
             # near the nadir, a shadowed object of low contrast is as often sediment: weak
             # (ObjectDetectorConfig.short_strong_contrast)
@@ -385,14 +420,14 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     return sorted(out, key=lambda o: o.t_s)
 
 
-def _detect_fine(image, strong, res, along, along_res, rows, wf, config) -> list[ObjectSighting]:
+def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=None) -> list[ObjectSighting]:
     """Weak sightings: shadowed objects nearer than ``fine_range_m`` on the unfiltered image, with
     a height, that are not one of the ``strong`` sightings."""
     w = image.shape[1] // 2
     # the columns up to fine_range_m and a background box beyond, so that the local level there is
     # the full image's
     ncol = min(int(round((config.fine_range_m + config.background_m) / res)), w)
-    lev = local_level(image[:, w - ncol:w + ncol], res, along_res, config)
+    lev = local_level(image[:, w - ncol:w + ncol], res, along_res, config, work)
     weak = []
     for side, sub in (("starboard", lev[:, ncol:]), ("port", lev[:, ncol - 1::-1])):
         alt = wf.altitude_m[:, 1 if side == "starboard" else 0]
@@ -547,6 +582,13 @@ def _deep_shadow_rows(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.n
     n_cols = lev.shape[1]
     if n_cols < 3 or near.size == 0:
         return length
+    if lev.dtype == np.float32 and lev.flags.aligned and lev.flags.writeable and type(deep_level) is float \
+            and near.dtype == np.int64 and far.dtype == np.int64 and runs.row.dtype == np.int64:
+        from adaptnav.sonar import _kernels
+
+        # run by run instead of a scan of the whole image (the same integers)
+        return _kernels.deep_shadow_rows(lev, np.ascontiguousarray(runs.row), np.ascontiguousarray(near),
+                                         np.ascontiguousarray(far), float(deep_level))
     lit = lev >= deep_level
     lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
     # the first column ≥ c where three lit pixels start, per row and column c
@@ -782,6 +824,7 @@ class ObjectFrontEnd:
         self.blocks = 0
         self.sightings = 0
         self.rejected: dict[str, int] = {}
+        self._work: dict = {}  # the detector's scratch arrays (detect_objects)
 
     def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None, vel_cov=None) -> list[ObjectSighting]:
         """Take one ping with the navigation at its time; return a block's sightings when one completes.
@@ -878,7 +921,7 @@ class ObjectFrontEnd:
         if fine:
             raw = wf.image
             wf = replace(wf, image=median_filtered(raw, wcfg.median_ksize))
-        objs = detect_objects(wf, along_m=along, config=c.detector, unfiltered=raw)
+        objs = detect_objects(wf, along_m=along, config=c.detector, unfiltered=raw, work=self._work)
         idx = np.arange(len(pings), dtype=float)
         yaw_u = np.unwrap(nav[:, 2])
         half = max(c.context_pings // 2, 1)

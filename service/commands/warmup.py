@@ -47,6 +47,21 @@ def _exercise_calibration_kernels() -> None:
     ffbsi_mcmc(fr, p, data.v, data.w, data.dt, 8, rng)
 
 
+def _exercise_sonar_kernels() -> None:
+    """The side-scan object detector's kernels (the calibrator's child runs them on every
+    block of pings): a small image through :func:`adaptnav.sonar.objects.local_level`."""
+    import numpy as np
+
+    from adaptnav.sonar.objects import ObjectDetectorConfig, _deep_shadow_rows, _Runs, local_level
+
+    image = np.random.default_rng(0).random((64, 128)).astype(np.float32)
+    lev = local_level(image, 0.1, 0.15, ObjectDetectorConfig(), {})
+    # a side of the image as the detector takes it (columns outward from the nadir: strided)
+    runs = _Runs(np.array([1, 2]), np.array([3, 5]), np.array([4, 10]), np.array([30, 40]))
+    for side in (lev[:, 64:], lev[:, 63::-1]):
+        _deep_shadow_rows(side, runs, 0.3)
+
+
 def run(args):
     import os
     import shutil
@@ -80,6 +95,7 @@ def run(args):
             warm_up_filter(cfg)
             warm_kernels()
             _exercise_calibration_kernels()
+            _exercise_sonar_kernels()
             print(f"adaptnav warmup: kernels just in time {time.monotonic() - t0:.1f} s")
 
         if args.jit_only:

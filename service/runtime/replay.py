@@ -253,6 +253,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
+    if getattr(inp.source, "in_time_order", False):  # no sample can be late: no history for them
+        estimator.keep_history = False
     calibrator = None
     if calibrate:
         from adaptnav.service.compose import make_lagged_calibrator

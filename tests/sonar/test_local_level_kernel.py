@@ -1,0 +1,97 @@
+"""The object detector's compiled local level (sonar._kernels.local_level) against the scipy
+filters it replaces: the same float32 numbers, bit for bit (issue 17: replay speed)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter, uniform_filter
+
+from adaptnav.sonar.objects import ObjectDetectorConfig, local_level
+
+
+def _scipy_local_level(image, ground_res_m, along_res_m, config):
+    """sonar.objects.local_level as it was written with scipy.ndimage (the reference)."""
+    data = image > 0
+    img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
+    wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
+    img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
+    along = along_res_m if math.isfinite(along_res_m) and along_res_m > 0 else ground_res_m
+    box = (max(int(round(config.background_m / along)), 3), max(int(round(config.background_m / ground_res_m)), 3))
+    num = uniform_filter(np.where(data, img, 0.0), box)
+    den = uniform_filter(data.astype(np.float32), box)
+    bg = np.divide(num, den, out=np.ones_like(num), where=den > 1e-3)
+    lev = np.divide(img, bg, out=np.ones_like(img), where=bg > 1e-6)
+    lev[~data] = 1.0
+    return lev
+
+
+def _images(rng, n):
+    for k in range(n):
+        rows, cols = int(rng.integers(3, 120)), int(rng.integers(3, 400))
+        image = (rng.gamma(1.0, 1.0, (rows, cols)) * (rng.random((rows, cols)) > 0.3 * rng.random())).astype(np.float32)
+        if k % 4 == 0:  # a water column / beyond-range band without data
+            image[:, : int(rng.integers(0, cols))] = 0.0
+        if k % 5 == 0:  # values the mask must leave out
+            image[rng.random((rows, cols)) < 0.05] = -1.0
+            image[0, 0] = np.nan
+        yield image, float(rng.uniform(0.05, 0.5)), (float(rng.uniform(0.05, 0.5)) if k % 7 else math.nan)
+
+
+@pytest.mark.parametrize("smooth_px", [(0.5, 0.7), (1.3, 0.4), (2.0, 2.0)])
+def test_compiled_local_level_is_the_scipy_one_bit_for_bit(smooth_px):
+    config = ObjectDetectorConfig(smooth_px=smooth_px)
+    work: dict = {}
+    rng = np.random.default_rng(17)
+    for image, res, along in _images(rng, 60):
+        ref = _scipy_local_level(image, res, along, config)
+        for w in (None, work):
+            got = local_level(image, res, along, config, w)
+            assert got.dtype == ref.dtype == np.float32 and got.shape == ref.shape
+            assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))
+
+
+def test_local_level_of_a_strided_read_only_or_float64_image_is_the_scipy_one():
+    config = ObjectDetectorConfig()
+    rng = np.random.default_rng(3)
+    image = rng.gamma(1.0, 1.0, (90, 300)).astype(np.float32)
+    image[:, :40] = 0.0
+    view = image[:, 20:260]          # not contiguous
+    frozen = image.copy()
+    frozen.setflags(write=False)     # as a waterfall of read-only echoes may be
+    for im in (view, frozen, image.astype(np.float64)):
+        ref = _scipy_local_level(im, 0.1, 0.15, config)
+        assert np.array_equal(local_level(im, 0.1, 0.15, config, {}).view(np.uint32), ref.view(np.uint32))
+
+
+def _deep_shadow_rows_numpy(lev, runs, deep_level):
+    """sonar.objects._deep_shadow_rows as it scanned the whole image (the reference)."""
+    near, far = runs.near, runs.far
+    length = far - near
+    n_cols = lev.shape[1]
+    lit = lev >= deep_level
+    lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
+    first = np.where(lit3, np.arange(n_cols - 2), n_cols)
+    first = np.minimum.accumulate(first[:, ::-1], axis=1)[:, ::-1]
+    start = np.minimum(near, n_cols - 3)
+    j = first[runs.row, start]
+    inside = (near <= n_cols - 3) & (j <= far - 3)
+    return np.where(inside, j - near, length)
+
+
+def test_deep_shadow_rows_run_by_run_are_the_whole_image_scan():
+    from adaptnav.sonar.objects import _deep_shadow_rows, _Runs
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        lev = rng.random((30, 80)).astype(np.float32) * 0.6
+        lev[rng.random(lev.shape) < 0.02] = np.nan
+        w = 40
+        for side in (lev[:, w:], lev[:, w - 1::-1], np.ascontiguousarray(lev)):
+            n = int(rng.integers(1, 60))
+            near = rng.integers(0, side.shape[1], n)
+            far = np.minimum(near + rng.integers(1, 30, n), side.shape[1])
+            runs = _Runs(rng.integers(1, 9, n), rng.integers(0, side.shape[0], n), near, far)
+            for level in (0.3, 0.45, 0.1):
+                assert np.array_equal(_deep_shadow_rows(side, runs, level), _deep_shadow_rows_numpy(side, runs, level))
