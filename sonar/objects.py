@@ -59,12 +59,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-from scipy.ndimage import find_objects, gaussian_filter, label, uniform_filter
 
-from adaptnav.sonar.waterfall import Waterfall
+if TYPE_CHECKING:
+    from adaptnav.sonar.waterfall import Waterfall
+# scipy.ndimage and the waterfall (OpenCV) are imported where the detector runs: the daemon
+# imports this module for the sighting type and with_navigation only (~15 MB less resident)
 
 
 @dataclass(frozen=True)
@@ -356,6 +358,8 @@ def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
                 image = np.array(image, order="C")
             _kernels.local_level(image, w_rows, w_cols, box[0], box[1], *_THRESHOLDS, scratch[0], scratch[1], lev)
             return lev
+    from scipy.ndimage import gaussian_filter, uniform_filter
+
     data = image > 0
     img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
     wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
@@ -452,6 +456,8 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     ncol = min(int(config.near_range_m / res), lev.shape[1])
     if ncol <= 0:
         return []
+    from scipy.ndimage import find_objects, label
+
     sub = lev[:, :ncol + int(2.0 / res)]
     lab, n = label(sub > config.near_highlight_level, structure=np.ones((3, 3), bool))
     big = np.bincount(lab.ravel(), minlength=n + 1) >= config.near_min_px  # (most blobs are speckle)
@@ -498,6 +504,8 @@ def _detect_side(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
 
 
 def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
+    from scipy.ndimage import label
+
     shadow = lev < config.shadow_level
     lab, n = label(shadow, structure=np.ones((3, 3), bool))
     if n == 0:

@@ -113,3 +113,14 @@ def test_the_service_path_does_not_import_scipy_stats():
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", out.stdout
+
+
+def test_the_daemons_side_scan_path_does_not_import_the_detectors_libraries():
+    """The daemon places and associates side-scan sightings (sonar.association, the sighting
+    type and ``with_navigation`` of sonar.objects); the detector that needs scipy.ndimage and
+    OpenCV runs in the calibrator child (~15 MB resident the daemon does not carry)."""
+    code = ("import sys, adaptnav.service.loop_closures, adaptnav.sonar.association;"
+            "from adaptnav.sonar.objects import ObjectDetectorConfig, ObjectSighting, with_navigation;"
+            "print(sorted(m for m in ('cv2', 'scipy.ndimage') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
