@@ -970,11 +970,14 @@ class LegAssociator:
         old = [o for o in near_a if a0 - m <= o.t_s <= a1 + m and id(o) not in skip]
         new = [o for o in near_b if b0 - m <= o.t_s <= b1 + m and id(o) not in skip]
         found = []  # (seen, re-detected, seen is on the old leg)
+        rows_of: dict[float, dict | None] = {}
         for seen, on_old in [(o, True) for o in old] + [(o, False) for o in new]:
             # the other leg's rows: around tb for an old sighting, around ta for a new one
             t_other = tb if on_old else ta
             t0, t1 = t_other - reach, t_other + reach
-            rows = self.images.rows(t0, t1, heading[t_other], gc.max_heading_diff_rad)
+            if t_other not in rows_of:  # (two windows per search: the rows of either leg)
+                rows_of[t_other] = self.images.rows(t0, t1, heading[t_other], gc.max_heading_diff_rad)
+            rows = rows_of[t_other]
             if rows is None:
                 self._count("no image", seen)
                 continue
@@ -1004,7 +1007,7 @@ class LegAssociator:
                     continue
             excl = [o.smooth_pos_n_m for o in others if t0 <= o.t_s <= t1]
             obj, info = redetect(self.images, seen, target, R, t0, t1, gc, exclude_n_m=excl,
-                                 heading_rad=heading[t_other])
+                                 heading_rad=heading[t_other], rows=rows)
             self._count(info["reason"], seen)
             if "p" in info:  # tested: once only (each test is a chance of a false alarm)
                 self._tested.add(id(seen))

@@ -219,11 +219,13 @@ def abeam(rows: dict, target_n_m) -> tuple[int, str, float] | None:
 def redetect(store: ImageStore, seen: ObjectSighting, target_n_m, R, t0_s: float, t1_s: float,
              config: GuidedConfig = GuidedConfig(),
              detector: ObjectDetectorConfig = ObjectDetectorConfig(),
-             exclude_n_m=None, heading_rad: float | None = None) -> tuple[ObjectSighting | None, dict]:
+             exclude_n_m=None, heading_rad: float | None = None,
+             rows: dict | None = None) -> tuple[ObjectSighting | None, dict]:
     """Look for ``seen``'s object at ``target_n_m`` (jump-free track; covariance ``R``, 2×2)
     in the stored rows of ``t0_s`` … ``t1_s`` (see the module docstring); ``exclude_n_m``: the
     (jump-free) positions of the detector's sightings on that leg, left out of the null;
-    ``heading_rad``: that leg's heading (the rows of the next leg after a turn are not searched).
+    ``heading_rad``: that leg's heading (the rows of the next leg after a turn are not searched);
+    ``rows``: ``store.rows(t0_s, t1_s, heading_rad, …)`` when the caller has them already.
 
     Returns
     -------
@@ -234,7 +236,8 @@ def redetect(store: ImageStore, seen: ObjectSighting, target_n_m, R, t0_s: float
         ``reason`` (why not tested or not found, or ``"found"``), ``p`` when tested.
     """
     cfg = config
-    rows = store.rows(t0_s, t1_s, heading_rad, cfg.max_heading_diff_rad)
+    if rows is None:
+        rows = store.rows(t0_s, t1_s, heading_rad, cfg.max_heading_diff_rad)
     if rows is None:
         return None, {"reason": "no image"}
     ab = abeam(rows, target_n_m)
