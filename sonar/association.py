@@ -372,8 +372,20 @@ class LegAssociator:
     config : AssociationConfig
     """
 
-    def __init__(self, config: AssociationConfig = AssociationConfig(), relative_cov=None) -> None:
+    def __init__(self, config: AssociationConfig = AssociationConfig(), relative_cov=None, images=None,
+                 guided=None) -> None:
         self.config = config
+        # guided re-detection (:mod:`adaptnav.sonar.guided`): the front end's
+        # :class:`~adaptnav.sonar.guided.ImageStore` and a GuidedConfig; None: off
+        self.images = images
+        self.guided_config = guided
+        self.guided_pairs = 0
+        self.guided_tests: dict[str, int] = {}
+        self._paired: set[int] = set()  # ids of the sightings in any accepted pair
+        self._tested: set[int] = set()  # ids of the sightings already looked for (once each)
+        self.guided_log: list | None = None  # diagnostics: (seen sighting, reason) per attempt
+        self._guided_pending: list = []  # guided pairs found after the last closure was returned
+        self._spans: dict[int, tuple] = {}  # id(drift) → its set's times (old first, last; new first, last)
         # (t_a, t_b) → covariance of the navigation's error difference e(t_a) − e(t_b) (2×2),
         # or None: the filter knows the correlation of its errors at two epochs (its clones)
         self.relative_cov = relative_cov
@@ -663,6 +675,9 @@ class LegAssociator:
         if b_med.jump_n_m is not None:
             delta = delta - b_med.jump_n_m
         self._recent.append((float(a_med.t_s), float(b_med.t_s), keep))
+        # the times its pairs span on either leg (guided re-detection interpolates the drift)
+        self._spans[id(keep)] = (min(a.t_s for a, _ in pairs), max(a.t_s for a, _ in pairs),
+                                 min(b.t_s for _, b in pairs), max(b.t_s for _, b in pairs))
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis,
                            jump_a_n_m=a_med.jump_n_m, jump_b_n_m=b_med.jump_n_m)
@@ -790,10 +805,19 @@ class LegAssociator:
             lc = self._with_weak(lc)
             used = {id(b) for _, b in lc.weak_pairs if b.weak}
             self._weak_pending = [o for o in self._weak_pending if id(o) not in used]
+            self._paired |= {id(o) for p in tuple(lc.pairs) + tuple(lc.weak_pairs) for o in p}
+        if self.images is not None:
+            lc = self._guided(lc)
         kept = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
         self._old = kept[-self.config.max_sightings:]
         kept = [o for o in self._weak_old if o.t_s >= t_new - self.config.memory_s]
         self._weak_old = kept[-self.config.max_sightings:]
+        if self._spans:
+            self._spans = {k: v for k, v in self._spans.items() if any(k == id(r[2]) for r in self._recent)}
+        if self._paired or self._tested:
+            alive = {id(o) for o in self._old + self._weak_old + self._pending + self._weak_pending}
+            self._paired &= alive
+            self._tested &= alive
         if self._weak_used:  # (ids of sightings no longer kept could be reused)
             self._weak_used &= {id(o) for o in self._old + self._weak_old + self._pending + self._weak_pending}
         return lc
@@ -890,3 +914,128 @@ class LegAssociator:
             for a, b in extra:
                 self._note(a, b, "accepted")
         return replace(lc, weak_pairs=tuple(extra))
+
+    def _guided(self, lc: LoopClosure | None) -> LoopClosure | None:
+        """Guided re-detection (:mod:`adaptnav.sonar.guided`) with the latest accepted set's
+        drift, after every batch: the pairs found join the weak pairs of ``lc`` (or of the next
+        closure when this batch gave none; scored, not fused). A closure's offset predicts the
+        other leg's place of an object only once that place has been imaged: an old sighting's
+        often lies on the new leg a block or two ahead."""
+        c = self.config
+        if self._recent:
+            ta, tb, drift = self._recent[-1]
+            newest = max([o.t_s for o in self._pending] or [tb])
+            if newest - tb <= c.window_s + c.set_span_s:
+                self._guided_pending += self._guided_search(ta, tb, drift, () if lc is None else lc.pairs)
+        if lc is None or not self._guided_pending:
+            return lc
+        extra, self._guided_pending = tuple(self._guided_pending), []
+        return replace(lc, weak_pairs=tuple(lc.weak_pairs) + extra)
+
+    def _guided_search(self, ta: float, tb: float, drift: "Drift", set_pairs) -> list:
+        """The objects of either leg of a set (times ``ta``, ``tb``, its fitted ``drift``) that no
+        pair holds, re-detected where the drift predicts them in the other leg's image
+        (:func:`adaptnav.sonar.guided.redetect`): (earlier, new) pairs. Only ordinary sightings
+        are looked for (a weak one is an object once in 25), each once (every test is a chance of
+        a false alarm); not where an ordinary sighting of the other leg already lies inside the
+        gate (the associator's own tests saw that pair); a re-detected spot claimed by two
+        sightings is ambiguous and dropped."""
+        from adaptnav.sonar.guided import GuidedConfig, abeam, redetect
+
+        c = self.config
+        gc = self.guided_config or GuidedConfig()
+        reach = c.window_s + c.set_span_s
+        skip = self._paired | self._tested
+        pool = {id(o): o for o in self._old + self._pending if not o.weak}
+        pool.update({id(o): o for p in set_pairs for o in p})
+        # the set's legs: their headings at its two times (a sighting past a turn is on another leg)
+        heading = {}
+        for t in (ta, tb):
+            r = self.images.rows(t - 1.0, t + 1.0)
+            if r is None:
+                return []
+            heading[t] = float(r["yaw"][0])
+
+        def on_leg(o, t):
+            return abs(math.remainder(o.heading_rad - heading[t], 2 * math.pi)) <= gc.max_heading_diff_rad
+
+        near_a = [o for o in pool.values() if abs(o.t_s - ta) <= reach + 60.0 and abs(o.t_s - ta) < abs(o.t_s - tb)
+                  and on_leg(o, ta)]
+        near_b = [o for o in pool.values() if abs(o.t_s - tb) <= reach + 60.0 and abs(o.t_s - tb) <= abs(o.t_s - ta)
+                  and on_leg(o, tb)]
+        # the weak sightings already in a pair count as the other leg's sightings too (the
+        # object there is re-associated already)
+        paired_weak = [o for o in self._weak_old + self._weak_pending if id(o) in self._paired]
+        old_all = near_a + [o for o in paired_weak if abs(o.t_s - ta) <= reach + 60.0
+                            and abs(o.t_s - ta) < abs(o.t_s - tb) and on_leg(o, ta)]
+        new_all = near_b + [o for o in paired_weak if abs(o.t_s - tb) <= reach + 60.0
+                            and abs(o.t_s - tb) <= abs(o.t_s - ta) and on_leg(o, tb)]
+        # near the set's pairs in time: the drift is interpolated, not carried far (a minute
+        # before the set, early in a survey, it was 5 m off with a σ of 0.7 m: seed 3)
+        a0, a1, b0, b1 = self._spans.get(id(drift), (ta, ta, tb, tb))
+        m = gc.max_extrapolation_s
+        old = [o for o in near_a if a0 - m <= o.t_s <= a1 + m and id(o) not in skip]
+        new = [o for o in near_b if b0 - m <= o.t_s <= b1 + m and id(o) not in skip]
+        found = []  # (seen, re-detected, seen is on the old leg)
+        rows_of: dict[float, dict | None] = {}
+        for seen, on_old in [(o, True) for o in old] + [(o, False) for o in new]:
+            # the other leg's rows: around tb for an old sighting, around ta for a new one
+            t_other = tb if on_old else ta
+            t0, t1 = t_other - reach, t_other + reach
+            if t_other not in rows_of:  # (two windows per search: the rows of either leg)
+                rows_of[t_other] = self.images.rows(t0, t1, heading[t_other], gc.max_heading_diff_rad)
+            rows = rows_of[t_other]
+            if rows is None:
+                self._count("no image", seen)
+                continue
+            # its time on the other leg: the drift at the abeam row, twice
+            t_guess = t_other
+            target = None
+            for _ in range(2):
+                d = drift.predict([seen.t_s if on_old else t_guess], [t_guess if on_old else seen.t_s])[0]
+                target = seen.smooth_pos_n_m - d if on_old else seen.smooth_pos_n_m + d
+                ab = abeam(rows, target)
+                if ab is None:
+                    break
+                t_guess = float(rows["t"][ab[0]])
+            if ab is None:
+                self._count("not abeam", seen)
+                continue
+            # the seen sighting's detector error and the template's placement (a row, a column)
+            D = seen.det_cov + gc.placement_sigma_m ** 2 * np.eye(2)
+            R = drift.residual_cov([seen.t_s if on_old else t_guess], [t_guess if on_old else seen.t_s], D[None])[0]
+            others = new_all if on_old else old_all
+            if others:
+                # (each with its own detector's covariance in place of the template's placement)
+                P = np.array([o.smooth_pos_n_m for o in others])
+                Ro = (R - gc.placement_sigma_m ** 2 * np.eye(2))[None] + np.array([o.det_cov for o in others])
+                if np.any(_m2(P - target[None], Ro) <= self._inlier):
+                    self._count("other sighting in the gate", seen)
+                    continue
+            excl = [o.smooth_pos_n_m for o in others if t0 <= o.t_s <= t1]
+            obj, info = redetect(self.images, seen, target, R, t0, t1, gc, exclude_n_m=excl,
+                                 heading_rad=heading[t_other], rows=rows)
+            self._count(info["reason"], seen)
+            if "p" in info:  # tested: once only (each test is a chance of a false alarm)
+                self._tested.add(id(seen))
+            if obj is not None:
+                found.append((seen, obj, on_old))
+        if not found:
+            return []
+        keep = []
+        for k, (seen, obj, on_old) in enumerate(found):
+            clash = any(m != k and o2.side == obj.side and abs(o2.t_s - obj.t_s) < 5.0
+                        and np.linalg.norm(o2.smooth_pos_n_m - obj.smooth_pos_n_m) < 1.5
+                        for m, (_, o2, _) in enumerate(found))
+            if clash:
+                self._count("ambiguous", seen)
+                continue
+            keep.append((seen, obj) if on_old else (obj, seen))
+        self.guided_pairs += len(keep)
+        self._paired |= {id(o) for p in keep for o in p}
+        return keep
+
+    def _count(self, reason: str, seen=None) -> None:
+        self.guided_tests[reason] = self.guided_tests.get(reason, 0) + 1
+        if self.guided_log is not None:
+            self.guided_log.append((seen, reason))

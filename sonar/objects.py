@@ -270,6 +270,9 @@ class ObjectSighting:
         or nearer than 20 m with a contrast below ``ObjectDetectorConfig.short_strong_contrast``:
         false ones are too frequent to found a loop closure, so the associator only adds such a
         sighting to a set that its other sightings established (:class:`~adaptnav.sonar.association.LegAssociator`).
+    guided : bool
+        Not found by the detector: re-detected where a loop closure predicted an object seen on
+        the other leg (:func:`adaptnav.sonar.guided.redetect`; also ``weak``).
     """
 
     t_s: float
@@ -289,6 +292,7 @@ class ObjectSighting:
     jump_n_m: np.ndarray | None = None
     vel_cov: np.ndarray | None = None
     weak: bool = False
+    guided: bool = False
 
     @property
     def smooth_pos_n_m(self) -> np.ndarray | None:
@@ -816,10 +820,13 @@ class ObjectFrontEnd:
     config : ObjectFrontEndConfig
     """
 
-    def __init__(self, config: ObjectFrontEndConfig = ObjectFrontEndConfig()) -> None:
+    def __init__(self, config: ObjectFrontEndConfig = ObjectFrontEndConfig(), store=None) -> None:
         from collections import deque
 
         self.config = config
+        # :class:`adaptnav.sonar.guided.ImageStore` or None: every block's own rows of the image
+        # before the median, with the navigation, for guided re-detection
+        self.store = store
         n = config.block_pings + 2 * config.context_pings
         self._pings: deque = deque(maxlen=n)
         self._nav: deque = deque(maxlen=n)  # (pos n, pos e, yaw, cov 4, jump n, jump e, vel cov 4)
@@ -930,6 +937,9 @@ class ObjectFrontEnd:
             raw = wf.image
             wf = replace(wf, image=median_filtered(raw, wcfg.median_ksize))
         objs = detect_objects(wf, along_m=along, config=c.detector, unfiltered=raw, work=self._work)
+        if self.store is not None:
+            self._store_rows(wf if raw is None else replace(wf, image=raw), nav, start - first,
+                             min(start - first + c.block_pings, len(pings)), pings)
         idx = np.arange(len(pings), dtype=float)
         yaw_u = np.unwrap(nav[:, 2])
         half = max(c.context_pings // 2, 1)
@@ -950,3 +960,13 @@ class ObjectFrontEnd:
             out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector, jump, vc))
         self.sightings += len(out)
         return out
+
+    def _store_rows(self, wf, nav: np.ndarray, a: int, b: int, pings) -> None:
+        """The block's own rows ``a…b−1`` (one per ping) of the image before the median, with the
+        navigation, into :attr:`store`."""
+        if b <= a:
+            return
+        jump = nav[a:b, 7:9] if self._last_vel is not None else None
+        self.store.add(wf.image[a:b], wf.ground_res_m, np.array([q.t_s for q in pings[a:b]]), nav[a:b, 0:2],
+                       np.unwrap(nav[:, 2])[a:b], nav[a:b, 3:7].reshape(-1, 2, 2), jump,
+                       nav[a:b, 9:13].reshape(-1, 2, 2), wf.altitude_m[a:b])

@@ -108,19 +108,22 @@ def _legs(t: np.ndarray, yaw: np.ndarray, min_s: float = 60.0, max_rate_rad_s: f
 
 
 def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
-        max_range_m: float = 45.0, progress: bool = False) -> LandmarkScore:
+        max_range_m: float = 45.0, progress: bool = False, guided: bool = True) -> LandmarkScore:
     """Simulate ``scenario`` and score the side-scan landmarks (see the module docstring)."""
     from adaptnav.fusion.state import POS_NE, VEL
     from adaptnav.service.compose import make_estimator
     from adaptnav.service.runtime.replay import build_config
     from adaptnav.sim.simulator import simulate
     from adaptnav.sonar.association import LegAssociator
+    from adaptnav.sonar.guided import ImageStore
     from adaptnav.sonar.objects import ObjectFrontEnd
 
     res = simulate(scenario)
     cfg = build_config(scenario)
     est_with, est_without = make_estimator(cfg), make_estimator(cfg)
-    fe, assoc = ObjectFrontEnd(), LegAssociator(relative_cov=est_with.relative_position_covariance)
+    store = ImageStore() if guided else None
+    fe = ObjectFrontEnd(store=store)
+    assoc = LegAssociator(relative_cov=est_with.relative_position_covariance, images=store)
     assoc.trace = {}
     closures, fused = [], 0
     sightings = []
@@ -205,6 +208,11 @@ def _score(scenario, res, est_with, est_without, sightings, closures, fused, min
              "weak_sightings_on_objects": sum(k >= 0 for k, o in zip(truth, sightings) if o.weak),
              "weak_pairs": len(weak_pairs),
              "weak_false_pairs": sum(truth_object(a) < 0 or truth_object(a) != truth_object(b) for a, b in weak_pairs)}
+    guided = [(a, b) for a, b in weak_pairs if a.guided or b.guided]
+    extra["guided_pairs"] = len(guided)
+    extra["guided_false_pairs"] = sum(truth_object(a) < 0 or truth_object(a) != truth_object(b) for a, b in guided)
+    if assoc is not None:
+        extra["guided_tests"] = dict(sorted(assoc.guided_tests.items(), key=lambda kv: -kv[1]))
     if assoc is not None and assoc.trace is not None:
         extra["budget"] = _budget(sightings, truth, [leg(o.t_s) for o in sightings], common, found, abeam,
                                   assoc, min_range_m, max_range_m)
