@@ -362,11 +362,17 @@ def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
                 image = np.array(image, order="C")
             _kernels.local_level(image, w_rows, w_cols, box[0], box[1], *_THRESHOLDS, scratch[0], scratch[1], lev)
             return lev
+    return local_level_filters(image, box, config.smooth_px)
+
+
+def local_level_filters(image: np.ndarray, box: tuple[int, int], smooth_px) -> np.ndarray:
+    """:func:`local_level` with scipy.ndimage's filters (the compiled kernel's reference):
+    ``box`` the background's (rows, columns) in pixels, ``smooth_px`` the Gaussian's σ."""
     from scipy.ndimage import gaussian_filter, uniform_filter
 
     data = image > 0
-    img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
-    wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
+    img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), smooth_px)
+    wgt = gaussian_filter(data.astype(np.float32), smooth_px)
     img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
     num = uniform_filter(np.where(data, img, 0.0), box)
     den = uniform_filter(data.astype(np.float32), box)

@@ -6,25 +6,14 @@ import math
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter, uniform_filter
-
-from adaptnav.sonar.objects import ObjectDetectorConfig, local_level
+from adaptnav.sonar.objects import ObjectDetectorConfig, local_level, local_level_filters
 
 
 def _scipy_local_level(image, ground_res_m, along_res_m, config):
-    """sonar.objects.local_level as it was written with scipy.ndimage (the reference)."""
-    data = image > 0
-    img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), config.smooth_px)
-    wgt = gaussian_filter(data.astype(np.float32), config.smooth_px)
-    img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
+    """sonar.objects.local_level through scipy.ndimage's filters (the reference)."""
     along = along_res_m if math.isfinite(along_res_m) and along_res_m > 0 else ground_res_m
     box = (max(int(round(config.background_m / along)), 3), max(int(round(config.background_m / ground_res_m)), 3))
-    num = uniform_filter(np.where(data, img, 0.0), box)
-    den = uniform_filter(data.astype(np.float32), box)
-    bg = np.divide(num, den, out=np.ones_like(num), where=den > 1e-3)
-    lev = np.divide(img, bg, out=np.ones_like(img), where=bg > 1e-6)
-    lev[~data] = 1.0
-    return lev
+    return local_level_filters(image, box, config.smooth_px)
 
 
 def _images(rng, n):
