@@ -607,6 +607,14 @@ def _deep_shadow_rows(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.n
         # run by run instead of a scan of the whole image (the same integers)
         return _kernels.deep_shadow_rows(lev, np.ascontiguousarray(runs.row), np.ascontiguousarray(near),
                                          np.ascontiguousarray(far), float(deep_level))
+    return _deep_shadow_rows_scan(lev, runs, deep_level)
+
+
+def _deep_shadow_rows_scan(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.ndarray:
+    """:func:`_deep_shadow_rows` by a scan of the whole image (the compiled kernel's reference)."""
+    near, far = runs.near, runs.far
+    length = far - near
+    n_cols = lev.shape[1]
     lit = lev >= deep_level
     lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
     # the first column ≥ c where three lit pixels start, per row and column c

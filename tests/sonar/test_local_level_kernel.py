@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from adaptnav.sonar.objects import ObjectDetectorConfig, local_level, local_level_filters
 
 
@@ -54,23 +55,8 @@ def test_local_level_of_a_strided_read_only_or_float64_image_is_the_scipy_one():
         assert np.array_equal(local_level(im, 0.1, 0.15, config, {}).view(np.uint32), ref.view(np.uint32))
 
 
-def _deep_shadow_rows_numpy(lev, runs, deep_level):
-    """sonar.objects._deep_shadow_rows as it scanned the whole image (the reference)."""
-    near, far = runs.near, runs.far
-    length = far - near
-    n_cols = lev.shape[1]
-    lit = lev >= deep_level
-    lit3 = lit[:, :-2] & lit[:, 1:-1] & lit[:, 2:]
-    first = np.where(lit3, np.arange(n_cols - 2), n_cols)
-    first = np.minimum.accumulate(first[:, ::-1], axis=1)[:, ::-1]
-    start = np.minimum(near, n_cols - 3)
-    j = first[runs.row, start]
-    inside = (near <= n_cols - 3) & (j <= far - 3)
-    return np.where(inside, j - near, length)
-
-
 def test_deep_shadow_rows_run_by_run_are_the_whole_image_scan():
-    from adaptnav.sonar.objects import _deep_shadow_rows, _Runs
+    from adaptnav.sonar.objects import _deep_shadow_rows, _deep_shadow_rows_scan, _Runs
 
     rng = np.random.default_rng(5)
     for _ in range(40):
@@ -83,4 +69,4 @@ def test_deep_shadow_rows_run_by_run_are_the_whole_image_scan():
             far = np.minimum(near + rng.integers(1, 30, n), side.shape[1])
             runs = _Runs(rng.integers(1, 9, n), rng.integers(0, side.shape[0], n), near, far)
             for level in (0.3, 0.45, 0.1):
-                assert np.array_equal(_deep_shadow_rows(side, runs, level), _deep_shadow_rows_numpy(side, runs, level))
+                assert np.array_equal(_deep_shadow_rows(side, runs, level), _deep_shadow_rows_scan(side, runs, level))
