@@ -312,6 +312,10 @@ class MavlinkBridge:
             "link_up": self.link_up.is_set(),
             "autopilot": list(self.autopilot) if self.autopilot else None,
             "imu_stream": self.imu_stream,
+            # the stream integrated now ("HIGHRES_IMU from 1/1"), and how often it changed (a
+            # better one appeared, or the integrated one fell silent)
+            "imu_integrated": self.converter.integrated_imu_stream(),
+            "imu_switches": self.converter.imu_switches,
             "output_rate_hz": self.output_rate_hz(),
             "reset_counter_base": self.reset_base,
             "origin_confirmed": self.origin_confirmed,

@@ -998,6 +998,11 @@ class MavlinkConverter:
         self._imu_lock_t = t_s
         return sample
 
+    def integrated_imu_stream(self) -> str | None:
+        """The IMU stream integrated now, e.g. ``"HIGHRES_IMU from 1/1"`` (None: none yet)."""
+        lock = self._imu_lock
+        return None if lock is None else f"{lock[0]} from {_stream_name(lock[1])}"
+
     def _pressure(self, msg, mtype, t_s):
         if mtype != self.config.depth_message:
             raise IgnoredMessage(f"depth comes from {self.config.depth_message} (the external sensor)")

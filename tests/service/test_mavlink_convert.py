@@ -295,5 +295,6 @@ def test_a_components_second_imu_is_another_stream_and_a_silent_stream_is_replac
     assert c.convert(highres(1_900_000, 1, az=-9.7)) == []
     (taken,) = c.convert(highres(2_100_000, 1, az=-9.7))
     assert c.imu_switches == 1 and taken.specific_force_b_m_s2[2] == pytest.approx(-9.7)
+    assert c.integrated_imu_stream() == "HIGHRES_IMU from 1/1 #1"
     # and now IMU 0 is the other stream
     assert c.convert(highres(2_105_000, 0)) == []

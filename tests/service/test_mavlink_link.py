@@ -75,6 +75,8 @@ def test_raw_imu_only_when_the_autopilot_has_no_highres_imu():
         peer.conn.mav.raw_imu_send(1_000_000, 0, 0, -1000, 1, 2, 3, 0, 0, 0)
         got = []
         assert peer.pump(5.0, until=lambda: got.extend(_drain(q)) or any(s.KIND == "imu" for s in got))
+        health = bridge.health()
+        assert health["imu_integrated"].startswith("RAW_IMU from ") and health["imu_switches"] == 0
 
 
 def test_highres_imu_keeps_its_stream():
