@@ -288,7 +288,8 @@ class TlogReplaySource(SampleStreamSource):
                 "rejected": rejected,
                 "late_samples": int(c.get("late_samples", 0)),
                 "message_types": c.get("message_types", {}),
-                "clock": c.get("clock", {})}
+                "clock": c.get("clock", {}),
+                "imu_stream": c.get("imu_stream", {})}
 
 
 def tlog_source(path: Path) -> Any:

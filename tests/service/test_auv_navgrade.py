@@ -148,7 +148,9 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         # RAW_IMU at 4 Hz, also in the log), navigation grade, earth model on
         assert s["filter"]["imu_grade"] == "navigation" and s["filter"]["earth_rotation"], name
         assert s["message_types"]["HIGHRES_IMU"]["samples"] > 0.99 * s["message_types"]["HIGHRES_IMU"]["messages"]
-        assert s["message_types"].get("RAW_IMU", {}).get("samples", 0) <= 1, name  # at most the one before the better stream
+        assert s["message_types"].get("RAW_IMU", {}).get("samples", 0) <= 1, name
+        expected = "HIGHRES_IMU from 1/1" if v_by_name[name].imu_sender == "vehicle_computer" else "HIGHRES_IMU from 1/200"
+        assert s["imu_stream"]["integrated"] == expected, (name, s["imu_stream"])  # at most the one before the better stream
         # the DVL is used: from system 255, no delta lost to the driver's unwrapped yaw differences
         dvl = s["message_types"]["VISION_POSITION_DELTA"]
         assert dvl["status"] == "used" and not dvl.get("rejected"), (name, dvl)
