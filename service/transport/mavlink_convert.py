@@ -964,9 +964,11 @@ class MavlinkConverter:
         ``HIGHRES_IMU`` over ``SCALED_IMU2`` over int16 ``RAW_IMU``, then a dedicated IMU
         (a companion's driver) over the autopilot's own — since a real autopilot streams its
         RAW_IMU at a few Hz whether or not a better IMU is on board."""
-        # a stream is also one IMU: HIGHRES_IMU's id (MAVLink 2 extension) tells a component's
-        # IMUs apart, and two interleaved in one strapdown would corrupt it
-        src = (msg.get_srcSystem(), msg.get_srcComponent(), int(getattr(msg, "id", 0) or 0))
+        # a stream is also one IMU: the id field of HIGHRES_IMU and RAW_IMU (MAVLink 2 extension)
+        # tells a component's IMUs apart, and two interleaved in one strapdown would corrupt it
+        # (pymavlink's message classes also carry ``id``, the message id: only the field counts)
+        imu_id = int(msg.id or 0) if "id" in getattr(msg, "fieldnames", ()) else 0
+        src = (msg.get_srcSystem(), msg.get_srcComponent(), imu_id)
         if self.config.imu_message != "auto" and mtype != self.imu_message:
             raise IgnoredMessage(f"another IMU stream ({self.imu_message}) is integrated")
         rank = (IMU_MESSAGES[::-1].index(mtype), src[1] != self.config.autopilot_component)

@@ -298,3 +298,11 @@ def test_a_components_second_imu_is_another_stream_and_a_silent_stream_is_replac
     assert c.integrated_imu_stream() == "HIGHRES_IMU from 1/1 #1"
     # and now IMU 0 is the other stream
     assert c.convert(highres(2_105_000, 0)) == []
+
+
+def test_an_imu_message_without_an_id_field_is_one_stream_named_without_one():
+    """pymavlink's message classes carry ``id`` (the message id, 116 for SCALED_IMU2): only a
+    declared id field (HIGHRES_IMU's, RAW_IMU's) tells IMUs apart."""
+    c = converter(imu_message="auto")
+    (s,) = c.convert(wire("scaled_imu2_encode", 1000, 1, 2, -1000, 0, 0, 0, 5, 6, 7))
+    assert c.integrated_imu_stream() == "SCALED_IMU2 from 1/1"
