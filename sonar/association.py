@@ -675,9 +675,10 @@ class LegAssociator:
         if b_med.jump_n_m is not None:
             delta = delta - b_med.jump_n_m
         self._recent.append((float(a_med.t_s), float(b_med.t_s), keep))
-        # the times its pairs span on either leg (guided re-detection interpolates the drift)
-        self._spans[id(keep)] = (min(a.t_s for a, _ in pairs), max(a.t_s for a, _ in pairs),
-                                 min(b.t_s for _, b in pairs), max(b.t_s for _, b in pairs))
+        if self.images is not None:
+            # the times its pairs span on either leg (guided re-detection interpolates the drift)
+            self._spans[id(keep)] = (min(a.t_s for a, _ in pairs), max(a.t_s for a, _ in pairs),
+                                     min(b.t_s for _, b in pairs), max(b.t_s for _, b in pairs))
         return LoopClosure(t_a_s=float(a_med.t_s), t_b_s=float(b_med.t_s),
                            offset_n_m=delta, cov=cov, n_objects=len(sel), pairs=pairs, nis=nis,
                            jump_a_n_m=a_med.jump_n_m, jump_b_n_m=b_med.jump_n_m)
@@ -805,8 +806,9 @@ class LegAssociator:
             lc = self._with_weak(lc)
             used = {id(b) for _, b in lc.weak_pairs if b.weak}
             self._weak_pending = [o for o in self._weak_pending if id(o) not in used]
-            self._paired |= {id(o) for p in tuple(lc.pairs) + tuple(lc.weak_pairs) for o in p}
-        if self.images is not None:
+        if self.images is not None:  # guided re-detection: every sighting in a pair is skipped
+            if lc is not None:
+                self._paired |= {id(o) for p in tuple(lc.pairs) + tuple(lc.weak_pairs) for o in p}
             lc = self._guided(lc)
         kept = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
         self._old = kept[-self.config.max_sightings:]
@@ -814,12 +816,11 @@ class LegAssociator:
         self._weak_old = kept[-self.config.max_sightings:]
         if self._spans:
             self._spans = {k: v for k, v in self._spans.items() if any(k == id(r[2]) for r in self._recent)}
-        if self._paired or self._tested:
+        if self._paired or self._tested or self._weak_used:  # (ids of sightings no longer kept could be reused)
             alive = {id(o) for o in self._old + self._weak_old + self._pending + self._weak_pending}
             self._paired &= alive
             self._tested &= alive
-        if self._weak_used:  # (ids of sightings no longer kept could be reused)
-            self._weak_used &= {id(o) for o in self._old + self._weak_old + self._pending + self._weak_pending}
+            self._weak_used &= alive
         return lc
 
     def _with_weak(self, lc: LoopClosure) -> LoopClosure:

@@ -266,7 +266,7 @@ def redetect(store: ImageStore, seen: ObjectSighting, target_n_m, R, t0_s: float
     H = float(rows["alt"][k0, si])
     length = seen.length_along_m if math.isfinite(seen.length_along_m) else 1.0
     n_r = int(np.clip(round(length / along_res), cfg.min_rows, cfg.max_rows))
-    n_h = n_s = int(cfg.window_cols)
+    n_h = n_s = int(cfg.window_cols)  # the lit face's columns and the shadow's
     # the template's anchor (first row, highlight's first column) for an object centred at
     # (row, ground range): rows centre − (n_r − 1)/2 …, columns ground/res − ½ − 0.7 n_h
     # (the detector reports lead + top_weight × (top − lead))
@@ -290,14 +290,10 @@ def redetect(store: ImageStore, seen: ObjectSighting, target_n_m, R, t0_s: float
     # per row, the brightest of ``w`` columns and the darkest of the next ``w`` (a small
     # object's lit face is curved — a tyre's ring — and its shadow a pixel or two), averaged
     # over the object's rows
-    nw = cfg.window_cols
-    if patch.shape[1] < 2 * nw + 1:
-        return None, {"reason": "edge"}
-    n_c = lev.shape[1] - 2 * nw + 1
-    bright = np.max([lev[:, q:q + n_c] for q in range(nw)], axis=0)
-    dark = np.min([lev[:, nw + q:nw + q + n_c] for q in range(nw)], axis=0)
+    n_c = lev.shape[1] - n_h - n_s + 1
+    bright = np.max([lev[:, q:q + n_c] for q in range(n_h)], axis=0)
+    dark = np.min([lev[:, n_h + q:n_h + q + n_c] for q in range(n_s)], axis=0)
     S = _box_mean(bright - dark, n_r, 1)
-    n_h, n_s = nw, nw
     # anchors (i, j) of S ↔ object centre row r_lo + i + (n_r − 1)/2, column c_lo + j + w n_h;
     # the searched region: the gate's bounding box about the prediction
     i_c = k0 - r_lo - 0.5 * (n_r - 1)
