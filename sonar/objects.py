@@ -354,8 +354,10 @@ def local_level(image: np.ndarray, ground_res_m: float, along_res_m: float,
             scratch = None if work is None else work.get(shape)
             if scratch is None:
                 scratch = (np.empty((5,) + shape, np.float32), np.empty(shape, bool))
-                if work is not None:  # one shape kept (~4 MB for 200 pings of 1000 columns): a
-                    work.clear()          # detector's blocks but the first and the last share it
+                if work is not None:  # one shape kept (~4 MB for 200 pings of 1000 columns); with
+                    # the weak sightings on, a block's image and its near-nadir slice alternate, so it
+                    # is mostly reallocated: keeping both measured no faster (0.114-0.116 ms per ping)
+                    work.clear()
                     work[shape] = scratch
             lev = np.empty(shape, np.float32)
             if not image.flags.carray:  # contiguous and writeable: what the compiled kernel takes
@@ -373,11 +375,12 @@ def local_level_filters(image: np.ndarray, box: tuple[int, int], smooth_px) -> n
     data = image > 0
     img = gaussian_filter(np.where(data, image, 0.0).astype(np.float32), smooth_px)
     wgt = gaussian_filter(data.astype(np.float32), smooth_px)
-    img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > 1e-3)
+    min_weight, min_count, min_background = _THRESHOLDS
+    img = np.divide(img, wgt, out=np.zeros_like(img), where=wgt > min_weight)
     num = uniform_filter(np.where(data, img, 0.0), box)
     den = uniform_filter(data.astype(np.float32), box)
-    bg = np.divide(num, den, out=np.ones_like(num), where=den > 1e-3)
-    lev = np.divide(img, bg, out=np.ones_like(img), where=bg > 1e-6)
+    bg = np.divide(num, den, out=np.ones_like(num), where=den > min_count)
+    lev = np.divide(img, bg, out=np.ones_like(img), where=bg > min_background)
     lev[~data] = 1.0
     return lev
 
