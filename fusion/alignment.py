@@ -136,6 +136,7 @@ class Alignment:
         self.yaw_rad: float | None = None
         self._att_yaw: deque = deque()  # (t_s, yaw) of recent attitude samples
         self._t_first_att = math.nan
+        self._t_att: deque = deque(maxlen=21)  # times of the latest attitude samples
         self._dvl = None  # latest bottom-locked DVL sample (velocity seed)
         self._fix: tuple[np.ndarray, float] | None = None  # (NE m, σ m)
         # that fix is a radio fix taken before any depth: void once the depth says under water
@@ -166,10 +167,20 @@ class Alignment:
         self.imu_interval_s = float(t_s[-1]) - prev_t
         self.aligner.add(t_s, f_b_m_s2, w_b_rad_s)
 
-    def carry_over(self, yaw_rad: float, depth_m: float) -> None:
-        """Heading and depth of the AHRS mode for the INS alignment that replaces it."""
+    def carry_over(self, yaw_rad: float, depth_m: float,
+                   position: tuple[np.ndarray, float] | None = None) -> None:
+        """Heading and depth of the AHRS (or attitude-driven) mode for the INS alignment that
+        replaces it; ``position``: its horizontal position (NE, m) and σ (m), when it had one."""
         self.yaw_rad = yaw_rad
         self._depth_m = depth_m
+        if position is not None:
+            self._fix, self._fix_gnss = (np.asarray(position[0], dtype=float), float(position[1])), False
+
+    def attitude_rate_hz(self) -> float:
+        """The latest attitude samples' rate (Hz, from their median interval; nan: fewer than two)."""
+        dt = np.diff(np.asarray(self._t_att))
+        dt = dt[dt > 0]
+        return 1.0 / float(np.median(dt)) if dt.size else math.nan
 
     def _settled_yaw(self, t_s: float, yaw_rad: float) -> float | None:
         """The autopilot's yaw once it has stayed within ``yaw_settle_tol_rad`` for
@@ -203,6 +214,7 @@ class Alignment:
             self.yaw_rad = self._settled_yaw(sample.t_s, sample.yaw_rad)
             if math.isnan(self._t_first_att):
                 self._t_first_att = sample.t_s
+            self._t_att.append(float(sample.t_s))
             # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz), for a while
             # (an ATTITUDE may come just before the first IMU sample): AHRS mode
             slow_imu = sample.t_s - t_imu_last_s > cfg.imu_gap_s or self.imu_interval_s > cfg.imu_gap_s

@@ -32,10 +32,14 @@ consistent with each other and with the last accepted fix at the vehicle's top s
 
 Modes. ``"none"`` until aligned (aids answered ``not_initialized``; the latest
 position fix and depth become the initial position, :mod:`adaptnav.fusion.alignment`); ``"ins"`` after levelling from a
-static accelerometer window and a heading aid; ``"ahrs"`` when attitude samples arrive
-and the IMU is absent or too slow to integrate (real ArduSub telemetry): attitude from
-the AHRS, depth from pressure, position a random walk pinned by fixes, never valid. A
-fast IMU appearing later re-aligns into ``"ins"``.
+static accelerometer window and a heading aid. When attitude samples arrive and the IMU is
+absent or too slow to integrate (real ArduSub telemetry at its default stream rates: RAW_IMU
+at 2 Hz, ATTITUDE at 10–20 Hz), ``"ins"`` on a virtual IMU made of the attitude's increments
+(``[filter.attitude_driven]``, :meth:`Estimator._attitude_step`): the vehicle's accelerations
+are process noise, velocity comes from the motion model and a DVL, position from fixes; valid
+only while a velocity over ground or a fix measures the motion. With that off, ``"ahrs"``:
+attitude from the AHRS, depth from pressure, position a random walk pinned by fixes, never
+valid. A fast IMU appearing later re-aligns either into ``"ins"`` on it.
 
 Bad input never raises: non-finite samples, out-of-order or duplicate IMU timestamps
 and IMU gaps are counted in :attr:`Estimator.rejected` and the filter keeps going.
@@ -63,7 +67,8 @@ from .aiding.common import Measurement
 from .adaptive_noise import SurgeVariance
 from .alignment import Alignment, Start, initial_covariance
 from .config import FilterConfig
-from .frames import GeoOrigin, euler_to_quat, quat_to_euler
+from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from_rotvec, quat_mul, quat_to_dcm, \
+    quat_to_euler, rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, InertialVelocitySample, is_finite
@@ -79,6 +84,10 @@ AID_KINDS = frozenset(AIDS)
 # Velocity random walk assumed across an IMU gap or in AHRS-only mode (m/s per √s): an
 # AUV's speed changes by ~0.5 m/s within seconds when nothing measures it.
 _BLIND_VEL_RW_M_S_RTHZ = 0.3
+# aids that measure the motion (velocity over ground or position): an attitude-driven strapdown
+# without any of them for a while has only the motion model's velocity — a measurement only
+# where that model is calibrated (attitude_driven.model_measures_motion)
+_MOTION_AIDS = frozenset(("dvl", "visual_motion", "usbl", "gnss", "range", "loop_closure"))
 # Attitude random walk without a gyro (AHRS-only mode), rad/√s.
 _BLIND_ATT_RW_RAD_RTHZ = 0.3
 # A state moving faster than this is broken (no vehicle the filter serves comes near it).
@@ -130,7 +139,7 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
                  "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
-                 "anchor_ne", "yaw_frame")
+                 "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid")
 
 
 class Estimator:
@@ -173,6 +182,13 @@ class Estimator:
                                           self._core)
         self._gate = {m: config.gate_threshold(m) for m in (1, 2, 3)}
         self._mode = "none"  # "none" | "ins" | "ahrs"
+        # INS mode driven by the attitude's increments (no usable IMU, [filter.attitude_driven]):
+        # the previous attitude sample (t_s, q_nb) and the latest fusion of a velocity aid or fix
+        self._attitude_driven = False
+        self._att_prev: tuple[float, np.ndarray] | None = None
+        self._t_motion_aid = -math.inf
+        self._motion_aids = _MOTION_AIDS | ({"learned_velocity"} if config.attitude_driven.model_measures_motion
+                                            else set())
         self._reset_counter = 0
         self._t_imu_last = -math.inf
         # (t_s, surge, sway, commanded surge, commanded sway, slow surge, slow sway) m/s: see _take_rpm
@@ -336,7 +352,9 @@ class Estimator:
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
 
-        ``not_initialized`` / ``ahrs_only`` (no dead reckoning), ``sigma_h`` (horizontal σ
+        ``not_initialized`` / ``ahrs_only`` (no dead reckoning), ``no_motion_measurement``
+        (the attitude drives the strapdown and neither a velocity over ground nor a fix has been
+        fused for ``attitude_driven.motion_aid_max_age_s``), ``sigma_h`` (horizontal σ
         above the bound), ``converging`` (a velocity/attitude reset less than
         ``after_reset_s`` ago), ``recovering`` (after a non-finite state, until aids fused
         again), ``nis:<source>`` (that aid's recent innovations say the covariance is too
@@ -347,6 +365,9 @@ class Estimator:
         if self._mode == "ahrs":
             return ["ahrs_only"]
         c = self.config.integrity
+        if self._attitude_driven and \
+                self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
+            return ["no_motion_measurement"]
         if sigma_h_m is None:
             P = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
             sigma_h_m = _sigma_h_m(P)
@@ -367,7 +388,7 @@ class Estimator:
         IMU's, attitude-compensated with the filter's attitude and bias estimates; an IMU
         gap (coasting, no increments) bumps ``reset_counter``.
         """
-        if self._mode != "ins":
+        if self._mode != "ins" or self._attitude_driven:  # (a virtual IMU measures no motion)
             return None
         yaw = aid_heading.predict(self._x)[0]
         v, p = self._vel_inertial_n, self._pos_inertial_n
@@ -596,6 +617,7 @@ class Estimator:
         self._hist.clear()
         if self._good is None:  # nothing good yet: align again from scratch
             self._mode = "none"
+            self._attitude_driven = False
             self._x[:] = initial_nominal()
             self._P[:, :] = initial_covariance(self.config, self.imu_model.figures, self.config.initial.sigma_pos_m,
                                                self.config.initial.sigma_pos_m)
@@ -675,6 +697,10 @@ class Estimator:
                 self.rejected["too_late"] += 1
                 return [rejected(sample.t_s, kind, "too_late")]
             return self._fuse_late(sample)
+        if kind == "attitude" and self._attitude_driven:
+            out = self._attitude_step(sample)  # (recorded as an IMU input: a re-run repeats it)
+            self._record("sample", sample)
+            return out + self._aid(sample)
         self._record("sample", sample)
         return self._aid(sample)
 
@@ -753,6 +779,8 @@ class Estimator:
         s.pos_unknown = self._pos_unknown
         s.anchor_ne = self._anchor_ne
         s.yaw_frame = self._yaw_frame
+        s.attitude_driven = self._attitude_driven
+        s.t_motion_aid = self._t_motion_aid
         s.clones = self._clones.copy() if self._clones.active else None
         return s
 
@@ -774,6 +802,8 @@ class Estimator:
         self._pos_unknown = s.pos_unknown
         self._anchor_ne = s.anchor_ne
         self._yaw_frame = s.yaw_frame
+        self._attitude_driven = s.attitude_driven
+        self._t_motion_aid = s.t_motion_aid
         if s.clones is not None:
             self._clones = s.clones.copy()
         elif self._clones.active:
@@ -858,7 +888,10 @@ class Estimator:
         (the alignment may start the filter: AHRS-only now, or as an INS)."""
         event = self._alignment.observe(sample, self._t_imu_last)
         if event == "ahrs":
-            self._start(self._alignment.ahrs_start(sample, self.imu_model), "ahrs")
+            if self.config.attitude_driven.enabled:
+                self._start_attitude_driven(sample)
+            else:
+                self._start(self._alignment.ahrs_start(sample, self.imu_model), "ahrs")
             return self._aid(sample)
         if event == "surface_only":
             return [rejected(sample.t_s, sample.KIND, "surface_only")]
@@ -873,14 +906,44 @@ class Estimator:
         start = self._alignment.ins_start(self._imu_source)
         if start is None:
             return []
+        self._begin_ins(start)
+        return []
+
+    def _begin_ins(self, start: Start) -> None:
         self.imu_model = start.imu_model
         self._qdiag = self._process_noise()
         self._acc[:] = 0.0
         sd.set_earth(self._acc, start.earth_lat_rad)
         self._start(start, "ins")
+        self._attitude_driven = False
         self._clones.clear()  # a new alignment: earlier epochs' errors are not this filter's
         self._next_lv_t = math.floor(self._clock[0] / self._lv_period + 1.0) * self._lv_period
-        return []
+
+    def _start_attitude_driven(self, sample) -> None:
+        """No usable IMU but attitude samples: INS mode on a virtual IMU made of the attitude's
+        increments (:meth:`_attitude_step`), at rest, attitude the sample's, position the
+        alignment's initial one (:meth:`Alignment.ahrs_start`)."""
+        model = imu_grades.attitude_driven(self.config.attitude_driven, self._alignment.attitude_rate_hz())
+        start = self._alignment.ahrs_start(sample, model)
+        self._begin_ins(start._replace(imu_model=model))
+        self._attitude_driven = True
+        self._att_prev = (float(sample.t_s), start.x[X_Q].copy())
+
+    def _attitude_step(self, sample) -> list[AidStatus]:
+        """The virtual IMU's sample at an attitude sample's time: the body-frame rotation since
+        the previous attitude sample as a rate, and gravity seen in the body frame (halfway
+        through the step, the filter's own attitude: the vehicle's accelerations are process
+        noise, and a tilt between the filter and the autopilot makes none)."""
+        t = float(sample.t_s)
+        q = euler_to_quat(sample.roll_rad, sample.pitch_rad, sample.yaw_rad)
+        t_prev, q_prev = self._att_prev
+        self._att_prev = (t, q)
+        if not (t > t_prev and t > self._clock[0]):
+            return []
+        w = rotvec_from_quat(quat_mul(quat_conj(q_prev), q)) / (t - t_prev)
+        q_mid = quat_mul(self._x[X_Q], quat_from_rotvec(0.5 * (t - self._clock[0]) * w))
+        f = quat_to_dcm(q_mid).T @ np.array([0.0, 0.0, -GRAVITY_M_S2])
+        return self._imu(np.array([t]), f[None, :], w[None, :], virtual=True)
 
     def _start(self, start: Start, mode: str) -> None:
         """Take the alignment's start; restored slow states (a restart) are kept through it."""
@@ -896,11 +959,16 @@ class Estimator:
         self._anchor_ne = (float(self._x[0]), float(self._x[1]))
         self._yaw_frame = False
 
-    def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
-        """Validate IMU samples (vectorised), then align or propagate them."""
-        if self._mode == "ins" and sd.imu_clean(t, f, w, self._clock[0], self.config.imu_gap_s):
+    def _imu(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, virtual: bool = False) -> list[AidStatus]:
+        """Validate IMU samples (vectorised), then align or propagate them (``virtual``: the
+        attitude-driven strapdown's own sample, :meth:`_attitude_step`)."""
+        if self._attitude_driven and not virtual:
+            return self._imu_beside_attitude(t, f, w)
+        # the attitude's increments are exact over any interval: a longer one is only a longer step
+        gap_s = self.config.attitude_driven.max_step_s if virtual else self.config.imu_gap_s
+        if self._mode == "ins" and sd.imu_clean(t, f, w, self._clock[0], gap_s):
             out = self._imu_run(t, f, w)
-            if self.config.stationary.enabled:
+            if self.config.stationary.enabled and not virtual:
                 out += self._stationary(t, f, w)
             return out
         finite = np.isfinite(t) & np.isfinite(f).all(axis=1) & np.isfinite(w).all(axis=1)
@@ -933,7 +1001,7 @@ class Estimator:
                 return self._try_align()
             return []
         dt = np.diff(np.concatenate(([t_last], t)))
-        gaps = np.nonzero(dt > self.config.imu_gap_s)[0]
+        gaps = np.nonzero(dt > gap_s)[0]
         out: list[AidStatus] = []
         start = 0
         for g in gaps:
@@ -945,9 +1013,33 @@ class Estimator:
             start = g + 1
         out += self._imu_run(t[start:], f[start:], w[start:])
         self._t_imu_last = float(self._clock[0])
-        if self.config.stationary.enabled:
+        if self.config.stationary.enabled and not virtual:
             out += self._stationary(t, f, w)
         return out
+
+    def _imu_beside_attitude(self, t: np.ndarray, f: np.ndarray, w: np.ndarray) -> list[AidStatus]:
+        """A real IMU sample while the attitude drives the strapdown: into the levelling
+        window only; once it levels (a rate fast enough to integrate, as for the AHRS mode) the
+        filter re-aligns as an INS on it, keeping heading, depth and the horizontal position."""
+        finite = np.isfinite(t) & np.isfinite(f).all(axis=1) & np.isfinite(w).all(axis=1)
+        t, f, w = t[finite], f[finite], w[finite]
+        keep = t > self._t_imu_last
+        t, f, w = t[keep], f[keep], w[keep]
+        self.rejected["attitude_driven"] += int(t.size)
+        if t.size == 0:
+            return []
+        self._alignment.add_imu(t, f, w, self._t_imu_last)
+        self._t_imu_last = float(t[-1])
+        if self._alignment.aligner.level() is None:
+            return []
+        cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+        self._alignment.carry_over(aid_heading.predict(self._x)[0], float(self._x[X_DEPTH]),
+                                   (self._x[X_POS_NE].copy(), _sigma_h_m(cov)))
+        self._mode = "none"
+        self._attitude_driven = False
+        self._hist_t.clear()  # a new filter: nothing before it is re-run into it
+        self._hist.clear()
+        return self._try_align()
 
     def _stationary(self, t, f, w) -> list[AidStatus]:
         """Accumulate IMU windows; a window at rest (IMU quiet, thrusters idle, depth
@@ -1417,6 +1509,8 @@ class Estimator:
         nis, fused = kalman.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
                                       self._dx, sdiag, self._mode == "ins")
         if fused:
+            if source in self._motion_aids:
+                self._t_motion_aid = float(t_s)
             if self._heading_source is not None:
                 self._yaw_fix_rad += self._yaw_of(self._dx)
             reason = ""

@@ -67,6 +67,23 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     return np.array([np.cos(half), k * rotvec[0], k * rotvec[1], k * rotvec[2]])
 
 
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    """The inverse of a unit (w, x, y, z) quaternion."""
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis × angle, rad, |angle| ≤ π) of a unit quaternion; the inverse of
+    :func:`quat_from_rotvec`, small-angle safe."""
+    w, v = float(q[0]), np.asarray(q[1:], dtype=float)
+    if w < 0.0:  # the same rotation, the shorter way
+        w, v = -w, -v
+    s = float(np.linalg.norm(v))
+    if s < 1e-9:
+        return 2.0 * v / max(w, 1e-300)
+    return v * (2.0 * math.atan2(s, w) / s)
+
+
 def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit (w, x, y, z) quaternion (``R_nb`` from ``q_nb``)."""
     w, x, y, z = q

@@ -180,6 +180,25 @@ class ResolvedImu:
     why: str = ""      # what decided the grade (configured, or the auto rule that applied)
 
 
+def attitude_driven(cfg, attitude_rate_hz: float) -> ResolvedImu:
+    """The virtual IMU of an attitude-driven strapdown (``[filter.attitude_driven]``,
+    :class:`~adaptnav.fusion.config.AttitudeDrivenConfig`): its gyro is the rotation between
+    consecutive attitude samples, its accelerometer gravity in the body frame — no biases
+    (the increments have none: a tenth of a consumer MEMS's, held nearly constant), its
+    accelerometer noise the vehicle's own unmodelled acceleration."""
+    figures = ImuFigures(
+        acc_noise_m_s2_rthz=cfg.acc_noise_m_s2_rthz,
+        gyro_noise_rad_s_rthz=cfg.gyro_noise_rad_s_rthz,
+        acc_bias_sigma_m_s2=1.0 * MG,
+        gyro_bias_sigma_rad_s=0.01 * DEG,
+        acc_bias_rw_m_s3_rthz=0.0,
+        gyro_bias_rw_rad_s2_rthz=0.0,
+    )
+    why = (f"no IMU fast enough to integrate: the attitude's increments ({attitude_rate_hz:.1f} Hz) drive "
+           "the strapdown, the vehicle's accelerations are process noise")
+    return ResolvedImu("attitude", figures, False, math.nan, math.nan, False, "attitude", why)
+
+
 def resolve(cfg, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray, dt_s: float, source: str = "") -> ResolvedImu:
     """The IMU model from ``cfg`` (:class:`~adaptnav.fusion.config.ImuConfig`) and a window
     of samples (N, 3) taken ``dt_s`` apart (the alignment window); ``source``: who measured

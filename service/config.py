@@ -325,7 +325,9 @@ class MotionConfig:
     def prior_filter(self, filt: FilterConfig, why: str) -> FilterConfig:
         """``filt`` with what an uncalibrated prior (``why`` from :meth:`initial_params`) leaves
         unknown: the initial ``k_speed`` σ, the thrust-transient time, the skid σ in a turn and
-        the heave σ per vertical speed raised to the ``uncalibrated_*`` figures (never lowered);
+        the heave σ per vertical speed raised to the ``uncalibrated_*`` figures (never lowered),
+        and its velocity no measurement of the motion for an attitude-driven strapdown
+        (``filter.attitude_driven.model_measures_motion``: nothing checks its scale there);
         a calibrated prior: ``filt`` as it is."""
         if not why.startswith("uncalibrated"):
             return filt
@@ -333,6 +335,7 @@ class MotionConfig:
         return replace(
             filt,
             initial=replace(filt.initial, sigma_k_speed=max(filt.initial.sigma_k_speed, self.uncalibrated_sigma_k_speed)),
+            attitude_driven=replace(filt.attitude_driven, model_measures_motion=False),
             learned_velocity=replace(lv, transient_time_s=max(lv.transient_time_s, self.uncalibrated_transient_time_s),
                                      skid_sigma_s=max(lv.skid_sigma_s, self.uncalibrated_skid_sigma_s),
                                      heave_sigma_per_vertical_speed=max(

@@ -104,5 +104,64 @@ def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float 
     }
 
 
+# what a real BlueROV2's telemetry log carries at ArduSub's default stream rates
+# (../shared/data/mavlink/ardusub-4.1.1-bluerov2-ugps.tlog: RAW_IMU, SCALED_IMU2 and
+# SERVO_OUTPUT_RAW at 2.0 Hz, SCALED_PRESSURE2 at 2.4 Hz, ATTITUDE at 19.9 Hz — taken at 10 Hz
+# here, its SR*_EXTRA1 default); every other message as logged
+DEFAULT_RATES_HZ = {"RAW_IMU": 2.0, "SCALED_IMU": 2.0, "SCALED_IMU2": 2.0, "SCALED_IMU3": 2.0, "HIGHRES_IMU": 2.0,
+                    "ATTITUDE": 10.0, "SERVO_OUTPUT_RAW": 2.0, "SCALED_PRESSURE": 2.0, "SCALED_PRESSURE2": 2.0}
+
+
+def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, ugps_sigma_m: float = 1.0,
+                     ugps_gap_s: tuple[float, float] = (math.inf, math.inf), seed: int = 1) -> Path:
+    """A copy of ``tlog`` as a ground station logs it at ArduSub's default stream rates
+    (:data:`DEFAULT_RATES_HZ`: each stream thinned on its receive stamps), optionally with an
+    underwater GPS's fixes made from the simulator's truth — ``GPS_INPUT`` from system 255 (as
+    BlueOS's UGPS extension sends it) every ``ugps_period_s`` while the truth is below 0.5 m,
+    0.3 s after its epoch, ``ugps_sigma_m`` of white noise per axis, none within ``ugps_gap_s``
+    (s since the log's start)."""
+    import struct
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    rng = np.random.default_rng(seed)
+    ugps = mavlink2.MAVLink(None, 255, 0)
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    last: dict[tuple, float] = {}
+    t0 = t_fix = None
+    try:
+        with open(out, "wb") as f:
+            while (msg := conn.recv_match()) is not None:
+                mtype = msg.get_type()
+                if mtype == "BAD_DATA":
+                    continue
+                t = msg._timestamp
+                t0 = t if t0 is None else t0
+                rate = DEFAULT_RATES_HZ.get(mtype)
+                key = (mtype, msg.get_srcSystem(), msg.get_srcComponent())
+                if rate is not None and key in last and t - last[key] < 1.0 / rate - 1e-3:
+                    continue
+                last[key] = t
+                f.write(struct.pack(">Q", int(round(t * 1e6))) + msg.get_msgbuf())
+                if ugps_period_s is None or mtype != "SIM_STATE" or -float(msg.alt) < 0.5:
+                    continue
+                if (t_fix is not None and t - t_fix < ugps_period_s) or ugps_gap_s[0] <= t - t0 <= ugps_gap_s[1]:
+                    continue
+                t_fix = t
+                lat = (getattr(msg, "lat_int", 0) or msg.lat) * 1e-7
+                lon = (getattr(msg, "lon_int", 0) or msg.lon) * 1e-7
+                dn, de = rng.normal(0.0, ugps_sigma_m, 2)
+                lat += math.degrees(dn / 6_378_137.0)
+                lon += math.degrees(de / (6_378_137.0 * math.cos(math.radians(lat))))
+                fix = ugps.gps_input_encode(0, 0, 253, 0, 0, 3, int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0,
+                                            ugps_sigma_m, 65535, 0, 0, 0, 0, 0, 0, 12, 0)
+                f.write(struct.pack(">Q", int(round((t + 0.3) * 1e6))) + fix.pack(ugps))
+    finally:
+        conn.close()
+    return out
+
+
 if __name__ == "__main__":
     print(json.dumps(score(sys.argv[1], *(Path(a) for a in sys.argv[2:3])), indent=2))

@@ -1,4 +1,6 @@
-"""Real ArduSub telemetry (no usable IMU rate): the filter runs in AHRS mode."""
+"""Real ArduSub telemetry (no usable IMU rate: RAW_IMU at 2 Hz): the attitude's increments drive
+the strapdown, or (``attitude_driven.enabled = false``) the filter runs in AHRS mode."""
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,17 +15,21 @@ TLOG = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mavlink
 
 
 @pytest.mark.realdata
-def test_real_ardusub_log_gives_ahrs_attitude_depth_and_invalid_position():
+@pytest.mark.parametrize("attitude_driven", [True, False])
+def test_real_ardusub_log_gives_attitude_depth_and_a_position_only_where_fixes_measure_it(attitude_driven):
     if not TLOG.is_file():
         pytest.skip(f"real data absent: {TLOG}")
     from adaptnav.service.transport.tlog_source import TlogSource
 
+    cfg = FilterConfig()
+    cfg = replace(cfg, attitude_driven=replace(cfg.attitude_driven, enabled=attitude_driven))
     est = None
-    attitudes, states = [], []
+    attitudes, states, fixes = [], [], []
     for sample in TlogSource(TLOG):
         if est is None and sample.KIND == "usbl":
-            est = Estimator(FilterConfig(), MotionParams(), RpmSpeedTable(),
-                            GeoOrigin(sample.lat_rad, sample.lon_rad))
+            est = Estimator(cfg, MotionParams(), RpmSpeedTable(), GeoOrigin(sample.lat_rad, sample.lon_rad))
+        if est is not None and sample.KIND == "usbl":
+            fixes.append(est.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2])
         if est is None:
             continue
         est.process(sample)
@@ -31,8 +37,21 @@ def test_real_ardusub_log_gives_ahrs_attitude_depth_and_invalid_position():
             attitudes.append((sample.roll_rad, sample.pitch_rad, sample.yaw_rad))
             states.append(est.nav_state())
     assert est is not None and est.initialized and len(states) > 1000
-    # THEN no state is valid (no dead reckoning), every one finite, attitude follows the AHRS
-    assert not any(s.valid for s in states)
+    if attitude_driven:
+        # THEN the UGPS fixes (936, ~4 Hz) measure the motion: valid from the first on; each
+        # valid position within 3σ of where the fixes place the vehicle (all of them on one
+        # spot: the vehicle held still, thrusters idle), with σ_h about a fix's (≤ 5 m)
+        assert est.imu_model.grade == "attitude"
+        valid = [s for s in states if s.valid]
+        assert len(valid) >= 0.95 * len(states)
+        spot = np.median(np.asarray(fixes), axis=0)
+        for s in valid:
+            sigma_h = float(np.sqrt(max(s.cov[0, 0], s.cov[1, 1])))
+            assert sigma_h <= 5.0 and np.hypot(*(s.pos_n_m[:2] - spot)) <= 3.0 * sigma_h
+    else:
+        # THEN no state is valid (no dead reckoning)
+        assert not any(s.valid for s in states)
+    # every state finite, attitude follows the AHRS
     assert all(np.all(np.isfinite(s.cov)) and np.all(np.isfinite(s.pos_n_m)) for s in states)
     est_rpy = np.array([s.euler_rad() for s in states])
     err = np.asarray(attitudes) - est_rpy
