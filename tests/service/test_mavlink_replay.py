@@ -35,6 +35,11 @@ def test_every_real_log_exits_0_and_says_when_it_produced_no_valid_position(name
         assert "WARNING: NO VALID POSITION" in err
     else:
         assert not any("NO VALID POSITION" in w for w in summary["warnings"])
+    # an attitude-driven track nothing measured says why, and what would make it a solution
+    # (the bench and corrupt-frames logs: RAW_IMU at 2 Hz, no fix, the embedded thrust table)
+    if "no_motion_measurement" in summary["filter"]["invalid_reasons_at_end"]:
+        assert summary["filter"]["imu_grade"] == "attitude"
+        assert any("vehicle profile" in w for w in summary["warnings"]) and "vehicle profile" in err
     # every message type read is accounted for: used, rejected, ignored with a why, or unknown
     types = summary["message_types"]
     assert sum(t["messages"] for t in types.values()) == summary["messages_read"]
