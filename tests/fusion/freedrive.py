@@ -113,24 +113,30 @@ DEFAULT_RATES_HZ = {"RAW_IMU": 2.0, "SCALED_IMU": 2.0, "SCALED_IMU2": 2.0, "SCAL
 
 
 def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, ugps_sigma_m: float = 1.0,
-                     ugps_gap_s: tuple[float, float] = (math.inf, math.inf), seed: int = 1) -> Path:
+                     ugps_gap_s: tuple[float, float] = (math.inf, math.inf), dvl_period_s: float | None = None,
+                     dvl_sigma_m_s: float = 0.01, seed: int = 1) -> Path:
     """A copy of ``tlog`` as a ground station logs it at ArduSub's default stream rates
     (:data:`DEFAULT_RATES_HZ`: each stream thinned on its receive stamps), optionally with an
     underwater GPS's fixes made from the simulator's truth — ``GPS_INPUT`` from system 255 (as
     BlueOS's UGPS extension sends it) every ``ugps_period_s`` while the truth is below 0.5 m,
     0.3 s after its epoch, ``ugps_sigma_m`` of white noise per axis, none within ``ugps_gap_s``
-    (s since the log's start)."""
+    (s since the log's start) — and a DVL's: ``VISION_POSITION_DELTA`` from system 255 (BlueOS's
+    DVL extension: the body-frame velocity of its latest ping × the time since the previous one,
+    ``time_usec`` 0, confidence 90 %) every ``dvl_period_s`` under water, 50 ms after its epoch,
+    the truth's velocity in the truth's body axes plus ``dvl_sigma_m_s`` of white noise."""
     import struct
 
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+    from adaptnav.fusion.frames import quat_to_dcm
+
     rng = np.random.default_rng(seed)
-    ugps = mavlink2.MAVLink(None, 255, 0)
+    ugps = mavlink2.MAVLink(None, 255, 0)  # BlueOS's extensions: system 255
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     last: dict[tuple, float] = {}
-    t0 = t_fix = None
+    t0 = t_fix = t_dvl = None
     try:
         with open(out, "wb") as f:
             while (msg := conn.recv_match()) is not None:
@@ -145,7 +151,16 @@ def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, 
                     continue
                 last[key] = t
                 f.write(struct.pack(">Q", int(round(t * 1e6))) + msg.get_msgbuf())
-                if ugps_period_s is None or mtype != "SIM_STATE" or -float(msg.alt) < 0.5:
+                if mtype != "SIM_STATE" or -float(msg.alt) < 0.5:
+                    continue
+                if dvl_period_s is not None and (t_dvl is None or t - t_dvl >= dvl_period_s):
+                    dt, t_dvl = (dvl_period_s if t_dvl is None else t - t_dvl), t
+                    R_nb = quat_to_dcm(np.array([msg.q1, msg.q2, msg.q3, msg.q4]))
+                    v_b = R_nb.T @ np.array([msg.vn, msg.ve, msg.vd]) + rng.normal(0.0, dvl_sigma_m_s, 3)
+                    ping = ugps.vision_position_delta_encode(0, int(round(dt * 1e6)), [0.0, 0.0, 0.0],
+                                                             [float(v) * dt for v in v_b], 90.0)
+                    f.write(struct.pack(">Q", int(round((t + 0.05) * 1e6))) + ping.pack(ugps))
+                if ugps_period_s is None:
                     continue
                 if (t_fix is not None and t - t_fix < ugps_period_s) or ugps_gap_s[0] <= t - t0 <= ugps_gap_s[1]:
                     continue

@@ -88,3 +88,18 @@ def test_at_default_stream_rates_with_an_underwater_gps_the_defaults_navigate(tm
     # measured: max 2.1 m (in the outage), valid 87 % of the submerged time, none outside its ellipse
     assert s["max_error_submerged_m"] <= 5.0 and s["rms_error_submerged_m"] <= 2.0, s
     assert s["valid_fraction_submerged"] >= 0.75 and s["valid_outside_99_fraction"] <= 0.02, s
+
+
+@pytest.mark.realdata
+def test_at_default_stream_rates_with_a_dvl_the_defaults_navigate(tmp_path):
+    """... and with a DVL (BlueOS's VISION_POSITION_DELTA at 5 Hz, σ 1 cm/s, from the truth): the
+    velocity over ground is measured, whatever the thrust table."""
+    if not FREEDRIVE.is_file():
+        pytest.skip(f"real data absent: {FREEDRIVE}")
+    log = at_default_rates(FREEDRIVE, tmp_path / "dvl.tlog", dvl_period_s=0.2)
+    result = replay(open_log(log), build_config(None, None), tmp_path / "out", progress=False, plots=False)
+    s = score(tmp_path / "out", log)
+    # measured: end 0.12 %, max 0.86 m, valid throughout, none outside its ellipse
+    assert result.summary["filter"]["imu_grade"] == "attitude"
+    assert s["end_error_percent"] <= 1.0 and s["max_error_submerged_m"] <= 2.0, s
+    assert s["valid_fraction_submerged"] >= 0.95 and s["valid_outside_99_fraction"] <= 0.02, s
