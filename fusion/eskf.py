@@ -186,6 +186,7 @@ class Estimator:
         # the previous attitude sample (t_s, q_nb) and the latest fusion of a velocity aid or fix
         self._attitude_driven = False
         self._att_prev: tuple[float, np.ndarray] | None = None
+        self._t_real_imu = -math.inf  # the latest real IMU sample's time beside it
         self._t_motion_aid = -math.inf
         self._motion_aids = _MOTION_AIDS | ({"learned_velocity"} if config.attitude_driven.model_measures_motion
                                             else set())
@@ -928,6 +929,7 @@ class Estimator:
         self._begin_ins(start._replace(imu_model=model))
         self._attitude_driven = True
         self._att_prev = (float(sample.t_s), start.x[X_Q].copy())
+        self._t_real_imu = self._t_imu_last
 
     def _attitude_step(self, sample) -> list[AidStatus]:
         """The virtual IMU's sample at an attitude sample's time: the body-frame rotation since
@@ -1023,13 +1025,13 @@ class Estimator:
         filter re-aligns as an INS on it, keeping heading, depth and the horizontal position."""
         finite = np.isfinite(t) & np.isfinite(f).all(axis=1) & np.isfinite(w).all(axis=1)
         t, f, w = t[finite], f[finite], w[finite]
-        keep = t > self._t_imu_last
+        keep = t > self._t_real_imu  # (the virtual samples' times are not this stream's)
         t, f, w = t[keep], f[keep], w[keep]
         self.rejected["attitude_driven"] += int(t.size)
         if t.size == 0:
             return []
-        self._alignment.add_imu(t, f, w, self._t_imu_last)
-        self._t_imu_last = float(t[-1])
+        self._alignment.add_imu(t, f, w, self._t_real_imu)
+        self._t_real_imu = float(t[-1])
         if self._alignment.aligner.level() is None:
             return []
         cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
