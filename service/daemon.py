@@ -568,7 +568,13 @@ class Daemon:
         rep["position_resets"] = {"count": len(resets), "last": [
             {"t_s": t, "source": src, "size_m": round(size, 3)} for t, src, size in resets[-3:]]}
         imu = rep["sensors"].get("imu")
-        rep["status"] = ("not navigating: no IMU" if imu is None or imu["silent"] else
+        # the IMU model the filter runs on ("attitude": no IMU fast enough, the attitude's
+        # increments drive the strapdown) and why (a plain read of a frozen record)
+        model = getattr(self.estimator, "imu_model", None)
+        rep["imu_grade"], rep["imu_grade_why"] = (model.grade, model.why) if model is not None else (None, None)
+        attitude_driven = rep["imu_grade"] == "attitude" and self.sink.nav_count
+        rep["status"] = ("navigating on the attitude (no IMU fast enough to integrate)" if attitude_driven else
+                         "not navigating: no IMU" if imu is None or imu["silent"] else
                          "navigating" if self.sink.nav_count else "aligning")
         cal = self.calibrator
         if cal is not None:
