@@ -319,7 +319,8 @@ class AttitudeDrivenConfig:
     # attitude samples further apart than this (s) are a gap (the filter coasts, reset_counter
     # moves); closer, the rotation between them is exact whatever the interval — a telemetry
     # radio drops ATTITUDE messages, and a gap at imu_gap_s (0.2 s) would tell the autopilot of
-    # a reset at every second drop
+    # a reset at every second drop. An attitude stream slower than 2 / max_step_s (2 Hz) does
+    # not drive the strapdown (AHRS only)
     max_step_s: float = 1.0
     # no measurement of the motion (a DVL or other velocity over ground, a position fix) fused
     # for this long (s): the track is the motion model's alone, whose scale nothing checks

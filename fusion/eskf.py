@@ -889,8 +889,9 @@ class Estimator:
         (the alignment may start the filter: AHRS-only now, or as an INS)."""
         event = self._alignment.observe(sample, self._t_imu_last)
         if event == "ahrs":
-            if self.config.attitude_driven.enabled:
-                self._start_attitude_driven(sample)
+            ad = self.config.attitude_driven
+            if ad.enabled and self._alignment.attitude_rate_hz() * ad.max_step_s >= 2.0:
+                self._start_attitude_driven(sample)  # (sparser attitude: every step a gap, AHRS)
             else:
                 self._start(self._alignment.ahrs_start(sample, self.imu_model), "ahrs")
             return self._aid(sample)

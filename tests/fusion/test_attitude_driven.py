@@ -152,3 +152,12 @@ def test_dropped_attitude_messages_are_a_longer_step_not_a_reset():
     t_last = times[-1] + est.config.attitude_driven.max_step_s + 0.5
     est.process(AttitudeSample(float(t_last), 0.0, 0.0, float(yaw_rate * t_last)))
     assert est.rejected["imu_gap"] == 1 and est.nav_state().reset_counter == counter + 1
+
+
+def test_an_attitude_stream_too_sparse_to_drive_the_strapdown_leaves_the_ahrs():
+    # GIVEN ATTITUDE at 1 Hz only (each step would be a gap): AHRS, never valid
+    m = make_mission(np.random.default_rng(14), 120.0, usbl_period_s=5.0)
+    est = Estimator(_cfg(), MotionParams(), RpmSpeedTable(), ORIGIN)
+    t, valid, nees, err = map(np.array, zip(*_run(est, m, _without_imu(m, attitude_rate_hz=1.0))))
+    assert est.initialized and not valid.any() and est.invalid_reasons() == ["ahrs_only"]
+    assert est.imu_model.grade != "attitude" and est.rejected["imu_gap"] == 0  # no gap after gap
