@@ -262,7 +262,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
     health = Health(silent_after_s=cfg.health.sensor_timeout_s)
     truth = inp.has_truth
-    recorder = SeriesRecorder(initial_params=params0)
+    recorder = SeriesRecorder(initial_params=params0, aid_rows=plots or report is not None)
     metrics_sink = MetricsSink(recorder, out / "metrics.json")
     validity = ValidityCounter()
     origin_known = inp.scenario is not None or origin_configured or origin_note is not None

@@ -50,6 +50,7 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -63,6 +64,8 @@ from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
 
 log = logging.getLogger(__name__)
+
+_QUIET_UNTIL = attrgetter("quiet_until_s")
 
 # before an IMU period is known, a sample this close below an epoch is at it (s): the
 # rounding of sample times
@@ -140,12 +143,15 @@ class _Loop:
         self._on_nav = _bound(self.sinks, "on_nav")
         self._on_aid = _bound(self.sinks, "on_aid")
         self._on_release = _bound(self.sinks, "on_release")
-        self._on_sample = _bound(self.sinks, "on_sample")
+        self._on_sample_all = _bound(self.sinks, "on_sample")
+        self._on_sample: dict[str, list] = {}  # by sample kind (_sample_sinks)
         self._on_inertial = _bound(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
         self.data_t = -math.inf  # the release rule's data time: latest time of an admitted item
+        self._quiet_until = (_QUIET_UNTIL if hasattr(calibrator, "quiet_until_s")
+                             else lambda cal: -math.inf)
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -309,30 +315,48 @@ class _Loop:
             self.health.on_sample("imu", float(t[-1]), n)
 
     def sample(self, sample: Any) -> None:
-        if math.isfinite(sample.t_s):  # a NaN time goes to the estimator, which rejects it
-            self.flush_epochs_before(sample.t_s)
+        kind = sample.KIND
+        t_s = sample.t_s
+        if math.isfinite(t_s):  # a NaN time goes to the estimator, which rejects it
+            self.flush_epochs_before(t_s)
         try:
-            if sample.KIND != "truth":
+            if kind != "truth":
                 self.aid(self.estimator.process(sample))
                 self.summary.samples_used += 1
-                if sample.KIND == "imu":
+                if kind == "imu":
                     self.summary.imu_samples += 1
-                    if math.isfinite(sample.t_s):
-                        self.imu_time(sample.t_s)
-                        self.emit_if_at_epoch(sample.t_s)
+                    if math.isfinite(t_s):
+                        self.imu_time(t_s)
+                        self.emit_if_at_epoch(t_s)
         finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
             if self.health is not None:
-                self.health.on_sample(sample.KIND, sample.t_s)
-        for f in self._on_sample:
+                self.health.on_sample(kind, t_s)
+        on_sample = self._on_sample.get(kind)
+        if on_sample is None:
+            on_sample = self._on_sample[kind] = self._sample_sinks(kind)
+        for f in on_sample:
             f(sample)
         cal = self.calibrator
-        if cal is not None and sample.KIND not in _CALIBRATOR_UNUSED:
+        if cal is not None and kind not in _CALIBRATOR_UNUSED:
             cal.observe(sample)
 
+    def _sample_sinks(self, kind: str) -> list:
+        """The sinks' ``on_sample`` methods that want samples of ``kind`` (``Sink.sample_kinds``)."""
+        out = []
+        for f in self._on_sample_all:
+            kinds = getattr(getattr(f, "__self__", None), "sample_kinds", None)
+            if kinds is None or kind in kinds:
+                out.append(f)
+        return out
+
     def releases_due(self, data_t_s: float) -> None:
-        """The runner's data time reached ``data_t_s``: the calibrator's releases due by it."""
+        """The runner's data time reached ``data_t_s``: the calibrator's releases due by it.
+        A calibrator's ``quiet_until_s`` (optional) is a data time below which its poll returns
+        nothing and does nothing: not called then (replay's polled once per ~10 items)."""
         if data_t_s > self.data_t:  # False for NaN
             self.data_t = data_t_s
+        if self.data_t < self._quiet_until(self.calibrator):
+            return
         for out in self.calibrator.poll(self.data_t):
             if out.KIND == "calibration_release":
                 self.release(out)

@@ -75,7 +75,10 @@ def _state_slices():
 
 
 class Sink:
-    """No-op base: override what you need."""
+    """No-op base: override what you need. ``sample_kinds``: the sample kinds ``on_sample``
+    wants (``None``: all); the runner hands it no others."""
+
+    sample_kinds: frozenset | None = None
 
     def on_nav(self, state: Any) -> None:
         pass
@@ -142,6 +145,7 @@ class TrajectoryCsvSink(Sink):
                "lon_deg")
     TRUTH_COLUMNS = ("truth_north_m", "truth_east_m", "truth_down_m", "truth_current_n_m_s",
                      "truth_current_e_m_s", "truth_k_v")
+    sample_kinds = frozenset({"truth"})
 
     def __init__(self, path: str | Path, truth: bool = False, truth_max_age_s: float = 0.05,
                  unix_of: Any = None, origin: Any = None) -> None:
@@ -288,8 +292,9 @@ class SeriesRecorder(Sink):
     """
 
     FIX_SOURCES = FIX_KINDS
+    sample_kinds = frozenset({"truth"})
 
-    def __init__(self, initial_params: Any = None) -> None:
+    def __init__(self, initial_params: Any = None, aid_rows: bool = True) -> None:
         st = _state_slices()
         idx = np.arange(st.N_ERR)
         self._pva = np.r_[idx[st.POS], idx[st.VEL], idx[st.ATT]]
@@ -313,6 +318,9 @@ class SeriesRecorder(Sink):
         self.fused_counts: Counter[str] = Counter()
         self.dvl_lock: list[tuple[float, bool]] = []  # (t, bottom lock) per DVL status
         self.rejected_reasons: Counter[tuple[str, str]] = Counter()  # (source, reason) → count
+        # the normalised innovations are for the plots and the report only (``aid_rows=False``:
+        # none kept, a replay without either)
+        self._keep_aid_rows = bool(aid_rows)
 
     def on_nav(self, state: Any) -> None:
         self.nav_t.append(float(state.t_s))
@@ -341,6 +349,8 @@ class SeriesRecorder(Sink):
                 self.rejected_reasons[(s.source, s.reason or "unspecified")] += 1
             if s.source == "dvl":
                 self.dvl_lock.append((float(s.t_s), bool(s.fused or s.reason == "gate")))
+            if not self._keep_aid_rows:
+                continue
             # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component
             nu, var = s.innovation, s.innovation_variance
             if len(nu) == len(var):
