@@ -108,9 +108,9 @@ def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict
     if t_unix is not None:
         out["t_unix_s"] = float(t_unix)
     if origin is not None:
-        lat, lon, _ = origin.to_geodetic(np.asarray(state.pos_n_m, dtype=float))
-        if math.isfinite(float(lat)) and math.isfinite(float(lon)):
-            out["lat_deg"], out["lon_deg"] = math.degrees(float(lat)), math.degrees(float(lon))
+        lat, lon = origin.to_geodetic_ne(*np.asarray(state.pos_n_m, dtype=float)[:2].tolist())
+        if math.isfinite(lat) and math.isfinite(lon):
+            out["lat_deg"], out["lon_deg"] = math.degrees(lat), math.degrees(lon)
     return out
 
 
