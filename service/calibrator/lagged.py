@@ -276,6 +276,10 @@ class ProcessBackend:
         self._finished = False  # the child handed over what it held at the end of the data
         self._pings_out = 0     # side-scan pings sent (or batched)
         self._block_ping = -1   # the count of the ping that completes the child's next block
+        # the runner's deferrable work (replay: DeferredSinks.work), done while it waits for
+        # the child instead of sleeping: a slice per call, False when there is none
+        self.idle: Any = None
+        self.idle_s = 0.0       # wall time of that work inside the waits (not in wait_s)
 
     def send(self, sample: Any) -> None:
         self._batch.append(sample)
@@ -299,6 +303,19 @@ class ProcessBackend:
                 raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             self._sent += len(self._batch)
             self._batch = []
+
+    def _wait_read(self) -> None:
+        """Handle the child's next message, waiting for it; while none has come, the runner's
+        idle work (:attr:`idle`) a slice at a time."""
+        idle = self.idle
+        if idle is not None:
+            while not self._r.poll(0.0):
+                t0 = time.monotonic()
+                busy = idle()
+                self.idle_s += time.monotonic() - t0
+                if not busy:
+                    break
+        self._read(block=True)
 
     def _read(self, block: bool) -> bool:
         """Handle one message from the child; False when none (non-blocking)."""
@@ -345,10 +362,10 @@ class ProcessBackend:
             if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
                 return
         self._flush()
-        t0 = time.monotonic()
+        t0, idle0 = time.monotonic(), self.idle_s
         while not (self._child_tau > t_s or self._done >= self._sent):
-            self._read(block=True)
-        self.wait_s += time.monotonic() - t0
+            self._wait_read()
+        self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)
 
     def shift_time(self, delta_s: float) -> None:
         """The data clock jumped by ``delta_s``: the child's τ moves with it (after the
@@ -365,17 +382,17 @@ class ProcessBackend:
         """Wait for the child to process everything observed, then for what it still holds
         (:meth:`InlineBackend.finish`)."""
         self._flush()
-        t0 = time.monotonic()
+        t0, idle0 = time.monotonic(), self.idle_s
         while self._done < self._sent:
-            self._read(block=True)
+            self._wait_read()
         if not self._finished:
             try:
                 self._w.send(_FINISH)
             except (BrokenPipeError, OSError) as e:
                 raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             while not self._finished:
-                self._read(block=True)
-        self.wait_s += time.monotonic() - t0
+                self._wait_read()
+        self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)
         self.child_cpu_s = _cpu_s(self._proc.pid)
 
     def close(self, timeout_s: float = 5.0) -> None:

@@ -62,6 +62,7 @@ _CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
+from adaptnav.service.runtime.sinks import close_sinks as _close_sinks, sample_methods, sink_methods
 
 log = logging.getLogger(__name__)
 
@@ -114,15 +115,6 @@ def _stop_requested(stop: Any) -> bool:
     return bool(is_set() if callable(is_set) else stop())
 
 
-def _bound(sinks: list, name: str) -> list:
-    """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
-    from adaptnav.service.runtime.sinks import Sink
-
-    base = getattr(Sink, name)
-    return [getattr(s, name) for s in sinks
-            if hasattr(s, name) and getattr(type(s), name, None) is not base]
-
-
 class _Loop:
     """State of one :func:`run` call (kept out of the function for readability)."""
 
@@ -140,12 +132,12 @@ class _Loop:
         self.summary = RunSummary()
         self.next_k: int | None = None     # index of the next output epoch k / rate
         self.last_emitted_t = -math.inf
-        self._on_nav = _bound(self.sinks, "on_nav")
-        self._on_aid = _bound(self.sinks, "on_aid")
-        self._on_release = _bound(self.sinks, "on_release")
-        self._on_sample_all = _bound(self.sinks, "on_sample")
-        self._on_sample: dict[str, list] = {}  # by sample kind (_sample_sinks)
-        self._on_inertial = _bound(self.sinks, "on_inertial")
+        self._on_nav = sink_methods(self.sinks, "on_nav")
+        self._on_aid = sink_methods(self.sinks, "on_aid")
+        self._on_release = sink_methods(self.sinks, "on_release")
+        self._on_sample_all = sink_methods(self.sinks, "on_sample")
+        self._on_sample: dict[str, list] = {}  # by sample kind (sample_methods)
+        self._on_inertial = sink_methods(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
@@ -333,21 +325,12 @@ class _Loop:
                 self.health.on_sample(kind, t_s)
         on_sample = self._on_sample.get(kind)
         if on_sample is None:
-            on_sample = self._on_sample[kind] = self._sample_sinks(kind)
+            on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
         for f in on_sample:
             f(sample)
         cal = self.calibrator
         if cal is not None and kind not in _CALIBRATOR_UNUSED:
             cal.observe(sample)
-
-    def _sample_sinks(self, kind: str) -> list:
-        """The sinks' ``on_sample`` methods that want samples of ``kind`` (``Sink.sample_kinds``)."""
-        out = []
-        for f in self._on_sample_all:
-            kinds = getattr(getattr(f, "__self__", None), "sample_kinds", None)
-            if kinds is None or kind in kinds:
-                out.append(f)
-        return out
 
     def releases_due(self, data_t_s: float) -> None:
         """The runner's data time reached ``data_t_s``: the calibrator's releases due by it.
@@ -495,13 +478,7 @@ class Runner:
         """The run's wall time; every sink's ``close()`` (``close_sinks``)."""
         self.summary.wall_s = time.monotonic() - self._wall0
         if close_sinks:
-            for s in self.loop.sinks:
-                try:
-                    close = getattr(s, "close", None)
-                    if close is not None:
-                        close()
-                except Exception:
-                    log.exception("runner: closing sink %r failed", s)
+            _close_sinks(self.loop.sinks)
         return self.summary
 
 

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
-from collections import Counter
+from collections import Counter, deque
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,8 @@ import numpy as np
 from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.fusion.frames import quat_to_euler
 from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics
+
+log = logging.getLogger(__name__)
 
 
 def fmt(value: Any) -> str:
@@ -79,6 +83,9 @@ class Sink:
     wants (``None``: all); the runner hands it no others."""
 
     sample_kinds: frozenset | None = None
+    # its output depends on nothing but its calls, in their order: it may take them later
+    # (DeferredSinks); not a live sink, nor one that reads anything that changes meanwhile
+    deferrable = False
 
     def on_nav(self, state: Any) -> None:
         pass
@@ -98,6 +105,93 @@ class Sink:
 
     def close(self) -> None:
         pass
+
+
+def sink_methods(sinks: list, name: str) -> list:
+    """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
+    base = getattr(Sink, name)
+    out = []
+    for s in sinks:
+        m = getattr(s, name, None)
+        if m is not None and getattr(m, "__func__", None) is not base:
+            out.append(m)
+    return out
+
+
+def sample_methods(methods: list, kind: str) -> list:
+    """Of ``on_sample`` methods, those whose sink wants samples of ``kind`` (:attr:`Sink.sample_kinds`)."""
+    out = []
+    for f in methods:
+        kinds = getattr(getattr(f, "__self__", None), "sample_kinds", None)
+        if kinds is None or kind in kinds:
+            out.append(f)
+    return out
+
+
+def close_sinks(sinks: list) -> None:
+    """Every sink's ``close()``; one that fails is logged and the others are still closed."""
+    for s in sinks:
+        try:
+            close = getattr(s, "close", None)
+            if close is not None:
+                close()
+        except Exception:
+            log.exception("runner: closing sink %r failed", s)
+
+
+class DeferredSinks:
+    """Replay: the calls to ``sinks`` queued in their order and made later — a slice at a time
+    while the runner waits for its calibrator child (:meth:`work` is the backend's idle hook,
+    :attr:`adaptnav.service.calibrator.lagged.ProcessBackend.idle`), whenever ``max_pending``
+    are queued, and at :meth:`close`. The same calls in the same order: the same files. The
+    sinks' work (~9 % of the replaying process) then fills the waits for the calibrator's
+    side-scan blocks instead of adding to them. Not for a live sink (it would lag).
+
+    The objects handed over must not change afterwards: the runner's nav states, aid
+    statuses, samples and releases are fresh or immutable."""
+
+    def __init__(self, sinks: list, max_pending: int = 1024) -> None:
+        self.sinks = list(sinks)
+        self.max_pending = int(max_pending)
+        self._queue: deque = deque()
+        for name in ("on_nav", "on_aid", "on_release", "on_inertial"):
+            methods = sink_methods(self.sinks, name)
+            if methods:  # the runner calls what is there only
+                setattr(self, name, partial(self._defer, methods))
+        self._on_sample = sink_methods(self.sinks, "on_sample")
+        self._by_kind: dict[str, list] = {}
+        if self._on_sample:
+            self.on_sample = self._sample
+
+    def _defer(self, methods: list, arg: Any) -> None:
+        q = self._queue
+        q.append((methods, arg))
+        if len(q) >= self.max_pending:
+            self.work(len(q))
+
+    def _sample(self, sample: Any) -> None:
+        kind = sample.KIND
+        methods = self._by_kind.get(kind)
+        if methods is None:
+            methods = self._by_kind[kind] = sample_methods(self._on_sample, kind)
+        if methods:
+            self._defer(methods, sample)
+
+    def work(self, n: int = 32) -> bool:
+        """Make up to ``n`` of the queued calls, oldest first; False when none was queued."""
+        q = self._queue
+        if not q:
+            return False
+        for _ in range(min(n, len(q))):
+            methods, arg = q.popleft()
+            for f in methods:
+                f(arg)
+        return True
+
+    def close(self) -> None:
+        """The calls still queued, then every sink's ``close()``."""
+        self.work(len(self._queue))
+        close_sinks(self.sinks)
 
 
 def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict[str, float]:
@@ -160,6 +254,8 @@ class TrajectoryCsvSink(Sink):
         self._last_truth = None
         self._pending: tuple[float, list] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
+        # a log's UNIX time of a state is what the source has learnt of its clock by then
+        self.deferrable = unix_of is None
 
     def on_sample(self, sample: Any) -> None:
         if sample.KIND == "truth":
@@ -214,6 +310,8 @@ class TrajectoryCsvSink(Sink):
 class AidStatusCsvSink(Sink):
     """``aid_status.csv``: one row per :class:`AidStatus` (vectors ``;``-joined)."""
 
+    deferrable = True
+
     COLUMNS = ("t_s", "source", "fused", "reason", "test_ratio", "observation", "innovation",
                "innovation_variance")
 
@@ -244,6 +342,8 @@ class ParamsCsvSink(Sink):
     ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``,
     and the calibrator's sea current ``current_n_m_s``, ``current_e_m_s`` (empty if unknown).
     """
+
+    deferrable = True
 
     def __init__(self, path: str | Path, initial_params: Any = None) -> None:
         from adaptnav.fusion.motion_model import MotionParams
@@ -293,6 +393,7 @@ class SeriesRecorder(Sink):
 
     FIX_SOURCES = FIX_KINDS
     sample_kinds = frozenset({"truth"})
+    deferrable = True
 
     def __init__(self, initial_params: Any = None, aid_rows: bool = True) -> None:
         st = _state_slices()
@@ -403,6 +504,8 @@ class SeriesRecorder(Sink):
 
 class MetricsSink(Sink):
     """Writes ``metrics.json`` at close when truth was seen (keeps the dict in ``.metrics``)."""
+
+    deferrable = True
 
     def __init__(self, recorder: SeriesRecorder, path: str | Path) -> None:
         self.recorder = recorder
