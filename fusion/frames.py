@@ -177,3 +177,13 @@ class GeoOrigin:
         lon = self.lon_rad + pos[..., 1] / ((r_n + self.alt_m) * cos_lat)
         alt = self.alt_m - pos[..., 2]
         return lat, lon, alt
+
+    def to_geodetic_ne(self, north_m: float, east_m: float) -> tuple[float, float]:
+        """(lat_rad, lon_rad) of one local position, in Python floats: :meth:`to_geodetic`'s
+        numbers (the same IEEE operations) without its arrays (every output row converts one)."""
+        r_m, r_n, cos_lat = self._scalar_constants
+        return self.lat_rad + north_m / (r_m + self.alt_m), self.lon_rad + east_m / ((r_n + self.alt_m) * cos_lat)
+
+    @cached_property
+    def _scalar_constants(self) -> tuple[float, float, float]:
+        return tuple(float(c) for c in self._constants)

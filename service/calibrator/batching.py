@@ -173,9 +173,17 @@ def split_due(held: Any, data_time_s: float, latency_s: float, product_latency_s
     for the filter) once ``τ + product_latency_s ≤ data_time_s``; both lists keep the order."""
     due, kept = [], []
     for tau, out in held:
-        lag = latency_s if out.KIND == "calibration_release" else product_latency_s
-        if tau + lag <= data_time_s:
+        if _due_at(tau, out, latency_s, product_latency_s) <= data_time_s:
             due.append(out)
         else:
             kept.append((tau, out))
     return due, kept
+
+
+def next_due(held: Any, latency_s: float, product_latency_s: float) -> float:
+    """The data time at which the first of ``held`` is due by :func:`split_due`'s rule (∞: none)."""
+    return min((_due_at(tau, out, latency_s, product_latency_s) for tau, out in held), default=math.inf)
+
+
+def _due_at(tau: float, out: Any, latency_s: float, product_latency_s: float) -> float:
+    return tau + (latency_s if out.KIND == "calibration_release" else product_latency_s)

@@ -34,7 +34,7 @@ from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
-from adaptnav.service.calibrator.batching import DataClock, data_time, pack_batch, split_due, unpack_batch
+from adaptnav.service.calibrator.batching import DataClock, data_time, next_due, pack_batch, split_due, unpack_batch
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
 
@@ -42,6 +42,10 @@ _STOP = "__stop__"
 _SHIFT = "__shift__"
 _FINISH = "__finish__"  # the data ended: the calibrator hands over what it holds for completion
 PROGRESS_EVERY = 32     # samples between the child's progress messages inside a batch
+# LaggedCalibrator.quiet_until_s keeps this far below the child's progress + lag (data s, and
+# relative): thousands of times the rounding of ``t − lag`` at any data time (UNIX times too)
+_QUIET_MARGIN_S = 1e-6
+_QUIET_MARGIN_REL = 1e-12
 
 
 class InlineBackend:
@@ -57,6 +61,12 @@ class InlineBackend:
         tau = self.clock.advance(sample)
         for rel in self.calibrator.poll():
             self.ready.append((tau, rel))
+
+    @property
+    def caught_up_s(self) -> float:
+        """What :meth:`ProcessBackend.caught_up_s` says: here every output not yet in
+        :attr:`ready` comes from a later sample, at a τ no earlier than the data time reached."""
+        return self.clock.tau
 
     def sync(self, t_s: float) -> None:
         """Every release with ``τ ≤ t_s`` is in :attr:`ready` (always, in-process)."""
@@ -266,6 +276,10 @@ class ProcessBackend:
         self._finished = False  # the child handed over what it held at the end of the data
         self._pings_out = 0     # side-scan pings sent (or batched)
         self._block_ping = -1   # the count of the ping that completes the child's next block
+        # the runner's deferrable work (replay: DeferredSinks.work), done while it waits for
+        # the child instead of sleeping: a slice per call, False when there is none
+        self.idle: Any = None
+        self.idle_s = 0.0       # wall time of that work inside the waits (not in wait_s)
 
     def send(self, sample: Any) -> None:
         self._batch.append(sample)
@@ -289,6 +303,19 @@ class ProcessBackend:
                 raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             self._sent += len(self._batch)
             self._batch = []
+
+    def _wait_read(self) -> None:
+        """Handle the child's next message, waiting for it; while none has come, the runner's
+        idle work (:attr:`idle`) a slice at a time."""
+        idle = self.idle
+        if idle is not None:
+            while not self._r.poll(0.0):
+                t0 = time.monotonic()
+                busy = idle()
+                self.idle_s += time.monotonic() - t0
+                if not busy:
+                    break
+        self._read(block=True)
 
     def _read(self, block: bool) -> bool:
         """Handle one message from the child; False when none (non-blocking)."""
@@ -315,6 +342,13 @@ class ProcessBackend:
             raise RuntimeError(f"calibrator process failed: {body}")
         return True
 
+    @property
+    def caught_up_s(self) -> float:
+        """:meth:`sync` returns at once, with nothing to do, for every ``t_s`` below it; every
+        output not yet in :attr:`ready` has a τ no earlier (the child reports in order, its τ
+        never decreases)."""
+        return self._child_tau
+
     def sync(self, t_s: float) -> None:
         """Block until every release with ``τ ≤ t_s`` is in :attr:`ready`: the child has
         processed a sample later than ``t_s`` (τ is non-decreasing and messages are in
@@ -328,10 +362,10 @@ class ProcessBackend:
             if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
                 return
         self._flush()
-        t0 = time.monotonic()
+        t0, idle0 = time.monotonic(), self.idle_s
         while not (self._child_tau > t_s or self._done >= self._sent):
-            self._read(block=True)
-        self.wait_s += time.monotonic() - t0
+            self._wait_read()
+        self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)
 
     def shift_time(self, delta_s: float) -> None:
         """The data clock jumped by ``delta_s``: the child's τ moves with it (after the
@@ -348,17 +382,17 @@ class ProcessBackend:
         """Wait for the child to process everything observed, then for what it still holds
         (:meth:`InlineBackend.finish`)."""
         self._flush()
-        t0 = time.monotonic()
+        t0, idle0 = time.monotonic(), self.idle_s
         while self._done < self._sent:
-            self._read(block=True)
+            self._wait_read()
         if not self._finished:
             try:
                 self._w.send(_FINISH)
             except (BrokenPipeError, OSError) as e:
                 raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             while not self._finished:
-                self._read(block=True)
-        self.wait_s += time.monotonic() - t0
+                self._wait_read()
+        self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)
         self.child_cpu_s = _cpu_s(self._proc.pid)
 
     def close(self, timeout_s: float = 5.0) -> None:
@@ -406,6 +440,8 @@ class LaggedCalibrator:
         # waits for the calibrator more than before
         self._sync_lag_s = self.latency_s
         self.released = 0
+        # poll(t) returns [] and does nothing for every t below it (the runner skips it then)
+        self.quiet_until_s = -math.inf
         self.observe = backend.send  # the runner calls it for every sample: no extra frame
         if lp < latency_s:
             self.observe = self._observe
@@ -413,6 +449,7 @@ class LaggedCalibrator:
     def _observe(self, sample: Any) -> None:
         if sample.KIND == "sonar":
             self._sync_lag_s = self.product_latency_s
+            self.quiet_until_s = -math.inf  # it assumed the longer lag
             self.observe = self.backend.send
         self.backend.send(sample)
 
@@ -421,16 +458,29 @@ class LaggedCalibrator:
         products with ``τ + L_p ≤ data_time_s``, oldest first, once the calibrator has caught
         up with ``data_time_s − L`` (``− L_p`` once products can come); ``data_time_s = ∞``:
         the data ended, the calibrator finishes and everything is due."""
+        backend = self.backend
         if data_time_s == math.inf:
-            self.backend.finish()
+            backend.finish()
         else:
-            self.backend.sync(data_time_s - self._sync_lag_s)
-        ready = self.backend.ready
+            backend.sync(data_time_s - self._sync_lag_s)
+        ready = backend.ready
         if not ready or ready[0][0] + self.product_latency_s > data_time_s:  # the usual poll: nothing due
-            return []
-        due, keep = split_due(ready, data_time_s, self.latency_s, self.product_latency_s)
-        ready[:] = keep
-        self.released += len(due)
+            due = []
+        else:
+            due, keep = split_due(ready, data_time_s, self.latency_s, self.product_latency_s)
+            ready[:] = keep
+            self.released += len(due)
+        # until the next release or product is due, or the backend would have to sync: below
+        # that, a poll would return [] without touching anything (a pending release held
+        # every poll of its minute to the test above). An output that reaches ready later has
+        # τ ≥ caught_up_s: due no earlier than caught_up_s + L_p. The sync bound with a margin
+        # far above the rounding of ``t − lag`` (the child's test is ``τ_child > t − lag``)
+        caught_up = backend.caught_up_s
+        sync_bound = caught_up + self._sync_lag_s
+        if math.isfinite(sync_bound):
+            sync_bound -= _QUIET_MARGIN_S + _QUIET_MARGIN_REL * abs(sync_bound)
+        self.quiet_until_s = min(sync_bound, caught_up + self.product_latency_s,
+                                 next_due(ready, self.latency_s, self.product_latency_s))
         return due
 
     def shift_time(self, delta_s: float) -> None:
@@ -441,6 +491,7 @@ class LaggedCalibrator:
         jump (the running maximum stayed in the old time base)."""
         self.backend.ready[:] = [(tau + delta_s, rel) for tau, rel in self.backend.ready]
         self.backend.shift_time(delta_s)
+        self.quiet_until_s = -math.inf
 
     def close(self) -> None:
         self.backend.close()

@@ -423,6 +423,8 @@ class FoxgloveSink(Sink):
             self._log(self.convert.event(f"solution {'valid' if state.valid else 'invalid'} at data time "
                                          f"{t_s:.1f} s", t_s, warning=not state.valid), t_s)
 
+    sample_kinds = frozenset({"truth"})
+
     def on_sample(self, sample: Any) -> None:
         if sample.KIND == "truth":
             self._log(self.convert.truth(sample, self.truth_max_age_s), float(sample.t_s))

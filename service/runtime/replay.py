@@ -41,8 +41,8 @@ from adaptnav.service.runtime.clock import LogClock, RealtimeClock
 from adaptnav.service.runtime.events import LifecycleLog
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.runner import RunSummary, default_release_gate, run
-from adaptnav.service.runtime.sinks import (AidStatusCsvSink, MetricsSink, ParamsCsvSink, PlotSink, SeriesRecorder,
-                    Sink, TrajectoryCsvSink)
+from adaptnav.service.runtime.sinks import (AidStatusCsvSink, DeferredSinks, MetricsSink, ParamsCsvSink, PlotSink,
+                                            SeriesRecorder, Sink, TrajectoryCsvSink)
 from adaptnav.service.runtime.sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
@@ -262,7 +262,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         calibrator = make_lagged_calibrator(cfg, params0, calibrator_location)
     health = Health(silent_after_s=cfg.health.sensor_timeout_s)
     truth = inp.has_truth
-    recorder = SeriesRecorder(initial_params=params0)
+    recorder = SeriesRecorder(initial_params=params0, aid_rows=plots or report is not None)
     metrics_sink = MetricsSink(recorder, out / "metrics.json")
     validity = ValidityCounter()
     origin_known = inp.scenario is not None or origin_configured or origin_note is not None
@@ -282,6 +282,13 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         sinks.append(open_mcap_sink(mcap, cfg.origin.geo(), replay_time_base(inp),
                                     truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz,
                                     metadata={"input": inp.label}))
+    backend = getattr(calibrator, "backend", None)
+    if hasattr(backend, "idle"):
+        # the files' sinks work while the runner waits for the calibrator child, not on top
+        # (each sink sees its calls in their order; none reads another before closing)
+        deferred = DeferredSinks([s for s in sinks if getattr(s, "deferrable", False)])
+        backend.idle = deferred.work
+        sinks = [deferred, *(s for s in sinks if not getattr(s, "deferrable", False))]
     clock = RealtimeClock(realtime) if realtime else LogClock()
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()
@@ -377,6 +384,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
 
 class ValidityCounter(Sink):
     """Sink: how many nav states were output, how many of them valid, the first valid one."""
+
+    deferrable = True
 
     def __init__(self) -> None:
         self.states = 0

@@ -50,6 +50,7 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -61,8 +62,11 @@ _CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
+from adaptnav.service.runtime.sinks import close_sinks as _close_sinks, sample_methods, sink_methods
 
 log = logging.getLogger(__name__)
+
+_QUIET_UNTIL = attrgetter("quiet_until_s")
 
 # before an IMU period is known, a sample this close below an epoch is at it (s): the
 # rounding of sample times
@@ -111,15 +115,6 @@ def _stop_requested(stop: Any) -> bool:
     return bool(is_set() if callable(is_set) else stop())
 
 
-def _bound(sinks: list, name: str) -> list:
-    """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
-    from adaptnav.service.runtime.sinks import Sink
-
-    base = getattr(Sink, name)
-    return [getattr(s, name) for s in sinks
-            if hasattr(s, name) and getattr(type(s), name, None) is not base]
-
-
 class _Loop:
     """State of one :func:`run` call (kept out of the function for readability)."""
 
@@ -137,15 +132,18 @@ class _Loop:
         self.summary = RunSummary()
         self.next_k: int | None = None     # index of the next output epoch k / rate
         self.last_emitted_t = -math.inf
-        self._on_nav = _bound(self.sinks, "on_nav")
-        self._on_aid = _bound(self.sinks, "on_aid")
-        self._on_release = _bound(self.sinks, "on_release")
-        self._on_sample = _bound(self.sinks, "on_sample")
-        self._on_inertial = _bound(self.sinks, "on_inertial")
+        self._on_nav = sink_methods(self.sinks, "on_nav")
+        self._on_aid = sink_methods(self.sinks, "on_aid")
+        self._on_release = sink_methods(self.sinks, "on_release")
+        self._on_sample_all = sink_methods(self.sinks, "on_sample")
+        self._on_sample: dict[str, list] = {}  # by sample kind (sample_methods)
+        self._on_inertial = sink_methods(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
         self.data_t = -math.inf  # the release rule's data time: latest time of an admitted item
+        self._quiet_until = (_QUIET_UNTIL if hasattr(calibrator, "quiet_until_s")
+                             else lambda cal: -math.inf)
 
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
@@ -309,30 +307,39 @@ class _Loop:
             self.health.on_sample("imu", float(t[-1]), n)
 
     def sample(self, sample: Any) -> None:
-        if math.isfinite(sample.t_s):  # a NaN time goes to the estimator, which rejects it
-            self.flush_epochs_before(sample.t_s)
+        kind = sample.KIND
+        t_s = sample.t_s
+        if math.isfinite(t_s):  # a NaN time goes to the estimator, which rejects it
+            self.flush_epochs_before(t_s)
         try:
-            if sample.KIND != "truth":
+            if kind != "truth":
                 self.aid(self.estimator.process(sample))
                 self.summary.samples_used += 1
-                if sample.KIND == "imu":
+                if kind == "imu":
                     self.summary.imu_samples += 1
-                    if math.isfinite(sample.t_s):
-                        self.imu_time(sample.t_s)
-                        self.emit_if_at_epoch(sample.t_s)
+                    if math.isfinite(t_s):
+                        self.imu_time(t_s)
+                        self.emit_if_at_epoch(t_s)
         finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
             if self.health is not None:
-                self.health.on_sample(sample.KIND, sample.t_s)
-        for f in self._on_sample:
+                self.health.on_sample(kind, t_s)
+        on_sample = self._on_sample.get(kind)
+        if on_sample is None:
+            on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
+        for f in on_sample:
             f(sample)
         cal = self.calibrator
-        if cal is not None and sample.KIND not in _CALIBRATOR_UNUSED:
+        if cal is not None and kind not in _CALIBRATOR_UNUSED:
             cal.observe(sample)
 
     def releases_due(self, data_t_s: float) -> None:
-        """The runner's data time reached ``data_t_s``: the calibrator's releases due by it."""
+        """The runner's data time reached ``data_t_s``: the calibrator's releases due by it.
+        A calibrator's ``quiet_until_s`` (optional) is a data time below which its poll returns
+        nothing and does nothing: not called then (replay's polled once per ~10 items)."""
         if data_t_s > self.data_t:  # False for NaN
             self.data_t = data_t_s
+        if self.data_t < self._quiet_until(self.calibrator):
+            return
         for out in self.calibrator.poll(self.data_t):
             if out.KIND == "calibration_release":
                 self.release(out)
@@ -471,13 +478,7 @@ class Runner:
         """The run's wall time; every sink's ``close()`` (``close_sinks``)."""
         self.summary.wall_s = time.monotonic() - self._wall0
         if close_sinks:
-            for s in self.loop.sinks:
-                try:
-                    close = getattr(s, "close", None)
-                    if close is not None:
-                        close()
-                except Exception:
-                    log.exception("runner: closing sink %r failed", s)
+            _close_sinks(self.loop.sinks)
         return self.summary
 
 

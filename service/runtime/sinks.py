@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
-from collections import Counter
+from collections import Counter, deque
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,8 @@ import numpy as np
 from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.fusion.frames import quat_to_euler
 from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics
+
+log = logging.getLogger(__name__)
 
 
 def fmt(value: Any) -> str:
@@ -75,7 +79,13 @@ def _state_slices():
 
 
 class Sink:
-    """No-op base: override what you need."""
+    """No-op base: override what you need. ``sample_kinds``: the sample kinds ``on_sample``
+    wants (``None``: all); the runner hands it no others."""
+
+    sample_kinds: frozenset | None = None
+    # its output depends on nothing but its calls, in their order: it may take them later
+    # (DeferredSinks); not a live sink, nor one that reads anything that changes meanwhile
+    deferrable = False
 
     def on_nav(self, state: Any) -> None:
         pass
@@ -97,6 +107,93 @@ class Sink:
         pass
 
 
+def sink_methods(sinks: list, name: str) -> list:
+    """The sinks' ``name`` methods, leaving out the no-op defaults of :class:`Sink`."""
+    base = getattr(Sink, name)
+    out = []
+    for s in sinks:
+        m = getattr(s, name, None)
+        if m is not None and getattr(m, "__func__", None) is not base:
+            out.append(m)
+    return out
+
+
+def sample_methods(methods: list, kind: str) -> list:
+    """Of ``on_sample`` methods, those whose sink wants samples of ``kind`` (:attr:`Sink.sample_kinds`)."""
+    out = []
+    for f in methods:
+        kinds = getattr(getattr(f, "__self__", None), "sample_kinds", None)
+        if kinds is None or kind in kinds:
+            out.append(f)
+    return out
+
+
+def close_sinks(sinks: list) -> None:
+    """Every sink's ``close()``; one that fails is logged and the others are still closed."""
+    for s in sinks:
+        try:
+            close = getattr(s, "close", None)
+            if close is not None:
+                close()
+        except Exception:
+            log.exception("runner: closing sink %r failed", s)
+
+
+class DeferredSinks:
+    """Replay: the calls to ``sinks`` queued in their order and made later — a slice at a time
+    while the runner waits for its calibrator child (:meth:`work` is the backend's idle hook,
+    :attr:`adaptnav.service.calibrator.lagged.ProcessBackend.idle`), whenever ``max_pending``
+    are queued, and at :meth:`close`. The same calls in the same order: the same files. The
+    sinks' work (~9 % of the replaying process) then fills the waits for the calibrator's
+    side-scan blocks instead of adding to them. Not for a live sink (it would lag).
+
+    The objects handed over must not change afterwards: the runner's nav states, aid
+    statuses, samples and releases are fresh or immutable."""
+
+    def __init__(self, sinks: list, max_pending: int = 1024) -> None:
+        self.sinks = list(sinks)
+        self.max_pending = int(max_pending)
+        self._queue: deque = deque()
+        for name in ("on_nav", "on_aid", "on_release", "on_inertial"):
+            methods = sink_methods(self.sinks, name)
+            if methods:  # the runner calls what is there only
+                setattr(self, name, partial(self._defer, methods))
+        self._on_sample = sink_methods(self.sinks, "on_sample")
+        self._by_kind: dict[str, list] = {}
+        if self._on_sample:
+            self.on_sample = self._sample
+
+    def _defer(self, methods: list, arg: Any) -> None:
+        q = self._queue
+        q.append((methods, arg))
+        if len(q) >= self.max_pending:
+            self.work(len(q))
+
+    def _sample(self, sample: Any) -> None:
+        kind = sample.KIND
+        methods = self._by_kind.get(kind)
+        if methods is None:
+            methods = self._by_kind[kind] = sample_methods(self._on_sample, kind)
+        if methods:
+            self._defer(methods, sample)
+
+    def work(self, n: int = 32) -> bool:
+        """Make up to ``n`` of the queued calls, oldest first; False when none was queued."""
+        q = self._queue
+        if not q:
+            return False
+        for _ in range(min(n, len(q))):
+            methods, arg = q.popleft()
+            for f in methods:
+                f(arg)
+        return True
+
+    def close(self) -> None:
+        """The calls still queued, then every sink's ``close()``."""
+        self.work(len(self._queue))
+        close_sinks(self.sinks)
+
+
 def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict[str, float]:
     """``t_unix_s`` (when ``unix_of(t_s)`` knows it) and ``lat_deg``, ``lon_deg`` (when the
     NED ``origin``, a :class:`adaptnav.fusion.frames.GeoOrigin`, is known) of a nav state."""
@@ -105,9 +202,9 @@ def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict
     if t_unix is not None:
         out["t_unix_s"] = float(t_unix)
     if origin is not None:
-        lat, lon, _ = origin.to_geodetic(np.asarray(state.pos_n_m, dtype=float))
-        if math.isfinite(float(lat)) and math.isfinite(float(lon)):
-            out["lat_deg"], out["lon_deg"] = math.degrees(float(lat)), math.degrees(float(lon))
+        lat, lon = origin.to_geodetic_ne(*np.asarray(state.pos_n_m, dtype=float)[:2].tolist())
+        if math.isfinite(lat) and math.isfinite(lon):
+            out["lat_deg"], out["lon_deg"] = math.degrees(lat), math.degrees(lon)
     return out
 
 
@@ -142,6 +239,7 @@ class TrajectoryCsvSink(Sink):
                "lon_deg")
     TRUTH_COLUMNS = ("truth_north_m", "truth_east_m", "truth_down_m", "truth_current_n_m_s",
                      "truth_current_e_m_s", "truth_k_v")
+    sample_kinds = frozenset({"truth"})
 
     def __init__(self, path: str | Path, truth: bool = False, truth_max_age_s: float = 0.05,
                  unix_of: Any = None, origin: Any = None) -> None:
@@ -156,6 +254,8 @@ class TrajectoryCsvSink(Sink):
         self._last_truth = None
         self._pending: tuple[float, list] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
+        # a log's UNIX time of a state is what the source has learnt of its clock by then
+        self.deferrable = unix_of is None
 
     def on_sample(self, sample: Any) -> None:
         if sample.KIND == "truth":
@@ -210,6 +310,8 @@ class TrajectoryCsvSink(Sink):
 class AidStatusCsvSink(Sink):
     """``aid_status.csv``: one row per :class:`AidStatus` (vectors ``;``-joined)."""
 
+    deferrable = True
+
     COLUMNS = ("t_s", "source", "fused", "reason", "test_ratio", "observation", "innovation",
                "innovation_variance")
 
@@ -240,6 +342,8 @@ class ParamsCsvSink(Sink):
     ``log_likelihood``, ``accepted`` and ``reason`` (why not, when rejected), ``iterations``,
     and the calibrator's sea current ``current_n_m_s``, ``current_e_m_s`` (empty if unknown).
     """
+
+    deferrable = True
 
     def __init__(self, path: str | Path, initial_params: Any = None) -> None:
         from adaptnav.fusion.motion_model import MotionParams
@@ -288,8 +392,10 @@ class SeriesRecorder(Sink):
     """
 
     FIX_SOURCES = FIX_KINDS
+    sample_kinds = frozenset({"truth"})
+    deferrable = True
 
-    def __init__(self, initial_params: Any = None) -> None:
+    def __init__(self, initial_params: Any = None, aid_rows: bool = True) -> None:
         st = _state_slices()
         idx = np.arange(st.N_ERR)
         self._pva = np.r_[idx[st.POS], idx[st.VEL], idx[st.ATT]]
@@ -313,6 +419,9 @@ class SeriesRecorder(Sink):
         self.fused_counts: Counter[str] = Counter()
         self.dvl_lock: list[tuple[float, bool]] = []  # (t, bottom lock) per DVL status
         self.rejected_reasons: Counter[tuple[str, str]] = Counter()  # (source, reason) → count
+        # the normalised innovations are for the plots and the report only (``aid_rows=False``:
+        # none kept, a replay without either)
+        self._keep_aid_rows = bool(aid_rows)
 
     def on_nav(self, state: Any) -> None:
         self.nav_t.append(float(state.t_s))
@@ -341,6 +450,8 @@ class SeriesRecorder(Sink):
                 self.rejected_reasons[(s.source, s.reason or "unspecified")] += 1
             if s.source == "dvl":
                 self.dvl_lock.append((float(s.t_s), bool(s.fused or s.reason == "gate")))
+            if not self._keep_aid_rows:
+                continue
             # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component
             nu, var = s.innovation, s.innovation_variance
             if len(nu) == len(var):
@@ -393,6 +504,8 @@ class SeriesRecorder(Sink):
 
 class MetricsSink(Sink):
     """Writes ``metrics.json`` at close when truth was seen (keeps the dict in ``.metrics``)."""
+
+    deferrable = True
 
     def __init__(self, recorder: SeriesRecorder, path: str | Path) -> None:
         self.recorder = recorder
