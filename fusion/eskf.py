@@ -86,7 +86,8 @@ AID_KINDS = frozenset(AIDS)
 _BLIND_VEL_RW_M_S_RTHZ = 0.3
 # aids that measure the motion (velocity over ground or position): an attitude-driven strapdown
 # without any of them for a while has only the motion model's velocity — a measurement only
-# where that model is calibrated (attitude_driven.model_measures_motion)
+# where that model is calibrated (attitude_driven.model_measures_motion), or once fixes or a
+# DVL have calibrated its scale in this run (attitude_driven.calibrated_sigma_k_speed)
 _MOTION_AIDS = frozenset(("dvl", "visual_motion", "usbl", "gnss", "range", "loop_closure"))
 # Attitude random walk without a gyro (AHRS-only mode), rad/√s.
 _BLIND_ATT_RW_RAD_RTHZ = 0.3
@@ -1512,7 +1513,9 @@ class Estimator:
         nis, fused = kalman.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
                                       self._dx, sdiag, self._mode == "ins")
         if fused:
-            if source in self._motion_aids:
+            if source in self._motion_aids or (
+                    source == "learned_velocity" and self._attitude_driven
+                    and self._P[KS.start, KS.start] <= self.config.attitude_driven.calibrated_sigma_k_speed ** 2):
                 self._t_motion_aid = float(t_s)
             if self._heading_source is not None:
                 self._yaw_fix_rad += self._yaw_of(self._dx)

@@ -13,6 +13,7 @@ from adaptnav.fusion.frames import GRAVITY_M_S2
 from adaptnav.fusion.integrity import chi2_quantile
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.samples import AttitudeSample, DepthSample, ImuBatch, ImuSample, RpmSample, UsblSample
+from adaptnav.fusion.state import KS
 
 from .mission import ATM_PA, ORIGIN, RHO, make_mission
 
@@ -76,6 +77,25 @@ def test_without_a_measurement_of_the_motion_the_track_is_kept_but_not_valid():
     est = Estimator(_cfg(model_measures_motion=True), MotionParams(), RpmSpeedTable(), ORIGIN)
     t, valid, nees, err = map(np.array, zip(*_run(est, m, _without_imu(m))))
     assert valid[t > 15.0].all() and np.mean(nees[valid] > CHI2_2_99) <= 0.02
+
+
+def test_fixes_that_calibrated_the_speed_scale_carry_the_model_through_their_outage():
+    # GIVEN an uncalibrated model, and fixes (σ 0.5 m, every 2 s) for 300 s that measure its scale
+    m = make_mission(np.random.default_rng(13), 500.0, yaw_rate0=0.01, usbl_period_s=2.0, usbl_sigma_m=0.5,
+                     usbl_until_s=300.0)
+    est = Estimator(_cfg(model_measures_motion=False), MotionParams(), RpmSpeedTable(), ORIGIN)
+    t, valid, nees, err = map(np.array, zip(*_run(est, m, _without_imu(m))))
+    # THEN k_speed's σ is below attitude_driven.calibrated_sigma_k_speed (measured 0.025) and the
+    # learned velocity keeps the solution valid for the 200 s without fixes, as good as it says
+    assert float(np.sqrt(est.nav_state().cov[KS, KS][0, 0])) <= est.config.attitude_driven.calibrated_sigma_k_speed
+    assert valid[t > 15.0].all() and np.mean(nees[valid] > CHI2_2_99) <= 0.01
+    assert err[t > 300.0].max() < 5.0
+    # AND with that bound at 0 (only fixes and DVL count) it is not valid after the fixes end
+    cfg = _cfg(model_measures_motion=False)
+    cfg = replace(cfg, attitude_driven=replace(cfg.attitude_driven, calibrated_sigma_k_speed=0.0))
+    est = Estimator(cfg, MotionParams(), RpmSpeedTable(), ORIGIN)
+    t, valid, nees, err = map(np.array, zip(*_run(est, m, _without_imu(m))))
+    assert not valid[t > 300.0 + cfg.attitude_driven.motion_aid_max_age_s].any()
 
 
 def _at_rest(est: Estimator, t0: float, t1: float, yaw: float = 0.7) -> None:
