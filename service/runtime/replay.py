@@ -441,10 +441,11 @@ def replay_warnings(summary: dict) -> list[str]:
         out.append(f"NO VALID POSITION was produced ({what}; last reasons: {reasons}): "
                    "trajectory.csv is not a navigation solution")
     if "no_motion_measurement" in ((summary.get("filter") or {}).get("invalid_reasons_at_end") or []):
-        out.append("no IMU fast enough to integrate, so the attitude drives the strapdown, and nothing "
-                   "measured the motion (no fix, no DVL) while the thrust's speed model is not this "
-                   "vehicle's: its track is kept in trajectory.csv, not called valid — a vehicle profile "
-                   "(--config with motion.rpm_table), fixes or a DVL make it a navigation solution")
+        out.append("no IMU fast enough to integrate, so the attitude drives the strapdown, and at the end "
+                   "nothing measured the motion (no recent fix or DVL, no thrust model calibrated for this "
+                   "vehicle or by the fixes): its track is kept in trajectory.csv, not called valid — a "
+                   "vehicle profile (--config with motion.rpm_table), fixes or a DVL make it a navigation "
+                   "solution")
     jumps = summary.get("clock_jumps_s") or []
     if jumps:
         out.append(f"the input's time base jumped {len(jumps)} time(s) "
