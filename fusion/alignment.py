@@ -32,6 +32,17 @@ from .imu_grades import ImuFigures, ResolvedImu
 from .state import (ACC_SIZE, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS_D, POS_NE, VEL, X_Q,
                     initial_nominal)
 
+# an IMU stream's rate is judged on the median of its latest intervals: robust to a dropped
+# sample or a burst, quick to see a stream change
+IMU_RATE_WINDOW = 20
+
+
+def imu_too_slow(intervals_s, min_rate_hz: float) -> bool:
+    """Is a stream with these recent sample intervals (s) too slow to integrate? (None yet: yes.)
+    One rule for the estimator and the log readers that withhold such a stream."""
+    recent = list(intervals_s)[-IMU_RATE_WINDOW:]
+    return not recent or float(np.median(recent)) > 1.0 / min_rate_hz
+
 
 class Aligner:
     """Sliding window of IMU specific force for levelling."""
@@ -132,7 +143,7 @@ class Alignment:
         self.origin = origin
         self._R_db = R_db
         self.aligner = self._new_aligner()
-        self.imu_interval_s = math.inf  # latest IMU sample interval seen before INS mode
+        self._imu_dt_s: deque = deque(maxlen=IMU_RATE_WINDOW)  # recent IMU intervals before INS mode
         self.yaw_rad: float | None = None
         self._att_yaw: deque = deque()  # (t_s, yaw) of recent attitude samples
         self._t_first_att = math.nan
@@ -163,9 +174,13 @@ class Alignment:
                 t_imu_last_s: float) -> None:
         """Clean IMU samples (N,), (N, 3), (N, 3) into the levelling window; ``t_imu_last_s``
         the previous sample's time (the interval says whether the IMU is fast enough)."""
-        prev_t = t_imu_last_s if t_s.size == 1 else float(t_s[-2])
-        self.imu_interval_s = float(t_s[-1]) - prev_t
+        dt = np.diff(np.concatenate(([t_imu_last_s], t_s)))
+        self._imu_dt_s.extend(dt[np.isfinite(dt) & (dt > 0)][-IMU_RATE_WINDOW:].tolist())
         self.aligner.add(t_s, f_b_m_s2, w_b_rad_s)
+
+    def imu_fast_enough(self) -> bool:
+        """Is the IMU stream fast enough to integrate (``alignment.min_imu_rate_hz``)?"""
+        return not imu_too_slow(self._imu_dt_s, self.config.alignment.min_imu_rate_hz)
 
     def carry_over(self, yaw_rad: float, depth_m: float,
                    position: tuple[np.ndarray, float] | None = None) -> None:
@@ -217,7 +232,7 @@ class Alignment:
             self._t_att.append(float(sample.t_s))
             # no IMU, or one too slow to integrate (ArduSub telemetry: 2 Hz), for a while
             # (an ATTITUDE may come just before the first IMU sample): AHRS mode
-            slow_imu = sample.t_s - t_imu_last_s > cfg.imu_gap_s or self.imu_interval_s > cfg.imu_gap_s
+            slow_imu = sample.t_s - t_imu_last_s > cfg.imu_gap_s or not self.imu_fast_enough()
             if slow_imu and sample.t_s - self._t_first_att >= cfg.alignment.ahrs_after_s:
                 return "ahrs"
         elif kind == "dvl":
@@ -288,6 +303,8 @@ class Alignment:
         level = self.aligner.level()
         if level is None or self.yaw_rad is None:
             return None
+        if self._t_att and not self.imu_fast_enough():
+            return None  # the attitude will drive the strapdown (observe → "ahrs")
         roll, pitch = level
         t_s = self.aligner.t_last_s
         # the IMU model: the configured grade's, or decided from the data at rest (auto)

@@ -996,7 +996,7 @@ class Estimator:
             was_ahrs = self._mode == "ahrs"
             if was_ahrs:
                 self.rejected["ahrs_mode"] += int(t.size)
-                if self._alignment.aligner.level() is not None:
+                if self._alignment.aligner.level() is not None and self._alignment.imu_fast_enough():
                     # a usable IMU rate appeared: re-align as an INS, keeping the AHRS
                     # heading and the depth
                     self._alignment.carry_over(aid_heading.predict(self._x)[0], float(self._x[X_DEPTH]))
@@ -1034,7 +1034,7 @@ class Estimator:
             return []
         self._alignment.add_imu(t, f, w, self._t_real_imu)
         self._t_real_imu = float(t[-1])
-        if self._alignment.aligner.level() is None:
+        if self._alignment.aligner.level() is None or not self._alignment.imu_fast_enough():
             return []
         cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         self._alignment.carry_over(aid_heading.predict(self._x)[0], float(self._x[X_DEPTH]),

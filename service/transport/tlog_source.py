@@ -33,6 +33,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
+from adaptnav.fusion.alignment import imu_too_slow
+from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.samples import ImuSample, TruthSample, replay_order_key
 
@@ -46,7 +48,8 @@ class TlogConfig:
     """``[replay.mavlink]``: how a MAVLink log becomes a sample stream."""
 
     convert: ConvertConfig = field(default_factory=ConvertConfig)
-    min_imu_rate_hz: float = 20.0  # slower IMU streams cannot drive strapdown integration
+    # slower IMU streams are withheld: the estimator's own rule (filter.alignment.min_imu_rate_hz)
+    min_imu_rate_hz: float = AlignmentConfig.min_imu_rate_hz
     drop_slow_imu: bool = True
     reorder_window_s: float = 2.0
     dataflash_baro_instance: int = 1  # ArduSub: BARO[1] is the external (water) sensor
@@ -109,9 +112,7 @@ class TlogSource:
         self._imu_last_t = sample.t_s
         if not self.config.drop_slow_imu:
             return True
-        # median of the recent intervals: robust to single dropouts
-        recent = self._imu_dt[-20:]
-        if not recent or statistics.median(recent) > 1.0 / self.config.min_imu_rate_hz:
+        if imu_too_slow(self._imu_dt, self.config.min_imu_rate_hz):
             self._reject("imu_too_slow")
             return False
         return True

@@ -144,6 +144,26 @@ def test_a_fast_imu_appearing_re_aligns_into_an_ins_on_it_keeping_the_position()
     assert s.reset_counter > before.reset_counter  # a new start: the autopilot is told
 
 
+@pytest.mark.parametrize("imu_rate_hz, integrated", [(10.0, False), (50.0, True)])
+def test_one_imu_rate_rule_decides_whether_the_imu_or_the_attitude_drives(imu_rate_hz, integrated):
+    # GIVEN an autopilot at rest streaming its IMU at imu_rate_hz from the start, ATTITUDE at 10 Hz
+    # (the live daemon gets whatever rate the autopilot keeps; the tlog reader withholds a
+    # stream below the same alignment.min_imu_rate_hz)
+    est = Estimator(_cfg(), MotionParams(), RpmSpeedTable(), ORIGIN)
+    lat, lon, _ = ORIGIN.to_geodetic(np.array([20.0, -5.0, 0.0]))
+    est.process(UsblSample(0.05, float(lat), float(lon), 4.0, 1.0))
+    period = 1.0 / imu_rate_hz
+    for k in range(int(20.0 / 0.1)):
+        t0 = 0.1 * k
+        t = t0 + period * np.arange(1, int(round(0.1 / period)) + 1)
+        est.process(ImuBatch(t, np.tile([0.0, 0.0, -GRAVITY_M_S2], (t.size, 1)), np.zeros((t.size, 3))))
+        _at_rest(est, float(t[-1]), float(t[-1]) + 0.05)
+    # THEN a 10 Hz IMU's instants are not integrated (the attitude drives), a 50 Hz one's are
+    assert est.initialized
+    assert (est.imu_model.grade != "attitude") == integrated, est.imu_model
+    assert (est.rejected["attitude_driven"] > 0) == (not integrated)
+
+
 def test_with_the_attitude_drive_off_the_filter_is_an_ahrs_and_never_valid():
     cfg = FilterConfig()
     cfg = replace(cfg, attitude_driven=replace(cfg.attitude_driven, enabled=False))
