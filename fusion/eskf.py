@@ -7,7 +7,10 @@ the adaptive surge variance: :mod:`adaptnav.fusion.adaptive_noise`; measurement 
 source in :mod:`adaptnav.fusion.aiding`. This module does, once for every source (as PX4 EKF2's
 ``estimator_aid_src_*``): chi-square gating of the normalised innovation, Joseph-form
 update, error injection and covariance reset, one :class:`~fusion.status.AidStatus`
-per attempt.
+per attempt. Depth and heading on time in INS mode (the commonest samples after the IMU's)
+take one compiled call for the innovation, update, injection and the state guard
+(:meth:`Estimator._fast_scalar`) with their aid modules' own models: the same numbers; the
+general path answers whatever else comes (gated, late, not finite, at a lever arm).
 
 Model-aided INS after Hegrenaes & Hallingstad (IEEE JOE 2011): the learned motion
 model's surge ``k_speed k_V f(rpm)`` (seed §2.1, :mod:`adaptnav.fusion.aiding.learned_velocity`)
@@ -71,7 +74,7 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
     quat_to_euler, rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import SENSORS, InertialVelocitySample, is_finite
+from .samples import SENSORS, DepthSample, HeadingSample, InertialVelocitySample, is_finite
 from .state import (ACC_F, ACC_OMEGA, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW, VEL,
                     X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -219,6 +222,16 @@ class Estimator:
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
+        # the compiled path of the commonest aids (:meth:`_fast_scalar`): per sample type, where
+        # its aid is enabled and measured at the IMU (a lever arm: the general path); the
+        # depth's Jacobian row is constant, the heading's attitude part is filled in per sample
+        self._fast = {t: f for t, kind, f in ((DepthSample, "depth", self._fast_depth),
+                                              (HeadingSample, "heading", self._fast_heading))
+                      if getattr(config, kind).enabled and kind not in self._arm}
+        self._h_depth = aid_depth.jacobian(None)
+        self._h_heading = np.zeros((1, N_ERR))
+        self._h_heading[0, ATT.start + 2] = 1.0
+        self._fast_out = np.zeros(3)
         # input history for late measurements: entries (kind, payload) with the snapshot
         # taken before each and its state time
         self._hist_t: list[float] = []
@@ -566,12 +579,18 @@ class Estimator:
             return []
         if self._good_candidate is not None:
             self.settle()
-        try:
-            out = self._process(sample)
-        except np.linalg.LinAlgError:
-            out = []
+        fast = self._fast.get(type(sample)) if self._mode == "ins" else None
+        done = fast(sample) if fast is not None else None
+        if done is not None:
+            out, ok = done
+        else:
+            try:
+                out = self._process(sample)
+            except np.linalg.LinAlgError:
+                out = []
+            ok = self._mode == "none" or self._state_ok()
         if self._mode != "none":
-            if not self._state_ok():
+            if not ok:
                 self._recover()
             if self._clock[0] >= self._good_t + 1.0:
                 self._keep_good()
@@ -707,6 +726,65 @@ class Estimator:
         return self._aid(sample)
 
     # ------------------------------------------------------------------ internals
+    def _fast_depth(self, sample) -> tuple[list[AidStatus], bool] | None:
+        """A depth on time in INS mode (:meth:`_fast_scalar`): what :meth:`_aid` does with it."""
+        t_s, pressure_pa = sample.t_s, sample.pressure_pa
+        if not self._fast_taken(sample, pressure_pa):
+            return None
+        c = self.config.depth
+        d = aid_depth.depth_m(pressure_pa, c.water_density_kg_m3, c.atmospheric_pressure_pa)
+        var = self.depth_noise.variance_m2(t_s, d)
+        self._keep_depth(t_s, d)
+        return self._fast_scalar(sample, d, float(self._x[X_DEPTH]), self._h_depth, var, False)
+
+    def _fast_heading(self, sample) -> tuple[list[AidStatus], bool] | None:
+        """A heading on time in INS mode (:meth:`_fast_scalar`): what :meth:`_aid` does with it."""
+        yaw_rad = sample.yaw_rad
+        if not self._fast_taken(sample, yaw_rad):
+            return None
+        yaw, h_x, h_y = aid_heading.yaw_row(self._x)
+        H = self._h_heading
+        H[0, ATT.start] = h_x
+        H[0, ATT.start + 1] = h_y
+        done = self._fast_scalar(sample, float(yaw_rad), yaw, H, self.config.heading.sigma_rad**2, True)
+        if done is not None:
+            self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)  # fused: the run ends
+        return done
+
+    def _fast_taken(self, sample, value: float) -> bool:
+        """The sample's time and ``value`` finite and on time: then recorded for re-fusion, as
+        :meth:`_process` does, and it takes the compiled path; else :meth:`_process` answers it
+        (a rejection, or a late sample fused at its own time)."""
+        t_s = sample.t_s
+        if not (math.isfinite(t_s) and math.isfinite(value)) or t_s < self._clock[0] - self.config.on_time_tolerance_s:
+            return False
+        self._record("sample", sample)
+        return True
+
+    def _fast_scalar(self, sample, z: float, h: float, H: np.ndarray, var: float,
+                     angular: bool) -> tuple[list[AidStatus], bool]:
+        """Update, injection and the state guard of a scalar aid in one compiled call
+        (:func:`~adaptnav.fusion.kalman.fuse_scalar_core`; ~20 µs of Python per sample before,
+        the commonest samples after the IMU's), with the measurement ``z``, ``h`` = h(x̂), the
+        row ``H`` and variance ``var`` of the aid's own model. Returns ``([status], state ok)``.
+        Not fused (gated, or a number not finite): :meth:`_aid` answers the sample instead —
+        the flush is done (a no-op again), the gate gives the same verdict on the same numbers,
+        and the reset after a long rejection and the non-finite count stay in one place."""
+        out = self._fast_out
+        fused, ok = kalman.fuse_scalar_core(self._core, self._qdiag, z, h, H, var, angular, self._gate[1],
+                                            self._dx, out, True, _MAX_SPEED_M_S)
+        if not fused:
+            try:
+                return self._aid(sample), self._state_ok()
+            except np.linalg.LinAlgError:
+                return [], self._state_ok()
+        y, s, nis = out.tolist()
+        return [self._attempt(sample.t_s, sample.KIND, (z,), (y,), (s,), nis, True)], ok
+
+    def _keep_depth(self, t_s: float, depth_m: float) -> None:
+        """The current stationary-detection window's first and latest depth (``_depth_win``)."""
+        self._depth_win = (self._depth_win[:2] if self._depth_win else [t_s, depth_m]) + [t_s, depth_m]
+
     def _take_rpm(self, sample) -> None:
         """Latest thrust: ``_rpm = (t, surge, sway, commanded surge, commanded sway, slow surge,
         slow sway)`` m/s.
@@ -1264,8 +1342,7 @@ class Estimator:
                                             sample.sigma_h_m)
             return [status]
         if kind == "depth" and self._mode == "ins":
-            d = float(meas.z[0])
-            self._depth_win = (self._depth_win[:2] if self._depth_win else [sample.t_s, d]) + [sample.t_s, d]
+            self._keep_depth(sample.t_s, float(meas.z[0]))
         status = self._fuse(meas, sample.t_s, kind)
         if kind == "dvl" and status.fused:
             self._t_dvl_fused = sample.t_s
@@ -1512,6 +1589,15 @@ class Estimator:
         # the clones' cross-covariances follow the flush and the update in the kernel
         nis, fused = kalman.fuse_core(self._core, self._qdiag, y, meas.H, meas.R, self._gate[m],
                                       self._dx, sdiag, self._mode == "ins")
+        return self._attempt(t_s, source, tuple(meas.z.tolist()), tuple(y.tolist()), tuple(sdiag.tolist()),
+                             nis, fused)
+
+    def _attempt(self, t_s: float, source: str, z: tuple, y: tuple, s_diag: tuple, nis: float,
+                 fused: bool) -> AidStatus:
+        """The status of an update attempt (``z``, ``y``, diag S as tuples of floats; ``nis``
+        and ``fused`` as :func:`~adaptnav.fusion.kalman.gated_update` returns them) and what
+        follows from it (after :meth:`_fuse`, and the compiled path :meth:`_fast_scalar`)."""
+        m = len(y)
         if fused:
             if source in self._motion_aids or (
                     source == "learned_velocity" and self._attitude_driven
@@ -1528,8 +1614,7 @@ class Estimator:
         else:
             self.rejected["non_finite"] += 1
             reason = "non_finite"
-        status = AidStatus(float(t_s), source, tuple(meas.z.tolist()), tuple(y.tolist()),
-                           tuple(sdiag.tolist()), float(nis) / self._gate[m], bool(fused), reason)
+        status = AidStatus(float(t_s), source, z, y, s_diag, float(nis) / self._gate[m], bool(fused), reason)
         if not self._replaying:
             self._monitor(status)
         return status

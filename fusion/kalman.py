@@ -375,3 +375,31 @@ def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
                 M[th + 1, j] = m1 + rz * m0 - rx * m2
                 M[th + 2, j] = m2 - ry * m0 + rx * m1
     return nis, fused
+
+
+@jit(cache=True)
+def fuse_scalar_core(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_speed_m_s):
+    """One scalar measurement on the core array, the estimator's whole per-sample numeric path
+    in one call: the innovation ``y = z − h`` (``h`` = h(x̂), wrapped to [−π, π) as
+    :func:`~adaptnav.fusion.frames.wrap_angle` does when ``angular``), :func:`fuse_core` with
+    the row ``H`` (1 × 18) and variance ``var``, then the guard :func:`core_ok`.
+
+    Why: depth and heading (a sample each every 0.1 s) paid ~20 µs of Python per sample
+    around ~1 µs of arithmetic, mostly numpy glue and three guarded kernel calls; their
+    measurement models stay the aid modules' (the trigonometry in numpy: numba's libm
+    rounds differently from numpy's SIMD functions). ``out`` ← ``(y, S, nis)``; returns
+    ``(fused, ok)``, ``ok`` as :func:`core_ok`.
+    """
+    y = z - h
+    if angular:
+        y = (y + np.pi) % (2.0 * np.pi) - np.pi
+    ys = np.empty(1)
+    ys[0] = y
+    R = np.empty((1, 1))
+    R[0, 0] = var
+    s_diag = np.empty(1)
+    nis, fused = fuse_core(core, qdiag, ys, H, R, gate, dx, s_diag, flush)
+    out[0] = y
+    out[1] = s_diag[0]
+    out[2] = nis
+    return fused, core_ok(core, max_speed_m_s)

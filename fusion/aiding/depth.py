@@ -38,10 +38,17 @@ def jacobian(x) -> np.ndarray:
     return H
 
 
+def depth_m(pressure_pa: float, water_density_kg_m3: float, atmospheric_pressure_pa: float) -> float:
+    """:func:`pressure_to_depth` of one pressure (Pa) as a float (m): the same operations on
+    the same floats without the array conversions (a depth every 0.1 s; also the estimator's
+    compiled depth path, :meth:`adaptnav.fusion.eskf.Estimator._fast_depth`)."""
+    return (float(pressure_pa) - atmospheric_pressure_pa) / (water_density_kg_m3 * GRAVITY_M_S2)
+
+
 def measure(sample, x, sigma_m, water_density_kg_m3, atmospheric_pressure_pa) -> Measurement:
-    # pressure_to_depth(), jacobian() and predict() written out: the same operations on the
-    # same floats without make()'s conversions (a depth every 0.1 s)
-    depth = (float(sample.pressure_pa) - atmospheric_pressure_pa) / (water_density_kg_m3 * GRAVITY_M_S2)
+    # jacobian() and predict() written out: the same operations on the same floats without
+    # make()'s conversions (a depth every 0.1 s)
+    depth = depth_m(sample.pressure_pa, water_density_kg_m3, atmospheric_pressure_pa)
     H = np.zeros((1, N_ERR))
     H[0, 2] = 1.0
     return Measurement(np.array([depth]), H, np.array([[sigma_m**2]], dtype=float), np.array([float(x[X_POS.start + 2])]),
@@ -161,12 +168,19 @@ class DepthNoise:
             self._memo.pop(self._memo_t.popleft(), None)
         return self.sigma_m
 
+    def variance_m2(self, t_s: float, depth_m: float) -> float:
+        """The variance (m²) to fuse the depth ``depth_m`` measured at ``t_s`` with: σ² of
+        :meth:`sigma_at`, the configured ``sigma_m²`` (as :func:`measure` makes it) while that is
+        the σ or the estimate is off."""
+        s = self.sigma_at(t_s, depth_m) if self.enabled else self.floor_m
+        return self.floor_m**2 if s == self.floor_m else s * s
+
     def adapt(self, meas: Measurement, t_s: float) -> Measurement:
-        """``meas`` (from :func:`measure`) with the depth noise σ of :meth:`sigma_at`."""
+        """``meas`` (from :func:`measure`) with the variance of :meth:`variance_m2`."""
         if not self.enabled:
             return meas
-        s = self.sigma_at(t_s, float(meas.z[0]))
-        return meas if s == self.floor_m else meas._replace(R=np.array([[s * s]]))
+        var = self.variance_m2(t_s, float(meas.z[0]))
+        return meas if var == float(meas.R[0, 0]) else meas._replace(R=np.array([[var]]))
 
     def report(self) -> dict:
         """What was used: the configured σ, the bound, the latest measured σ̂, the σ in use and

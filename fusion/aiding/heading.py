@@ -25,10 +25,12 @@ def jacobian(x) -> np.ndarray:
     return H
 
 
-def measure(sample, x, sigma_rad) -> Measurement:
-    # predict() and jacobian() from one attitude: the same operations on the same floats
-    # (R₀₀, R₁₀, R₂₀ as in common.dcm; yaw, pitch as in common.euler_of / euler_jacobian)
-    # without building R twice and the full Euler Jacobian (a heading every 0.1 s)
+def yaw_row(x) -> tuple:
+    """``(ψ, ∂ψ/∂δθ_x, ∂ψ/∂δθ_y)``: :func:`predict` and the attitude part of :func:`jacobian`
+    (``∂ψ/∂δθ_z`` = 1) from one attitude, the same operations on the same floats (R₀₀, R₁₀,
+    R₂₀ as in common.dcm; yaw, pitch as in common.euler_of / euler_jacobian) without building
+    R twice and the full Euler Jacobian (a heading every 0.1 s). numpy's trigonometry, also
+    for the estimator's compiled heading path (numba's libm rounds differently)."""
     w, a, b, c = x[X_Q].tolist()
     r00 = 1 - 2 * (b * b + c * c)
     r10 = 2 * (a * b + w * c)
@@ -37,8 +39,13 @@ def measure(sample, x, sigma_rad) -> Measurement:
     # np.clip(r20, -1, 1) without its overhead (NaN stays NaN)
     pitch = -np.arcsin(1.0 if r20 > 1.0 else (-1.0 if r20 < -1.0 else r20))
     tp = np.tan(pitch)
+    return yaw, np.cos(yaw) * tp, np.sin(yaw) * tp
+
+
+def measure(sample, x, sigma_rad) -> Measurement:
+    yaw, h_x, h_y = yaw_row(x)
     H = np.zeros((1, N_ERR))
-    H[0, ATT] = (np.cos(yaw) * tp, np.sin(yaw) * tp, 1.0)
+    H[0, ATT] = (h_x, h_y, 1.0)
     return Measurement(np.array([float(sample.yaw_rad)]), H, np.array([[sigma_rad**2]], dtype=float),
                        np.array([yaw]), _ANGULAR)
 
