@@ -114,9 +114,10 @@ DEFAULT_RATES_HZ = {"RAW_IMU": 2.0, "SCALED_IMU": 2.0, "SCALED_IMU2": 2.0, "SCAL
 
 def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, ugps_sigma_m: float = 1.0,
                      ugps_gap_s: tuple[float, float] = (math.inf, math.inf), dvl_period_s: float | None = None,
-                     dvl_sigma_m_s: float = 0.01, seed: int = 1) -> Path:
+                     dvl_sigma_m_s: float = 0.01, seed: int = 1, rates_hz: dict[str, float] | None = None) -> Path:
     """A copy of ``tlog`` as a ground station logs it at ArduSub's default stream rates
-    (:data:`DEFAULT_RATES_HZ`: each stream thinned on its receive stamps), optionally with an
+    (:data:`DEFAULT_RATES_HZ`, updated with ``rates_hz``: each stream thinned on its receive
+    stamps), optionally with an
     underwater GPS's fixes made from the simulator's truth — ``GPS_INPUT`` from system 255 (as
     BlueOS's UGPS extension sends it) every ``ugps_period_s`` while the truth is below 0.5 m,
     0.3 s after its epoch, ``ugps_sigma_m`` of white noise per axis, none within ``ugps_gap_s``
@@ -133,6 +134,7 @@ def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, 
     from adaptnav.fusion.frames import quat_to_dcm
 
     rng = np.random.default_rng(seed)
+    rates = {**DEFAULT_RATES_HZ, **(rates_hz or {})}
     ugps = mavlink2.MAVLink(None, 255, 0)  # BlueOS's extensions: system 255
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     last: dict[tuple, float] = {}
@@ -145,7 +147,7 @@ def at_default_rates(tlog: Path, out: Path, ugps_period_s: float | None = None, 
                     continue
                 t = msg._timestamp
                 t0 = t if t0 is None else t0
-                rate = DEFAULT_RATES_HZ.get(mtype)
+                rate = rates.get(mtype)
                 key = (mtype, msg.get_srcSystem(), msg.get_srcComponent())
                 if rate is not None and key in last and t - last[key] < 1.0 / rate - 1e-3:
                     continue
