@@ -199,3 +199,408 @@ def deep_shadow_rows(lev, row, near, far, deep_level):
                 out[q] = c - a
                 break
     return out
+
+
+@jit(cache=True)
+def _root(parent, a):
+    """Root of ``a`` in the union-find forest ``parent`` (paths halved on the way)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@jit(cache=True)
+def _join(parent, q, best):
+    """Merge the set of provisional label ``q`` (0: none) with the set rooted at ``best``
+    (0: none); returns the merged set's root, the smaller label (the earlier in raster order)."""
+    if q == 0:
+        return best
+    r = _root(parent, q)
+    if best == 0 or r == best:
+        return r
+    if r < best:
+        parent[best] = r
+        return r
+    parent[r] = best
+    return best
+
+
+@jit(cache=True)
+def label8(mask, lab):
+    """``scipy.ndimage.label(mask, structure=np.ones((3, 3)))`` into ``lab`` (int32, (R, C),
+    zeroed here): the 8-connected components of ``mask`` numbered 1…n in the raster order of
+    their first pixel, as scipy numbers them (its provisional labels merge into the smallest,
+    which is the component's first in raster order, and are then numbered in order). Returns n.
+
+    One raster pass with a union-find of provisional labels instead of scipy's line buffers
+    and merge table: the same integers (the tests compare them on random masks)."""
+    n_rows, n_cols = mask.shape
+    parent = np.empty(n_rows * n_cols // 2 + 2, np.int32)  # 8-connected: ≤ one provisional label per 2 px
+    n_prov = 0
+    for i in range(n_rows):
+        for k in range(n_cols):
+            if not mask[i, k]:
+                lab[i, k] = 0
+                continue
+            # the neighbours already visited: the row above (k − 1 … k + 1) and the left one
+            best = 0
+            if i > 0:
+                if k > 0:
+                    best = _join(parent, lab[i - 1, k - 1], best)
+                best = _join(parent, lab[i - 1, k], best)
+                if k + 1 < n_cols:
+                    best = _join(parent, lab[i - 1, k + 1], best)
+            if k > 0:
+                best = _join(parent, lab[i, k - 1], best)
+            if best == 0:
+                n_prov += 1
+                if n_prov >= parent.shape[0]:  # (cannot happen for 8-connectivity; kept safe)
+                    grown = np.empty(2 * parent.shape[0], np.int32)
+                    grown[:parent.shape[0]] = parent
+                    parent = grown
+                parent[n_prov] = n_prov
+                best = n_prov
+            lab[i, k] = best
+    final = np.zeros(n_prov + 1, np.int32)
+    n = 0
+    for i in range(n_rows):
+        for k in range(n_cols):
+            q = lab[i, k]
+            if q == 0:
+                continue
+            r = _root(parent, q)
+            if final[r] == 0:
+                n += 1
+                final[r] = n
+            lab[i, k] = final[r]
+    return n
+
+
+@jit(cache=True)
+def component_runs(lab, n, lev, runs, n_px, shadow_sum):
+    """:func:`adaptnav.sonar.objects._component_rows` of the labels ``lab`` (1…``n``): per
+    component and row (by label, then row) into ``runs`` (4, ≥ runs) int64 — label, row, first
+    column, one past the last — and per label (index 0 the background, left 0) the pixel count
+    ``n_px`` (int64, n + 1) and the sum of ``lev`` over its pixels ``shadow_sum`` (float64,
+    n + 1) added in raster order, as ``numpy.bincount`` adds them. Returns the number of runs."""
+    n_rows, n_cols = lab.shape
+    last_row = np.full(n + 1, -1, np.int64)
+    count = np.zeros(n + 1, np.int64)
+    for i in range(n_rows):
+        for k in range(n_cols):
+            q = lab[i, k]
+            if q != 0 and last_row[q] != i:
+                last_row[q] = i
+                count[q] += 1
+    start = np.zeros(n + 2, np.int64)  # each label's first run
+    for q in range(1, n + 1):
+        start[q + 1] = start[q] + count[q]
+    n_runs = start[n + 1]
+    nxt = start.copy()
+    last_row[:] = -1
+    for q in range(n + 1):
+        n_px[q] = 0
+        shadow_sum[q] = 0.0
+    for i in range(n_rows):
+        for k in range(n_cols):
+            q = lab[i, k]
+            if q == 0:
+                continue
+            n_px[q] += 1
+            shadow_sum[q] += np.float64(lev[i, k])
+            if last_row[q] != i:  # the component's first pixel on this row
+                last_row[q] = i
+                j = nxt[q]
+                nxt[q] = j + 1
+                runs[0, j] = q
+                runs[1, j] = i
+                runs[2, j] = k
+            runs[3, nxt[q] - 1] = k + 1
+    return n_runs
+
+
+@jit(cache=True)
+def _pairwise_leaf(a, lo, n):
+    """``pairwise_sum`` of numpy for ``n`` ≤ 128 values: below 8 one by one from 0, else eight
+    running sums added ((0+1)+(2+3))+((4+5)+(6+7)), then the rest one by one."""
+    if n < 8:
+        res = a[lo] - a[lo]  # 0 of a's type (the values summed here are finite levels)
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    stop = n - n % 8
+    while i < stop:
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@jit(cache=True)
+def _pairwise_sum(a, lo, n):
+    """``numpy.add.reduce`` of ``a[lo:lo + n]`` (contiguous, n ≥ 1) in ``a``'s dtype, in numpy's
+    order (``pairwise_sum``: :func:`_pairwise_leaf` up to 128 values, beyond it the two halves,
+    the first rounded down to a multiple of 8, added): the same bits as ``numpy.mean``'s sum.
+    Its recursion walked with a stack of its own: numba's on-disk cache of a recursive function
+    crashed the next process that loaded it."""
+    if n <= 128:
+        return _pairwise_leaf(a, lo, n)
+    f_lo = np.empty(64, np.int64)   # the frames: start, count, halves done (depth ≤ log2 n)
+    f_n = np.empty(64, np.int64)
+    f_done = np.empty(64, np.int64)
+    vals = np.empty(64, a.dtype)    # the sums of finished halves, innermost last
+    sp, vp = 1, 0
+    f_lo[0], f_n[0], f_done[0] = lo, n, 0
+    while sp > 0:
+        q = sp - 1
+        m = f_n[q]
+        if m <= 128:
+            vals[vp] = _pairwise_leaf(a, f_lo[q], m)
+            vp += 1
+            sp -= 1
+            continue
+        m2 = m // 2
+        m2 -= m2 % 8
+        if f_done[q] == 0:
+            f_done[q] = 1
+            f_lo[sp], f_n[sp], f_done[sp] = f_lo[q], m2, 0
+            sp += 1
+        elif f_done[q] == 1:
+            f_done[q] = 2
+            f_lo[sp], f_n[sp], f_done[sp] = f_lo[q] + m2, m - m2, 0
+            sp += 1
+        else:
+            vals[vp - 2] = vals[vp - 2] + vals[vp - 1]
+            vp -= 1
+            sp -= 1
+    return vals[0]
+
+
+@jit(cache=True)
+def _median_sorted_int(v, m):
+    """``numpy.median`` of the first ``m`` integers of ``v`` (sorted here, in place)."""
+    s = np.sort(v[:m])
+    return (np.float64(s[(m - 1) // 2]) + np.float64(s[m // 2])) / 2.0
+
+
+@jit(cache=True)
+def shadowed_measures(lev, lab, run_label, run_row, run_near, run_far, deep, hl_run, hl_lead, hl_level, todo,
+                      imeas, fmeas, sum32):
+    """The per-candidate measurements of :func:`adaptnav.sonar.objects._detect_shadowed` for the
+    components ``todo`` (labels, ascending), every number the Python loop took per candidate:
+
+    ``imeas`` (T, 5) int64: L — the deep shadow (px, largest over the object's own rows),
+    touches the image's end (0/1), first and last row of the object's span, the number of
+    rows averaged for its centre; ``fmeas`` (T, 6) float64: median near column of all the
+    component's rows, of its own rows, median leading edge, the sum of the centre's rows
+    (integers: exact in any order), the sum of the object's highlight levels (float64, in
+    ``numpy.mean``'s order) and their number; ``sum32`` (T,) float32: the sum of ``lev`` over
+    the component's pixels in raster order as ``numpy.mean`` adds a float32 array (pairwise).
+
+    ``run_*`` (:class:`adaptnav.sonar.objects._Runs`, by label then row), ``deep`` the deep
+    shadow per run, ``hl_*`` (:class:`adaptnav.sonar.objects._Highlights`; ``hl_run`` ascending).
+    The floating-point steps left (ranges, height, contrast, interpolation) stay in numpy."""
+    n_rows, n_cols = lev.shape
+    n_todo = todo.shape[0]
+    n_runs = run_label.shape[0]
+    n_hl = hl_run.shape[0]
+    # the highlight rows' labels (ascending, as hl_run is)
+    hl_label = np.empty(n_hl, np.int64)
+    for q in range(n_hl):
+        hl_label[q] = run_label[hl_run[q]]
+    # the candidates' pixels, gathered in raster order (each component's in its own slot)
+    count = np.zeros(n_todo + 1, np.int64)
+    first_run = np.empty(n_todo, np.int64)
+    stop_run = np.empty(n_todo, np.int64)
+    for t in range(n_todo):
+        first_run[t] = np.searchsorted(run_label, todo[t])
+        stop_run[t] = np.searchsorted(run_label, todo[t] + 1)
+        span = 0
+        for j in range(first_run[t], stop_run[t]):  # ≥ the component's pixels: its runs' spans
+            span += run_far[j] - run_near[j]
+        count[t + 1] = count[t] + span
+    px = np.empty(count[n_todo], np.float32)
+    fill = count[:n_todo].copy()
+    for t in range(n_todo):
+        k = todo[t]
+        r0, r1 = run_row[first_run[t]], run_row[stop_run[t] - 1]
+        c0, c1 = n_cols, 0
+        for j in range(first_run[t], stop_run[t]):
+            c0 = min(c0, run_near[j])
+            c1 = max(c1, run_far[j])
+        for i in range(r0, r1 + 1):  # its box in raster order, as lev[sl][lab[sl] == k]
+            for c in range(c0, c1):
+                if lab[i, c] == k:
+                    px[fill[t]] = lev[i, c]
+                    fill[t] += 1
+    for t in range(n_todo):
+        sum32[t] = _pairwise_sum(px, count[t], fill[t] - count[t])
+    buf = np.empty(max(n_runs, 1), np.int64)
+    vals = np.empty(max(n_hl, 1))
+    for t in range(n_todo):
+        k = todo[t]
+        a0, a1 = first_run[t], stop_run[t]
+        m = a1 - a0
+        for j in range(m):
+            buf[j] = run_near[a0 + j]
+        fmeas[t, 0] = _median_sorted_int(buf, m)
+        h0 = np.searchsorted(hl_label, k)
+        h1 = np.searchsorted(hl_label, k + 1)
+        # the run of highlight rows around the brightest (the first brightest), gaps ≤ 2 rows
+        best = h0
+        for q in range(h0 + 1, h1):
+            if hl_level[q] > hl_level[best]:
+                best = q
+        a, b = best, best
+        while a > h0 and run_row[hl_run[a]] - run_row[hl_run[a - 1]] <= 3:
+            a -= 1
+        while b < h1 - 1 and run_row[hl_run[b + 1]] - run_row[hl_run[b]] <= 3:
+            b += 1
+        top_row, bottom_row = run_row[hl_run[a]], run_row[hl_run[b]]
+        # the object's own rows: the component's rows beside them
+        m_own = 0
+        deep_max = 0
+        touches = 0
+        row_sum = 0.0
+        span0, span1 = top_row, bottom_row
+        first_own, last_own = -1, -1
+        for j in range(a0, a1):
+            r = run_row[j]
+            if r >= top_row - 1 and r <= bottom_row + 1:
+                buf[m_own] = run_near[j]
+                if m_own == 0 or deep[j] > deep_max:
+                    deep_max = deep[j]
+                if run_far[j] >= n_cols - 1:
+                    touches = 1
+                row_sum += np.float64(r)
+                if first_own < 0:
+                    first_own = r
+                last_own = r
+                m_own += 1
+        fmeas[t, 1] = _median_sorted_int(buf, m_own)
+        span0 = min(span0, first_own)
+        span1 = max(span1, last_own)
+        for q in range(a, b + 1):
+            buf[q - a] = hl_lead[q]
+            row_sum += np.float64(run_row[hl_run[q]])
+            vals[q - a] = np.float64(hl_level[q])
+        fmeas[t, 2] = _median_sorted_int(buf, b + 1 - a)
+        fmeas[t, 3] = row_sum
+        fmeas[t, 4] = _pairwise_sum(vals, 0, b + 1 - a)
+        fmeas[t, 5] = np.float64(b + 1 - a)
+        imeas[t, 0] = deep_max
+        imeas[t, 1] = touches
+        imeas[t, 2] = span0
+        imeas[t, 3] = span1
+        imeas[t, 4] = m_own + (b + 1 - a)
+
+
+
+@jit(cache=True)
+def shadow_candidates(lev, run_label, run_row, run_near, run_far, n_px, shadow_sum, deep, h_max_m, res_m,
+                      min_shadow_px, short_range_m, min_cols, short_cols, min_col0, hw, highlight_level, least,
+                      min_highlight_rows, min_height_m, hl_run, hl_lead, hl_level, todo, counts):
+    """The tests of :func:`adaptnav.sonar.objects._detect_shadowed` before its candidates are
+    measured, for every component at once — :func:`adaptnav.sonar.objects._shadow_candidates`,
+    :func:`~adaptnav.sonar.objects._highlights`, the contrast bound and
+    :func:`~adaptnav.sonar.objects._may_be_high` (their numpy versions are the reference):
+    the highlight rows into ``hl_run``, ``hl_lead``, ``hl_level`` (≥ the runs), the labels to
+    measure into ``todo`` (≥ the labels); ``counts`` ← (highlight rows, labels to measure).
+
+    ``h_max_m``: the highest finite altitude (NaN: none, every component may be high); the
+    thresholds compared as numpy compares them (a float32 image with a Python float: in float32)."""
+    n_cols = lev.shape[1]
+    n_runs = run_label.shape[0]
+    n_lab = n_px.shape[0] - 1
+    start = np.zeros(n_lab + 2, np.int64)  # each label's first run (every label 1…n has rows)
+    for j in range(n_runs):
+        start[run_label[j] + 1] = j + 1
+    for q in range(1, n_lab + 2):  # (labels are ascending: the last run of each, then filled forward)
+        if start[q] < start[q - 1]:
+            start[q] = start[q - 1]
+    lit_level = np.float32(highlight_level)
+    bright = np.float32(0.5 * (1.0 + highlight_level))
+    buf = np.empty(max(n_runs, 1), np.int64)
+    win = np.empty(max(hw, 1), np.float32)
+    n_hl = 0
+    n_todo = 0
+    for q in range(1, n_lab + 1):
+        a, b = start[q], start[q + 1]
+        m = b - a
+        longest = 0
+        for j in range(a, b):
+            buf[j - a] = run_near[j]
+            if j == a or run_far[j] - run_near[j] > longest:
+                longest = run_far[j] - run_near[j]
+        s = np.sort(buf[:m])
+        med = (np.float64(s[(m - 1) // 2]) + np.float64(s[m // 2])) / 2.0
+        short = med * res_m < short_range_m
+        if not (n_px[q] >= min_shadow_px and longest >= (short_cols if short else min_cols) and med >= min_col0):
+            continue
+        # its rows with a highlight in the hw columns before the shadow
+        first_hl = n_hl
+        top = -np.inf
+        for j in range(a, b):
+            cn = run_near[j]
+            if cn <= 0:  # a shadow from column 0 has nothing before it
+                continue
+            r = run_row[j]
+            best = 0
+            for t in range(hw):  # the window, columns cn − hw … cn − 1 (−inf before column 0)
+                c = cn - hw + t
+                win[t] = lev[r, c] if c >= 0 else np.float32(-np.inf)
+            for t in range(hw):  # numpy's argmax: the first NaN, else the first largest
+                if np.isnan(win[t]):
+                    best = t
+                    break
+                if win[t] > win[best]:
+                    best = t
+            v = win[best]
+            if not v > lit_level:
+                continue
+            jj = 0  # first bright column of the run of bright pixels up to the brightest
+            for t in range(best):
+                if not (win[t] > bright) or cn - hw + t < 0:
+                    jj = t + 1
+            hl_run[n_hl] = j
+            hl_lead[n_hl] = cn - hw + jj
+            hl_level[n_hl] = v
+            n_hl += 1
+            if np.float64(v) > top:
+                top = np.float64(v)
+        if n_hl - first_hl < max(min_highlight_rows, 1):
+            continue
+        # the contrast's upper bound: the brightest highlight over the whole shadow's mean
+        mean = shadow_sum[q] / max(n_px[q], 1)
+        if not (top / max(mean, 1e-3) >= least * (1 - 1e-6)):
+            continue
+        # the height's upper bound (from the highest altitude, the deepest shadow, the nearest column)
+        if not np.isnan(h_max_m):
+            d_max, near_min, far_max = deep[a], run_near[a], run_far[a]
+            for j in range(a + 1, b):
+                d_max = max(d_max, deep[j])
+                near_min = min(near_min, run_near[j])
+                far_max = max(far_max, run_far[j])
+            L = d_max * res_m
+            ub = h_max_m * L / ((near_min + 0.5) * res_m + L)
+            if not (far_max >= n_cols - 1 or not (ub < min_height_m * (1.0 - 1e-9))):
+                continue
+        todo[n_todo] = q
+        n_todo += 1
+    counts[0] = n_hl
+    counts[1] = n_todo

@@ -469,10 +469,10 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     ncol = min(int(config.near_range_m / res), lev.shape[1])
     if ncol <= 0:
         return []
-    from scipy.ndimage import find_objects, label
+    from scipy.ndimage import find_objects
 
     sub = lev[:, :ncol + int(2.0 / res)]
-    lab, n = label(sub > config.near_highlight_level, structure=np.ones((3, 3), bool))
+    lab, n = _label8(sub > config.near_highlight_level)
     big = np.bincount(lab.ravel(), minlength=n + 1) >= config.near_min_px  # (most blobs are speckle)
     out = []
     for k, sl in enumerate(find_objects(lab), start=1):
@@ -516,11 +516,18 @@ def _detect_side(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     return near + _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config)
 
 
-def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
-    from scipy.ndimage import label
+def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config,
+                     compiled: bool = True) -> list[ObjectSighting]:
+    """Shadowed objects on one side's local level ``lev`` (columns outwards); ``compiled``
+    False takes the reference steps the compiled ones replaced: scipy's labels, the components'
+    rows, tests and deep shadows in numpy, the candidates measured one by one in Python
+    (:func:`_shadowed_loop`)."""
+    if compiled:
+        lab, n = _label8(lev < config.shadow_level)
+    else:
+        from scipy.ndimage import label
 
-    shadow = lev < config.shadow_level
-    lab, n = label(shadow, structure=np.ones((3, 3), bool))
+        lab, n = label(lev < config.shadow_level, structure=np.ones((3, 3), bool))
     if n == 0:
         return []
     hw = max(int(round(config.highlight_window_m / res)), 2)
@@ -530,22 +537,110 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     # the tests every component must pass before its attributes are measured, for all
     # components at once (a side has hundreds of speckle components; testing them one by one
     # in Python was most of the detector's cost): size, shadow length, range, a highlight
-    runs, n_px, shadow_sum = _component_rows(lab, n, lev)
+    runs, n_px, shadow_sum = (_component_rows if compiled else _component_rows_numpy)(lab, n, lev)
+    least = min(config.short_min_contrast, config.compact_min_contrast, config.min_contrast)
+    deep = (_deep_shadow_rows if compiled else _deep_shadow_rows_scan)(lev, runs, config.deep_shadow_level)
+    out = []
+    kernel_ok = compiled and lev.dtype == np.float32 and lev.flags.aligned and lev.flags.writeable \
+        and lab.dtype == np.int32
+    if kernel_ok:
+        # the tests below, all in one compiled pass (they were a tenth of the detector's CPU)
+        hl, todo = _candidates_compiled(lev, runs, n_px, shadow_sum, deep, alt_per_ping, res, config, min_cols,
+                                        short_cols, min_col0, hw, least)
+        hl_label = runs.label[hl.run]
+    else:
+        hl, hl_label, todo = _candidates_numpy(lev, runs, n, n_px, shadow_sum, deep, alt_per_ping, res, config,
+                                               min_cols, short_cols, min_col0, hw, least)
+    if todo.size == 0:
+        return out
+    if not (kernel_ok and hl.level.dtype == np.float32):
+        return _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, along_res, rows, wf,
+                              alt_per_ping, config)
+    m = _shadowed_measures(lev, lab, runs, n_px, deep, hl, todo)
+    # the floating-point steps of the loop this replaced (_shadowed_loop, the reference), for
+    # all candidates at once: numpy's element-wise arithmetic and interpolation are its scalars'
+    short = m.med_near_all * res < config.short_shadow_range_m
+    g_top = (m.med_near_own + 0.5) * res
+    g_lead = (m.med_lead + 0.5) * res
+    L = m.deep_px.astype(float) * res
+    rc = m.row_sum / m.n_rows_centre
+    ping = np.interp(rc, rows, wf.ping_index)
+    H = np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        height = np.where(m.touches_end, math.nan, H * L / (g_top + L))
+        shadow_mean = (m.shadow_sum32.astype(float) / m.n_px).astype(np.float32).astype(float)  # numpy.mean's steps
+        contrast = (m.hl_sum / m.hl_count) / np.maximum(shadow_mean, 1e-3)
+        compact = g_top - g_lead <= config.compact_width_m
+        need = np.where(short, config.short_min_contrast,
+                        np.where(compact, config.compact_min_contrast, config.min_contrast))
+        keep = np.isfinite(H) & (H > 0) & ~(height < config.min_height_m) & ~(contrast < need)  # (NaN height: unknown, kept)
+    kept = np.flatnonzero(keep)
+    if kept.size == 0:
+        return out
+    if math.isfinite(along_res):
+        length = np.interp(m.span1[kept] + 0.5, rows, along) - np.interp(m.span0[kept] - 0.5, rows, along)
+    else:
+        length = np.full(kept.size, math.nan)
+    t_s = np.interp(rc[kept], rows, wf.t_s)
+    heading = np.interp(rc[kept], rows, np.unwrap(wf.heading_rad))
+    for q, i in enumerate(kept.tolist()):
+        gt, gl = float(g_top[i]), float(g_lead[i])
+        out.append(ObjectSighting(
+            t_s=float(t_s[q]), side=side,
+            ground_range_m=gl + config.top_weight * (gt - gl), height_m=float(height[i]), shadow_length_m=float(L[i]),
+            length_along_m=abs(float(length[q])), width_across_m=max(gt - gl, res),
+            contrast=float(contrast[i]), altitude_m=float(H[i]), row=float(rc[i]),
+            heading_rad=float(heading[q])))
+    return out
+
+
+def _candidates_numpy(lev, runs, n, n_px, shadow_sum, deep, alt_per_ping, res, config, min_cols, short_cols,
+                      min_col0, hw, least):
+    """The components worth measuring (:func:`_detect_shadowed`) in numpy (the reference of
+    :func:`adaptnav.sonar._kernels.shadow_candidates`): the highlight rows, their labels, the
+    labels to measure."""
     cand = _shadow_candidates(n_px, n, runs, config, res, min_cols, short_cols, min_col0)
     hl = _highlights(lev, runs, cand, hw, config.highlight_level)
-    out = []
     hl_label = runs.label[hl.run]
     # an upper bound of each component's contrast, all at once (its brightest highlight over the
-    # mean of the whole shadow, which the test below divides by): most components are speckle,
+    # mean of the whole shadow, which the measurements divide by): most components are speckle,
     # and measuring them one by one was most of the cost on the unfiltered image
     top = np.zeros(n + 1)
     np.maximum.at(top, hl_label, hl.level.astype(float))
     bound = top / np.maximum(shadow_sum / np.maximum(n_px, 1), 1e-3)
-    least = min(config.short_min_contrast, config.compact_min_contrast, config.min_contrast)
     rows_ok = np.bincount(hl_label, minlength=n + 1) >= max(config.min_highlight_rows, 1)
     todo = np.flatnonzero(rows_ok & (bound >= least * (1 - 1e-6)))
-    deep = _deep_shadow_rows(lev, runs, config.deep_shadow_level)
     todo = todo[_may_be_high(todo, runs, deep, lev.shape[1], alt_per_ping, res, config.min_height_m)]
+    return hl, hl_label, todo
+
+
+def _candidates_compiled(lev, runs, n_px, shadow_sum, deep, alt_per_ping, res, config, min_cols, short_cols,
+                         min_col0, hw, least) -> tuple["_Highlights", np.ndarray]:
+    """:func:`_candidates_numpy` by :func:`adaptnav.sonar._kernels.shadow_candidates`: the
+    highlight rows and the labels to measure."""
+    from adaptnav.sonar import _kernels
+
+    alt = np.asarray(alt_per_ping, float)
+    fin = np.isfinite(alt)
+    h_max = float(alt[fin].max()) if fin.any() else math.nan
+    m = runs.label.size
+    hl_run, hl_lead, hl_level = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.float32)
+    todo, counts = np.empty(n_px.size, np.int64), np.zeros(2, np.int64)
+    i64 = [np.ascontiguousarray(v, np.int64) for v in (runs.label, runs.row, runs.near, runs.far, n_px)]
+    _kernels.shadow_candidates(lev, *i64, np.ascontiguousarray(shadow_sum, float), np.ascontiguousarray(deep, np.int64),
+                               h_max, float(res), int(config.min_shadow_px), float(config.short_shadow_range_m),
+                               int(min_cols), int(short_cols), int(min_col0), int(hw), float(config.highlight_level),
+                               float(least), int(config.min_highlight_rows), float(config.min_height_m),
+                               hl_run, hl_lead, hl_level, todo, counts)
+    k, t = int(counts[0]), int(counts[1])
+    return _Highlights(hl_run[:k], hl_lead[:k], hl_level[:k]), todo[:t]
+
+
+def _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, along_res, rows, wf, alt_per_ping,
+                   config) -> list[ObjectSighting]:
+    """:func:`_detect_shadowed`'s candidates ``todo`` measured and tested one by one in Python
+    (the reference of the compiled measurements and the vectorised tests)."""
+    out = []
     heading_u = None  # np.unwrap(wf.heading_rad), once the first sighting needs it
     for k in todo:
         mine = slice(*np.searchsorted(runs.label, [k, k + 1]))
@@ -591,6 +686,42 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
             contrast=contrast, altitude_m=H, row=rc,
             heading_rad=float(np.interp(rc, rows, heading_u))))
     return out
+
+
+class _Measures(NamedTuple):
+    """Per candidate component (:func:`_shadowed_measures`), what :func:`_detect_shadowed`
+    tests and reports; the floating-point sums in numpy's order."""
+
+    deep_px: np.ndarray       # deep shadow over the object's own rows (px)
+    touches_end: np.ndarray   # a run reaches the image's last column
+    span0: np.ndarray         # first and last row of the object (its highlight and own rows)
+    span1: np.ndarray
+    n_rows_centre: np.ndarray  # rows averaged for its centre (highlight rows, then own rows)
+    med_near_all: np.ndarray  # median near column over all the component's rows
+    med_near_own: np.ndarray  # … over its own rows (the shadow's start)
+    med_lead: np.ndarray      # median leading edge of its highlight rows
+    row_sum: np.ndarray       # sum of the centre's rows
+    hl_sum: np.ndarray        # sum of the highlight levels (float64)
+    hl_count: np.ndarray
+    shadow_sum32: np.ndarray  # sum of lev over the component (float32, pairwise)
+    n_px: np.ndarray          # its pixels
+
+
+def _shadowed_measures(lev, lab, runs: "_Runs", n_px, deep, hl: "_Highlights", todo) -> _Measures:
+    """The per-candidate measurements for the components ``todo`` by
+    :func:`adaptnav.sonar._kernels.shadowed_measures` (the per-candidate Python it replaces,
+    :func:`_shadowed_loop`, was a third of the detector's CPU: ~2000 candidates per 600 s of
+    survey)."""
+    from adaptnav.sonar import _kernels
+
+    n = todo.size
+    imeas, fmeas, sum32 = np.empty((n, 5), np.int64), np.empty((n, 6)), np.empty(n, np.float32)
+    i64 = [np.ascontiguousarray(v, np.int64) for v in (runs.label, runs.row, runs.near, runs.far, deep, hl.run, hl.lead)]
+    _kernels.shadowed_measures(lev, np.ascontiguousarray(lab), *i64, np.ascontiguousarray(hl.level),
+                               np.ascontiguousarray(todo, np.int64), imeas, fmeas, sum32)
+    return _Measures(imeas[:, 0], imeas[:, 1].astype(bool), imeas[:, 2], imeas[:, 3], imeas[:, 4],
+                     fmeas[:, 0], fmeas[:, 1], fmeas[:, 2], fmeas[:, 3], fmeas[:, 4], fmeas[:, 5], sum32,
+                     np.asarray(n_px)[todo])
 
 
 def _deep_shadow_rows(lev: np.ndarray, runs: "_Runs", deep_level: float) -> np.ndarray:
@@ -663,12 +794,43 @@ class _Runs(NamedTuple):
     far: np.ndarray     # one past its last column on that row
 
 
+def _label8(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """``scipy.ndimage.label(mask, structure=np.ones((3, 3)))``: the same labels (int32) and
+    count, by :func:`adaptnav.sonar._kernels.label8` for a 2-D boolean mask (scipy's line
+    buffers were ~8 % of the detector's CPU, a tenth of a millisecond per side and image)."""
+    if mask.ndim == 2 and mask.dtype == np.bool_ and mask.size:
+        from adaptnav.sonar import _kernels
+
+        lab = np.empty(mask.shape, np.int32)
+        n = int(_kernels.label8(np.ascontiguousarray(mask), lab))
+        return lab, n
+    from scipy.ndimage import label
+
+    return label(mask, structure=np.ones((3, 3), bool))
+
+
 def _component_rows(lab: np.ndarray, n: int, lev: np.ndarray) -> tuple[_Runs, np.ndarray, np.ndarray]:
     """Per component and row, its first and one-past-last column (:class:`_Runs`); the pixel
     count and the sum of ``lev`` of every component (index = label; entry 0, the background,
     is 0). The sums add each component's pixels in raster order, as ``numpy.bincount`` over the
-    whole image does, from the labelled pixels only (the image's bincounts were ~7 % of the
-    calibrator's CPU)."""
+    whole image does. By :func:`adaptnav.sonar._kernels.component_runs` (two raster passes; the
+    numpy version below, its reference, sorted every labelled pixel: ~10 % of the detector's
+    CPU) for int32 labels and a float32 ``lev`` of the same shape."""
+    if lab.ndim == 2 and lab.dtype == np.int32 and lev.dtype == np.float32 and lev.shape == lab.shape \
+            and lev.flags.aligned and lev.flags.writeable:
+        from adaptnav.sonar import _kernels
+
+        runs = np.empty((4, lab.size), np.int64)  # ≤ one run per pixel; pages touched only where written
+        n_px = np.empty(n + 1, np.int64)
+        shadow_sum = np.empty(n + 1)
+        m = int(_kernels.component_runs(np.ascontiguousarray(lab), int(n), lev, runs, n_px, shadow_sum))
+        return _Runs(runs[0, :m], runs[1, :m], runs[2, :m], runs[3, :m]), n_px, shadow_sum
+    return _component_rows_numpy(lab, n, lev)
+
+
+def _component_rows_numpy(lab: np.ndarray, n: int, lev: np.ndarray) -> tuple[_Runs, np.ndarray, np.ndarray]:
+    """:func:`_component_rows` in numpy (the compiled kernel's reference): the labelled pixels
+    sorted by label, raster order kept within."""
     flat = np.flatnonzero(lab)
     ll = lab.ravel()[flat]
     rr, cc = np.divmod(flat, lab.shape[1])

@@ -49,17 +49,37 @@ def _exercise_calibration_kernels() -> None:
 
 def _exercise_sonar_kernels() -> None:
     """The side-scan object detector's kernels (the calibrator's child runs them on every
-    block of pings): a small image through :func:`adaptnav.sonar.objects.local_level`."""
+    block of pings): a small image with object-like highlights and shadows through
+    :func:`adaptnav.sonar.objects.local_level` and both sides' shadow and near-nadir detection
+    (labels, runs, deep shadow and the candidates' measurements, with thresholds low enough
+    that candidates reach them)."""
+    from dataclasses import replace
+
     import numpy as np
 
-    from adaptnav.sonar.objects import ObjectDetectorConfig, _deep_shadow_rows, _Runs, local_level
+    from adaptnav.sonar.objects import (ObjectDetectorConfig, _deep_shadow_rows, _detect_near, _detect_shadowed,
+                                        _Runs, local_level)
+    from adaptnav.sonar.waterfall import Waterfall
 
-    image = np.random.default_rng(0).random((64, 128)).astype(np.float32)
-    lev = local_level(image, 0.1, 0.15, ObjectDetectorConfig(), {})
+    rng = np.random.default_rng(0)
+    rows, w = 64, 128
+    image = rng.gamma(4.0, 0.25, (rows, 2 * w)).astype(np.float32)
+    for r in range(4, rows - 8, 9):  # a lit face then its shadow, on both sides
+        for c in (w + 30 + r, w - 31 - r):
+            image[r:r + 4, c:c + 3] *= 6.0
+            image[r:r + 4, c + 3:c + 15] *= 0.05
+    config = replace(ObjectDetectorConfig(), min_contrast=1.0, compact_min_contrast=1.0, short_min_contrast=1.0,
+                     min_height_m=0.0)
+    lev = local_level(image, 0.1, 0.15, config, {})
+    wf = Waterfall(image, 0.1, 0.15, np.arange(rows) * 0.1, np.arange(rows) * 0.15, np.zeros(rows),
+                   np.arange(rows, dtype=float), np.full((rows, 2), 8.0))
+    args = (0.1, wf.along_m, 0.15, np.arange(rows, dtype=float), wf, wf.altitude_m[:, 0], config)
     # a side of the image as the detector takes it (columns outward from the nadir: strided)
     runs = _Runs(np.array([1, 2]), np.array([3, 5]), np.array([4, 10]), np.array([30, 40]))
-    for side in (lev[:, 64:], lev[:, 63::-1]):
-        _deep_shadow_rows(side, runs, 0.3)
+    for side, sub in (("starboard", lev[:, w:]), ("port", lev[:, w - 1::-1])):
+        _deep_shadow_rows(sub, runs, 0.3)
+        _detect_shadowed(sub, side, *args)
+        _detect_near(sub, side, *args)
 
 
 def run(args):
