@@ -10,7 +10,9 @@ update, error injection and covariance reset, one :class:`~fusion.status.AidStat
 per attempt. Depth and heading on time in INS mode (the commonest samples after the IMU's)
 take one compiled call for the innovation, update, injection and the state guard
 (:meth:`Estimator._fast_scalar`) with their aid modules' own models: the same numbers; the
-general path answers whatever else comes (gated, late, not finite, at a lever arm).
+general path answers whatever else comes (gated, late, not finite, at a lever arm). So does
+the DVL's bottom track with lock (:meth:`Estimator._fast_dvl`, three rows), which answers its
+gated samples itself (:meth:`Estimator._after_fuse`, shared with the general path).
 
 Model-aided INS after Hegrenaes & Hallingstad (IEEE JOE 2011): the learned motion
 model's surge ``k_speed k_V f(rpm)`` (seed §2.1, :mod:`adaptnav.fusion.aiding.learned_velocity`)
@@ -74,7 +76,7 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
     quat_to_euler, rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import SENSORS, DepthSample, HeadingSample, InertialVelocitySample, is_finite
+from .samples import SENSORS, DepthSample, DvlSample, HeadingSample, InertialVelocitySample, is_finite
 from .state import (ACC_F, ACC_OMEGA, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW, VEL,
                     X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -213,7 +215,7 @@ class Estimator:
         l_imu = np.asarray(config.imu.lever_arm_b_m, dtype=float)
         if np.any(l_imu):
             dvl_cfg, dvl_setup = self._aid_cfg["dvl"]
-            self._aid_cfg["dvl"] = (dvl_cfg, dvl_setup._replace(lever_b=dvl_setup.lever_b - l_imu))
+            self._aid_cfg["dvl"] = (dvl_cfg, dvl_setup.with_lever(dvl_setup.lever_b - l_imu))
         self._arm = {kind: np.asarray(getattr(config, kind).lever_arm_b_m, dtype=float) - l_imu
                      for kind in ("gnss", "usbl", "depth")}
         self._arm = {k: a for k, a in self._arm.items() if np.any(a)}
@@ -222,12 +224,15 @@ class Estimator:
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
-        # the compiled path of the commonest aids (:meth:`_fast_scalar`): per sample type, where
-        # its aid is enabled and measured at the IMU (a lever arm: the general path); the
-        # depth's Jacobian row is constant, the heading's attitude part is filled in per sample
+        # the compiled path of the commonest aids (:meth:`_fast_scalar`, :meth:`_fast_dvl`): per
+        # sample type, where its aid is enabled and measured at the IMU (a lever arm: the general
+        # path; the DVL's arm is in its own model); the depth's Jacobian row is constant, the
+        # heading's attitude part is filled in per sample
         self._fast = {t: f for t, kind, f in ((DepthSample, "depth", self._fast_depth),
-                                              (HeadingSample, "heading", self._fast_heading))
+                                              (HeadingSample, "heading", self._fast_heading),
+                                              (DvlSample, "dvl", self._fast_dvl))
                       if getattr(config, kind).enabled and kind not in self._arm}
+        self._fast_y3 = np.zeros(3)  # the DVL's innovation (:meth:`_fast_dvl`)
         self._h_depth = aid_depth.jacobian(None)
         self._h_heading = np.zeros((1, N_ERR))
         self._h_heading[0, ATT.start + 2] = 1.0
@@ -750,6 +755,37 @@ class Estimator:
         if done is not None:
             self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)  # fused: the run ends
         return done
+
+    def _fast_dvl(self, sample) -> tuple[list[AidStatus], bool] | None:
+        """A bottom-track DVL sample with lock on time in INS mode: :meth:`_aid`'s steps with the
+        aid's own model (:func:`~adaptnav.fusion.aiding.dvl._measure`, calibration included),
+        then the innovation, update, injection and state guard in one compiled call
+        (:func:`~adaptnav.fusion.kalman.fuse_vector_core`) and :meth:`_after_fuse`. Unlike the
+        scalar aids a sample not fused is not handed back (measuring it again would count it
+        twice in the calibration's straight legs): :meth:`_after_fuse` answers it here, as
+        :meth:`_aid` would. Water track, no lock, a velocity not a tuple of three finite floats
+        (what :func:`~adaptnav.fusion.samples.is_finite` checks of a DVL sample), late: the
+        general path."""
+        vel = sample.vel_d_m_s
+        if (not sample.valid or sample.water_track or type(vel) is not tuple or len(vel) != 3
+                or not (math.isfinite(vel[0]) and math.isfinite(vel[1]) and math.isfinite(vel[2]))
+                or not self._fast_taken(sample, 0.0)):
+            return None
+        aid = AIDS["dvl"]
+        config, setup = self._aid_cfg["dvl"]
+        self._dvl_lock(sample.t_s)
+        meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
+        y, sdiag = self._fast_y3, self._sdiag[:3]
+        try:
+            nis, fused, ok = kalman.fuse_vector_core(self._core, self._qdiag, meas.z, meas.h, meas.H, meas.R,
+                                                     self._gate[3], self._dx, y, sdiag, True, _MAX_SPEED_M_S)
+            status = self._attempt(sample.t_s, "dvl", tuple(meas.z.tolist()), tuple(y.tolist()),
+                                   tuple(sdiag.tolist()), nis, fused)
+            out = self._after_fuse(sample, aid, config, setup, meas, status)
+        except np.linalg.LinAlgError:
+            return [], self._state_ok()
+        # a reset after a long rejection changed the state since the guard
+        return out, ok if fused else self._state_ok()
 
     def _fast_taken(self, sample, value: float) -> bool:
         """The sample's time and ``value`` finite and on time: then recorded for re-fusion, as
@@ -1326,8 +1362,7 @@ class Estimator:
                 and config.with_navigation_grade != "fuse":
             return [self._ins_class_heading(sample, config)]
         if kind == "dvl" and sample.valid and not getattr(sample, "water_track", False):
-            self._t_dvl_lock = float(sample.t_s)  # a DVL vehicle: k_speed walks slowly from now on
-            self._set_k_speed_walk(True)
+            self._dvl_lock(sample.t_s)
         meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
         if meas is None or isinstance(meas, str):
             return [rejected(sample.t_s, kind, meas or aid.none_reason)]
@@ -1343,7 +1378,12 @@ class Estimator:
             return [status]
         if kind == "depth" and self._mode == "ins":
             self._keep_depth(sample.t_s, float(meas.z[0]))
-        status = self._fuse(meas, sample.t_s, kind)
+        return self._after_fuse(sample, aid, config, setup, meas, self._fuse(meas, sample.t_s, kind))
+
+    def _after_fuse(self, sample, aid, config, setup, meas: Measurement, status: AidStatus) -> list[AidStatus]:
+        """What follows an attempt to fuse ``meas`` of ``sample`` (:meth:`_aid`, and the DVL's
+        compiled path :meth:`_fast_dvl`): a reset after a long rejection, then the attempt again."""
+        kind = sample.KIND
         if kind == "dvl" and status.fused:
             self._t_dvl_fused = sample.t_s
         if self._mode == "ins":
@@ -1472,6 +1512,11 @@ class Estimator:
         self._P[:, VEL] = 0.0
         self._P[VEL, VEL] = Hv_pinv @ meas.R @ Hv_pinv.T + np.eye(3) * 1e-6
         self._after_reset("velocity", status.source, status.t_s)
+
+    def _dvl_lock(self, t_s: float) -> None:
+        """A bottom-track sample with lock: a DVL vehicle, k_speed walks slowly from now on."""
+        self._t_dvl_lock = float(t_s)
+        self._set_k_speed_walk(True)
 
     def _set_k_speed_walk(self, dvl_lock: bool) -> None:
         """k_speed's random walk: slow once the DVL has had lock (``dvl.k_speed_rw_rthz``)."""

@@ -403,3 +403,19 @@ def fuse_scalar_core(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, m
     out[1] = s_diag[0]
     out[2] = nis
     return fused, core_ok(core, max_speed_m_s)
+
+
+@jit(cache=True)
+def fuse_vector_core(core, qdiag, z, h, H, R, gate, dx, y_out, s_diag_out, flush, max_speed_m_s):
+    """A measurement of a few rows without angular components (the DVL's three) on the core
+    array in one call: ``y = z − h`` (``h`` = h(x̂)) into ``y_out``, :func:`fuse_core` with
+    ``H`` (m × 18) and ``R`` (m × m), then the guard :func:`core_ok`.
+
+    Why: the vector sibling of :func:`fuse_scalar_core` for the DVL (a sample every 0.2 s),
+    whose general path paid the innovation, the guard and their numpy glue in Python; the
+    elementwise subtraction rounds as numpy's. Returns ``(nis, fused, ok)``.
+    """
+    for i in range(y_out.shape[0]):
+        y_out[i] = z[i] - h[i]
+    nis, fused = fuse_core(core, qdiag, y_out, H, R, gate, dx, s_diag_out, flush)
+    return nis, fused, core_ok(core, max_speed_m_s)

@@ -66,7 +66,7 @@ import numpy as np
 from ..frames import euler_to_quat, quat_to_dcm
 from ..config import DvlConfig
 from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
-from .common import AidContext, AidSource, Measurement, dcm, make, skew
+from .common import _NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
 
 
 class StraightSegment(NamedTuple):
@@ -210,12 +210,15 @@ class DvlCalibration:
         self.segments_rejected = 0
         self._t_theta: float | None = None  # time of the last straight-leg update (current walk)
         self._fix: tuple[float, np.ndarray, float] | None = None  # (t, NE, σ)
-        self._track = np.zeros(2)     # Σ R_nd v_m Δt since the last fix (n frame, N/E)
-        self._applied = np.zeros(2)   # Σ H(d) θ̂ at the time: the correction the filter applied
+        # Σ R_nd v_m Δt since the last fix (n frame, N/E, m) and Σ H(d) θ̂ at the time (the
+        # correction the filter applied): Python floats, added to per DVL sample (the same
+        # IEEE additions as the (2,) arrays they were, without numpy's per-call cost)
+        self._track_n = self._track_e = 0.0
+        self._applied_n = self._applied_e = 0.0
         self._covered_s = 0.0
         self._last_t: float | None = None
-        self._last_vel_n: np.ndarray | None = None
-        self._cov_ne_memo: tuple | None = None  # ((track N, track E, P), position_cov_ne)
+        self._last_vel_ne: tuple[float, float] | None = None  # the last sample's N/E velocity (m/s)
+        self._cov_ne_memo: tuple | None = None  # (track N, track E, P, position_cov_ne)
 
     def report(self) -> dict:
         """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs and straight-leg
@@ -244,23 +247,28 @@ class DvlCalibration:
         """
         if self._fix is None:
             return np.zeros((2, 2))
-        D = self._track
+        d0, d1 = self._track_n, self._track_e
         # asked with every published state and side-scan ping, changed by DVL samples and fixes
         # only: kept with what it was computed from (P is replaced, never changed in place; the
         # reference kept means a new P cannot take its identity)
-        key = (float(D[0]), float(D[1]), self.P)
         memo = self._cov_ne_memo
-        if memo is None or memo[0][0] != key[0] or memo[0][1] != key[1] or memo[0][2] is not key[2]:
-            H = np.array([[-D[0], -D[1]], [-D[1], D[0]]])
-            k = H @ self.theta[:2] - self._applied
-            memo = self._cov_ne_memo = (key, H @ self.P[:2, :2] @ H.T + np.outer(k, k))
-        return memo[1].copy()
+        if memo is None or memo[0] != d0 or memo[1] != d1 or memo[2] is not self.P:
+            H = np.array([[-d0, -d1], [-d1, d0]])
+            k0, k1 = (H @ self.theta[:2]).tolist()
+            k0 -= self._applied_n
+            k1 -= self._applied_e
+            # + k kᵀ: np.outer's products, as floats
+            kk = np.array([[k0 * k0, k0 * k1], [k1 * k0, k1 * k1]])
+            memo = self._cov_ne_memo = (d0, d1, self.P, H @ self.P[:2, :2] @ H.T + kk)
+        return memo[3].copy()
 
-    def correct(self, vel_d_m_s) -> np.ndarray:
-        """The measured head velocity with the estimated scale and misalignment removed."""
-        return np.array(correct_velocity(vel_d_m_s, float(self.theta[0]), float(self.theta[1])))
+    def correct(self, vel_d_m_s) -> tuple[float, float, float]:
+        """The measured head velocity with the estimated scale and misalignment removed
+        (floats: :func:`measure` takes them as the measurement)."""
+        theta = self.theta
+        return correct_velocity(vel_d_m_s, float(theta[0]), float(theta[1]))
 
-    def on_dvl(self, t_s: float, vel_n_m_s: np.ndarray | None) -> None:
+    def on_dvl(self, t_s: float, vel_n_m_s) -> None:
         """A DVL sample at ``t_s``: its *uncorrected* velocity rotated to n (None: no lock).
 
         The track integrates the trapezoid between consecutive samples with lock, across
@@ -268,21 +276,24 @@ class DvlCalibration:
         """
         if vel_n_m_s is None or self._fix is None or (self._last_t is not None and t_s <= self._last_t):
             return  # no lock, before the first fix, or re-fused history (late measurements)
-        v = np.asarray(vel_n_m_s, dtype=float)
+        v0, v1 = float(vel_n_m_s[0]), float(vel_n_m_s[1])
         if self._last_t is not None:
             dt = t_s - self._last_t
             if dt <= self._BRIDGE_S:
-                self._add_track(0.5 * (self._last_vel_n[:2] + v[:2]) * dt)
+                l0, l1 = self._last_vel_ne
+                self._add_track(0.5 * (l0 + v0) * dt, 0.5 * (l1 + v1) * dt)
                 self._covered_s += dt
         self._last_t = t_s
-        self._last_vel_n = v
+        self._last_vel_ne = (v0, v1)
 
-    def _add_track(self, d: np.ndarray) -> None:
-        self._track += d
-        s, psi = float(self.theta[0]), float(self.theta[1])
-        d0, d1 = float(d[0]), float(d[1])
-        self._applied[0] += -s * d0 - psi * d1
-        self._applied[1] += -s * d1 + psi * d0
+    def _add_track(self, d0: float, d1: float) -> None:
+        """``d`` (m, N/E) onto the track, and what the current estimate corrected of it."""
+        self._track_n += d0
+        self._track_e += d1
+        theta = self.theta
+        s, psi = float(theta[0]), float(theta[1])
+        self._applied_n += -s * d0 - psi * d1
+        self._applied_e += -s * d1 + psi * d0
 
     def on_straight(self, t_s: float, forward_m_s: float, lateral_m_s: float, heading_rad: float,
                     current_along_m_s: float = 0.0) -> None:
@@ -335,12 +346,14 @@ class DvlCalibration:
             return
         bridged = self._last_t is not None and 0.0 <= t_s - self._last_t <= self._BRIDGE_S
         if bridged:  # carry the track from the last sample up to the fix's time
-            self._add_track(self._last_vel_n[:2] * (t_s - self._last_t))
+            l0, l1 = self._last_vel_ne
+            dt = t_s - self._last_t
+            self._add_track(l0 * dt, l1 * dt)
             self._covered_s += t_s - self._last_t
         if self._fix is not None:
             t0, ne0, s0 = self._fix
             span = t_s - t0
-            D = self._track
+            D = np.array([self._track_n, self._track_e])
             if (span > 0 and self._covered_s >= (1.0 - self.max_gap_fraction) * span
                     and np.hypot(*D) >= self.min_track_m):
                 H = np.zeros((2, 4))
@@ -355,8 +368,8 @@ class DvlCalibration:
                     self.P = 0.5 * (self.P + self.P.T)
                     self.pairs_used += 1
         self._fix = (t_s, ne, sigma_m)
-        self._track = np.zeros(2)
-        self._applied = np.zeros(2)
+        self._track_n = self._track_e = 0.0
+        self._applied_n = self._applied_e = 0.0
         self._covered_s = 0.0
         if bridged:  # the next interval starts at the fix
             self._last_t = t_s
@@ -406,9 +419,12 @@ def measure_water_track(vel_d_m_s, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_
     return make(vel_d_m_s, H, np.eye(3) * sigma_m_s**2, h)
 
 
-def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=None) -> Measurement | None:
+def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=None, *,
+            R_nb=None, lever_block=None) -> Measurement | None:
     """``None`` when the DVL reports no bottom lock. ``vel_d_m_s`` replaces the sample's
-    velocity (the calibrated one, :meth:`DvlCalibration.correct`)."""
+    velocity (the calibrated one, :meth:`DvlCalibration.correct`). ``R_nb`` (``dcm(x)``) and
+    ``lever_block`` (``R_db [l]×``, :func:`lever_block`) when the caller has them: the same
+    numbers, computed once (a DVL sample every 0.2 s; :class:`DvlSetup` keeps the block)."""
     if not sample.valid:
         return None
     if sample.sigma_m_s > sigma_m_s:  # the sensor says it is worse than configured (NaN: not said)
@@ -417,28 +433,44 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=
     # jacobian() and predict() from one R_nb, with the same operations on the same floats
     # (R_db R_nbᵀ once; ω × l written out as np.cross computes it: a product difference per
     # component — np.cross on two 3-vectors costs more than the rest of this function)
-    R = dcm(x)
+    R = dcm(x) if R_nb is None else R_nb
     vel = x[X_VEL]
     A = R_db @ R.T
     H = np.zeros((3, N_ERR))
     H[:, VEL] = A
-    H[:, ATT] = A @ skew(vel)
-    H[:, BG] = R_db @ skew(lever)
+    H[:, ATT] = A @ skew(vel.tolist())  # (skew of floats: the same matrix, without numpy scalars)
+    H[:, BG] = lever_block_of(lever, R_db) if lever_block is None else lever_block
     o0, o1, o2 = np.asarray(omega_b_rad_s, dtype=float).tolist()
     l0, l1, l2 = lever.tolist()
     v_b = R.T @ vel + np.array([o1 * l2 - o2 * l1, o2 * l0 - o0 * l2, o0 * l1 - o1 * l0])
     z = sample.vel_d_m_s if vel_d_m_s is None else vel_d_m_s
-    return make(z, H, np.eye(3) * sigma_m_s**2, R_db @ v_b)
+    # make()'s conversions written out (z the only one not already a float array of its shape)
+    return Measurement(np.array(z, dtype=float), H, _EYE3 * sigma_m_s**2, R_db @ v_b, _NOT_ANGULAR[3])
+
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+
+
+def lever_block_of(lever_arm_b_m, R_db) -> np.ndarray:
+    """``R_db [l]×`` (3, 3): the Jacobian's gyro-bias block, constant for an installation."""
+    return R_db @ skew(np.asarray(lever_arm_b_m, dtype=float))
 
 
 class DvlSetup(NamedTuple):
-    """What the estimator keeps for its DVL: lever arm ``l_b`` (3,) m, ``R_db`` (3, 3) and
-    the scale/misalignment estimate (None when ``scale_sigma`` and
-    ``misalignment_sigma_rad`` are 0)."""
+    """What the estimator keeps for its DVL: lever arm ``l_b`` (3,) m, ``R_db`` (3, 3), the
+    scale/misalignment estimate (None when ``scale_sigma`` and ``misalignment_sigma_rad``
+    are 0) and ``R_db [l]×`` of that arm (:func:`lever_block_of`; :meth:`with_lever` keeps
+    the two together)."""
 
     lever_b: np.ndarray
     R_db: np.ndarray
     calibration: DvlCalibration | None
+    lever_block: np.ndarray | None = None
+
+    def with_lever(self, lever_b: np.ndarray) -> "DvlSetup":
+        """The setup at another lever arm (the filter navigates the IMU, not the reference point)."""
+        return self._replace(lever_b=lever_b, lever_block=lever_block_of(lever_b, self.R_db))
 
 
 def _setup(config: DvlConfig) -> DvlSetup:
@@ -448,14 +480,16 @@ def _setup(config: DvlConfig) -> DvlSetup:
         legs = StraightLegs() if config.hull_sideslip in ("none", "auto") else None
         cal = DvlCalibration(config.scale_sigma, config.misalignment_sigma_rad, straight_legs=legs,
                              hull_sway_sigma_m_s=config.hull_sway_sigma_m_s)
-    return DvlSetup(np.asarray(config.lever_arm_b_m, dtype=float), rotation_db(config.rotation_bd_rpy_rad), cal)
+    return DvlSetup(np.asarray(config.lever_arm_b_m, dtype=float), rotation_db(config.rotation_bd_rpy_rad),
+                    cal).with_lever(np.asarray(config.lever_arm_b_m, dtype=float))
 
 
 def _measure(sample, ctx: AidContext) -> Measurement | str:
     """Bottom or water track, corrected with the calibrated scale and misalignment; a
-    rejection reason when there is nothing to fuse."""
+    rejection reason when there is nothing to fuse. The estimator's general path and its
+    compiled one (:meth:`adaptnav.fusion.eskf.Estimator._fast_dvl`) both measure with this."""
     c = ctx.config
-    lever_b, R_db, cal = ctx.setup
+    lever_b, R_db, cal, block = ctx.setup
     if not sample.valid:
         if cal is not None:
             cal.on_dvl(sample.t_s, None)
@@ -467,25 +501,27 @@ def _measure(sample, ctx: AidContext) -> Measurement | str:
         z = cal.correct(vel_d) if cal is not None else vel_d
         return measure_water_track(z, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.water_track_sigma_m_s)
     z = None
+    R_nb = dcm(ctx.x)  # once for the calibration and the model
     if cal is not None:
-        R_nb = dcm(ctx.x)
         v_n = R_nb @ (R_db.T @ vel_d)
         cal.on_dvl(sample.t_s, v_n)
         if cal.straight_legs is not None:
             # the lever arm's ω × l is left in: a segment's mean yaw rate is ≤ 5°/min
             # (StraightLegs), 0.7 mm/s at 0.5 m
-            c0, s0 = float(R_nb[0, 0]), float(R_nb[1, 0])
+            r = R_nb.tolist()
+            c0, s0 = r[0][0], r[1][0]
             norm = math.hypot(c0, s0)
             ch, sh = c0 / norm, s0 / norm
-            vn, ve = float(v_n[0]), float(v_n[1])
-            cur = ctx.x[X_CUR]
+            vn, ve = v_n.tolist()[:2]
+            cn, ce = ctx.x[X_CUR].tolist()
             cal.on_straight(sample.t_s, ch * vn + sh * ve, -sh * vn + ch * ve, math.atan2(s0, c0),
-                            ch * float(cur[0]) + sh * float(cur[1]))
-        z = cal.correct(vel_d)
-    meas = measure(sample, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.sigma_m_s, z)
+                            ch * cn + sh * ce)
+        z = cal.correct(sample.vel_d_m_s)
+    meas = measure(sample, ctx.x, ctx.omega_b_rad_s, lever_b, R_db, c.sigma_m_s, z, R_nb=R_nb, lever_block=block)
     if meas is None or c.lever_arm_sigma_m <= 0.0:
         return meas
-    return meas._replace(R=meas.R + lever_arm_doubt(ctx.omega_b_rad_s, c.lever_arm_sigma_m, R_db))
+    z, H, R, h, angular = meas  # (a new tuple costs a third of NamedTuple._replace)
+    return Measurement(z, H, R + lever_arm_doubt(ctx.omega_b_rad_s, c.lever_arm_sigma_m, R_db), h, angular)
 
 
 def lever_arm_doubt(omega_b_rad_s, lever_arm_sigma_m: float, R_db: np.ndarray) -> np.ndarray:
@@ -496,7 +532,7 @@ def lever_arm_doubt(omega_b_rad_s, lever_arm_sigma_m: float, R_db: np.ndarray) -
     straight-leg σ puts into the heading (tests/service/test_auv_navgrade.py: a navigation-grade
     AUV whose DVL sits 0.5 m ahead of the IMU, the log saying nothing of it: lawnmower heading
     0.2–0.3° off after its turns)."""
-    W = skew(np.asarray(omega_b_rad_s, dtype=float))
+    W = skew(np.asarray(omega_b_rad_s, dtype=float).tolist())  # (skew of floats: the same matrix, cheaper)
     A = R_db @ W
     return lever_arm_sigma_m**2 * (A @ A.T)
 

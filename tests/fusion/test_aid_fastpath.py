@@ -67,21 +67,27 @@ def test_the_compiled_aid_path_gives_the_general_paths_numbers(monkeypatch):
     assert fast.resets["attitude:heading"] >= 1
     assert any(s.source == "depth" and s.reason == "gate" for s in fast_statuses)
     assert fast.rejected["non_finite"] == 2 and fast.late_fused == 2
+    assert_same_filter(fast, fast_statuses, slow, slow_statuses)
+    assert fast.depth_noise.report() == slow.depth_noise.report()
+
+
+def assert_same_filter(fast, fast_statuses, slow, slow_statuses):
+    """Two estimators and their statuses bit for bit (also tests/fusion/test_dvl_fastpath.py)."""
     assert repr(fast_statuses) == repr(slow_statuses)  # repr: NaN test ratios compare equal
     assert fast._core.tobytes() == slow._core.tobytes()  # x, P, accumulators, clock
     assert fast._qdiag.tobytes() == slow._qdiag.tobytes()
     assert (fast.rejected, fast.resets, fast._reset_counter) == (slow.rejected, slow.resets, slow._reset_counter)
-    assert fast.depth_noise.report() == slow.depth_noise.report()
     assert fast.invalid_reasons() == slow.invalid_reasons()
 
 
-@pytest.mark.parametrize("kind", ["depth", "heading"])
+@pytest.mark.parametrize("kind", ["depth", "heading", "dvl"])
 def test_an_aid_off_or_at_a_lever_arm_takes_the_general_path(kind):
+    """(The DVL's lever arm is in its own model: it takes the compiled path at any arm.)"""
     cfg = FilterConfig()
     off = Estimator(dataclasses.replace(cfg, **{kind: dataclasses.replace(getattr(cfg, kind), enabled=False)}),
                     MotionParams(), RpmSpeedTable(), ORIGIN)
-    assert {t.KIND for t in off._fast} == {"depth", "heading"} - {kind}
+    assert {t.KIND for t in off._fast} == {"depth", "heading", "dvl"} - {kind}
     if kind == "depth":
         armed = Estimator(dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, lever_arm_b_m=(0.3, 0.0, 0.1))),
                           MotionParams(), RpmSpeedTable(), ORIGIN)
-        assert {t.KIND for t in armed._fast} == {"heading"}
+        assert {t.KIND for t in armed._fast} == {"heading", "dvl"}
