@@ -57,3 +57,19 @@ def test_every_sample_survives_the_trip_to_the_child_with_its_values_and_order()
             assert _same(a, b), (a, b)
     # the echoes stay read-only, as a SonarPing keeps them
     assert not out[1].port.flags.writeable and out[1].port.size == 64 and out[5].starboard.size == 32
+
+
+def test_a_sample_with_a_non_echo_array_or_extra_state_survives_the_trip_too():
+    # a float64 array field is no echo (it stays in place); a sample carrying more than its
+    # fields goes pickled whole — both must come out as they went in
+    dvl = DvlSample(0.06, np.array([0.5, -0.1, 0.02]), valid=True, altitude_m=3.0)
+    extra = SonarPing(0.1, np.zeros(4, dtype=np.float32), np.ones(4, dtype=np.float32), 5.0)
+    object.__setattr__(extra, "note", "kept")
+    ping = SonarPing(0.2, np.arange(8, dtype=np.float32), np.arange(8, dtype=np.float32) + 1, 10.0)
+    packed = pack_batch([dvl, extra, ping])
+    items = packed[0]
+    assert items[1] is extra and len(items[0]) == 2 and len(items[2]) == 3
+    out = unpack_batch(pickle.loads(pickle.dumps(packed)))
+    assert _same(out[0], dvl) and type(out[0].vel_d_m_s) is np.ndarray
+    assert _same(out[1], extra) and out[1].note == "kept"
+    assert _same(out[2], ping) and np.array_equal(out[2].starboard, np.arange(8) + 1)
