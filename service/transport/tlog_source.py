@@ -33,7 +33,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
-from adaptnav.fusion.alignment import imu_too_slow
+from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
 from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.samples import ImuSample, TruthSample, replay_order_key
@@ -112,7 +112,7 @@ class TlogSource:
         self._imu_last_t = sample.t_s
         if not self.config.drop_slow_imu:
             return True
-        if imu_too_slow(self._imu_dt, self.config.min_imu_rate_hz):
+        if imu_too_slow(self._imu_dt[-IMU_RATE_WINDOW:], self.config.min_imu_rate_hz):
             self._reject("imu_too_slow")
             return False
         return True
