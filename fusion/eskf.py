@@ -752,8 +752,8 @@ class Estimator:
         H[0, ATT.start] = h_x
         H[0, ATT.start + 1] = h_y
         done = self._fast_scalar(sample, float(yaw_rad), yaw, H, self.config.heading.sigma_rad**2, True)
-        if done is not None:
-            self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)  # fused: the run ends
+        if done[0] and done[0][0].fused:  # the rejection run ends (not fused: _aid has kept its count)
+            self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)
         return done
 
     def _fast_dvl(self, sample) -> tuple[list[AidStatus], bool] | None:
