@@ -34,7 +34,7 @@ class Measurement(NamedTuple):
     def innovation(self) -> np.ndarray:
         y = self.z - self.h
         ang = self.angular
-        if ang is _NOT_ANGULAR.get(ang.size):  # make()'s shared all-False masks
+        if ang is NOT_ANGULAR.get(ang.size):  # make()'s shared all-False masks
             return y
         if ang.size == 1:  # a heading: np.where and any() cost more than the wrap
             return wrap_angle(y) if ang[0] else y
@@ -97,15 +97,17 @@ class AidSource:
     setup: Callable[[Any], Any] | None = None
 
 
-_NOT_ANGULAR = {m: np.zeros(m, bool) for m in (1, 2, 3)}
-for _a in _NOT_ANGULAR.values():
-    _a.setflags(write=False)  # shared by every Measurement without angular components
+# the all-False ``angular`` masks of 1–3 components, shared (read-only) by every Measurement
+# without angular components: an aid building its Measurement directly passes these
+NOT_ANGULAR = {m: np.zeros(m, bool) for m in (1, 2, 3)}
+for _a in NOT_ANGULAR.values():
+    _a.setflags(write=False)
 
 
 def make(z, H, R, h, angular=None) -> Measurement:
     z = np.asarray(z, dtype=float).reshape(-1)
     m = z.size
-    angular = _NOT_ANGULAR[m] if angular is None else np.asarray(angular, bool)
+    angular = NOT_ANGULAR[m] if angular is None else np.asarray(angular, bool)
     return Measurement(z, np.asarray(H, dtype=float).reshape(m, N_ERR),
                        np.asarray(R, dtype=float).reshape(m, m),
                        np.asarray(h, dtype=float).reshape(-1), angular)

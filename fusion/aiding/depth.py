@@ -19,7 +19,7 @@ import numpy as np
 from ..frames import GRAVITY_M_S2
 from ..state import N_ERR, X_POS
 from ..config import DepthConfig
-from .common import _NOT_ANGULAR, AidContext, AidSource, Measurement
+from .common import NOT_ANGULAR, AidContext, AidSource, Measurement
 
 
 def pressure_to_depth(pressure_pa, water_density_kg_m3: float, atmospheric_pressure_pa: float):
@@ -52,7 +52,7 @@ def measure(sample, x, sigma_m, water_density_kg_m3, atmospheric_pressure_pa) ->
     H = np.zeros((1, N_ERR))
     H[0, 2] = 1.0
     return Measurement(np.array([depth]), H, np.array([[sigma_m**2]], dtype=float), np.array([float(x[X_POS.start + 2])]),
-                       _NOT_ANGULAR[1])
+                       NOT_ANGULAR[1])
 
 
 def _measure(sample, ctx: AidContext) -> Measurement:

@@ -66,7 +66,7 @@ import numpy as np
 from ..frames import euler_to_quat, quat_to_dcm
 from ..config import DvlConfig
 from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
-from .common import _NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
+from .common import NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
 
 
 class StraightSegment(NamedTuple):
@@ -445,7 +445,7 @@ def measure(sample, x, omega_b_rad_s, lever_arm_b_m, R_db, sigma_m_s, vel_d_m_s=
     v_b = R.T @ vel + np.array([o1 * l2 - o2 * l1, o2 * l0 - o0 * l2, o0 * l1 - o1 * l0])
     z = sample.vel_d_m_s if vel_d_m_s is None else vel_d_m_s
     # make()'s conversions written out (z the only one not already a float array of its shape)
-    return Measurement(np.array(z, dtype=float), H, _EYE3 * sigma_m_s**2, R_db @ v_b, _NOT_ANGULAR[3])
+    return Measurement(np.array(z, dtype=float), H, _EYE3 * sigma_m_s**2, R_db @ v_b, NOT_ANGULAR[3])
 
 
 _EYE3 = np.eye(3)
