@@ -1173,7 +1173,8 @@ class Estimator:
         if t_end - st[0] < c.window_s:
             return []
         n = st[1]
-        var = st[5:8] / n - (st[2:5] / n) ** 2
+        with np.errstate(over="ignore", invalid="ignore"):  # a window with absurd samples: NaN, not quiet
+            var = st[5:8] / n - (st[2:5] / n) ** 2
         quiet = n >= 3 and float(np.sqrt(max(var.max(), 0.0))) <= c.max_acc_std_m_s2 and st[8] <= c.max_gyro_rad_s
         st[:] = [math.nan, 0.0] + [0.0] * 7
         dw = self._depth_win
