@@ -289,7 +289,8 @@ class TlogReplaySource(SampleStreamSource):
                 "late_samples": int(c.get("late_samples", 0)),
                 "message_types": c.get("message_types", {}),
                 "clock": c.get("clock", {}),
-                "imu_stream": c.get("imu_stream", {})}
+                "imu_stream": c.get("imu_stream", {}),
+                "truncated": c.get("truncated", "")}
 
 
 def tlog_source(path: Path) -> Any:

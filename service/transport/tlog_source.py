@@ -38,6 +38,9 @@ from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.samples import ImuSample, TruthSample, replay_order_key
 
+# a DataFlash record's first two bytes (ArduPilot's HEAD_BYTE1, HEAD_BYTE2)
+_DATAFLASH_HEADER = bytes((0xA3, 0x95))
+
 log = logging.getLogger(__name__)
 
 from pymavlink import mavutil  # noqa: E402
@@ -222,6 +225,7 @@ class TlogSource:
                     self._reject(f"reader_error:{type(e).__name__}")
                     continue
                 if msg is None:
+                    self._note_cut_off(conn)
                     return
                 if msg.get_type() == "BAD_DATA":
                     self.counters["corrupt_frames"] += 1
@@ -230,6 +234,33 @@ class TlogSource:
                 yield msg
         finally:
             conn.close()
+
+    def _note_cut_off(self, conn: Any) -> None:
+        """At the end of the file: a last message cut off (the recorder lost power, a copy
+        stopped early) is counted as a corrupt frame and said in ``counters["truncated"]`` —
+        everything before it was read. A tlog's parser holds the cut frame's bytes; a
+        DataFlash log ends with a record header and too few bytes after it (zeros or 0xFF
+        after the last record are a card's unwritten space, not a cut)."""
+        if self._dataflash:
+            offset, end = int(getattr(conn, "offset", 0)), int(getattr(conn, "data_len", 0))
+            data = getattr(conn, "data_map", None)
+            left = end - offset
+            cut = False
+            if left > 0 and data is not None:
+                if offset >= 3 and bytes(data[offset - 3:offset - 1]) == _DATAFLASH_HEADER:
+                    cut, left = True, left + 3  # DFReader stops past the header of a record too short
+                else:  # fewer than 3 bytes left, the start of a header
+                    cut = bytes(data[offset:offset + 2]) == _DATAFLASH_HEADER[:left]
+            what = "record"
+        else:
+            left = int(conn.mav.buf_len()) if getattr(conn, "mav", None) is not None else 0
+            cut, what = left > 0, "frame"
+        if cut:
+            self.counters["corrupt_frames"] += 1
+            self.counters["truncated"] = (f"{self.path.name} ends inside a {what}: its last {left} bytes are an "
+                                          "incomplete message (the recording was cut off); everything before "
+                                          "them was replayed")
+            log.warning("%s", self.counters["truncated"])
 
     def __iter__(self) -> Iterator[Any]:
         heap: list[tuple] = []

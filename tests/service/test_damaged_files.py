@@ -72,3 +72,38 @@ def test_a_misplaced_first_fix_does_not_move_the_origin(tmp_path, capsys):
     assert code == 0
     origin = json.loads((tmp_path / "out" / "config.json").read_text())["origin"]
     assert origin["lat_deg"] == pytest.approx(math.degrees(fixes[1].lat_rad), abs=1e-4)
+
+
+TEST_DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+@pytest.mark.parametrize("name, tail, cut_says", [
+    ("ardusub-sitl-session.tlog", None, "ends inside a frame"),
+    ("ardusub-4.7-sitl-drive.BIN", None, "ends inside a record"),
+    ("ardusub-sitl-session.tlog", b"", None),
+    ("ardusub-4.7-sitl-drive.BIN", b"", None),
+    ("ardusub-4.7-sitl-drive.BIN", b"\xff" * 700, None)])  # a card's unwritten space is not a cut
+def test_a_log_cut_off_inside_a_message_says_so_and_keeps_the_rest(tmp_path, name, tail, cut_says):
+    """A recording cut off (power lost, a copy stopped early) ends inside a message: counted as a
+    corrupt frame, said in the counters, everything before it read; a whole log says nothing."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    data = (TEST_DATA / name).read_bytes()
+    whole = TlogSource(TEST_DATA / name)
+    n_whole = len(list(whole))
+    assert not whole.counters.get("truncated")
+    path = tmp_path / name
+    # a cut 40 % in, at a byte that is not a message's first (a frame's or record's start byte)
+    cut = int(len(data) * 0.4)
+    while data[cut] in (0xFD, 0xFE, 0xA3):
+        cut += 1
+    path.write_bytes(data[:cut] if tail is None else data + tail)
+    src = TlogSource(path)
+    n = len(list(src))
+    if cut_says is None:
+        assert not src.counters.get("truncated") and n == n_whole
+        assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"]
+    else:
+        assert cut_says in src.counters["truncated"] and name in src.counters["truncated"]
+        assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + 1
+        assert 0.3 * n_whole < n < 0.5 * n_whole
