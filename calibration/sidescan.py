@@ -69,6 +69,9 @@ class ObjectBatch:
     links: list = field(default_factory=list)
 
 
+_EYE2 = np.eye(2)  # read only: np.eye per ping cost as much as the rest of CalibratorSonar.push
+
+
 class CalibratorSonar:
     """Pings → :class:`ObjectBatch` in the calibrator (the object front end and its ping
     dead reckoning, which sets the image's along-track spacing and is tied to the fixes)."""
@@ -87,7 +90,7 @@ class CalibratorSonar:
         also for a block without objects)."""
         pos, sigma = self.dead_reckoning.push(ping)
         s = sigma if math.isfinite(sigma) else 1e3
-        sightings = self.front_end.push(ping, pos, np.eye(2) * s * s, float(ping.heading_rad))
+        sightings = self.front_end.push(ping, pos, _EYE2 * s * s, float(ping.heading_rad))
         return ObjectBatch(float(ping.t_s), tuple(sightings)) if sightings else None
 
     def finish(self) -> ObjectBatch | None:

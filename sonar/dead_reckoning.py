@@ -49,16 +49,20 @@ class AnchoredDeadReckoning:
         # offset prior: vague but finite (1 km σ: an infinite one loses the covariance to round-off)
         self._P = np.diag([1e6, 1e6, drift_sigma_m_s ** 2, drift_sigma_m_s ** 2])
         self._t_kf = math.nan
+        # the transition and the noise density of _predict, kept (built afresh per ping they were
+        # most of its cost): F's dt entries are set per step, Q is scaled by dt
+        self._F = np.eye(4)
+        self._Q_per_s = np.diag([self.q_offset, self.q_offset, self.q_drift, self.q_drift])
         self._pending: list[tuple[float, np.ndarray, float]] = []
         self.fixes_used = 0
 
     def _predict(self, t_s: float) -> None:
         if math.isfinite(self._t_kf) and t_s > self._t_kf:
             dt = t_s - self._t_kf
-            F = np.eye(4)
+            F = self._F
             F[0, 2] = F[1, 3] = dt
             self._x = F @ self._x
-            self._P = F @ self._P @ F.T + np.diag([self.q_offset, self.q_offset, self.q_drift, self.q_drift]) * dt
+            self._P = F @ self._P @ F.T + self._Q_per_s * dt
         self._t_kf = t_s if not math.isfinite(self._t_kf) else max(self._t_kf, t_s)
 
     def fix(self, t_s: float, pos_n_m, sigma_m: float) -> None:

@@ -77,32 +77,33 @@ class DataClock:
 
 
 def pack_batch(batch: list[Any]) -> tuple:
-    """Samples → a compact picklable form for the child (inverse: :func:`unpack_batch`).
+    """Samples → a compact picklable form for the child, and the echo arrays that go beside
+    it (inverse: :func:`unpack_batch`).
 
     Pickling each sample object was most of the transport's cost (a side-scan ping 44 µs,
     a DVL sample 14 µs: the dataclasses' ``__reduce__`` and one array object per echo
     side), so the message carries plain values: the arrays of every
     :class:`~fusion.samples.ImuBatch` concatenated (three arrays per message instead of three
-    per batch), each batch replaced by its row span ``(start, stop)``; a dataclass sample
-    as ``[class, field values]`` with its 1-D float32 arrays (the sonar's echoes)
-    concatenated into one buffer, each replaced by its span ``(start, stop)`` (their field
-    indices in a third entry); anything else as it is.
+    per batch), each batch replaced by its row count; a dataclass sample as ``(class, field
+    values)``, or, when a field declared as an array holds a 1-D float32 one (the sonar's
+    echoes), as ``[class, field values, indices of those fields]`` with each such array
+    replaced by its span ``(start, stop)`` in the echoes laid end to end; anything else as it
+    is. Returns ``(items, imu, echoes)``: ``echoes`` the list of those arrays, in span order,
+    for the caller to write as raw bytes (pickled inside the message, every echo was copied
+    into the pickle and out of it again).
     """
     ndarray, float32 = np.ndarray, np.float32
     items: list[Any] = []
     ts, fs, ws = [], [], []
     echoes: list[np.ndarray] = []
-    row = 0
     at = 0
     for s in batch:  # not compact_imu: the child must see what an in-process calibrator sees
         cls = type(s)
         if cls is ImuBatch:
-            n = len(s)
-            ts.append(np.asarray(s.t_s, dtype=float))
-            fs.append(np.asarray(s.specific_force_b_m_s2, dtype=float))
-            ws.append(np.asarray(s.omega_b_rad_s, dtype=float))
-            items.append((row, row + n))
-            row += n
+            ts.append(s.t_s)
+            fs.append(s.specific_force_b_m_s2)
+            ws.append(s.omega_b_rad_s)
+            items.append(len(s))
             continue
         getter = _GETTERS.get(cls, _UNSEEN)
         if getter is _UNSEEN:
@@ -110,55 +111,62 @@ def pack_batch(batch: list[Any]) -> tuple:
         if getter is None:
             items.append(s)  # not a dataclass: pickled whole
             continue
-        n_fields, get = getter
+        n_fields, get, array_fields = getter
         d = getattr(s, "__dict__", None)
         if d is not None and len(d) != n_fields:
             items.append(s)  # it carries more than its fields: pickled whole
             continue
-        values = list(get(s))
-        # the per-field test only for the samples that hold an array (a side-scan ping):
-        # the others (DVL, depth, heading, …: most of a batch) skip it in one C-level scan
-        if ndarray not in map(type, values):
-            items.append([cls, values])
+        if not array_fields:  # DVL, depth, heading, …: most of a batch
+            items.append((cls, get(s)))
             continue
+        values = list(get(s))
         spans = []
-        for i, v in enumerate(values):
-            if type(v) is ndarray and v.dtype == float32 and v.ndim == 1:
+        for i in array_fields:
+            v = values[i]
+            if type(v) is ndarray and v.dtype == float32 and v.ndim == 1 and v.flags.c_contiguous:
                 echoes.append(v)
                 values[i] = (at, at + v.size)
                 spans.append(i)
                 at += v.size
-        items.append([cls, values, spans] if spans else [cls, values])
-    imu = (np.concatenate(ts), np.concatenate(fs), np.concatenate(ws)) if ts else None
-    return items, imu, (np.concatenate(echoes) if echoes else None)
+        items.append([cls, values, spans])
+    imu = (np.concatenate(ts, dtype=float), np.concatenate(fs, dtype=float),
+           np.concatenate(ws, dtype=float)) if ts else None
+    return items, imu, echoes
 
 
 def unpack_batch(packed: tuple) -> list[Any]:
-    """Inverse of :func:`pack_batch`: IMU batches and echo arrays become (read-only) views of
-    the shared arrays; dataclass samples are rebuilt field by field, as unpickling does
-    (without ``__post_init__``: they were valid when they were packed)."""
+    """Inverse of :func:`pack_batch`, given ``(items, imu, echoes)`` with ``echoes`` the echo
+    arrays laid end to end in one float32 array (None: none): IMU batches and echo arrays
+    become (read-only) views of the shared arrays; dataclass samples are rebuilt field by
+    field, as unpickling does (without ``__post_init__``: they were valid when they were
+    packed)."""
     items, imu, echoes = packed
     if echoes is not None:
         echoes.setflags(write=False)  # as SonarPing keeps its echoes
     out: list[Any] = []
     setattr_ = object.__setattr__
+    row = 0
     for s in items:
         kind = type(s)
-        if kind is tuple:
+        if kind is int:
             t, f, w = imu
-            out.append(ImuBatch(t[s[0]:s[1]], f[s[0]:s[1]], w[s[0]:s[1]]))
+            out.append(ImuBatch(t[row:row + s], f[row:row + s], w[row:row + s]))
+            row += s
+            continue
+        if kind is tuple:
+            cls, values = s
         elif kind is list:
             cls, values = s[0], s[1]
-            if len(s) > 2:
-                for i in s[2]:
-                    a, b = values[i]
-                    values[i] = echoes[a:b]
-            obj = object.__new__(cls)
-            for name, v in zip(_field_names(cls), values):
-                setattr_(obj, name, v)
-            out.append(obj)
+            for i in s[2]:
+                a, b = values[i]
+                values[i] = echoes[a:b]
         else:
             out.append(s)
+            continue
+        obj = object.__new__(cls)
+        for name, v in zip(_field_names(cls), values):
+            setattr_(obj, name, v)
+        out.append(obj)
     return out
 
 
@@ -182,20 +190,25 @@ def _field_names(cls: type) -> tuple[str, ...] | None:
 
 
 _UNSEEN = object()
-# per sample type: (number of fields, a getter of their values in definition order), or None
-# for the types pickled whole (pack_batch's per-sample cost: one C call instead of a getattr each)
-_GETTERS: dict[type, tuple[int, Any] | None] = {}
+# per sample type: (number of fields, a getter of their values in definition order (a tuple),
+# indices of the fields declared as arrays), or None for the types pickled whole
+# (pack_batch's per-sample cost: one C call instead of a getattr each, and the echo test
+# only where an echo can be)
+_GETTERS: dict[type, tuple[int, Any, tuple[int, ...]] | None] = {}
 
 
-def _getter(cls: type) -> tuple[int, Any] | None:
+def _getter(cls: type) -> tuple[int, Any, tuple[int, ...]] | None:
     names = _field_names(cls)
     if names is None:
         getter = None
-    elif len(names) == 1:
-        name = names[0]
-        getter = (1, lambda s: (getattr(s, name),))
     else:
-        getter = (len(names), operator.attrgetter(*names))
+        # annotations are strings here (``from __future__ import annotations``) or types
+        array_fields = tuple(i for i, f in enumerate(dataclasses.fields(cls)) if "ndarray" in str(f.type))
+        if len(names) == 1:
+            name = names[0]
+            getter = (1, lambda s: (getattr(s, name),), array_fields)
+        else:
+            getter = (len(names), operator.attrgetter(*names), array_fields)
     _GETTERS[cls] = getter
     return getter
 

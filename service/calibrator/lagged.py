@@ -28,9 +28,12 @@ from __future__ import annotations
 import gc
 import math
 import multiprocessing as mp
+import os
 import threading
 import time
 from typing import Any
+
+import numpy as np
 
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
@@ -143,7 +146,8 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 clock.tau += msg[1]
                 out_q.send(("shifted", None, msg[1]))
                 continue
-            seq, n, packed = msg
+            seq, n, items, imu, n_echo = msg
+            packed = (items, imu, _read_echoes(conn_in, n_echo) if n_echo else None)
             tau = clock.tau
             # progress also every PROGRESS_EVERY samples inside the batch: the runner waits
             # for a τ just past its data time − L_p, which the first samples of a batch it
@@ -184,6 +188,39 @@ def _cpu_s(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return math.nan
+
+
+def _write_all(fd: int, arrays: list) -> None:
+    """Write the arrays' bytes to ``fd`` back to back, straight from their memory (one
+    ``writev`` per up to ``IOV_MAX`` of them; again after a partial write)."""
+    views = [memoryview(a).cast("B") for a in arrays]
+    while views:
+        n = os.writev(fd, views[:_IOV_MAX])
+        k = 0
+        while k < len(views) and n >= len(views[k]):
+            n -= len(views[k])
+            k += 1
+        views = views[k:]
+        if n:
+            views[0] = views[0][n:]
+
+
+def _read_echoes(conn: Any, n_samples: int) -> np.ndarray:
+    """The ``n_samples`` float32 values :func:`_write_all` wrote after a message on ``conn``,
+    read straight into one array (``Connection`` reads exactly each message's length: the
+    pipe holds these bytes next)."""
+    out = np.empty(n_samples, dtype=np.float32)
+    view = memoryview(out).cast("B")
+    fd, got = conn.fileno(), 0
+    while got < len(view):
+        k = os.readv(fd, [view[got:]])
+        if k == 0:
+            raise EOFError("calibrator pipe closed inside a message's echoes")
+        got += k
+    return out
+
+
+_IOV_MAX = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 1024
 
 
 def _enlarge_pipe(conn: Any, size: int = 1 << 20) -> None:
@@ -297,8 +334,11 @@ class ProcessBackend:
 
     def _flush(self) -> None:
         if self._batch:
+            items, imu, echoes = pack_batch(self._batch)
             try:
-                self._w.send((self._sent, len(self._batch), pack_batch(self._batch)))
+                self._w.send((self._sent, len(self._batch), items, imu, sum(e.size for e in echoes)))
+                if echoes:
+                    _write_all(self._w.fileno(), echoes)
             except (BrokenPipeError, OSError) as e:
                 raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             self._sent += len(self._batch)
