@@ -632,7 +632,7 @@ IGNORED_WHY: dict[str, str] = {
     **{m: _WHY_AUTOPILOT_SOLUTION for m in (
         "AHRS", "AHRS2", "AHRS3", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED",
         "VFR_HUD", "NAV_CONTROLLER_OUTPUT", "HOME_POSITION", "POSITION_TARGET_GLOBAL_INT",
-        "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS", "ODOMETRY", "VISION_POSITION_ESTIMATE")},
+        "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS", "ODOMETRY")},
     **{m: _WHY_HOUSEKEEPING for m in (
         "SYS_STATUS", "BATTERY_STATUS", "POWER_STATUS", "HWSTATUS", "MEMINFO", "VIBRATION", "SENSOR_OFFSETS",
         "MOUNT_STATUS", "GIMBAL_DEVICE_ATTITUDE_STATUS", "AUTOPILOT_VERSION", "STORAGE_INFORMATION",
@@ -654,6 +654,11 @@ IGNORED_WHY: dict[str, str] = {
     "SIMSTATE": "simulator ground truth (never fused)",
     "RANGEFINDER": "ArduPilot's copy of DISTANCE_SENSOR (that one is used)",
     "SCALED_IMU3": "a third IMU: one IMU stream is integrated",
+    # BlueOS's DVL extension in its "position estimate" mode, visual odometry, or a navigator's
+    # pose to the autopilot (the bridge's own without velocity): a track drifting in its own frame
+    "VISION_POSITION_ESTIMATE": "a pose in the sender's own frame (a DVL's or camera's odometry, or a navigator's "
+                                "output to the autopilot), not an absolute fix; a DVL's velocity comes as "
+                                "VISION_POSITION_DELTA or VISION_SPEED_ESTIMATE",
 }
 
 
