@@ -9,7 +9,7 @@ sightings ``a`` (an earlier leg) and ``b`` (the batch just detected) of one obje
 
 1. **Candidates** (individual compatibility): the Mahalanobis distance of ``p̂_a − p̂_b`` in
    ``P_a + P_b + D_a + D_b`` — the navigation's own covariance at both times, so the gate
-   grows with the drift; where the filter keeps clones of both epochs (``relative_cov``), the
+   grows with the drift; where the filter keeps clones of both epochs (``relative_covs``), the
    covariance of the error *difference* ``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` replaces ``P_a + P_b``
    (during an outage most of the error is common to both legs) — is within the χ²₂ gate, and the view-independent attributes
    agree: height (from the shadow) and along-track length within ``attribute_sigmas``.
@@ -265,6 +265,39 @@ def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.einsum("ki,kij,kj->k", r, np.linalg.inv(R), r)
 
 
+def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
+    """:meth:`LegAssociator._stored_arrays` of ``sightings``."""
+    return {"t_s": np.array([o.t_s for o in sightings]).reshape(-1),
+            "pos_n_m": np.array([o.pos_n_m for o in sightings]).reshape(-1, 2),
+            "smooth_pos_n_m": np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2),
+            "cov": np.array([o.nav_cov + o.det_cov for o in sightings]).reshape(-1, 2, 2),
+            "det_cov": np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2),
+            "id": np.array([id(o) for o in sightings], dtype=np.int64)}
+
+
+def _m2_of(r: np.ndarray, R: np.ndarray, n_rows: int) -> np.ndarray:
+    """:func:`_m2` of some of the ``n_rows`` rows it would have been given: the same numbers
+    (numpy's einsum sums a lone row in another order than two or more: a lone one of several
+    goes with a copy of itself)."""
+    if len(r) == 1 and n_rows > 1:
+        return _m2(np.concatenate([r, r]), np.concatenate([R, R]))[:1]
+    return _m2(r, R)
+
+
+def _surely_beyond(r: np.ndarray, R: np.ndarray, m2_max: float) -> np.ndarray:
+    """Where :func:`_m2` of residuals ``r`` (..., 2) in covariances ``R`` (..., 2, 2) exceeds
+    ``m2_max`` whatever the rounding: ``R`` symmetric (to 1e-9 of its trace), positive definite
+    and conditioned better than 1e6, and the closed form ``rᵀ adj(R) r / det R`` over twice
+    ``m2_max`` (it and the inverse's are within 1e-3 of the exact value there). False
+    elsewhere (NaN included): those need :func:`_m2`."""
+    r00, r01, r10, r11 = R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1]
+    x, y = r[..., 0], r[..., 1]
+    tr = r00 + r11
+    det = r00 * r11 - r01 * r10
+    q = r11 * x * x - (r01 + r10) * x * y + r00 * y * y
+    return (r00 > 0.0) & (det > 1e-6 * tr * tr) & (np.abs(r01 - r10) <= 1e-9 * tr) & (q > 2.0 * m2_max * det)
+
+
 def _block_diag(*blocks: np.ndarray) -> np.ndarray:
     out = np.zeros((2 * len(blocks), 2 * len(blocks)))
     for i, b in enumerate(blocks):
@@ -372,7 +405,7 @@ class LegAssociator:
     config : AssociationConfig
     """
 
-    def __init__(self, config: AssociationConfig = AssociationConfig(), relative_cov=None, images=None,
+    def __init__(self, config: AssociationConfig = AssociationConfig(), relative_covs=None, images=None,
                  guided=None) -> None:
         self.config = config
         # guided re-detection (:mod:`adaptnav.sonar.guided`): the front end's
@@ -386,13 +419,18 @@ class LegAssociator:
         self.guided_log: list | None = None  # diagnostics: (seen sighting, reason) per attempt
         self._guided_pending: list = []  # guided pairs found after the last closure was returned
         self._spans: dict[int, tuple] = {}  # id(drift) → its set's times (old first, last; new first, last)
-        # (t_a, t_b) → covariance of the navigation's error difference e(t_a) − e(t_b) (2×2),
-        # or None: the filter knows the correlation of its errors at two epochs (its clones)
-        self.relative_cov = relative_cov
+        # (t_a (K,), t_b) → (covariances (K, 2, 2), known (K,)) of the navigation's error
+        # difference e(t_a) − e(t_b): the filter knows the correlation of its errors at two
+        # epochs (its clones); None: not known
+        self.relative_covs = relative_covs
         self._gate = chi2_quantile(config.gate_probability, 2)
         self._inlier = chi2_quantile(config.inlier_probability, 2)
         self._old: list[ObjectSighting] = []
         self._stored: tuple[list, dict[str, np.ndarray]] | None = None  # (of _old, arrays)
+        self._weak_stored: tuple[list, dict[str, np.ndarray]] | None = None  # (of _weak_old, arrays)
+        # candidates() by the ids of its batch, within one add(): the window is searched by
+        # associate() and then extend() with the same stored sightings and clones
+        self._memo: dict[tuple, tuple] | None = None
         self._pending: list[ObjectSighting] = []  # new sightings still in play (window_s)
         # weak sightings (ObjectSighting.weak): kept apart, only ever added to an accepted set
         self._weak_old: list[ObjectSighting] = []
@@ -448,6 +486,9 @@ class LegAssociator:
                    "det_cov": np.zeros((0, 2, 2)), "area_m2": np.zeros(0)}
         if not self._old or not batch:
             return [], clutter
+        key = tuple(id(o) for o in batch)
+        if self._memo is not None and key in self._memo:
+            return self._memo[key]
         t_new = max(o.t_s for o in batch)
         in_batch = {id(o) for o in batch}
         stored = self._stored_arrays()
@@ -458,16 +499,23 @@ class LegAssociator:
         rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
         if rel is not None:  # the error difference's own covariance where the filter has it
             rel_known, rel_D = rel[1][:, None, None], rel[0] + D_old
+        # every new sighting (rows) against every old one (columns) at once
+        wide_m2 = c.clutter_scale * self._gate
+        other_leg = ~(t_old[None] >= np.array([b.t_s - c.min_gap_s for b in batch])[:, None])
+        d_all = P_old[None] - np.array([b.pos_n_m for b in batch])[:, None]
+        S_all = C_old[None] + np.array([b.nav_cov + b.det_cov for b in batch])[:, None]
+        if rel is not None:
+            S_all = np.where(rel_known[None], rel_D[None] + np.array([b.det_cov for b in batch])[:, None], S_all)
+        # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
+        need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
         out = []
         cl: dict[str, list] = {k: [] for k in keys}
         for j, b in enumerate(batch):
-            same_leg = t_old >= b.t_s - c.min_gap_s
-            d = P_old - b.pos_n_m[None, :]
-            S = C_old + (b.nav_cov + b.det_cov)[None]
-            if rel is not None:
-                S = np.where(rel_known, rel_D + b.det_cov[None], S)
-            m2 = np.einsum("ki,kij,kj->k", d, np.linalg.inv(S), d)
-            wide = np.flatnonzero((m2 <= c.clutter_scale * self._gate) & ~same_leg)
+            S = S_all[j]
+            m2 = np.full(len(old), np.inf)
+            if need[j].any():
+                m2[need[j]] = _m2_of(d_all[j][need[j]], S[need[j]], len(old))
+            wide = np.flatnonzero(m2 <= wide_m2)
             agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
             if self.trace is not None:
                 ok = set(agree)
@@ -485,19 +533,50 @@ class LegAssociator:
                 out.append((old[k], j, float(m2[k]), S[k]))
         if cl["j"]:
             clutter = {k: np.concatenate(v) for k, v in cl.items()}
+        if self._memo is not None:
+            self._memo[key] = (out, clutter)
         return out, clutter
 
     def _stored_arrays(self) -> dict[str, np.ndarray]:
-        """The stored sightings' ``t_s``, ``pos_n_m``, ``cov`` (navigation + detector),
-        ``det_cov`` and ``id`` as arrays, rebuilt when :meth:`add` has replaced the list (the
-        candidates of every hypothesis search of a batch draw on the same ones)."""
+        """The stored sightings' ``t_s``, ``pos_n_m``, ``smooth_pos_n_m``, ``cov`` (navigation +
+        detector), ``det_cov`` and ``id`` as arrays (the candidates of every hypothesis search
+        of a batch draw on the same ones), built again only when the list was replaced other
+        than by :meth:`_store`."""
         if self._stored is None or self._stored[0] is not self._old:
-            old = self._old
-            self._stored = (old, {
-                "t_s": np.array([o.t_s for o in old]), "pos_n_m": np.array([o.pos_n_m for o in old]),
-                "cov": np.array([o.nav_cov + o.det_cov for o in old]),
-                "det_cov": np.array([o.det_cov for o in old]), "id": np.array([id(o) for o in old])})
+            self._stored = (self._old, _sighting_arrays(self._old))
         return self._stored[1]
+
+    def _weak_arrays(self) -> dict[str, np.ndarray]:
+        """:meth:`_stored_arrays` of the stored weak sightings, extended as :meth:`add` appends
+        to them (their positions for every accepted set were a third of the association)."""
+        w = self._weak_old
+        if self._weak_stored is None or self._weak_stored[0] is not w:
+            self._weak_stored = (w, _sighting_arrays(w))
+        arrays = self._weak_stored[1]
+        if len(arrays["t_s"]) < len(w):
+            tail = _sighting_arrays(w[len(arrays["t_s"]):])
+            arrays = {k: np.concatenate([v, tail[k]]) for k, v in arrays.items()}
+            self._weak_stored = (w, arrays)
+        return arrays
+
+    def _store(self, batch: list[ObjectSighting], t_from_s: float) -> None:
+        """Keep the stored sightings (ordinary and weak) from ``t_from_s`` on, and ``batch``,
+        each at most ``max_sightings`` (the newest), and their arrays with them (rebuilding
+        them for the whole store every batch grew with the mission)."""
+        n = self.config.max_sightings
+        arrays = self._stored_arrays()
+        keep = np.flatnonzero(arrays["t_s"] >= t_from_s)
+        old = self._old
+        # (the kept ones are nearly always the newest: a slice)
+        kept = old[keep[0]:] if keep.size and keep[0] + keep.size == len(old) else [old[k] for k in keep.tolist()]
+        self._old = (kept + list(batch))[-n:]
+        new = _sighting_arrays(batch)
+        self._stored = (self._old, {k: np.concatenate([v[keep], new[k]])[-n:] for k, v in arrays.items()})
+        arrays = self._weak_arrays()
+        keep = np.flatnonzero(arrays["t_s"] >= t_from_s)
+        old = self._weak_old
+        self._weak_old = [old[k] for k in keep.tolist()][-n:]
+        self._weak_stored = (self._weak_old, {k: v[keep][-n:] for k, v in arrays.items()})
 
     def _note(self, a: ObjectSighting, b: ObjectSighting, stage: str) -> None:
         key = (id(a), id(b))
@@ -510,22 +589,16 @@ class LegAssociator:
                 self._note(self._old[cand[k][0]], batch[cand[k][1]], stage)
 
     def _relative(self, t_old: np.ndarray, t_new: float):
-        """(covariances (K, 2, 2), known (K,)) of e(t_old) − e(t_new) from ``relative_cov``,
-        one call per distinct second of the old sightings (the clones are seconds apart)."""
-        if self.relative_cov is None:
+        """(covariances (K, 2, 2), known (K,)) of e(t_old) − e(t_new) from ``relative_covs``,
+        asked at the first old sighting of each distinct second (the clones are seconds apart)."""
+        if self.relative_covs is None:
             return None
-        first: dict[int, int] = {}  # second → the first old sighting in it (the one asked)
-        seconds = np.array([first.setdefault(round(t), k) for k, t in enumerate(t_old.tolist())], dtype=np.intp)
-        asked = np.array(list(first.values()), dtype=np.intp)
-        cov = np.zeros((asked.size, 2, 2))
-        ok = np.zeros(asked.size, bool)
-        for i, k in enumerate(asked.tolist()):
-            c = self.relative_cov(float(t_old[k]), t_new)
-            if c is not None:
-                cov[i], ok[i] = c, True
-        ok &= np.isfinite(cov).all(axis=(1, 2))  # a non-finite one is not known
-        cov[~ok] = 0.0
-        at = np.searchsorted(asked, seconds)  # (asked is increasing: first sightings in order)
+        # (np.round is Python's round: half to even; unique's indices are first occurrences)
+        _, first, at = np.unique(np.round(t_old), return_index=True, return_inverse=True)
+        cov, ok = self.relative_covs(t_old[first], t_new)
+        ok = ok & np.isfinite(cov).all(axis=(1, 2))  # a non-finite one is not known
+        cov = np.where(ok[:, None, None], cov, 0.0)
+        at = at.reshape(-1)
         return cov[at], ok[at]
 
     def _vel_cov(self, o: ObjectSighting) -> np.ndarray:
@@ -793,11 +866,15 @@ class LegAssociator:
         self._weak_pending = [o for o in self._weak_pending if o.t_s >= t_new - self.config.window_s]
         self._pending = [o for o in self._pending if o.t_s >= t_new - self.config.window_s] + list(batch)
         # the block alone first (its sightings share the least drift), then the window
-        lc = self.associate(list(batch))
-        if lc is None and len(self._pending) > len(batch):
-            lc = self.associate(list(self._pending))
-        if lc is None and self.config.extend_probability > 0:
-            lc = self.extend(list(self._pending))
+        self._memo = {}
+        try:
+            lc = self.associate(list(batch))
+            if lc is None and len(self._pending) > len(batch):
+                lc = self.associate(list(self._pending))
+            if lc is None and self.config.extend_probability > 0:
+                lc = self.extend(list(self._pending))
+        finally:
+            self._memo = None
         if lc is not None:
             used = {id(b) for _, b in lc.pairs}
             self._pending = [o for o in self._pending if id(o) not in used]
@@ -810,10 +887,7 @@ class LegAssociator:
             if lc is not None:
                 self._paired |= {id(o) for p in tuple(lc.pairs) + tuple(lc.weak_pairs) for o in p}
             lc = self._guided(lc)
-        kept = [o for o in self._old if o.t_s >= t_new - self.config.memory_s] + list(batch)
-        self._old = kept[-self.config.max_sightings:]
-        kept = [o for o in self._weak_old if o.t_s >= t_new - self.config.memory_s]
-        self._weak_old = kept[-self.config.max_sightings:]
+        self._store(batch, t_new - self.config.memory_s)
         if self._spans:
             self._spans = {k: v for k, v in self._spans.items() if any(k == id(r[2]) for r in self._recent)}
         if self._paired or self._tested or self._weak_used:  # (ids of sightings no longer kept could be reused)
@@ -849,28 +923,35 @@ class LegAssociator:
         ta, tb, drift = self._recent[-1]
         reach = c.window_s + c.set_span_s
         in_set = {id(o) for p in lc.pairs for o in p} | self._weak_used
-        old = [o for o in self._old + self._weak_old
-               if abs(o.t_s - ta) <= reach and id(o) not in in_set]
+        # the stored sightings (the last quarter hour) near ta by their arrays, ordinary ones first
+        stored, weak = self._stored_arrays(), self._weak_arrays()
+        k_old = [k for k in np.flatnonzero(np.abs(stored["t_s"] - ta) <= reach).tolist()
+                 if id(self._old[k]) not in in_set]
+        k_weak = [k for k in np.flatnonzero(np.abs(weak["t_s"] - ta) <= reach).tolist()
+                  if id(self._weak_old[k]) not in in_set]
+        old = [self._old[k] for k in k_old] + [self._weak_old[k] for k in k_weak]
         new = [o for o in self._pending + self._weak_pending
                if abs(o.t_s - tb) <= reach and id(o) not in in_set]
         if not old or not new:
             return lc
         # pairs with a weak sighting, of two legs, near the set's offset (within 10 m: the
         # inlier gates are a metre or two)
-        p_old = np.array([o.smooth_pos_n_m for o in old])
+        p_old = np.concatenate([stored["smooth_pos_n_m"][k_old], weak["smooth_pos_n_m"][k_weak]])
         p_new = np.array([o.smooth_pos_n_m for o in new])
         w_old = np.array([o.weak for o in old])
         w_new = np.array([o.weak for o in new])
-        t_old = np.array([o.t_s for o in old])
+        t_old = np.concatenate([stored["t_s"][k_old], weak["t_s"][k_weak]])
         t_new = np.array([o.t_s for o in new])
-        near = np.linalg.norm(p_old[:, None] - p_new[None] - drift.predict([ta], [tb])[0], axis=2) <= 10.0
-        near &= (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s)
+        near = (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s)
+        i_near, j_near = np.nonzero(near)  # (the distance only of these)
+        near[i_near, j_near] = np.linalg.norm(p_old[i_near] - p_new[j_near] - drift.predict([ta], [tb])[0],
+                                              axis=1) <= 10.0
         cand = list(zip(*(v.tolist() for v in np.nonzero(near))))
         if not cand:
             return lc
         ii, jj = (np.array(v) for v in zip(*cand))
         diffs = p_old[ii] - p_new[jj]
-        D = np.array([old[i].det_cov + new[j].det_cov for i, j in cand])
+        D = np.array([old[i].det_cov for i in ii.tolist()]) + np.array([new[j].det_cov for j in jj.tolist()])
         r, R = drift.residuals(diffs, t_old[ii], t_new[jj], D)
         m2 = _m2(r, R)
         # the object seen again, against a false weak sighting that happens to lie there: the
@@ -881,12 +962,14 @@ class LegAssociator:
         # measured mean and the weak sightings' own around the pair's weak one
         rho = np.full(len(cand), c.weak_clutter_per_m2)
         if self._weak_old:
-            p_weak = np.array([o.smooth_pos_n_m for o in self._weak_old])
+            p_weak = weak["smooth_pos_n_m"]
             rad = c.weak_density_radius_m
-            for k, (i, j) in enumerate(cand):
-                w = new[j] if new[j].weak else old[i]
-                n = int(np.count_nonzero(np.sum((p_weak - w.smooth_pos_n_m) ** 2, axis=1) <= rad * rad)) - 1
-                rho[k] = max(rho[k], n / (math.pi * rad * rad))
+            # the pair's weak sighting (the new one if weak), each counted once (it is in many pairs)
+            w_key = np.where(w_new[jj], len(old) + jj, ii)
+            _, first, at = np.unique(w_key, return_index=True, return_inverse=True)
+            p_w = np.where(w_new[jj[first]][:, None], p_new[jj[first]], p_old[ii[first]])
+            n = np.count_nonzero(np.sum((p_weak[None] - p_w[:, None]) ** 2, axis=2) <= rad * rad, axis=1) - 1
+            rho = np.maximum(rho, (n / (math.pi * rad * rad))[at.reshape(-1)])
         lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
         inside = np.flatnonzero(m2 <= self._inlier)
         # posterior odds: the prior odds that the other sighting's object is there to be seen

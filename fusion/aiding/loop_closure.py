@@ -200,6 +200,42 @@ class CloneBank:
             self._rel[key] = out
         return out
 
+    def relative_covs(self, a: np.ndarray, b: int) -> np.ndarray:
+        """:meth:`relative_cov` of every clone ``a[k]`` with clone ``b`` ((K, 2, 2)): the same
+        arithmetic element by element, one stack per distinct clone (the association asks for
+        a batch's clone against every stored sighting's, and the pruning of every new clone
+        empties the per-pair cache an hour in)."""
+        ids, sig = self._ids, self._sigma
+        ib = ids[b]
+        row_b = sig[ib]
+        uniq, at = np.unique(np.asarray(a, dtype=np.intp), return_inverse=True)
+        s_aa, s_ab, s_ba = [], [], []
+        for k in uniq.tolist():
+            ia = ids[k]
+            s_aa.append(sig[ia][ia])
+            # as sigma(a, b) and sigma(b, a): stored once per pair as (newer, older)
+            if ia >= ib:
+                ab = sig[ia][ib]
+                s_ab.append(ab)
+                s_ba.append(ab if ia == ib else ab.T)
+            else:
+                ba = row_b[ia]
+                s_ab.append(ba.T)
+                s_ba.append(ba)
+        out = np.array(s_aa) + row_b[ib] - np.array(s_ab) - np.array(s_ba)
+        return out[at.reshape(-1)]
+
+    def nearest_many(self, t_s: np.ndarray) -> np.ndarray:
+        """:meth:`nearest` of every time in ``t_s`` (list positions, −1 where None)."""
+        t = np.asarray(t_s, float)
+        if not self.t_s:
+            return np.full(t.shape, -1, dtype=np.intp)
+        ts = np.array(self.t_s)
+        k = np.searchsorted(ts, t, side="left")  # bisect_left
+        before, after = np.maximum(k - 1, 0), np.minimum(k, ts.size - 1)
+        k = np.where((k == ts.size) | ((k > 0) & (np.abs(ts[before] - t) <= np.abs(ts[after] - t))), k - 1, k)
+        return np.where(np.abs(ts[k] - t) <= self.period_s, k, -1)
+
     def nearest(self, t_s: float) -> int | None:
         """List position of the clone nearest ``t_s`` (None if there is none within a period)."""
         ts = self.t_s

@@ -123,7 +123,7 @@ def run(scenario: Any, *, landmarks: bool = True, min_range_m: float = 5.0,
     est_with, est_without = make_estimator(cfg), make_estimator(cfg)
     store = ImageStore() if guided else None
     fe = ObjectFrontEnd(store=store)
-    assoc = LegAssociator(relative_cov=est_with.relative_position_covariance, images=store)
+    assoc = LegAssociator(relative_covs=est_with.relative_position_covariances, images=store)
     assoc.trace = {}
     closures, fused = [], 0
     sightings = []

@@ -223,3 +223,21 @@ def test_loop_closure_survives_a_second_late_measurement():
         ends.append(est._x[X_POS_NE].copy())
     with_end, without_end = ends
     assert np.linalg.norm(with_end - without_end) > 2.0, (with_end, without_end)
+
+
+def test_many_relative_covariances_are_the_single_ones_bit_for_bit():
+    """The association's batch lookup (:meth:`CloneBank.nearest_many`, :meth:`CloneBank.relative_covs`)
+    gives exactly what one call per time gives: ties half-way between clones, times outside every
+    clone's period, clones older and newer than the other epoch, and the same clone."""
+    *_, est = _run(1)
+    cl = est._clones
+    ts = np.array(cl.t_s)
+    mid = 0.5 * (ts[:-1] + ts[1:])
+    t = np.concatenate([ts, mid, mid + 1e-9, ts + 2.4, [-500.0, ts[0] - cl.period_s, ts[-1] + cl.period_s + 1.0]])
+    near = cl.nearest_many(t)
+    assert near.tolist() == [-1 if cl.nearest(v) is None else cl.nearest(v) for v in t.tolist()]
+    for b in (0, len(ts) // 2, len(ts) - 1):
+        a = near[near >= 0]
+        many = cl.relative_covs(a, b)
+        one = np.array([cl.relative_cov(k, b) for k in a.tolist()])
+        assert many.tobytes() == one.tobytes()
