@@ -180,20 +180,6 @@ class SideScanEstimator(Estimator):
         cov = np.asarray(lc.cov, float) + ((t_a - lc.t_a_s) ** 2 + (t_b - lc.t_b_s) ** 2) * 0.5 * (p_vv + p_vv.T)
         return self.fuse_loop_closure(t_a, t_b, lc.offset_at(j_a, j_b), cov)
 
-    def relative_position_covariances(self, t_a_s: np.ndarray, t_b_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`~adaptnav.fusion.eskf.Estimator.relative_position_covariance` of every time in
-        ``t_a_s`` with ``t_b_s`` at once: covariances (K, 2, 2; zero where not known) and known
-        (K,) — what the association's gate asks of every stored sighting for each batch (one
-        call each was a third of the association an hour in)."""
-        cl = self._clones
-        a = cl.nearest_many(t_a_s)
-        b = cl.nearest(t_b_s)
-        known = a >= 0 if b is not None else np.zeros(a.shape, bool)
-        cov = np.zeros((a.size, 2, 2))
-        if np.any(known):
-            cov[known] = cl.relative_covs(a[known], b)
-        return cov, known
-
     @property
     def associator(self) -> Any:
         """The cross-leg associator (created on first use: it imports sonar)."""

@@ -191,7 +191,8 @@ class CloneBank:
     def relative_cov(self, a: int, b: int) -> np.ndarray:
         """``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` (2×2, read-only): the covariance of ``d_a − d_b`` for
         clones at list positions ``a`` and ``b``. Kept per pair of clones (their Σ never
-        change): the association asks for it once per candidate pair."""
+        change): a closure's update asks for it (the association's gate, for many clones at
+        once, :meth:`relative_covs`)."""
         key = (self._ids[a], self._ids[b])
         out = self._rel.get(key)
         if out is None:
