@@ -221,6 +221,9 @@ class Estimator:
         self._arm = {k: a for k, a in self._arm.items() if np.any(a)}
         out_arm = np.asarray(config.output_point_b_m, dtype=float) - l_imu
         self._out_arm = out_arm if np.any(out_arm) else None
+        # what _add_considered reads of the config with every published state
+        self._reference_yaw_sigma_rad = config.attitude.reference_yaw_sigma_rad
+        self._density_sigma_kg_m3 = (config.depth.density_sigma_kg_m3, config.depth.water_density_kg_m3)
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
         self._dx = np.zeros(N_ERR)
         self._sdiag = np.zeros(3)
@@ -281,8 +284,10 @@ class Estimator:
         # aiding corrections — what the IMU alone says about velocity *changes* (the
         # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
         # very motion model being calibrated)
-        self._vel_inertial_n = np.zeros(3)
-        self._pos_inertial_n = np.zeros(3)  # its integral (m): exact step means for the calibrator
+        # (lists of three floats, north east down: per IMU batch, float arithmetic is numpy's
+        # elementwise arithmetic at a fraction of the cost)
+        self._vel_inertial_n = [0.0, 0.0, 0.0]
+        self._pos_inertial_n = [0.0, 0.0, 0.0]  # its integral (m): exact step means for the calibrator
         self.late_fused = 0  # measurements fused at their own (past) time of validity
         # guard (:meth:`process`): last good state (snapshot, IMU time) and its time
         self._good: tuple[_Snapshot, float] | None = None
@@ -345,7 +350,7 @@ class Estimator:
         x = self._x
         cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         if self.dvl_calibration is not None:  # _add_considered's terms of these blocks
-            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne()
+            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne(copy=False)
         if self.invalid_reasons(_sigma_h_m(cov)) or not np.isfinite(x).all():
             return None
         return (float(self._clock[0]), x[X_POS_NE].copy(), x[_X_VEL_NE].copy(), quat_to_euler(x[X_Q])[2],
@@ -361,13 +366,13 @@ class Estimator:
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
         depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
         if self.dvl_calibration is not None:
-            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne()
-        sigma_b = self.config.attitude.reference_yaw_sigma_rad
+            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne(copy=False)
+        sigma_b = self._reference_yaw_sigma_rad
         if self._yaw_frame and sigma_b > 0.0:
             cov += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)
-        dep = self.config.depth
-        if dep.density_sigma_kg_m3 > 0.0:
-            cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * dep.density_sigma_kg_m3 / dep.water_density_kg_m3) ** 2
+        sigma_rho, rho = self._density_sigma_kg_m3
+        if sigma_rho > 0.0:
+            cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * sigma_rho / rho) ** 2
 
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
@@ -411,12 +416,11 @@ class Estimator:
         if self._mode != "ins" or self._attitude_driven:  # (a virtual IMU measures no motion)
             return None
         yaw = aid_heading.predict(self._x)[0]
-        v, p = self._vel_inertial_n, self._pos_inertial_n
         c = self._x[X_CUR]
         cal = self.dvl_calibration
         dvl_cal = (float(cal.theta[0]), float(cal.theta[1])) if cal is not None else (0.0, 0.0)
-        return InertialVelocitySample(float(self._clock[0]), (float(v[0]), float(v[1]), float(v[2])),
-                                      (float(p[0]), float(p[1]), float(p[2])), float(yaw),
+        return InertialVelocitySample(float(self._clock[0]), tuple(self._vel_inertial_n),
+                                      tuple(self._pos_inertial_n), float(yaw),
                                       int(self._reset_counter), (float(c[0]), float(c[1]), 0.0), dvl_cal)
 
     def clone_position(self) -> bool:
@@ -922,8 +926,8 @@ class Estimator:
         self._reset_counter = s.reset_counter
         self._surge.r_hat_m2_s2 = s.lv_r_hat
         self._fix_evidence = s.fix_evidence
-        self._vel_inertial_n[:] = s.vel_inertial_n
-        self._pos_inertial_n[:] = s.pos_inertial_n
+        self._vel_inertial_n = s.vel_inertial_n.copy()
+        self._pos_inertial_n = s.pos_inertial_n.copy()
         self.motion_params = s.motion_params
         self._t_release = s.t_release
         self._reject_since = dict(s.reject_since)
@@ -1223,6 +1227,7 @@ class Estimator:
         out: list[AidStatus] = []
         start = 0
         n = t.size
+        x, step_s = self._x, self.config.covariance_step_s
         while start < n:
             stop = n
             lv_due = False
@@ -1230,14 +1235,18 @@ class Estimator:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
-            t0, pos0, vel0 = self._clock[0], self._x[X_POS].copy(), self._x[X_VEL].copy()
+            t0, x0 = float(self._clock[0]), x[:6].tolist()  # position, velocity before
             # (each covariance step also goes into the clones' map while they exist)
             kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
-                                  self._qdiag, self.config.covariance_step_s)
+                                  self._qdiag, step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
-            self._pos_inertial_n += (self._x[X_POS] - pos0) + (self._vel_inertial_n - vel0) * (self._clock[0] - t0)
-            self._vel_inertial_n += self._x[X_VEL] - vel0
+            dt = float(self._clock[0]) - t0
+            x1 = x[:6].tolist()
+            p, v = self._pos_inertial_n, self._vel_inertial_n
+            for i in range(3):
+                p[i] += (x1[i] - x0[i]) + (v[i] - x0[3 + i]) * dt
+                v[i] += x1[3 + i] - x0[3 + i]
             start = stop
             if lv_due and self._clock[0] >= self._next_lv_t:
                 status = self._learned_velocity()

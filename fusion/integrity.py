@@ -31,10 +31,9 @@ class NisMonitor:
     def __init__(self, window: int, quantile: float):
         self.window = int(window)
         self.quantile = float(quantile)
-        self._nis: dict[str, deque] = {}
-        self._sum: dict[str, float] = {}
-        self._dof: dict[str, int] = {}
-        self._limit: dict[str, float] = {}  # per source: bound(its dof)
+        # per source, one list (one look-up per attempt, an aid status at tens of Hz):
+        # [its NIS window (deque), their sum, dof, bound(dof), cap(dof)]
+        self._source: dict[str, list] = {}
         self._bound: dict[int, float] = {}
         # the sources above their bound (full windows only): a source's verdict changes only
         # when it adds an attempt, and failing() is asked with every published state
@@ -43,18 +42,16 @@ class NisMonitor:
 
     def add(self, source: str, nis: float, dof: int) -> None:
         """One attempt's NIS (finite) of a ``dof``-dimensional measurement."""
-        q = self._nis.get(source)
-        if q is None or self._dof[source] != dof:
-            q = self._nis[source] = deque()
-            self._sum[source] = 0.0
-            self._dof[source] = dof
-            self._limit[source] = self.bound(dof)
-        nis = min(nis, self.cap(dof))
+        s = self._source.get(source)
+        if s is None or s[2] != dof:
+            s = self._source[source] = [deque(), 0.0, dof, self.bound(dof), self.cap(dof)]
+        q = s[0]
+        nis = min(nis, s[4])
         q.append(nis)
-        total = self._sum[source] = self._sum[source] + nis
+        total = s[1] = s[1] + nis
         if len(q) > self.window:
-            total = self._sum[source] = total - q.popleft()
-        if len(q) >= self.window and total > self._limit[source]:
+            total = s[1] = total - q.popleft()
+        if len(q) >= self.window and total > s[3]:
             self._failing.add(source)
         else:
             self._failing.discard(source)
@@ -79,9 +76,6 @@ class NisMonitor:
 
     def clear(self, source: str | None = None) -> None:
         """Forget (after a reset: the old innovations say nothing about the new state)."""
-        for s in ([source] if source is not None else list(self._nis)):
+        for s in ([source] if source is not None else list(self._source)):
             self._failing.discard(s)
-            self._nis.pop(s, None)
-            self._sum.pop(s, None)
-            self._dof.pop(s, None)
-            self._limit.pop(s, None)
+            self._source.pop(s, None)

@@ -114,6 +114,7 @@ class DepthNoise:
     def __init__(self, config: DepthConfig):
         self.floor_m = float(config.sigma_m)
         self.bound_m = float(config.adaptive_max_sigma_m)
+        self.enabled = self.bound_m > self.floor_m  # the σ adapts (fixed bounds; asked twice per depth)
         self._last: deque = deque(maxlen=2)        # (t_s, depth_m) of the two latest depths
         self._abs_d2: deque = deque(maxlen=self.WINDOW)
         # the same values kept sorted, so that the median of every depth is two look-ups
@@ -126,10 +127,6 @@ class DepthNoise:
         self.max_used_sigma_m = self.floor_m
         self.samples = 0
         self.samples_at_bound = 0
-
-    @property
-    def enabled(self) -> bool:
-        return self.bound_m > self.floor_m
 
     def sigma_at(self, t_s: float, depth_m: float) -> float:
         """The σ (m) to fuse the depth ``depth_m`` measured at ``t_s`` with."""

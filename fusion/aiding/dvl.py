@@ -233,7 +233,7 @@ class DvlCalibration:
                 "straight_segments_rejected": self.segments_rejected,
                 "status": "estimated" if self.pairs_used or self.segments_used else "prior"}
 
-    def position_cov_ne(self) -> np.ndarray:
+    def position_cov_ne(self, copy: bool = True) -> np.ndarray:
         """(2, 2) m²: what the scale and misalignment still unknown (their σ, ``P``) make of the
         DVL's track since the last fix, ``H P Hᵀ`` with ``H = ∂(Δp − D)/∂(s, ψ)``, plus ``k kᵀ``
         for the known part ``k = H θ̂ − Σ H(d) θ̂_then`` (the earlier track corrected with an
@@ -243,10 +243,11 @@ class DvlCalibration:
         misses this correlated error (0.3 % and 0.4° leave ±1–2 m along and across a 345 m leg
         of dvl_outage, where the filter said σ 0.3–0.6 m: NEES north 15–20 on its own); the
         published covariance adds it (a *consider* covariance: Schmidt 1966; Groves 2013 §3.4.3).
-        Zero before the first fix (the track is counted from a fix).
+        Zero before the first fix (the track is counted from a fix). ``copy=False``: the array
+        kept (read-only; for a caller that only adds it, with every published state).
         """
         if self._fix is None:
-            return np.zeros((2, 2))
+            return np.zeros((2, 2)) if copy else _ZERO22
         d0, d1 = self._track_n, self._track_e
         # asked with every published state and side-scan ping, changed by DVL samples and fixes
         # only: kept with what it was computed from (P is replaced, never changed in place; the
@@ -259,8 +260,10 @@ class DvlCalibration:
             k1 -= self._applied_e
             # + k kᵀ: np.outer's products, as floats
             kk = np.array([[k0 * k0, k0 * k1], [k1 * k0, k1 * k1]])
-            memo = self._cov_ne_memo = (d0, d1, self.P, H @ self.P[:2, :2] @ H.T + kk)
-        return memo[3].copy()
+            cov = H @ self.P[:2, :2] @ H.T + kk
+            cov.setflags(write=False)
+            memo = self._cov_ne_memo = (d0, d1, self.P, cov)
+        return memo[3].copy() if copy else memo[3]
 
     def correct(self, vel_d_m_s) -> tuple[float, float, float]:
         """The measured head velocity with the estimated scale and misalignment removed
@@ -373,6 +376,10 @@ class DvlCalibration:
         self._covered_s = 0.0
         if bridged:  # the next interval starts at the fix
             self._last_t = t_s
+
+
+_ZERO22 = np.zeros((2, 2))
+_ZERO22.setflags(write=False)
 
 
 def correct_velocity(vel_d_m_s, scale_factor_error: float, misalignment_rad: float) -> tuple[float, float, float]:
