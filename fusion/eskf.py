@@ -107,6 +107,9 @@ _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 # north, east of the velocity: in the nominal state, in the error state
 _X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)
+# position then velocity, read together as six floats (the free-inertial integral, _imu_clean)
+assert X_POS.stop == X_VEL.start and X_POS.stop - X_POS.start == 3
+_X_POS_VEL = slice(X_POS.start, X_VEL.stop)
 _VEL_NE = slice(VEL.start, VEL.start + 2)
 
 
@@ -1235,14 +1238,14 @@ class Estimator:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
-            t0, x0 = float(self._clock[0]), x[:6].tolist()  # position, velocity before
+            t0, x0 = float(self._clock[0]), x[_X_POS_VEL].tolist()  # position, velocity before
             # (each covariance step also goes into the clones' map while they exist)
             kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
                                   self._qdiag, step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
             # the strapdown's position change plus offset × Δt
             dt = float(self._clock[0]) - t0
-            x1 = x[:6].tolist()
+            x1 = x[_X_POS_VEL].tolist()
             p, v = self._pos_inertial_n, self._vel_inertial_n
             for i in range(3):
                 p[i] += (x1[i] - x0[i]) + (v[i] - x0[3 + i]) * dt
