@@ -22,6 +22,7 @@ same bytes):
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import logging
 import math
@@ -382,8 +383,14 @@ class ParamsCsvSink(Sink):
         self._file.close()
 
 
+# rows a SeriesRecorder's arrays start with (a minute at 10 Hz), doubled when full
+_FIRST_ROWS = 600
+# a truth row: t, pos (3), vel (3), current n, e, k_v, q_nb (4)
+_TRUTH_ROW = 14
+
+
 class SeriesRecorder(Sink):
-    """Keeps the series that metrics and plots need, as compact lists (→ arrays on demand).
+    """Keeps the series that metrics and plots need, as growing arrays and compact lists.
 
     Nav: t, pos, vel, q_nb, (pos, vel, att) covariance 9×9, current, k_speed. Truth: t,
     pos, vel, current, k_v, q_nb. Aid: t, source, fused, test ratio, normalised innovation
@@ -405,12 +412,14 @@ class SeriesRecorder(Sink):
         self._pva_block = (slice(a, a + self._pva.size) if np.array_equal(self._pva, np.arange(a, a + self._pva.size))
                            else None)
         self.nav_t: list[float] = []
-        self.nav_pos: list[np.ndarray] = []
-        self.nav_vel: list[np.ndarray] = []
-        self.nav_q: list[np.ndarray] = []
-        self.nav_cov_pva: list[np.ndarray] = []
-        self.nav_current: list[tuple[float, float]] = []
         self.nav_k_speed: list[float] = []
+        # the nav states' vectors row by row in growing arrays (the first len(nav_t) rows
+        # hold data): no array per epoch, and track() is a view
+        self._nav_pos = np.empty((_FIRST_ROWS, 3))
+        self._nav_vel = np.empty((_FIRST_ROWS, 3))
+        self._nav_q = np.empty((_FIRST_ROWS, 4))
+        self._nav_cov_pva = np.empty((_FIRST_ROWS, 9, 9))
+        self._nav_current = np.empty((_FIRST_ROWS, 2))
         self.truth_rows: list[tuple] = []
         self.aid_rows: list[tuple[float, str, bool, float, tuple]] = []
         self.releases: list[Any] = []
@@ -423,15 +432,25 @@ class SeriesRecorder(Sink):
         # none kept, a replay without either)
         self._keep_aid_rows = bool(aid_rows)
 
+    def _grow(self) -> None:
+        for name in ("_nav_pos", "_nav_vel", "_nav_q", "_nav_cov_pva", "_nav_current"):
+            old = getattr(self, name)
+            new = np.empty((2 * len(old), *old.shape[1:]))
+            new[:len(old)] = old
+            setattr(self, name, new)
+
     def on_nav(self, state: Any) -> None:
-        self.nav_t.append(float(state.t_s))
-        self.nav_pos.append(np.array(state.pos_n_m, dtype=float))
-        self.nav_vel.append(np.array(state.vel_n_m_s, dtype=float))
-        self.nav_q.append(np.array(state.q_nb, dtype=float))
+        i = len(self.nav_t)
+        if i == len(self._nav_pos):
+            self._grow()
+        self._nav_pos[i] = state.pos_n_m
+        self._nav_vel[i] = state.vel_n_m_s
+        self._nav_q[i] = state.q_nb
         cov = np.asarray(state.cov)
         b = self._pva_block
-        self.nav_cov_pva.append(cov[b, b].copy() if b is not None else cov[self._pva_ix])
-        self.nav_current.append(_current_xy(state))
+        self._nav_cov_pva[i] = cov[b, b] if b is not None else cov[self._pva_ix]
+        self._nav_current[i] = _current_xy(state)
+        self.nav_t.append(float(state.t_s))
         self.nav_k_speed.append(float(state.k_speed))
 
     def on_sample(self, sample: Any) -> None:
@@ -465,30 +484,32 @@ class SeriesRecorder(Sink):
 
     # -- arrays ------------------------------------------------------------------------
     def track(self) -> TrackArrays:
+        """The nav series; its vectors are views of the recorder's arrays (read, do not write)."""
         n = len(self.nav_t)
-        return TrackArrays(
-            t_s=np.asarray(self.nav_t, dtype=float),
-            pos_n_m=np.asarray(self.nav_pos, dtype=float).reshape(n, 3),
-            vel_n_m_s=np.asarray(self.nav_vel, dtype=float).reshape(n, 3),
-            q_nb=np.asarray(self.nav_q, dtype=float).reshape(n, 4),
-            cov_pva=np.asarray(self.nav_cov_pva, dtype=float).reshape(n, 9, 9),
-            current_n_m_s=np.asarray(self.nav_current, dtype=float).reshape(n, 2),
-        )
+        return TrackArrays(t_s=np.asarray(self.nav_t, dtype=float), pos_n_m=self._nav_pos[:n],
+                           vel_n_m_s=self._nav_vel[:n], q_nb=self._nav_q[:n], cov_pva=self._nav_cov_pva[:n],
+                           current_n_m_s=self._nav_current[:n])
 
     def truth(self) -> TruthArrays | None:
         if len(self.truth_rows) < 2:
             return None
-        a = np.asarray(self.truth_rows, dtype=float)
-        # sort by time and drop duplicate stamps so interpolation is well defined
-        a = a[np.argsort(a[:, 0], kind="stable")]
-        keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
-        a = a[keep]
+        a = self._truth_table()
+        if not np.all(np.diff(a[:, 0]) > 0):  # (a simulation's are: no copies then)
+            # sort by time and drop duplicate stamps so interpolation is well defined
+            a = a[np.argsort(a[:, 0], kind="stable")]
+            keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
+            a = a[keep]
         return TruthArrays(t_s=a[:, 0], pos_n_m=a[:, 1:4], vel_n_m_s=a[:, 4:7], q_nb=a[:, 10:14],
                            current_n_m_s=a[:, 7:9])
 
     def truth_k_v(self) -> tuple[np.ndarray, np.ndarray]:
-        a = np.asarray(self.truth_rows, dtype=float).reshape(-1, 14)
+        a = self._truth_table()
         return a[:, 0], a[:, 9]
+
+    def _truth_table(self) -> np.ndarray:
+        # the rows' floats in one pass (np.asarray of the tuples takes twice as long)
+        n = len(self.truth_rows)
+        return np.fromiter(itertools.chain.from_iterable(self.truth_rows), float, n * _TRUTH_ROW).reshape(n, _TRUTH_ROW)
 
     def metrics(self) -> dict:
         truth = self.truth()
