@@ -58,17 +58,13 @@ def fmt(value: Any) -> str:
 
 
 def _vec(values: Any) -> str:
-    # ``%`` formats a number as ``format(float(v), ".10g")`` does, in one call per vector
-    fmt_n = _VEC_FORMATS.get(len(values))
-    if fmt_n is None:
-        return ";".join(format(float(v), ".10g") for v in values)
-    return fmt_n % tuple(values)
+    return ";".join(format(float(v), ".10g") for v in values)
 
 
-_VEC_FORMATS = {n: ";".join(["%.10g"] * n) for n in range(1, 7)}
 # trajectory.csv's numeric columns t_s … k_speed, and its truth columns (comma-separated)
 _NAV_FORMAT = ",".join(["%.10g"] * 16)
-_TRUTH_FORMAT = ",".join(["%.10g"] * 6)
+_TRUTH_FORMAT = "," + ",".join(["%.10g"] * 6) + "\n"
+_NO_TRUTH = "," * 6 + "\n"
 # characters that make csv.writer quote a field
 _CSV_SPECIAL = frozenset(',"\r\n')
 
@@ -209,10 +205,16 @@ def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict
     return out
 
 
-def geo_time_columns(state: Any, unix_of: Any = None, origin: Any = None) -> list[str]:
-    f = geo_time_fields(state, unix_of, origin)
-    return [format(f["t_unix_s"], ".6f") if "t_unix_s" in f else "",
-            *(format(f[k], ".9f") if k in f else "" for k in ("lat_deg", "lon_deg"))]
+def geo_time_text(t_s: float, north_m: float, east_m: float, unix_of: Any = None, origin: Any = None) -> str:
+    """trajectory.csv's ``t_unix_s,lat_deg,lon_deg`` of a state: :func:`geo_time_fields`'
+    numbers, each empty when unknown (from the Python floats of the row: no dict, no arrays)."""
+    t_unix = unix_of(t_s) if unix_of is not None else None
+    text = "" if t_unix is None else "%.6f" % t_unix
+    if origin is not None:
+        lat, lon = origin.to_geodetic_ne(north_m, east_m)
+        if math.isfinite(lat) and math.isfinite(lon):
+            return text + ",%.9f,%.9f" % (math.degrees(lat), math.degrees(lon))
+    return text + ",,"
 
 
 def _current_xy(state: Any) -> tuple[float, float]:
@@ -253,7 +255,7 @@ class TrajectoryCsvSink(Sink):
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS + (self.TRUTH_COLUMNS if truth else ()))
         self._last_truth = None
-        self._pending: tuple[float, list] | None = None  # (t_s, row) waiting for its truth sample
+        self._pending: tuple[float, str] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
         # a log's UNIX time of a state is what the source has learnt of its clock by then
         self.deferrable = unix_of is None
@@ -269,15 +271,15 @@ class TrajectoryCsvSink(Sink):
     def _truth_matches(self, t_s: float, truth: Any) -> bool:
         return truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s
 
-    def _write(self, row: list, truth: Any) -> None:
-        if self.truth:
-            if truth is not None:
-                row.append(_TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
-                                            truth.k_v))
-            else:
-                row += [""] * len(self.TRUTH_COLUMNS)
+    def _write(self, row: str, truth: Any) -> None:
         # the fields are numbers, never quoted: what csv.writer would write, joined directly
-        self._file.write(",".join(row) + "\n")
+        if not self.truth:
+            self._file.write(row + "\n")
+        elif truth is not None:
+            self._file.write(row + _TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
+                                                    truth.k_v))
+        else:
+            self._file.write(row + _NO_TRUTH)
 
     def on_nav(self, state: Any) -> None:
         if self._pending is not None:  # its truth did not come before the next state: none
@@ -287,13 +289,13 @@ class TrajectoryCsvSink(Sink):
         p = np.asarray(state.pos_n_m, dtype=float).tolist()
         v = np.asarray(state.vel_n_m_s, dtype=float).tolist()
         roll, pitch, yaw = quat_to_euler(state.q_nb)
-        i0 = self._pos.start
-        sig = [math.sqrt(max(c, 0.0)) for c in np.diagonal(state.cov)[i0:i0 + 3].tolist()]
+        var_n, var_e, var_d = np.asarray(state.cov).diagonal()[self._pos].tolist()
         cn, ce = _current_xy(state)
-        row = [_NAV_FORMAT % (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw, sig[0],
-                              sig[1], sig[2], cn, ce, state.k_speed),
-               "1" if state.valid else "0", *geo_time_columns(state, self.unix_of, self.origin)]
         t_s = float(state.t_s)
+        row = (_NAV_FORMAT % (t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
+                              math.sqrt(max(var_n, 0.0)), math.sqrt(max(var_e, 0.0)), math.sqrt(max(var_d, 0.0)),
+                              cn, ce, state.k_speed)
+               + (",1," if state.valid else ",0,") + geo_time_text(t_s, p[0], p[1], self.unix_of, self.origin))
         if not self.truth or self._truth_matches(t_s, self._last_truth):
             self._write(row, self._last_truth)
         else:
@@ -321,15 +323,32 @@ class AidStatusCsvSink(Sink):
         self._file = open(self.path, "w", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS)
+        # (source, fused, reason, vector lengths) → the row's format: a handful of them per run
+        self._line_formats: dict[tuple, str] = {}
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
-            row = ["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "", "%.10g" % s.test_ratio,
-                   _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)]
-            if _CSV_SPECIAL.isdisjoint(row[1]) and _CSV_SPECIAL.isdisjoint(row[3]):
-                self._file.write(",".join(row) + "\n")  # as csv.writer writes it (nothing to quote)
+            obs, nu, var = s.observation, s.innovation, s.innovation_variance
+            key = (s.source, bool(s.fused), s.reason, len(obs), len(nu), len(var))
+            line = self._line_formats.get(key)
+            if line is None:
+                line = self._line_formats[key] = self._line_format(*key)
+            if line:
+                self._file.write(line % (s.t_s, s.test_ratio, *obs, *nu, *var))
             else:
-                self._writer.writerow(row)
+                self._writer.writerow(["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "",
+                                       "%.10g" % s.test_ratio, _vec(obs), _vec(nu), _vec(var)])
+
+    @staticmethod
+    def _line_format(source: str, fused: bool, reason: str | None, n_obs: int, n_nu: int, n_var: int) -> str:
+        """The ``%`` format of a whole row with these fixed fields (what csv.writer writes of it,
+        ``%.10g`` being ``format(float(v), ".10g")``); "" when a field needs csv's quoting."""
+        reason = reason or ""
+        if not (_CSV_SPECIAL.isdisjoint(source) and _CSV_SPECIAL.isdisjoint(reason)):
+            return ""
+        vec = [";".join(["%.10g"] * n) for n in (n_obs, n_nu, n_var)]
+        return ",".join(["%.10g", source.replace("%", "%%"), "1" if fused else "0", reason.replace("%", "%%"),
+                         "%.10g", *vec]) + "\n"
 
     def close(self) -> None:
         self._file.close()
