@@ -22,6 +22,7 @@ same bytes):
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import logging
 import math
@@ -57,17 +58,13 @@ def fmt(value: Any) -> str:
 
 
 def _vec(values: Any) -> str:
-    # ``%`` formats a number as ``format(float(v), ".10g")`` does, in one call per vector
-    fmt_n = _VEC_FORMATS.get(len(values))
-    if fmt_n is None:
-        return ";".join(format(float(v), ".10g") for v in values)
-    return fmt_n % tuple(values)
+    return ";".join(format(float(v), ".10g") for v in values)
 
 
-_VEC_FORMATS = {n: ";".join(["%.10g"] * n) for n in range(1, 7)}
 # trajectory.csv's numeric columns t_s … k_speed, and its truth columns (comma-separated)
 _NAV_FORMAT = ",".join(["%.10g"] * 16)
-_TRUTH_FORMAT = ",".join(["%.10g"] * 6)
+_TRUTH_FORMAT = "," + ",".join(["%.10g"] * 6) + "\n"
+_NO_TRUTH = "," * 6 + "\n"
 # characters that make csv.writer quote a field
 _CSV_SPECIAL = frozenset(',"\r\n')
 
@@ -208,10 +205,16 @@ def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict
     return out
 
 
-def geo_time_columns(state: Any, unix_of: Any = None, origin: Any = None) -> list[str]:
-    f = geo_time_fields(state, unix_of, origin)
-    return [format(f["t_unix_s"], ".6f") if "t_unix_s" in f else "",
-            *(format(f[k], ".9f") if k in f else "" for k in ("lat_deg", "lon_deg"))]
+def geo_time_text(t_s: float, north_m: float, east_m: float, unix_of: Any = None, origin: Any = None) -> str:
+    """trajectory.csv's ``t_unix_s,lat_deg,lon_deg`` of a state: :func:`geo_time_fields`'
+    numbers, each empty when unknown (from the Python floats of the row: no dict, no arrays)."""
+    t_unix = unix_of(t_s) if unix_of is not None else None
+    text = "" if t_unix is None else "%.6f" % t_unix
+    if origin is not None:
+        lat, lon = origin.to_geodetic_ne(north_m, east_m)
+        if math.isfinite(lat) and math.isfinite(lon):
+            return text + ",%.9f,%.9f" % (math.degrees(lat), math.degrees(lon))
+    return text + ",,"
 
 
 def _current_xy(state: Any) -> tuple[float, float]:
@@ -252,7 +255,7 @@ class TrajectoryCsvSink(Sink):
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS + (self.TRUTH_COLUMNS if truth else ()))
         self._last_truth = None
-        self._pending: tuple[float, list] | None = None  # (t_s, row) waiting for its truth sample
+        self._pending: tuple[float, str] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
         # a log's UNIX time of a state is what the source has learnt of its clock by then
         self.deferrable = unix_of is None
@@ -268,15 +271,15 @@ class TrajectoryCsvSink(Sink):
     def _truth_matches(self, t_s: float, truth: Any) -> bool:
         return truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s
 
-    def _write(self, row: list, truth: Any) -> None:
-        if self.truth:
-            if truth is not None:
-                row.append(_TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
-                                            truth.k_v))
-            else:
-                row += [""] * len(self.TRUTH_COLUMNS)
+    def _write(self, row: str, truth: Any) -> None:
         # the fields are numbers, never quoted: what csv.writer would write, joined directly
-        self._file.write(",".join(row) + "\n")
+        if not self.truth:
+            self._file.write(row + "\n")
+        elif truth is not None:
+            self._file.write(row + _TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
+                                                    truth.k_v))
+        else:
+            self._file.write(row + _NO_TRUTH)
 
     def on_nav(self, state: Any) -> None:
         if self._pending is not None:  # its truth did not come before the next state: none
@@ -286,13 +289,13 @@ class TrajectoryCsvSink(Sink):
         p = np.asarray(state.pos_n_m, dtype=float).tolist()
         v = np.asarray(state.vel_n_m_s, dtype=float).tolist()
         roll, pitch, yaw = quat_to_euler(state.q_nb)
-        i0 = self._pos.start
-        sig = [math.sqrt(max(c, 0.0)) for c in np.diagonal(state.cov)[i0:i0 + 3].tolist()]
+        var_n, var_e, var_d = np.asarray(state.cov).diagonal()[self._pos].tolist()
         cn, ce = _current_xy(state)
-        row = [_NAV_FORMAT % (state.t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw, sig[0],
-                              sig[1], sig[2], cn, ce, state.k_speed),
-               "1" if state.valid else "0", *geo_time_columns(state, self.unix_of, self.origin)]
         t_s = float(state.t_s)
+        row = (_NAV_FORMAT % (t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
+                              math.sqrt(max(var_n, 0.0)), math.sqrt(max(var_e, 0.0)), math.sqrt(max(var_d, 0.0)),
+                              cn, ce, state.k_speed)
+               + (",1," if state.valid else ",0,") + geo_time_text(t_s, p[0], p[1], self.unix_of, self.origin))
         if not self.truth or self._truth_matches(t_s, self._last_truth):
             self._write(row, self._last_truth)
         else:
@@ -320,15 +323,32 @@ class AidStatusCsvSink(Sink):
         self._file = open(self.path, "w", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS)
+        # (source, fused, reason, vector lengths) → the row's format: a handful of them per run
+        self._line_formats: dict[tuple, str] = {}
 
     def on_aid(self, statuses: list) -> None:
         for s in statuses:
-            row = ["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "", "%.10g" % s.test_ratio,
-                   _vec(s.observation), _vec(s.innovation), _vec(s.innovation_variance)]
-            if _CSV_SPECIAL.isdisjoint(row[1]) and _CSV_SPECIAL.isdisjoint(row[3]):
-                self._file.write(",".join(row) + "\n")  # as csv.writer writes it (nothing to quote)
+            obs, nu, var = s.observation, s.innovation, s.innovation_variance
+            key = (s.source, bool(s.fused), s.reason, len(obs), len(nu), len(var))
+            line = self._line_formats.get(key)
+            if line is None:
+                line = self._line_formats[key] = self._line_format(*key)
+            if line:
+                self._file.write(line % (s.t_s, s.test_ratio, *obs, *nu, *var))
             else:
-                self._writer.writerow(row)
+                self._writer.writerow(["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "",
+                                       "%.10g" % s.test_ratio, _vec(obs), _vec(nu), _vec(var)])
+
+    @staticmethod
+    def _line_format(source: str, fused: bool, reason: str | None, n_obs: int, n_nu: int, n_var: int) -> str:
+        """The ``%`` format of a whole row with these fixed fields (what csv.writer writes of it,
+        ``%.10g`` being ``format(float(v), ".10g")``); "" when a field needs csv's quoting."""
+        reason = reason or ""
+        if not (_CSV_SPECIAL.isdisjoint(source) and _CSV_SPECIAL.isdisjoint(reason)):
+            return ""
+        vec = [";".join(["%.10g"] * n) for n in (n_obs, n_nu, n_var)]
+        return ",".join(["%.10g", source.replace("%", "%%"), "1" if fused else "0", reason.replace("%", "%%"),
+                         "%.10g", *vec]) + "\n"
 
     def close(self) -> None:
         self._file.close()
@@ -382,8 +402,14 @@ class ParamsCsvSink(Sink):
         self._file.close()
 
 
+# rows a SeriesRecorder's arrays start with (a minute at 10 Hz), doubled when full
+_FIRST_ROWS = 600
+# a truth row: t, pos (3), vel (3), current n, e, k_v, q_nb (4)
+_TRUTH_ROW = 14
+
+
 class SeriesRecorder(Sink):
-    """Keeps the series that metrics and plots need, as compact lists (→ arrays on demand).
+    """Keeps the series that metrics and plots need, as growing arrays and compact lists.
 
     Nav: t, pos, vel, q_nb, (pos, vel, att) covariance 9×9, current, k_speed. Truth: t,
     pos, vel, current, k_v, q_nb. Aid: t, source, fused, test ratio, normalised innovation
@@ -405,12 +431,14 @@ class SeriesRecorder(Sink):
         self._pva_block = (slice(a, a + self._pva.size) if np.array_equal(self._pva, np.arange(a, a + self._pva.size))
                            else None)
         self.nav_t: list[float] = []
-        self.nav_pos: list[np.ndarray] = []
-        self.nav_vel: list[np.ndarray] = []
-        self.nav_q: list[np.ndarray] = []
-        self.nav_cov_pva: list[np.ndarray] = []
-        self.nav_current: list[tuple[float, float]] = []
         self.nav_k_speed: list[float] = []
+        # the nav states' vectors row by row in growing arrays (the first len(nav_t) rows
+        # hold data): no array per epoch, and track() is a view
+        self._nav_pos = np.empty((_FIRST_ROWS, 3))
+        self._nav_vel = np.empty((_FIRST_ROWS, 3))
+        self._nav_q = np.empty((_FIRST_ROWS, 4))
+        self._nav_cov_pva = np.empty((_FIRST_ROWS, 9, 9))
+        self._nav_current = np.empty((_FIRST_ROWS, 2))
         self.truth_rows: list[tuple] = []
         self.aid_rows: list[tuple[float, str, bool, float, tuple]] = []
         self.releases: list[Any] = []
@@ -423,15 +451,25 @@ class SeriesRecorder(Sink):
         # none kept, a replay without either)
         self._keep_aid_rows = bool(aid_rows)
 
+    def _grow(self) -> None:
+        for name in ("_nav_pos", "_nav_vel", "_nav_q", "_nav_cov_pva", "_nav_current"):
+            old = getattr(self, name)
+            new = np.empty((2 * len(old), *old.shape[1:]))
+            new[:len(old)] = old
+            setattr(self, name, new)
+
     def on_nav(self, state: Any) -> None:
-        self.nav_t.append(float(state.t_s))
-        self.nav_pos.append(np.array(state.pos_n_m, dtype=float))
-        self.nav_vel.append(np.array(state.vel_n_m_s, dtype=float))
-        self.nav_q.append(np.array(state.q_nb, dtype=float))
+        i = len(self.nav_t)
+        if i == len(self._nav_pos):
+            self._grow()
+        self._nav_pos[i] = state.pos_n_m
+        self._nav_vel[i] = state.vel_n_m_s
+        self._nav_q[i] = state.q_nb
         cov = np.asarray(state.cov)
         b = self._pva_block
-        self.nav_cov_pva.append(cov[b, b].copy() if b is not None else cov[self._pva_ix])
-        self.nav_current.append(_current_xy(state))
+        self._nav_cov_pva[i] = cov[b, b] if b is not None else cov[self._pva_ix]
+        self._nav_current[i] = _current_xy(state)
+        self.nav_t.append(float(state.t_s))
         self.nav_k_speed.append(float(state.k_speed))
 
     def on_sample(self, sample: Any) -> None:
@@ -465,30 +503,32 @@ class SeriesRecorder(Sink):
 
     # -- arrays ------------------------------------------------------------------------
     def track(self) -> TrackArrays:
+        """The nav series; its vectors are views of the recorder's arrays (read, do not write)."""
         n = len(self.nav_t)
-        return TrackArrays(
-            t_s=np.asarray(self.nav_t, dtype=float),
-            pos_n_m=np.asarray(self.nav_pos, dtype=float).reshape(n, 3),
-            vel_n_m_s=np.asarray(self.nav_vel, dtype=float).reshape(n, 3),
-            q_nb=np.asarray(self.nav_q, dtype=float).reshape(n, 4),
-            cov_pva=np.asarray(self.nav_cov_pva, dtype=float).reshape(n, 9, 9),
-            current_n_m_s=np.asarray(self.nav_current, dtype=float).reshape(n, 2),
-        )
+        return TrackArrays(t_s=np.asarray(self.nav_t, dtype=float), pos_n_m=self._nav_pos[:n],
+                           vel_n_m_s=self._nav_vel[:n], q_nb=self._nav_q[:n], cov_pva=self._nav_cov_pva[:n],
+                           current_n_m_s=self._nav_current[:n])
 
     def truth(self) -> TruthArrays | None:
         if len(self.truth_rows) < 2:
             return None
-        a = np.asarray(self.truth_rows, dtype=float)
-        # sort by time and drop duplicate stamps so interpolation is well defined
-        a = a[np.argsort(a[:, 0], kind="stable")]
-        keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
-        a = a[keep]
+        a = self._truth_table()
+        if not np.all(np.diff(a[:, 0]) > 0):  # (a simulation's are: no copies then)
+            # sort by time and drop duplicate stamps so interpolation is well defined
+            a = a[np.argsort(a[:, 0], kind="stable")]
+            keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])
+            a = a[keep]
         return TruthArrays(t_s=a[:, 0], pos_n_m=a[:, 1:4], vel_n_m_s=a[:, 4:7], q_nb=a[:, 10:14],
                            current_n_m_s=a[:, 7:9])
 
     def truth_k_v(self) -> tuple[np.ndarray, np.ndarray]:
-        a = np.asarray(self.truth_rows, dtype=float).reshape(-1, 14)
+        a = self._truth_table()
         return a[:, 0], a[:, 9]
+
+    def _truth_table(self) -> np.ndarray:
+        # the rows' floats in one pass (np.asarray of the tuples takes twice as long)
+        n = len(self.truth_rows)
+        return np.fromiter(itertools.chain.from_iterable(self.truth_rows), float, n * _TRUTH_ROW).reshape(n, _TRUTH_ROW)
 
     def metrics(self) -> dict:
         truth = self.truth()

@@ -105,11 +105,12 @@ def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     out = np.full(len(err), np.nan)
     if len(err) == 0:
         return out
-    ok = np.all(np.isfinite(cov.reshape(len(cov), -1)), axis=1) & np.all(np.isfinite(err), axis=1)
+    ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(err).all(axis=1)
     if not np.any(ok):
         return out
+    rows = slice(None) if ok.all() else ok  # all finite (the usual case): no copy of cov
     try:
-        chol = np.linalg.cholesky(cov[ok])
+        chol = np.linalg.cholesky(cov[rows])
     except np.linalg.LinAlgError:
         # some covariance is not positive definite: evaluate row by row, skip those
         for i in np.flatnonzero(ok):
@@ -120,8 +121,8 @@ def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
             y = np.linalg.solve(L, err[i])
             out[i] = float(y @ y)
         return out
-    y = np.linalg.solve(chol, err[ok][..., None])[..., 0]
-    out[ok] = np.einsum("ij,ij->i", y, y)
+    y = np.linalg.solve(chol, err[rows][..., None])[..., 0]
+    out[rows] = np.einsum("ij,ij->i", y, y)
     return out
 
 
@@ -150,11 +151,13 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
     inside = (track.t_s >= truth.t_s[0]) & (track.t_s <= truth.t_s[-1])
     if not np.any(inside):
         return {}
-    t = track.t_s[inside]
+    # every epoch inside (the usual case): views of the track, no copies
+    rows = slice(None) if inside.all() else inside
+    t = track.t_s[rows]
     pos_true = interp_rows(t, truth.t_s, truth.pos_n_m)
     vel_true = interp_rows(t, truth.t_s, truth.vel_n_m_s)
     cur_true = interp_rows(t, truth.t_s, truth.current_n_m_s[:, :2])
-    pos_est = track.pos_n_m[inside]
+    pos_est = track.pos_n_m[rows]
     err_h = np.hypot(pos_est[:, 0] - pos_true[:, 0], pos_est[:, 1] - pos_true[:, 1])
 
     # truth path: truth samples inside [t0, tK] plus the interpolated end points
@@ -167,17 +170,18 @@ def compute_metrics(track: TrackArrays, truth: TruthArrays, last_fix_t_s: float 
     fix_t = t0 if last_fix_t_s is None or not math.isfinite(last_fix_t_s) else min(max(last_fix_t_s, t0), tK)
     distance_since_fix = distance - float(np.interp(fix_t, path_t, path_len))
 
-    cur_err = np.linalg.norm(track.current_n_m_s[inside][:, :2] - cur_true, axis=1)
+    cur_err = np.linalg.norm(track.current_n_m_s[rows][:, :2] - cur_true, axis=1)
     i_fix = int(np.searchsorted(t, fix_t, side="right")) - 1
 
-    att_err = attitude_error_n_rad(t, track.q_nb[inside], truth)
-    err_pva = np.concatenate([pos_est - pos_true, track.vel_n_m_s[inside] - vel_true, att_err], axis=1)
-    eps = nees(err_pva, track.cov_pva[inside])
+    att_err = attitude_error_n_rad(t, track.q_nb[rows], truth)
+    err_pva = np.concatenate([pos_est - pos_true, track.vel_n_m_s[rows] - vel_true, att_err], axis=1)
+    cov_pva = track.cov_pva[rows]
+    eps = nees(err_pva, cov_pva)
     eps_ok = eps[np.isfinite(eps)]
     lo, hi = chi2_band_95(9)
     by_block = {}
     for name, sl in (("pos", slice(0, 3)), ("vel", slice(3, 6)), ("att", slice(6, 9))):
-        e_b = nees(err_pva[:, sl], track.cov_pva[inside][:, sl, sl])
+        e_b = nees(err_pva[:, sl], cov_pva[:, sl, sl])
         e_b = e_b[np.isfinite(e_b)]
         by_block[name] = float(np.mean(e_b)) if len(e_b) else None
 
