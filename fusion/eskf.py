@@ -224,7 +224,7 @@ class Estimator:
         self._arm = {k: a for k, a in self._arm.items() if np.any(a)}
         out_arm = np.asarray(config.output_point_b_m, dtype=float) - l_imu
         self._out_arm = out_arm if np.any(out_arm) else None
-        # what _add_considered reads of the config with every published state
+        # the considered terms' settings (_add_considered, horizontal_nav, a fix under the autopilot's heading)
         self._reference_yaw_sigma_rad = config.attitude.reference_yaw_sigma_rad
         self._density_sigma_kg_m3 = (config.depth.density_sigma_kg_m3, config.depth.water_density_kg_m3)
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
@@ -344,7 +344,7 @@ class Estimator:
         frame), it is :meth:`nav_state` itself."""
         if self._mode != "ins":
             return None
-        if self._out_arm is not None or (self._yaw_frame and self.config.attitude.reference_yaw_sigma_rad > 0.0):
+        if self._out_arm is not None or (self._yaw_frame and self._reference_yaw_sigma_rad > 0.0):
             ns = self.nav_state()
             if not ns.valid:
                 return None
@@ -1600,7 +1600,7 @@ class Estimator:
         autopilot's heading was refused or pulled the position only part of the way). Added as
         independent noise: its covariances with the other states and with the clones are
         unchanged (as :meth:`_doubt_k_speed`), and no later ATTITUDE can explain it away."""
-        sigma_b = self.config.attitude.reference_yaw_sigma_rad
+        sigma_b = self._reference_yaw_sigma_rad
         if not (self._yaw_frame and sigma_b > 0.0 and self._mode == "ins"):
             return
         kalman.flush_core(self._core, self._qdiag)
