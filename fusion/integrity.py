@@ -25,33 +25,42 @@ def chi2_quantile(p: float, dof: float) -> float:
     return float(2.0 * special.gammaincinv(dof / 2.0, p))
 
 
+class _SourceWindow:
+    """One source's window: its NIS values, their sum, its dof, the window's bound and the
+    single-attempt cap for that dof (one object per source: one look-up per attempt)."""
+
+    __slots__ = ("nis", "total", "dof", "bound", "cap")
+
+    def __init__(self, dof: int, bound: float, cap: float):
+        self.nis: deque = deque()
+        self.total = 0.0
+        self.dof, self.bound, self.cap = dof, bound, cap
+
+
 class NisMonitor:
     """Per-source sliding sums of NIS; :meth:`failing` names the sources above their bound."""
 
     def __init__(self, window: int, quantile: float):
         self.window = int(window)
         self.quantile = float(quantile)
-        # per source, one list (one look-up per attempt, an aid status at tens of Hz):
-        # [its NIS window (deque), their sum, dof, bound(dof), cap(dof)]
-        self._source: dict[str, list] = {}
+        self._source: dict[str, _SourceWindow] = {}  # (an aid status at tens of Hz)
         self._bound: dict[int, float] = {}
         # the sources above their bound (full windows only): a source's verdict changes only
         # when it adds an attempt, and failing() is asked with every published state
         self._failing: set[str] = set()
 
-
     def add(self, source: str, nis: float, dof: int) -> None:
         """One attempt's NIS (finite) of a ``dof``-dimensional measurement."""
         s = self._source.get(source)
-        if s is None or s[2] != dof:
-            s = self._source[source] = [deque(), 0.0, dof, self.bound(dof), self.cap(dof)]
-        q = s[0]
-        nis = min(nis, s[4])
+        if s is None or s.dof != dof:
+            s = self._source[source] = _SourceWindow(dof, self.bound(dof), self.cap(dof))
+        q = s.nis
+        nis = min(nis, s.cap)
         q.append(nis)
-        total = s[1] = s[1] + nis
+        total = s.total = s.total + nis
         if len(q) > self.window:
-            total = s[1] = total - q.popleft()
-        if len(q) >= self.window and total > s[3]:
+            total = s.total = total - q.popleft()
+        if len(q) >= self.window and total > s.bound:
             self._failing.add(source)
         else:
             self._failing.discard(source)

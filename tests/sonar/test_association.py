@@ -109,3 +109,31 @@ def test_a_pair_far_in_time_from_the_set_must_fit_the_drift_of_the_others():
     new = [sighting(t, p) for t, p in zip(t_new, objs)]
     lc = assoc.add(new)
     assert lc is None or all(b is not new[3] for _, b in lc.pairs)
+
+
+def test_the_gate_s_shortcut_never_drops_a_pair_the_full_distance_keeps():
+    """Candidates skip the Mahalanobis distance where a closed-form bound says a pair lies beyond
+    the wide gate: on covariances from round to near-singular, asymmetric, negative definite and
+    indefinite, and residuals on and around the gate, every pair it skips is beyond the gate by the
+    full computation, and it skips most pairs far away."""
+    from adaptnav.sonar.association import _m2, _surely_beyond
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    A = rng.normal(size=(n, 2, 2)) * rng.uniform(0.01, 30.0, size=(n, 1, 1))
+    S = A @ A.transpose(0, 2, 1) + rng.uniform(0.0, 1.0, size=(n, 1, 1)) * np.eye(2)
+    S[: n // 10] *= np.array([[1.0, 0.0], [0.0, 1e-8]])          # near-singular
+    S[n // 10: n // 5, 0, 1] += rng.normal(size=n // 10) * 1e-3   # not symmetric
+    S[n // 5: n // 4] = -S[n // 5: n // 4]                        # negative definite
+    S[n // 4: n // 3, 1, 1] *= -1.0                               # indefinite
+    gate = 9.0 * 13.8
+    # residuals at m² from well inside to far beyond the gate, in random directions
+    L = np.linalg.cholesky(np.where(np.linalg.eigvalsh(0.5 * (S + S.transpose(0, 2, 1)))[:, :1, None] > 0, S,
+                                    np.eye(2)))
+    u = rng.normal(size=(n, 2))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = np.einsum("kij,kj->ki", L, u) * np.sqrt(gate * rng.uniform(0.2, 8.0, size=(n, 1)))
+    skipped = _surely_beyond(r, S, gate)
+    assert np.all(_m2(r[skipped], S[skipped]) > gate)
+    far = _m2(r, S) > 4.0 * gate
+    assert skipped[far].mean() > 0.5
