@@ -128,6 +128,10 @@ def run(args):
           f"({s['realtime_factor'] or 0:.0f}× real time); messages {s['messages_read']}, "
           f"samples used {s['samples_used']}, corrupt frames {s['corrupt_frames']}, "
           f"rejected {s['rejected_total']}")
+    if s.get("repaired_frames"):
+        print(f"  of the corrupt frames, restored and used ({sum(s['repaired_frames'].values())}: logged with "
+              "their payload's trailing zeros cut after the CRC): "
+              + ", ".join(f"{k} {v}" for k, v in s["repaired_frames"].items()))
     if s["rejected_samples"]:
         print("  rejected by reason: " + ", ".join(f"{k} {v}" for k, v in s["rejected_samples"].items()))
     if s["missing_streams"]:

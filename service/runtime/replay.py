@@ -367,6 +367,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         log.warning("%s", w)
     if counters.get("truncated"):
         doc["truncated"] = counters["truncated"]
+    if counters.get("repaired_frames"):  # logged zero-truncated after their CRC: restored, used
+        doc["repaired_frames"] = counters["repaired_frames"]
     if metrics_sink.metrics:
         doc["metrics"] = metrics_sink.metrics
     (out / "summary.json").write_text(json.dumps(doc, indent=2, sort_keys=True, default=_json_default) + "\n")

@@ -281,8 +281,9 @@ class TlogReplaySource(SampleStreamSource):
     def report_counters(self) -> dict:
         c = self.tlog.counters
         rejected = dict(c.get("rejected", {}))
-        if c.get("corrupt_frames"):
-            rejected["corrupt_frame"] = rejected.get("corrupt_frame", 0) + int(c["corrupt_frames"])
+        lost = int(c.get("corrupt_frames", 0)) - sum(c.get("repaired_frames", {}).values())
+        if lost:  # the corrupt frames not restored (mavlink_frames)
+            rejected["corrupt_frame"] = rejected.get("corrupt_frame", 0) + lost
         return {"messages_read": int(c.get("messages_read", 0)),
                 "corrupt_frames": int(c.get("corrupt_frames", 0)),
                 "rejected": rejected,
@@ -290,6 +291,7 @@ class TlogReplaySource(SampleStreamSource):
                 "message_types": c.get("message_types", {}),
                 "clock": c.get("clock", {}),
                 "imu_stream": c.get("imu_stream", {}),
+                "repaired_frames": dict(c.get("repaired_frames", {})),
                 "truncated": c.get("truncated", "")}
 
 

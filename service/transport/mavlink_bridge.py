@@ -58,6 +58,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 )
 from adaptnav.fusion.frames import GeoOrigin
 
+from adaptnav.service.transport.mavlink_frames import untruncated
+
 from pymavlink import mavutil  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -204,7 +206,10 @@ class MavlinkBridge:
     Attributes
     ----------
     counters : dict
-        ``messages_by_type``, ``corrupt_frames``, ``samples``, ``rejected`` (by reason),
+        ``messages_by_type``, ``corrupt_frames``, ``repaired_frames`` (of those, the frames that
+        failed the CRC only because trailing zeros were cut after it: restored and used,
+        :mod:`.mavlink_frames`),
+        ``samples``, ``rejected`` (by reason),
         ``send_errors``, ``reconnects``, ``link_losses``, ``odometry_sent``,
         ``nav_silenced`` (invalid solutions not sent), ``callback_errors``,
         ``interval_requests``, ``origin_sent``, ``packets_lost`` (gaps in the MAVLink
@@ -227,7 +232,7 @@ class MavlinkBridge:
             convert = dataclasses.replace(convert, imu_message=self.imu_stream)
         self.converter = MavlinkConverter(convert, origin)
         self.counters: dict[str, Any] = {
-            "messages_by_type": {}, "corrupt_frames": 0, "samples": 0, "rejected": self.converter.rejected,
+            "messages_by_type": {}, "corrupt_frames": 0, "repaired_frames": 0, "samples": 0, "rejected": self.converter.rejected,
             "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
             "callback_errors": 0, "interval_requests": 0, "origin_sent": 0, "command_acks": 0,
             "packets_lost": 0, "pose_only_sent": 0, "autopilot_reboots": 0,
@@ -305,7 +310,7 @@ class MavlinkBridge:
         c = self.counters
         types = self.converter.accounting()
         return {
-            **{k: c.get(k, 0) for k in ("packets_lost", "corrupt_frames", "link_losses", "reconnects",
+            **{k: c.get(k, 0) for k in ("packets_lost", "corrupt_frames", "repaired_frames", "link_losses", "reconnects",
                                         "callback_errors", "odometry_sent", "pose_only_sent", "nav_silenced",
                                         "nav_no_link", "send_errors", "interval_requests", "origin_sent",
                                         "samples", "autopilot_reboots")},
@@ -496,7 +501,12 @@ class MavlinkBridge:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
             self.counters["corrupt_frames"] += 1
-            return
+            restored = untruncated(msg, self._conn.mav) if self._conn is not None else None
+            if restored is None:
+                return
+            # a link relayed by a ground station that cut trailing zeros after the CRC
+            self.counters["repaired_frames"] += 1
+            msg, mtype = restored, restored.get_type()
         by_type = self.counters["messages_by_type"]
         by_type[mtype] = by_type.get(mtype, 0) + 1
         if mtype == "HEARTBEAT" and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:

@@ -12,7 +12,11 @@ is stamped before the RAW_IMU sent just ahead of it).
 
 Corrupt frames (CRC failures, truncated packets) are reported by pymavlink's robust
 parser as ``BAD_DATA`` pseudo-messages; they are counted in ``counters["corrupt_frames"]``
-and skipped.  ``missing`` says, in words, what the log cannot give the estimator —
+and skipped — except the frames a ground station logged with their payload's trailing zeros
+cut after the CRC (a QGroundControl tlog of a BlueOS vehicle:
+:mod:`adaptnav.service.transport.mavlink_frames`), which are restored and used: they stay
+counted as corrupt (the file holds them so) and are also counted, by type, in
+``counters["repaired_frames"]``.  ``missing`` says, in words, what the log cannot give the estimator —
 e.g. an IMU stream too slow for strapdown (real ArduSub streams RAW_IMU at 2 Hz unless
 asked for more), in which case the IMU samples are withheld and attitude is used.
 """
@@ -33,6 +37,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
+from adaptnav.service.transport.mavlink_frames import untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
 from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
@@ -75,6 +80,7 @@ class TlogSource:
     ----------
     counters : dict
         ``messages_read`` (decoded messages), ``corrupt_frames`` (BAD_DATA),
+        ``repaired_frames`` (of those, restored and used, by message type),
         ``samples_by_kind``, ``rejected`` (by reason: conversion failures, ``late``,
         ``duplicate_time``, ``imu_too_slow``...), ``late_samples`` (outside the re-order
         window), ``reboots`` (autopilot clock restarts), ``duration_s`` (data time span).
@@ -91,7 +97,7 @@ class TlogSource:
         self.truth_origin: GeoOrigin | None = origin
         self._truth_held: list[tuple[Any, float]] = []
         self.counters: dict[str, Any] = {
-            "messages_read": 0, "corrupt_frames": 0, "samples_by_kind": {}, "rejected": {},
+            "messages_read": 0, "corrupt_frames": 0, "repaired_frames": {}, "samples_by_kind": {}, "rejected": {},
             "late_samples": 0, "duration_s": 0.0,
         }
         self.missing: list[str] = []
@@ -229,7 +235,12 @@ class TlogSource:
                     return
                 if msg.get_type() == "BAD_DATA":
                     self.counters["corrupt_frames"] += 1
-                    continue
+                    mav = getattr(conn, "mav", None)  # a tlog's parser (a DataFlash reader has none)
+                    msg = untruncated(msg, mav) if mav is not None else None
+                    if msg is None:
+                        continue
+                    repaired = self.counters["repaired_frames"]
+                    repaired[msg.get_type()] = repaired.get(msg.get_type(), 0) + 1
                 self.counters["messages_read"] += 1
                 yield msg
         finally:

@@ -172,6 +172,26 @@ def test_corrupt_frames_are_counted_and_the_bridge_keeps_working(link):
     assert bridge._thread.is_alive()
 
 
+def test_a_frame_relayed_with_trailing_zeros_cut_after_its_crc_is_restored(link):
+    """A link through a ground station that re-serialises frames of a non-truncating sender (QGC
+    with BlueOS's Ping driver): the frame fails the CRC as it arrives, and is restored."""
+    from tests.service.mavlink_wire import qgc_logged
+
+    bridge, peer, q, port = link
+    assert peer.pump(3.0, until=bridge.link_up.is_set)
+    mav = peer.conn.mav
+    echo = mav.distance_sensor_encode(30_000, 20, 5000, 3550, 2, 1, 25, 255)  # quality 0: a zero tail
+    peer.conn.write(qgc_logged(echo, mav))
+    garbled = bytearray(qgc_logged(mav.distance_sensor_encode(30_100, 20, 5000, 3560, 2, 1, 25, 255), mav))
+    garbled[16] ^= 0x01  # and one garbled on top: stays corrupt
+    peer.conn.write(bytes(garbled))
+    mav.attitude_send(31_000, 0.4, 0.5, 0.6, 0, 0, 0)
+    got = drain(q, lambda out: any(s.KIND == "attitude" for s in out))
+    assert [(s.KIND, s.altitude_m) for s in got if s.KIND == "altitude"] == [("altitude", pytest.approx(35.5))]
+    assert bridge.counters["corrupt_frames"] == 2 and bridge.counters["repaired_frames"] == 1
+    assert bridge.health()["repaired_frames"] == 1
+
+
 def test_peer_restart_reconnects_and_re_requests_streams(link):
     bridge, peer, q, port = link
     assert peer.pump(3.0, until=bridge.link_up.is_set)

@@ -2,6 +2,7 @@
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from adaptnav.service.transport.tlog_source import TlogConfig, TlogSource
@@ -29,12 +30,20 @@ def replay(name, **cfg):
 def test_corrupt_frames_log_counts_all_1967_and_keeps_going():
     src, samples = replay("ardusub-4.1.0-corrupt-frames.tlog")
     assert src.counters["corrupt_frames"] == 1967  # the README's count of bad frames
+    # all but 4 (camera-manager messages of another dialect) are frames QGC logged with their
+    # trailing zeros cut after the CRC: the Ping driver's (component 194) own DISTANCE_SENSOR
+    # and the ground station's commands, restored
+    assert src.counters["repaired_frames"] == {"DISTANCE_SENSOR": 1949, "COMMAND_LONG": 4, "COMMAND_ACK": 4,
+                                               "PARAM_REQUEST_LIST": 6}
     assert src.counters["messages_read"] > 40_000
     kinds = src.counters["samples_by_kind"]
-    # 20 Hz ATTITUDE over the whole 316 s log, and the Ping echosounder's 28–41 m altitudes
+    # 20 Hz ATTITUDE over the whole 316 s log, and the Ping echosounder's altitudes at ~9 Hz:
+    # 28–41 m when it states a quality; the restored ones are those with quality 0 ("unknown",
+    # the byte QGC cut), a few of them short false returns
     assert kinds["attitude"] > 6000
-    alts = [s.altitude_m for s in samples if s.KIND == "altitude"]
-    assert len(alts) > 800 and 27.0 < min(alts) and max(alts) < 42.0
+    alts = np.array([s.altitude_m for s in samples if s.KIND == "altitude"])
+    assert len(alts) > 2850 and 27.0 < np.median(alts) < 42.0 and alts.min() > 15.0 and alts.max() < 42.0
+    assert np.mean((alts > 27.0) & (alts < 42.0)) > 0.95
     assert samples[-1].t_s - samples[0].t_s > 300.0
     assert any("RAW_IMU at 2.0 Hz is too slow" in m for m in src.missing)
     assert "imu" not in kinds and src.counters["rejected"]["imu_too_slow"] > 600
@@ -130,3 +139,34 @@ def test_synthetic_log_duplicates_nan_reboot_and_a_fast_imu(tmp_path):
     ts = [s.t_s for s in samples]
     assert ts == sorted(ts)
     assert not any("IMU" in m for m in src.missing)
+
+
+def test_frames_logged_with_trailing_zeros_cut_after_the_crc_are_restored_and_used(tmp_path):
+    """A QGC tlog of a BlueOS vehicle with Water Linked's underwater GPS: every GPS_INPUT (its
+    ``yaw`` extension is 0) fails pymavlink's CRC as stored; restored, each is a fix. A frame
+    garbled on top of that stays corrupt and is not used."""
+    from adaptnav.service.transport.mavlink_convert import mavlink2
+    from tests.service.mavlink_wire import qgc_logged
+
+    autopilot = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    ugps = mavlink2.MAVLink(None, srcSystem=1, srcComponent=220)
+    frames = [autopilot.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                         0, 0, 4).pack(autopilot)]
+    lat0_e7, lon0_e7 = 473_977_420, 85_455_940
+    for i in range(40):  # 4 s of 10 Hz ATTITUDE (the boot clock), a fix every 0.5 s
+        frames.append(autopilot.attitude_encode(100_000 + 100 * i, 0.0, 0.0, 0.3, 0, 0, 0).pack(autopilot))
+        if i % 5 == 2:
+            fix = ugps.gps_input_encode(0, 0, 253, 0, 0, 3, lat0_e7 + 10 * i, lon0_e7, 0.0, 1.6, 65535,
+                                        0, 0, 0, 0, 0, 0, 12, 0)
+            frames.append(qgc_logged(fix, ugps))
+    garbled = bytearray(frames[-1] if frames[-1][7] == 232 else frames[-2])
+    garbled[14] ^= 0x40  # one bit of the latitude
+    frames.append(bytes(garbled))
+    p = tmp_path / "qgc-bluos-ugps.tlog"
+    write_tlog(p, frames)
+    src, samples = replay_path(p)
+    fixes = [s for s in samples if s.KIND == "usbl"]
+    assert src.counters["corrupt_frames"] == 9  # as stored: 8 fixes + the garbled one
+    assert src.counters["repaired_frames"] == {"GPS_INPUT": 8}
+    assert len(fixes) == 8
+    assert [round(math.degrees(f.lat_rad) * 1e7) for f in fixes] == [lat0_e7 + 10 * i for i in range(2, 40, 5)]

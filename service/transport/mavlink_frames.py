@@ -1,0 +1,100 @@
+"""MAVLink 2 frames that fail their CRC only because a logger cut their payload's trailing zeros.
+
+MAVLink 2 senders must drop a payload's trailing zero bytes *before* computing the CRC
+(the spec's payload truncation); receivers must accept an untruncated frame too.  BlueOS
+extensions send through mavlink2rest / rust-mavlink, which do not truncate (mavlink2rest#80,
+rust-mavlink#188): the Ping echosounder's ``DISTANCE_SENSOR``, the Water Linked UGPS
+extension's ``GPS_INPUT`` (its ``yaw`` extension is 0), commands.  The autopilot accepts them
+(the CRC covers the whole payload), but QGroundControl's tlog writer serialises each frame
+anew with ``mavlink_msg_to_send_buffer``, which truncates the payload and keeps the CRC of
+the whole one (pymavlink#237, BlueOS#1740): in a QGC tlog of a BlueOS vehicle these frames
+read as ``BAD_DATA`` "invalid MAVLink CRC" — an underwater-GPS fix, an altitude, lost.
+
+:func:`untruncated` restores such a frame: it pads the payload with zeros back to the
+message's length without and with its extension fields and accepts the frame only when the
+CRC then matches (the sender's exact bytes; a garbled frame matches by chance with
+probability 2/65536).  Anything else stays a corrupt frame.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+import struct
+from typing import Any
+
+_V2_MAGIC = 0xFD
+_V2_HEADER = 10  # magic, len, incompat, compat, seq, sysid, compid, msgid (3 bytes)
+_IFLAG_SIGNED = 0x01
+
+
+@functools.cache
+def _lengths_by_msgid() -> dict[int, tuple[int, ...]]:
+    """Wire payload lengths of each message of the ardupilotmega dialect (with its includes):
+    without its extension fields, and with them — from pymavlink's own message definitions."""
+    from pymavlink.generator import mavparse
+    import pymavlink.dialects.v20 as dialects
+
+    folder = os.path.dirname(dialects.__file__)
+    parsed: dict[str, Any] = {}
+
+    def load(name: str) -> None:
+        if name in parsed:
+            return
+        with contextlib.redirect_stdout(io.StringIO()):  # mavparse prints its enum warnings
+            parsed[name] = mavparse.MAVXML(os.path.join(folder, name), mavparse.PROTOCOL_2_0)
+        for include in parsed[name].include:
+            load(include)
+
+    load("ardupilotmega.xml")
+    return {m.id: tuple(sorted({m.wire_min_length, m.wire_length}))
+            for x in parsed.values() for m in x.message}
+
+
+def untruncated(bad: Any, mav: Any) -> Any | None:
+    """The message a ``BAD_DATA`` pseudo-message ``bad`` was, when its frame fails the CRC only
+    because its payload's trailing zeros were cut after the CRC was computed; else None.
+
+    ``mav`` is the connection's ``MAVLink`` object (its dialect decodes the restored frame).
+    The restored message keeps ``bad``'s receive stamp (``_timestamp``: a tlog's recording time).
+    """
+    if "CRC" not in str(getattr(bad, "reason", "")):
+        return None
+    frame = bytes(getattr(bad, "data", b""))
+    if len(frame) < _V2_HEADER + 2 or frame[0] != _V2_MAGIC or frame[2] & _IFLAG_SIGNED:
+        return None
+    n = frame[1]
+    if len(frame) != _V2_HEADER + n + 2:
+        return None
+    msgid = frame[7] | frame[8] << 8 | frame[9] << 16
+    msg_class = _dialect_map(mav).get(msgid)
+    if msg_class is None:
+        return None
+    (crc_sent,) = struct.unpack_from("<H", frame, _V2_HEADER + n)
+    from pymavlink.generator.mavcrc import x25crc
+
+    for full in _lengths_by_msgid().get(msgid, ()):
+        if full <= n:
+            continue
+        restored = bytearray(frame[:_V2_HEADER + n])
+        restored[1] = full
+        restored += bytes(full - n)
+        crc = x25crc(restored[1:])
+        crc.accumulate(bytes((msg_class.crc_extra,)))
+        if crc.crc != crc_sent:
+            continue
+        restored += struct.pack("<H", crc_sent)
+        try:
+            msg = mav.decode(restored)
+        except Exception:  # noqa: BLE001 — a frame the dialect cannot decode stays corrupt
+            return None
+        msg._timestamp = getattr(bad, "_timestamp", None)
+        return msg
+    return None
+
+
+def _dialect_map(mav: Any) -> dict[int, Any]:
+    """msgid → message class of ``mav``'s dialect."""
+    module = __import__(type(mav).__module__, fromlist=["mavlink_map"])
+    return module.mavlink_map
