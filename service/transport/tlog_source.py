@@ -37,7 +37,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
-from adaptnav.service.transport.mavlink_frames import untruncated
+from adaptnav.service.transport.mavlink_frames import SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
 from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
@@ -106,6 +106,7 @@ class TlogSource:
         self._imu_type: str | None = None
         self._imu_switches = 0
         self._dataflash = self.path.suffix.lower() in (".bin", ".log")
+        self._tlog = self.path.suffix.lower() == ".tlog"  # other MAVLink files: pymavlink's reader
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
 
@@ -191,6 +192,12 @@ class TlogSource:
 
     def _scan_truth(self, max_messages: int = 20_000) -> bool:
         """Does the log carry a simulator's truth (SIM_STATE near its start; a DataFlash SIM record)?"""
+        if self._tlog:
+            reader = TlogReader(self.path)
+            try:
+                return reader.has_message(SIM_STATE_ID, max_messages)
+            finally:
+                reader.close()
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
         except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
@@ -216,6 +223,9 @@ class TlogSource:
 
     # --------------------------------------------------------------------- iteration
     def _messages(self) -> Iterator[Any]:
+        if self._tlog:
+            yield from self._tlog_messages()
+            return
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
         except Exception as e:  # noqa: BLE001 — empty or foreign file (DFReader mmaps it): nothing to read
@@ -233,18 +243,43 @@ class TlogSource:
                 if msg is None:
                     self._note_cut_off(conn)
                     return
-                if msg.get_type() == "BAD_DATA":
-                    self.counters["corrupt_frames"] += 1
-                    mav = getattr(conn, "mav", None)  # a tlog's parser (a DataFlash reader has none)
-                    msg = untruncated(msg, mav) if mav is not None else None
-                    if msg is None:
-                        continue
-                    repaired = self.counters["repaired_frames"]
-                    repaired[msg.get_type()] = repaired.get(msg.get_type(), 0) + 1
-                self.counters["messages_read"] += 1
-                yield msg
+                msg = self._as_read(msg, getattr(conn, "mav", None))  # a DataFlash reader has no parser
+                if msg is not None:
+                    yield msg
         finally:
             conn.close()
+
+    def _as_read(self, msg: Any, mav: Any) -> Any | None:
+        """A message as read, counted (None: a corrupt frame, counted as one); a frame a
+        logger only cut the trailing zeros of is restored (``mav``: the parser's dialect)."""
+        counters = self.counters
+        if msg.get_type() == "BAD_DATA":
+            counters["corrupt_frames"] += 1
+            msg = untruncated(msg, mav) if mav is not None else None
+            if msg is None:
+                return None
+            repaired = counters["repaired_frames"]
+            repaired[msg.get_type()] = repaired.get(msg.get_type(), 0) + 1
+        counters["messages_read"] += 1
+        return msg
+
+    def _tlog_messages(self) -> Iterator[Any]:
+        """A ``.tlog``'s messages (:class:`TlogReader`); corrupt frames counted, restored
+        where a logger only cut their trailing zeros."""
+        reader = TlogReader(self.path)
+        counters = self.counters
+        try:
+            for msg in reader:
+                if isinstance(msg, Exception):  # the parser raised on garbage: count, go on
+                    counters["corrupt_frames"] += 1
+                    self._reject(f"reader_error:{type(msg).__name__}")
+                    continue
+                msg = self._as_read(msg, reader.mav)
+                if msg is not None:
+                    yield msg
+            self._note_cut_off(reader)
+        finally:
+            reader.close()
 
     def _note_cut_off(self, conn: Any) -> None:
         """At the end of the file: a last message cut off (the recorder lost power, a copy

@@ -170,3 +170,27 @@ def test_frames_logged_with_trailing_zeros_cut_after_the_crc_are_restored_and_us
     assert src.counters["repaired_frames"] == {"GPS_INPUT": 8}
     assert len(fixes) == 8
     assert [round(math.degrees(f.lat_rad) * 1e7) for f in fixes] == [lat0_e7 + 10 * i for i in range(2, 40, 5)]
+
+
+@pytest.mark.parametrize("name", ["ardusub-4.1.0-corrupt-frames.tlog", "ardusub-4.1.2-bench.tlog"])
+def test_the_tlog_reader_reads_what_pymavlink_reads(name, tmp_path):
+    """The replay's own tlog loop gives pymavlink's log reader's messages (damaged frames
+    included, each with its record's stamp), also on a file cut inside a frame."""
+    from pymavlink import mavutil
+
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    data = log_path(name).read_bytes()
+    cut = tmp_path / "cut.tlog"
+    cut.write_bytes(data[: len(data) // 2 + 11])
+    for path in (log_path(name), cut):
+        conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+        theirs = []
+        while (m := conn.recv_match()) is not None:
+            theirs.append((m.get_type(), m._timestamp, bytes(m.get_msgbuf())))
+        reader = TlogReader(path)
+        ours = [(m.get_type(), m._timestamp, bytes(m.get_msgbuf())) for m in reader]
+        assert len(ours) > 10_000 and ours == theirs
+        assert reader.mav.buf_len() == conn.mav.buf_len()
+        reader.close()
+        conn.close()
