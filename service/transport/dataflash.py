@@ -23,6 +23,13 @@ GPS     Lat, Lng [deg], Status → GnssSample                   instance 0, Stat
 RFND    Dist [m], Orient, Stat → AltitudeSample                downward (orientation 25), status Good
 SIM     Lat, Lng [deg], Alt [m up], Q1..Q4 → truth             a simulator's ground truth, never fused;
                                                               the velocity from the latest SIM2
+VISO    dt [s], PosDX..Z [m], AngDX..Z [rad], conf [%]         a DVL's VISION_POSITION_DELTA as the
+        → DvlSample                                           autopilot received it (rotated by
+                                                              VISO_ORIENT, stamped on arrival): as
+                                                              the tlog's (dvl_from_vision_position_delta)
+VISV    VX..Z [m/s] → DvlSample                               VISION_SPEED_ESTIMATE as received, at its
+                                                              corrected time CTimeMS; frame as the
+                                                              tlog's (``vision_speed_frame``)
 ======  ====================================================  =========================================
 
 Every other record type is accounted for: ignored with the reason in :data:`IGNORED_WHY`, or
@@ -31,13 +38,15 @@ Every other record type is accounted for: ignored with the reason in :data:`IGNO
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 from adaptnav.fusion.frames import wrap_angle
 from adaptnav.fusion.samples import AltitudeSample, AttitudeSample, DepthSample, GnssSample, ImuSample
 
 from .mavlink_convert import (ConversionError, ConvertConfig, MavlinkConverter, TypeAccount, _WindowMin,
-                              attitude_word_from_text, rpm_from_pwm)
+                              attitude_word_from_text, dvl_from_vision_position_delta, dvl_from_vision_speed,
+                              rpm_from_pwm)
 
 # GPS time (GWk, GMS) → UNIX: the GPS epoch 1980-01-06 in UNIX seconds, and GPS − UTC
 # (18 s since 2017-01-01, IERS Bulletin C; no leap second announced since)
@@ -48,7 +57,7 @@ GPS_TIME_WINDOW_S = 10.0  # the least-delayed fix of this span pairs GPS time wi
 RFND_STATUS_GOOD = 4  # AP_RangeFinder::Status::Good
 DOWNWARD = 25  # ROTATION_PITCH_270
 
-USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG")
+USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG", "VISO", "VISV")
 
 _WHY_ESTIMATE = "the autopilot's own estimate (an output of its EKF/AHRS, not a sensor)"
 _WHY_CONTROL = "the autopilot's controllers, pilot input and modes (no navigation content)"
@@ -76,6 +85,8 @@ IGNORED_WHY: dict[str, str] = {
     "GPA": "the GPS's accuracy: gives the σ of the next GPS fix, no sample of its own",
     "SIM2": "simulator truth (velocity): completes SIM's truth, never fused",
     "MSG": "text; the autopilot's EKF (re)start and yaw alignment gate ATT, no sample",
+    "VISP": "VISION_POSITION_ESTIMATE as received: a pose in the sender's own frame (a DVL's or camera's "
+            "odometry), not a position fix; its velocity comes as VISO/VISV",
 }
 
 
@@ -189,6 +200,18 @@ class DataflashConverter:
             if getattr(msg, "Stat", RFND_STATUS_GOOD) != RFND_STATUS_GOOD:
                 raise ConversionError("distance_invalid", f"Stat={msg.Stat}")
             return [AltitudeSample(t_s, float(msg.Dist))]
+        if mtype == "VISO":  # the DVL driver's delta as the autopilot got it: no time of its own
+            delta = SimpleNamespace(time_delta_usec=float(msg.dt) * 1e6, confidence=float(msg.conf),
+                                    position_delta=(msg.PosDX, msg.PosDY, msg.PosDZ),
+                                    angle_delta=(msg.AngDX, msg.AngDY, msg.AngDZ))
+            return [dvl_from_vision_position_delta(delta, t_s, self.config, timed=False)]
+        if mtype == "VISV":
+            # CTimeMS: the autopilot's estimate of when it was measured (the sender's time,
+            # jitter-corrected); the record itself is written on arrival
+            age_s = float(msg.TimeUS) / 1e6 - float(getattr(msg, "CTimeMS", 0) or 0) / 1e3
+            t_meas_s = t_s - age_s if 0.0 <= age_s <= 1.0 else t_s
+            speed = SimpleNamespace(x=float(msg.VX), y=float(msg.VY), z=float(msg.VZ))
+            return [dvl_from_vision_speed(speed, t_meas_s, self.config)]
         if mtype == "MSG":
             word = attitude_word_from_text(str(getattr(msg, "Message", "")))
             if word is not None:

@@ -18,18 +18,25 @@ UNIX_OF_GPS_MS0 = 1_795_850_934.8  # 315964800 + 2446·604800 + 545352.8 − 18 
 M_PER_DEG_LAT = 110_948.0  # a degree of latitude at 35.36° (WGS-84 meridian arc)
 
 
-def _log(path, seconds=20.0, t0_s=50.0, dive_at_s=None, msgs=(), extra=None):
+def _log(path, seconds=20.0, t0_s=50.0, dive_at_s=None, msgs=(), extra=None, formats=None, records=()):
     """An armed ArduSub at rest at the surface (then, from ``dive_at_s``, 3 m deep and moving
     north at 0.5 m/s): IMU 0 and 1 at 25 Hz, ATT/BARO 0 and 1/RCOU/SIM at 10 Hz, SIM2 at
-    50 Hz, GPS and GPA at 5 Hz (the GPA after its GPS, as ArduPilot writes them)."""
+    50 Hz, GPS and GPA at 5 Hz (the GPA after its GPS, as ArduPilot writes them). ``formats``
+    declares more record types, ``records`` (``(name, TimeUS, *fields)``) are written in time
+    order among the others, ``extra`` writes at the end."""
     w = ardusub_formats(DataflashWriter(path))
+    if formats:
+        formats(w)
     w.write("PARM", int(t0_s * 1e6) - 1000, "LOG_BITMASK", 180222.0)
     pending = list(msgs)
+    more = sorted(records, key=lambda r: r[1])
     for k in range(int(seconds * 50)):
         t = t0_s + k * 0.02
         us = round(t * 1e6)
         while pending and pending[0][0] <= us:  # in time order, as the autopilot writes them
             w.write("MSG", *pending.pop(0))
+        while more and more[0][1] <= us:
+            w.write(*more.pop(0))
         moving = dive_at_s is not None and t >= dive_at_s
         north = 0.5 * (t - dive_at_s) if moving else 0.0
         lat = LAT0 + north / M_PER_DEG_LAT
@@ -146,3 +153,30 @@ def test_unix_time_comes_from_the_least_delayed_gps_fix(tmp_path):
     # THEN UNIX = mission time + (UNIX of GPS_MS0 − 50 s − the least delay, 0.05 s)
     assert clock["unix_reference"] == "GPS"
     assert clock["unix_offset_s"] == pytest.approx(UNIX_OF_GPS_MS0 - 50.0 - 0.05, abs=1e-4)
+
+
+def test_a_dvl_s_deltas_as_the_autopilot_logged_them_become_dvl_samples(tmp_path):
+    """VISO: a DVL driver's VISION_POSITION_DELTA as ArduSub received and logged it (rotated
+    into the body frame, stamped on arrival, dt in s): its velocity, validity from the
+    confidence, the latency configured for an unstamped delta; VISV at its corrected time."""
+    def formats(w):
+        w.fmt("VISO", "Qffffffff", "TimeUS,dt,AngDX,AngDY,AngDZ,PosDX,PosDY,PosDZ,conf")
+        w.fmt("VISV", "QQIffffBB", "TimeUS,RTimeUS,CTimeMS,VX,VY,VZ,VErr,Rst,Ign")
+        w.fmt("VISP", "QQIffffffffBB", "TimeUS,RTimeUS,CTimeMS,PX,PY,PZ,Roll,Pitch,Yaw,PErr,AErr,Rst,Ign")
+
+    # 5 Hz, 0.5 m/s forward, 0.02 m/s to starboard, the lock lost at the 10th
+    records = [("VISO", 56_000_000 + k * 200_000, 0.2, 0.0, 0.0, 0.001, 0.1, 0.004, 0.0, 0.0 if k == 10 else 90.0)
+               for k in range(20)]
+    records += [("VISV", 60_010_000, 123, 59_950, 0.5, 0.02, 0.0, 0.1, 0, 0),
+                ("VISP", 60_010_000, 123, 59_950, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 0.1, 0.1, 0, 0)]
+    src, samples = _read(_log(tmp_path / "dvl.BIN", seconds=30.0, dive_at_s=55.0, formats=formats, records=records))
+    dvls = [s for s in samples if s.KIND == "dvl"]
+    viso, visv = dvls[:20], dvls[20:]
+    assert [s.t_s for s in viso] == pytest.approx([56.0 + 0.2 * k for k in range(20)])
+    assert all(s.vel_d_m_s == pytest.approx((0.5, 0.02, 0.0), abs=1e-6) for s in viso)
+    assert [s.valid for s in viso] == [k != 10 for k in range(20)]
+    assert viso[0].sigma_m_s == pytest.approx(0.4 * (1 - 0.9))  # BlueOS's FOM ↔ confidence mapping
+    assert len(visv) == 1 and visv[0].t_s == pytest.approx(59.95) and visv[0].vel_d_m_s == pytest.approx((0.5, 0.02, 0.0))
+    types = src.counters["message_types"]
+    assert types["VISO"]["status"] == "used" and types["VISO"]["samples"] == 20
+    assert types["VISP"]["status"] == "ignored" and "own frame" in types["VISP"]["why"]

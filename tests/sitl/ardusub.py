@@ -215,3 +215,69 @@ class Gcs:
         """The pilot holds the sticks for ``seconds`` (then they stay there)."""
         self.stick = {"x": 0, "y": 0, "z": 500, "r": 0, **sticks}
         time.sleep(seconds)
+
+
+class DvlDriver:
+    """A DVL driver on the companion, as BlueOS's Water Linked extension: VISION_POSITION_DELTA
+    at ``hz`` to the autopilot's second serial port (``udpin:127.0.0.1:port``), system 1,
+    component 197, ``time_usec`` 0, ``position_delta`` = the body-frame velocity × the time
+    since the previous report, ``confidence`` 100 %.
+
+    The velocity is the simulator's truth (SIM_STATE, as the ground station ``gcs`` receives
+    it: ``vn, ve, vd`` rotated into the body frame by ``q1..q4``) with white noise of
+    ``noise_m_s`` per axis (``seed``) and a scale factor error ``scale_error`` (the datasheet's
+    ±0.2–0.5 %): what a bottom-locked DVL reports. ArduSub needs ``VISO_TYPE`` 1 (MAVLink) to
+    take it, and then logs every delta as a VISO record.
+    """
+
+    def __init__(self, port: int, gcs: Gcs, hz: float = 5.0, noise_m_s: float = 0.01, scale_error: float = 0.003,
+                 seed: int = 0):
+        import numpy as np
+
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=197,
+                                               dialect="ardupilotmega")
+        self.gcs, self.period_s = gcs, 1.0 / hz
+        self.noise_m_s, self.scale = noise_m_s, 1.0 + scale_error
+        self.rng = np.random.default_rng(seed)
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _velocity_b(self) -> Any:
+        import numpy as np
+
+        states = self.gcs.messages["SIM_STATE"]
+        if not states:
+            return None
+        m = states[-1][1]
+        w, x, y, z = m.q1, m.q2, m.q3, m.q4
+        r_nb = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        return self.scale * (r_nb.T @ np.array([m.vn, m.ve, m.vd])) + self.noise_m_s * self.rng.standard_normal(3)
+
+    def _run(self) -> None:
+        last = None
+        while not self._stop.is_set():
+            self.conn.recv_match(blocking=True, timeout=self.period_s)  # the autopilot's heartbeats: its address
+            now = time.monotonic()
+            if last is not None and now - last < self.period_s:
+                continue
+            vel = self._velocity_b()
+            if vel is None or getattr(self.conn, "last_address", None) is None:  # nothing to send, or nobody yet
+                last = now
+                continue
+            dt = self.period_s if last is None else now - last
+            last = now
+            try:
+                self.conn.mav.vision_position_delta_send(0, int(dt * 1e6), [0.0, 0.0, 0.0],
+                                                         [float(v) * dt for v in vel], 100.0)
+                self.sent += 1
+            except OSError:  # the autopilot is restarting: its port is gone for a moment
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.conn.close()

@@ -26,7 +26,7 @@ import shutil
 import time
 from pathlib import Path
 
-from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, Gcs, free_udp_port, mav
+from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, DvlDriver, Gcs, free_udp_port, mav
 
 # what the ground station records alongside (a tlog is handy to compare the two paths)
 RECORDED = ("RAW_IMU", "HIGHRES_IMU", "ATTITUDE", "SCALED_PRESSURE2", "SERVO_OUTPUT_RAW", "GPS_RAW_INT",
@@ -142,21 +142,32 @@ PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
-           pattern: str = "default") -> Path:
-    """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``."""
+           pattern: str = "default", dvl_hz: float | None = None) -> Path:
+    """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``. ``dvl_hz``: a DVL
+    driver on the companion sends VISION_POSITION_DELTA at that rate (:class:`DvlDriver`;
+    ArduSub logs it as VISO)."""
     out.mkdir(parents=True, exist_ok=True)
     work = out / "ardusub-work"
     work.mkdir(exist_ok=True)
     gcs_port, bridge_port = free_udp_port(), free_udp_port()
     sub = ArduSub(work, gcs_port, bridge_port).start()
     gcs = Gcs(gcs_port, keep=RECORDED, tlog=out / "session.tlog")
+    dvl = None
     try:
         gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
         gcs.set_param("ARMING_CHECK", 0)
+        if dvl_hz:
+            gcs.set_param("VISO_TYPE", 1)  # MAVLink visual odometry: takes effect after a reboot
+            sub.restart()
+            since = time.time()
+            gcs.wait(lambda: any(w > since for w, _ in gcs.messages["HEARTBEAT"]), 120, "ArduSub back")
+            dvl = DvlDriver(bridge_port, gcs, hz=dvl_hz)
         if log_bitmask is not None:
             gcs.set_param("LOG_BITMASK", log_bitmask)
         for mtype, hz in GCS_RATES.items():
             gcs.interval(mtype, hz)
+        if dvl is not None:  # the DVL's velocity is the truth's latest: keep it fresh
+            gcs.interval("SIM_STATE", 50)
         # EKF3 aligned on its GPS before arming, as a pilot waits for it
         gcs.wait_text("EKF3 IMU0 is using GPS", 120)
         time.sleep(5.0)
@@ -167,6 +178,9 @@ def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_
         gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # disarm (forced): the log closes
         time.sleep(3.0)
     finally:
+        if dvl is not None:
+            dvl.close()
+            print(f"DVL: {dvl.sent} VISION_POSITION_DELTA sent")
         gcs.close()
         sub.stop()
     bins = sorted((work / "logs").glob("*.BIN"), key=lambda p: p.stat().st_mtime)
@@ -180,7 +194,8 @@ def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_
 # the excerpt: every record of these types (what the replay reads, and the log's low-rate
 # records: format, parameters, text, modes, events, EKF origin and timing)
 EXCERPT_TYPES = ("FMT", "FMTU", "UNIT", "MULT", "PARM", "MSG", "VER", "MODE", "EV", "ARM", "CMD", "ORGN", "MAVC",
-                 "PM", "DSF", "DU32", "XKT", "XKV1", "XKV2", "IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM")
+                 "PM", "DSF", "DU32", "XKT", "XKV1", "XKV2", "IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM",
+                 "VISO", "VISV", "VISP")
 EXCERPT_SIM2_PERIOD_S = 0.1
 
 
@@ -220,5 +235,6 @@ if __name__ == "__main__":
     ap.add_argument("--legs", type=int, help="lanes (default 4; a variant's own without it)")
     ap.add_argument("--leg-s", type=float, help="seconds per lane (default 60; a variant's own without it)")
     ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default", help="drive shape")
+    ap.add_argument("--dvl-hz", type=float, help="a DVL on the companion (VISION_POSITION_DELTA → VISO records)")
     a = ap.parse_args()
-    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern))
+    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern, a.dvl_hz))
