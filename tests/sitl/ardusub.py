@@ -265,7 +265,7 @@ class DvlDriver:
             if last is not None and now - last < self.period_s:
                 continue
             vel = self._velocity_b()
-            if vel is None or getattr(self.conn, "last_address", None) is None:  # nothing to send, or nobody yet
+            if vel is None or not getattr(self.conn, "clients", None):  # nothing to send, or no autopilot yet
                 last = now
                 continue
             dt = self.period_s if last is None else now - last
