@@ -360,6 +360,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                               if v.get("status") == "unknown")
     if counters.get("clock"):
         doc["clock"] = counters["clock"]
+    if counters.get("gps_fixes"):  # MAVLink/DataFlash: the autopilot's GPS taken as a GNSS or an underwater GPS
+        doc["gps_fixes"] = counters["gps_fixes"]
     if counters.get("imu_stream"):  # MAVLink: which IMU stream was integrated, how often it changed
         doc["imu_stream"] = counters["imu_stream"]
     doc["warnings"] = origin_warnings + replay_warnings(doc)

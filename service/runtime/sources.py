@@ -292,6 +292,7 @@ class TlogReplaySource(SampleStreamSource):
                 "clock": c.get("clock", {}),
                 "imu_stream": c.get("imu_stream", {}),
                 "repaired_frames": dict(c.get("repaired_frames", {})),
+                "gps_fixes": c.get("gps_fixes", {}),
                 "truncated": c.get("truncated", "")}
 
 

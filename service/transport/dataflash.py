@@ -19,7 +19,9 @@ BARO    Press [Pa] → DepthSample                              instance ``baro_
 RCOU    C1..C14 [µs] → RpmSample                              as SERVO_OUTPUT_RAW
 GPS     Lat, Lng [deg], Status → GnssSample                   instance 0, Status ≥ 3D fix; σ from the
                                                               latest GPA's HAcc [m], else HDop; GWk/GMS
-                                                              (GPS time) give the log's UNIX time
+                                                              (GPS time) give the log's UNIX time; an
+                                                              underwater GPS's fixes (UsblSample) when
+                                                              PARM GPS_TYPE/GPS1_TYPE is 14 (MAVLink)
 RFND    Dist [m], Orient, Stat → AltitudeSample                downward (orientation 25), status Good
 SIM     Lat, Lng [deg], Alt [m up], Q1..Q4 → truth             a simulator's ground truth, never fused;
                                                               the velocity from the latest SIM2
@@ -127,6 +129,8 @@ class DataflashConverter:
         acc.messages += 1
         t_us = getattr(msg, "TimeUS", None)
         if mtype not in USED:
+            if mtype == "PARM":  # the autopilot's parameters, written at the log's start
+                self.mav.note_parameter(str(getattr(msg, "Name", "")), float(getattr(msg, "Value", math.nan)))
             if mtype in IGNORED_WHY:
                 self._ignore(acc, IGNORED_WHY[mtype])
             return [], []  # unknown: counted in messages, reported as such
@@ -240,7 +244,7 @@ class DataflashConverter:
             sigma = msg.HDop * self.config.gnss_sigma_per_hdop_m
         else:
             raise ConversionError("gnss_no_accuracy", "neither GPA.HAcc nor HDop")
-        return [GnssSample(t_s, math.radians(msg.Lat), math.radians(msg.Lng), float(sigma))]
+        return [self.mav.gps_fix(GnssSample(t_s, math.radians(msg.Lat), math.radians(msg.Lng), float(sigma)))]
 
     def _sim(self, msg: Any, t_s: float) -> SimTruth:
         q = (float(msg.Q1), float(msg.Q2), float(msg.Q3), float(msg.Q4))

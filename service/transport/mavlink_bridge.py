@@ -463,6 +463,9 @@ class MavlinkBridge:
                  sysid, compid, self.url, self.imu_stream, r.imu_hz,
                  extra={"event": {"event": "link_up", "peer": f"{sysid}/{compid}", "url": self.url}})
         self._request_streams()
+        for name in (b"GPS_TYPE", b"GPS1_TYPE"):  # is its GPS an underwater one (MAVLink)? (ArduPilot < / ≥ 4.6)
+            self._send("param_request_read_send", target_system=sysid, target_component=compid, param_id=name,
+                       param_index=-1)
         self.origin_confirmed = False
         self._origin_attempts = 0
         self._send_origin()

@@ -79,6 +79,7 @@ HPA_TO_PA = 100.0
 U32_WRAP_S_MS = 2**32 / 1000.0  # time_boot_ms (uint32 ms) wraps after 49.7 days
 U32_WRAP_S_US = 2**32 / 1e6  # SERVO_OUTPUT_RAW.time_usec is uint32 µs: wraps every 71.6 min
 UNIX_EPOCH_MIN_US = 1e15  # time_usec above this is UNIX time (2001+), not time since boot
+GPS_TYPE_MAV = 14  # ArduPilot's GPS_TYPE for a MAVLink GPS (GPS_INPUT)
 
 IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU2", "RAW_IMU")
 PRESSURE_MESSAGES = ("SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3")
@@ -181,8 +182,11 @@ class ConvertConfig:
     # companion-side drivers: BlueOS's DVL and UGPS extensions send as system 255, component 0
     aid_system_ids: tuple[int, ...] = (255,)
     aid_component_ids: tuple[int, ...] = ()  # empty: any component of those systems
-    # "acoustic": GPS_RAW_INT carries an underwater GPS's fixes (no surface-only rule)
-    gps_raw_int_source: Literal["gnss", "acoustic"] = "gnss"
+    # "acoustic": GPS_RAW_INT (a DataFlash log's GPS) carries an underwater GPS's fixes (no
+    # surface-only rule); "auto": acoustic when the autopilot says its GPS is a MAVLink one
+    # (GPS_TYPE / GPS1_TYPE 14: GPS_INPUT from the companion — on an ROV, the underwater GPS),
+    # read from its parameters (PARAM_VALUE, a DataFlash log's PARM)
+    gps_raw_int_source: Literal["auto", "gnss", "acoustic"] = "auto"
     # DVL from VISION_POSITION_DELTA: BlueOS maps the DVL's figure of merit (its velocity
     # 1-σ, m/s) to confidence = 100·(1 − min(fom, 0.4)/0.4); inverted here
     dvl_confidence_fom_max_m_s: float = 0.4
@@ -641,11 +645,13 @@ IGNORED_WHY: dict[str, str] = {
         "ESC_TELEMETRY_1_TO_4", "ESC_TELEMETRY_5_TO_8", "CAMERA_INFORMATION", "CAMERA_SETTINGS",
         "EXTENDED_SYS_STATE", "PING", "RADIO_STATUS", "FENCE_STATUS")},
     **{m: _WHY_GCS for m in (
-        "MANUAL_CONTROL", "COMMAND_LONG", "COMMAND_INT", "COMMAND_ACK", "REQUEST_DATA_STREAM", "PARAM_VALUE",
+        "MANUAL_CONTROL", "COMMAND_LONG", "COMMAND_INT", "COMMAND_ACK", "REQUEST_DATA_STREAM",
         "PARAM_SET", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_EXT_VALUE", "PARAM_EXT_REQUEST_LIST",
         "MISSION_ACK", "MISSION_COUNT", "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT",
         "SET_MODE", "SET_MESSAGE_INTERVAL", "SET_GPS_GLOBAL_ORIGIN", "RC_CHANNELS_OVERRIDE", "GPS_RTCM_DATA")},
     "HEARTBEAT": "link liveness; gives the autopilot's system id",
+    "PARAM_VALUE": "the autopilot's parameters: GPS_TYPE/GPS1_TYPE says whether its GPS fixes are an underwater "
+                   "GPS's, no sample",
     "EKF_STATUS_REPORT": "the autopilot's EKF health: its attitude flag gates ATTITUDE, no sample",
     "STATUSTEXT": "text; the autopilot's EKF (re)start and yaw alignment gate ATTITUDE, no sample",
     "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",
@@ -733,6 +739,7 @@ class MavlinkConverter:
         self.time = MissionClock(self.config.reboot_backjump_s)
         self.autopilot_sysid: int | None = None
         self.autopilot_firmware: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
+        self.autopilot_gps_type: int | None = None  # its GPS_TYPE / GPS1_TYPE parameter
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
         self._imu_lock: tuple[str, tuple[int, int, int], tuple[int, bool]] | None = None  # (type, source, rank)
         self.imu_switches = 0  # moves to a better IMU stream, or off a silent one (auto)
@@ -927,6 +934,8 @@ class MavlinkConverter:
             return []
         handler = _HANDLERS.get(mtype)
         if handler is None:
+            if mtype == "PARAM_VALUE" and self._is_autopilot(msg):
+                self.note_parameter(str(msg.param_id), float(msg.param_value))
             if mtype in ("EKF_STATUS_REPORT", "STATUSTEXT"):
                 self._autopilot_attitude_word(msg, mtype)
             if mtype == "GPS_GLOBAL_ORIGIN" and self.origin_from != "config" and self._is_autopilot(msg):
@@ -1018,10 +1027,40 @@ class MavlinkConverter:
     def _gps_raw(self, msg, mtype, t_s):
         if self.last_gps_input_t is not None and t_s - self.last_gps_input_t < self.config.gps_input_echo_window_s:
             raise ConversionError("gnss_echo_of_gps_input")
-        g = gnss_from_gps_raw_int(msg, t_s, self.config)
-        if self.config.gps_raw_int_source == "acoustic":  # an underwater GPS behind GPS1_TYPE
+        return self.gps_fix(gnss_from_gps_raw_int(msg, t_s, self.config))
+
+    def gps_fix(self, g: GnssSample) -> GnssSample | UsblSample:
+        """The autopilot's GPS fix ``g`` as what it is: a surface GNSS fix, or an underwater
+        GPS's acoustic one (:meth:`gps_fixes_acoustic`: no surface-only rule)."""
+        if self.gps_fixes_acoustic():
             return UsblSample(g.t_s, g.lat_rad, g.lon_rad, math.nan, max(g.sigma_h_m, self.config.usbl_min_sigma_m))
         return g
+
+    def gps_fixes_acoustic(self) -> bool:
+        """Are the autopilot's GPS fixes an underwater GPS's (``gps_raw_int_source``)?"""
+        source = self.config.gps_raw_int_source
+        return source == "acoustic" or (source == "auto" and self.autopilot_gps_type == GPS_TYPE_MAV)
+
+    def note_parameter(self, name: str, value: float) -> None:
+        """One of the autopilot's parameters (PARAM_VALUE, a DataFlash log's PARM)."""
+        if name in ("GPS_TYPE", "GPS1_TYPE") and math.isfinite(value):
+            if self.autopilot_gps_type != int(value):
+                logging.getLogger(__name__).info("the autopilot's first GPS is type %d%s", int(value),
+                         " (MAVLink: GPS_INPUT from the companion, taken as an underwater GPS's fixes)"
+                         if int(value) == GPS_TYPE_MAV else "")
+            self.autopilot_gps_type = int(value)
+
+    def gps_report(self) -> dict[str, Any]:
+        """What the autopilot's GPS fixes were taken as, and why, for summaries and health."""
+        acoustic = self.gps_fixes_acoustic()
+        if self.config.gps_raw_int_source != "auto":
+            why = f"configured (mavlink.convert.gps_raw_int_source = {self.config.gps_raw_int_source!r})"
+        elif self.autopilot_gps_type is None:
+            why = "the autopilot's GPS type is unknown (no GPS_TYPE/GPS1_TYPE parameter seen): a surface GNSS"
+        else:
+            why = f"the autopilot's GPS_TYPE/GPS1_TYPE is {self.autopilot_gps_type}" + (
+                " (MAVLink: an underwater GPS's GPS_INPUT)" if acoustic else "")
+        return {"taken_as": "acoustic" if acoustic else "gnss", "why": why}
 
     def _gps_input(self, msg, mtype, t_s):
         self.last_gps_input_t = t_s

@@ -358,6 +358,7 @@ class TlogSource:
         self.counters["message_types"] = (self.converter.accounting(DATAFLASH_USED, DATAFLASH_IGNORED_WHY)
                                           if self._dataflash else self.converter.accounting())
         self.counters["clock"] = self.converter.clock_report()
+        self.counters["gps_fixes"] = self.converter.gps_report()
         if not self._dataflash:
             self.counters["imu_stream"] = {"integrated": self.converter.integrated_imu_stream(),
                                            "switches": self.converter.imu_switches}

@@ -180,3 +180,15 @@ def test_a_dvl_s_deltas_as_the_autopilot_logged_them_become_dvl_samples(tmp_path
     types = src.counters["message_types"]
     assert types["VISO"]["status"] == "used" and types["VISO"]["samples"] == 20
     assert types["VISP"]["status"] == "ignored" and "own frame" in types["VISP"]["why"]
+
+
+@pytest.mark.parametrize("gps_type, kind", [(14, "usbl"), (1, "gnss")])
+def test_a_mavlink_gps_s_fixes_are_an_underwater_gps_s_at_any_depth(tmp_path, gps_type, kind):
+    """GPS1_TYPE 14 (a BlueROV2 with a Water Linked UGPS: GPS_INPUT from the companion, logged as
+    GPS): the fixes under water are acoustic fixes, not a radio GPS that must be refused there."""
+    path = _log(tmp_path / "ugps.BIN", seconds=20.0, dive_at_s=55.0,
+                records=[("PARM", 49_999_000, "GPS1_TYPE", float(gps_type))])
+    src, samples = _read(path)
+    fixes = [s for s in samples if s.KIND in ("gnss", "usbl")]
+    assert len(fixes) > 90 and {s.KIND for s in fixes} == {kind}
+    assert src.counters["gps_fixes"]["taken_as"] == ("acoustic" if kind == "usbl" else "gnss")

@@ -213,6 +213,21 @@ def test_gps_raw_int_as_an_acoustic_source_becomes_a_position_fix(tmp_path):
     assert [x.KIND for x in gnss] == ["gnss"] and [x.KIND for x in acoustic] == ["usbl"]
 
 
+@pytest.mark.parametrize("name, gps_type, kind", [("GPS_TYPE", 14, "usbl"), ("GPS1_TYPE", 14, "usbl"),
+                                                   ("GPS_TYPE", 1, "gnss"), ("GPS_TYPE2", 14, "gnss")])
+def test_the_autopilot_s_gps_type_says_whether_its_fixes_are_an_underwater_gps_s(tmp_path, name, gps_type, kind):
+    """By default (``gps_raw_int_source = "auto"``) a GPS_RAW_INT is an acoustic fix when the
+    autopilot's first GPS is a MAVLink one (GPS_TYPE, from 4.6 GPS1_TYPE, = 14: GPS_INPUT from the
+    companion — the real BlueROV2 UGPS log says 14), a surface fix otherwise."""
+    s = Stream()
+    s.heartbeat(0.0)
+    s.emit(0.5, "param_value_encode", name.encode(), float(gps_type), 2, 900, 10)
+    s.emit(1.0, "gps_raw_int_encode", 1_000_000, 3, 483861418, -1246305732, 0, 160, 65535, 0, 0, 9)
+    src, samples = read(s.write(tmp_path / "g.tlog"))
+    assert [x.KIND for x in samples] == [kind]
+    assert src.counters["gps_fixes"]["taken_as"] == ("acoustic" if kind == "usbl" else "gnss")
+
+
 def test_the_filter_takes_the_dvl_sigma_when_the_driver_says_it_is_worse():
     from adaptnav.fusion.aiding import dvl as aid_dvl
     from adaptnav.fusion.samples import DvlSample

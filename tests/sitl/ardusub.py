@@ -281,3 +281,58 @@ class DvlDriver:
         self._stop.set()
         self._thread.join(2.0)
         self.conn.close()
+
+
+class UgpsDriver:
+    """An underwater GPS on the companion, as BlueOS's Water Linked UGPS extension: GPS_INPUT at
+    ``hz`` to the autopilot's second serial port, system 1, component 220, ``time_usec`` 0 and
+    no GPS time, 3D fix, HDOP ``hdop``, velocities and accuracies flagged as absent (ArduSub
+    needs ``GPS1_TYPE`` 14 — ``GPS_TYPE`` before 4.6 — to take it, and logs each as a GPS record).
+
+    The position is the simulator's truth (SIM_STATE as the ground station ``gcs`` receives it)
+    with white noise of ``sigma_m`` per horizontal axis (``seed``): an acoustic fix, at any
+    depth. Shares :class:`DvlDriver`'s port when both run (``conn``)."""
+
+    IGNORE = 4 | 8 | 16 | 32 | 64 | 128  # vel horiz/vert, speed, horizontal and vertical accuracy
+
+    def __init__(self, port: int | None, gcs: Gcs, hz: float = 2.0, sigma_m: float = 1.0, hdop: float = 1.0,
+                 seed: int = 1, conn: Any = None):
+        import numpy as np
+
+        self.conn = conn or mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1,
+                                                       source_component=220, dialect="ardupilotmega")
+        self.mav = mav.MAVLink(self.conn, srcSystem=1, srcComponent=220)
+        self.gcs, self.period_s, self.sigma_m, self.hdop = gcs, 1.0 / hz, sigma_m, hdop
+        self.rng = np.random.default_rng(seed)
+        self.sent = 0
+        self._own_conn = conn is None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import math
+
+        while not self._stop.wait(self.period_s):
+            if self._own_conn:
+                while self.conn.recv_match(blocking=False) is not None:  # the autopilot's address
+                    pass
+            states = self.gcs.messages["SIM_STATE"]
+            if not states or not getattr(self.conn, "clients", None):
+                continue
+            m = states[-1][1]
+            d_n, d_e = self.sigma_m * self.rng.standard_normal(2)
+            lat = m.lat_int * 1e-7 + math.degrees(d_n / 6_378_137.0)
+            lon = m.lon_int * 1e-7 + math.degrees(d_e / (6_378_137.0 * math.cos(math.radians(m.lat_int * 1e-7))))
+            try:
+                self.mav.gps_input_send(0, 0, self.IGNORE, 0, 0, 3, int(round(lat * 1e7)), int(round(lon * 1e7)),
+                                        0.0, self.hdop, 1.0, 0, 0, 0, 0, 0, 0, 10, 0)
+                self.sent += 1
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        if self._own_conn:
+            self.conn.close()

@@ -26,7 +26,7 @@ import shutil
 import time
 from pathlib import Path
 
-from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, DvlDriver, Gcs, free_udp_port, mav
+from .ardusub import MODE_ALT_HOLD, MODE_MANUAL, ArduSub, DvlDriver, Gcs, UgpsDriver, free_udp_port, mav
 
 # what the ground station records alongside (a tlog is handy to compare the two paths)
 RECORDED = ("RAW_IMU", "HIGHRES_IMU", "ATTITUDE", "SCALED_PRESSURE2", "SERVO_OUTPUT_RAW", "GPS_RAW_INT",
@@ -142,31 +142,40 @@ PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
-           pattern: str = "default", dvl_hz: float | None = None) -> Path:
+           pattern: str = "default", dvl_hz: float | None = None, ugps_hz: float | None = None) -> Path:
     """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``. ``dvl_hz``: a DVL
     driver on the companion sends VISION_POSITION_DELTA at that rate (:class:`DvlDriver`;
-    ArduSub logs it as VISO)."""
+    ArduSub logs it as VISO); ``ugps_hz``: an underwater GPS sends GPS_INPUT (:class:`UgpsDriver`,
+    ``GPS1_TYPE`` 14: it replaces the simulated GPS; ArduSub logs it as GPS)."""
     out.mkdir(parents=True, exist_ok=True)
     work = out / "ardusub-work"
     work.mkdir(exist_ok=True)
     gcs_port, bridge_port = free_udp_port(), free_udp_port()
     sub = ArduSub(work, gcs_port, bridge_port).start()
     gcs = Gcs(gcs_port, keep=RECORDED, tlog=out / "session.tlog")
-    dvl = None
+    dvl = ugps = None
     try:
         gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
         gcs.set_param("ARMING_CHECK", 0)
-        if dvl_hz:
-            gcs.set_param("VISO_TYPE", 1)  # MAVLink visual odometry: takes effect after a reboot
+        if dvl_hz or ugps_hz:
+            if dvl_hz:
+                gcs.set_param("VISO_TYPE", 1)  # MAVLink visual odometry: takes effect after a reboot
+            if ugps_hz:
+                gcs.set_param("GPS1_TYPE", 14)  # a MAVLink GPS (GPS_INPUT)
+                gcs.set_param("EK3_GPS_CHECK", 0)  # it reports no velocity or accuracies
             sub.restart()
             since = time.time()
             gcs.wait(lambda: any(w > since for w, _ in gcs.messages["HEARTBEAT"]), 120, "ArduSub back")
-            dvl = DvlDriver(bridge_port, gcs, hz=dvl_hz)
+            gcs.interval("SIM_STATE", 50)  # the drivers' truth: keep it fresh
+            if dvl_hz:
+                dvl = DvlDriver(bridge_port, gcs, hz=dvl_hz)
+            if ugps_hz:
+                ugps = UgpsDriver(None if dvl else bridge_port, gcs, hz=ugps_hz, conn=dvl.conn if dvl else None)
         if log_bitmask is not None:
             gcs.set_param("LOG_BITMASK", log_bitmask)
         for mtype, hz in GCS_RATES.items():
             gcs.interval(mtype, hz)
-        if dvl is not None:  # the DVL's velocity is the truth's latest: keep it fresh
+        if dvl is not None or ugps is not None:  # the drivers' truth: keep it fresh
             gcs.interval("SIM_STATE", 50)
         # EKF3 aligned on its GPS before arming, as a pilot waits for it
         gcs.wait_text("EKF3 IMU0 is using GPS", 120)
@@ -178,6 +187,9 @@ def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_
         gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)  # disarm (forced): the log closes
         time.sleep(3.0)
     finally:
+        if ugps is not None:
+            ugps.close()
+            print(f"UGPS: {ugps.sent} GPS_INPUT sent")
         if dvl is not None:
             dvl.close()
             print(f"DVL: {dvl.sent} VISION_POSITION_DELTA sent")
@@ -236,5 +248,6 @@ if __name__ == "__main__":
     ap.add_argument("--leg-s", type=float, help="seconds per lane (default 60; a variant's own without it)")
     ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default", help="drive shape")
     ap.add_argument("--dvl-hz", type=float, help="a DVL on the companion (VISION_POSITION_DELTA → VISO records)")
+    ap.add_argument("--ugps-hz", type=float, help="an underwater GPS on the companion (GPS_INPUT → GPS records)")
     a = ap.parse_args()
-    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern, a.dvl_hz))
+    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern, a.dvl_hz, a.ugps_hz))
