@@ -192,6 +192,22 @@ def test_a_frame_relayed_with_trailing_zeros_cut_after_its_crc_is_restored(link)
     assert bridge.health()["repaired_frames"] == 1
 
 
+def test_the_bridge_asks_the_autopilot_s_gps_type_and_takes_a_mavlink_gps_as_an_underwater_one(link):
+    """BlueROV2 with a Water Linked UGPS: GPS1_TYPE 14, its fixes reach us as GPS_RAW_INT only
+    (no GPS_INPUT on this link): acoustic fixes, fused at any depth."""
+    bridge, peer, q, _ = link
+    asked = lambda: {m.param_id for m in peer.of_type("PARAM_REQUEST_READ")} >= {"GPS_TYPE", "GPS1_TYPE"}  # noqa: E731
+    assert peer.pump(3.0, until=lambda: bridge.link_up.is_set() and asked())
+    mav = peer.conn.mav
+    mav.gps_raw_int_send(40_000_000, 3, 483861418, -1246305732, 0, 160, 65535, 0, 0, 9)
+    before = drain(q, lambda out: any(s.KIND in ("gnss", "usbl") for s in out))
+    mav.param_value_send(b"GPS1_TYPE", 14.0, 2, 900, 10)  # the autopilot answers
+    mav.gps_raw_int_send(41_000_000, 3, 483861418, -1246305732, 0, 160, 65535, 0, 0, 9)
+    after = drain(q, lambda out: any(s.KIND in ("gnss", "usbl") for s in out))
+    assert [s.KIND for s in before if s.KIND in ("gnss", "usbl")] == ["gnss"]
+    assert [s.KIND for s in after if s.KIND in ("gnss", "usbl")] == ["usbl"]
+
+
 def test_peer_restart_reconnects_and_re_requests_streams(link):
     bridge, peer, q, port = link
     assert peer.pump(3.0, until=bridge.link_up.is_set)
