@@ -240,8 +240,9 @@ class DataflashConverter:
         h_acc = self._gps_h_acc_m.get(inst)
         if h_acc is not None:
             sigma = h_acc
-        elif 0 < msg.HDop < 99:
-            sigma = msg.HDop * self.config.gnss_sigma_per_hdop_m
+        elif 0 < msg.HDop < 99:  # an underwater GPS's HDOP as in its GPS_INPUT
+            sigma = msg.HDop * (self.config.usbl_sigma_per_hdop_m if self.mav.gps_fixes_acoustic()
+                                else self.config.gnss_sigma_per_hdop_m)
         else:
             raise ConversionError("gnss_no_accuracy", "neither GPA.HAcc nor HDop")
         return [self.mav.gps_fix(GnssSample(t_s, math.radians(msg.Lat), math.radians(msg.Lng), float(sigma)))]

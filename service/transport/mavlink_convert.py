@@ -489,14 +489,17 @@ def rpm_from_servo(msg: Any, t_s: float, thrusters: ThrusterConfig) -> RpmSample
     return rpm_from_pwm(lambda ch: servo_pwm(msg, ch), t_s, thrusters)
 
 
-def gnss_from_gps_raw_int(msg: Any, t_s: float, cfg: ConvertConfig) -> GnssSample:
+def gnss_from_gps_raw_int(msg: Any, t_s: float, cfg: ConvertConfig, acoustic: bool = False) -> GnssSample:
+    """GPS_RAW_INT → GnssSample; σ from ``h_acc``, else HDOP × ``gnss_sigma_per_hdop_m`` —
+    ``usbl_sigma_per_hdop_m`` for an underwater GPS's fix (``acoustic``: its HDOP means that,
+    as in its GPS_INPUT)."""
     if msg.fix_type < cfg.gnss_min_fix_type:
         raise ConversionError("gnss_no_fix", f"fix_type={msg.fix_type}")
     h_acc_mm = getattr(msg, "h_acc", 0) or 0
     if h_acc_mm > 0:
         sigma = h_acc_mm / 1000.0
     elif msg.eph not in (0, 65535):
-        sigma = msg.eph / 100.0 * cfg.gnss_sigma_per_hdop_m
+        sigma = msg.eph / 100.0 * (cfg.usbl_sigma_per_hdop_m if acoustic else cfg.gnss_sigma_per_hdop_m)
     else:
         raise ConversionError("gnss_no_accuracy", "neither h_acc nor eph")
     return GnssSample(t_s, msg.lat * DEG_E7_TO_RAD, msg.lon * DEG_E7_TO_RAD, sigma)
@@ -1027,7 +1030,7 @@ class MavlinkConverter:
     def _gps_raw(self, msg, mtype, t_s):
         if self.last_gps_input_t is not None and t_s - self.last_gps_input_t < self.config.gps_input_echo_window_s:
             raise ConversionError("gnss_echo_of_gps_input")
-        return self.gps_fix(gnss_from_gps_raw_int(msg, t_s, self.config))
+        return self.gps_fix(gnss_from_gps_raw_int(msg, t_s, self.config, self.gps_fixes_acoustic()))
 
     def gps_fix(self, g: GnssSample) -> GnssSample | UsblSample:
         """The autopilot's GPS fix ``g`` as what it is: a surface GNSS fix, or an underwater

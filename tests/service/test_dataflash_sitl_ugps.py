@@ -47,4 +47,6 @@ def test_with_the_defaults_the_fixes_hold_the_solution_under_water(replayed):
     assert s["distance_travelled_m"] > 130.0
     # the fixes' own noise is 1 m per axis: the solution stays within a few of them
     assert s["end_error_m"] <= 1.5 and s["max_error_submerged_m"] <= 2.5 and s["rms_error_submerged_m"] <= 1.0, s
-    assert s["valid_fraction_submerged"] >= 0.95 and s["valid_outside_99_fraction"] <= 0.01, s
+    # σ from the fixes' HDOP (1.0) at the underwater GPS's 1 m per HDOP, as its GPS_INPUT would
+    # give: about 1 % of the valid epochs beyond their 99 % ellipse is a consistent filter
+    assert s["valid_fraction_submerged"] >= 0.95 and s["valid_outside_99_fraction"] <= 0.03, s
