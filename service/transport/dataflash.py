@@ -60,6 +60,8 @@ RFND_STATUS_GOOD = 4  # AP_RangeFinder::Status::Good
 DOWNWARD = 25  # ROTATION_PITCH_270
 
 USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG", "VISO", "VISV")
+# the records a replay reads (decodes); the others are only counted, from the reader's index
+READ = frozenset(USED) | {"PARM"}
 
 _WHY_ESTIMATE = "the autopilot's own estimate (an output of its EKF/AHRS, not a sensor)"
 _WHY_CONTROL = "the autopilot's controllers, pilot input and modes (no navigation content)"
@@ -160,6 +162,15 @@ class DataflashConverter:
             acc.stamp(t_s)
             acc.samples += len(out)
         return out, []
+
+    def count_unread(self, counts: dict[str, int]) -> None:
+        """Account for records not read (not in :data:`READ`), by type: ignored with their
+        reason, or unknown."""
+        for mtype, n in counts.items():
+            acc = self.mav.types.setdefault(mtype, TypeAccount())
+            acc.messages += n
+            if mtype in IGNORED_WHY:
+                acc.ignored[IGNORED_WHY[mtype]] = acc.ignored.get(IGNORED_WHY[mtype], 0) + n
 
     # ------------------------------------------------------------------ records
     def _ignore(self, acc: TypeAccount, why: str) -> list:

@@ -35,6 +35,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
     MavlinkConverter,
 )
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
+from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
 from adaptnav.service.transport.mavlink_frames import SIM_STATE_ID, TlogReader, untruncated
@@ -235,12 +236,17 @@ class TlogSource:
         try:
             while True:
                 try:
-                    msg = conn.recv_match()
+                    # a DataFlash log: only the records the replay reads are decoded (DFReader
+                    # skips to them through its index); the others are counted from the index
+                    msg = (conn.recv_match(type=DATAFLASH_READ, strict=True) if self._dataflash
+                           else conn.recv_match())
                 except Exception as e:  # a reader bug on garbage must not end the replay
                     self.counters["corrupt_frames"] += 1
                     self._reject(f"reader_error:{type(e).__name__}")
                     continue
                 if msg is None:
+                    if self._dataflash:
+                        self._count_unread(conn)
                     self._note_cut_off(conn)
                     return
                 msg = self._as_read(msg, getattr(conn, "mav", None))  # a DataFlash reader has no parser
@@ -248,6 +254,13 @@ class TlogSource:
                     yield msg
         finally:
             conn.close()
+
+    def _count_unread(self, conn: Any) -> None:
+        """A DataFlash log's records of the types not read, from DFReader's index."""
+        counts = {conn.id_to_name[i]: int(n) for i, n in enumerate(getattr(conn, "counts", ()))
+                  if n and i in conn.id_to_name and conn.id_to_name[i] not in DATAFLASH_READ}
+        self.dataflash.count_unread(counts)
+        self.counters["messages_read"] += sum(counts.values())
 
     def _as_read(self, msg: Any, mav: Any) -> Any | None:
         """A message as read, counted (None: a corrupt frame, counted as one); a frame a
