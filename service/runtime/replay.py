@@ -152,7 +152,8 @@ def open_scenario(name: str, overrides: list[str] | tuple[str, ...] = ()) -> Rep
 
 
 def open_log(path: str | Path) -> ReplayInput:
-    """Open ``.mcap`` (our logs) or ``.tlog``/``.bin`` (MAVLink/DataFlash) for replay."""
+    """Open ``.mcap`` (our logs, or BlueOS's MAVLink recordings) or ``.tlog``/``.bin``
+    (MAVLink/DataFlash) for replay."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"log not found: {path}")
@@ -160,6 +161,10 @@ def open_log(path: str | Path) -> ReplayInput:
     if suffix in (".tlog", ".bin", ".log"):
         return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path), path=path)
     if suffix == ".mcap":
+        from adaptnav.service.transport.blueos_mcap import mavlink_topics
+
+        if mavlink_topics(path):  # BlueOS's recording of the vehicle's MAVLink, not one of ours
+            return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path), path=path)
         src = McapSource(path)
         return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path), path=path)
     raise ValueError(f"{path}: unknown log type {suffix!r} (expected .mcap, .tlog or .bin)")

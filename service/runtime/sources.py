@@ -297,7 +297,7 @@ class TlogReplaySource(SampleStreamSource):
 
 
 def tlog_source(path: Path) -> Any:
-    """A ``.tlog``/``.bin`` file as a replay source."""
+    """A ``.tlog``/``.bin`` file, or a BlueOS ``.mcap`` recording of MAVLink, as a replay source."""
     from adaptnav.service.transport.tlog_source import TlogSource
 
     return TlogReplaySource(TlogSource(path))

@@ -1032,6 +1032,11 @@ class MavlinkConverter:
             raise ConversionError("gnss_echo_of_gps_input")
         return self.gps_fix(gnss_from_gps_raw_int(msg, t_s, self.config, self.gps_fixes_acoustic()))
 
+    def count_unknown(self, mtype: str) -> None:
+        """A message of a type the dialect does not know (BlueOS's recordings name it):
+        accounted as unknown."""
+        self.types.setdefault(mtype, TypeAccount()).messages += 1
+
     def gps_fix(self, g: GnssSample) -> GnssSample | UsblSample:
         """The autopilot's GPS fix ``g`` as what it is: a surface GNSS fix, or an underwater
         GPS's acoustic one (:meth:`gps_fixes_acoustic`: no surface-only rule)."""

@@ -1,4 +1,5 @@
-"""Replay source for MAVLink telemetry logs (``.tlog``) and ArduPilot DataFlash (``.BIN``).
+"""Replay source for MAVLink telemetry logs (``.tlog``), BlueOS's MAVLink recordings
+(``.mcap``, :mod:`adaptnav.service.transport.blueos_mcap`) and ArduPilot DataFlash (``.BIN``).
 
 pymavlink opens a log with the same ``mavutil.mavlink_connection`` API as a live link,
 so the messages go through the same :class:`adaptnav.service.transport.mavlink_convert.MavlinkConverter`
@@ -38,6 +39,7 @@ from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORE
 from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
+from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
 from adaptnav.service.transport.mavlink_frames import SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
 from adaptnav.fusion.config import AlignmentConfig
@@ -108,6 +110,7 @@ class TlogSource:
         self._imu_switches = 0
         self._dataflash = self.path.suffix.lower() in (".bin", ".log")
         self._tlog = self.path.suffix.lower() == ".tlog"  # other MAVLink files: pymavlink's reader
+        self._blueos = self.path.suffix.lower() == ".mcap"  # BlueOS's recording (blueos_mcap)
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
 
@@ -199,6 +202,13 @@ class TlogSource:
                 return reader.has_message(SIM_STATE_ID, max_messages)
             finally:
                 reader.close()
+        if self._blueos:
+            for i, msg in enumerate(BlueOsMcapReader(self.path)):
+                if i >= max_messages:
+                    return False
+                if getattr(msg, "get_type", lambda: "")() == "SIM_STATE":
+                    return True
+            return False
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
         except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
@@ -226,6 +236,9 @@ class TlogSource:
     def _messages(self) -> Iterator[Any]:
         if self._tlog:
             yield from self._tlog_messages()
+            return
+        if self._blueos:
+            yield from self._blueos_messages()
             return
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
@@ -293,6 +306,32 @@ class TlogSource:
             self._note_cut_off(reader)
         finally:
             reader.close()
+
+    def _blueos_messages(self) -> Iterator[Any]:
+        """A BlueOS recording's messages (:class:`BlueOsMcapReader`): a record that is not a
+        MAVLink message is a corrupt frame; a type the dialect lacks is accounted as unknown."""
+        reader = BlueOsMcapReader(self.path)
+        if not reader.topics:
+            self._reject("unreadable:no_mavlink_topics")
+            log.warning("%s: no MAVLink topics (mavlink/out, mavlink/<sys>/<comp>/<TYPE>): not a BlueOS "
+                        "recording", self.path.name)
+            return
+        try:
+            for msg in reader:
+                if isinstance(msg, MalformedMessage):
+                    self.counters["corrupt_frames"] += 1
+                    self._reject("malformed_json")
+                    continue
+                self.counters["messages_read"] += 1
+                if isinstance(msg, str):  # a type this dialect does not know: accounted as unknown
+                    self.converter.count_unknown(msg)
+                    continue
+                yield msg
+        except Exception as e:  # noqa: BLE001 — a damaged file: what came before was read
+            self.counters["corrupt_frames"] += 1
+            self.counters["truncated"] = (f"{self.path.name} is damaged after the records read "
+                                          f"({type(e).__name__}: {e}); everything before was replayed")
+            log.warning("%s", self.counters["truncated"])
 
     def _note_cut_off(self, conn: Any) -> None:
         """At the end of the file: a last message cut off (the recorder lost power, a copy

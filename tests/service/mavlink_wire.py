@@ -18,3 +18,84 @@ def qgc_logged(msg, mav) -> bytes:
     crc = x25crc(bytes(whole[1:]))
     crc.accumulate(bytes((type(msg).crc_extra,)))
     return bytes(frame[:10 + n]) + struct.pack("<H", crc.crc)
+
+
+def _extension_fields() -> dict[str, set[str]]:
+    """Message name → its MAVLink 2 extension fields (pymavlink's own XML definitions)."""
+    import contextlib
+    import io
+    import os
+
+    import pymavlink.dialects.v20 as dialects
+    from pymavlink.generator import mavparse
+
+    folder, seen, out = os.path.dirname(dialects.__file__), set(), {}
+
+    def load(name):
+        if name in seen:
+            return
+        seen.add(name)
+        with contextlib.redirect_stdout(io.StringIO()):
+            x = mavparse.MAVXML(os.path.join(folder, name), mavparse.PROTOCOL_2_0)
+        for m in x.message:
+            start = m.extensions_start if m.extensions_start is not None else len(m.fields)
+            out[m.name] = {f.name for f in m.fields[start:]}
+        for inc in x.include:
+            load(inc)
+
+    load("ardupilotmega.xml")
+    return out
+
+
+def mavlink2rest_json(msg, drop_extensions: bool = False, extensions: dict | None = None) -> dict:
+    """``msg`` as BlueOS's mavlink-server writes it (mavlink2rest's JSON): ``type`` → ``mavtype``,
+    enum values ``{"type": NAME}``, bitmasks ``{"bits": n}``, char arrays as text; the MAVLink 2
+    extension fields left out with ``drop_extensions`` (BlueOS 1.4's recordings)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    cls = type(msg)
+    skip = (extensions or {}).get(cls.msgname, set()) if drop_extensions else set()
+    body = {"type": cls.msgname}
+    for field in cls.fieldnames:
+        if field in skip:
+            continue
+        v = getattr(msg, field)
+        enum = cls.fieldenums_by_name.get(field)
+        if isinstance(v, bytes):
+            v = v.decode("utf-8", "replace").split("\x00", 1)[0]
+        elif enum and cls.fielddisplays_by_name.get(field) == "bitmask":
+            v = {"bits": int(v)}
+        elif enum and isinstance(v, int) and v in mav.enums.get(enum, {}):
+            v = {"type": mav.enums[enum][v].name}
+        body["mavtype" if field == "type" else field] = v
+    h = msg._header
+    return {"header": {"system_id": h.srcSystem, "component_id": h.srcComponent, "sequence": h.seq},
+            "message": body}
+
+
+def write_blueos_mcap(tlog, out, drop_extensions: bool = False, per_type_topics: bool = False):
+    """A tlog's messages as a BlueOS recording (``mavlink/out``, or ``mavlink/<sys>/<comp>/<TYPE>``
+    with ``per_type_topics``), each at its tlog stamp as the record's log time."""
+    import json
+
+    from mcap.writer import Writer
+
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    extensions = _extension_fields() if drop_extensions else None
+    channels: dict[str, int] = {}
+    with open(out, "wb") as f:
+        w = Writer(f)
+        w.start()
+        for msg in TlogReader(tlog):
+            if isinstance(msg, Exception) or msg.get_type() == "BAD_DATA":
+                continue
+            h = msg._header
+            topic = f"mavlink/{h.srcSystem}/{h.srcComponent}/{msg.get_type()}" if per_type_topics else "mavlink/out"
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=0)
+            ns = int(round(msg._timestamp * 1e9))
+            data = json.dumps(mavlink2rest_json(msg, drop_extensions, extensions)).encode()
+            w.add_message(channels[topic], log_time=ns, data=data, publish_time=ns)
+        w.finish()
+    return out

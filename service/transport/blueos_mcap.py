@@ -1,0 +1,134 @@
+"""BlueOS's own recordings of MAVLink (``.mcap``, written on the vehicle while it is armed).
+
+BlueOS's mavlink-server publishes every MAVLink message it routes (the autopilot's and the
+companion's: a DVL or underwater-GPS extension's) on Zenoh, and its recorder writes them to an
+MCAP file: topic ``mavlink/out`` (every message) and ``mavlink/<system>/<component>/<TYPE>``,
+each message a JSON text in mavlink2rest's form::
+
+    {"header": {"system_id": 1, "component_id": 1, "sequence": 42},
+     "message": {"type": "ATTITUDE", "time_boot_ms": 123456, "roll": 0.01, ...}}
+
+where a field named ``type`` is ``mavtype``, an enum value is ``{"type": "MAV_..."}``, a
+bitmask ``{"bits": n}`` or ``"FLAG_A | FLAG_B"``, a char array text (or a list of characters
+or codes), and non-finite floats are JSON5's ``NaN``/``Infinity``.  MAVLink 2 extension fields
+may be missing (BlueOS 1.4, mavlink-server#213): they take their defaults.  The log time of a
+record is the vehicle computer's UNIX clock at reception (as a tlog's stamp).
+
+:class:`BlueOsMcapReader` yields each as the pymavlink message it was (header, fields,
+``_timestamp``), so a BlueOS recording replays through the same converter and accounts as a
+tlog (:class:`adaptnav.service.transport.tlog_source.TlogSource`).  The layout is the one the
+public BlueOS tools read (mavlink-server's Zenoh topics, ``mcap_to_tlog`` in
+clydemcqueen/ardusub_log_tools); a message that does not follow it is counted as malformed,
+never guessed at.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any, Iterator
+
+from mcap.reader import make_reader
+
+ALL_TOPIC = "mavlink/out"
+_PER_TYPE_TOPIC = re.compile(r"^mavlink/\d+/\d+/[A-Z0-9_]+$")
+
+
+def mavlink_topics(path: str | Path) -> list[str]:
+    """The topics of ``path`` to read MAVLink from (``mavlink/out`` when there, else the
+    per-type topics); empty when the file is not a BlueOS MAVLink recording."""
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 — not an MCAP file, or damaged before its summary
+        return []
+    if summary is None:
+        return []
+    topics = {c.topic for c in summary.channels.values()}
+    if ALL_TOPIC in topics:
+        return [ALL_TOPIC]
+    return sorted(t for t in topics if _PER_TYPE_TOPIC.match(t))
+
+
+class MalformedMessage(ValueError):
+    """A record that is not a MAVLink message in mavlink2rest's form."""
+
+
+class BlueOsMcapReader:
+    """Iterate a BlueOS MCAP recording as pymavlink messages.
+
+    Yields a message, or for a record that cannot be one a :class:`MalformedMessage`, or for
+    a message type the dialect does not know its name (a ``str``) — the caller counts both.
+    """
+
+    def __init__(self, path: str | Path):
+        from pymavlink.dialects.v20 import ardupilotmega
+
+        self.path = Path(path)
+        self.topics = mavlink_topics(self.path)
+        self._mav = ardupilotmega
+        self._classes = {cls.msgname: cls for cls in ardupilotmega.mavlink_map.values()}
+
+    def __iter__(self) -> Iterator[Any]:
+        if not self.topics:
+            return
+        with open(self.path, "rb") as f:
+            for _, _, record in make_reader(f).iter_messages(topics=self.topics, log_time_order=False):
+                try:
+                    yield self.message(record.data, record.log_time / 1e9)
+                except MalformedMessage as e:
+                    yield e
+
+    def message(self, data: bytes, t_unix_s: float) -> Any:
+        """One record's JSON as a pymavlink message (its type name when the dialect lacks it)."""
+        try:
+            doc = json.loads(data)
+            header, body = doc.get("header") or {}, dict(doc["message"])
+            name = body.pop("type")
+        except (ValueError, KeyError, TypeError, AttributeError) as e:
+            raise MalformedMessage(f"not a MAVLink JSON record: {type(e).__name__}") from None
+        cls = self._classes.get(name)
+        if cls is None:
+            return str(name)
+        kwargs = {}
+        for field, ftype in zip(cls.fieldnames, cls.fieldtypes):
+            key = "mavtype" if field == "type" else field
+            if key in body:
+                kwargs[field] = self._value(body[key], ftype, name, field)
+        try:
+            msg = cls(**kwargs)  # a missing extension field takes its default; a base field cannot
+        except TypeError as e:
+            raise MalformedMessage(f"{name}: {e}") from None
+        msg._header = self._mav.MAVLink_header(cls.id, seq=int(header.get("sequence", 0) or 0) & 0xFF,
+                                               srcSystem=int(header.get("system_id", 0) or 0),
+                                               srcComponent=int(header.get("component_id", 0) or 0))
+        msg._timestamp = t_unix_s
+        return msg
+
+    def _value(self, v: Any, ftype: str, name: str, field: str) -> Any:
+        if ftype == "char":
+            if isinstance(v, list):
+                v = "".join(c if isinstance(c, str) else chr(int(c)) for c in v)
+            return str(v).split("\x00", 1)[0].encode("utf-8")  # pymavlink's constructors take bytes
+        if isinstance(v, list):
+            return [self._value(x, ftype, name, field) for x in v]
+        if isinstance(v, dict):
+            if "bits" in v:
+                return int(v["bits"])
+            if "type" in v:
+                return self._constant(str(v["type"]), name, field)
+            raise MalformedMessage(f"{name}.{field}: {v!r}")
+        if isinstance(v, str):  # a bitmask written out ("A | B"), a constant, or empty
+            parts = [p.strip() for p in v.split("|") if p.strip()]
+            return sum(self._constant(p, name, field) for p in parts)
+        if v is None:  # JSON's null for a non-finite float
+            return math.nan if ftype in ("float", "double") else 0
+        return v
+
+    def _constant(self, constant: str, name: str, field: str) -> int:
+        value = getattr(self._mav, constant, None)
+        if not isinstance(value, int):
+            raise MalformedMessage(f"{name}.{field}: unknown constant {constant!r}")
+        return value
+

@@ -1,0 +1,76 @@
+"""BlueOS's own MCAP recordings of the vehicle's MAVLink replay as the same messages in a tlog do.
+
+No BlueOS recording is public; these are made from real telemetry (the SITL session tlog with
+its truth, the real BlueROV2 UGPS tlog) in the form BlueOS's mavlink-server publishes and
+records (mavlink2rest's JSON on ``mavlink/out`` or ``mavlink/<sys>/<comp>/<TYPE>``; the layout
+the public BlueOS tools read, :mod:`adaptnav.service.transport.blueos_mcap`).
+"""
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from adaptnav.service.cli import main as cli_main
+
+from .mavlink_wire import write_blueos_mcap
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "mavlink"
+
+
+def _replay(path, out):
+    assert cli_main(["replay", str(path), "--out", str(out), "--no-progress", "--no-plots"]) == 0
+    return json.loads((out / "summary.json").read_text()), (out / "trajectory.csv").read_bytes()
+
+
+@pytest.mark.parametrize("per_type_topics", [False, True])
+def test_a_blueos_recording_replays_to_the_tlog_s_solution(tmp_path, per_type_topics):
+    tlog = DATA / "ardusub-sitl-session.tlog"
+    mcap = write_blueos_mcap(tlog, tmp_path / "session.mcap", per_type_topics=per_type_topics)
+    s_tlog, traj_tlog = _replay(tlog, tmp_path / "tlog")
+    s_mcap, traj_mcap = _replay(mcap, tmp_path / "mcap")
+    assert traj_mcap == traj_tlog  # every row, every digit
+    assert s_mcap["messages_read"] == s_tlog["messages_read"] and s_mcap["corrupt_frames"] == 0
+    assert s_mcap["message_types"] == s_tlog["message_types"]
+    # the truth (SIM_STATE) is placed at its reception: the log time in integer ns, not the tlog's µs float
+    assert s_mcap["metrics"]["final_horizontal_error_m"] == pytest.approx(s_tlog["metrics"]["final_horizontal_error_m"],
+                                                                          rel=1e-9)
+
+
+def test_without_the_extension_fields_blueos_1_4_left_out_it_still_navigates(tmp_path):
+    """BlueOS 1.4's recordings lack MAVLink 2 extension fields (mavlink-server#213): they take
+    their defaults (GPS_RAW_INT without h_acc: σ from HDOP)."""
+    path = SHARED / "ardusub-4.1.1-bluerov2-ugps.tlog"
+    if not path.is_file():
+        pytest.skip(f"real data absent: {path}")
+    mcap = write_blueos_mcap(path, tmp_path / "ugps.mcap", drop_extensions=True)
+    s_tlog, _ = _replay(path, tmp_path / "tlog")
+    s_mcap, _ = _replay(mcap, tmp_path / "mcap")
+    assert s_mcap["message_types"]["GPS_INPUT"]["samples"] == s_tlog["message_types"]["GPS_INPUT"]["samples"] > 900
+    assert s_mcap["valid_fraction"] == pytest.approx(s_tlog["valid_fraction"], abs=0.01) and s_mcap["valid_fraction"] > 0.99
+    rows = list(csv.DictReader(open(tmp_path / "mcap" / "trajectory.csv")))
+    ref = list(csv.DictReader(open(tmp_path / "tlog" / "trajectory.csv")))
+    assert abs(float(rows[-1]["north_m"]) - float(ref[-1]["north_m"])) < 0.5
+
+
+def test_a_record_that_is_not_mavlink_json_is_counted_and_skipped(tmp_path):
+    from mcap.writer import Writer
+
+    out = tmp_path / "bad.mcap"
+    good = {"header": {"system_id": 1, "component_id": 1, "sequence": 0},
+            "message": {"type": "ATTITUDE", "time_boot_ms": 1000, "roll": 0.1, "pitch": 0.0, "yaw": 0.2,
+                        "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0}}
+    with open(out, "wb") as f:
+        w = Writer(f)
+        w.start()
+        ch = w.register_channel(topic="mavlink/out", message_encoding="json", schema_id=0)
+        for i, data in enumerate([json.dumps(good).encode(), b"{not json", json.dumps({"message": {}}).encode(),
+                                  json.dumps({**good, "message": {"type": "ATTITUDE", "roll": 0.1}}).encode(),
+                                  json.dumps({**good, "message": {"type": "NOT_A_MAVLINK_TYPE"}}).encode()]):
+            w.add_message(ch, log_time=(1_700_000_000 + i) * 10**9, data=data, publish_time=0)
+        w.finish()
+    s, _ = _replay(out, tmp_path / "r")
+    assert s["corrupt_frames"] == 3  # not JSON, no type, a base field missing
+    assert s["message_types"]["ATTITUDE"]["messages"] == 1
+    assert s["message_types"]["NOT_A_MAVLINK_TYPE"]["status"] == "unknown"
