@@ -161,9 +161,9 @@ def open_log(path: str | Path) -> ReplayInput:
     if suffix in (".tlog", ".bin", ".log"):
         return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path), path=path)
     if suffix == ".mcap":
-        from adaptnav.service.transport.blueos_mcap import mavlink_topics
+        from adaptnav.service.transport.blueos_mcap import mavlink_layout
 
-        if mavlink_topics(path):  # BlueOS's recording of the vehicle's MAVLink, not one of ours
+        if mavlink_layout(path):  # BlueOS's recording of the vehicle's MAVLink, not one of ours
             return ReplayInput(tlog_source(path), None, path.name, None, reopen=lambda: tlog_source(path), path=path)
         src = McapSource(path)
         return ReplayInput(src, src.scenario, path.name, src.duration_s, reopen=lambda: McapSource(path), path=path)

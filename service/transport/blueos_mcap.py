@@ -30,25 +30,40 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from mcap.reader import make_reader
+from mcap.records import Channel, Message
+from mcap.stream_reader import StreamReader
 
 ALL_TOPIC = "mavlink/out"
 _PER_TYPE_TOPIC = re.compile(r"^mavlink/\d+/\d+/[A-Z0-9_]+$")
+_SCAN_RECORDS = 5000  # a file without its summary (cut off): its first records say what it is
 
 
-def mavlink_topics(path: str | Path) -> list[str]:
-    """The topics of ``path`` to read MAVLink from (``mavlink/out`` when there, else the
-    per-type topics); empty when the file is not a BlueOS MAVLink recording."""
+def mavlink_layout(path: str | Path) -> str | None:
+    """How ``path`` carries MAVLink: ``"out"`` (every message on ``mavlink/out``, read only
+    there), ``"per_type"`` (only ``mavlink/<sys>/<comp>/<TYPE>``), or None (not a BlueOS
+    recording). From the summary; a file cut off before it (recording at power loss, or
+    downloaded while open) by its first records."""
+    topics: set[str] = set()
     try:
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
+        if summary is not None:
+            topics = {c.topic for c in summary.channels.values()}
     except Exception:  # noqa: BLE001 — not an MCAP file, or damaged before its summary
-        return []
+        summary = None
     if summary is None:
-        return []
-    topics = {c.topic for c in summary.channels.values()}
+        try:
+            with open(path, "rb") as f:
+                for i, record in enumerate(StreamReader(f, validate_crcs=False).records):
+                    if isinstance(record, Channel):
+                        topics.add(record.topic)
+                    if i >= _SCAN_RECORDS or ALL_TOPIC in topics:
+                        break
+        except Exception:  # noqa: BLE001 — what was read before the damage decides
+            pass
     if ALL_TOPIC in topics:
-        return [ALL_TOPIC]
-    return sorted(t for t in topics if _PER_TYPE_TOPIC.match(t))
+        return "out"
+    return "per_type" if any(_PER_TYPE_TOPIC.match(t) for t in topics) else None
 
 
 class MalformedMessage(ValueError):
@@ -66,19 +81,28 @@ class BlueOsMcapReader:
         from pymavlink.dialects.v20 import ardupilotmega
 
         self.path = Path(path)
-        self.topics = mavlink_topics(self.path)
+        self.layout = mavlink_layout(self.path)
         self._mav = ardupilotmega
         self._classes = {cls.msgname: cls for cls in ardupilotmega.mavlink_map.values()}
 
+    def _wanted(self, topic: str) -> bool:
+        return topic == ALL_TOPIC if self.layout == "out" else bool(_PER_TYPE_TOPIC.match(topic))
+
     def __iter__(self) -> Iterator[Any]:
-        if not self.topics:
+        """The records in file order (as recorded); the file read sequentially, so a file cut
+        off yields everything before the cut, then raises (the caller says so)."""
+        if self.layout is None:
             return
+        wanted: dict[int, bool] = {}
         with open(self.path, "rb") as f:
-            for _, _, record in make_reader(f).iter_messages(topics=self.topics, log_time_order=False):
-                try:
-                    yield self.message(record.data, record.log_time / 1e9)
-                except MalformedMessage as e:
-                    yield e
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Channel):
+                    wanted[record.id] = self._wanted(record.topic)
+                elif isinstance(record, Message) and wanted.get(record.channel_id):
+                    try:
+                        yield self.message(record.data, record.log_time / 1e9)
+                    except MalformedMessage as e:
+                        yield e
 
     def message(self, data: bytes, t_unix_s: float) -> Any:
         """One record's JSON as a pymavlink message (its type name when the dialect lacks it)."""

@@ -203,11 +203,14 @@ class TlogSource:
             finally:
                 reader.close()
         if self._blueos:
-            for i, msg in enumerate(BlueOsMcapReader(self.path)):
-                if i >= max_messages:
-                    return False
-                if getattr(msg, "get_type", lambda: "")() == "SIM_STATE":
-                    return True
+            try:
+                for i, msg in enumerate(BlueOsMcapReader(self.path)):
+                    if i >= max_messages:
+                        return False
+                    if getattr(msg, "get_type", lambda: "")() == "SIM_STATE":
+                        return True
+            except Exception:  # noqa: BLE001 — a damaged file: the reading pass reports it
+                pass
             return False
         try:
             conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
@@ -311,7 +314,7 @@ class TlogSource:
         """A BlueOS recording's messages (:class:`BlueOsMcapReader`): a record that is not a
         MAVLink message is a corrupt frame; a type the dialect lacks is accounted as unknown."""
         reader = BlueOsMcapReader(self.path)
-        if not reader.topics:
+        if reader.layout is None:
             self._reject("unreadable:no_mavlink_topics")
             log.warning("%s: no MAVLink topics (mavlink/out, mavlink/<sys>/<comp>/<TYPE>): not a BlueOS "
                         "recording", self.path.name)
@@ -329,8 +332,10 @@ class TlogSource:
                 yield msg
         except Exception as e:  # noqa: BLE001 — a damaged file: what came before was read
             self.counters["corrupt_frames"] += 1
-            self.counters["truncated"] = (f"{self.path.name} is damaged after the records read "
-                                          f"({type(e).__name__}: {e}); everything before was replayed")
+            why = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+            self.counters["truncated"] = (f"{self.path.name} ends early or is damaged after "
+                                          f"{self.counters['messages_read']} messages ({why}); everything "
+                                          "before was replayed")
             log.warning("%s", self.counters["truncated"])
 
     def _note_cut_off(self, conn: Any) -> None:

@@ -74,3 +74,20 @@ def test_a_record_that_is_not_mavlink_json_is_counted_and_skipped(tmp_path):
     assert s["corrupt_frames"] == 3  # not JSON, no type, a base field missing
     assert s["message_types"]["ATTITUDE"]["messages"] == 1
     assert s["message_types"]["NOT_A_MAVLINK_TYPE"]["status"] == "unknown"
+
+
+def test_a_recording_cut_off_replays_what_it_holds_and_says_so(tmp_path):
+    """BlueOS writes while armed: a power loss, or a download of the open file, leaves an MCAP
+    without its summary — recognised by its first records, read up to the cut."""
+    tlog = DATA / "ardusub-sitl-session.tlog"
+    whole = write_blueos_mcap(tlog, tmp_path / "whole.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole[: len(whole) // 2])
+    s, traj = _replay(cut, tmp_path / "r")
+    assert "ends early" in s["truncated"] and s["corrupt_frames"] == 1
+    s_whole, traj_whole = _replay(tmp_path / "whole.mcap", tmp_path / "w")
+    assert 0.3 * s_whole["messages_read"] < s["messages_read"] < 0.7 * s_whole["messages_read"]
+    rows, rows_whole = traj.splitlines(), traj_whole.splitlines()
+    # the same solution up to the cut (the last rows' truth columns wait for truth after the cut)
+    keep = int(0.9 * len(rows))
+    assert len(rows) > 100 and rows[:keep] == rows_whole[:keep]
