@@ -33,7 +33,7 @@ from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.typed_config import ConfigError, apply_overrides, as_dict, build
 
-from adaptnav.service.transport.mavlink_bridge import BridgeConfig
+from adaptnav.service.transport.mavlink_config import BridgeConfig
 
 from adaptnav.calibration.online import CalibratorConfig
 from adaptnav.fusion.config import FilterConfig

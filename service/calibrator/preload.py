@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 import adaptnav.calibration.online  # noqa: F401 (the import is the point)
-import adaptnav.service.config  # noqa: F401 (the child unpickles a ServiceConfig: pymavlink & co.)
+import adaptnav.service.config  # noqa: F401 (the child unpickles a ServiceConfig; its MAVLink settings need no pymavlink)
 import adaptnav.calibration.sidescan  # noqa: F401 (its object front end, on the first ping)
 import adaptnav.sonar.objects  # noqa: F401
 from adaptnav.calibration.em import EMOptions, run_em

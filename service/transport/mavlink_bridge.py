@@ -41,7 +41,6 @@ import socket
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -58,57 +57,12 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 )
 from adaptnav.fusion.frames import GeoOrigin
 
+from adaptnav.service.transport.mavlink_config import BridgeConfig, StreamRates  # noqa: F401 (re-exported)
 from adaptnav.service.transport.mavlink_frames import untruncated
 
 from pymavlink import mavutil  # noqa: E402
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class StreamRates:
-    """Rates requested from the autopilot, Hz (0 = leave the autopilot's default)."""
-
-    imu_hz: float = 50.0
-    attitude_hz: float = 50.0
-    pressure_hz: float = 10.0
-    servo_hz: float = 10.0
-    gps_raw_hz: float = 5.0
-    distance_hz: float = 10.0
-
-
-@dataclass(frozen=True)
-class BridgeConfig:
-    """``[mavlink]`` section: link, identity, requested rates, conversion and output."""
-
-    # loopback: only programs on this computer (the BlueOS MAVLink router) can feed the
-    # filter; a LAN address or 0.0.0.0 is an explicit choice (deploy/adaptnav.toml)
-    url: str = "udpin:127.0.0.1:14550"
-    source_system: int = 1  # onboard components share the vehicle's system id
-    source_component: int = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
-    heartbeat_period_s: float = 1.0
-    link_timeout_s: float = 3.0
-    reconnect_min_s: float = 0.2
-    reconnect_max_s: float = 5.0
-    # "auto": HIGHRES_IMU (float, ArduSub 4.5+), RAW_IMU (int16 mg, mrad/s) only as a fallback
-    request_imu_message: str = "auto"
-    imu_fallback_s: float = 3.0  # no HIGHRES_IMU this long after asking: fall back to RAW_IMU
-    origin_retry_s: float = 5.0
-    origin_retries: int = 5
-    rates: StreamRates = field(default_factory=StreamRates)
-    udp_rcvbuf_bytes: int = 4 * 1024 * 1024
-    convert: ConvertConfig = field(default_factory=ConvertConfig)
-    output: OdometryConfig = field(default_factory=OdometryConfig)
-
-    def validate(self) -> None:
-        if self.heartbeat_period_s <= 0 or self.link_timeout_s <= 0:
-            raise ValueError("heartbeat_period_s and link_timeout_s must be > 0")
-        if not 0 < self.reconnect_min_s <= self.reconnect_max_s:
-            raise ValueError("need 0 < reconnect_min_s ≤ reconnect_max_s")
-        if self.request_imu_message not in ("auto", "RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"):
-            raise ValueError("request_imu_message: auto, RAW_IMU, SCALED_IMU2 or HIGHRES_IMU")
-        if self.imu_fallback_s <= 0 or self.origin_retry_s <= 0 or self.origin_retries < 0:
-            raise ValueError("imu_fallback_s and origin_retry_s must be > 0, origin_retries ≥ 0")
 
 
 def link_device(url: str) -> tuple[str, int]:
