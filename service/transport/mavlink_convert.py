@@ -65,6 +65,9 @@ from adaptnav.service.transport.mavlink_config import (  # noqa: F401 (re-export
 # ODOMETRY, GPS_INPUT and HIGHRES_IMU's extensions need MAVLink 2; pymavlink chooses the
 # wire protocol from this variable when a dialect is loaded, so set it before import.
 os.environ.setdefault("MAVLINK20", "1")
+# mavutil loads its global dialect at import: "all" (every dialect merged, ~5 MB) unless told;
+# everything here speaks ardupilotmega
+os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from adaptnav.fusion.frames import GRAVITY_M_S2, GeoOrigin, dcm_to_euler, quat_to_dcm, wrap_angle  # noqa: E402

@@ -35,7 +35,9 @@ Figures (``--quick``: shorter missions, same code):
   the work.
 - ``rss_*``: the daemon's resident memory while 1 h of simulated data is pushed through
   it at full speed (flow-controlled on its queue depth): at half time, at the end, and
-  the growth over the last half; the calibrator child's RSS alongside.
+  the growth over the last half; the calibrator child's RSS alongside. ``rss_*_mavlink``
+  (``--only memory_mavlink``, not in the default run): the same with the MAVLink bridge on,
+  as on an ArduSub vehicle.
 """
 from __future__ import annotations
 
@@ -98,9 +100,9 @@ def daemon_main(config_json: str) -> int:
 
 
 def _start_daemon(scenario, port: int, state_dir: str, env: dict | None = None,
-                  connect: bool = False) -> subprocess.Popen:
+                  connect: bool = False, overrides: tuple[str, ...] = ()) -> subprocess.Popen:
     """``adaptnav run``'s daemon in a subprocess, listening on ``port`` (or, ``connect``,
-    connecting to a peer listening there)."""
+    connecting to a peer listening there); ``overrides``: more config settings."""
     from adaptnav.fusion.typed_config import as_dict
 
     from adaptnav.service.runtime.replay import build_config
@@ -110,7 +112,7 @@ def _start_daemon(scenario, port: int, state_dir: str, env: dict | None = None,
     cfg = build_config(scenario, None, [
         *endpoints, "zenoh.scouting=false", f'state_dir="{state_dir}"',
         "vehicle.name=bench", "calibrator.enabled=true", 'calibrator.location="process"',
-        "health.queue_size=20000"])
+        "health.queue_size=20000", *overrides])
     code = ("import sys; from adaptnav.service.tools.benchmarks.service import daemon_main; "
             f"sys.exit(daemon_main({json.dumps(as_dict(cfg))!r}))")
     return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
@@ -513,6 +515,27 @@ def memory(rss_sim_s: float) -> dict:
     return out
 
 
+def memory_mavlink(rss_sim_s: float) -> dict:
+    """:func:`memory` for the daemon of an ArduSub vehicle: the MAVLink bridge on (pymavlink,
+    its dialect and the bridge's thread; listening on a loopback port nobody sends to — the
+    data still comes over Zenoh), keys ``rss_*_mavlink``."""
+    from adaptnav.service.tools.benchmarks.soak import soak
+
+    fig = soak(rss_sim_s, overrides=("mavlink.enabled=true", f'mavlink.url="udpin:127.0.0.1:{_free_udp_port()}"'))
+    return {"rss_daemon_mb_end_mavlink": fig["rss_daemon_mb_end"],
+            "rss_calibrator_mb_end_mavlink": fig["rss_calibrator_mb_end"],
+            "rss_total_mb_end_mavlink": fig["rss_total_mb_end"],
+            "rss_daemon_growth_last_half_mb_mavlink": fig["rss_daemon_mb_end"] - fig["rss_daemon_mb_half"]}
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
 def replay_speed(duration_s: float, repeats: int = 2) -> dict:
     """Replay a simulated survey with every sensor, with and without the calibrator.
 
@@ -673,15 +696,18 @@ def live_work(sim_s: float) -> dict:
     return out
 
 
+# memory_mavlink (the daemon of an ArduSub vehicle) on request only: another hour pushed through
 PARTS = ("replay", "floor", "latency", "cold_start", "memory", "live_work")
+EXTRA_PARTS = ("memory_mavlink",)
 
 
 def run(args) -> dict:
     quick = bool(getattr(args, "quick", False))
     only = getattr(args, "only", None)
     parts = set(only.split(",")) if only else set(PARTS)
-    if parts - set(PARTS):
-        raise ValueError(f"--only: unknown parts {sorted(parts - set(PARTS))} (known: {', '.join(PARTS)})")
+    if parts - set(PARTS) - set(EXTRA_PARTS):
+        raise ValueError(f"--only: unknown parts {sorted(parts - set(PARTS) - set(EXTRA_PARTS))} "
+                         f"(known: {', '.join(PARTS + EXTRA_PARTS)})")
     figures: dict[str, Any] = {}
     if "replay" in parts:
         figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
@@ -695,6 +721,8 @@ def run(args) -> dict:
         figures.update(cold_start())
     if "memory" in parts:
         figures.update(memory(600.0 if quick else 3600.0))
+    if "memory_mavlink" in parts:
+        figures.update(memory_mavlink(600.0 if quick else 3600.0))
     figures["goal_latency_p99_ms"] = 1.5             # outside client, 100 and 200 Hz (issue 17)
     figures["goal_replay_realtime_factor"] = 1000.0
     figures["goal_rss_total_mb"] = 250.0              # daemon + calibrator child

@@ -39,9 +39,11 @@ def _growth_percent(start: float, end: float) -> float:
     return 100.0 * (end - start) / start if start > 0 and math.isfinite(start) else math.nan
 
 
-def soak(sim_s: float, sample_every_s: float = 30.0, max_queue: int = 8000) -> dict[str, Any]:
+def soak(sim_s: float, sample_every_s: float = 30.0, max_queue: int = 8000,
+         overrides: tuple[str, ...] = ()) -> dict[str, Any]:
     """Push ``sim_s`` of simulated survey through a daemon at full speed; RSS over time.
 
+    ``overrides``: more daemon settings (e.g. the MAVLink bridge on).
     Returns the figures of the module docstring plus the start RSS, the end RSS, the peak,
     the proportional set sizes at the end, the speed (data s per wall s) and what the
     daemon's health counted (rejections, calibrator restarts, releases).
@@ -58,7 +60,7 @@ def soak(sim_s: float, sample_every_s: float = 30.0, max_queue: int = 8000) -> d
     port = _free_port()
     out: dict[str, Any] = {"soak_sim_s": sim_s}
     with tempfile.TemporaryDirectory(prefix="adaptnav-soak-") as tmp:
-        proc = _start_daemon(scenario, port, tmp)
+        proc = _start_daemon(scenario, port, tmp, overrides=overrides)
         bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
         try:
             _wait_up(bus, proc)
