@@ -199,6 +199,10 @@ class ZenohConfig:
     ``connect`` endpoint to answer (the daemon or router may start later); -1 = forever.
     ``tls``, ``auth``, ``access_control``: the bus's security (see their classes and
     README "Security").
+    ``shared_memory``: Zenoh's shared-memory transport between processes on this computer.
+    Off by default: it maps a 16 MB pool and sends every message above 3 kB through it, and
+    ours are small JSON (a nav state ~6 kB) — on the daemon of an ArduSub vehicle it cost
+    38 MB of resident memory (`adaptnav bench service --only memory_mavlink`).
     """
 
     mode: Literal["peer", "client", "router"] = "peer"
@@ -206,6 +210,7 @@ class ZenohConfig:
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     scouting: bool = False
     connect_timeout_s: float = 30.0
+    shared_memory: bool = False
     tls: ZenohTlsConfig = field(default_factory=ZenohTlsConfig)
     auth: ZenohAuthConfig = field(default_factory=ZenohAuthConfig)
     access_control: ZenohAccessControlConfig = field(default_factory=ZenohAccessControlConfig)

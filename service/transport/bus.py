@@ -101,9 +101,10 @@ def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
         "scouting": {"multicast": {"enabled": bool(cfg.scouting)},
                      "gossip": {"enabled": bool(cfg.scouting)}},
     }
-    transport = _security_transport(cfg)
-    if transport:
-        doc["transport"] = transport
+    # Zenoh's shared memory only where asked for (ZenohConfig.shared_memory: its pool costs the
+    # vehicle computer tens of MB for messages that are small anyway)
+    transport = {**(_security_transport(cfg) or {}), "shared_memory": {"enabled": bool(cfg.shared_memory)}}
+    doc["transport"] = transport
     acl = cfg.access_control
     if acl.enabled:
         doc["access_control"] = {
