@@ -88,9 +88,10 @@ class BlueOsMcapReader:
     def _wanted(self, topic: str) -> bool:
         return topic == ALL_TOPIC if self.layout == "out" else bool(_PER_TYPE_TOPIC.match(topic))
 
-    def __iter__(self) -> Iterator[Any]:
-        """The records in file order (as recorded); the file read sequentially, so a file cut
-        off yields everything before the cut, then raises (the caller says so)."""
+    def records(self) -> Iterator[tuple[bytes, float]]:
+        """The MAVLink records as ``(JSON bytes, log time in UNIX s)``, in file order (as
+        recorded); the file read sequentially, so a file cut off yields everything before the
+        cut, then raises (the caller says so)."""
         if self.layout is None:
             return
         wanted: dict[int, bool] = {}
@@ -99,10 +100,15 @@ class BlueOsMcapReader:
                 if isinstance(record, Channel):
                     wanted[record.id] = self._wanted(record.topic)
                 elif isinstance(record, Message) and wanted.get(record.channel_id):
-                    try:
-                        yield self.message(record.data, record.log_time / 1e9)
-                    except MalformedMessage as e:
-                        yield e
+                    yield record.data, record.log_time / 1e9
+
+    def __iter__(self) -> Iterator[Any]:
+        """:meth:`records` as pymavlink messages (or what :meth:`message` says instead)."""
+        for data, t_unix_s in self.records():
+            try:
+                yield self.message(data, t_unix_s)
+            except MalformedMessage as e:
+                yield e
 
     def message(self, data: bytes, t_unix_s: float) -> Any:
         """One record's JSON as a pymavlink message (its type name when the dialect lacks it)."""

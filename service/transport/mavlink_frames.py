@@ -30,9 +30,9 @@ _IFLAG_SIGNED = 0x01
 
 
 @functools.cache
-def _lengths_by_msgid() -> dict[int, tuple[int, ...]]:
-    """Wire payload lengths of each message of the ardupilotmega dialect (with its includes):
-    without its extension fields, and with them — from pymavlink's own message definitions."""
+def message_definitions() -> tuple[Any, ...]:
+    """The messages of the ardupilotmega dialect with its includes, as pymavlink's own XML
+    definitions describe them (``mavparse.MAVType``: fields, extensions, wire lengths)."""
     from pymavlink.generator import mavparse
     import pymavlink.dialects.v20 as dialects
 
@@ -48,15 +48,21 @@ def _lengths_by_msgid() -> dict[int, tuple[int, ...]]:
             load(include)
 
     load("ardupilotmega.xml")
-    return {m.id: tuple(sorted({m.wire_min_length, m.wire_length}))
-            for x in parsed.values() for m in x.message}
+    return tuple(m for x in parsed.values() for m in x.message)
+
+
+@functools.cache
+def _lengths_by_msgid() -> dict[int, tuple[int, ...]]:
+    """Wire payload lengths of each message: without its extension fields, and with them."""
+    return {m.id: tuple(sorted({m.wire_min_length, m.wire_length})) for m in message_definitions()}
 
 
 def untruncated(bad: Any, mav: Any) -> Any | None:
     """The message a ``BAD_DATA`` pseudo-message ``bad`` was, when its frame fails the CRC only
     because its payload's trailing zeros were cut after the CRC was computed; else None.
 
-    ``mav`` is the connection's ``MAVLink`` object (its dialect decodes the restored frame).
+    ``mav`` is the connection's ``MAVLink`` parser (ardupilotmega, as everywhere here: it decodes
+    the restored frame).
     The restored message keeps ``bad``'s receive stamp (``_timestamp``: a tlog's recording time).
     """
     if "CRC" not in str(getattr(bad, "reason", "")):
@@ -68,12 +74,13 @@ def untruncated(bad: Any, mav: Any) -> Any | None:
     if len(frame) != _V2_HEADER + n + 2:
         return None
     msgid = frame[7] | frame[8] << 8 | frame[9] << 16
-    msg_class = _dialect_map(mav).get(msgid)
+    from pymavlink.dialects.v20 import ardupilotmega
+    from pymavlink.generator.mavcrc import x25crc
+
+    msg_class = ardupilotmega.mavlink_map.get(msgid)
     if msg_class is None:
         return None
     (crc_sent,) = struct.unpack_from("<H", frame, _V2_HEADER + n)
-    from pymavlink.generator.mavcrc import x25crc
-
     for full in _lengths_by_msgid().get(msgid, ()):
         if full <= n:
             continue
@@ -92,12 +99,6 @@ def untruncated(bad: Any, mav: Any) -> Any | None:
         msg._timestamp = getattr(bad, "_timestamp", None)
         return msg
     return None
-
-
-def _dialect_map(mav: Any) -> dict[int, Any]:
-    """msgid → message class of ``mav``'s dialect."""
-    module = __import__(type(mav).__module__, fromlist=["mavlink_map"])
-    return module.mavlink_map
 
 
 # --------------------------------------------------------------------------- .tlog files

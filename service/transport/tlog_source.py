@@ -202,14 +202,16 @@ class TlogSource:
                 return reader.has_message(SIM_STATE_ID, max_messages)
             finally:
                 reader.close()
-        if self._blueos:
+        if self._blueos:  # the records' text, decoded only where it names SIM_STATE
+            reader = BlueOsMcapReader(self.path)
             try:
-                for i, msg in enumerate(BlueOsMcapReader(self.path)):
+                for i, (data, t_unix_s) in enumerate(reader.records()):
                     if i >= max_messages:
                         return False
-                    if getattr(msg, "get_type", lambda: "")() == "SIM_STATE":
+                    if b"SIM_STATE" in data and getattr(reader.message(data, t_unix_s), "get_type",
+                                                        lambda: "")() == "SIM_STATE":
                         return True
-            except Exception:  # noqa: BLE001 — a damaged file: the reading pass reports it
+            except Exception:  # noqa: BLE001 — a damaged file or record: the reading pass reports it
                 pass
             return False
         try:

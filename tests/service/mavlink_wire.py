@@ -22,28 +22,12 @@ def qgc_logged(msg, mav) -> bytes:
 
 def _extension_fields() -> dict[str, set[str]]:
     """Message name → its MAVLink 2 extension fields (pymavlink's own XML definitions)."""
-    import contextlib
-    import io
-    import os
+    from adaptnav.service.transport.mavlink_frames import message_definitions
 
-    import pymavlink.dialects.v20 as dialects
-    from pymavlink.generator import mavparse
-
-    folder, seen, out = os.path.dirname(dialects.__file__), set(), {}
-
-    def load(name):
-        if name in seen:
-            return
-        seen.add(name)
-        with contextlib.redirect_stdout(io.StringIO()):
-            x = mavparse.MAVXML(os.path.join(folder, name), mavparse.PROTOCOL_2_0)
-        for m in x.message:
-            start = m.extensions_start if m.extensions_start is not None else len(m.fields)
-            out[m.name] = {f.name for f in m.fields[start:]}
-        for inc in x.include:
-            load(inc)
-
-    load("ardupilotmega.xml")
+    out = {}
+    for m in message_definitions():
+        start = m.extensions_start if m.extensions_start is not None else len(m.fields)
+        out[m.name] = {f.name for f in m.fields[start:]}
     return out
 
 

@@ -141,10 +141,11 @@ def _flatten(items):
             yield item
 
 
-def _free_port() -> int:
+def _free_port(udp: bool = False) -> int:
+    """A free loopback port (TCP, or UDP with ``udp``)."""
     import socket
 
-    with socket.socket() as s:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM if udp else socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
@@ -521,19 +522,11 @@ def memory_mavlink(rss_sim_s: float) -> dict:
     data still comes over Zenoh), keys ``rss_*_mavlink``."""
     from adaptnav.service.tools.benchmarks.soak import soak
 
-    fig = soak(rss_sim_s, overrides=("mavlink.enabled=true", f'mavlink.url="udpin:127.0.0.1:{_free_udp_port()}"'))
+    fig = soak(rss_sim_s, overrides=("mavlink.enabled=true", f'mavlink.url="udpin:127.0.0.1:{_free_port(udp=True)}"'))
     return {"rss_daemon_mb_end_mavlink": fig["rss_daemon_mb_end"],
             "rss_calibrator_mb_end_mavlink": fig["rss_calibrator_mb_end"],
             "rss_total_mb_end_mavlink": fig["rss_total_mb_end"],
             "rss_daemon_growth_last_half_mb_mavlink": fig["rss_daemon_mb_end"] - fig["rss_daemon_mb_half"]}
-
-
-def _free_udp_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def replay_speed(duration_s: float, repeats: int = 2) -> dict:
