@@ -27,6 +27,7 @@ import heapq
 import logging
 import math
 import statistics
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator
@@ -70,6 +71,56 @@ class TlogConfig:
             raise ValueError("min_imu_rate_hz must be > 0 and reorder_window_s ≥ 0")
 
 
+_TEXT_FIELD_FORMATS = frozenset("nNZaM")  # DataFlash format characters read as text
+
+
+def _clean_text_dataflash(data: bytes) -> tuple[bytes, int]:
+    """The lines of a text DataFlash log that are records of its formats: ASCII, a known
+    record name, as many fields as its ``FMT`` says, numbers where it says numbers.
+    Returns (the kept lines, the number of non-empty lines dropped)."""
+    delimiter = b", " if b"FMT, " in data[:8000] else b","
+    formats: dict[bytes, str] = {}
+    kept: list[bytes] = []
+    dropped = 0
+    for line in data.split(b"\n"):
+        line = line.rstrip(b"\r")
+        if not line.strip():
+            continue
+        if max(line) > 0x7E or min(line) < 0x20:
+            dropped += 1
+            continue
+        parts = line.split(delimiter)
+        name = parts[0].strip()
+        if name == b"FMT" and len(parts) >= 5 and parts[1].strip().isdigit() and parts[2].strip().isdigit():
+            formats[parts[3].strip()] = parts[4].strip().decode()
+            kept.append(line)
+            continue
+        fmt = formats.get(name)
+        if fmt is None or len(parts) - 1 != len(fmt) or not all(
+                kind in _TEXT_FIELD_FORMATS or _is_number(value) for kind, value in zip(fmt, parts[1:])):
+            dropped += 1
+            continue
+        kept.append(line)
+    return b"\n".join(kept) + b"\n", dropped
+
+
+def _is_number(text: bytes) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_text_dataflash(path: Path) -> bool:
+    """A text DataFlash log names its record formats (``FMT,``) in its first lines."""
+    try:
+        with open(path, "rb") as f:
+            return b"FMT," in f.read(8000)
+    except OSError:
+        return False
+
+
 class TlogSource:
     """Iterate the samples of a ``.tlog`` (or ``.BIN``) in replay order.
 
@@ -108,8 +159,13 @@ class TlogSource:
         self._imu_last_t: float | None = None
         self._imu_type: str | None = None
         self._imu_switches = 0
-        self._dataflash = self.path.suffix.lower() in (".bin", ".log")
-        self._tlog = self.path.suffix.lower() == ".tlog"  # other MAVLink files: pymavlink's reader
+        suffix = self.path.suffix.lower()
+        # ".log" is a DataFlash log as text (Mission Planner's "convert .bin to .log") when it
+        # holds format records, else telemetry as a tlog holds it (as pymavlink decides)
+        self._text_dataflash = suffix == ".log" and _is_text_dataflash(self.path)
+        self._dataflash = suffix == ".bin" or self._text_dataflash
+        self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
+        self._text_lines_dropped_said = False
         self._blueos = self.path.suffix.lower() == ".mcap"  # BlueOS's recording (blueos_mcap)
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
@@ -215,7 +271,7 @@ class TlogSource:
                 pass
             return False
         try:
-            conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+            conn = self._connect()
         except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
             return False
         try:
@@ -237,6 +293,27 @@ class TlogSource:
         finally:
             conn.close()
 
+    def _connect(self) -> Any:
+        """pymavlink's reader of the file. pymavlink's text DataFlash reader gives up on the
+        whole log at one bad line (a byte that is not UTF-8, a line of garbage where it looks
+        for a new record type); such a log is read from a copy without its bad lines
+        (:func:`_clean_text_dataflash`), counted as corrupt frames and said."""
+        try:
+            return mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+        except Exception:  # noqa: BLE001 — whatever the text reader trips on, the copy avoids
+            if not self._text_dataflash:
+                raise
+        clean, dropped = _clean_text_dataflash(self.path.read_bytes())
+        if not self._text_lines_dropped_said:
+            self._text_lines_dropped_said = True
+            self.counters["corrupt_frames"] += dropped
+            log.warning("%s: %d lines are not records of the log's formats (garbage, cut or non-text "
+                        "bytes); the rest is read", self.path.name, dropped)
+        with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".log") as copy:
+            copy.write(clean)
+            copy.flush()
+            return mavutil.mavlink_connection(copy.name, dialect="ardupilotmega")  # mapped: outlives the name
+
     # --------------------------------------------------------------------- iteration
     def _messages(self) -> Iterator[Any]:
         if self._tlog:
@@ -246,11 +323,12 @@ class TlogSource:
             yield from self._blueos_messages()
             return
         try:
-            conn = mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+            conn = self._connect()
         except Exception as e:  # noqa: BLE001 — empty or foreign file (DFReader mmaps it): nothing to read
             self._reject(f"unreadable:{type(e).__name__}")
             log.warning("%s: not a readable MAVLink/DataFlash log (%s: %s)", self.path.name, type(e).__name__, e)
             return
+        stuck_at = None  # the reader's position at its last error
         try:
             while True:
                 try:
@@ -261,7 +339,15 @@ class TlogSource:
                 except Exception as e:  # a reader bug on garbage must not end the replay
                     self.counters["corrupt_frames"] += 1
                     self._reject(f"reader_error:{type(e).__name__}")
+                    position = getattr(conn, "offset", None)
+                    if position is not None and position == stuck_at:  # it failed twice in one place
+                        self._reject("unreadable_rest")
+                        log.warning("%s: the reader cannot go past byte %d (%s: %s); the rest is not read",
+                                    self.path.name, position, type(e).__name__, e)
+                        return
+                    stuck_at = position
                     continue
+                stuck_at = None
                 if msg is None:
                     if self._dataflash:
                         self._count_unread(conn)
@@ -275,8 +361,11 @@ class TlogSource:
 
     def _count_unread(self, conn: Any) -> None:
         """A DataFlash log's records of the types not read, from DFReader's index."""
-        counts = {conn.id_to_name[i]: int(n) for i, n in enumerate(getattr(conn, "counts", ()))
-                  if n and i in conn.id_to_name and conn.id_to_name[i] not in DATAFLASH_READ}
+        indexed = getattr(conn, "counts", ())
+        # a .BIN's index counts by type id, a text .log's (Mission Planner's conversion) by name
+        by_name = (indexed.items() if isinstance(indexed, dict)
+                   else ((conn.id_to_name.get(i), n) for i, n in enumerate(indexed)))
+        counts = {name: int(n) for name, n in by_name if n and name and name not in DATAFLASH_READ}
         self.dataflash.count_unread(counts)
         self.counters["messages_read"] += sum(counts.values())
 
@@ -346,7 +435,15 @@ class TlogSource:
         everything before it was read. A tlog's parser holds the cut frame's bytes; a
         DataFlash log ends with a record header and too few bytes after it (zeros or 0xFF
         after the last record are a card's unwritten space, not a cut)."""
-        if self._dataflash:
+        if self._text_dataflash:
+            with open(self.path, "rb") as f:  # a text log's last line ends with its newline
+                f.seek(0, 2)
+                size = f.tell()
+                f.seek(max(0, size - 4096))
+                tail = f.read()
+            left = len(tail) - (tail.rfind(b"\n") + 1)
+            cut, what = left > 0 and tail.strip(b"\x00\xff \r\n\t") != b"", "line"
+        elif self._dataflash:
             offset, end = int(getattr(conn, "offset", 0)), int(getattr(conn, "data_len", 0))
             data = getattr(conn, "data_map", None)
             left = end - offset

@@ -64,3 +64,24 @@ def ardusub_formats(w: DataflashWriter) -> DataflashWriter:
     w.fmt("XKF1", "QBffffff", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD")
     w.fmt("PARM", "QNf", "TimeUS,Name,Value")
     return w
+
+
+def text_log_from_bin(bin_path: Path, log_path: Path, newline: str = "\r\n") -> Path:
+    """Write a ``.BIN`` as Mission Planner's "convert .bin to .log" writes it: one line per
+    record in the file's order (FMT lines where the FMT records are), ``NAME, v1, v2, ...``,
+    values as the format's letters scale them (``c`` centi-units, ``L`` degrees); CRLF."""
+    from pymavlink import DFReader
+
+    reader = DFReader.DFReader_binary(str(bin_path), zero_time_base=False)
+    with open(log_path, "w", newline="") as out:
+        while (m := reader.recv_msg()) is not None:
+            if m.get_type() == "FMT":
+                values = [m.Type, m.Length, m.Name, m.Format, m.Columns]
+            else:
+                values = []
+                for name in m._fieldnames:
+                    v = getattr(m, name)
+                    values.append(v.decode("ascii", "replace").rstrip("\0") if isinstance(v, bytes) else v)
+            out.write(", ".join([m.get_type()] + [repr(v) if isinstance(v, float) else str(v) for v in values])
+                      + newline)
+    return Path(log_path)
