@@ -112,6 +112,12 @@ def _is_number(text: bytes) -> bool:
     return True
 
 
+def _plausible_truth(t: SimTruth) -> bool:
+    values = (t.t_s, t.lat_deg, t.lon_deg, t.alt_m, *t.vel_n_m_s, *t.q_nb)
+    return (all(map(math.isfinite, values)) and abs(math.hypot(*t.q_nb) - 1.0) < 0.01
+            and abs(t.lat_deg) <= 90.0 and abs(t.lon_deg) <= 180.0 and (t.lat_deg, t.lon_deg) != (0.0, 0.0))
+
+
 def _is_text_dataflash(path: Path) -> bool:
     """A text DataFlash log names its record formats (``FMT,``) in its first lines."""
     try:
@@ -239,7 +245,13 @@ class TlogSource:
 
     def _truth(self, truths: list[SimTruth]) -> list:
         """A simulator's truth (SIM_STATE, DataFlash SIM) → TruthSample around the NED origin,
-        held until the origin is known (the first fix, as the replay's)."""
+        held until the origin is known (the first fix, as the replay's). A record that cannot
+        be a pose (not finite, not a unit quaternion, at 0°/0°: a damaged record) is rejected."""
+        if not all(map(_plausible_truth, truths)):
+            kept = [t for t in truths if _plausible_truth(t)]
+            for _ in range(len(truths) - len(kept)):
+                self._reject("truth_invalid")
+            truths = kept
         if self.truth_origin is None:
             self._truth_held.extend(truths)
             return []

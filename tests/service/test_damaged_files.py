@@ -109,3 +109,23 @@ def test_a_log_cut_off_inside_a_message_says_so_and_keeps_the_rest(tmp_path, nam
         assert cut_says in src.counters["truncated"] and name in src.counters["truncated"]
         assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + 1
         assert 0.3 * n_whole < n < 0.5 * n_whole
+
+
+def test_a_damaged_truth_record_is_rejected_not_scored(tmp_path, capsys):
+    """A simulator's SIM record zeroed after its time stamp (a card's bad block) read as a
+    pose with a zero quaternion at 0°/0°, and the metrics' attitude error raised on it."""
+    from pymavlink import DFReader
+
+    src = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-dvl.BIN"
+    data = bytearray(src.read_bytes())
+    reader = DFReader.DFReader_binary(str(src))
+    sim = reader.name_to_id["SIM"]
+    ofs, length = reader.offsets[sim][100], reader.formats[sim].len
+    data[ofs + 3 + 8: ofs + length] = bytes(length - 3 - 8)  # header and TimeUS kept
+    path = tmp_path / "zeroed-sim.BIN"
+    path.write_bytes(bytes(data))
+    code, err = _cli(capsys, "replay", str(path), "--out", str(tmp_path / "out"), "--no-plots", "--no-progress")
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["rejected_samples"]["truth_invalid"] == 1
+    assert (tmp_path / "out" / "metrics.json").is_file()
