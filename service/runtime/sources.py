@@ -340,6 +340,10 @@ class McapSource(SampleStreamSource):
                     log.warning("%s: undecodable message skipped: %s", self.path.name, item)
                     logged += 1
                 continue
+            if isinstance(item, logs.DamagedChunkError):
+                self.counters.decode_errors["damaged_chunk"] += 1
+                log.warning("%s", item)
+                continue
             if isinstance(item, logs.TruncatedLogError):
                 self.truncated = str(item)
                 self.counters.decode_errors["truncated"] += 1
@@ -355,5 +359,5 @@ class McapSource(SampleStreamSource):
     def report_counters(self) -> dict:
         c = self.counters
         return {"messages_read": int(self.stats.messages),
-                "corrupt_frames": int(self.stats.bad_messages) + int(self.stats.truncated),
+                "corrupt_frames": int(self.stats.bad_messages) + int(self.stats.truncated) + self.stats.damaged_chunks,
                 "rejected": c.rejected(), "late_samples": c.late_samples, "truncated": self.truncated}

@@ -33,6 +33,8 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
+from adaptnav.service.transport.logs import DamagedChunkError, resilient_records
+
 ALL_TOPIC = "mavlink/out"
 _PER_TYPE_TOPIC = re.compile(r"^mavlink/\d+/\d+/[A-Z0-9_]+$")
 _SCAN_RECORDS = 5000  # a file without its summary (cut off): its first records say what it is
@@ -82,6 +84,7 @@ class BlueOsMcapReader:
 
         self.path = Path(path)
         self.layout = mavlink_layout(self.path)
+        self.damaged_chunks: list[str] = []  # what records() could not read and went past
         self._mav = ardupilotmega
         self._classes = {cls.msgname: cls for cls in ardupilotmega.mavlink_map.values()}
 
@@ -96,8 +99,10 @@ class BlueOsMcapReader:
             return
         wanted: dict[int, bool] = {}
         with open(self.path, "rb") as f:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Channel):
+            for record in resilient_records(f, self.path):
+                if isinstance(record, DamagedChunkError):  # the next chunk is read
+                    self.damaged_chunks.append(str(record))
+                elif isinstance(record, Channel):
                     wanted[record.id] = self._wanted(record.topic)
                 elif isinstance(record, Message) and wanted.get(record.channel_id):
                     yield record.data, record.log_time / 1e9

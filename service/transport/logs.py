@@ -49,6 +49,51 @@ class TruncatedLogError(LogError):
     """The file ends (or is corrupt) before its footer; what came before was yielded."""
 
 
+class DamagedChunkError(LogError):
+    """A chunk of the file could not be read; reading went on at the next chunk."""
+
+
+def resilient_records(stream: Any, path: Path) -> Iterator[Any]:
+    """An MCAP file's records in file order (``mcap``'s StreamReader, CRCs checked). A chunk
+    that cannot be read (bit errors, a bad block) does not end the file when its summary
+    still lists the chunks: a :class:`DamagedChunkError` is yielded in its place and reading
+    goes on at the next chunk, the summary's channels known (a channel record may have been
+    in the lost chunk). Without a summary (a cut file) or past the last chunk, the parser's
+    exception is raised, as StreamReader raises it."""
+    records = StreamReader(stream, validate_crcs=True).records
+    summary = None
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception as e:  # noqa: BLE001 — damaged bytes: resume at the next chunk if any
+            position = stream.tell()
+            if summary is None:
+                summary = _readable_summary(path)
+            starts = sorted(c.chunk_start_offset for c in (summary.chunk_indexes if summary else ()))
+            later = [s for s in starts if s >= position]
+            if not later:
+                raise
+            damaged_from = max((s for s in starts if s < position), default=position)
+            for channel in summary.channels.values():
+                yield channel
+            yield DamagedChunkError(f"{path.name}: the chunk at bytes {damaged_from}–{later[0]} could not be read "
+                                    f"({type(e).__name__}: {e}); its messages are lost, the next chunk is read")
+            stream.seek(later[0])
+            records = StreamReader(stream, skip_magic=True, validate_crcs=True).records
+            continue
+        yield record
+
+
+def _readable_summary(path: Path) -> Any:
+    try:
+        with open(path, "rb") as f:
+            return make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 — no summary to resume from
+        return None
+
+
 @dataclass
 class ReadStats:
     """Counters filled while :func:`read_mcap` iterates."""
@@ -58,6 +103,7 @@ class ReadStats:
     bad_messages: int = 0
     truncated: bool = False
     truncation_reason: str = ""
+    damaged_chunks: int = 0
     per_kind: dict[str, int] = field(default_factory=dict)
 
 
@@ -214,7 +260,8 @@ class McapLog:
 
     @property
     def counters(self) -> dict[str, Any]:
-        return {"messages_read": self.stats.messages, "corrupt_frames": int(self.stats.truncated),
+        return {"messages_read": self.stats.messages,
+                "corrupt_frames": int(self.stats.truncated) + self.stats.damaged_chunks,
                 "decode_errors": dict(self.decode_errors)}
 
     def __iter__(self) -> "McapLog":
@@ -228,7 +275,7 @@ class McapLog:
     def _records(self) -> Iterator[Any]:
         stats, channels = self.stats, {}
         with open(self.path, "rb") as stream:
-            records = StreamReader(stream, validate_crcs=True).records
+            records = resilient_records(stream, self.path)
             while True:
                 try:
                     record = next(records)
@@ -240,6 +287,10 @@ class McapLog:
                     yield TruncatedLogError(f"{self.path}: log ends early or is corrupt after {stats.messages} "
                                             f"messages ({stats.truncation_reason}); kept what came before")
                     return
+                if isinstance(record, DamagedChunkError):
+                    stats.damaged_chunks += 1
+                    yield record
+                    continue
                 if isinstance(record, Message):
                     ch = channels.get(record.channel_id)
                     if ch is not None and not ch.topic.startswith(ADAPTNAV_TOPIC_PREFIX):

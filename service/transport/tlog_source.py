@@ -433,6 +433,8 @@ class TlogSource:
                     self.converter.count_unknown(msg)
                     continue
                 yield msg
+                self._note_damaged_chunks(reader)
+            self._note_damaged_chunks(reader)
         except Exception as e:  # noqa: BLE001 — a damaged file: what came before was read
             self.counters["corrupt_frames"] += 1
             why = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
@@ -440,6 +442,12 @@ class TlogSource:
                                           f"{self.counters['messages_read']} messages ({why}); everything "
                                           "before was replayed")
             log.warning("%s", self.counters["truncated"])
+
+    def _note_damaged_chunks(self, reader: BlueOsMcapReader) -> None:
+        while reader.damaged_chunks:
+            self.counters["corrupt_frames"] += 1
+            self._reject("damaged_chunk")
+            log.warning("%s", reader.damaged_chunks.pop(0))
 
     def _note_cut_off(self, conn: Any) -> None:
         """At the end of the file: a last message cut off (the recorder lost power, a copy

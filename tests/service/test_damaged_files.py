@@ -129,3 +129,63 @@ def test_a_damaged_truth_record_is_rejected_not_scored(tmp_path, capsys):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["rejected_samples"]["truth_invalid"] == 1
     assert (tmp_path / "out" / "metrics.json").is_file()
+
+
+def _damage_one_chunk(path: Path, k: int) -> tuple[bytes, int]:
+    """The file with the k-th chunk's compressed bytes garbled in place (a bad block): its
+    header and the summary at the end intact; and the number of chunks."""
+    from mcap.reader import make_reader
+
+    data = bytearray(path.read_bytes())
+    with open(path, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    c = chunks[k]
+    middle = c.chunk_start_offset + c.chunk_length // 2
+    data[middle: middle + 200] = np.random.default_rng(3).bytes(200)
+    return bytes(data), len(chunks)
+
+
+def test_a_damaged_chunk_of_an_mcap_log_loses_only_its_messages(tmp_path, capsys):
+    """One garbled chunk (bit errors, a bad block) in the middle of a log used to end the
+    replay there ("log ends early or is corrupt"): now reading goes on at the next chunk the
+    summary lists, and only that chunk's messages are lost."""
+    from adaptnav.service.runtime.sources import simulate
+    from adaptnav.service.transport.logs import write_mcap
+    from adaptnav.fusion.typed_config import as_dict
+    from adaptnav.sim.scenario import load_scenario
+
+    scenario = load_scenario("short", ["duration_s=120"])
+    whole = tmp_path / "whole.mcap"
+    write_mcap(whole, simulate(scenario).iter_blocks(), metadata={"scenario": as_dict(scenario)})
+    data, n_chunks = _damage_one_chunk(whole, 1)
+    assert n_chunks >= 4
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    results = {}
+    for name in ("whole", "damaged"):
+        code, err = _cli(capsys, "replay", str(tmp_path / f"{name}.mcap"), "--out", str(tmp_path / name),
+                         "--no-plots", "--no-progress")
+        assert code == 0
+        results[name] = json.loads((tmp_path / name / "summary.json").read_text())
+    w, d = results["whole"], results["damaged"]
+    assert d["corrupt_frames"] == 1 and not d.get("truncated")
+    assert d["duration_s"] == pytest.approx(w["duration_s"], abs=0.5)  # read to the end
+    lost = w["messages_read"] - d["messages_read"]
+    assert 0 < lost < 1.5 * w["messages_read"] / n_chunks
+
+
+def test_a_damaged_chunk_of_a_blueos_recording_loses_only_its_messages(tmp_path):
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    from .mavlink_wire import write_blueos_mcap
+
+    whole = write_blueos_mcap(TEST_DATA / "ardusub-sitl-session.tlog", tmp_path / "whole.mcap")
+    data, n_chunks = _damage_one_chunk(whole, 2)
+    (tmp_path / "damaged.mcap").write_bytes(data)
+    src_whole, src = TlogSource(whole), TlogSource(tmp_path / "damaged.mcap")
+    t_whole, t = [s.t_s for s in src_whole], [s.t_s for s in src]
+    assert src.counters["corrupt_frames"] == 1 and not src.counters.get("truncated")
+    assert src.counters["rejected"]["damaged_chunk"] == 1
+    assert t[-1] == t_whole[-1]
+    lost = src_whole.counters["messages_read"] - src.counters["messages_read"]
+    assert 0 < lost < 1.5 * src_whole.counters["messages_read"] / n_chunks
