@@ -238,8 +238,10 @@ class TlogSource:
         if t_s is None:
             return []
         lat, lon = msg.lat_int * 1e-7, msg.lon_int * 1e-7
-        if lat == 0.0 and lon == 0.0:  # older SIM_STATE without the integer fields
+        if lat == 0.0 and lon == 0.0:  # older SIM_STATE, or MAVLink 1: without the integer fields
             lat, lon = msg.lat, msg.lon
+            if abs(lat) > 90.0 or abs(lon) > 180.0:  # ArduPilot puts degE7 into these float fields
+                lat, lon = lat * 1e-7, lon * 1e-7  # (a float32 holds degE7 to ±16: ~2 m of truth)
         return [SimTruth(t_s, lat, lon, float(msg.alt), (float(msg.vn), float(msg.ve), float(msg.vd)),
                          (float(msg.q1), float(msg.q2), float(msg.q3), float(msg.q4)))]
 

@@ -83,3 +83,33 @@ def write_blueos_mcap(tlog, out, drop_extensions: bool = False, per_type_topics:
             w.add_message(channels[topic], log_time=ns, data=data, publish_time=ns)
         w.finish()
     return out
+
+
+def as_mavlink1(tlog, out):
+    """A tlog's messages re-framed as MAVLink 1 (an older autopilot or ground station): the
+    extension fields dropped, messages with ids above 255 dropped, stamps kept."""
+    import struct
+
+    from pymavlink.dialects.v10 import ardupilotmega as v1
+
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    class _Nowhere:
+        def write(self, _buf):
+            pass
+
+    reader = TlogReader(tlog)
+    with open(out, "wb") as f:
+        for msg in reader:
+            if isinstance(msg, Exception) or msg.get_type() == "BAD_DATA":
+                continue
+            cls = v1.mavlink_map.get(msg.get_msgId())
+            if cls is None:
+                continue
+            fields = [getattr(msg, name) for name in cls.fieldnames]
+            mav = v1.MAVLink(_Nowhere(), srcSystem=msg.get_srcSystem(), srcComponent=msg.get_srcComponent())
+            mav.seq = msg.get_seq()
+            frame = cls(*[v.encode() if isinstance(v, str) else v for v in fields]).pack(mav)
+            f.write(struct.pack(">Q", int(round(msg._timestamp * 1e6))) + frame)
+    reader.close()
+    return out

@@ -5,6 +5,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from adaptnav.service.cli import main as cli_main
@@ -94,3 +95,22 @@ def test_a_fix_only_log_without_an_imu_is_usable_but_not_valid(tmp_path, capsys)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["samples_used"] == 50 and not summary["valid_fraction"]
     assert math.isfinite(summary["clock"]["unix_offset_s"])
+
+
+def test_a_mavlink1_tlog_replays_as_its_mavlink2_twin(tmp_path):
+    """An older autopilot or ground station frames MAVLink 1: no extension fields — SIM_STATE
+    without ``lat_int``/``lon_int``, whose float ``lat``/``lon`` ArduPilot fills with degE7
+    (read as degrees, the truth was 35 million degrees off; now scaled, to a float32's ~2 m)."""
+    from .mavlink_wire import as_mavlink1
+
+    session = Path(__file__).resolve().parents[1] / "data" / "ardusub-sitl-session.tlog"
+    v1 = as_mavlink1(session, tmp_path / "v1.tlog")
+    out = {}
+    for name, path in (("v2", session), ("v1", v1)):
+        assert cli_main(["replay", str(path), "--out", str(tmp_path / name), "--no-progress", "--no-plots"]) == 0
+        out[name] = json.loads((tmp_path / name / "summary.json").read_text())
+    traj = [np.loadtxt(tmp_path / n / "trajectory.csv", delimiter=",", skiprows=1, usecols=range(16)) for n in ("v2", "v1")]
+    np.testing.assert_array_equal(traj[0], traj[1])
+    assert "truth_invalid" not in out["v1"]["rejected_samples"]
+    assert out["v1"]["metrics"]["final_horizontal_error_m"] == pytest.approx(
+        out["v2"]["metrics"]["final_horizontal_error_m"], abs=2.5)
