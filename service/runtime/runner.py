@@ -137,6 +137,7 @@ class _Loop:
         self._on_release = sink_methods(self.sinks, "on_release")
         self._on_sample_all = sink_methods(self.sinks, "on_sample")
         self._on_sample: dict[str, list] = {}  # by sample kind (sample_methods)
+        self._on_first_sample = sink_methods(self.sinks, "on_first_sample")  # emptied after the first
         self._on_inertial = sink_methods(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
@@ -323,6 +324,10 @@ class _Loop:
         finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
             if self.health is not None:
                 self.health.on_sample(kind, t_s)
+        if self._on_first_sample:
+            for f in self._on_first_sample:
+                f(sample)
+            self._on_first_sample = []
         on_sample = self._on_sample.get(kind)
         if on_sample is None:
             on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
