@@ -67,11 +67,21 @@ class SimResult:
         out.update({k: len(v) for k, v in self.samples.items()})
         return out
 
-    def _others_sorted(self) -> list[Any]:
+    def _others_sorted(self) -> tuple[list[Any], np.ndarray]:
+        """The non-IMU samples in replay order (time, then source priority, then kind name and
+        position in its list) and their times as an array."""
         others = [s for kind in sorted(self.samples) for s in self.samples[kind]]
-        keyed = sorted(range(len(others)),
-                       key=lambda i: (others[i].t_s, SOURCE_PRIORITY.get(others[i].KIND, 50), i))
-        return [others[i] for i in keyed]
+        t_s = np.array([s.t_s for s in others], dtype=float)
+        if np.isnan(t_s).any():  # no total order: Python's sort decides, as it always did
+            keyed = sorted(range(len(others)),
+                           key=lambda i: (others[i].t_s, SOURCE_PRIORITY.get(others[i].KIND, 50), i))
+        else:
+            # the same order as sorting by the key (t, priority, i), in one call (was a Python
+            # key per sample, ~0.1 s per data hour): a stable sort, the list position breaks ties
+            priority = np.concatenate([np.full(len(self.samples[kind]), SOURCE_PRIORITY.get(kind, 50))
+                                       for kind in sorted(self.samples)] or [np.empty(0, dtype=int)])
+            keyed = np.lexsort((priority, t_s)).tolist()
+        return [others[i] for i in keyed], t_s[keyed]
 
     def iter_blocks(self) -> Iterator[Any]:
         """ImuBatch runs and other samples in replay order.
@@ -81,9 +91,9 @@ class SimResult:
         runs grouped.
         """
         t_imu = self.imu.t_s
-        others = self._others_sorted()
+        others, t_others = self._others_sorted()
         # every sample's IMU run end in one call (was a searchsorted per sample)
-        stops = np.searchsorted(t_imu, np.array([s.t_s for s in others], dtype=float), side="right").tolist()
+        stops = np.searchsorted(t_imu, t_others, side="right").tolist()
         start = 0
         for s, stop in zip(others, stops):
             if stop > start:

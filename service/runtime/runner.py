@@ -137,6 +137,7 @@ class _Loop:
         self._on_release = sink_methods(self.sinks, "on_release")
         self._on_sample_all = sink_methods(self.sinks, "on_sample")
         self._on_sample: dict[str, list] = {}  # by sample kind (sample_methods)
+        self._on_first_sample = sink_methods(self.sinks, "on_first_sample")  # emptied after the first
         self._on_inertial = sink_methods(self.sinks, "on_inertial")
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
@@ -281,30 +282,32 @@ class _Loop:
 
     def imu_batch(self, batch: ImuBatch) -> None:
         t = np.asarray(batch.t_s, dtype=float)
-        n = len(t)
+        ts = t.tolist()  # the single times read below as Python floats (numpy scalars cost more)
+        n = len(ts)
         start = 0
         while start < n:
-            if math.isfinite(t[start]):
+            if math.isfinite(ts[start]):
                 # emit epochs the first remaining sample is past
-                self.flush_epochs_before(float(t[start]))
+                self.flush_epochs_before(ts[start])
                 # the piece ends with the sample that completes the next epoch
-                stop = int(np.searchsorted(t, self.due_s(), side="left")) + 1
+                stop = int(t.searchsorted(self.due_s(), "left")) + 1
                 stop = min(max(stop, start + 1), n)
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
                 t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop], batch.source)
             self.aid(self.estimator.process(piece))
-            if math.isfinite(t[stop - 1]):
+            t_last = ts[stop - 1]
+            if math.isfinite(t_last):
                 if stop - start >= 2:
-                    self._last_imu_t = float(t[stop - 2])
-                self.imu_time(float(t[stop - 1]))
-                self.emit_if_at_epoch(float(t[stop - 1]))
+                    self._last_imu_t = ts[stop - 2]
+                self.imu_time(t_last)
+                self.emit_if_at_epoch(t_last)
             self.summary.imu_samples += stop - start
             self.summary.samples_used += stop - start
             start = stop
         if self.health is not None and n:
-            self.health.on_sample("imu", float(t[-1]), n)
+            self.health.on_sample("imu", ts[-1], n)
 
     def sample(self, sample: Any) -> None:
         kind = sample.KIND
@@ -323,6 +326,10 @@ class _Loop:
         finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
             if self.health is not None:
                 self.health.on_sample(kind, t_s)
+        if self._on_first_sample:
+            for f in self._on_first_sample:
+                f(sample)
+            self._on_first_sample = []
         on_sample = self._on_sample.get(kind)
         if on_sample is None:
             on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)

@@ -8,6 +8,8 @@ sinks change). A sink implements any of
 - ``on_aid(statuses)`` — the :class:`adaptnav.fusion.status.AidStatus` records of one sample,
 - ``on_release(release)`` — a :class:`adaptnav.calibration.online.Release` (accepted or not),
 - ``on_sample(sample)`` — every non-IMU input sample (truth included, for metrics),
+- ``on_first_sample(sample)`` — the first of them only (a time stamp: ``params.csv``'s
+  initial row; ``on_sample`` for that would take every sample of the run),
 - ``close()`` — flush and write what is written at the end;
 
 :class:`Sink` gives no-op defaults. Files written here (all deterministic: same input,
@@ -100,6 +102,10 @@ class Sink:
         """The estimator's free-inertial velocity at a nav epoch (InertialVelocitySample)."""
         pass
 
+    def on_first_sample(self, sample: Any) -> None:
+        """The first sample ``on_sample`` would get (any kind), before it goes there."""
+        pass
+
     def close(self) -> None:
         pass
 
@@ -151,7 +157,7 @@ class DeferredSinks:
         self.sinks = list(sinks)
         self.max_pending = int(max_pending)
         self._queue: deque = deque()
-        for name in ("on_nav", "on_aid", "on_release", "on_inertial"):
+        for name in ("on_nav", "on_aid", "on_release", "on_inertial", "on_first_sample"):
             methods = sink_methods(self.sinks, name)
             if methods:  # the runner calls what is there only
                 setattr(self, name, partial(self._defer, methods))
@@ -159,6 +165,9 @@ class DeferredSinks:
         self._by_kind: dict[str, list] = {}
         if self._on_sample:
             self.on_sample = self._sample
+            # what its sinks want, for the runner: no call at all for the other kinds
+            kinds = [getattr(f.__self__, "sample_kinds", None) for f in self._on_sample]
+            self.sample_kinds = None if None in kinds else frozenset().union(*kinds)
 
     def _defer(self, methods: list, arg: Any) -> None:
         q = self._queue
@@ -381,7 +390,7 @@ class ParamsCsvSink(Sink):
         self._initial = None
         self._writer.writerow([fmt(t_s)] + [fmt(d[n]) for n in self.names] + ["", "1", "initial", "", "", ""])
 
-    def on_sample(self, sample: Any) -> None:
+    def on_first_sample(self, sample: Any) -> None:
         if self._initial is not None:
             self._write_initial(sample.t_s)
 

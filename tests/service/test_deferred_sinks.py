@@ -83,3 +83,47 @@ def test_the_runner_sees_only_what_some_sink_has():
     # no sink takes the free-inertial velocity: the runner must not compute it for nothing
     assert sink_methods([d], "on_inertial") == []
     assert sink_methods([d], "on_sample") == []
+
+
+def test_the_first_sample_goes_once_and_other_kinds_are_not_offered():
+    """``on_first_sample`` (params.csv's initial row): the first sample only, deferred like the
+    rest; a DeferredSinks whose sinks want truth only is not handed other kinds at all."""
+    log = []
+
+    class _First(Sink):
+        deferrable = True
+
+        def on_first_sample(self, sample):
+            log.append(("first", sample.t_s))
+
+    d = DeferredSinks([_First(), _Recording(log, "b", frozenset({"truth"}))])
+    assert d.sample_kinds == frozenset({"truth"})
+    assert len(sink_methods([d], "on_first_sample")) == 1
+    d.on_first_sample(SimpleNamespace(KIND="depth", t_s=1.0))
+    assert log == []
+    d.close()
+    assert log == [("first", 1.0), ("b", "close", None)]
+    assert DeferredSinks([_Recording(log, "a"), _Recording(log, "b", frozenset({"truth"}))]).sample_kinds is None
+
+
+def test_the_runner_hands_the_first_sample_once(tmp_path):
+    from adaptnav.fusion.samples import DepthSample, HeadingSample
+    from adaptnav.service.runtime.clock import LogClock
+    from adaptnav.service.runtime.runner import run
+
+    firsts = []
+
+    class _First(Sink):
+        def on_first_sample(self, sample):
+            firsts.append(sample.t_s)
+
+    class _Quiet:  # an estimator that takes everything and says nothing
+        initialized = False
+        rejected = {}
+
+        def process(self, sample):
+            return []
+
+    run([DepthSample(1.0, 101325.0), HeadingSample(1.5, 0.0), DepthSample(2.0, 101325.0)], _Quiet(), [_First()],
+        LogClock())
+    assert firsts == [1.0]
