@@ -448,6 +448,10 @@ class FilterConfig:
         # bounded: the late-measurement history holds max_delay_s of inputs
         if not (0 <= self.max_delay_s <= 60.0 and 0 < self.imu_gap_s <= 60.0):
             raise ValueError("max_delay_s must be within [0, 60] s and imu_gap_s within (0, 60] s")
+        if self.alignment.min_imu_rate_hz * self.imu_gap_s <= 1.0:
+            # a stream at the slowest rate kept would be nothing but gaps: the filter never starts
+            raise ValueError(f"alignment.min_imu_rate_hz ({self.alignment.min_imu_rate_hz:g} Hz) must be above "
+                             f"1 / imu_gap_s ({1.0 / self.imu_gap_s:g} Hz)")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
         if not (self.learned_velocity.skid_sigma_s >= 0.0 and 0.0 < self.learned_velocity.skid_max_fraction <= 1.0):

@@ -269,9 +269,10 @@ class TlogReplaySource(SampleStreamSource):
         """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE and the truth)."""
         self.tlog.set_origin(origin)
 
-    def set_convert(self, convert: Any) -> None:
-        """The service's ``[mavlink.convert]`` (:class:`ConvertConfig`), as the live bridge uses it."""
-        self.tlog.set_convert(convert)
+    def set_convert(self, convert: Any, min_imu_rate_hz: float | None = None) -> None:
+        """The service's ``[mavlink.convert]`` (:class:`ConvertConfig`), as the live bridge uses
+        it, and the filter's slowest IMU stream for strapdown (``filter.alignment.min_imu_rate_hz``)."""
+        self.tlog.set_convert(convert, min_imu_rate_hz)
 
     @property
     def has_truth(self) -> bool:

@@ -216,12 +216,16 @@ class TlogSource:
                 samples = samples + [self._truth_sample(t) for t in held]
         return samples
 
-    def set_convert(self, convert: ConvertConfig) -> None:
+    def set_convert(self, convert: ConvertConfig, min_imu_rate_hz: float | None = None) -> None:
         """How messages become samples (the service's ``[mavlink.convert]``, as the live
-        bridge uses it); before iteration only."""
+        bridge uses it) and the slowest IMU stream kept for strapdown (the filter's
+        ``alignment.min_imu_rate_hz``; None: as configured); before iteration only."""
         if self.counters["messages_read"]:
             raise RuntimeError("set_convert after the log has been read")
         self.config = replace(self.config, convert=convert)
+        if min_imu_rate_hz is not None:
+            self.config = replace(self.config, min_imu_rate_hz=min_imu_rate_hz)
+            self.config.validate()
         self.converter = MavlinkConverter(convert, self.converter.origin)
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         if self.converter.origin is not None:

@@ -219,3 +219,16 @@ def test_an_uncalibrated_vehicle_gets_the_wider_k_speed_and_the_thrust_transient
     # resolving twice changes nothing
     once = ServiceConfig().resolved(autopilot_thrust=True)
     assert once.resolved(autopilot_thrust=True) == once
+
+
+def test_a_slowest_imu_rate_the_gap_rule_would_turn_into_all_gaps_is_refused():
+    """min_imu_rate_hz 1 with imu_gap_s 0.2: a 5 Hz stream was kept, every interval a gap,
+    and the filter never started (no nav state in a whole log, no word why)."""
+    from dataclasses import replace
+
+    from adaptnav.fusion.config import FilterConfig
+
+    filt = FilterConfig()
+    with pytest.raises(ValueError, match="min_imu_rate_hz"):
+        replace(filt, alignment=replace(filt.alignment, min_imu_rate_hz=4.0)).validate()
+    replace(filt, alignment=replace(filt.alignment, min_imu_rate_hz=8.0)).validate()
