@@ -78,8 +78,8 @@ class SimResult:
         else:
             # the same order as sorting by the key (t, priority, i), in one call (was a Python
             # key per sample, ~0.1 s per data hour): a stable sort, the list position breaks ties
-            priority = np.concatenate([np.full(len(self.samples[kind]), SOURCE_PRIORITY.get(kind, 50))
-                                       for kind in sorted(self.samples)] or [np.empty(0, dtype=int)])
+            # by the sample's own KIND (a list's key may name more: "usbl/1/", one beacon's)
+            priority = np.array([SOURCE_PRIORITY.get(s.KIND, 50) for s in others], dtype=int)
             keyed = np.lexsort((priority, t_s)).tolist()
         return [others[i] for i in keyed], t_s[keyed]
 
