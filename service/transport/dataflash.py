@@ -14,8 +14,9 @@ IMU     AccX..Z [m/s²], GyrX..Z [rad/s] → ImuSample            instance ``I``
                                                               rate with IMU_FAST
 ATT     Roll, Pitch, Yaw [deg] → AttitudeSample                10 Hz (ATTITUDE_MED); withheld while the
                                                               EKF's word (MSG) says it is not aligned
-BARO    Press [Pa] → DepthSample                              instance ``baro_instance`` (ArduSub: 1,
-                                                              the external water-pressure sensor)
+BARO    Press [Pa] → DepthSample                              instance ``baro_instance`` (default: the
+                                                              water sensor ArduSub made primary,
+                                                              BARO_PRIMARY 1 or 2; else 1)
 RCOU    C1..C14 [µs] → RpmSample                              as SERVO_OUTPUT_RAW
 GPS     Lat, Lng [deg], Status → GnssSample                   instance 0, Status ≥ 3D fix; σ from the
                                                               latest GPA's HAcc [m], else HDop; GWk/GMS
@@ -113,16 +114,22 @@ class DataflashConverter:
     (``summary.json``'s ``message_types``) and its rejection counters.
     """
 
-    def __init__(self, mav: MavlinkConverter, baro_instance: int = 1):
+    def __init__(self, mav: MavlinkConverter, baro_instance: int | None = None):
         self.mav = mav
         self.config: ConvertConfig = mav.config
-        self.baro_instance = baro_instance
+        self._baro_instance = baro_instance
         self._gps_h_acc_m: dict[int, float] = {}  # latest GPA HAcc per GPS instance
         self._sim_vel_n_m_s: tuple[float, float, float] | None = None
         # −(UNIX − t_s) of the recent fixes: a fix is logged when it arrives, after its time of
         # validity by the receiver's latency (≥ 0, jittering); the least delayed of a window is the best pair
         self._gps_delay = _WindowMin(GPS_TIME_WINDOW_S)
         self.imu_instance = 0
+
+    @property
+    def baro_instance(self) -> int:
+        """The water pressure sensor's BARO instance: as configured, else the autopilot's
+        (:attr:`MavlinkConverter.water_baro_instance`, from its PARM BARO_PRIMARY)."""
+        return self._baro_instance if self._baro_instance is not None else self.mav.water_baro_instance
 
     def convert(self, msg: Any) -> tuple[list, list[SimTruth]]:
         """``(samples, truths)`` of one record."""
@@ -195,7 +202,7 @@ class DataflashConverter:
                 raise ConversionError("non_finite", "ATT")
             return [AttitudeSample(t_s, r, p, float(wrap_angle(y)))]
         if mtype == "BARO":
-            if getattr(msg, "I", 0) != self.baro_instance:
+            if getattr(msg, "I", 0) != self.baro_instance:  # its PARM BARO_PRIMARY is read at the log's start
                 return self._ignore(acc, f"other instance (BARO {self.baro_instance} is the water sensor)")
             if not msg.Press > 0:
                 raise ConversionError("bad_pressure", f"Press={msg.Press}")

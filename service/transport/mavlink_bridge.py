@@ -127,16 +127,19 @@ class OutputSchedule:
         return True
 
 
-def message_intervals(config: BridgeConfig, imu_message: str | None = None) -> dict[int, float]:
-    """MAVLink message id → requested interval (µs) for SET_MESSAGE_INTERVAL."""
+def message_intervals(config: BridgeConfig, imu_message: str | None = None,
+                      depth_message: str | None = None) -> dict[int, float]:
+    """MAVLink message id → requested interval (µs) for SET_MESSAGE_INTERVAL (``depth_message``:
+    the converter's, as the autopilot's BARO_PRIMARY decided an "auto" one)."""
     r = config.rates
     imu = imu_message or config.request_imu_message
     if imu == "auto":
         imu = "HIGHRES_IMU"
+    depth = depth_message or config.convert.depth_message
     wanted = {
         imu: r.imu_hz,
         "ATTITUDE": r.attitude_hz,
-        config.convert.depth_message: r.pressure_hz,
+        "SCALED_PRESSURE2" if depth == "auto" else depth: r.pressure_hz,
         "SERVO_OUTPUT_RAW": r.servo_hz,
         "GPS_RAW_INT": r.gps_raw_hz,
         "DISTANCE_SENSOR": r.distance_hz,
@@ -185,6 +188,7 @@ class MavlinkBridge:
         if convert.imu_message == "auto":  # lock on the IMU stream we ask for
             convert = dataclasses.replace(convert, imu_message=self.imu_stream)
         self.converter = MavlinkConverter(convert, origin)
+        self._depth_requested = self.converter.depth_message  # the pressure stream asked for
         self.counters: dict[str, Any] = {
             "messages_by_type": {}, "corrupt_frames": 0, "repaired_frames": 0, "samples": 0, "rejected": self.converter.rejected,
             "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
@@ -395,7 +399,8 @@ class MavlinkBridge:
                           param4=p[3], param5=p[4], param6=p[5], param7=p[6])
 
     def _request_streams(self) -> None:
-        for msg_id, interval_us in message_intervals(self.config, self.imu_stream).items():
+        self._depth_requested = self.converter.depth_message
+        for msg_id, interval_us in message_intervals(self.config, self.imu_stream, self._depth_requested).items():
             if self._command(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us):
                 self.counters["interval_requests"] += 1
         self._imu_requested_s = time.monotonic()
@@ -417,7 +422,8 @@ class MavlinkBridge:
                  sysid, compid, self.url, self.imu_stream, r.imu_hz,
                  extra={"event": {"event": "link_up", "peer": f"{sysid}/{compid}", "url": self.url}})
         self._request_streams()
-        for name in (b"GPS_TYPE", b"GPS1_TYPE"):  # is its GPS an underwater one (MAVLink)? (ArduPilot < / ≥ 4.6)
+        # is its GPS an underwater one (MAVLink)? (ArduPilot < / ≥ 4.6) Which baro is the water sensor?
+        for name in (b"GPS_TYPE", b"GPS1_TYPE", b"BARO_PRIMARY"):
             self._send("param_request_read_send", target_system=sysid, target_component=compid, param_id=name,
                        param_index=-1)
         self.origin_confirmed = False
@@ -429,6 +435,8 @@ class MavlinkBridge:
         """Periodic duties: IMU fallback, origin confirmation, autopilot reboots."""
         if self.autopilot is None:
             return
+        if self.converter.depth_message != self._depth_requested:  # its BARO_PRIMARY named another sensor
+            self._request_streams()
         now = time.monotonic()
         reboots = self.converter.time.reboots
         if reboots != self._reboots_seen:  # its boot clock went back: streams and origin are lost

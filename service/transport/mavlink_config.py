@@ -85,7 +85,12 @@ class ConvertConfig:
     # the integrated IMU stream silent this long (mission time, s): another stream, of any rank,
     # takes over (an autopilot's IMU failover changes HIGHRES_IMU's id; a driver restarts)
     imu_stream_silent_s: float = 1.0
-    depth_message: Literal["SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3"] = "SCALED_PRESSURE2"
+    # the external (water) pressure sensor's message. "auto": the one ArduSub made its primary
+    # barometer (it picks the first water-type sensor and saves BARO_PRIMARY: 1 on a Pixhawk or
+    # Navigator with a Bar30 — SCALED_PRESSURE2 — 2 on a board with two of its own), read from
+    # PARAM_VALUE / PARM; SCALED_PRESSURE2 until it is known, or when it is 0 (no water sensor
+    # found — or ArduSub's simulator, whose every baro reads the water)
+    depth_message: Literal["auto", "SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3"] = "auto"
     thrusters: ThrusterConfig = field(default_factory=ThrusterConfig)
     gnss_min_fix_type: int = 3  # GPS_FIX_TYPE_3D_FIX
     gnss_sigma_per_hdop_m: float = 2.5  # σ_h = HDOP × this when h_acc is absent

@@ -509,7 +509,7 @@ IGNORED_WHY: dict[str, str] = {
         "MISSION_ACK", "MISSION_COUNT", "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT",
         "SET_MODE", "SET_MESSAGE_INTERVAL", "SET_GPS_GLOBAL_ORIGIN", "RC_CHANNELS_OVERRIDE", "GPS_RTCM_DATA")},
     "HEARTBEAT": "link liveness; gives the autopilot's system id",
-    "PARAM_VALUE": "the autopilot's parameters: GPS_TYPE/GPS1_TYPE says whether its GPS fixes are an underwater "
+    "PARAM_VALUE": "the autopilot's parameters: BARO_PRIMARY names its water pressure sensor, GPS_TYPE/GPS1_TYPE says whether its GPS fixes are an underwater "
                    "GPS's, no sample",
     "EKF_STATUS_REPORT": "the autopilot's EKF health: its attitude flag gates ATTITUDE, no sample",
     "STATUSTEXT": "text; the autopilot's EKF (re)start and yaw alignment gate ATTITUDE, no sample",
@@ -599,6 +599,7 @@ class MavlinkConverter:
         self.autopilot_sysid: int | None = None
         self.autopilot_firmware: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
         self.autopilot_gps_type: int | None = None  # its GPS_TYPE / GPS1_TYPE parameter
+        self.autopilot_baro_primary: int | None = None  # its BARO_PRIMARY parameter
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
         self._imu_lock: tuple[str, tuple[int, int, int], tuple[int, bool]] | None = None  # (type, source, rank)
         self.imu_switches = 0  # moves to a better IMU stream, or off a silent one (auto)
@@ -879,8 +880,8 @@ class MavlinkConverter:
         return None if lock is None else f"{lock[0]} from {_stream_name(lock[1])}"
 
     def _pressure(self, msg, mtype, t_s):
-        if mtype != self.config.depth_message:
-            raise IgnoredMessage(f"depth comes from {self.config.depth_message} (the external sensor)")
+        if mtype != self.depth_message:
+            raise IgnoredMessage(f"depth comes from {self.depth_message} (the external sensor)")
         return depth_from_pressure(msg, t_s)
 
     def _gps_raw(self, msg, mtype, t_s):
@@ -905,8 +906,25 @@ class MavlinkConverter:
         source = self.config.gps_raw_int_source
         return source == "acoustic" or (source == "auto" and self.autopilot_gps_type == GPS_TYPE_MAV)
 
+    @property
+    def depth_message(self) -> str:
+        """The external pressure sensor's message (``convert.depth_message``; "auto": the
+        autopilot's BARO_PRIMARY when it names a sensor beyond its first, else SCALED_PRESSURE2)."""
+        if self.config.depth_message != "auto":
+            return self.config.depth_message
+        return PRESSURE_MESSAGES[self.water_baro_instance]
+
+    @property
+    def water_baro_instance(self) -> int:
+        """The autopilot's water pressure sensor (0-based barometer instance): BARO_PRIMARY when
+        it is 1 or 2, else 1 (a BlueROV2's Bar30 beside the board's own barometer)."""
+        primary = self.autopilot_baro_primary
+        return primary if primary in (1, 2) else 1
+
     def note_parameter(self, name: str, value: float) -> None:
         """One of the autopilot's parameters (PARAM_VALUE, a DataFlash log's PARM)."""
+        if name == "BARO_PRIMARY" and math.isfinite(value):
+            self.autopilot_baro_primary = int(value)
         if name in ("GPS_TYPE", "GPS1_TYPE") and math.isfinite(value):
             if self.autopilot_gps_type != int(value):
                 logging.getLogger(__name__).info("the autopilot's first GPS is type %d%s", int(value),

@@ -64,7 +64,9 @@ class TlogConfig:
     min_imu_rate_hz: float = AlignmentConfig.min_imu_rate_hz
     drop_slow_imu: bool = True
     reorder_window_s: float = 2.0
-    dataflash_baro_instance: int = 1  # ArduSub: BARO[1] is the external (water) sensor
+    # the water pressure sensor's BARO instance in a DataFlash log (None: the one ArduSub made
+    # primary, PARM BARO_PRIMARY 1 or 2, else 1 — a BlueROV2's Bar30)
+    dataflash_baro_instance: int | None = None
 
     def validate(self) -> None:
         if self.min_imu_rate_hz <= 0 or self.reorder_window_s < 0:
@@ -561,8 +563,8 @@ class TlogSource:
         if not by_kind.get("attitude"):
             out.append("no attitude (ATT)" if df else "no attitude (ATTITUDE)")
         if not by_kind.get("depth"):
-            out.append(f"no depth (BARO[{self.config.dataflash_baro_instance}] absent or invalid)" if df
-                       else f"no depth ({self.config.convert.depth_message} absent or invalid)")
+            out.append(f"no depth (BARO[{self.dataflash.baro_instance}] absent or invalid)" if df
+                       else f"no depth ({self.converter.depth_message} absent or invalid)")
         if not by_kind.get("rpm"):
             out.append("no thruster RPM (RCOU)" if df else "no thruster RPM (SERVO_OUTPUT_RAW)")
         if not (by_kind.get("usbl") or by_kind.get("gnss")):

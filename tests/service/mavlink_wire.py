@@ -113,3 +113,45 @@ def as_mavlink1(tlog, out):
             f.write(struct.pack(">Q", int(round(msg._timestamp * 1e6))) + frame)
     reader.close()
     return out
+
+
+def water_sensor_on_third_baro(tlog, out, say_baro_primary: bool = True):
+    """A tlog as a vehicle whose board has two barometers of its own logs it: the water sensor
+    is the third (SCALED_PRESSURE3: the original SCALED_PRESSURE2's readings), the second reads
+    the air in the enclosure; ``say_baro_primary``: the autopilot's PARAM_VALUE BARO_PRIMARY = 2
+    (what ArduSub saves when it picks that sensor) follows its first HEARTBEAT."""
+    import struct
+
+    from pymavlink.dialects.v20 import ardupilotmega as v2
+
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    class _Nowhere:
+        def write(self, _buf):
+            pass
+
+    reader = TlogReader(tlog)
+    said = not say_baro_primary
+    with open(out, "wb") as f:
+        def put(t_s, msg, sysid, compid):
+            mav = v2.MAVLink(_Nowhere(), srcSystem=sysid, srcComponent=compid)
+            f.write(struct.pack(">Q", int(round(t_s * 1e6))) + msg.pack(mav))
+
+        for msg in reader:
+            if isinstance(msg, Exception) or msg.get_type() == "BAD_DATA":
+                continue
+            t_s, sysid, compid = msg._timestamp, msg.get_srcSystem(), msg.get_srcComponent()
+            if msg.get_type() == "SCALED_PRESSURE2":
+                put(t_s, v2.MAVLink_scaled_pressure2_message(msg.time_boot_ms, 1013.25, 0.0, 2500), sysid, compid)
+                put(t_s, v2.MAVLink_scaled_pressure3_message(msg.time_boot_ms, msg.press_abs, msg.press_diff,
+                                                              msg.temperature), sysid, compid)
+                continue
+            if msg.get_type() == "SCALED_PRESSURE3":
+                continue  # the simulator's absent third sensor (zeros)
+            f.write(struct.pack(">Q", int(round(t_s * 1e6))) + msg.get_msgbuf())
+            if not said and msg.get_type() == "HEARTBEAT" and compid == 1:
+                put(t_s, v2.MAVLink_param_value_message(b"BARO_PRIMARY", 2.0, v2.MAV_PARAM_TYPE_INT8, 900, 50),
+                    sysid, compid)
+                said = True
+    reader.close()
+    return out

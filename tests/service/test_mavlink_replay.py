@@ -114,3 +114,25 @@ def test_a_mavlink1_tlog_replays_as_its_mavlink2_twin(tmp_path):
     assert "truth_invalid" not in out["v1"]["rejected_samples"]
     assert out["v1"]["metrics"]["final_horizontal_error_m"] == pytest.approx(
         out["v2"]["metrics"]["final_horizontal_error_m"], abs=2.5)
+
+
+def test_the_water_sensor_is_the_barometer_arduSub_made_primary(tmp_path):
+    """On a board with two barometers of its own the Bar30 is ArduSub's third (SCALED_PRESSURE3);
+    ArduSub picks the first water-type sensor as primary and saves BARO_PRIMARY. Read from the
+    log's PARAM_VALUE, the depth is that sensor's: the replay is the original's, row for row.
+    Without the parameter the second sensor (the enclosure's air) is taken, as before."""
+    from .mavlink_wire import water_sensor_on_third_baro
+
+    session = Path(__file__).resolve().parents[1] / "data" / "ardusub-sitl-session.tlog"
+    out = {}
+    for name, path in (("original", session),
+                       ("third", water_sensor_on_third_baro(session, tmp_path / "third.tlog")),
+                       ("unsaid", water_sensor_on_third_baro(session, tmp_path / "unsaid.tlog", say_baro_primary=False))):
+        assert cli_main(["replay", str(path), "--out", str(tmp_path / name), "--no-progress", "--no-plots"]) == 0
+        out[name] = (json.loads((tmp_path / name / "summary.json").read_text()),
+                     np.loadtxt(tmp_path / name / "trajectory.csv", delimiter=",", skiprows=1, usecols=range(16)))
+    np.testing.assert_array_equal(out["third"][1], out["original"][1])
+    assert out["third"][0]["message_types"]["SCALED_PRESSURE3"]["status"] == "used"
+    assert out["third"][0]["message_types"]["SCALED_PRESSURE2"]["status"] != "used"
+    depth_unsaid = out["unsaid"][1][:, 3]
+    assert np.nanmax(depth_unsaid) < 1.0 < np.nanmax(out["original"][1][:, 3])  # the air: no dive
