@@ -14,6 +14,9 @@ SERVO_OUTPUT_RAW      thruster PWM [µs] → RpmSample                    :class
 GPS_RAW_INT           lat/lon [degE7], h_acc [mm] / eph [HDOP×100]     → rad, m
 GPS_INPUT             lat/lon [degE7], alt [m up], accuracies [m]      → UsblSample
 DISTANCE_SENSOR       current_distance [cm], downward only             ×0.01
+VISION_POSITION_DELTA position_delta [m] / time_delta_usec → DvlSample  ÷ Δt (body frame)
+VISION_SPEED_ESTIMATE x, y, z [m/s] → DvlSample                        body (or NED)
+ODOMETRY              vx, vy, vz [m/s] with no pose, BODY_FRD → DvlSample  none (a DVL's)
 ====================  ===============================================  =================
 
 ArduSub scales RAW_IMU like SCALED_IMU (mg, mrad/s): the real logs in
@@ -460,6 +463,25 @@ def dvl_from_vision_speed(msg: Any, t_s: float, cfg: ConvertConfig, R_nb: np.nda
     return DvlSample(t_s, tuple(float(v) for v in vel), True, sigma_m_s=sigma)
 
 
+def dvl_from_odometry(msg: Any, t_s: float) -> DvlSample:
+    """ODOMETRY with a body-frame velocity and no pose → DvlSample: a DVL driver's (the Water
+    Linked DVL extension's ODOMETRY mode: x, y, z and q NaN, ``child_frame_id`` BODY_FRD, the
+    velocity's variance on the covariance diagonal, quality 1–100). An ODOMETRY with a pose is
+    a navigator's output — the autopilot's, ours — and is ignored; quality −1 is a failure."""
+    pose = np.array([msg.x, msg.y, msg.z], dtype=float)
+    if np.isfinite(pose).any() or msg.child_frame_id != mavlink2.MAV_FRAME_BODY_FRD:
+        raise IgnoredMessage("a navigator's output (a pose: the autopilot's, ours), not a sensor")
+    if getattr(msg, "quality", 0) == -1:
+        raise ConversionError("odometry_failed", "quality -1")
+    vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+    if not np.all(np.isfinite(vel)):
+        raise ConversionError("non_finite", "ODOMETRY velocity")
+    cov = np.asarray(getattr(msg, "velocity_covariance", [math.nan]) or [math.nan], dtype=float)
+    diag = cov[[0, 6, 11]] if cov.size >= 12 else np.array([math.nan])  # upper triangle of 6×6
+    sigma = float(math.sqrt(max(diag))) if np.all(np.isfinite(diag)) and max(diag) > 0 else math.nan
+    return DvlSample(t_s, tuple(float(v) for v in vel), True, sigma_m_s=sigma)
+
+
 def usbl_from_global_vision(msg: Any, t_s: float, origin: GeoOrigin, cfg: ConvertConfig) -> UsblSample:
     """GLOBAL_VISION_POSITION_ESTIMATE (local NED position from the EKF origin, m) → UsblSample.
     σ_h from the covariance (upper triangle: x at 0, y at 6) or ``vision_position_sigma_m``."""
@@ -495,7 +517,7 @@ IGNORED_WHY: dict[str, str] = {
     **{m: _WHY_AUTOPILOT_SOLUTION for m in (
         "AHRS", "AHRS2", "AHRS3", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED",
         "VFR_HUD", "NAV_CONTROLLER_OUTPUT", "HOME_POSITION", "POSITION_TARGET_GLOBAL_INT",
-        "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS", "ODOMETRY")},
+        "POSITION_TARGET_LOCAL_NED", "ESTIMATOR_STATUS")},
     **{m: _WHY_HOUSEKEEPING for m in (
         "SYS_STATUS", "BATTERY_STATUS", "POWER_STATUS", "HWSTATUS", "MEMINFO", "VIBRATION", "SENSOR_OFFSETS",
         "MOUNT_STATUS", "GIMBAL_DEVICE_ATTITUDE_STATUS", "AUTOPILOT_VERSION", "STORAGE_INFORMATION",
@@ -974,10 +996,11 @@ _HANDLERS = {
     "VISION_POSITION_DELTA": lambda self, m, k, t: dvl_from_vision_position_delta(m, t, self.config, self._timed(m)),
     "VISION_SPEED_ESTIMATE": lambda self, m, k, t: dvl_from_vision_speed(m, t, self.config),
     "GLOBAL_VISION_POSITION_ESTIMATE": MavlinkConverter._vision_position,
+    "ODOMETRY": lambda self, m, k, t: dvl_from_odometry(m, t),
 }
 # types accepted from the aiding systems (companion drivers) as well as from the autopilot
 AID_MESSAGES = frozenset({"VISION_POSITION_DELTA", "VISION_SPEED_ESTIMATE", "GLOBAL_VISION_POSITION_ESTIMATE",
-                          "GPS_INPUT", "DISTANCE_SENSOR", "HIGHRES_IMU"})
+                          "GPS_INPUT", "DISTANCE_SENSOR", "HIGHRES_IMU", "ODOMETRY"})
 
 # --------------------------------------------------------------------------- out
 def _cov_slices():

@@ -128,3 +128,22 @@ def test_at_default_stream_rates_with_a_dvl_the_defaults_navigate(tmp_path):
     assert result.summary["filter"]["imu_grade"] == "attitude"
     assert s["end_error_percent"] <= 1.0 and s["max_error_submerged_m"] <= 2.0, s
     assert s["valid_fraction_submerged"] >= 0.95 and s["valid_outside_99_fraction"] <= 0.02, s
+
+
+@pytest.mark.realdata
+def test_a_dvl_sent_as_odometry_is_a_dvl(tmp_path):
+    """The Water Linked DVL extension's ODOMETRY mode (a body velocity, no pose, system 255):
+    the same DVL as above, sent that way, navigates as well; it was ignored as "the
+    autopilot's own estimate" (the freedrive then ended 22.8 % off)."""
+    if not FREEDRIVE.is_file():
+        pytest.skip(f"real data absent: {FREEDRIVE}")
+    from tests.service.mavlink_wire import dvl_as_odometry
+
+    log = dvl_as_odometry(at_default_rates(FREEDRIVE, tmp_path / "dvl.tlog", dvl_period_s=0.2), tmp_path / "odo.tlog")
+    result = replay(open_log(log), build_config(None, None), tmp_path / "out", progress=False, plots=False)
+    s = score(tmp_path / "out", log)
+    odometry = result.summary["message_types"]["ODOMETRY"]
+    assert odometry["status"] == "used" and odometry["samples"] == odometry["messages"] > 1000, odometry
+    assert s["end_error_percent"] <= 1.0 and s["max_error_submerged_m"] <= 2.0, s
+    assert s["valid_fraction_submerged"] >= 0.95 and s["valid_outside_99_fraction"] <= 0.02, s
+

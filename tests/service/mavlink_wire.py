@@ -155,3 +155,44 @@ def water_sensor_on_third_baro(tlog, out, say_baro_primary: bool = True):
                 said = True
     reader.close()
     return out
+
+
+def dvl_as_odometry(tlog, out):
+    """A tlog's VISION_POSITION_DELTA as the Water Linked DVL extension's ODOMETRY mode sends
+    them (system 255, component 0): the body velocity (delta / Δt), x, y, z and q NaN,
+    child frame BODY_FRD, the velocity variance (1 cm/s)² on the covariance diagonal, quality
+    from the confidence, ``time_usec`` on the driver's own clock."""
+    import math
+    import struct
+
+    from pymavlink.dialects.v20 import ardupilotmega as v2
+
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    class _Nowhere:
+        def write(self, _buf):
+            pass
+
+    reader = TlogReader(tlog)
+    mav = v2.MAVLink(_Nowhere(), srcSystem=255, srcComponent=0)
+    t_first = None
+    nan = math.nan
+    with open(out, "wb") as f:
+        for msg in reader:
+            if isinstance(msg, Exception) or msg.get_type() == "BAD_DATA":
+                continue
+            if msg.get_type() != "VISION_POSITION_DELTA":
+                f.write(struct.pack(">Q", int(round(msg._timestamp * 1e6))) + msg.get_msgbuf())
+                continue
+            t_first = msg._timestamp if t_first is None else t_first
+            dt_s = msg.time_delta_usec * 1e-6
+            vel = [d / dt_s for d in msg.position_delta]
+            cov = [0.0] * 21
+            cov[0] = cov[6] = cov[11] = 0.01 ** 2
+            odo = v2.MAVLink_odometry_message(
+                int((msg._timestamp - t_first) * 1e6), v2.MAV_FRAME_LOCAL_NED, v2.MAV_FRAME_BODY_FRD,
+                nan, nan, nan, [nan] * 4, *vel, nan, nan, nan, [nan] + [0.0] * 20, cov, 0,
+                v2.MAV_ESTIMATOR_TYPE_UNKNOWN, max(1, min(100, int(msg.confidence))))
+            f.write(struct.pack(">Q", int(round(msg._timestamp * 1e6))) + odo.pack(mav))
+    reader.close()
+    return out
