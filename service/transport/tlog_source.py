@@ -319,7 +319,7 @@ class TlogSource:
         for a new record type); such a log is read from a copy without its bad lines
         (:func:`_clean_text_dataflash`), counted as corrupt frames and said."""
         try:
-            return mavutil.mavlink_connection(str(self.path), dialect="ardupilotmega")
+            return self._open(self.path)
         except Exception:  # noqa: BLE001 — whatever the text reader trips on, the copy avoids
             if not self._text_dataflash:
                 raise
@@ -332,7 +332,16 @@ class TlogSource:
         with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".log") as copy:
             copy.write(clean)
             copy.flush()
-            return mavutil.mavlink_connection(copy.name, dialect="ardupilotmega")  # mapped: outlives the name
+            return self._open(Path(copy.name))  # mapped: outlives the name
+
+    def _open(self, path: Path) -> Any:
+        """pymavlink's reader; a text DataFlash log's directly (pymavlink takes only a
+        lower-case ``.log`` for one: ``FILE.LOG`` was read as telemetry)."""
+        if self._text_dataflash:
+            from pymavlink import DFReader
+
+            return DFReader.DFReader_text(str(path), zero_time_base=False)
+        return mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
 
     # --------------------------------------------------------------------- iteration
     def _messages(self) -> Iterator[Any]:

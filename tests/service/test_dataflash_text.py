@@ -74,3 +74,13 @@ def test_damaged_lines_in_a_text_log_are_counted_and_the_rest_is_read(logs):
     end_whole = np.array([float(x) for x in rows_whole[-1][1:3]])
     assert rows[0] == rows_whole[0] and len(rows) == len(rows_whole)
     assert np.linalg.norm(end - end_whole) < 0.05
+
+
+def test_an_upper_case_log_name_is_a_text_log_too(logs):
+    """``FILE.LOG`` (a Windows copy): pymavlink takes only ``.log`` for a text DataFlash log and
+    read this one as telemetry — nothing replayed."""
+    tmp, text, (_, _, rows_bin), _ = logs
+    upper = tmp / "DRIVE.LOG"
+    upper.write_bytes(text.read_bytes())
+    code, summary, rows = _replay(upper, tmp / "upper")
+    assert code == 0 and rows == rows_bin and summary["corrupt_frames"] == 0
