@@ -33,6 +33,7 @@ the converter's rejections and per-type accounting, the origin's state and comma
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import math
@@ -291,7 +292,17 @@ class MavlinkBridge:
             "message_types": {k: {kk: v[kk] for kk in ("status", "why", "rejected", "rate_hz") if kk in v}
                               for k, v in types.items()},
             "clock": self.converter.clock_report(),
+            "signing": self._signing_report(),
         }
+
+    def _signing_report(self) -> dict[str, Any] | None:
+        """MAVLink 2 signing's counts (None: off): signed messages in, bad signatures and the
+        messages refused for them, unsigned ones taken."""
+        signing = getattr(getattr(self._conn, "mav", None), "signing", None)
+        if not self.config.signing_passphrase or signing is None:
+            return None
+        return {"signed_in": signing.goodsig_count, "bad_signatures": signing.badsig_count,
+                "refused": signing.reject_count, "unsigned_accepted": signing.unsigned_count}
 
     def wait_connected(self, timeout_s: float) -> bool:
         """Block until the autopilot's heartbeat has been seen (or timeout)."""
@@ -357,6 +368,10 @@ class MavlinkBridge:
             device, baud=baud, source_system=self.config.source_system,
             source_component=self.config.source_component, dialect="ardupilotmega", autoreconnect=False,
             retries=0)  # one TCP connect attempt: our loop owns the back-off
+        if self.config.signing_passphrase:
+            accept = (lambda _mav, _msg_id: True) if self.config.signing_accept_unsigned else None
+            conn.setup_signing(hashlib.sha256(self.config.signing_passphrase.encode()).digest(),
+                               sign_outgoing=True, allow_unsigned_callback=accept)
         if isinstance(conn, mavutil.mavtcp):
             # pymavlink prints and carries on at a TCP EOF/reset unless autoreconnect, which
             # would block this thread in its own retry loop: raise instead, so the loop

@@ -203,6 +203,13 @@ class BridgeConfig:
     origin_retries: int = 5
     rates: StreamRates = field(default_factory=StreamRates)
     udp_rcvbuf_bytes: int = 4 * 1024 * 1024
+    # MAVLink 2 signing, for an autopilot that requires it (ArduPilot drops unsigned messages
+    # on a signed channel: our ODOMETRY would vanish): the passphrase the ground station set
+    # the key from (the key is its SHA-256, as MAVProxy and QGroundControl derive it); "" off
+    signing_passphrase: str = ""
+    # ... and unsigned messages in are still taken (BlueOS's drivers — a DVL, a UGPS — send
+    # through mavlink2rest, which does not sign); false: only correctly signed ones
+    signing_accept_unsigned: bool = True
     convert: ConvertConfig = field(default_factory=ConvertConfig)
     output: OdometryConfig = field(default_factory=OdometryConfig)
 

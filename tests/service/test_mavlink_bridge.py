@@ -208,6 +208,64 @@ def test_the_bridge_asks_the_autopilot_s_gps_type_and_takes_a_mavlink_gps_as_an_
     assert [s.KIND for s in after if s.KIND in ("gnss", "usbl")] == ["usbl"]
 
 
+def test_the_water_sensor_follows_the_autopilot_s_baro_primary(link):
+    """A board with two barometers of its own: ArduSub's Bar30 is its third and BARO_PRIMARY 2.
+    The bridge asks for the parameter, then for SCALED_PRESSURE3's rate, and takes its depth."""
+    bridge, peer, q, _ = link
+    asked = lambda: "BARO_PRIMARY" in {m.param_id for m in peer.of_type("PARAM_REQUEST_READ")}  # noqa: E731
+    assert peer.pump(3.0, until=lambda: bridge.link_up.is_set() and asked())
+    mav = peer.conn.mav
+    mav.param_value_send(b"BARO_PRIMARY", 2.0, 2, 900, 50)  # the autopilot answers
+
+    def interval_asked(msg_id):
+        return any(c.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL and int(c.param1) == msg_id
+                   for c in peer.of_type("COMMAND_LONG"))
+
+    assert peer.pump(3.0, until=lambda: interval_asked(mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE3))
+    mav.scaled_pressure2_send(20_000, 1013.25, 0.0, 2500)  # the enclosure's air
+    mav.scaled_pressure3_send(20_010, 1513.25, 0.0, 1500)  # the water at 5 m
+    got = drain(q, lambda out: any(s.KIND == "depth" for s in out))
+    assert [round(s.pressure_pa) for s in got if s.KIND == "depth"] == [151325]
+
+
+def test_a_signing_autopilot_gets_signed_messages_and_unsigned_drivers_still_count():
+    """An autopilot with MAVLink 2 signing drops unsigned messages: with the ground station's
+    passphrase configured, everything the bridge sends is signed with its key (the peer checks
+    every signature and keeps only good ones), and an unsigned message from a companion driver
+    is still taken."""
+    import hashlib
+
+    port = free_udp_port()
+    q = queue.Queue()
+    cfg = BridgeConfig(link_timeout_s=0.6, reconnect_min_s=0.05, signing_passphrase="reef 42")
+    bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, GeoOrigin(math.radians(48.5), math.radians(-124.25), 0.0), cfg)
+    peer = Peer(port)
+    peer.conn.setup_signing(hashlib.sha256(b"reef 42").digest(), sign_outgoing=True)  # no unsigned accepted
+    driver = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=0,
+                                        dialect="ardupilotmega")  # mavlink2rest: unsigned
+    try:
+        assert peer.pump(3.0, until=lambda: bridge.link_up.is_set() and peer.of_type("HEARTBEAT"))
+        bridge.send_nav(nav())
+        assert peer.pump(3.0, until=lambda: peer.of_type("ODOMETRY"))
+        assert all(m._signed for m in peer.got)
+        assert peer.conn.mav.signing.goodsig_count >= len(peer.got) and peer.conn.mav.signing.reject_count == 0
+        got = []
+
+        def a_dvl_sample():  # the autopilot keeps beating meanwhile: the link stays up
+            driver.mav.vision_speed_estimate_send(0, 0.5, 0.0, 0.0)
+            got.extend(drain(q, lambda out: True, timeout=0.1))
+            return any(s.KIND == "dvl" for s in got)
+
+        assert peer.pump(3.0, until=a_dvl_sample)
+        assert {s.vel_d_m_s for s in got if s.KIND == "dvl"} == {(0.5, 0.0, 0.0)}
+        health = bridge.health()["signing"]
+        assert health["signed_in"] > 0 and health["unsigned_accepted"] >= 1 and health["bad_signatures"] == 0
+    finally:
+        bridge.close()
+        peer.close()
+        driver.close()
+
+
 def test_peer_restart_reconnects_and_re_requests_streams(link):
     bridge, peer, q, port = link
     assert peer.pump(3.0, until=bridge.link_up.is_set)
