@@ -338,7 +338,8 @@ class MotionConfig:
         """``filt`` with what an uncalibrated prior (``why`` from :meth:`initial_params`) leaves
         unknown: the initial ``k_speed`` σ, the thrust-transient time, the skid σ in a turn and
         the heave σ per vertical speed raised to the ``uncalibrated_*`` figures (never lowered),
-        and its velocity no measurement of the motion for an attitude-driven strapdown
+        the slowest IMU stream integrated lowered to ``uncalibrated_min_imu_rate_hz`` (never
+        raised), and its velocity no measurement of the motion for an attitude-driven strapdown
         (``filter.attitude_driven.model_measures_motion``: nothing checks its scale there);
         a calibrated prior: ``filt`` as it is."""
         if not why.startswith("uncalibrated"):

@@ -238,9 +238,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     # the thrust is an autopilot's PWM: a MAVLink or DataFlash log, or a recording of a daemon
     # whose MAVLink bridge was on (replayed with its config: the daemon's own rule)
     autopilot_thrust = hasattr(inp.source, "set_convert") or cfg.mavlink.enabled
+    cfg = cfg.resolved(autopilot_thrust)
     if hasattr(inp.source, "set_convert"):  # a MAVLink log: converted as the live bridge converts,
         # its slow IMU streams withheld by the filter's rule (as the motion prior decides it)
-        inp.source.set_convert(cfg.mavlink.convert, cfg.resolved(autopilot_thrust).filter.alignment.min_imu_rate_hz)
+        inp.source.set_convert(cfg.mavlink.convert, cfg.filter.alignment.min_imu_rate_hz)
     if origin_configured and hasattr(inp.source, "set_origin"):
         inp.source.set_origin(cfg.origin.geo())
     items: Any = iter(inp.source)
@@ -255,7 +256,6 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
                                               lon_deg=math.degrees(fix.lon_rad)))
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
             log.info("NED origin from the %s", origin_note)
-    cfg = cfg.resolved(autopilot_thrust)
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator

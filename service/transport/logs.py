@@ -64,8 +64,7 @@ def resilient_records(stream: Any, path: Path) -> Iterator[Any]:
     summary = None
     while True:
         try:
-            record = next(records)
-        except StopIteration:
+            yield from records
             return
         except Exception as e:  # noqa: BLE001 — damaged bytes: resume at the next chunk if any
             position = stream.tell()
@@ -76,14 +75,11 @@ def resilient_records(stream: Any, path: Path) -> Iterator[Any]:
             if not later:
                 raise
             damaged_from = max((s for s in starts if s < position), default=position)
-            for channel in summary.channels.values():
-                yield channel
+            yield from summary.channels.values()
             yield DamagedChunkError(f"{path.name}: the chunk at bytes {damaged_from}–{later[0]} could not be read "
                                     f"({type(e).__name__}: {e}); its messages are lost, the next chunk is read")
             stream.seek(later[0])
             records = StreamReader(stream, skip_magic=True, validate_crcs=True).records
-            continue
-        yield record
 
 
 def _readable_summary(path: Path) -> Any:

@@ -128,6 +128,20 @@ class OutputSchedule:
         return True
 
 
+def _signing_key(passphrase_file: str) -> bytes | None:
+    """The MAVLink 2 signing key from the passphrase in ``passphrase_file`` (its SHA-256, as
+    MAVProxy and QGroundControl derive it; line end stripped); None when signing is off.
+
+    Raises
+    ------
+    OSError
+        The file cannot be read (said at start, not on the first send).
+    """
+    if not passphrase_file:
+        return None
+    return hashlib.sha256(Path(passphrase_file).read_text().rstrip("\r\n").encode()).digest()
+
+
 def message_intervals(config: BridgeConfig, imu_message: str | None = None,
                       depth_message: str | None = None) -> dict[int, float]:
     """MAVLink message id → requested interval (µs) for SET_MESSAGE_INTERVAL (``depth_message``:
@@ -190,6 +204,7 @@ class MavlinkBridge:
             convert = dataclasses.replace(convert, imu_message=self.imu_stream)
         self.converter = MavlinkConverter(convert, origin)
         self._depth_requested = self.converter.depth_message  # the pressure stream asked for
+        self._signing_key = _signing_key(self.config.signing_passphrase_file)
         self.counters: dict[str, Any] = {
             "messages_by_type": {}, "corrupt_frames": 0, "repaired_frames": 0, "samples": 0, "rejected": self.converter.rejected,
             "send_errors": 0, "reconnects": 0, "link_losses": 0, "odometry_sent": 0, "nav_silenced": 0, "nav_no_link": 0,
@@ -299,7 +314,7 @@ class MavlinkBridge:
         """MAVLink 2 signing's counts (None: off): signed messages in, bad signatures and the
         messages refused for them, unsigned ones taken."""
         signing = getattr(getattr(self._conn, "mav", None), "signing", None)
-        if not self.config.signing_passphrase or signing is None:
+        if self._signing_key is None or signing is None:
             return None
         return {"signed_in": signing.goodsig_count, "bad_signatures": signing.badsig_count,
                 "refused": signing.reject_count, "unsigned_accepted": signing.unsigned_count}
@@ -368,10 +383,9 @@ class MavlinkBridge:
             device, baud=baud, source_system=self.config.source_system,
             source_component=self.config.source_component, dialect="ardupilotmega", autoreconnect=False,
             retries=0)  # one TCP connect attempt: our loop owns the back-off
-        if self.config.signing_passphrase:
+        if self._signing_key is not None:
             accept = (lambda _mav, _msg_id: True) if self.config.signing_accept_unsigned else None
-            conn.setup_signing(hashlib.sha256(self.config.signing_passphrase.encode()).digest(),
-                               sign_outgoing=True, allow_unsigned_callback=accept)
+            conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=accept)
         if isinstance(conn, mavutil.mavtcp):
             # pymavlink prints and carries on at a TCP EOF/reset unless autoreconnect, which
             # would block this thread in its own retry loop: raise instead, so the loop

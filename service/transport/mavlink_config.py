@@ -170,7 +170,6 @@ class OdometryConfig:
             raise ValueError("max_velocity_sigma_m_s must be > 0")
 
 
-
 @dataclass(frozen=True)
 class StreamRates:
     """Rates requested from the autopilot, Hz (0 = leave the autopilot's default)."""
@@ -204,9 +203,11 @@ class BridgeConfig:
     rates: StreamRates = field(default_factory=StreamRates)
     udp_rcvbuf_bytes: int = 4 * 1024 * 1024
     # MAVLink 2 signing, for an autopilot that requires it (ArduPilot drops unsigned messages
-    # on a signed channel: our ODOMETRY would vanish): the passphrase the ground station set
-    # the key from (the key is its SHA-256, as MAVProxy and QGroundControl derive it); "" off
-    signing_passphrase: str = ""
+    # on a signed channel: our ODOMETRY would vanish): a file holding the passphrase the ground
+    # station set the key from (the key is its SHA-256, as MAVProxy and QGroundControl derive
+    # it) — a file, as zenoh.auth.password_file, so the secret is in neither the logged config
+    # nor the query/config answer; "" off
+    signing_passphrase_file: str = ""
     # ... and unsigned messages in are still taken (BlueOS's drivers — a DVL, a UGPS — send
     # through mavlink2rest, which does not sign); false: only correctly signed ones
     signing_accept_unsigned: bool = True

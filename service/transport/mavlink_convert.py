@@ -457,10 +457,18 @@ def dvl_from_vision_speed(msg: Any, t_s: float, cfg: ConvertConfig, R_nb: np.nda
         if R_nb is None:
             raise ConversionError("no_attitude", "VISION_SPEED_ESTIMATE in NED needs the attitude")
         vel = R_nb.T @ vel
-    cov = np.asarray(getattr(msg, "covariance", [math.nan]) or [math.nan], dtype=float)
-    diag = cov[[0, 4, 8]] if cov.size >= 9 else np.array([math.nan])
-    sigma = float(math.sqrt(max(diag))) if np.all(np.isfinite(diag)) and max(diag) > 0 else math.nan
+    sigma = _sigma_of_diagonal(getattr(msg, "covariance", None), [0, 4, 8])  # row-major 3×3
     return DvlSample(t_s, tuple(float(v) for v in vel), True, sigma_m_s=sigma)
+
+
+def _sigma_of_diagonal(covariance: Any, diagonal: list[int]) -> float:
+    """1-σ from a MAVLink covariance field: the square root of the largest of its ``diagonal``
+    entries; NaN (unknown) when one is missing or not finite, or none is positive."""
+    cov = np.asarray(covariance or [math.nan], dtype=float)
+    if cov.size <= max(diagonal):
+        return math.nan
+    diag = cov[diagonal]
+    return float(math.sqrt(diag.max())) if np.all(np.isfinite(diag)) and diag.max() > 0 else math.nan
 
 
 def dvl_from_odometry(msg: Any, t_s: float) -> DvlSample:
@@ -476,9 +484,7 @@ def dvl_from_odometry(msg: Any, t_s: float) -> DvlSample:
     vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
     if not np.all(np.isfinite(vel)):
         raise ConversionError("non_finite", "ODOMETRY velocity")
-    cov = np.asarray(getattr(msg, "velocity_covariance", [math.nan]) or [math.nan], dtype=float)
-    diag = cov[[0, 6, 11]] if cov.size >= 12 else np.array([math.nan])  # upper triangle of 6×6
-    sigma = float(math.sqrt(max(diag))) if np.all(np.isfinite(diag)) and max(diag) > 0 else math.nan
+    sigma = _sigma_of_diagonal(getattr(msg, "velocity_covariance", None), [0, 6, 11])  # upper triangle, 6×6
     return DvlSample(t_s, tuple(float(v) for v in vel), True, sigma_m_s=sigma)
 
 
@@ -531,8 +537,8 @@ IGNORED_WHY: dict[str, str] = {
         "MISSION_ACK", "MISSION_COUNT", "MISSION_REQUEST_LIST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT",
         "SET_MODE", "SET_MESSAGE_INTERVAL", "SET_GPS_GLOBAL_ORIGIN", "RC_CHANNELS_OVERRIDE", "GPS_RTCM_DATA")},
     "HEARTBEAT": "link liveness; gives the autopilot's system id",
-    "PARAM_VALUE": "the autopilot's parameters: BARO_PRIMARY names its water pressure sensor, GPS_TYPE/GPS1_TYPE says whether its GPS fixes are an underwater "
-                   "GPS's, no sample",
+    "PARAM_VALUE": "the autopilot's parameters: BARO_PRIMARY names its water pressure sensor, "
+                   "GPS_TYPE/GPS1_TYPE says whether its GPS fixes are an underwater GPS's, no sample",
     "EKF_STATUS_REPORT": "the autopilot's EKF health: its attitude flag gates ATTITUDE, no sample",
     "STATUSTEXT": "text; the autopilot's EKF (re)start and yaw alignment gate ATTITUDE, no sample",
     "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",

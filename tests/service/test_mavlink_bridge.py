@@ -228,7 +228,7 @@ def test_the_water_sensor_follows_the_autopilot_s_baro_primary(link):
     assert [round(s.pressure_pa) for s in got if s.KIND == "depth"] == [151325]
 
 
-def test_a_signing_autopilot_gets_signed_messages_and_unsigned_drivers_still_count():
+def test_a_signing_autopilot_gets_signed_messages_and_unsigned_drivers_still_count(tmp_path):
     """An autopilot with MAVLink 2 signing drops unsigned messages: with the ground station's
     passphrase configured, everything the bridge sends is signed with its key (the peer checks
     every signature and keeps only good ones), and an unsigned message from a companion driver
@@ -237,7 +237,9 @@ def test_a_signing_autopilot_gets_signed_messages_and_unsigned_drivers_still_cou
 
     port = free_udp_port()
     q = queue.Queue()
-    cfg = BridgeConfig(link_timeout_s=0.6, reconnect_min_s=0.05, signing_passphrase="reef 42")
+    passphrase = tmp_path / "signing"
+    passphrase.write_text("reef 42\n")
+    cfg = BridgeConfig(link_timeout_s=0.6, reconnect_min_s=0.05, signing_passphrase_file=str(passphrase))
     bridge = MavlinkBridge(f"udpin:127.0.0.1:{port}", q.put, GeoOrigin(math.radians(48.5), math.radians(-124.25), 0.0), cfg)
     peer = Peer(port)
     peer.conn.setup_signing(hashlib.sha256(b"reef 42").digest(), sign_outgoing=True)  # no unsigned accepted
