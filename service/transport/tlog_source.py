@@ -79,12 +79,14 @@ _TEXT_FIELD_FORMATS = frozenset("nNZaM")  # DataFlash format characters read as 
 def _clean_text_dataflash(data: bytes) -> tuple[bytes, int]:
     """The lines of a text DataFlash log that are records of its formats: ASCII, a known
     record name, as many fields as its ``FMT`` says, numbers where it says numbers.
-    Returns (the kept lines, the number of non-empty lines dropped)."""
+    Returns (the kept lines, the number of non-empty lines dropped). A last line without
+    its newline (the file was cut there) is left out and not counted: the reader's end
+    says so (:meth:`TlogSource._note_cut_off`)."""
     delimiter = b", " if b"FMT, " in data[:8000] else b","
     formats: dict[bytes, str] = {}
     kept: list[bytes] = []
     dropped = 0
-    for line in data.split(b"\n"):
+    for line in data.split(b"\n")[:-1]:
         line = line.rstrip(b"\r")
         if not line.strip():
             continue
@@ -174,6 +176,7 @@ class TlogSource:
         self._dataflash = suffix == ".bin" or self._text_dataflash
         self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
         self._text_lines_dropped_said = False
+        self._text_log_clean = False  # a text log checked line by line and found whole
         self._blueos = self.path.suffix.lower() == ".mcap"  # BlueOS's recording (blueos_mcap)
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
@@ -314,21 +317,23 @@ class TlogSource:
             conn.close()
 
     def _connect(self) -> Any:
-        """pymavlink's reader of the file. pymavlink's text DataFlash reader gives up on the
-        whole log at one bad line (a byte that is not UTF-8, a line of garbage where it looks
-        for a new record type); such a log is read from a copy without its bad lines
-        (:func:`_clean_text_dataflash`), counted as corrupt frames and said."""
-        try:
+        """pymavlink's reader of the file. A text DataFlash log is checked line by line first
+        (:func:`_clean_text_dataflash`): pymavlink's text reader gives up on the whole log at
+        one bad line (a byte that is not UTF-8, garbage where it looks for a new record type),
+        skips a line of too few fields or an unknown name without a word, and reads a line
+        that a block of zeros merged with the next as one record of wrong values. A log with
+        such lines is read from a copy without them, each counted as a corrupt frame and said."""
+        if not self._text_dataflash or self._text_log_clean:
             return self._open(self.path)
-        except Exception:  # noqa: BLE001 — whatever the text reader trips on, the copy avoids
-            if not self._text_dataflash:
-                raise
         clean, dropped = _clean_text_dataflash(self.path.read_bytes())
+        if not dropped:
+            self._text_log_clean = True  # the next opening (the truth scan's, the replay's) trusts it
+            return self._open(self.path)
         if not self._text_lines_dropped_said:
             self._text_lines_dropped_said = True
             self.counters["corrupt_frames"] += dropped
-            log.warning("%s: %d lines are not records of the log's formats (garbage, cut or non-text "
-                        "bytes); the rest is read", self.path.name, dropped)
+            log.warning("%s: %d lines are not records of the log's formats (garbage, lines merged "
+                        "by a block of zeros, non-text bytes); the rest is read", self.path.name, dropped)
         with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".log") as copy:
             copy.write(clean)
             copy.flush()

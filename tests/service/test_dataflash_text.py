@@ -76,6 +76,26 @@ def test_damaged_lines_in_a_text_log_are_counted_and_the_rest_is_read(logs):
     assert np.linalg.norm(end - end_whole) < 0.05
 
 
+def test_a_block_of_zeros_inside_a_text_log_is_counted_not_read_as_records(logs):
+    """A card's or a copy's block of zeros across line ends: pymavlink's text reader skipped
+    what became a line without fields and read the line the zeros merged as one record of
+    the first line's name with the fields of both, without a word."""
+    tmp, text, (_, _, rows_whole), _ = logs
+    data = bytearray(text.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 300] = bytes(300)
+    path = tmp / "zeros.log"
+    path.write_bytes(bytes(data))
+    code, summary, rows = _replay(path, tmp / "zeros")
+    assert code == 0
+    # the lines the block touched, each counted; no others
+    touched = bytes(data[:middle]).rsplit(b"\n", 1)[-1] + bytes(data[middle:middle + 300])
+    assert 1 <= summary["corrupt_frames"] <= touched.count(b"\n") + 2 and not summary.get("truncated")
+    end = np.array([float(x) for x in rows[-1][1:3]])
+    end_whole = np.array([float(x) for x in rows_whole[-1][1:3]])
+    assert len(rows) == len(rows_whole) and np.linalg.norm(end - end_whole) < 0.05
+
+
 def test_an_upper_case_log_name_is_a_text_log_too(logs):
     """``FILE.LOG`` (a Windows copy): pymavlink takes only ``.log`` for a text DataFlash log and
     read this one as telemetry — nothing replayed."""
