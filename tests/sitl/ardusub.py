@@ -58,15 +58,16 @@ def free_instance() -> int:
 class ArduSub:
     """The autopilot process (stopped by its PID)."""
 
-    def __init__(self, workdir: Path, gcs_port: int, bridge_port: int, home=HOME):
+    def __init__(self, workdir: Path, gcs_port: int, bridge_port: int, home=HOME, model: str = "vectored"):
         self.workdir = Path(workdir)
+        self.model = model  # SITL's vehicle: "vectored" (BlueROV2), "vectored_6dof" (BlueROV2 Heavy)
         self.gcs_port, self.bridge_port, self.home = gcs_port, bridge_port, home
         self.instance = free_instance()
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> "ArduSub":
         lat, lon = self.home
-        cmd = [str(BINARY), "--model", "vectored", "--speedup", "1", "--defaults", str(DEFAULTS),
+        cmd = [str(BINARY), "--model", self.model, "--speedup", "1", "--defaults", str(DEFAULTS),
                f"-I{self.instance}", "--home", f"{lat},{lon},0,0",
                "--serial0", f"udpclient:127.0.0.1:{self.gcs_port}",
                "--serial1", f"udpclient:127.0.0.1:{self.bridge_port}"]

@@ -142,22 +142,27 @@ PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
-           pattern: str = "default", dvl_hz: float | None = None, ugps_hz: float | None = None) -> Path:
+           pattern: str = "default", dvl_hz: float | None = None, ugps_hz: float | None = None,
+           heavy: bool = False) -> Path:
     """Run the autopilot, drive it, disarm; returns ``out/ardusub.BIN``. ``dvl_hz``: a DVL
     driver on the companion sends VISION_POSITION_DELTA at that rate (:class:`DvlDriver`;
     ArduSub logs it as VISO); ``ugps_hz``: an underwater GPS sends GPS_INPUT (:class:`UgpsDriver`,
-    ``GPS1_TYPE`` 14: it replaces the simulated GPS; ArduSub logs it as GPS)."""
+    ``GPS1_TYPE`` 14: it replaces the simulated GPS; ArduSub logs it as GPS); ``heavy``: a
+    BlueROV2 Heavy (SITL's ``vectored_6dof``, ``FRAME_CONFIG`` 2: the same four vectored
+    horizontal thrusters, four vertical ones, eight outputs)."""
     out.mkdir(parents=True, exist_ok=True)
     work = out / "ardusub-work"
     work.mkdir(exist_ok=True)
     gcs_port, bridge_port = free_udp_port(), free_udp_port()
-    sub = ArduSub(work, gcs_port, bridge_port).start()
+    sub = ArduSub(work, gcs_port, bridge_port, model="vectored_6dof" if heavy else "vectored").start()
     gcs = Gcs(gcs_port, keep=RECORDED, tlog=out / "session.tlog")
     dvl = ugps = None
     try:
         gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
         gcs.set_param("ARMING_CHECK", 0)
-        if dvl_hz or ugps_hz:
+        if heavy:
+            gcs.set_param("FRAME_CONFIG", 2)  # the motors are set up at boot
+        if dvl_hz or ugps_hz or heavy:
             if dvl_hz:
                 gcs.set_param("VISO_TYPE", 1)  # MAVLink visual odometry: takes effect after a reboot
             if ugps_hz:
@@ -249,5 +254,6 @@ if __name__ == "__main__":
     ap.add_argument("--pattern", choices=sorted(PATTERNS), default="default", help="drive shape")
     ap.add_argument("--dvl-hz", type=float, help="a DVL on the companion (VISION_POSITION_DELTA → VISO records)")
     ap.add_argument("--ugps-hz", type=float, help="an underwater GPS on the companion (GPS_INPUT → GPS records)")
+    ap.add_argument("--heavy", action="store_true", help="a BlueROV2 Heavy (eight thrusters)")
     a = ap.parse_args()
-    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern, a.dvl_hz, a.ugps_hz))
+    print(record(a.out, a.log_bitmask, a.legs, a.leg_s, a.pattern, a.dvl_hz, a.ugps_hz, a.heavy))
