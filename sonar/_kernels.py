@@ -610,3 +610,38 @@ def shadow_candidates(lev, run_label, run_row, run_near, run_far, n_px, shadow_s
         n_todo += 1
     counts[0] = n_hl
     counts[1] = n_todo
+
+
+@jit(cache=True)
+def slant_to_ground(samples, spacing_m, altitude_m, ground_m, out):
+    """:func:`adaptnav.sonar.waterfall.slant_to_ground_numpy` into ``out`` (P, n_out) float32,
+    any strides (a side of the waterfall image, the port side reversed): ``samples`` (P, N)
+    float32, ``altitude_m`` (P,) float32 (NaN replaced), ``ground_m`` (n_out,) float32 the
+    columns' ground ranges. Every step in float32 as numpy takes it (squares, sum, square root,
+    the division by the spacing rounded to float32, then ``− 0.5``, the floor, the linear
+    interpolation ``a + f (b − a)``); 0 where the slant index is outside the samples. The
+    slant indices are computed again only when the altitude changes from one ping to the next
+    (the altimeter's reading is often the same for many pings)."""
+    n_rows, n = samples.shape
+    n_out = ground_m.shape[0]
+    spacing = np.float32(spacing_m)
+    half, zero = np.float32(0.5), np.float32(0.0)
+    first = np.empty(n_out, np.int64)      # the slant samples each column lies between (clipped)
+    frac = np.empty(n_out, np.float32)
+    valid = np.empty(n_out, np.bool_)
+    for i in range(n_rows):
+        h = altitude_m[i]
+        if i == 0 or not h == altitude_m[i - 1]:
+            h2 = h * h
+            for j in range(n_out):
+                g = ground_m[j]
+                k = np.sqrt(g * g + h2) / spacing - half
+                k0 = np.floor(k)
+                frac[j] = k - k0
+                # tested before the integer conversion (k may be inf)
+                valid[j] = k0 >= 0 and k0 < n - 1
+                first[j] = int(k0) if valid[j] else (0 if not k0 >= 0 else n - 2)
+        for j in range(n_out):
+            a = samples[i, first[j]]
+            v = a + frac[j] * (samples[i, first[j] + 1] - a)
+            out[i, j] = v if valid[j] else zero

