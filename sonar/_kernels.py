@@ -155,10 +155,25 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             data[i, k] = d
             x[i, k] = v if d else zero
             msk[i, k] = np.float32(d)
+    # every row with data in the same columns (a waterfall: the columns beyond the slant range
+    # in every ping): then the rows of the mask's filters are all equal after their pass along
+    # the rows (each sum in one order, of equal lines), and the pass along the columns is made
+    # for the first row only
+    same_rows = True
+    for i in range(1, n_rows):
+        for k in range(n_cols):
+            if data[i, k] != data[0, k]:
+                same_rows = False
+                break
+        if not same_rows:
+            break
+    m_rows = 1 if same_rows else n_rows
     _gauss_rows(x, w_rows, tmp)
     _gauss_cols(tmp, w_cols, img)
     _gauss_rows(msk, w_rows, tmp)
-    _gauss_cols(tmp, w_cols, wgt)
+    _gauss_cols(tmp[:m_rows], w_cols, wgt[:m_rows])
+    for i in range(m_rows, n_rows):
+        wgt[i, :] = wgt[0, :]
     # (selects, not branches: the loops vectorise; a pixel without weight divides by 1)
     for i in range(n_rows):
         for k in range(n_cols):
@@ -173,7 +188,9 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
     _box_cols(tmp, box_cols, num)
     den = x
     _box_rows(msk, box_rows, tmp)
-    _box_cols(tmp, box_cols, den)
+    _box_cols(tmp[:m_rows], box_cols, den[:m_rows])
+    for i in range(m_rows, n_rows):
+        den[i, :] = den[0, :]
     for i in range(n_rows):
         for k in range(n_cols):
             d = den[i, k]

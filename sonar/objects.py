@@ -986,6 +986,9 @@ class ObjectFrontEndConfig:
     detector: ObjectDetectorConfig = ObjectDetectorConfig()
 
 
+_NAN4 = (math.nan,) * 4  # a velocity covariance not given
+
+
 class ObjectFrontEnd:
     """Pings + the navigation at each ping → batches of placed object sightings.
 
@@ -1042,8 +1045,9 @@ class ObjectFrontEnd:
             (:attr:`ObjectSighting.vel_cov`).
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
-        cov = np.asarray(nav_cov, float).reshape(2, 2)
-        if not (math.isfinite(ping.t_s) and np.isfinite(p).all() and np.isfinite(cov).all()
+        cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
+        pn, pe = float(p[0]), float(p[1])
+        if not (math.isfinite(ping.t_s) and math.isfinite(pn) and math.isfinite(pe) and all(map(math.isfinite, cov))
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
             return []
@@ -1059,8 +1063,8 @@ class ObjectFrontEnd:
                     self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
                 self._last_vel = (float(ping.t_s), p.copy(), v.copy())
         self._pings.append(ping)
-        vc = np.full(4, np.nan) if vel_cov is None else np.asarray(vel_cov, float).reshape(4)
-        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4), *self._jump, *vc))
+        vc = _NAN4 if vel_cov is None else np.asarray(vel_cov, float).reshape(4).tolist()
+        self._nav.append((pn, pe, float(yaw_rad), *cov, *self._jump.tolist(), *vc))
         self._n += 1
         c = self.config
         if self._n < self._next_emit + c.block_pings + c.context_pings:
@@ -1122,9 +1126,10 @@ class ObjectFrontEnd:
         idx = np.arange(len(pings), dtype=float)
         yaw_u = np.unwrap(nav[:, 2])
         half = max(c.context_pings // 2, 1)
+        t_ping_s = np.array([q.t_s for q in pings], dtype=float)
         out = []
         for o in objs:
-            gi = first + float(np.interp(o.t_s, [q.t_s for q in pings], idx))
+            gi = first + float(np.interp(o.t_s, t_ping_s, idx))
             if not start <= gi < start + c.block_pings:
                 continue
             li = gi - first
