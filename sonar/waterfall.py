@@ -403,8 +403,24 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     Equal to ``np.nanmedian(np.where(data, image, nan), axis)`` (the mean of the two
     middle values for an even count), vectorised: one sort along ``axis`` with the
     non-data pixels sorted last (``nanmedian`` loops over the other axis in Python, which
-    made it most of a streaming window's cost).
+    made it most of a streaming window's cost). A 2-D mask the same on every row (a waterfall:
+    no data beyond the slant range, in every ping) takes the data columns only, contiguous along
+    the median's axis, unmasked (0.5 vs 1.0 ms for both medians of a 200 x 1000 image).
     """
+    if data.ndim == 2 and image.ndim == 2 and image.dtype.kind == "f" and data.shape == image.shape \
+            and data.shape[0] and (data == data[:1]).all():
+        keep = np.flatnonzero(data[0])
+        s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
+        s.sort(axis=1)
+        m = s.shape[1]
+        out = np.full(image.shape[1 - axis], np.nan, dtype=s.dtype)
+        if m:
+            med = (s[:, (m - 1) // 2] + s[:, m // 2]) / s.dtype.type(2)
+            if axis == 0:
+                out[keep] = med
+            else:
+                out[:] = med
+        return out
     s = np.sort(np.where(data, image, np.inf), axis=axis)
     n = np.count_nonzero(data, axis=axis)
     lo = np.expand_dims(np.maximum(n - 1, 0) // 2, axis)
