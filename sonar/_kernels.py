@@ -133,6 +133,13 @@ def _box_cols(src, size, out):
                 out[i0 + q, k] = np.float32(acc[q] / fs)
 
 
+@jit(cache=True)
+def uniform_filter_rows(src, size, out):
+    """``scipy.ndimage.uniform_filter1d(src, size, axis=1)`` (mode ``reflect``) of a float32
+    (R, C) image into ``out`` float32 (:func:`_box_cols`; ``size`` ≤ C)."""
+    _box_cols(src, size, out)
+
+
 @jit(cache=True, error_model="numpy")
 def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count, min_background, work, data, lev):
     """The local level of :func:`adaptnav.sonar.objects.local_level` (module docstring) into ``lev``.

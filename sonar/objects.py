@@ -469,15 +469,19 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     ncol = min(int(config.near_range_m / res), lev.shape[1])
     if ncol <= 0:
         return []
-    from scipy.ndimage import find_objects
-
     sub = lev[:, :ncol + int(2.0 / res)]
-    lab, n = _label8(sub > config.near_highlight_level)
-    big = np.bincount(lab.ravel(), minlength=n + 1) >= config.near_min_px  # (most blobs are speckle)
+    lab, n, runs, n_px, _ = _components(sub > config.near_highlight_level, sub)
+    big = n_px >= config.near_min_px  # (most blobs are speckle)
+    # every blob's box (scipy.ndimage.find_objects) from its rows (runs by label, then row)
+    first = np.flatnonzero(np.r_[True, runs.label[1:] != runs.label[:-1]])
+    row0, row1 = runs.row[first].tolist(), (runs.row[np.r_[first[1:], runs.label.size] - 1] + 1).tolist()
+    col0 = np.minimum.reduceat(runs.near, first).tolist() if first.size else []
+    col1 = np.maximum.reduceat(runs.far, first).tolist() if first.size else []
     out = []
-    for k, sl in enumerate(find_objects(lab), start=1):
-        if sl is None or not big[k]:
+    for k in range(1, n + 1):
+        if not big[k]:
             continue
+        sl = (slice(row0[k - 1], row1[k - 1]), slice(col0[k - 1], col1[k - 1]))
         comp = lab[sl] == k
         rr = np.flatnonzero(comp.any(axis=1))
         if rr.size < config.near_min_rows:

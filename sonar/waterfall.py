@@ -27,7 +27,6 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
 
 from adaptnav.sonar.ping import SonarPing
 
@@ -233,7 +232,17 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     numpy.ndarray, shape (P,)
         Slant range (m) of the first return; NaN when a ping has no return.
     """
-    sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
+    if samples.ndim == 2 and samples.shape[1] >= 5:
+        from adaptnav.sonar import _kernels
+
+        # scipy.ndimage.uniform_filter1d(samples, 5, axis=1), its running sums bit for bit (the
+        # calibrator child need not import scipy.ndimage for it)
+        sm = np.empty(samples.shape, np.float32)
+        _kernels.uniform_filter_rows(np.ascontiguousarray(samples, dtype=np.float32), 5, sm)
+    else:
+        from scipy.ndimage import uniform_filter1d
+
+        sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
     level = row_percentile(sm, 75)
     above = sm > (fraction * level)[:, None]
     above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
@@ -249,9 +258,17 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     idx[~above.any(axis=1) | (level <= 0)] = np.nan
     rng_m = (idx + 0.5) * sample_spacing_m
     if smooth_pings > 1 and rng_m.size >= smooth_pings:
-        filled = np.where(np.isfinite(rng_m), rng_m, np.nanmedian(rng_m))
-        rng_m = np.where(np.isfinite(rng_m), median_filter(filled, smooth_pings, mode="nearest"), np.nan)
+        finite = np.isfinite(rng_m)
+        filled = rng_m if finite.all() else np.where(finite, rng_m, np.nanmedian(rng_m))
+        rng_m = np.where(finite, median_filter_nearest(filled, smooth_pings), np.nan)
     return rng_m
+
+
+def median_filter_nearest(x: np.ndarray, size: int) -> np.ndarray:
+    """``scipy.ndimage.median_filter(x, size, mode="nearest")`` of a 1-D array: the value of rank
+    ``size // 2`` in each window (numpy's sort of the ``len(x)`` windows, edges repeated)."""
+    pad = np.pad(x, (size // 2, (size - 1) // 2), mode="edge")
+    return np.sort(np.lib.stride_tricks.sliding_window_view(pad, size), axis=1)[:, size // 2]
 
 
 def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,

@@ -216,3 +216,21 @@ def test_compiled_slant_to_ground_equals_numpy():
             image = np.zeros((40, 800), np.float32)  # into a reversed view, as the waterfall's port side
             slant_to_ground(samples, 0.05, alt, res, 400, out=image[:, 399::-1])
             np.testing.assert_array_equal(image[:, 399::-1], ref)
+
+
+def test_first_return_filters_are_scipys():
+    from scipy.ndimage import median_filter, uniform_filter1d
+
+    from adaptnav.sonar import _kernels
+    from adaptnav.sonar.waterfall import median_filter_nearest
+
+    rng = np.random.default_rng(7)
+    for size in range(1, 8):
+        for n in (size, size + 3, 200):
+            x = np.round(rng.gamma(2.0, 3.0, n), 1)  # (ties)
+            np.testing.assert_array_equal(median_filter_nearest(x, size), median_filter(x, size, mode="nearest"))
+    for shape in ((1, 5), (30, 512), (7, 6)):
+        samples = (rng.gamma(1.0, 1.0, shape) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
+        out = np.empty(shape, np.float32)
+        _kernels.uniform_filter_rows(samples, 5, out)
+        np.testing.assert_array_equal(out.view(np.uint32), uniform_filter1d(samples, 5, axis=1).view(np.uint32))
