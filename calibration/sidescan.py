@@ -90,7 +90,7 @@ class CalibratorSonar:
         also for a block without objects)."""
         pos, sigma = self.dead_reckoning.push(ping)
         s = sigma if math.isfinite(sigma) else 1e3
-        sightings = self.front_end.push(ping, pos, _EYE2 * s * s, float(ping.heading_rad))
+        sightings = self.front_end.push(ping, pos, _EYE2 * (s * s), float(ping.heading_rad))
         return ObjectBatch(float(ping.t_s), tuple(sightings)) if sightings else None
 
     def finish(self) -> ObjectBatch | None:

@@ -95,7 +95,9 @@ class AnchoredDeadReckoning:
         if self._last is not None:
             t0, v0, yaw0 = self._last
             mid = yaw0 + 0.5 * math.remainder(yaw - yaw0, 2.0 * math.pi)
-            self._dr = self._dr + 0.5 * (v0 + speed) * (t - t0) * np.array([math.cos(mid), math.sin(mid)])
+            step = 0.5 * (v0 + speed) * (t - t0)
+            dn, de = self._dr.tolist()  # (per ping: Python floats, the same operations as numpy's)
+            self._dr = np.array((dn + step * math.cos(mid), de + step * math.sin(mid)))
         t_prev = self._last[0] if self._last is not None else t
         self._last = (t, speed, yaw)
         keep = []

@@ -469,15 +469,19 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     ncol = min(int(config.near_range_m / res), lev.shape[1])
     if ncol <= 0:
         return []
-    from scipy.ndimage import find_objects
-
     sub = lev[:, :ncol + int(2.0 / res)]
-    lab, n = _label8(sub > config.near_highlight_level)
-    big = np.bincount(lab.ravel(), minlength=n + 1) >= config.near_min_px  # (most blobs are speckle)
+    lab, n, runs, n_px, _ = _components(sub > config.near_highlight_level, sub)
+    big = n_px >= config.near_min_px  # (most blobs are speckle)
+    # every blob's box (scipy.ndimage.find_objects) from its rows (runs by label, then row)
+    first = np.flatnonzero(np.r_[True, runs.label[1:] != runs.label[:-1]])
+    row0, row1 = runs.row[first].tolist(), (runs.row[np.r_[first[1:], runs.label.size] - 1] + 1).tolist()
+    col0 = np.minimum.reduceat(runs.near, first).tolist() if first.size else []
+    col1 = np.maximum.reduceat(runs.far, first).tolist() if first.size else []
     out = []
-    for k, sl in enumerate(find_objects(lab), start=1):
-        if sl is None or not big[k]:
+    for k in range(1, n + 1):
+        if not big[k]:
             continue
+        sl = (slice(row0[k - 1], row1[k - 1]), slice(col0[k - 1], col1[k - 1]))
         comp = lab[sl] == k
         rr = np.flatnonzero(comp.any(axis=1))
         if rr.size < config.near_min_rows:
@@ -523,11 +527,12 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     rows, tests and deep shadows in numpy, the candidates measured one by one in Python
     (:func:`_shadowed_loop`)."""
     if compiled:
-        lab, n = _label8(lev < config.shadow_level)
+        lab, n, runs, n_px, shadow_sum = _components(lev < config.shadow_level, lev)
     else:
         from scipy.ndimage import label
 
         lab, n = label(lev < config.shadow_level, structure=np.ones((3, 3), bool))
+        runs, n_px, shadow_sum = _component_rows_numpy(lab, n, lev)
     if n == 0:
         return []
     hw = max(int(round(config.highlight_window_m / res)), 2)
@@ -537,7 +542,6 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     # the tests every component must pass before its attributes are measured, for all
     # components at once (a side has hundreds of speckle components; testing them one by one
     # in Python was most of the detector's cost): size, shadow length, range, a highlight
-    runs, n_px, shadow_sum = (_component_rows if compiled else _component_rows_numpy)(lab, n, lev)
     least = min(config.short_min_contrast, config.compact_min_contrast, config.min_contrast)
     deep = (_deep_shadow_rows if compiled else _deep_shadow_rows_scan)(lev, runs, config.deep_shadow_level)
     out = []
@@ -809,28 +813,35 @@ def _label8(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return label(mask, structure=np.ones((3, 3), bool))
 
 
-def _component_rows(lab: np.ndarray, n: int, lev: np.ndarray) -> tuple[_Runs, np.ndarray, np.ndarray]:
-    """Per component and row, its first and one-past-last column (:class:`_Runs`); the pixel
-    count and the sum of ``lev`` of every component (index = label; entry 0, the background,
-    is 0). The sums add each component's pixels in raster order, as ``numpy.bincount`` over the
-    whole image does. By :func:`adaptnav.sonar._kernels.component_runs` (two raster passes; the
-    numpy version below, its reference, sorted every labelled pixel: ~10 % of the detector's
-    CPU) for int32 labels and a float32 ``lev`` of the same shape."""
-    if lab.ndim == 2 and lab.dtype == np.int32 and lev.dtype == np.float32 and lev.shape == lab.shape \
-            and lev.flags.aligned and lev.flags.writeable:
+def _components(mask: np.ndarray, lev: np.ndarray) -> tuple[np.ndarray, int, _Runs, np.ndarray, np.ndarray]:
+    """:func:`_label8` of ``mask`` and, per component and row, its first and one-past-last
+    column (:class:`_Runs`); the pixel count and the sum of ``lev`` of every component (index =
+    label; entry 0, the background, is 0), each component's pixels added in raster order as
+    ``numpy.bincount`` over the whole image adds them: :func:`_component_rows_numpy` of the
+    labels (the reference), by :func:`adaptnav.sonar._kernels.label8_runs` from the rows' runs
+    of True pixels (a few per cent of the image) for a 2-D boolean mask and a float32 ``lev``
+    of its shape (any strides)."""
+    if mask.ndim == 2 and mask.dtype == np.bool_ and mask.size and lev.dtype == np.float32 \
+            and lev.shape == mask.shape and lev.flags.aligned and lev.flags.writeable:
         from adaptnav.sonar import _kernels
 
-        runs = np.empty((4, lab.size), np.int64)  # ≤ one run per pixel; pages touched only where written
-        n_px = np.empty(n + 1, np.int64)
-        shadow_sum = np.empty(n + 1)
-        m = int(_kernels.component_runs(np.ascontiguousarray(lab), int(n), lev, runs, n_px, shadow_sum))
-        return _Runs(runs[0, :m], runs[1, :m], runs[2, :m], runs[3, :m]), n_px, shadow_sum
-    return _component_rows_numpy(lab, n, lev)
+        n_rows, n_cols = mask.shape
+        lab = np.empty(mask.shape, np.int32)
+        runs = np.empty((4, n_rows * ((n_cols + 1) // 2)), np.int64)  # ≤ one run per segment; pages touched only where written
+        n_px = np.empty(n_rows * n_cols // 2 + 2, np.int64)            # ≤ one label per 2 px (8-connected), + background
+        shadow_sum = np.empty(n_px.size)
+        counts = np.zeros(2, np.int64)
+        _kernels.label8_runs(np.ascontiguousarray(mask), lev, lab, runs, n_px, shadow_sum, counts)
+        n, m = int(counts[0]), int(counts[1])
+        return lab, n, _Runs(runs[0, :m], runs[1, :m], runs[2, :m], runs[3, :m]), n_px[:n + 1], shadow_sum[:n + 1]
+    lab, n = _label8(mask)
+    return (lab, n) + _component_rows_numpy(lab, n, lev)
 
 
 def _component_rows_numpy(lab: np.ndarray, n: int, lev: np.ndarray) -> tuple[_Runs, np.ndarray, np.ndarray]:
-    """:func:`_component_rows` in numpy (the compiled kernel's reference): the labelled pixels
-    sorted by label, raster order kept within."""
+    """The runs, pixel counts and sums of :func:`_components` of the labels ``lab`` (1…``n``)
+    in numpy (the compiled kernel's reference): the labelled pixels sorted by label, raster
+    order kept within."""
     flat = np.flatnonzero(lab)
     ll = lab.ravel()[flat]
     rr, cc = np.divmod(flat, lab.shape[1])
@@ -986,6 +997,9 @@ class ObjectFrontEndConfig:
     detector: ObjectDetectorConfig = ObjectDetectorConfig()
 
 
+_NAN4 = (math.nan,) * 4  # a velocity covariance not given
+
+
 class ObjectFrontEnd:
     """Pings + the navigation at each ping → batches of placed object sightings.
 
@@ -1042,8 +1056,9 @@ class ObjectFrontEnd:
             (:attr:`ObjectSighting.vel_cov`).
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
-        cov = np.asarray(nav_cov, float).reshape(2, 2)
-        if not (math.isfinite(ping.t_s) and np.isfinite(p).all() and np.isfinite(cov).all()
+        cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
+        pn, pe = float(p[0]), float(p[1])
+        if not (math.isfinite(ping.t_s) and math.isfinite(pn) and math.isfinite(pe) and all(map(math.isfinite, cov))
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
             return []
@@ -1059,8 +1074,8 @@ class ObjectFrontEnd:
                     self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
                 self._last_vel = (float(ping.t_s), p.copy(), v.copy())
         self._pings.append(ping)
-        vc = np.full(4, np.nan) if vel_cov is None else np.asarray(vel_cov, float).reshape(4)
-        self._nav.append((p[0], p[1], float(yaw_rad), *cov.reshape(4), *self._jump, *vc))
+        vc = _NAN4 if vel_cov is None else np.asarray(vel_cov, float).reshape(4).tolist()
+        self._nav.append((pn, pe, float(yaw_rad), *cov, *self._jump.tolist(), *vc))
         self._n += 1
         c = self.config
         if self._n < self._next_emit + c.block_pings + c.context_pings:
@@ -1122,9 +1137,10 @@ class ObjectFrontEnd:
         idx = np.arange(len(pings), dtype=float)
         yaw_u = np.unwrap(nav[:, 2])
         half = max(c.context_pings // 2, 1)
+        t_ping_s = np.array([q.t_s for q in pings], dtype=float)
         out = []
         for o in objs:
-            gi = first + float(np.interp(o.t_s, [q.t_s for q in pings], idx))
+            gi = first + float(np.interp(o.t_s, t_ping_s, idx))
             if not start <= gi < start + c.block_pings:
                 continue
             li = gi - first

@@ -27,7 +27,6 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
 
 from adaptnav.sonar.ping import SonarPing
 
@@ -185,11 +184,33 @@ def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     bad = [i for i, p in enumerate(pings) if p.n_samples != n]
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
-    port = np.stack([p.port for p in pings]).astype(np.float32, copy=False)  # (a new array already)
-    stbd = np.stack([p.starboard for p in pings]).astype(np.float32, copy=False)
-    np.nan_to_num(port, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    np.nan_to_num(stbd, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    return port, stbd
+    out = []
+    for side in ([p.port for p in pings], [p.starboard for p in pings]):
+        # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
+        a = np.concatenate(side).astype(np.float32, copy=False).reshape(len(pings), n)  # (a new array already)
+        bad = ~np.isfinite(a)
+        if bad.any():
+            a[bad] = 0.0
+        out.append(a)
+    return out[0], out[1]
+
+
+def row_percentile(a: np.ndarray, q: float) -> np.ndarray:
+    """``numpy.percentile(a, q, axis=1)`` of a 2-D float array (its "linear" method; ``q`` a
+    Python number in [0, 100]): each row sorted once, numpy's interpolation between the two
+    sorted values around ``(n − 1) q / 100``, NaN for a row holding a NaN. numpy partitions
+    every row on four indices; sorting a ping's 512 float32 samples (numpy's SIMD sort) is ten
+    times faster (0.06 vs 0.66 ms for 200 pings; the first return's level, once per side and block)."""
+    s = np.sort(a, axis=1)
+    n = s.shape[1]
+    virtual = (n - 1) * (q / 100)  # numpy's index for "linear"; at the top both neighbours are the last
+    prev = n - 1 if virtual >= n - 1 else int(math.floor(virtual))
+    t = virtual - prev
+    lo, hi = s[:, prev], s[:, min(prev + 1, n - 1)]
+    diff = hi - lo
+    # numpy's _lerp: the weight a Python float (weak: in a's dtype), from the nearer neighbour
+    out = hi - diff * (1 - t) if t >= 0.5 else lo + diff * t
+    return np.where(np.isnan(s[:, -1]), s.dtype.type(np.nan), out)
 
 
 def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
@@ -215,8 +236,18 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     numpy.ndarray, shape (P,)
         Slant range (m) of the first return; NaN when a ping has no return.
     """
-    sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
-    level = np.percentile(sm, 75, axis=1)
+    if samples.ndim == 2 and samples.shape[1] >= 5:
+        from adaptnav.sonar import _kernels
+
+        # scipy.ndimage.uniform_filter1d(samples, 5, axis=1), its running sums bit for bit (the
+        # calibrator child need not import scipy.ndimage for it)
+        sm = np.empty(samples.shape, np.float32)
+        _kernels.uniform_filter_rows(np.ascontiguousarray(samples, dtype=np.float32), 5, sm)
+    else:
+        from scipy.ndimage import uniform_filter1d
+
+        sm = uniform_filter1d(samples.astype(np.float32, copy=False), 5, axis=1)
+    level = row_percentile(sm, 75)
     above = sm > (fraction * level)[:, None]
     above[:, : int(math.ceil(blanking_m / sample_spacing_m))] = False
     idx = np.argmax(above, axis=1)
@@ -231,17 +262,27 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     idx[~above.any(axis=1) | (level <= 0)] = np.nan
     rng_m = (idx + 0.5) * sample_spacing_m
     if smooth_pings > 1 and rng_m.size >= smooth_pings:
-        filled = np.where(np.isfinite(rng_m), rng_m, np.nanmedian(rng_m))
-        rng_m = np.where(np.isfinite(rng_m), median_filter(filled, smooth_pings, mode="nearest"), np.nan)
+        finite = np.isfinite(rng_m)
+        filled = rng_m if finite.all() else np.where(finite, rng_m, np.nanmedian(rng_m))
+        rng_m = np.where(finite, median_filter_nearest(filled, smooth_pings), np.nan)
     return rng_m
 
 
+def median_filter_nearest(x: np.ndarray, size: int) -> np.ndarray:
+    """``scipy.ndimage.median_filter(x, size, mode="nearest")`` of a 1-D array: the value of rank
+    ``size // 2`` in each window (numpy's sort of the ``len(x)`` windows, edges repeated)."""
+    pad = np.pad(x, (size // 2, (size - 1) // 2), mode="edge")
+    return np.sort(np.lib.stride_tricks.sliding_window_view(pad, size), axis=1)[:, size // 2]
+
+
 def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
-                    ground_res_m: float, n_out: int) -> np.ndarray:
+                    ground_res_m: float, n_out: int, out: np.ndarray | None = None) -> np.ndarray:
     """Resample slant-range samples at uniform ground range on a flat seabed.
 
     ``r_j = sqrt(g_j² + H²)`` with ``g_j = (j + ½) ground_res_m``; linear interpolation
     between slant samples ``r_k = (k + ½) sample_spacing_m``; 0 beyond the last sample.
+    Float32 samples by :func:`adaptnav.sonar._kernels.slant_to_ground` (0.08 vs 0.42 ms for
+    200 pings of 512 samples; the same numbers), others by :func:`slant_to_ground_numpy`.
 
     Parameters
     ----------
@@ -251,11 +292,29 @@ def slant_to_ground(samples: np.ndarray, sample_spacing_m: float, altitude_m: np
         NaN altitudes are treated as 0 (slant = ground).
     ground_res_m : float
     n_out : int
+    out : numpy.ndarray, shape (P, n_out), float32, optional
+        Written and returned (any strides: a side of the waterfall image).
 
     Returns
     -------
     numpy.ndarray, shape (P, n_out), float32
     """
+    if out is None:
+        out = np.empty((samples.shape[0], n_out), np.float32)
+    if samples.ndim == 2 and samples.dtype == np.float32:
+        from adaptnav.sonar import _kernels
+
+        h = np.ascontiguousarray(np.nan_to_num(np.asarray(altitude_m, dtype=np.float32), nan=0.0))
+        g = (np.arange(n_out, dtype=np.float32) + 0.5) * np.float32(ground_res_m)
+        _kernels.slant_to_ground(np.ascontiguousarray(samples), float(sample_spacing_m), h, g, out)
+    else:
+        out[...] = slant_to_ground_numpy(samples, sample_spacing_m, altitude_m, ground_res_m, n_out)
+    return out
+
+
+def slant_to_ground_numpy(samples: np.ndarray, sample_spacing_m: float, altitude_m: np.ndarray,
+                          ground_res_m: float, n_out: int) -> np.ndarray:
+    """:func:`slant_to_ground` in numpy (the compiled kernel's reference; any sample dtype)."""
     p, n = samples.shape
     h = np.nan_to_num(np.asarray(altitude_m, dtype=np.float32), nan=0.0)
     g = (np.arange(n_out, dtype=np.float32) + 0.5) * np.float32(ground_res_m)
@@ -326,8 +385,10 @@ def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, al
     ok = k1 - k0 >= 8
     if ok.sum() < 3:
         return port, stbd
-    both = np.concatenate([port, stbd], axis=1)
-    cols = np.concatenate([np.arange(n), np.arange(n)])
+    # the samples up to the deepest water column only (the median sorts every row it is given)
+    m = int(k1.max())
+    both = np.concatenate([port[:, :m], stbd[:, :m]], axis=1)
+    cols = np.concatenate([np.arange(m), np.arange(m)])
     water = (cols[None, :] >= k0) & (cols[None, :] < k1[:, None])
     level = masked_median(both, water, axis=1)
     base = float(np.nanmedian(level[ok]))
@@ -337,9 +398,11 @@ def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, al
     if not np.any(excess > 0):
         return port, stbd
     floor = np.float32(0.25 * base)
-    port = np.maximum(port - excess[:, None], floor).astype(np.float32)
-    stbd = np.maximum(stbd - excess[:, None], floor).astype(np.float32)
-    return port, stbd
+    out = []
+    for a in (port, stbd):
+        a = (a - excess[:, None]).astype(np.float32, copy=False)
+        out.append(np.maximum(a, floor, out=a))
+    return out[0], out[1]
 
 
 def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
@@ -363,8 +426,24 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     Equal to ``np.nanmedian(np.where(data, image, nan), axis)`` (the mean of the two
     middle values for an even count), vectorised: one sort along ``axis`` with the
     non-data pixels sorted last (``nanmedian`` loops over the other axis in Python, which
-    made it most of a streaming window's cost).
+    made it most of a streaming window's cost). A 2-D mask the same on every row (a waterfall:
+    no data beyond the slant range, in every ping) takes the data columns only, contiguous along
+    the median's axis, unmasked (0.5 vs 1.0 ms for both medians of a 200 x 1000 image).
     """
+    if data.ndim == 2 and image.ndim == 2 and image.dtype.kind == "f" and data.shape == image.shape \
+            and data.shape[0] and (data == data[:1]).all():
+        keep = np.flatnonzero(data[0])
+        s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
+        s.sort(axis=1)
+        m = s.shape[1]
+        out = np.full(image.shape[1 - axis], np.nan, dtype=s.dtype)
+        if m:
+            med = (s[:, (m - 1) // 2] + s[:, m // 2]) / s.dtype.type(2)
+            if axis == 0:
+                out[keep] = med
+            else:
+                out[:] = med
+        return out
     s = np.sort(np.where(data, image, np.inf), axis=axis)
     n = np.count_nonzero(data, axis=axis)
     lo = np.expand_dims(np.maximum(n - 1, 0) // 2, axis)
@@ -411,9 +490,9 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     alt = _altitudes(pings, port, stbd, cfg)
     if cfg.line_removal:
         port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
-    g_port = slant_to_ground(port, dr, alt[:, 0], res, n_side)
-    g_stbd = slant_to_ground(stbd, dr, alt[:, 1], res, n_side)
-    image = np.hstack([g_port[:, ::-1], g_stbd])
+    image = np.empty((len(pings), 2 * n_side), np.float32)
+    slant_to_ground(port, dr, alt[:, 0], res, n_side, out=image[:, n_side - 1::-1])  # port: nearest in the middle
+    slant_to_ground(stbd, dr, alt[:, 1], res, n_side, out=image[:, n_side:])
 
     t = np.array([p.t_s for p in pings], dtype=float)
     heading = np.array([p.heading_rad for p in pings], dtype=float)

@@ -59,7 +59,8 @@ def _exercise_sonar_kernels() -> None:
 
     from adaptnav.sonar.objects import (ObjectDetectorConfig, _deep_shadow_rows, _detect_near, _detect_shadowed,
                                         _Runs, local_level)
-    from adaptnav.sonar.waterfall import Waterfall
+    from adaptnav.sonar.ping import SonarPing
+    from adaptnav.sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall
 
     rng = np.random.default_rng(0)
     rows, w = 64, 128
@@ -80,6 +81,10 @@ def _exercise_sonar_kernels() -> None:
         _deep_shadow_rows(sub, runs, 0.3)
         _detect_shadowed(sub, side, *args)
         _detect_near(sub, side, *args)
+    # the waterfall of a block of pings as the object front end builds it
+    pings = [SonarPing(t_s=0.1 * i, port=row[:w], starboard=row[w:], slant_range_m=12.8, altitude_m=3.0 + 0.01 * i)
+             for i, row in enumerate(image)]
+    build_waterfall(pings, WaterfallConfig(ground_res_m=0.1, resample_along=False, line_removal=True))
 
 
 def run(args):

@@ -1,4 +1,4 @@
-"""The side-scan object detector's compiled steps (sonar._kernels: label8, component_runs,
+"""The side-scan object detector's compiled steps (sonar._kernels: label8, label8_runs,
 shadowed_measures) against the numpy/scipy/Python they replace: the same numbers, bit for bit
 (issue 17: the calibrator child's detection per block)."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from scipy.ndimage import label
 
 from adaptnav.sonar import _kernels
-from adaptnav.sonar.objects import (ObjectDetectorConfig, _component_rows, _component_rows_numpy, _detect_shadowed,
+from adaptnav.sonar.objects import (ObjectDetectorConfig, _component_rows_numpy, _components, _detect_shadowed,
                                     _label8, local_level)
 
 
@@ -50,10 +50,13 @@ def test_label8_is_scipy_label_with_8_connectivity():
 def test_component_runs_are_the_numpy_ones():
     rng = np.random.default_rng(42)
     for view, mask in _masks(rng, 120):
-        lab, n = _label8(mask)
+        lab, n, runs, n_px, sums = _components(mask, view)
+        ref, n_ref = label(mask, structure=np.ones((3, 3), bool))
+        assert n == n_ref and lab.dtype == ref.dtype and np.array_equal(lab, ref)
         if n == 0:
+            assert runs.label.size == 0 and np.array_equal(n_px, [0]) and np.array_equal(sums, [0.0])
             continue
-        (runs, n_px, sums), (r_runs, r_n_px, r_sums) = _component_rows(lab, n, view), _component_rows_numpy(lab, n, view)
+        r_runs, r_n_px, r_sums = _component_rows_numpy(ref, n_ref, view)
         for a, b in zip(runs, r_runs):  # (the labels int64 here, the label image's int32 there)
             assert a.dtype.kind == b.dtype.kind == "i" and np.array_equal(a, b)
         assert np.array_equal(n_px, r_n_px)
@@ -159,8 +162,7 @@ def test_compiled_candidate_tests_are_the_numpy_ones():
         w = img.shape[1] // 2
         alt = rng.uniform(6.0, 12.0, img.shape[0]) if trial != 3 else np.full(img.shape[0], math.nan)
         for sub in (lev[:, w:], lev[:, w - 1::-1]):
-            lab, n = _label8(sub < config.shadow_level)
-            runs, n_px, sums = _component_rows(lab, n, sub)
+            lab, n, runs, n_px, sums = _components(sub < config.shadow_level, sub)
             deep = np.asarray(rng.integers(0, 30, runs.label.size), np.int64)
             hw = max(int(round(config.highlight_window_m / 0.1)), 2)
             least = min(config.short_min_contrast, config.compact_min_contrast, config.min_contrast)

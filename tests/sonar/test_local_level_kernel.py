@@ -23,6 +23,10 @@ def _images(rng, n):
         image = (rng.gamma(1.0, 1.0, (rows, cols)) * (rng.random((rows, cols)) > 0.3 * rng.random())).astype(np.float32)
         if k % 4 == 0:  # a water column / beyond-range band without data
             image[:, : int(rng.integers(0, cols))] = 0.0
+        if k % 3 == 1:  # data in the same columns on every row (a waterfall: its far ends without)
+            image = rng.gamma(1.0, 1.0, (rows, cols)).astype(np.float32) + np.float32(1e-3)
+            image[:, : int(rng.integers(0, cols // 3 + 1))] = 0.0
+            image[:, cols - int(rng.integers(0, cols // 3 + 1)):] = 0.0
         if k % 5 == 0:  # values the mask must leave out
             image[rng.random((rows, cols)) < 0.05] = -1.0
             image[0, 0] = np.nan

@@ -138,7 +138,11 @@ def test_masked_median_equals_numpy_nanmedian_on_the_data_pixels():
         h, w = rng.integers(1, 60), rng.integers(1, 90)
         img = (rng.gamma(1.0, 1.0, (h, w)) * (rng.random((h, w)) > rng.random())).astype(np.float32)
         img[:, rng.integers(0, w)] = 0.0  # a column without data
+        if _ % 3 == 0:  # data in the same columns on every row (a waterfall's far ends without)
+            img = rng.gamma(1.0, 1.0, (h, w)).astype(np.float32) * (rng.random(w) > 0.2)
         data = img > 0
+        if _ % 6 == 0:
+            data = np.broadcast_to(rng.random(w) > 0.5, img.shape)
         for axis in (0, 1):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -173,3 +177,60 @@ def test_auto_bottom_takes_a_late_echo_over_the_altimeter_only_when_both_sides_s
     alt = _altitudes(pings, port, stbd, WaterfallConfig(bottom="auto"))
     assert np.allclose(alt[:, 0], expect_port_m, atol=0.15), alt[:, 0]
     assert np.allclose(alt[:, 1], expect_stbd_m, atol=0.15), alt[:, 1]
+
+
+def test_row_percentile_equals_numpy_percentile():
+    from adaptnav.sonar.waterfall import row_percentile
+
+    rng = np.random.default_rng(5)
+    for i in range(60):
+        rows, n = rng.integers(1, 20), rng.integers(1, 600)
+        a = (rng.gamma(1.0, 1.0, (rows, n)) * rng.choice([1e-3, 1.0, 1e4])).astype([np.float32, np.float64][i % 2])
+        if i % 3 == 0:
+            a = np.round(a, 1)  # ties
+        if i % 4 == 0:
+            a[rng.integers(0, rows), rng.integers(0, n)] = np.nan
+        for q in (0, 10, 33.3, 50, 62.5, 75, 99, 100):
+            ref = np.percentile(a, q, axis=1)
+            got = row_percentile(a, q)
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
+
+
+def test_compiled_slant_to_ground_equals_numpy():
+    import warnings
+
+    from adaptnav.sonar.waterfall import slant_to_ground_numpy
+
+    rng = np.random.default_rng(6)
+    samples = rng.gamma(2.0, 0.5, (40, 300)).astype(np.float32)
+    altitudes = (np.full(40, 10.0), rng.uniform(0.0, 40.0, 40), np.repeat(rng.uniform(0.0, 20.0, 8), 5),
+                 np.where(rng.random(40) < 0.3, np.nan, 7.7), np.r_[np.inf, np.full(39, 5.0)])
+    for alt in altitudes:
+        for res in (0.1, 0.0371, 0.5):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # numpy's overflow on the infinite altitude
+                ref = slant_to_ground_numpy(samples, 0.05, alt, res, 400)
+            got = slant_to_ground(samples, 0.05, alt, res, 400)
+            np.testing.assert_array_equal(got, ref)
+            image = np.zeros((40, 800), np.float32)  # into a reversed view, as the waterfall's port side
+            slant_to_ground(samples, 0.05, alt, res, 400, out=image[:, 399::-1])
+            np.testing.assert_array_equal(image[:, 399::-1], ref)
+
+
+def test_first_return_filters_are_scipys():
+    from scipy.ndimage import median_filter, uniform_filter1d
+
+    from adaptnav.sonar import _kernels
+    from adaptnav.sonar.waterfall import median_filter_nearest
+
+    rng = np.random.default_rng(7)
+    for size in range(1, 8):
+        for n in (size, size + 3, 200):
+            x = np.round(rng.gamma(2.0, 3.0, n), 1)  # (ties)
+            np.testing.assert_array_equal(median_filter_nearest(x, size), median_filter(x, size, mode="nearest"))
+    for shape in ((1, 5), (30, 512), (7, 6)):
+        samples = (rng.gamma(1.0, 1.0, shape) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
+        out = np.empty(shape, np.float32)
+        _kernels.uniform_filter_rows(samples, 5, out)
+        np.testing.assert_array_equal(out.view(np.uint32), uniform_filter1d(samples, 5, axis=1).view(np.uint32))
