@@ -341,23 +341,28 @@ class Estimator:
         cov VEL_NE)`` — the same numbers, without building the whole state (the ping's
         record was a tenth of the replaying process with side-scan). Where the published
         state needs more than these blocks (an output lever arm, the autopilot's heading
-        frame), it is :meth:`nav_state` itself."""
+        frame), it is :meth:`nav_state` itself. Python floats (the vectors as tuples, the
+        blocks as nested ones): what the record keeps, at a fraction of the arrays' cost."""
         if self._mode != "ins":
             return None
         if self._out_arm is not None or (self._yaw_frame and self._reference_yaw_sigma_rad > 0.0):
             ns = self.nav_state()
             if not ns.valid:
                 return None
-            return (ns.t_s, ns.pos_n_m[:2], ns.vel_n_m_s[:2], ns.euler_rad()[2],
-                    ns.cov[POS_NE, POS_NE], ns.cov[_VEL_NE, _VEL_NE])
-        x = self._x
+            return (ns.t_s, tuple(ns.pos_n_m[:2].tolist()), tuple(ns.vel_n_m_s[:2].tolist()), ns.euler_rad()[2],
+                    ns.cov[POS_NE, POS_NE].tolist(), ns.cov[_VEL_NE, _VEL_NE].tolist())
         cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
-        if self.dvl_calibration is not None:  # _add_considered's terms of these blocks
-            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne(copy=False)
-        if self.invalid_reasons(_sigma_h_m(cov)) or not np.isfinite(x).all():
+        (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
+        if self.dvl_calibration is not None:  # _add_considered's terms of these blocks (the same additions)
+            (a00, a01), (a10, a11) = self.dvl_calibration.position_cov_ne(copy=False).tolist()
+            c00, c01, c10, c11 = c00 + a00, c01 + a01, c10 + a10, c11 + a11
+        xs = self._x.tolist()
+        # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats)
+        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) or not all(map(math.isfinite, xs)):
             return None
-        return (float(self._clock[0]), x[X_POS_NE].copy(), x[_X_VEL_NE].copy(), quat_to_euler(x[X_Q])[2],
-                cov[POS_NE, POS_NE], cov[_VEL_NE, _VEL_NE])
+        n, e = X_POS_NE.start, _X_VEL_NE.start
+        return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), quat_to_euler(self._x[X_Q])[2],
+                [[c00, c01], [c10, c11]], cov[_VEL_NE, _VEL_NE].tolist())
 
     def _add_considered(self, cov: np.ndarray) -> None:
         """The published covariance (in place) gains what the filter treats as known but is

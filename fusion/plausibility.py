@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .frames import GRAVITY_M_S2, GeoOrigin
+from .strapdown import imu_run_in_bounds
 
 
 @dataclass(frozen=True)
@@ -199,12 +200,10 @@ class Door:
         if not c.enabled or t_s.size == 0:
             return None, 0.0
         d = self.t_data_s
-        # maxima and minima, not element-wise masks: fewer numpy calls on ~10 samples (the
-        # replay's every IMU batch); a NaN makes its maximum NaN, which fails the test too
-        steps = t_s[1:] - t_s[:-1]
-        if (np.abs(f_b).max() <= c.max_specific_force_m_s2 and np.abs(w_b).max() <= c.max_rate_rad_s
-                and (d == -math.inf or d - c.max_behind_s <= t_s[0] <= d + c.max_ahead_s)
-                and (steps.size == 0 or (steps.min() > 0 and steps.max() <= c.max_ahead_s))):
+        # one compiled test (the replay's every IMU batch; a NaN fails it too)
+        t_lo, t_hi = (-math.inf, math.inf) if d == -math.inf else (d - c.max_behind_s, d + c.max_ahead_s)
+        if imu_run_in_bounds(t_s, f_b, w_b, c.max_specific_force_m_s2, c.max_rate_rad_s, t_lo, t_hi,
+                             c.max_ahead_s):
             self._cand.pop("imu", None)
             if t_s[-1] > d:
                 self.t_data_s = float(t_s[-1])
