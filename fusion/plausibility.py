@@ -113,10 +113,16 @@ class Door:
         """``(reason or None, jump size s)`` for a sample of ``kind`` at ``t``."""
         c = self.config
         d = self.t_data_s
-        if not math.isfinite(t):
-            return None, 0.0  # the source/estimator count non-finite stamps
-        if d == -math.inf or d - c.max_behind_s <= t <= d + c.max_ahead_s:
-            self._cand.pop(kind, None)
+        # within the window of the data clock (the commonest case, tested first: False for a
+        # non-finite stamp and before the first one)
+        in_window = d - c.max_behind_s <= t <= d + c.max_ahead_s
+        if not in_window:
+            if not math.isfinite(t):
+                return None, 0.0  # the source/estimator count non-finite stamps
+            in_window = d == -math.inf
+        if in_window:
+            if self._cand:
+                self._cand.pop(kind, None)
             if t > d:
                 self.t_data_s = t
             return None, 0.0
@@ -180,13 +186,14 @@ class Door:
     # -- the door --------------------------------------------------------------------------
     def check(self, sample) -> tuple[bool, float]:
         """Judge one sample: ``(accepted, clock jump s)``; a rejection is counted by reason."""
-        if not self.config.enabled or sample.KIND == "truth":
+        kind = sample.KIND
+        if kind == "truth" or not self.config.enabled:
             return True, 0.0
         reason = self._value(sample)
         if reason is not None:
             self.rejected[reason] += 1
             return False, 0.0
-        reason, jump = self._time(sample.KIND, float(sample.t_s))
+        reason, jump = self._time(kind, float(sample.t_s))
         return reason is None, jump
 
     def check_batch(self, t_s: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> tuple[np.ndarray | None, float]:
