@@ -97,7 +97,7 @@ class SideScanEstimator(Estimator):
             return []
         if kind == "sonar_objects":
             return self._objects(sample) if self.config.loop_closure.enabled else []
-        out = super().process(sample)
+        out = Estimator.process(self, sample)  # (super() resolved per sample costs more)
         if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf \
                 and self._clock[0] - self._t_ping < SONAR_ACTIVE_S and self.clone_position():
             self._keep_clone_jump()

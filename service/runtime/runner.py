@@ -44,6 +44,7 @@ loop goes on.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import logging
 import math
@@ -292,8 +293,9 @@ class _Loop:
             if math.isfinite(ts[start]):
                 # emit epochs the first remaining sample is past
                 self.flush_epochs_before(ts[start])
-                # the piece ends with the sample that completes the next epoch
-                stop = int(t.searchsorted(self.due_s(), "left")) + 1
+                # the piece ends with the sample that completes the next epoch (bisect_left on
+                # the floats: searchsorted's probes and comparisons, without its call)
+                stop = bisect.bisect_left(ts, self.due_s()) + 1
                 stop = min(max(stop, start + 1), n)
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
