@@ -77,8 +77,8 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import SENSORS, DepthSample, DvlSample, HeadingSample, InertialVelocitySample, is_finite
-from .state import (ACC_F, ACC_OMEGA, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW, VEL,
-                    X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
+from .state import (ACC_F, ACC_OMEGA, ACC_T, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW,
+                    VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
 
 # Both from the sensor table and the aid registry: an aid-role kind without an aid
@@ -304,17 +304,23 @@ class Estimator:
     def initialized(self) -> bool:
         return self._mode != "none"
 
+    def _cov_now(self) -> np.ndarray:
+        """The covariance at the state time, a new array: the pending step propagated
+        (:func:`~adaptnav.fusion.kalman.propagated_covariance`), or, with none pending (the
+        commonest case when asked: the IMU sample before flushed it), the copy that kernel
+        returns then, without the call."""
+        if not self._acc[ACC_T] <= 0.0:
+            return kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+        return self._P.copy()
+
     def nav_state(self) -> NavState:
         """The current state; the covariance includes the not yet flushed propagation."""
         x = self._x
-        if self._mode == "ins":
-            cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
-        else:
-            cov = self._P.copy()
+        cov = self._cov_now() if self._mode == "ins" else self._P.copy()
         self._add_considered(cov)
         sigma_h = _sigma_h_m(cov)
         reasons = self.invalid_reasons(sigma_h)
-        if self._mode == "ins" and not reasons and not np.isfinite(x).all():
+        if self._mode == "ins" and not reasons and not all(map(math.isfinite, x.tolist())):
             reasons = ["non_finite"]
         valid = self._mode == "ins" and not reasons
         x = x.copy()  # one copy; the state's vectors are views of it
@@ -341,23 +347,28 @@ class Estimator:
         cov VEL_NE)`` — the same numbers, without building the whole state (the ping's
         record was a tenth of the replaying process with side-scan). Where the published
         state needs more than these blocks (an output lever arm, the autopilot's heading
-        frame), it is :meth:`nav_state` itself."""
+        frame), it is :meth:`nav_state` itself. Python floats (the vectors as tuples, the
+        blocks as nested ones): what the record keeps, at a fraction of the arrays' cost."""
         if self._mode != "ins":
             return None
         if self._out_arm is not None or (self._yaw_frame and self._reference_yaw_sigma_rad > 0.0):
             ns = self.nav_state()
             if not ns.valid:
                 return None
-            return (ns.t_s, ns.pos_n_m[:2], ns.vel_n_m_s[:2], ns.euler_rad()[2],
-                    ns.cov[POS_NE, POS_NE], ns.cov[_VEL_NE, _VEL_NE])
-        x = self._x
-        cov = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
-        if self.dvl_calibration is not None:  # _add_considered's terms of these blocks
-            cov[POS_NE, POS_NE] += self.dvl_calibration.position_cov_ne(copy=False)
-        if self.invalid_reasons(_sigma_h_m(cov)) or not np.isfinite(x).all():
+            return (ns.t_s, tuple(ns.pos_n_m[:2].tolist()), tuple(ns.vel_n_m_s[:2].tolist()), ns.euler_rad()[2],
+                    ns.cov[POS_NE, POS_NE].tolist(), ns.cov[_VEL_NE, _VEL_NE].tolist())
+        cov = self._cov_now()
+        (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
+        if self.dvl_calibration is not None:  # _add_considered's terms of these blocks (the same additions)
+            (a00, a01), (a10, a11) = self.dvl_calibration.position_cov_ne(copy=False).tolist()
+            c00, c01, c10, c11 = c00 + a00, c01 + a01, c10 + a10, c11 + a11
+        xs = self._x.tolist()
+        # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats)
+        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) or not all(map(math.isfinite, xs)):
             return None
-        return (float(self._clock[0]), x[X_POS_NE].copy(), x[_X_VEL_NE].copy(), quat_to_euler(x[X_Q])[2],
-                cov[POS_NE, POS_NE], cov[_VEL_NE, _VEL_NE])
+        n, e = X_POS_NE.start, _X_VEL_NE.start
+        return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), quat_to_euler(self._x[X_Q])[2],
+                [[c00, c01], [c10, c11]], cov[_VEL_NE, _VEL_NE].tolist())
 
     def _add_considered(self, cov: np.ndarray) -> None:
         """The published covariance (in place) gains what the filter treats as known but is
@@ -397,8 +408,7 @@ class Estimator:
                 self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
             return ["no_motion_measurement"]
         if sigma_h_m is None:
-            P = kalman.propagated_covariance(self._P, self._acc, self._qdiag)
-            sigma_h_m = _sigma_h_m(P)
+            sigma_h_m = _sigma_h_m(self._cov_now())
         out = []
         if not sigma_h_m <= self.config.valid_max_sigma_h_m:
             out.append("sigma_h")
@@ -1231,25 +1241,34 @@ class Estimator:
         start = 0
         n = t.size
         x, step_s = self._x, self.config.covariance_step_s
+        t_last = float(t[-1])
         while start < n:
             stop = n
             lv_due = False
-            if self._next_lv_t <= t[-1]:
+            if self._next_lv_t <= t_last:
                 stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
                 stop = max(stop, start + 1)
                 lv_due = True
             t0, x0 = float(self._clock[0]), x[_X_POS_VEL].tolist()  # position, velocity before
-            # (each covariance step also goes into the clones' map while they exist)
-            kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
-                                  self._qdiag, step_s)
+            # (each covariance step also goes into the clones' map while they exist; the whole
+            # run unsliced, the commonest case)
+            if start == 0 and stop == n:
+                kalman.propagate_core(t, f, w, self._core, self._qdiag, step_s)
+            else:
+                kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
+                                      self._qdiag, step_s)
             # free-inertial = corrected + an offset constant between updates: its integral is
-            # the strapdown's position change plus offset × Δt
+            # the strapdown's position change plus offset × Δt (per axis, written out)
             dt = float(self._clock[0]) - t0
-            x1 = x[_X_POS_VEL].tolist()
+            p0, p1, p2, v0, v1, v2 = x[_X_POS_VEL].tolist()
+            q0, q1, q2, u0, u1, u2 = x0
             p, v = self._pos_inertial_n, self._vel_inertial_n
-            for i in range(3):
-                p[i] += (x1[i] - x0[i]) + (v[i] - x0[3 + i]) * dt
-                v[i] += x1[3 + i] - x0[3 + i]
+            p[0] += (p0 - q0) + (v[0] - u0) * dt
+            p[1] += (p1 - q1) + (v[1] - u1) * dt
+            p[2] += (p2 - q2) + (v[2] - u2) * dt
+            v[0] += v0 - u0
+            v[1] += v1 - u1
+            v[2] += v2 - u2
             start = stop
             if lv_due and self._clock[0] >= self._next_lv_t:
                 status = self._learned_velocity()
@@ -1686,9 +1705,11 @@ class Estimator:
         else:
             self.rejected["non_finite"] += 1
             reason = "non_finite"
-        status = AidStatus(float(t_s), source, z, y, s_diag, float(nis) / self._gate[m], bool(fused), reason)
-        if not self._replaying:
-            self._monitor(status)
+        gate = self._gate[m]
+        ratio = float(nis) / gate
+        status = AidStatus(float(t_s), source, z, y, s_diag, ratio, bool(fused), reason)
+        if not self._replaying and self._mode == "ins" and reason != "non_finite":  # _monitor's test
+            self._nis.add(source, ratio * gate, m)
         return status
 
     def _monitor(self, status: AidStatus) -> None:

@@ -238,3 +238,25 @@ def imu_clean(t_s, f_b, w_b, t_last_s, gap_s):
                 return False
         prev = t
     return True
+
+
+@jit(cache=True)
+def imu_run_in_bounds(t_s, f_b, w_b, max_f, max_w, t_lo, t_hi, max_step_s):
+    """The plausibility door's test of a whole IMU run in one call
+    (:meth:`adaptnav.fusion.plausibility.Door.check_batch`): every component of ``f_b`` within
+    ``±max_f`` and of ``w_b`` within ``±max_w``, the first stamp within ``[t_lo, t_hi]``
+    (``t_lo = −∞``: no data clock yet, not tested) and every step positive and at most
+    ``max_step_s``; a NaN anywhere fails (as the numpy maxima it replaces: 3 µs of their
+    calls per IMU batch)."""
+    n = t_s.shape[0]
+    for k in range(n):
+        for i in range(3):
+            if not (abs(f_b[k, i]) <= max_f and abs(w_b[k, i]) <= max_w):
+                return False
+    if not (t_lo == -np.inf or (t_lo <= t_s[0] and t_s[0] <= t_hi)):
+        return False
+    for k in range(1, n):
+        step = t_s[k] - t_s[k - 1]
+        if not (step > 0.0 and step <= max_step_s):
+            return False
+    return True

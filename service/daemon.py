@@ -120,6 +120,12 @@ def warm_up_filter(cfg: ServiceConfig, params: MotionParams | None = None) -> fl
         if k % 20 == 10 and est.initialized:
             est.nav_state().to_dict()
     est.slow_states()
+    from adaptnav.service.runtime.runner import door_for
+
+    door = door_for(est)  # the runner's door in front of it (its IMU-run test is a kernel too)
+    if door is not None:
+        t = np.arange(1, 11) * 0.005
+        door.check_batch(t, np.tile([0.0, 0.0, -g], (10, 1)), np.zeros((10, 3)))
     elapsed = time.monotonic() - t0
     log.info("filter warmed up in %.1f s", elapsed)
     return elapsed

@@ -97,7 +97,7 @@ class SideScanEstimator(Estimator):
             return []
         if kind == "sonar_objects":
             return self._objects(sample) if self.config.loop_closure.enabled else []
-        out = super().process(sample)
+        out = Estimator.process(self, sample)  # (super() resolved per sample costs more)
         if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf \
                 and self._clock[0] - self._t_ping < SONAR_ACTIVE_S and self.clone_position():
             self._keep_clone_jump()
@@ -122,20 +122,17 @@ class SideScanEstimator(Estimator):
         ns = self.horizontal_nav()  # the numbers of nav_state(), what the record needs of it
         if ns is None:  # not valid
             return
-        t_s, pos, vel, yaw, cov, vcov = ns
+        t_s, (p0, p1), vel, yaw, ((c00, c01), (c10, c11)), ((v00, v01), (v10, v11)) = ns
         dt = t - t_s
-        (p0, p1), (v0, v1) = pos.tolist(), vel.tolist()
-        pos, vel = (p0 + v0 * dt, p1 + v1 * dt), (v0, v1)
+        v0, v1 = vel
+        pos = (p0 + v0 * dt, p1 + v1 * dt)
         self._jump = self._jump_at(t, pos, vel)
         self._last_vel = (t, pos, vel)
-        yaw = float(yaw)
         nav = self._nav
         if nav:
             if t <= nav[-1][0]:
                 return
             yaw = nav[-1][3] + math.remainder(yaw - nav[-1][3], 2.0 * math.pi)
-        (c00, c01), (c10, c11) = cov.tolist()
-        (v00, v01), (v10, v11) = vcov.tolist()
         nav.append((t, *pos, yaw, c00, c01, c10, c11, *self._jump, v00, v01, v10, v11))
         while nav and nav[0][0] < t - self.nav_keep_s:
             nav.popleft()

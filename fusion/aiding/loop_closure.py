@@ -138,8 +138,11 @@ class CloneBank:
         self._core[kalman.CORE_TRACK] = 1.0
         cid = self._next_id
         self._next_id += 1
-        # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]
-        row = {oid: self.C[POS_NE, 2 * k:2 * k + 2].copy() for k, oid in enumerate(self._ids)}
+        # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]: the 2×2 blocks of all of
+        # them copied at once, one view each (a slice and a copy per clone was a third of a clone)
+        n = len(self._ids)
+        blocks = self.C[POS_NE].reshape(2, n, 2).transpose(1, 0, 2).copy()
+        row = dict(zip(self._ids, blocks))
         row[cid] = P[POS_NE, POS_NE].copy()
         self._sigma[cid] = row
         # new lists, not appends: snapshots share the old ones (copy())
@@ -150,16 +153,16 @@ class CloneBank:
         return True
 
     def _prune(self, t_now: float) -> None:
-        if not self.t_s or min(self.t_s) >= t_now - self.horizon_s:
+        if not self.t_s or self.t_s[0] >= t_now - self.horizon_s:
             return  # nothing to drop (every clone but once a period)
-        keep = [k for k, t in enumerate(self.t_s) if t >= t_now - self.horizon_s]
-        kept = set(keep)  # (was built again for every clone: quadratic in their number)
-        gone = {self._ids[k] for k in range(len(self._ids)) if k not in kept}
-        self._ids = [self._ids[k] for k in keep]
-        self.t_s = [self.t_s[k] for k in keep]
-        self.pos_n_m = [self.pos_n_m[k] for k in keep]
-        cols = np.array([[2 * k, 2 * k + 1] for k in keep], dtype=int).reshape(-1)
-        self.C = self.C[:, cols]
+        # clone times increase (a clone comes a period after the last): the kept ones are the
+        # newest, a suffix of every list and of C's columns (C a new array, as it always is)
+        k0 = bisect.bisect_left(self.t_s, t_now - self.horizon_s)
+        gone = set(self._ids[:k0])
+        self._ids = self._ids[k0:]
+        self.t_s = self.t_s[k0:]
+        self.pos_n_m = self.pos_n_m[k0:]
+        self.C = self.C[:, 2 * k0:].copy()
         # the rows of dropped clones are dropped here only (snapshots never look them up
         # again); the live rows keep their entries for dropped clones (bounded, never read):
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
@@ -267,9 +270,12 @@ class CloneBank:
     def apply(self, a: int, b: int, K: np.ndarray) -> None:
         """Cross-covariances after a fused loop closure: ``C_j ← C_j − K (Σ_bj − Σ_aj)``."""
         self._settle()
-        self.C = self.C.copy()  # snapshots share C (copy())
-        for j in range(len(self._ids)):
-            self.C[:, 2 * j:2 * j + 2] -= K @ (self.sigma(b, j) - self.sigma(a, j))
+        n = len(self._ids)
+        # K (Σ_bj − Σ_aj) for every clone j in one stacked product (one gemm per j, as one call
+        # each did), subtracted from C's 2-column blocks (a new array: snapshots share C)
+        D = np.array([self.sigma(b, j) - self.sigma(a, j) for j in range(n)]).reshape(n, 2, 2)
+        KD = np.matmul(K, D)  # (n, 18, 2)
+        self.C = (self.C.reshape(N_ERR, n, 2) - KD.transpose(1, 0, 2)).reshape(N_ERR, 2 * n)
 
 
 def reset_jacobian(dx: np.ndarray) -> np.ndarray:

@@ -44,6 +44,7 @@ loop goes on.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import logging
 import math
@@ -185,10 +186,13 @@ class _Loop:
     def flush_epochs_before(self, t_s: float) -> None:
         """Emit every epoch not yet emitted whose nearest IMU sample lies before ``t_s``
         (more than half an IMU period before it; the state is the same for all)."""
-        if self.next_k is None:
-            self.next_k = math.ceil(t_s * self.rate - 1e-9)
-        half = self.half_window_s()
-        if self.epoch(self.next_k) + half < t_s:
+        k = self.next_k
+        if k is None:
+            k = self.next_k = math.ceil(t_s * self.rate - 1e-9)
+        # half_window_s() and epoch(k), written out: every sample asks (nearly always in vain)
+        p = self.imu_period_s
+        half = 0.5 * p if p > 0.0 else EPOCH_ROUNDING_S  # False for NaN
+        if k / self.rate + half < t_s:
             self.emit()
             # skip the epochs of a gap in one step: the state did not change in between
             self.next_k = max(self.next_k + 1, math.ceil((t_s - half) * self.rate - 1e-9))
@@ -289,8 +293,9 @@ class _Loop:
             if math.isfinite(ts[start]):
                 # emit epochs the first remaining sample is past
                 self.flush_epochs_before(ts[start])
-                # the piece ends with the sample that completes the next epoch
-                stop = int(t.searchsorted(self.due_s(), "left")) + 1
+                # the piece ends with the sample that completes the next epoch (bisect_left on
+                # the floats: searchsorted's probes and comparisons, without its call)
+                stop = bisect.bisect_left(ts, self.due_s()) + 1
                 stop = min(max(stop, start + 1), n)
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
@@ -316,7 +321,10 @@ class _Loop:
             self.flush_epochs_before(t_s)
         try:
             if kind != "truth":
-                self.aid(self.estimator.process(sample))
+                statuses = self.estimator.process(sample)
+                if statuses:  # aid(), inline: the commonest samples' call
+                    for f in self._on_aid:
+                        f(statuses)
                 self.summary.samples_used += 1
                 if kind == "imu":
                     self.summary.imu_samples += 1

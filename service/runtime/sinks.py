@@ -227,8 +227,8 @@ def geo_time_text(t_s: float, north_m: float, east_m: float, unix_of: Any = None
 
 
 def _current_xy(state: Any) -> tuple[float, float]:
-    c = np.asarray(state.current_n_m_s, dtype=float).ravel()
-    return float(c[0]), float(c[1])
+    c0, c1 = np.asarray(state.current_n_m_s, dtype=float).ravel()[:2].tolist()
+    return c0, c1
 
 
 class TrajectoryCsvSink(Sink):
