@@ -60,6 +60,15 @@ class Keys:
     def aid(self, source: str) -> str:
         return f"{self.root}/nav/aid/{source}"
 
+    def lossless(self, key: str) -> bool:
+        """Whether a publisher on ``key`` waits when the link is congested rather than drop:
+        a driver's sensor sample (a side-scan ping, a USBL fix is not sent twice) and a
+        calibration release. Zenoh's default drops a publication whose queue is full, without a
+        word to either side — on a loaded computer the demo's sonar driver lost 2 of 721 pings
+        so. Nav states, aid status and health stay droppable: the next one replaces them, and
+        the daemon publishing them must not wait for a slow subscriber."""
+        return key.startswith(f"{self.root}/sensor/") or key == self.params
+
     def query(self, name: str) -> str:
         return f"{self.root}/query/{name}"
 
@@ -311,8 +320,10 @@ class Bus:
             with self._lock:
                 pub = self._publishers.get(key)
                 if pub is None:
+                    congestion = (zenoh.CongestionControl.BLOCK if self.keys.lossless(key)
+                                  else zenoh.CongestionControl.DROP)
                     pub = self._publishers[key] = self.session.declare_publisher(
-                        key, encoding=json_encoding(self.keys.schema_of(key)))
+                        key, encoding=json_encoding(self.keys.schema_of(key)), congestion_control=congestion)
         return pub
 
     def put(self, key: str, payload: bytes) -> None:
