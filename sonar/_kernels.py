@@ -321,11 +321,20 @@ def _fill_labels(seg, label, m, lab):
 
 
 @jit(cache=True)
+def _true_count(mask):
+    """Pixels of ``mask`` set (a bound of its segments, components and component rows)."""
+    n = 0
+    for i in range(mask.shape[0]):
+        for k in range(mask.shape[1]):
+            n += mask[i, k]
+    return n
+
+
+@jit(cache=True)
 def label8(mask, lab):
     """``scipy.ndimage.label(mask, structure=np.ones((3, 3)))`` into ``lab`` (int32, (R, C)):
     the 8-connected components of ``mask`` numbered 1…n (:func:`_segments8`). Returns n."""
-    n_rows, n_cols = mask.shape
-    cap = n_rows * ((n_cols + 1) // 2)
+    cap = _true_count(mask)
     seg = np.empty((3, max(cap, 1)), np.int64)
     label = np.empty(max(cap, 1), np.int64)
     m, n = _segments8(mask, seg, label)
@@ -337,12 +346,11 @@ def label8(mask, lab):
 def label8_runs(mask, lev, lab, runs, n_px, shadow_sum, counts):
     """:func:`label8` of ``mask`` into ``lab`` and :func:`adaptnav.sonar.objects._component_rows_numpy`
     of it from the segments: per component and row (by label, then row) into ``runs`` (4,
-    ≥ R ⌈C / 2⌉) int64 — label, row, first column, one past the last — and per label (index 0 the
-    background, left 0) the pixel count ``n_px`` (int64, ≥ n + 1) and the sum of ``lev`` (R, C,
-    any strides) over its pixels ``shadow_sum`` (float64, ≥ n + 1), added in raster order as
+    ≥ the pixels set) int64 — label, row, first column, one past the last — and per label (index
+    0 the background, left 0) the pixel count ``n_px`` (int64, ≥ n + 1) and the sum of ``lev`` (R,
+    C, any strides) over its pixels ``shadow_sum`` (float64, ≥ n + 1), added in raster order as
     ``numpy.bincount`` adds them. ``counts`` ← (n, runs)."""
-    n_rows, n_cols = mask.shape
-    cap = n_rows * ((n_cols + 1) // 2)
+    cap = runs.shape[1]  # (≥ the segments: the caller's count of the pixels set)
     seg = np.empty((3, max(cap, 1)), np.int64)
     label = np.empty(max(cap, 1), np.int64)
     m, n = _segments8(mask, seg, label)

@@ -825,13 +825,15 @@ def _components(mask: np.ndarray, lev: np.ndarray) -> tuple[np.ndarray, int, _Ru
             and lev.shape == mask.shape and lev.flags.aligned and lev.flags.writeable:
         from adaptnav.sonar import _kernels
 
-        n_rows, n_cols = mask.shape
+        mask = np.ascontiguousarray(mask)
+        n_set = int(np.count_nonzero(mask))  # ≥ segments, runs and labels: arrays of that size (a
+        # bound from the image's size, megabytes touched here and there, cost a page fault each)
         lab = np.empty(mask.shape, np.int32)
-        runs = np.empty((4, n_rows * ((n_cols + 1) // 2)), np.int64)  # ≤ one run per segment; pages touched only where written
-        n_px = np.empty(n_rows * n_cols // 2 + 2, np.int64)            # ≤ one label per 2 px (8-connected), + background
-        shadow_sum = np.empty(n_px.size)
+        runs = np.empty((4, max(n_set, 1)), np.int64)
+        n_px = np.empty(n_set + 1, np.int64)  # + the background
+        shadow_sum = np.empty(n_set + 1)
         counts = np.zeros(2, np.int64)
-        _kernels.label8_runs(np.ascontiguousarray(mask), lev, lab, runs, n_px, shadow_sum, counts)
+        _kernels.label8_runs(mask, lev, lab, runs, n_px, shadow_sum, counts)
         n, m = int(counts[0]), int(counts[1])
         return lab, n, _Runs(runs[0, :m], runs[1, :m], runs[2, :m], runs[3, :m]), n_px[:n + 1], shadow_sum[:n + 1]
     lab, n = _label8(mask)
