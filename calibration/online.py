@@ -571,9 +571,9 @@ class OnlineCalibrator:
         filter, which associates them across legs and returns the batch with its links
         (:meth:`_links`). The front end's dead reckoning (ping speed and heading, tied to the
         fixes) only spaces the image's rows; positions are the filter's."""
-        from adaptnav.calibration.sidescan import CalibratorSonar
-
         if self.sonar is None:
+            from adaptnav.calibration.sidescan import CalibratorSonar
+
             self.sonar = CalibratorSonar(self.sonar_nav)
         batch = self.sonar.push(ping)
         if batch is not None:

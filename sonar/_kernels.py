@@ -169,11 +169,10 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             d = v > zero
             data[i, k] = d
             x[i, k] = v if d else zero
-            msk[i, k] = np.float32(d)
     # every row with data in the same columns (a waterfall: the columns beyond the slant range
     # in every ping): then the rows of the mask's filters are all equal after their pass along
     # the rows (each sum in one order, of equal lines), and the pass along the columns is made
-    # for the first row only
+    # for the first row only, which stands for every row (less memory written and read)
     same_rows = True
     for i in range(1, n_rows):
         for k in range(n_cols):
@@ -185,16 +184,18 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
     m_rows = 1 if same_rows else n_rows
     # (equal rows: the rows pass of as many rows as its reflections reach gives the same sums)
     s_rows = min(n_rows, max(w_rows.shape[0], box_rows)) if same_rows else n_rows
+    for i in range(s_rows):
+        for k in range(n_cols):
+            msk[i, k] = np.float32(data[i, k])
     _gauss_rows(x, w_rows, tmp)
     _gauss_cols(tmp, w_cols, img)
     _gauss_rows(msk[:s_rows], w_rows, tmp[:s_rows])
     _gauss_cols(tmp[:m_rows], w_cols, wgt[:m_rows])
-    for i in range(m_rows, n_rows):
-        wgt[i, :] = wgt[0, :]
     # (selects, not branches: the loops vectorise; a pixel without weight divides by 1)
     for i in range(n_rows):
+        wgt_row = wgt[0] if same_rows else wgt[i]
         for k in range(n_cols):
-            w = wgt[i, k]
+            w = wgt_row[k]
             ok = w > min_weight
             q = np.float32(np.float64(img[i, k]) / np.float64(w if ok else one))
             v = q if ok else zero
@@ -206,11 +207,10 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
     den = x
     _box_rows(msk[:s_rows], box_rows, tmp[:s_rows])
     _box_cols(tmp[:m_rows], box_cols, den[:m_rows])
-    for i in range(m_rows, n_rows):
-        den[i, :] = den[0, :]
     for i in range(n_rows):
+        den_row = den[0] if same_rows else den[i]
         for k in range(n_cols):
-            d = den[i, k]
+            d = den_row[k]
             ok = d > min_count
             q = np.float32(np.float64(num[i, k]) / np.float64(d if ok else one))
             bg = q if ok else one
@@ -321,11 +321,20 @@ def _fill_labels(seg, label, m, lab):
 
 
 @jit(cache=True)
+def _true_count(mask):
+    """Pixels of ``mask`` set (a bound of its segments, components and component rows)."""
+    n = 0
+    for i in range(mask.shape[0]):
+        for k in range(mask.shape[1]):
+            n += mask[i, k]
+    return n
+
+
+@jit(cache=True)
 def label8(mask, lab):
     """``scipy.ndimage.label(mask, structure=np.ones((3, 3)))`` into ``lab`` (int32, (R, C)):
     the 8-connected components of ``mask`` numbered 1…n (:func:`_segments8`). Returns n."""
-    n_rows, n_cols = mask.shape
-    cap = n_rows * ((n_cols + 1) // 2)
+    cap = _true_count(mask)
     seg = np.empty((3, max(cap, 1)), np.int64)
     label = np.empty(max(cap, 1), np.int64)
     m, n = _segments8(mask, seg, label)
@@ -337,12 +346,11 @@ def label8(mask, lab):
 def label8_runs(mask, lev, lab, runs, n_px, shadow_sum, counts):
     """:func:`label8` of ``mask`` into ``lab`` and :func:`adaptnav.sonar.objects._component_rows_numpy`
     of it from the segments: per component and row (by label, then row) into ``runs`` (4,
-    ≥ R ⌈C / 2⌉) int64 — label, row, first column, one past the last — and per label (index 0 the
-    background, left 0) the pixel count ``n_px`` (int64, ≥ n + 1) and the sum of ``lev`` (R, C,
-    any strides) over its pixels ``shadow_sum`` (float64, ≥ n + 1), added in raster order as
+    ≥ the pixels set) int64 — label, row, first column, one past the last — and per label (index
+    0 the background, left 0) the pixel count ``n_px`` (int64, ≥ n + 1) and the sum of ``lev`` (R,
+    C, any strides) over its pixels ``shadow_sum`` (float64, ≥ n + 1), added in raster order as
     ``numpy.bincount`` adds them. ``counts`` ← (n, runs)."""
-    n_rows, n_cols = mask.shape
-    cap = n_rows * ((n_cols + 1) // 2)
+    cap = runs.shape[1]  # (≥ the segments: the caller's count of the pixels set)
     seg = np.empty((3, max(cap, 1)), np.int64)
     label = np.empty(max(cap, 1), np.int64)
     m, n = _segments8(mask, seg, label)

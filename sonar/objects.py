@@ -448,9 +448,9 @@ def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=No
     weak = []
     for side, sub in (("starboard", lev[:, ncol:]), ("port", lev[:, ncol - 1::-1])):
         alt = wf.altitude_m[:, 1 if side == "starboard" else 0]
-        for o in _detect_shadowed(sub, side, res, along, along_res, rows, wf, alt, config):
+        for o in _detect_shadowed(sub, side, res, along, along_res, rows, wf, alt, config, weak=True):
             if o.ground_range_m < config.fine_range_m and math.isfinite(o.height_m):
-                weak.append(replace(o, weak=True))
+                weak.append(o)
     # one sighting per object: the strong one where there is one
     weak = _merge(weak, config.merge_m, along_res)
     return [o for o in weak if not _near_any(o, strong, config.merge_m, along_res)]
@@ -521,11 +521,11 @@ def _detect_side(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
 
 
 def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, config,
-                     compiled: bool = True) -> list[ObjectSighting]:
-    """Shadowed objects on one side's local level ``lev`` (columns outwards); ``compiled``
-    False takes the reference steps the compiled ones replaced: scipy's labels, the components'
-    rows, tests and deep shadows in numpy, the candidates measured one by one in Python
-    (:func:`_shadowed_loop`)."""
+                     compiled: bool = True, weak: bool = False) -> list[ObjectSighting]:
+    """Shadowed objects on one side's local level ``lev`` (columns outwards), marked ``weak``
+    (:attr:`ObjectSighting.weak`) as asked; ``compiled`` False takes the reference steps the
+    compiled ones replaced: scipy's labels, the components' rows, tests and deep shadows in
+    numpy, the candidates measured one by one in Python (:func:`_shadowed_loop`)."""
     if compiled:
         lab, n, runs, n_px, shadow_sum = _components(lev < config.shadow_level, lev)
     else:
@@ -559,7 +559,7 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
         return out
     if not (kernel_ok and hl.level.dtype == np.float32):
         return _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, along_res, rows, wf,
-                              alt_per_ping, config)
+                              alt_per_ping, config, weak)
     m = _shadowed_measures(lev, lab, runs, n_px, deep, hl, todo)
     # the floating-point steps of the loop this replaced (_shadowed_loop, the reference), for
     # all candidates at once: numpy's element-wise arithmetic and interpolation are its scalars'
@@ -594,7 +594,7 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
             ground_range_m=gl + config.top_weight * (gt - gl), height_m=float(height[i]), shadow_length_m=float(L[i]),
             length_along_m=abs(float(length[q])), width_across_m=max(gt - gl, res),
             contrast=float(contrast[i]), altitude_m=float(H[i]), row=float(rc[i]),
-            heading_rad=float(heading[q])))
+            heading_rad=float(heading[q]), weak=weak))
     return out
 
 
@@ -641,7 +641,7 @@ def _candidates_compiled(lev, runs, n_px, shadow_sum, deep, alt_per_ping, res, c
 
 
 def _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, along_res, rows, wf, alt_per_ping,
-                   config) -> list[ObjectSighting]:
+                   config, weak=False) -> list[ObjectSighting]:
     """:func:`_detect_shadowed`'s candidates ``todo`` measured and tested one by one in Python
     (the reference of the compiled measurements and the vectorised tests)."""
     out = []
@@ -688,7 +688,7 @@ def _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, a
             ground_range_m=g_lead + config.top_weight * (g_top - g_lead), height_m=height, shadow_length_m=L,
             length_along_m=abs(length), width_across_m=max(g_top - g_lead, res),
             contrast=contrast, altitude_m=H, row=rc,
-            heading_rad=float(np.interp(rc, rows, heading_u))))
+            heading_rad=float(np.interp(rc, rows, heading_u)), weak=weak))
     return out
 
 
@@ -825,13 +825,15 @@ def _components(mask: np.ndarray, lev: np.ndarray) -> tuple[np.ndarray, int, _Ru
             and lev.shape == mask.shape and lev.flags.aligned and lev.flags.writeable:
         from adaptnav.sonar import _kernels
 
-        n_rows, n_cols = mask.shape
+        mask = np.ascontiguousarray(mask)
+        n_set = int(np.count_nonzero(mask))  # ≥ segments, runs and labels: arrays of that size (a
+        # bound from the image's size, megabytes touched here and there, cost a page fault each)
         lab = np.empty(mask.shape, np.int32)
-        runs = np.empty((4, n_rows * ((n_cols + 1) // 2)), np.int64)  # ≤ one run per segment; pages touched only where written
-        n_px = np.empty(n_rows * n_cols // 2 + 2, np.int64)            # ≤ one label per 2 px (8-connected), + background
-        shadow_sum = np.empty(n_px.size)
+        runs = np.empty((4, max(n_set, 1)), np.int64)
+        n_px = np.empty(n_set + 1, np.int64)  # + the background
+        shadow_sum = np.empty(n_set + 1)
         counts = np.zeros(2, np.int64)
-        _kernels.label8_runs(np.ascontiguousarray(mask), lev, lab, runs, n_px, shadow_sum, counts)
+        _kernels.label8_runs(mask, lev, lab, runs, n_px, shadow_sum, counts)
         n, m = int(counts[0]), int(counts[1])
         return lab, n, _Runs(runs[0, :m], runs[1, :m], runs[2, :m], runs[3, :m]), n_px[:n + 1], shadow_sum[:n + 1]
     lab, n = _label8(mask)
@@ -1138,21 +1140,26 @@ class ObjectFrontEnd:
         yaw_u = np.unwrap(nav[:, 2])
         half = max(c.context_pings // 2, 1)
         t_ping_s = np.array([q.t_s for q in pings], dtype=float)
+        # every object's (fractional) ping and the navigation there, interpolated all at once
+        gi_all = first + np.interp(np.array([o.t_s for o in objs], dtype=float), t_ping_s, idx)
+        li_all = gi_all - first  # (the global index and back, as the navigation is read at it)
+        nav_at = [np.interp(li_all, idx, col).tolist() for col in (nav[:, 0], nav[:, 1], nav[:, 3], nav[:, 4],
+                                                                   nav[:, 5], nav[:, 6], yaw_u)]
         out = []
-        for o in objs:
-            gi = first + float(np.interp(o.t_s, t_ping_s, idx))
+        for j, o in enumerate(objs):
+            gi = float(gi_all[j])
             if not start <= gi < start + c.block_pings:
                 continue
-            li = gi - first
+            li = float(li_all[j])
             a, b = max(int(li) - half, 0), min(int(li) + half, len(pings) - 1)
             if abs(yaw_u[b] - yaw_u[a]) > c.max_turn_rad:
                 self.rejected["turning"] = self.rejected.get("turning", 0) + 1
                 continue
-            pos = (float(np.interp(li, idx, nav[:, 0])), float(np.interp(li, idx, nav[:, 1])))
-            cov = np.array([float(np.interp(li, idx, nav[:, 3 + k])) for k in range(4)]).reshape(2, 2)
+            pn, pe, c00, c01, c10, c11, yaw = (v[j] for v in nav_at)
+            cov = np.array([c00, c01, c10, c11]).reshape(2, 2)
             jump = nav[int(round(li)), 7:9] if self._last_vel is not None else None
             vc = nav[int(round(li)), 9:13].reshape(2, 2)
-            out.append(with_navigation(o, pos, cov, float(np.interp(li, idx, yaw_u)), c.detector, jump, vc))
+            out.append(with_navigation(o, (pn, pe), cov, yaw, c.detector, jump, vc))
         self.sightings += len(out)
         return out
 

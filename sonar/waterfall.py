@@ -519,7 +519,7 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
         image = normalise_gain(image)
     if cfg.median_ksize and cfg.median_ksize > 1:
         image = median_filtered(image, cfg.median_ksize)
-    return Waterfall(image.astype(np.float32), res, along_res, t, dist, heading, ping_index, alt)
+    return Waterfall(image.astype(np.float32, copy=False), res, along_res, t, dist, heading, ping_index, alt)
 
 
 def median_filtered(image: np.ndarray, ksize: int) -> np.ndarray:
