@@ -1705,11 +1705,9 @@ class Estimator:
         else:
             self.rejected["non_finite"] += 1
             reason = "non_finite"
-        gate = self._gate[m]
-        ratio = float(nis) / gate
-        status = AidStatus(float(t_s), source, z, y, s_diag, ratio, bool(fused), reason)
-        if not self._replaying and self._mode == "ins" and reason != "non_finite":  # _monitor's test
-            self._nis.add(source, ratio * gate, m)
+        status = AidStatus(float(t_s), source, z, y, s_diag, float(nis) / self._gate[m], bool(fused), reason)
+        if not self._replaying:
+            self._monitor(status)
         return status
 
     def _monitor(self, status: AidStatus) -> None:

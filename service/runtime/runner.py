@@ -186,13 +186,10 @@ class _Loop:
     def flush_epochs_before(self, t_s: float) -> None:
         """Emit every epoch not yet emitted whose nearest IMU sample lies before ``t_s``
         (more than half an IMU period before it; the state is the same for all)."""
-        k = self.next_k
-        if k is None:
-            k = self.next_k = math.ceil(t_s * self.rate - 1e-9)
-        # half_window_s() and epoch(k), written out: every sample asks (nearly always in vain)
-        p = self.imu_period_s
-        half = 0.5 * p if p > 0.0 else EPOCH_ROUNDING_S  # False for NaN
-        if k / self.rate + half < t_s:
+        if self.next_k is None:
+            self.next_k = math.ceil(t_s * self.rate - 1e-9)
+        half = self.half_window_s()
+        if self.epoch(self.next_k) + half < t_s:
             self.emit()
             # skip the epochs of a gap in one step: the state did not change in between
             self.next_k = max(self.next_k + 1, math.ceil((t_s - half) * self.rate - 1e-9))
@@ -321,10 +318,7 @@ class _Loop:
             self.flush_epochs_before(t_s)
         try:
             if kind != "truth":
-                statuses = self.estimator.process(sample)
-                if statuses:  # aid(), inline: the commonest samples' call
-                    for f in self._on_aid:
-                        f(statuses)
+                self.aid(self.estimator.process(sample))
                 self.summary.samples_used += 1
                 if kind == "imu":
                     self.summary.imu_samples += 1

@@ -47,7 +47,7 @@ def test_label8_is_scipy_label_with_8_connectivity():
     assert n == n_ref and np.array_equal(got, ref)
 
 
-def test_component_runs_are_the_numpy_ones():
+def test_label8_runs_are_scipys_labels_and_the_numpy_runs():
     rng = np.random.default_rng(42)
     for view, mask in _masks(rng, 120):
         lab, n, runs, n_px, sums = _components(mask, view)
