@@ -95,8 +95,10 @@ class LearnedVelocityConfig:
     transient_sigma_per_gap: float = 3.0
     # a vehicle whose skid in a turn is not known (the uncalibrated motion prior): the sway
     # of a turning vehicle, β u w (MotionParams.sway_per_turn), with β unknown, σ_β (s): the
-    # sway variance takes (σ_β k_speed k_V u w)², u the model's surge speed and w the gyro's
-    # yaw rate. 0: off (a calibrated vehicle: sway_per_turn models it)
+    # sway variance takes (σ_β k_speed k_V u w)², u the surge speed the vehicle may have (the
+    # model's, or the slow lag's while a thrust change settles: a pivot right after a lane turns
+    # a hull still coasting) and w the gyro's yaw rate. 0: off (a calibrated vehicle:
+    # sway_per_turn models it)
     skid_sigma_s: float = 0.0
     # ... at most this fraction of the model's speed (the tangent of the sideslip angle's σ,
     # 0.2 ≈ 11°): a skid saturates (sway drag grows with the square of the sway: ArduSub's

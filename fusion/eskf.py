@@ -1365,7 +1365,11 @@ class Estimator:
         if cfg.skid_sigma_s > 0:
             # a turning vehicle of unknown skid: sway β u w with β ~ N(0, σ_β²), its σ at most
             # skid_max_fraction of the speed (LearnedVelocityConfig.skid_sigma_s)
-            skid = (abs(float(self._x[X_KS])) * self.motion_params.k_v * self._rpm[1]
+            # u the speed the vehicle may still have: in a pivot right after a lane the thrust
+            # says 0 while the hull coasts on and turns under its own velocity (the slow lag's
+            # speed; the model's once the thrust change has settled)
+            u = max(abs(self._rpm[1]), abs(self._rpm[5])) if cfg.transient_time_s > 0 else self._rpm[1]
+            skid = (abs(float(self._x[X_KS])) * self.motion_params.k_v * u
                     * min(cfg.skid_sigma_s * abs(yaw_rate), cfg.skid_max_fraction)) ** 2
             if skid > 0.0:
                 extra = (extra[0], extra[1] + skid) if extra else (0.0, skid)
