@@ -101,6 +101,9 @@ _MAX_SPEED_M_S = 1000.0
 # Aid fusions after a recovery (:meth:`Estimator._recover`) before the solution may be
 # valid again: a few seconds of learned velocity, depth and heading.
 _FUSIONS_TO_CONVERGE = 10
+# late-measurement history: a snapshot of the state before each aid sample and before an IMU
+# run at most this long after the previous snapshot (a late sample re-runs ≤ this of IMU more)
+_HIST_SNAPSHOT_PERIOD_S = 0.25
 # Roll/pitch random walk across an IMU gap (AUVs stay near level), rad/√s.
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
@@ -246,7 +249,8 @@ class Estimator:
         # input history for late measurements: entries (kind, payload) with the snapshot
         # taken before each and its state time
         self._hist_t: list[float] = []
-        self._hist: list[tuple[str, object, _Snapshot]] = []
+        self._hist: list[tuple[str, object, _Snapshot | None]] = []
+        self._t_hist_snap = -math.inf  # state time of the history's latest snapshot
         # False: whoever feeds the filter guarantees that no sample comes later than the
         # filter's time (a source in time order: a simulation), so no history is kept — a
         # snapshot of the state before every input, a twentieth of a replay's process for
@@ -957,20 +961,33 @@ class Estimator:
             self._clones.clear()
 
     def _record(self, kind: str, payload) -> None:
-        """Remember an input (and the state before it) for late-measurement re-fusion."""
+        """Remember an input for late-measurement re-fusion, with the state before it when
+        it is not an IMU run or the last snapshot is :data:`_HIST_SNAPSHOT_PERIOD_S` old: a
+        late sample re-runs the inputs from the snapshot before its time (a copy of the
+        state per IMU sample was a quarter of the live IMU path's work)."""
         if self._mode != "ins" or self.config.max_delay_s <= 0 or not self.keep_history:
             return
         t = float(self._clock[0])
+        snap = None
+        if kind != "imu" or t - self._t_hist_snap >= _HIST_SNAPSHOT_PERIOD_S or not self._hist:
+            snap = self._snapshot()
+            self._t_hist_snap = t
         self._hist_t.append(t)
-        self._hist.append((kind, payload, self._snapshot()))
+        self._hist.append((kind, payload, snap))
         horizon = t - self.config.max_delay_s - 0.5
-        if self._hist_t[0] < horizon and len(self._hist_t) > 64:
+        # trimmed a second at a time: the history starts at a snapshot at or before the
+        # horizon, so trimming at the horizon itself would walk back to it on every input
+        if self._hist_t[0] < horizon - 1.0 and len(self._hist_t) > 64:
             k = bisect.bisect_left(self._hist_t, horizon)
+            while k > 0 and self._hist[k][2] is None:
+                k -= 1
             del self._hist_t[:k]
             del self._hist[:k]
 
     def _fuse_late(self, sample) -> list[AidStatus]:
         k = bisect.bisect_right(self._hist_t, sample.t_s) - 1
+        while k >= 0 and self._hist[k][2] is None:  # back to the snapshot before it
+            k -= 1
         if k < 0:
             self.rejected["too_late"] += 1
             return [rejected(sample.t_s, sample.KIND, "too_late")]
@@ -978,6 +995,7 @@ class Estimator:
         del self._hist_t[k:]
         del self._hist[k:]
         self._restore(replay[0][2])
+        self._t_hist_snap = -math.inf  # the re-run inputs are recorded afresh
         self._replaying = True
         out: list[AidStatus] = []
         inserted = False
