@@ -166,6 +166,41 @@ def test_an_unknown_skid_widens_the_sway_in_a_turn_only():
     assert _sway_variance(2.0, 0.0) == _sway_variance(0.0, 0.0)
 
 
+def _pivot_sway_variance(skid_sigma_s, yaw_rate_rad_s=0.5, rpm=600.0):
+    """The learned velocity's sway innovation variance at its first epoch after the thrust is
+    cut from ``rpm`` (0.75 m/s) to 0 while the gyro turns at ``yaw_rate_rad_s`` — a pivot right
+    after a lane — on a vehicle of unknown response (``transient_time_s`` 2 s)."""
+    from dataclasses import replace
+
+    from adaptnav.fusion.samples import RpmSample
+
+    cfg = FilterConfig()
+    est = _est(replace(cfg, learned_velocity=replace(cfg.learned_velocity, skid_sigma_s=skid_sigma_s,
+                                                     transient_time_s=2.0)))
+    _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
+    for k in range(3):  # the lane: thrust steady, the slow lag settled at the command
+        est.process(RpmSample(12.0 + k, rpm))
+        _noop(est, 12.0 + k, 13.0 + k)
+    est.process(RpmSample(15.0, 0.0))
+    statuses = []
+    for t in np.arange(15.0, 16.0, 1.0 / IMU_HZ)[1:]:
+        statuses += est.process(ImuBatch(np.array([t]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
+                                         np.array([[0.0, 0.0, yaw_rate_rad_s]])))
+    lv = [s for s in statuses if s.source == "learned_velocity"]
+    assert lv
+    return lv[0].innovation_variance[1]
+
+
+def test_a_pivot_right_after_a_lane_skids_at_the_speed_the_hull_may_still_have():
+    # The Heavy's first turn (tests.sitl.bin_drive --heavy): thrust cut, yaw at 0.5 rad/s, the
+    # hull still coasting at 0.13 m/s 0.075 m/s off its x axis; the skid term took the command's
+    # surge (0) and the sway row pulled the velocity, and through k_speed the position, 3.9 m back.
+    # GIVEN the thrust cut from 0.75 m/s and a pivot, THEN the sway variance takes the skid of the
+    # slow lag's speed, (0.2 · 0.75)², not 0
+    extra = _pivot_sway_variance(2.0) - _pivot_sway_variance(0.0)
+    assert extra == pytest.approx((0.2 * 0.75) ** 2, rel=0.2)
+
+
 def _descend(heave_sigma_per_vertical_speed, rate_m_s=0.35, seconds=30.0):
     """A vehicle aligned at rest at 5 m, then going down level at ``rate_m_s`` (an ROV on its
     vertical thrusters: ArduSub's BlueROV2 descends at 0.35 m/s), no surge thrust; returns the
