@@ -142,16 +142,19 @@ def test_an_outlier_is_gated():
     assert out[0].reason == "gate" and out[0].test_ratio > 1.0
 
 
-def test_a_late_measurement_is_fused_at_its_time_of_validity():
-    # GIVEN the same mission fed in order, and with one USBL fix arriving 0.6 s late
+@pytest.mark.parametrize("delay_s", [0.6, 0.95])
+def test_a_late_measurement_is_fused_at_its_time_of_validity(delay_s):
+    # GIVEN the same mission fed in order, and with one USBL fix arriving late — up to just
+    # inside max_delay_s (1 s): the history, trimmed a second at a time and snapshotted
+    # sparsely, still starts at a state before the fix
     m = make_mission(np.random.default_rng(11), 60.0, usbl_period_s=20.0)
     fix = next(a for a in m.aids if a.KIND == "usbl" and a.t_s == 40.0)
     on_time = _est()
     run(on_time, m)
     late = _est()
     late_m = copy.copy(m)
-    # deliver it when the IMU has reached 40.6 s
-    late_m.aids = sorted([a for a in m.aids if a is not fix] + [_Delayed(fix, 40.6)], key=lambda a: a.t_s)
+    # deliver it when the IMU has reached 40 s + the delay
+    late_m.aids = sorted([a for a in m.aids if a is not fix] + [_Delayed(fix, 40.0 + delay_s)], key=lambda a: a.t_s)
     run(late, late_m)
     # THEN the result equals the in-order run
     a, b = on_time.nav_state(), late.nav_state()
