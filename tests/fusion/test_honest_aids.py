@@ -131,26 +131,35 @@ def _noop(est, t0, t1):
     return out
 
 
-def _sway_variance(skid_sigma_s, yaw_rate_rad_s, rpm=600.0):
-    """The learned velocity's sway innovation variance at its first epoch under thrust ``rpm``
-    (0.75 m/s through the embedded table) while the gyro turns at ``yaw_rate_rad_s`` (the
-    covariance before it the same whatever the skid σ)."""
+def _first_sway_variance(seconds, **learned_velocity):
+    """The learned velocity's sway innovation variance at its first epoch within the counted
+    ``seconds`` — each ``(rpm, yaw_rate_rad_s, counted)``, from 12 s on, after an alignment at
+    rest — with ``learned_velocity`` config changes (the covariance before it the same
+    whatever the skid σ)."""
     from dataclasses import replace
 
     from adaptnav.fusion.samples import RpmSample
 
     cfg = FilterConfig()
-    est = _est(replace(cfg, learned_velocity=replace(cfg.learned_velocity, skid_sigma_s=skid_sigma_s)))
+    est = _est(replace(cfg, learned_velocity=replace(cfg.learned_velocity, **learned_velocity)))
     _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
     statuses = []
-    for k in range(2):
+    for k, (rpm, yaw_rate_rad_s, counted) in enumerate(seconds):
         est.process(RpmSample(12.0 + k, rpm))
         for t in np.arange(12.0 + k, 13.0 + k, 1.0 / IMU_HZ)[1:]:
-            statuses += est.process(ImuBatch(np.array([t]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
-                                             np.array([[0.0, 0.0, yaw_rate_rad_s]])))
+            out = est.process(ImuBatch(np.array([t]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
+                                       np.array([[0.0, 0.0, yaw_rate_rad_s]])))
+            if counted:
+                statuses += out
     lv = [s for s in statuses if s.source == "learned_velocity"]
     assert lv
     return lv[0].innovation_variance[1]
+
+
+def _sway_variance(skid_sigma_s, yaw_rate_rad_s, rpm=600.0):
+    """The sway variance at the first epoch under thrust ``rpm`` (0.75 m/s through the
+    embedded table) while the gyro turns at ``yaw_rate_rad_s``."""
+    return _first_sway_variance([(rpm, yaw_rate_rad_s, True)] * 2, skid_sigma_s=skid_sigma_s)
 
 
 def test_an_unknown_skid_widens_the_sway_in_a_turn_only():
@@ -167,28 +176,11 @@ def test_an_unknown_skid_widens_the_sway_in_a_turn_only():
 
 
 def _pivot_sway_variance(skid_sigma_s, yaw_rate_rad_s=0.5, rpm=600.0):
-    """The learned velocity's sway innovation variance at its first epoch after the thrust is
-    cut from ``rpm`` (0.75 m/s) to 0 while the gyro turns at ``yaw_rate_rad_s`` — a pivot right
-    after a lane — on a vehicle of unknown response (``transient_time_s`` 2 s)."""
-    from dataclasses import replace
-
-    from adaptnav.fusion.samples import RpmSample
-
-    cfg = FilterConfig()
-    est = _est(replace(cfg, learned_velocity=replace(cfg.learned_velocity, skid_sigma_s=skid_sigma_s,
-                                                     transient_time_s=2.0)))
-    _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
-    for k in range(3):  # the lane: thrust steady, the slow lag settled at the command
-        est.process(RpmSample(12.0 + k, rpm))
-        _noop(est, 12.0 + k, 13.0 + k)
-    est.process(RpmSample(15.0, 0.0))
-    statuses = []
-    for t in np.arange(15.0, 16.0, 1.0 / IMU_HZ)[1:]:
-        statuses += est.process(ImuBatch(np.array([t]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
-                                         np.array([[0.0, 0.0, yaw_rate_rad_s]])))
-    lv = [s for s in statuses if s.source == "learned_velocity"]
-    assert lv
-    return lv[0].innovation_variance[1]
+    """The sway variance at the first epoch after the thrust is cut from ``rpm`` (0.75 m/s) to 0
+    while the gyro turns at ``yaw_rate_rad_s`` — a pivot right after a three-second lane, the slow
+    lag settled at the command — on a vehicle of unknown response (``transient_time_s`` 2 s)."""
+    return _first_sway_variance([(rpm, 0.0, False)] * 3 + [(0.0, yaw_rate_rad_s, True)],
+                                skid_sigma_s=skid_sigma_s, transient_time_s=2.0)
 
 
 def test_a_pivot_right_after_a_lane_skids_at_the_speed_the_hull_may_still_have():
