@@ -100,7 +100,7 @@ class LearnedVelocityConfig:
     # a hull still coasting) and w the gyro's yaw rate. 0: off (a calibrated vehicle:
     # sway_per_turn models it)
     skid_sigma_s: float = 0.0
-    # ... at most this fraction of the model's speed (the tangent of the sideslip angle's σ,
+    # ... at most this fraction of that speed (the tangent of the sideslip angle's σ,
     # 0.2 ≈ 11°): a skid saturates (sway drag grows with the square of the sway: ArduSub's
     # BlueROV2 skids 8° at 4°/s and 13° at both 8 and 12°/s), and a pivot at a high yaw rate
     # with the speed coasting down does not skid faster than it moves

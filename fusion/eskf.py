@@ -246,14 +246,14 @@ class Estimator:
         self._h_heading = np.zeros((1, N_ERR))
         self._h_heading[0, ATT.start + 2] = 1.0
         self._fast_out = np.zeros(3)
-        # input history for late measurements: entries (kind, payload) with the snapshot
-        # taken before each and its state time
+        # input history for late measurements: entries (kind, payload, the state before it or
+        # None: see _record) and their state times
         self._hist_t: list[float] = []
         self._hist: list[tuple[str, object, _Snapshot | None]] = []
         self._t_hist_snap = -math.inf  # state time of the history's latest snapshot
         # False: whoever feeds the filter guarantees that no sample comes later than the
-        # filter's time (a source in time order: a simulation), so no history is kept — a
-        # snapshot of the state before every input, a twentieth of a replay's process for
+        # filter's time (a source in time order: a simulation), so no history is kept — the
+        # inputs and snapshots of the state before them, a twentieth of a replay's process for
         # nothing. A late sample all the same is rejected as too late (nothing to re-fuse it in).
         self.keep_history = True
         self._replaying = False
@@ -974,13 +974,12 @@ class Estimator:
             self._t_hist_snap = t
         self._hist_t.append(t)
         self._hist.append((kind, payload, snap))
+        # kept from 0.5 s beyond max_delay_s: more than a snapshot period, so a sample late by
+        # up to max_delay_s finds a snapshot before its time; trimmed a second at a time (not
+        # a bisect and a delete per input)
         horizon = t - self.config.max_delay_s - 0.5
-        # trimmed a second at a time: the history starts at a snapshot at or before the
-        # horizon, so trimming at the horizon itself would walk back to it on every input
         if self._hist_t[0] < horizon - 1.0 and len(self._hist_t) > 64:
             k = bisect.bisect_left(self._hist_t, horizon)
-            while k > 0 and self._hist[k][2] is None:
-                k -= 1
             del self._hist_t[:k]
             del self._hist[:k]
 

@@ -157,16 +157,24 @@ def true_error(m: Mission, state, k: int) -> np.ndarray:
     return e
 
 
-def run(est, m: Mission, probe_times=(), drop=lambda s: False):
-    """Feed the mission in replay order (IMU as batches between aids); nav states at probes."""
+def run(est, m: Mission, probe_times=(), drop=lambda s: False, max_batch: int | None = None):
+    """Feed the mission in replay order (IMU as batches between aids, of at most ``max_batch``
+    samples when given: a live stream's many small inputs); nav states at probes."""
     events = [(s.t_s, 1, s) for s in m.aids if not drop(s)] + [(float(t), 2, None) for t in probe_times]
     events.sort(key=lambda e: (e[0], e[1]))
     states, statuses = [], []
+
+    def imu(k0, k1):
+        step = max_batch or k1 - k0
+        for k in range(k0, k1, step):
+            j = min(k + step, k1)
+            statuses.extend(est.process(ImuBatch(m.t_imu[k:j], m.f_b[k:j], m.w_b[k:j])))
+
     k0 = 0
     for t, kind, s in events:
         k1 = int(np.searchsorted(m.t_imu, t, side="right"))
         if k1 > k0:
-            statuses += est.process(ImuBatch(m.t_imu[k0:k1], m.f_b[k0:k1], m.w_b[k0:k1]))
+            imu(k0, k1)
             k0 = k1
         if kind == 1:
             # a "delayed" stand-in hands its sample over late, as a slow transport would
@@ -177,5 +185,5 @@ def run(est, m: Mission, probe_times=(), drop=lambda s: False):
         else:
             states.append((k1 - 1, est.nav_state()))
     if k0 < m.t_imu.size:
-        statuses += est.process(ImuBatch(m.t_imu[k0:], m.f_b[k0:], m.w_b[k0:]))
+        imu(k0, m.t_imu.size)
     return states, statuses

@@ -142,20 +142,21 @@ def test_an_outlier_is_gated():
     assert out[0].reason == "gate" and out[0].test_ratio > 1.0
 
 
-@pytest.mark.parametrize("delay_s", [0.6, 0.95])
-def test_a_late_measurement_is_fused_at_its_time_of_validity(delay_s):
-    # GIVEN the same mission fed in order, and with one USBL fix arriving late — up to just
-    # inside max_delay_s (1 s): the history, trimmed a second at a time and snapshotted
-    # sparsely, still starts at a state before the fix
+@pytest.mark.parametrize("delay_s, max_batch", [(0.6, None), (0.95, 1)])
+def test_a_late_measurement_is_fused_at_its_time_of_validity(delay_s, max_batch):
+    # GIVEN the same mission fed in order, and with one USBL fix arriving late — also just
+    # inside max_delay_s (1 s) with the IMU sample by sample, as live (a hundred inputs a
+    # second: the history is trimmed and holds snapshot-less IMU runs, yet still starts
+    # before the fix)
     m = make_mission(np.random.default_rng(11), 60.0, usbl_period_s=20.0)
     fix = next(a for a in m.aids if a.KIND == "usbl" and a.t_s == 40.0)
     on_time = _est()
-    run(on_time, m)
+    run(on_time, m, max_batch=max_batch)
     late = _est()
     late_m = copy.copy(m)
     # deliver it when the IMU has reached 40 s + the delay
     late_m.aids = sorted([a for a in m.aids if a is not fix] + [_Delayed(fix, 40.0 + delay_s)], key=lambda a: a.t_s)
-    run(late, late_m)
+    run(late, late_m, max_batch=max_batch)
     # THEN the result equals the in-order run
     a, b = on_time.nav_state(), late.nav_state()
     np.testing.assert_allclose(b.pos_n_m, a.pos_n_m, atol=1e-6)
