@@ -93,6 +93,18 @@ class LearnedVelocityConfig:
     # still moved the position back 0.4–0.6 m through k_speed's covariance with it (ArduSub stop-
     # and-go drives, README "Drives of other shapes": worst log 4.87 % at 1, 4.34 % at 2, 4.15 % at 3)
     transient_sigma_per_gap: float = 3.0
+    # ... except while the thrust falls (a coast: the slow lag's speed above the command's). A
+    # hull under thrust reaches its new speed fast (thrust ≫ drag at low speed: ArduSub SITL's
+    # BlueROV2 in ~0.3 s), one coasting slows on drag alone, v₀/(1 + t/τ) for quadratic drag, a
+    # tail that stays well above the command: SITL 0.09 / 0.05 / 0.03 m/s at 1.5 / 3.5 / 5.5 s
+    # after a 0.53 m/s lane, the slow lag (2 s) 0.25 / 0.09 / 0.03. Read as "0 ± 3 gaps" each
+    # 1 Hz update of the tail had an innovation of one sign, which k_speed's covariance with the
+    # position turned into the position moving back 1–2.3 m at every stop. In a coast the speed
+    # is taken at coast_mean_fraction of the way from the command to the slow lag, 1σ
+    # coast_sigma_per_gap gaps (the 17 ArduSub SITL logs, README "Stops and the autopilot's
+    # tilt": stops tlog 4.41 → 1.84 %)
+    coast_mean_fraction: float = 0.5
+    coast_sigma_per_gap: float = 1.0
     # a vehicle whose skid in a turn is not known (the uncalibrated motion prior): the sway
     # of a turning vehicle, β u w (MotionParams.sway_per_turn), with β unknown, σ_β (s): the
     # sway variance takes (σ_β k_speed k_V u w)², u the surge speed the vehicle may have (the
@@ -226,10 +238,21 @@ class AttitudeConfig:
     # consider parameter (fusion/aiding/attitude.py reference_yaw_covariance). ArduSub SITL: 0.6° rms with
     # correlation 0.7–0.9 after a minute (tests/fusion/test_attitude_reference.py); 0: off
     reference_yaw_sigma_rad: float = math.radians(2.0)
+    # the autopilot's roll and pitch wander too (its EKF's tilt, 1 mg of accelerometer bias is
+    # 0.06°): ArduSub SITL's ATTITUDE against SIM_STATE is 0.05–0.2° off, for minutes, and
+    # moves by 0.1–0.15° within 10–30 s of a manoeuvre. Fused at 10–50 Hz, ATTITUDE holds the
+    # filter's tilt on it, so g × that offset is an acceleration the strapdown integrates
+    # (0.02–0.04 m/s²; velocity 0.15 m/s off by the end of a stop's coast) which only the
+    # accelerometer bias can absorb: with a consumer IMU and ATTITUDE at the alignment, the
+    # horizontal accelerometer biases' random walk takes (g × this)² beside the part's own
+    # (rad/√s; 1e-4: 0.05° a minute). 0: off
+    reference_tilt_rw_rad_rthz: float = 1.0e-4
 
     def validate(self) -> None:
         if not (0.0 <= self.reference_yaw_sigma_rad < 0.5):
             raise ValueError("attitude: reference_yaw_sigma_rad must be within [0, 0.5) rad")
+        if not (0.0 <= self.reference_tilt_rw_rad_rthz < 0.01):
+            raise ValueError("attitude: reference_tilt_rw_rad_rthz must be within [0, 0.01) rad/√s")
         if not (0.0 < self.learn_window_s <= 3600.0 and 0.0 <= self.learn_min_s <= 3600.0):
             raise ValueError("attitude: learn_window_s must be within (0, 3600] s and learn_min_s within [0, 3600] s")
         if not (0.0 < self.ins_max_variability_rad < 0.1 and 0.0 < self.ins_sigma_yaw_rad < 0.1):
@@ -460,6 +483,8 @@ class FilterConfig:
             raise ValueError("learned_velocity.skid_sigma_s must be ≥ 0 and skid_max_fraction within (0, 1]")
         if not self.learned_velocity.heave_sigma_per_vertical_speed >= 0.0:
             raise ValueError("learned_velocity.heave_sigma_per_vertical_speed must be ≥ 0")
+        if not (0.0 <= self.learned_velocity.coast_mean_fraction <= 1.0 and self.learned_velocity.coast_sigma_per_gap > 0.0):
+            raise ValueError("learned_velocity.coast_mean_fraction must be within [0, 1] and coast_sigma_per_gap > 0")
         if self.position_reset_after_rejections < 1:
             raise ValueError("position_reset_after_rejections must be ≥ 1")
         if not (0 < self.position_reset_max_speed_m_s <= 100.0 and 0 < self.position_reset_window_s <= 86400.0):

@@ -906,10 +906,22 @@ class Estimator:
         q[VEL] = imu.acc_noise_m_s2_rthz ** 2
         q[ATT] = imu.gyro_noise_rad_s_rthz ** 2
         q[BA] = imu.acc_bias_rw_m_s3_rthz ** 2
+        if self._tilt_held_by_autopilot():
+            # the autopilot's tilt wanders and ATTITUDE holds ours on it (AttitudeConfig)
+            q[BA.start:BA.start + 2] += (GRAVITY_M_S2 * c.attitude.reference_tilt_rw_rad_rthz) ** 2
         q[BG] = imu.gyro_bias_rw_rad_s2_rthz ** 2
         q[CUR] = c.process.current_rw_m_s_rthz ** 2
         q[KS] = c.process.k_speed_rw_rthz ** 2
         return q
+
+    def _tilt_held_by_autopilot(self) -> bool:
+        """A consumer IMU with the autopilot's ATTITUDE seen at the alignment: the filter's
+        roll and pitch follow the autopilot's (built on the same MEMS, wandering by tenths of a
+        degree)."""
+        alignment = getattr(self, "_alignment", None)  # (none yet while the filter is built)
+        return (self.config.attitude.enabled and self.config.attitude.reference_tilt_rw_rad_rthz > 0
+                and self.imu_model.grade == "consumer" and alignment is not None
+                and math.isfinite(alignment.attitude_rate_hz()))
 
     def _snapshot(self) -> _Snapshot:
         s = _Snapshot()
@@ -1361,7 +1373,13 @@ class Estimator:
         cfg = self.config.learned_velocity
         R_nb = aid_lv.dcm(self._x)
         yaw_rate = float(R_nb[2] @ self._acc[ACC_OMEGA])
-        meas = aid_lv.measure(self._x, self._rpm[1], yaw_rate, self.motion_params,
+        surge = self._rpm[1]
+        # a coast (the thrust fell, the hull slows on drag alone): its speed between the
+        # command's and the slow lag's (LearnedVelocityConfig.coast_mean_fraction)
+        coast = cfg.transient_time_s > 0 and abs(self._rpm[5]) > abs(surge)
+        if coast:
+            surge += cfg.coast_mean_fraction * (self._rpm[5] - surge)
+        meas = aid_lv.measure(self._x, surge, yaw_rate, self.motion_params,
                               cfg.sigma_heave_m_s, cfg.variance_scale, self._rpm[2], R_nb=R_nb)
         P = None
         if adapt and self._surge.enabled:
@@ -1373,10 +1391,11 @@ class Estimator:
         if cfg.transient_time_s > 0:
             # a thrust change settling in a vehicle of unknown response: the speed is anywhere
             # between the model's now and the model's through the slow lag (1σ = a multiple of
-            # the gap, transient_sigma_per_gap)
-            scale = abs(float(self._x[X_KS])) * self.motion_params.k_v * cfg.transient_sigma_per_gap
-            extra = ((scale * (self._rpm[1] - self._rpm[5])) ** 2,
-                     (scale * (self._rpm[2] - self._rpm[6])) ** 2)
+            # the gap, transient_sigma_per_gap; coast_sigma_per_gap in a coast)
+            scale = abs(float(self._x[X_KS])) * self.motion_params.k_v
+            g_surge = cfg.coast_sigma_per_gap if coast else cfg.transient_sigma_per_gap
+            extra = ((scale * g_surge * (self._rpm[1] - self._rpm[5])) ** 2,
+                     (scale * cfg.transient_sigma_per_gap * (self._rpm[2] - self._rpm[6])) ** 2)
             if extra == (0.0, 0.0):
                 extra = None
         if cfg.skid_sigma_s > 0:

@@ -131,11 +131,10 @@ def _noop(est, t0, t1):
     return out
 
 
-def _first_sway_variance(seconds, **learned_velocity):
-    """The learned velocity's sway innovation variance at its first epoch within the counted
-    ``seconds`` — each ``(rpm, yaw_rate_rad_s, counted)``, from 12 s on, after an alignment at
-    rest — with ``learned_velocity`` config changes (the covariance before it the same
-    whatever the skid σ)."""
+def _first_lv_status(seconds, **learned_velocity):
+    """The learned velocity's status at its first epoch within the counted ``seconds`` — each
+    ``(rpm, yaw_rate_rad_s, counted)``, from 12 s on, after an alignment at rest — with
+    ``learned_velocity`` config changes."""
     from dataclasses import replace
 
     from adaptnav.fusion.samples import RpmSample
@@ -153,7 +152,13 @@ def _first_sway_variance(seconds, **learned_velocity):
                 statuses += out
     lv = [s for s in statuses if s.source == "learned_velocity"]
     assert lv
-    return lv[0].innovation_variance[1]
+    return lv[0]
+
+
+def _first_sway_variance(seconds, **learned_velocity):
+    """The sway innovation variance of :func:`_first_lv_status` (the covariance before it the
+    same whatever the skid σ)."""
+    return _first_lv_status(seconds, **learned_velocity).innovation_variance[1]
 
 
 def _sway_variance(skid_sigma_s, yaw_rate_rad_s, rpm=600.0):
@@ -191,6 +196,36 @@ def test_a_pivot_right_after_a_lane_skids_at_the_speed_the_hull_may_still_have()
     # slow lag's speed, (0.2 · 0.75)², not 0
     extra = _pivot_sway_variance(2.0) - _pivot_sway_variance(0.0)
     assert extra == pytest.approx((0.2 * 0.75) ** 2, rel=0.2)
+
+
+def _coast(**learned_velocity):
+    """The learned velocity's status at the first epoch after the thrust is cut from 600 RPM to
+    0 after a three-second lane, and the slow lag's speed then: the lane's (the lag settled at
+    the command; it moves towards the command held since the previous thrust sample), on a
+    vehicle of unknown response (``transient_time_s`` 2 s)."""
+    status = _first_lv_status([(600.0, 0.0, False)] * 3 + [(0.0, 0.0, True)], transient_time_s=2.0,
+                              **learned_velocity)
+    return status, float(RpmSpeedTable().speed(600.0))
+
+
+def test_a_coast_is_taken_between_the_command_and_the_slow_lag_not_at_the_command():
+    # ArduSub SITL's BlueROV2 after a 0.53 m/s lane: 0.09 / 0.05 / 0.03 m/s 1.5 / 3.5 / 5.5 s
+    # after the thrust is cut (quadratic drag), the command 0, the 2 s lag 0.25 / 0.09 / 0.03.
+    # Taken as "0 ± 3 gaps" every 1 Hz update of the coast had an innovation of one sign, and
+    # k_speed's covariance with the position moved it back 1–2.3 m at every stop.
+    # GIVEN the thrust cut after a lane, THEN the surge observed is midway between the command (0)
+    # and the slow lag, and its variance takes one gap, not three
+    on, slow = _coast()
+    off, _ = _coast(coast_mean_fraction=0.0, coast_sigma_per_gap=3.0)
+    assert slow > 0.3
+    assert on.observation[0] == pytest.approx(0.5 * slow, rel=1e-6)
+    assert off.observation[0] == 0.0
+    # (k_speed ≈ 1 here: the variance is the gap's times k_speed², plus the prior's H P Hᵀ)
+    assert slow ** 2 < on.innovation_variance[0] < 1.5 * slow ** 2
+    assert off.innovation_variance[0] > 8.0 * slow ** 2
+    # a spin-up is a thrust under way, not a coast: observed at the command as before
+    up = _first_lv_status([(0.0, 0.0, False)] * 3 + [(600.0, 0.0, True)], transient_time_s=2.0)
+    assert up.observation[0] == pytest.approx(float(RpmSpeedTable().speed(600.0)), rel=1e-9)
 
 
 def _descend(heave_sigma_per_vertical_speed, rate_m_s=0.35, seconds=30.0):

@@ -11,7 +11,8 @@ said "speed 0" the instant the thrust was cut while the vehicle coasted for seco
 back 2–5 m: 13.7 % of the distance at the end, 16.1 m at most. Now an uncalibrated vehicle's
 learned velocity carries the gap to a 2 s lag of the command as variance
 (``filter.learned_velocity.transient_time_s``, ``motion.uncalibrated_transient_time_s``) and its
-k_speed starts at σ 0.3 (the embedded table is another vehicle's); its heave is 0 ± the
+k_speed starts at σ 0.3 (the embedded table is another vehicle's), and a coast is observed
+between the command and the lag (``filter.learned_velocity.coast_mean_fraction``); its heave is 0 ± the
 vertical speed (``motion.uncalibrated_heave_sigma_per_vertical_speed``: it may change depth on
 vertical thrusters).
 """
@@ -31,7 +32,9 @@ def test_stop_and_go_stays_within_5_percent_of_distance_and_15_m_with_the_defaul
     assert summary["motion_prior"].startswith("uncalibrated")
     s = score(tmp_path, STOPS)
     assert s["distance_travelled_m"] > 100.0
-    # issue 11's bounds (measured 1.43 % and 3.02 m; before the transient variance 13.65 % / 16.1 m)
+    # issue 11's bounds (measured 1.95 % and 4.28 m; before the transient variance 13.65 % / 16.1 m;
+    # 1.43 % / 3.02 m before the coast's mean and the tilt's wander, which took the ground
+    # station's tlog of another stops drive from 4.41 to 1.84 %: tests/service/test_mavlink_sitl_stops.py)
     assert s["end_error_percent"] <= 5.0 and s["max_error_submerged_m"] <= 15.0, s
     # and honest: the valid epochs' errors within their 99 % ellipse (a consistent filter: ~1 %)
     assert s["valid_outside_99_fraction"] <= 0.02, s
@@ -39,16 +42,3 @@ def test_stop_and_go_stays_within_5_percent_of_distance_and_15_m_with_the_defaul
     # while the learned velocity held its heave to 0 ± 0.05 m/s: the integrity test failed it
     # at every depth change)
     assert s["valid_fraction_submerged"] > 0.95, s
-
-
-def test_a_coast_moves_the_position_less_with_the_gap_taken_as_a_scale_than_as_its_bound(tmp_path):
-    """With the gap to the lagged command as 1 σ, each 1 Hz update of a coast still moved the
-    position back 0.4–0.6 m through k_speed's covariance with it (the last stop of this log,
-    t ≈ 369–374 s: 2.3 m); at 3 σ per gap (the default) the end error is lower."""
-    ends = {}
-    for g in (1.0, 3.0):
-        out = tmp_path / f"g{g:g}"
-        assert cli_main(["replay", str(STOPS), "--out", str(out), "--no-progress", "--no-plots",
-                         "--set", f"filter.learned_velocity.transient_sigma_per_gap={g}"]) == 0
-        ends[g] = score(out, STOPS)["end_error_percent"]
-    assert ends[3.0] < 0.75 * ends[1.0], ends  # measured 1.43 against 2.71 %
