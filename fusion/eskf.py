@@ -188,7 +188,6 @@ class Estimator:
         # the IMU error model: the configured grade, or decided at alignment (``auto``)
         self.imu_model = imu_grades.resolve(config.imu, np.empty((0, 3)), np.empty((0, 3)), math.nan)
         self._imu_source = ""  # ImuSample.source of the latest IMU sample
-        self._qdiag = self._process_noise()
         # past horizontal positions for leg-to-leg loop closures (aiding.loop_closure)
         self._clones = aid_loop.CloneBank(config.loop_closure.clone_period_s, config.loop_closure.clone_horizon_s,
                                           self._core)
@@ -216,6 +215,7 @@ class Estimator:
         self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
         # what comes before the start (heading, fix, depth, levelling window) and the start
         self._alignment = Alignment(config, origin, self._aid_cfg["dvl"][1].R_db)
+        self._qdiag = self._process_noise()  # (set again at the start, with what the alignment saw)
         # reference points: lever arms are given from the vehicle reference point; the filter
         # navigates the IMU, so each becomes an arm from the IMU (None: at the IMU)
         l_imu = np.asarray(config.imu.lever_arm_b_m, dtype=float)
@@ -918,10 +918,8 @@ class Estimator:
         """A consumer IMU with the autopilot's ATTITUDE seen at the alignment: the filter's
         roll and pitch follow the autopilot's (built on the same MEMS, wandering by tenths of a
         degree)."""
-        alignment = getattr(self, "_alignment", None)  # (none yet while the filter is built)
         return (self.config.attitude.enabled and self.config.attitude.reference_tilt_rw_rad_rthz > 0
-                and self.imu_model.grade == "consumer" and alignment is not None
-                and math.isfinite(alignment.attitude_rate_hz()))
+                and self.imu_model.grade == "consumer" and math.isfinite(self._alignment.attitude_rate_hz()))
 
     def _snapshot(self) -> _Snapshot:
         s = _Snapshot()

@@ -228,6 +228,37 @@ def test_a_coast_is_taken_between_the_command_and_the_slow_lag_not_at_the_comman
     assert up.observation[0] == pytest.approx(float(RpmSpeedTable().speed(600.0)), rel=1e-9)
 
 
+def _accel_bias_walk(**changes):
+    """The horizontal and vertical accelerometer-bias random-walk variances (q of BA) after an
+    alignment at rest with ATTITUDE at 50 Hz, with ``changes`` as ``section__key`` config overrides."""
+    from dataclasses import replace
+
+    from adaptnav.fusion.state import BA
+
+    cfg = FilterConfig()
+    for name, value in changes.items():
+        section, key = name.split("__")
+        cfg = replace(cfg, **{section: replace(getattr(cfg, section), **{key: value})})
+    est = _est(cfg)
+    _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
+    assert est.nav_state().t_s > 0.0
+    q = est._qdiag[BA]
+    return float(q[0]), float(q[1]), float(q[2])
+
+
+def test_the_autopilots_tilt_wander_widens_the_horizontal_accelerometer_bias_walk_of_a_consumer_imu_only():
+    # ArduSub's ATTITUDE roll/pitch wander 0.05-0.2 deg and hold the filter's tilt there: with a
+    # consumer IMU (the autopilot's own MEMS) and ATTITUDE at the alignment the horizontal biases'
+    # walk takes (g x reference_tilt_rw_rad_rthz)^2 beside the part's own; the vertical does not
+    qx, qy, qz = _accel_bias_walk(imu__grade="consumer")
+    assert qx == qy == pytest.approx(qz + (GRAVITY_M_S2 * 1e-4) ** 2, rel=1e-9)
+    # off, and with an IMU of another grade (its own tilt is better than the autopilot's)
+    for changes in ({"imu__grade": "consumer", "attitude__reference_tilt_rw_rad_rthz": 0.0},
+                    {"imu__grade": "tactical"}):
+        qx, qy, qz = _accel_bias_walk(**changes)
+        assert qx == qy == qz, changes
+
+
 def _descend(heave_sigma_per_vertical_speed, rate_m_s=0.35, seconds=30.0):
     """A vehicle aligned at rest at 5 m, then going down level at ``rate_m_s`` (an ROV on its
     vertical thrusters: ArduSub's BlueROV2 descends at 0.35 m/s), no surge thrust; returns the
