@@ -293,7 +293,9 @@ class MotionConfig:
     0.01 m/s: 5.9–8.2 % of the valid epochs of those logs lay outside their own 99 % ellipse.
     7 % and 0.03 m/s left at most 0.9 % there (what a consistent filter leaves: 1 %) on five
     ArduSub logs and kept them within issue 11's 5 % / 15 m; 10 % and 0.05 m/s left none but
-    took a fresh DataFlash drive to 5.1 % (3.8 % with the calibrated σ).
+    took a fresh DataFlash drive to 5.1 % (3.8 % with the calibrated σ). (A log of that simulator
+    now goes through the simulator's own thruster curve, ``mavlink.convert.thrusters.simulator_curve``;
+    the σ stay for a real vehicle, whose ESC and hull the embedded table does not know either.)
     ``auto``: uncalibrated when the
     thrust comes from an autopilot (MAVLink/DataFlash) and ``rpm_table`` is the embedded one
     (nobody calibrated this vehicle), else calibrated.

@@ -370,6 +370,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         doc["gps_fixes"] = counters["gps_fixes"]
     if counters.get("imu_stream"):  # MAVLink: which IMU stream was integrated, how often it changed
         doc["imu_stream"] = counters["imu_stream"]
+    if counters.get("thrusters"):  # MAVLink/DataFlash: the vehicle's PWM → RPM curve or the simulator's
+        doc["thrusters"] = counters["thrusters"]
     doc["warnings"] = origin_warnings + replay_warnings(doc)
     for w in doc["warnings"]:
         log.warning("%s", w)

@@ -294,6 +294,7 @@ class TlogReplaySource(SampleStreamSource):
                 "imu_stream": c.get("imu_stream", {}),
                 "repaired_frames": dict(c.get("repaired_frames", {})),
                 "gps_fixes": c.get("gps_fixes", {}),
+                "thrusters": c.get("thrusters", {}),
                 "truncated": c.get("truncated", "")}
 
 

@@ -155,6 +155,7 @@ class DataflashConverter:
         t_s = self.mav.time.map_boot_s(t_us / 1e6)
         try:
             if mtype == "SIM":
+                self.mav.take_simulator("its SIM records")
                 acc.stamp(t_s)
                 self._ignore(acc, "simulator truth (never fused; the replay's metrics)")
                 return [], [self._sim(msg, t_s)]
@@ -208,7 +209,7 @@ class DataflashConverter:
                 raise ConversionError("bad_pressure", f"Press={msg.Press}")
             return [DepthSample(t_s, float(msg.Press))]
         if mtype == "RCOU":  # forward and lateral RPM as from SERVO_OUTPUT_RAW
-            return [rpm_from_pwm(lambda ch: getattr(msg, f"C{ch}", 0) or 0, t_s, self.config.thrusters)]
+            return [rpm_from_pwm(lambda ch: getattr(msg, f"C{ch}", 0) or 0, t_s, self.mav.thrusters)]
         if mtype == "GPA":
             h_acc = float(getattr(msg, "HAcc", 0.0) or 0.0)
             if h_acc > 0 and math.isfinite(h_acc):

@@ -53,7 +53,7 @@ import logging
 import math
 import os
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -516,6 +516,8 @@ def altitude_from_distance_sensor(msg: Any, t_s: float, cfg: ConvertConfig) -> A
 # --------------------------------------------------------------------------- in: stateful
 # Message types deliberately not turned into samples, and why (summary.json says so; a type
 # neither handled nor listed here is reported as unknown).
+# ArduPilot's simulator's own messages: the source is SITL (MavlinkConverter.take_simulator)
+SIMULATOR_MESSAGES = frozenset(("SIM_STATE", "SIMSTATE"))
 _WHY_AUTOPILOT_SOLUTION = "the autopilot's own estimate (an output of its EKF, not a sensor)"
 _WHY_HOUSEKEEPING = "status / housekeeping (no navigation content)"
 _WHY_GCS = "ground-station traffic (commands, parameters, missions, pilot input)"
@@ -543,8 +545,9 @@ IGNORED_WHY: dict[str, str] = {
     "STATUSTEXT": "text; the autopilot's EKF (re)start and yaw alignment gate ATTITUDE, no sample",
     "SYSTEM_TIME": "clock reference (UNIX ↔ boot pairing), no sample",
     "GPS_GLOBAL_ORIGIN": "the autopilot's EKF origin (places GLOBAL_VISION_POSITION_ESTIMATE), no sample",
-    "SIM_STATE": "simulator ground truth (never fused; the log replay makes it the truth of its metrics)",
-    "SIMSTATE": "simulator ground truth (never fused)",
+    "SIM_STATE": "simulator ground truth (never fused; the log replay makes it the truth of its metrics; "
+                 "says the thrusters are the simulator's, mavlink.convert.thrusters.simulator_curve)",
+    "SIMSTATE": "simulator ground truth (never fused; says the thrusters are the simulator's)",
     "RANGEFINDER": "ArduPilot's copy of DISTANCE_SENSOR (that one is used)",
     "SCALED_IMU3": "a third IMU: one IMU stream is integrated",
     # BlueOS's DVL extension in its "position estimate" mode, visual odometry, or a navigator's
@@ -628,6 +631,10 @@ class MavlinkConverter:
         self.autopilot_firmware: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
         self.autopilot_gps_type: int | None = None  # its GPS_TYPE / GPS1_TYPE parameter
         self.autopilot_baro_primary: int | None = None  # its BARO_PRIMARY parameter
+        # the thrusters in effect: the vehicle's curve, or the simulator's once the source is
+        # known to be ArduPilot's simulator (``simulator``: what said so; :meth:`take_simulator`)
+        self.thrusters = self.config.thrusters
+        self.simulator: str | None = None
         self.imu_message: str | None = None if self.config.imu_message == "auto" else self.config.imu_message
         self._imu_lock: tuple[str, tuple[int, int, int], tuple[int, bool]] | None = None  # (type, source, rank)
         self.imu_switches = 0  # moves to a better IMU stream, or off a silent one (auto)
@@ -822,6 +829,8 @@ class MavlinkConverter:
             return []
         handler = _HANDLERS.get(mtype)
         if handler is None:
+            if mtype in SIMULATOR_MESSAGES and self.simulator is None and self._is_autopilot(msg):
+                self.take_simulator(mtype)
             if mtype == "PARAM_VALUE" and self._is_autopilot(msg):
                 self.note_parameter(str(msg.param_id), float(msg.param_value))
             if mtype in ("EKF_STATUS_REPORT", "STATUSTEXT"):
@@ -949,8 +958,29 @@ class MavlinkConverter:
         primary = self.autopilot_baro_primary
         return primary if primary in (1, 2) else 1
 
+    def take_simulator(self, why: str) -> None:
+        """The source is ArduPilot's simulator (``why``: the message, record or parameter that
+        said so): its thrusters go through ``thrusters.simulator_curve`` from now on (SITL has
+        no ESC dead band). Said once."""
+        if self.simulator is not None:
+            return
+        self.simulator = why
+        self.thrusters = replace(self.config.thrusters, curve=self.config.thrusters.simulator_curve)
+        logging.getLogger(__name__).info(
+            "the source is ArduPilot's simulator (%s): thrusters through mavlink.convert.thrusters."
+            "simulator_curve (no ESC dead band)", why)
+
+    def thruster_report(self) -> dict[str, Any]:
+        """Which PWM → RPM curve the thrusters went through, and why, for summaries."""
+        if self.simulator is None:
+            return {"curve": "vehicle", "why": "mavlink.convert.thrusters.curve (no simulator seen)"}
+        return {"curve": "simulator", "why": f"ArduPilot's simulator ({self.simulator}): "
+                "mavlink.convert.thrusters.simulator_curve"}
+
     def note_parameter(self, name: str, value: float) -> None:
         """One of the autopilot's parameters (PARAM_VALUE, a DataFlash log's PARM)."""
+        if name.startswith("SIM_"):  # only a simulator build has the SIM_ group
+            self.take_simulator(f"its parameter {name}")
         if name == "BARO_PRIMARY" and math.isfinite(value):
             self.autopilot_baro_primary = int(value)
         if name in ("GPS_TYPE", "GPS1_TYPE") and math.isfinite(value):
@@ -995,7 +1025,7 @@ _HANDLERS = {
     "SCALED_PRESSURE": MavlinkConverter._pressure,
     "SCALED_PRESSURE2": MavlinkConverter._pressure,
     "SCALED_PRESSURE3": MavlinkConverter._pressure,
-    "SERVO_OUTPUT_RAW": lambda self, m, k, t: rpm_from_servo(m, t, self.config.thrusters),
+    "SERVO_OUTPUT_RAW": lambda self, m, k, t: rpm_from_servo(m, t, self.thrusters),
     "GPS_RAW_INT": MavlinkConverter._gps_raw,
     "GPS_INPUT": MavlinkConverter._gps_input,
     "DISTANCE_SENSOR": lambda self, m, k, t: altitude_from_distance_sensor(m, t, self.config),

@@ -180,6 +180,7 @@ class TlogSource:
         self._blueos = self.path.suffix.lower() == ".mcap"  # BlueOS's recording (blueos_mcap)
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
+        self._simulator_thrusters()
 
     # --------------------------------------------------------------------- helpers
     def _reject(self, reason: str) -> None:
@@ -235,6 +236,14 @@ class TlogSource:
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         if self.converter.origin is not None:
             self.converter.origin_from = "config"
+        self._simulator_thrusters()
+
+    def _simulator_thrusters(self) -> None:
+        """A log with a simulator's truth is ArduPilot's simulator's: its thrusters through the
+        simulator's curve from the first record (live, the converter switches on the truth's
+        first message; here the scan knows before any thrust is read)."""
+        if self.has_truth:
+            self.converter.take_simulator("its SIM records" if self._dataflash else "SIM_STATE in the log")
 
     def set_origin(self, origin: GeoOrigin) -> None:
         """The NED origin the replay uses (a configured one); truth is placed around it."""
@@ -557,6 +566,7 @@ class TlogSource:
                                           if self._dataflash else self.converter.accounting())
         self.counters["clock"] = self.converter.clock_report()
         self.counters["gps_fixes"] = self.converter.gps_report()
+        self.counters["thrusters"] = self.converter.thruster_report()
         if not self._dataflash:
             self.counters["imu_stream"] = {"integrated": self.converter.integrated_imu_stream(),
                                            "switches": self.converter.imu_switches}

@@ -162,6 +162,35 @@ def test_servo_output_to_rpm_uses_forward_signs():
     assert r.rpm == pytest.approx(expected, rel=1e-3)
 
 
+def _forward_rpm(c, offset_us):
+    """The converter's forward RPM for all four thrusters ``offset_us`` forward of neutral."""
+    (r,) = c.convert(wire("servo_output_raw_encode", 3_000_000, 0, 1500 - offset_us, 1500 - offset_us,
+                          1500 + offset_us, 1500 + offset_us, 1500, 1500, 1500, 1500))
+    return r.rpm
+
+
+def test_the_simulators_own_messages_switch_the_thrusters_to_its_curve_without_dead_band():
+    c = converter()
+    assert _forward_rpm(c, 20) == 0.0 and c.thruster_report()["curve"] == "vehicle"
+    # a ground station's SIM_STATE (another system) says nothing of the autopilot
+    c.convert(wire("simstate_encode", 0, 0, 0, 0, 0, -9.8, 0, 0, 0, 0, 0, src=(255, 190)))
+    assert _forward_rpm(c, 20) == 0.0
+    c.convert(wire("sim_state_encode", 1, 0, 0, 0, *[0.0] * 17))
+    assert _forward_rpm(c, 20) == pytest.approx(3500 * 20 / 400)
+    assert _forward_rpm(c, -100) == pytest.approx(-3500 * 100 / 400)
+    report = c.thruster_report()
+    assert report["curve"] == "simulator" and "SIM_STATE" in report["why"]
+
+
+def test_a_simulators_parameter_says_the_same():
+    c = converter()
+    c.convert(wire("param_value_encode", b"SIM_SPEEDUP", 1.0, 9, 900, 1))
+    assert _forward_rpm(c, 20) == pytest.approx(3500 * 20 / 400)
+    d = converter()
+    d.convert(wire("param_value_encode", b"SERVO1_MIN", 1100.0, 9, 900, 1))
+    assert _forward_rpm(d, 20) == 0.0
+
+
 def test_mission_clock_wrap_and_reboot_keep_mission_time_monotonic():
     tm = MissionClock(reboot_backjump_s=2.0)
     assert tm.from_boot_ms(1000) == pytest.approx(1.0)
