@@ -117,6 +117,11 @@ class LearnedVelocityConfig:
     # BlueROV2 skids 8° at 4°/s and 13° at both 8 and 12°/s), and a pivot at a high yaw rate
     # with the speed coasting down does not skid faster than it moves
     skid_max_fraction: float = 0.2
+    # ... and in a coast (the thrust fell below the slow lag's speed, see coast_mean_fraction):
+    # a hull coasting through a pivot turns under the velocity it keeps, its sideslip is
+    # anything (ArduSub SITL after a 0.8 m/s lane: course held within 7° while the hull yawed
+    # 116°, sway 0.09 m/s at 0.15 m/s), so the bound is the speed itself
+    coast_skid_max_fraction: float = 1.0
     # a vehicle that may change depth on vertical thrusters (an ROV) rather than by pitching (an
     # AUV) — not known under the uncalibrated motion prior: the heave variance takes
     # (this × v_d)², v_d the filter's vertical speed (the depth sensor's). ArduSub's BlueROV2
@@ -479,8 +484,11 @@ class FilterConfig:
                              f"1 / imu_gap_s ({1.0 / self.imu_gap_s:g} Hz)")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
-        if not (self.learned_velocity.skid_sigma_s >= 0.0 and 0.0 < self.learned_velocity.skid_max_fraction <= 1.0):
-            raise ValueError("learned_velocity.skid_sigma_s must be ≥ 0 and skid_max_fraction within (0, 1]")
+        lv = self.learned_velocity
+        if not (lv.skid_sigma_s >= 0.0 and 0.0 < lv.skid_max_fraction <= 1.0
+                and 0.0 < lv.coast_skid_max_fraction <= 1.0):
+            raise ValueError("learned_velocity.skid_sigma_s must be ≥ 0, skid_max_fraction and "
+                             "coast_skid_max_fraction within (0, 1]")
         if not self.learned_velocity.heave_sigma_per_vertical_speed >= 0.0:
             raise ValueError("learned_velocity.heave_sigma_per_vertical_speed must be ≥ 0")
         if not (0.0 <= self.learned_velocity.coast_mean_fraction <= 1.0 and self.learned_velocity.coast_sigma_per_gap > 0.0):

@@ -1401,10 +1401,12 @@ class Estimator:
             # skid_max_fraction of the speed (LearnedVelocityConfig.skid_sigma_s)
             # u the speed the vehicle may still have: in a pivot right after a lane the thrust
             # says 0 while the hull coasts on and turns under its own velocity (the slow lag's
-            # speed; the model's once the thrust change has settled)
+            # speed; the model's once the thrust change has settled); coasting, it turns under
+            # the velocity it keeps: a sideslip of any angle (coast_skid_max_fraction)
             u = max(abs(self._rpm[1]), abs(self._rpm[5])) if cfg.transient_time_s > 0 else self._rpm[1]
+            cap = cfg.coast_skid_max_fraction if coast else cfg.skid_max_fraction
             skid = (abs(float(self._x[X_KS])) * self.motion_params.k_v * u
-                    * min(cfg.skid_sigma_s * abs(yaw_rate), cfg.skid_max_fraction)) ** 2
+                    * min(cfg.skid_sigma_s * abs(yaw_rate), cap)) ** 2
             if skid > 0.0:
                 extra = (extra[0], extra[1] + skid) if extra else (0.0, skid)
         meas = self._surge.adapt(meas, P, t - self._t_release, extra_var=extra[0] if extra else 0.0)

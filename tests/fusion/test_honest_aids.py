@@ -180,22 +180,30 @@ def test_an_unknown_skid_widens_the_sway_in_a_turn_only():
     assert _sway_variance(2.0, 0.0) == _sway_variance(0.0, 0.0)
 
 
-def _pivot_sway_variance(skid_sigma_s, yaw_rate_rad_s=0.5, rpm=600.0):
+def _pivot_sway_variance(skid_sigma_s, yaw_rate_rad_s=0.5, rpm=600.0, **learned_velocity):
     """The sway variance at the first epoch after the thrust is cut from ``rpm`` (0.75 m/s) to 0
     while the gyro turns at ``yaw_rate_rad_s`` — a pivot right after a three-second lane, the slow
     lag settled at the command — on a vehicle of unknown response (``transient_time_s`` 2 s)."""
     return _first_sway_variance([(rpm, 0.0, False)] * 3 + [(0.0, yaw_rate_rad_s, True)],
-                                skid_sigma_s=skid_sigma_s, transient_time_s=2.0)
+                                skid_sigma_s=skid_sigma_s, transient_time_s=2.0, **learned_velocity)
 
 
 def test_a_pivot_right_after_a_lane_skids_at_the_speed_the_hull_may_still_have():
     # The Heavy's first turn (tests.sitl.bin_drive --heavy): thrust cut, yaw at 0.5 rad/s, the
     # hull still coasting at 0.13 m/s 0.075 m/s off its x axis; the skid term took the command's
     # surge (0) and the sway row pulled the velocity, and through k_speed the position, 3.9 m back.
-    # GIVEN the thrust cut from 0.75 m/s and a pivot, THEN the sway variance takes the skid of the
-    # slow lag's speed, (0.2 · 0.75)², not 0
+    # And the hull turns under the velocity it keeps (the mixed drive, tests.sitl.bin_drive
+    # --pattern mixed: course held within 7° while the hull yawed 116°, sway 0.09 m/s at 0.15 m/s):
+    # GIVEN the thrust cut from 0.75 m/s and a pivot at 0.5 rad/s, THEN the sway variance takes
+    # the skid of the slow lag's speed, min(σ_β w, 1) = 1 of it: (0.75)², not 0 nor the thrusting
+    # turn's bound (0.2 · 0.75)²
     extra = _pivot_sway_variance(2.0) - _pivot_sway_variance(0.0)
-    assert extra == pytest.approx((0.2 * 0.75) ** 2, rel=0.2)
+    assert extra == pytest.approx(0.75 ** 2, rel=0.2)
+    bounded = _pivot_sway_variance(2.0, coast_skid_max_fraction=0.2) - _pivot_sway_variance(0.0)
+    assert bounded == pytest.approx((0.2 * 0.75) ** 2, rel=0.2)
+    # a slower pivot: σ_β w = 0.4 of the speed
+    slow = _pivot_sway_variance(2.0, yaw_rate_rad_s=0.2) - _pivot_sway_variance(0.0, yaw_rate_rad_s=0.2)
+    assert slow == pytest.approx((0.4 * 0.75) ** 2, rel=0.2)
 
 
 def _coast(**learned_velocity):

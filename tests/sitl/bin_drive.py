@@ -137,8 +137,24 @@ def drive_stops(gcs: Gcs, legs: int = 4, leg_s: float = 50.0, hover_s: float = 3
     _surface(gcs)
 
 
+def drive_mixed(gcs: Gcs, legs: int = 6, leg_s: float | None = None) -> None:
+    """(e) Mixed throttles in one drive: six lanes of 40-45 s at clearly different forward sticks
+    (x 800, 530, 680, the fourth in reverse at -450, 750, 560) so one learned speed scale has to
+    serve them all, turns of 90-150° both ways between lanes (the third on the move at x 300);
+    ~6 min from arming to disarming. ``leg_s`` given: every lane that long."""
+    _dive(gcs)
+    sticks = [800, 530, 680, -450, 750, 560]
+    lane_s = [45.0, 40.0, 44.0, 45.0, 40.0, 45.0]
+    turns = [120, -90, 150, -120, 100]
+    for leg in range(legs):
+        gcs.hold_sticks(lane_s[leg % len(lane_s)] if leg_s is None else leg_s, x=sticks[leg % len(sticks)])
+        if leg < legs - 1:
+            turn_by(gcs, turns[leg % len(turns)], r=500, x=300 if leg == 2 else 0)  # the third on the move
+    _surface(gcs)
+
+
 PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs": drive_arcs,
-            "stops": drive_stops}
+            "stops": drive_stops, "mixed": drive_mixed}
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
