@@ -61,6 +61,17 @@ def sim_state_truth(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return a[:, 0], a[:, 1], a[:, 2], a[:, 3]
 
 
+def replay_scored(log: Path, out: Path, *sets: str) -> dict:
+    """``adaptnav replay LOG --out OUT [--set ...]`` with the defaults otherwise, then :func:`score`."""
+    from adaptnav.service.cli import main as cli_main
+
+    args = ["replay", str(log), "--out", str(out), "--no-progress", "--no-plots"]
+    for s in sets:
+        args += ["--set", s]
+    assert cli_main(args) == 0
+    return score(out, log)
+
+
 def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float = 1.0) -> dict:
     """Submerged scores of the replay written to ``out_dir`` (trajectory.csv, summary.json)."""
     from adaptnav.fusion.frames import GeoOrigin

@@ -19,19 +19,13 @@ Two things it checks:
 import json
 from pathlib import Path
 
-from adaptnav.service.cli import main as cli_main
-
-from ..fusion.freedrive import score
+from ..fusion.freedrive import replay_scored
 
 MIXED_TLOG = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-mixed-session.tlog"
 
 
 def _replay(out: Path, *sets: str) -> dict:
-    args = ["replay", str(MIXED_TLOG), "--out", str(out), "--no-progress", "--no-plots"]
-    for s in sets:
-        args += ["--set", s]
-    assert cli_main(args) == 0
-    return score(out, MIXED_TLOG)
+    return replay_scored(MIXED_TLOG, out, *sets)
 
 
 def test_mixed_throttles_and_pivots_stay_within_3_percent_and_7_m_with_the_defaults(tmp_path):

@@ -19,19 +19,13 @@ distance at the end, the position thrown 1–2.3 m back at every stop):
 import json
 from pathlib import Path
 
-from adaptnav.service.cli import main as cli_main
-
-from ..fusion.freedrive import score
+from ..fusion.freedrive import replay_scored
 
 STOPS_TLOG = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-stops-session.tlog"
 
 
 def _replay(out: Path, *sets: str) -> dict:
-    args = ["replay", str(STOPS_TLOG), "--out", str(out), "--no-progress", "--no-plots"]
-    for s in sets:
-        args += ["--set", s]
-    assert cli_main(args) == 0
-    return score(out, STOPS_TLOG)
+    return replay_scored(STOPS_TLOG, out, *sets)
 
 
 def test_stop_and_go_from_a_tlog_stays_within_2_5_percent_and_3_m_with_the_defaults(tmp_path):
