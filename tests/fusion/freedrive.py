@@ -61,11 +61,14 @@ def sim_state_truth(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return a[:, 0], a[:, 1], a[:, 2], a[:, 3]
 
 
-def replay_scored(log: Path, out: Path, *sets: str) -> dict:
-    """``adaptnav replay LOG --out OUT [--set ...]`` with the defaults otherwise, then :func:`score`."""
+def replay_scored(log: Path, out: Path, *sets: str, config: Path | None = None) -> dict:
+    """``adaptnav replay LOG --out OUT [--config CONFIG] [--set ...]`` (else the defaults), then
+    :func:`score`."""
     from adaptnav.service.cli import main as cli_main
 
     args = ["replay", str(log), "--out", str(out), "--no-progress", "--no-plots"]
+    if config is not None:
+        args += ["--config", str(config)]
     for s in sets:
         args += ["--set", s]
     assert cli_main(args) == 0
