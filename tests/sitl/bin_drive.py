@@ -153,8 +153,28 @@ def drive_mixed(gcs: Gcs, legs: int = 6, leg_s: float | None = None) -> None:
     _surface(gcs)
 
 
+def drive_zigzag(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> None:
+    """(f) One of each manoeuvre, no turn between them: a long lane at low throttle (x 250,
+    60 s), a zigzag while thrusting (x 650, yaw stick ±300 alternating every 8 s, 48 s), a
+    sideways leg (y -400, 20 s), a lane astern (x -300, 30 s), a lane at x 700 (30 s) ending in
+    a 180° pivot, a lane at x 400 with a descent in its middle (z 300 for 10 s); ~5 min from
+    arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
+    _dive(gcs)
+    gcs.hold_sticks(60, x=250)  # a long lane at low throttle
+    for k in range(6):  # a zigzag while thrusting
+        gcs.hold_sticks(8, x=650, r=300 if k % 2 == 0 else -300)
+    gcs.hold_sticks(20, y=-400)  # a sideways leg
+    gcs.hold_sticks(30, x=-300)  # astern
+    gcs.hold_sticks(30, x=700)
+    turn_by(gcs, 180, r=500)  # a pivot right after the lane
+    gcs.hold_sticks(15, x=400)
+    gcs.hold_sticks(10, x=400, z=300)  # descend while driving
+    gcs.hold_sticks(15, x=400)
+    _surface(gcs)
+
+
 PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs": drive_arcs,
-            "stops": drive_stops, "mixed": drive_mixed}
+            "stops": drive_stops, "mixed": drive_mixed, "zigzag": drive_zigzag}
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,
