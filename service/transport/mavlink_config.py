@@ -68,8 +68,8 @@ class ThrusterConfig:
     curve: PwmRpmCurve = field(default_factory=PwmRpmCurve)
     # ArduPilot's simulator (SITL, libraries/SITL/SIM_Submarine.cpp) has no ESC: its thrust is
     # linear in the PWM offset from 1500 µs, without the T200 Basic ESC's ±25 µs dead band. A
-    # source that is that simulator (its truth, SIM_STATE / SIMSTATE / DataFlash SIM, in the
-    # stream) is converted through this curve instead of ``curve`` (a profile that wants its
+    # source that is that simulator (its truth, SIM_STATE / SIMSTATE / DataFlash SIM, or a SIM_*
+    # parameter in the stream) is converted through this curve instead of ``curve`` (a profile that wants its
     # own curve there too sets both alike).
     simulator_curve: PwmRpmCurve = field(default_factory=lambda: PwmRpmCurve(
         pwm_us=(1100.0, 1500.0, 1900.0), rpm=(-3500.0, 0.0, 3500.0)))

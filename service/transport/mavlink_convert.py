@@ -27,8 +27,10 @@ means "no second IMU" (ArduSub still streams it) and is rejected, never fused.
 Thrusters: ``rpm = mean_i s_i · curve(pwm_i)`` over the forward thrusters ``i`` with
 their forward-thrust signs ``s_i`` (BlueROV2 vectored frame: motors 1–4 with forward
 factors −1, −1, +1, +1 in ArduSub's AP_Motors6DOF); ``curve`` is a piecewise-linear
-table with a dead band around the 1500 µs neutral.  The simulated vehicle uses the
-inverse (:meth:`PwmRpmCurve.pwm_of_rpm`).
+table with a dead band around the 1500 µs neutral (a T200 on its ESC) — or, once the source
+shows it is ArduPilot's simulator, ``simulator_curve`` without one
+(:meth:`MavlinkConverter.take_simulator`).  The simulated vehicle uses the inverse
+(:meth:`PwmRpmCurve.pwm_of_rpm`).
 
 Time: ``time_boot_ms`` / ``time_usec`` of the autopilot map to mission seconds through
 :class:`TimeMapper` (32-bit millisecond wrap after 49.7 days and reboots keep the
