@@ -88,7 +88,7 @@ class ConvertConfig:
     """How ArduSub messages become samples (the ``[mavlink.convert]`` config section)."""
 
     # "auto": lock on the first IMU message type that carries a real (non-zero) sample
-    imu_message: Literal["auto", "RAW_IMU", "SCALED_IMU2", "HIGHRES_IMU"] = "auto"
+    imu_message: Literal["auto", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "HIGHRES_IMU"] = "auto"
     # the integrated IMU stream silent this long (mission time, s): another stream, of any rank,
     # takes over (an autopilot's IMU failover changes HIGHRES_IMU's id; a driver restarts)
     imu_stream_silent_s: float = 1.0

@@ -6,7 +6,8 @@ seconds ``t_s``:
 ====================  ===============================================  =================
 message               fields → sample                                  conversion
 ====================  ===============================================  =================
-RAW_IMU, SCALED_IMU2  x/y/z acc [mg], x/y/z gyro [mrad/s] → ImuSample  ×g/1000, ×1e-3
+RAW_IMU, SCALED_IMU  x/y/z acc [mg], x/y/z gyro [mrad/s] → ImuSample  ×g/1000, ×1e-3
+(and SCALED_IMU2)
 HIGHRES_IMU           acc [m/s²], gyro [rad/s] → ImuSample             none
 ATTITUDE              roll, pitch, yaw [rad] → AttitudeSample          yaw wrapped
 SCALED_PRESSURE2      press_abs [hPa] → DepthSample.pressure_pa        ×100
@@ -96,7 +97,9 @@ U32_WRAP_S_US = 2**32 / 1e6  # SERVO_OUTPUT_RAW.time_usec is uint32 µs: wraps e
 UNIX_EPOCH_MIN_US = 1e15  # time_usec above this is UNIX time (2001+), not time since boot
 GPS_TYPE_MAV = 14  # ArduPilot's GPS_TYPE for a MAVLink GPS (GPS_INPUT)
 
-IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU2", "RAW_IMU")
+# best first: float SI, then the int16 mg / mrad/s messages (SCALED_IMU: PX4's and other
+# autopilots' first IMU, scaled by definition; RAW_IMU is ArduPilot's, scaled like it)
+IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU2", "SCALED_IMU", "RAW_IMU")
 PRESSURE_MESSAGES = ("SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3")
 
 
@@ -1021,6 +1024,7 @@ def _stream_name(src: tuple[int, int, int]) -> str:
 
 _HANDLERS = {
     "RAW_IMU": MavlinkConverter._imu,
+    "SCALED_IMU": MavlinkConverter._imu,
     "SCALED_IMU2": MavlinkConverter._imu,
     "HIGHRES_IMU": MavlinkConverter._imu,
     "ATTITUDE": MavlinkConverter._attitude,

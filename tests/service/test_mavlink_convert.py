@@ -71,6 +71,20 @@ def test_all_zero_scaled_imu2_is_an_absent_sensor_not_a_sample():
     assert c.accounting()["SCALED_IMU3"]["status"] == "ignored"
 
 
+def test_scaled_imu_is_an_imu_stream_ranked_above_raw_imu():
+    """SCALED_IMU (PX4's and other autopilots' first IMU: mg, mrad/s by definition) is integrated,
+    a flight controller's MEMS; over RAW_IMU (whose scaling is only ArduPilot's convention)."""
+    c = converter(imu_message="auto")
+    (raw,) = c.convert(wire("raw_imu_encode", 1_000_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0))
+    (scaled,) = c.convert(wire("scaled_imu_encode", 1010, 10, -20, -990, 1, 2, 3, 0, 0, 0))
+    assert c.integrated_imu_stream() == "SCALED_IMU from 1/1" and c.imu_switches == 1
+    assert scaled.specific_force_b_m_s2 == pytest.approx((0.0980665, -0.196133, -9.7085835))
+    assert scaled.omega_b_rad_s == pytest.approx((1e-3, 2e-3, 3e-3))
+    assert scaled.source == "autopilot"
+    assert c.convert(wire("raw_imu_encode", 1_020_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)) == []  # the worse one
+    assert c.accounting()["SCALED_IMU"]["status"] == "used"
+
+
 def test_auto_imu_moves_up_to_a_better_stream_and_then_ignores_the_worse():
     c = converter(imu_message="auto")
     # the autopilot's int16 RAW_IMU comes first (ArduSub streams it at a few Hz)
