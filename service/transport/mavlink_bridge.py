@@ -307,6 +307,9 @@ class MavlinkBridge:
             "message_types": {k: {kk: v[kk] for kk in ("status", "why", "rejected", "rate_hz") if kk in v}
                               for k, v in types.items()},
             "clock": self.converter.clock_report(),
+            # which PWM → RPM curve the thrusters go through (the simulator's once SIM_STATE or a
+            # SIM_* parameter said the autopilot is ArduPilot's SITL), as replay's summary.json
+            "thrusters": self.converter.thruster_report(),
             "signing": self._signing_report(),
         }
 

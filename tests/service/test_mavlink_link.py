@@ -178,3 +178,15 @@ def test_health_says_what_the_link_did_and_why_a_rangefinder_gives_no_altitude()
         assert ds["status"] == "rejected" and ds["rejected"] == {"distance_out_of_range": 3}
         assert h["rejected"]["distance_out_of_range"] == 3 and h["link_up"]
         assert h["messages_by_type"]["DISTANCE_SENSOR"] == 3
+
+
+def test_health_says_which_thruster_curve_and_turns_to_the_simulators_on_its_sim_state():
+    """A live daemon against ArduPilot's SITL converts thrust through the simulator's curve once
+    the autopilot's SIM_STATE arrives; health says so (as a replay's summary.json does)."""
+    with linked() as (bridge, peer, _):
+        assert peer.pump(5.0, until=bridge.link_up.is_set)
+        assert bridge.health()["thrusters"]["curve"] == "vehicle"
+        peer.conn.mav.sim_state_send(1, 0, 0, 0, *[0.0] * 17)
+        assert peer.pump(5.0, until=lambda: bridge.counters["messages_by_type"].get("SIM_STATE", 0) >= 1)
+        thrusters = bridge.health()["thrusters"]
+        assert thrusters["curve"] == "simulator" and "SIM_STATE" in thrusters["why"]
