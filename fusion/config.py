@@ -129,6 +129,15 @@ class LearnedVelocityConfig:
     # its innovations (0.2-0.3 m/s) failed the integrity test for 25 % of the submerged time
     # (brisk drive). 0: off (heave ≈ 0 ± sigma_heave_m_s)
     heave_sigma_per_vertical_speed: float = 0.0
+    # a vehicle that may change depth on vertical thrusters (an ROV) — the horizontal drift of a
+    # vertical run that no aid measured (no DVL fused during it): the position covariance grows
+    # by (this × the run's depth change)² north and east (fusion/aiding/depth.py
+    # vertical_run_step). Nothing in the motion model says where such a vehicle goes while it
+    # dives or climbs; ArduSub's simulated BlueROV2 Heavy drifts 0.36 m per metre of depth
+    # (2.2 m in a 6 m dive), its IMU followed about 70 % of that, and the 0.5 m left were outside
+    # the 99 % ellipse (3–5 % of the valid submerged epochs of its tlogs). An AUV dives by
+    # pitching, on its propeller: the model holds. 0: off (motion.uncalibrated_* raises it)
+    vertical_drift_sigma_per_m: float = 0.0
     # innovation-based adaptive surge variance (Mehra 1972): R̂ = E[y²] − H P Hᵀ over this
     # window (s); the model's σ_V² is scaled up (never down) to R̂. 0 disables.
     adaptive_window_s: float = 120.0
@@ -489,6 +498,8 @@ class FilterConfig:
                 and 0.0 < lv.coast_skid_max_fraction <= 1.0):
             raise ValueError("learned_velocity.skid_sigma_s must be ≥ 0, skid_max_fraction and "
                              "coast_skid_max_fraction within (0, 1]")
+        if not self.learned_velocity.vertical_drift_sigma_per_m >= 0.0:
+            raise ValueError("learned_velocity.vertical_drift_sigma_per_m must be ≥ 0")
         if not self.learned_velocity.heave_sigma_per_vertical_speed >= 0.0:
             raise ValueError("learned_velocity.heave_sigma_per_vertical_speed must be ≥ 0")
         if not (0.0 <= self.learned_velocity.coast_mean_fraction <= 1.0 and self.learned_velocity.coast_sigma_per_gap > 0.0):

@@ -148,10 +148,14 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
     return meas._replace(H=H, h=h)
 
 
+# a DVL fused this recently (or during the vertical run) measured the run's horizontal drift
+_DVL_MEASURES_DRIFT_S = 2.0
+
+
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
                  "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
-                 "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid")
+                 "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid", "vertical_run")
 
 
 class Estimator:
@@ -285,6 +289,7 @@ class Estimator:
         # stationary detection over IMU windows: [t0, n, Σf (3), Σf² (3), max |ω|]
         self._st = np.array([math.nan, 0.0] + [0.0] * 7)
         self._depth_win: list[float] = []  # [t0, depth0, t, depth] of the current window
+        self._vertical_run: tuple | None = None  # aid_depth.vertical_run_step's (_keep_depth)
         self._t_dvl_fused = -math.inf
         self.zero_velocity_updates = 0
         # free-inertial velocity: the strapdown's velocity increments summed without the
@@ -853,8 +858,20 @@ class Estimator:
         return [self._attempt(sample.t_s, sample.KIND, (z,), (y,), (s,), nis, True)], ok
 
     def _keep_depth(self, t_s: float, depth_m: float) -> None:
-        """The current stationary-detection window's first and latest depth (``_depth_win``)."""
+        """The current stationary-detection window's first and latest depth (``_depth_win``),
+        and the vertical run: its horizontal drift, unmeasured without a DVL, grows the
+        position covariance (``learned_velocity.vertical_drift_sigma_per_m``; an inflation of
+        the north/east variances, as a position reset's — the estimate moves only when a fix
+        comes, and then as far as the drift may have taken it)."""
         self._depth_win = (self._depth_win[:2] if self._depth_win else [t_s, depth_m]) + [t_s, depth_m]
+        # the run on the filter's depth (the sensor's noise, 0.1 m per sample on ArduSub's
+        # simulator, would start runs at a steady depth)
+        self._vertical_run, grown_m2 = aid_depth.vertical_run_step(self._vertical_run, t_s, float(self._x[X_DEPTH]))
+        k = self.config.learned_velocity.vertical_drift_sigma_per_m
+        if grown_m2 > 0.0 and k > 0.0 and not (self._t_dvl_fused >= self._vertical_run[0]
+                                               or t_s - self._t_dvl_fused <= _DVL_MEASURES_DRIFT_S):
+            self._P[0, 0] += k * k * grown_m2
+            self._P[1, 1] += k * k * grown_m2
 
     def _take_rpm(self, sample) -> None:
         """Latest thrust: ``_rpm = (t, surge, sway, commanded surge, commanded sway, slow surge,
@@ -942,6 +959,7 @@ class Estimator:
         s.yaw_frame = self._yaw_frame
         s.attitude_driven = self._attitude_driven
         s.t_motion_aid = self._t_motion_aid
+        s.vertical_run = self._vertical_run
         s.clones = self._clones.copy() if self._clones.active else None
         return s
 
@@ -965,6 +983,7 @@ class Estimator:
         self._yaw_frame = s.yaw_frame
         self._attitude_driven = s.attitude_driven
         self._t_motion_aid = s.t_motion_aid
+        self._vertical_run = s.vertical_run
         if s.clones is not None:
             self._clones = s.clones.copy()
         elif self._clones.active:

@@ -319,6 +319,7 @@ class MotionConfig:
     uncalibrated_transient_time_s: float = 2.0       # filter.learned_velocity.transient_time_s
     uncalibrated_skid_sigma_s: float = 2.0           # filter.learned_velocity.skid_sigma_s
     uncalibrated_heave_sigma_per_vertical_speed: float = 1.0  # filter.learned_velocity.heave_sigma_per_vertical_speed
+    uncalibrated_vertical_drift_sigma_per_m: float = 0.1      # filter.learned_velocity.vertical_drift_sigma_per_m
     # ... and an IMU stream from this rate up is integrated (filter.alignment.min_imu_rate_hz
     # lowered to it, never raised): the attitude-driven strapdown has no accelerometer to check
     # a model nobody calibrated, integrating even instantaneous samples has (the freedrive with
@@ -332,14 +333,17 @@ class MotionConfig:
         if not self.uncalibrated_min_imu_rate_hz > 0.0:
             raise ValueError("motion.uncalibrated_min_imu_rate_hz must be > 0")
         if not (self.uncalibrated_sigma_k_speed >= 0.0 and self.uncalibrated_transient_time_s >= 0.0
-                and self.uncalibrated_skid_sigma_s >= 0.0 and self.uncalibrated_heave_sigma_per_vertical_speed >= 0.0):
+                and self.uncalibrated_skid_sigma_s >= 0.0 and self.uncalibrated_heave_sigma_per_vertical_speed >= 0.0
+                and self.uncalibrated_vertical_drift_sigma_per_m >= 0.0):
             raise ValueError("motion: uncalibrated_sigma_k_speed, uncalibrated_transient_time_s, "
-                             "uncalibrated_skid_sigma_s and uncalibrated_heave_sigma_per_vertical_speed must be ≥ 0")
+                             "uncalibrated_skid_sigma_s, uncalibrated_heave_sigma_per_vertical_speed and "
+                             "uncalibrated_vertical_drift_sigma_per_m must be ≥ 0")
 
     def prior_filter(self, filt: FilterConfig, why: str) -> FilterConfig:
         """``filt`` with what an uncalibrated prior (``why`` from :meth:`initial_params`) leaves
-        unknown: the initial ``k_speed`` σ, the thrust-transient time, the skid σ in a turn and
-        the heave σ per vertical speed raised to the ``uncalibrated_*`` figures (never lowered),
+        unknown: the initial ``k_speed`` σ, the thrust-transient time, the skid σ in a turn, the
+        heave σ per vertical speed and the horizontal drift per metre of a vertical run raised to
+        the ``uncalibrated_*`` figures (never lowered),
         the slowest IMU stream integrated lowered to ``uncalibrated_min_imu_rate_hz`` (never
         raised), and its velocity no measurement of the motion for an attitude-driven strapdown
         (``filter.attitude_driven.model_measures_motion``: nothing checks its scale there);
@@ -357,7 +361,10 @@ class MotionConfig:
                                      skid_sigma_s=max(lv.skid_sigma_s, self.uncalibrated_skid_sigma_s),
                                      heave_sigma_per_vertical_speed=max(
                                          lv.heave_sigma_per_vertical_speed,
-                                         self.uncalibrated_heave_sigma_per_vertical_speed)))
+                                         self.uncalibrated_heave_sigma_per_vertical_speed),
+                                     vertical_drift_sigma_per_m=max(
+                                         lv.vertical_drift_sigma_per_m,
+                                         self.uncalibrated_vertical_drift_sigma_per_m)))
 
     def initial_params(self, autopilot_thrust: bool) -> tuple[MotionParams, str]:
         """``params0`` as the filter and the calibrator start from, and why (see ``prior``).

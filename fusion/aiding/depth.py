@@ -28,6 +28,33 @@ def pressure_to_depth(pressure_pa, water_density_kg_m3: float, atmospheric_press
         water_density_kg_m3 * GRAVITY_M_S2)
 
 
+# A vertical run: the depth changing between two level spells. Level: the depth within
+# LEVEL_BAND_M for LEVEL_TIME_S (slower than ~0.03 m/s: depth hold, waves at a steady depth).
+LEVEL_BAND_M = 0.1
+LEVEL_TIME_S = 3.0
+
+
+def vertical_run_step(run: tuple | None, t_s: float, depth_m: float) -> tuple[tuple, float]:
+    """The vertical run after one depth sample, and how much its excursion² grew (m²).
+
+    ``run`` (immutable, ``None`` before the first depth): ``(t_start_s, depth_ref_m,
+    excursion_m, level_t0_s, level_lo_m, level_hi_m)`` — when the run began, the level depth it
+    left, its largest depth change from there so far, and the candidate level spell (its start
+    and the depth band it has spanned). While level the run is empty and follows the depth;
+    a depth leaving the band starts one. The excursion is a run's, not a path's: depth noise
+    and waves add to it only while they exceed its largest change, and nothing once level."""
+    if run is None:  # taken as level (the filter aligned at a steady depth)
+        return (t_s, depth_m, 0.0, t_s - LEVEL_TIME_S, depth_m, depth_m), 0.0
+    t_start, ref, excursion, level_t0, lo, hi = run
+    lo, hi = min(lo, depth_m), max(hi, depth_m)
+    if hi - lo > LEVEL_BAND_M:  # left the band: a new candidate level spell starts here
+        level_t0, lo, hi = t_s, depth_m, depth_m
+    elif t_s - level_t0 >= LEVEL_TIME_S:  # level: no run, the reference is the band's middle
+        return (t_s, 0.5 * (lo + hi), 0.0, level_t0, lo, hi), 0.0
+    grown = max(excursion, abs(depth_m - ref))
+    return (t_start, ref, grown, level_t0, lo, hi), grown * grown - excursion * excursion
+
+
 def predict(x) -> np.ndarray:
     return np.array([x[X_POS][2]])
 

@@ -299,3 +299,82 @@ def test_a_vehicle_that_heaves_on_vertical_thrusters_is_not_held_to_zero_heave()
     assert sum(not v for _, v, _ in held[10:]) >= 5, held
     assert free[-1][0] == pytest.approx(0.35, abs=0.03), free[-1]
     assert all(v for _, v, _ in free[10:]), [r for r in free if not r[1]]
+
+
+def test_a_vertical_run_is_its_largest_depth_change_and_nothing_while_level():
+    from adaptnav.fusion.aiding.depth import LEVEL_TIME_S, vertical_run_step
+
+    def grown(depths, dt=0.1):
+        run, total = None, 0.0
+        for k, d in enumerate(depths):
+            run, g = vertical_run_step(run, k * dt, d)
+            total += g
+        return total
+
+    rng = np.random.default_rng(3)
+    level = [5.0 + 0.01 * rng.standard_normal() for _ in range(600)]  # depth hold (the filter's), 1 min
+    dive = [5.0 + 6.0 * k / 171 for k in range(172)]                   # 6 m at 0.35 m/s
+    assert grown(level) == 0.0
+    assert grown(level + dive + [11.0] * 100) == pytest.approx(6.0**2, abs=0.1)
+    # a dive and straight back up (no level spell between): one run, its largest change
+    assert grown(level + dive + dive[::-1] + [5.0] * 100) == pytest.approx(6.0**2, abs=0.1)
+    # two dives with a level spell between: two runs
+    pause = [11.0] * int(2 * LEVEL_TIME_S / 0.1)
+    assert grown(level + dive + pause + [d + 6.0 for d in dive] + [17.0] * 50) == pytest.approx(2 * 6.0**2, abs=0.2)
+    # waves at the surface: bounded by their height, however long
+    waves = [0.3 + 0.2 * math.sin(2 * math.pi * k * 0.1 / 6.0) for k in range(6000)]
+    assert grown(waves) < 0.45**2
+
+
+def _dive_sigma_h(dvl: bool, vertical_drift_sigma_per_m: float) -> tuple[float, float, float, float]:
+    """A vehicle aligned at rest at 5 m holds it for a minute, dives 6 m level at 0.35 m/s and
+    holds the new depth (no thrust, a DVL at 5 Hz reading the truth when ``dvl``, the depth
+    with ArduSub SITL's noise); its published north and east variances (m²) before the dive
+    and at the end."""
+    from dataclasses import replace
+
+    from adaptnav.fusion.samples import DvlSample, RpmSample
+
+    cfg = FilterConfig()
+    est = _est(replace(cfg, learned_velocity=replace(cfg.learned_velocity,
+                                                     vertical_drift_sigma_per_m=vertical_drift_sigma_per_m)))
+    _run(est, 0.0, 12.0, depth_of=lambda t: DEPTH_M)
+    # a minute at a steady depth (the sensor's noise) first: no run
+    steady = _noisy_depth(SITL_DEPTH_NOISE_M)
+    for k in range(60):
+        est.process(RpmSample(12.0 + k, 0.0))
+        _run(est, 12.0 + k, 13.0 + k, depth_of=steady)
+    before = est.nav_state().cov
+    noise = np.random.default_rng(2)
+
+    def depth_of(t):  # ArduSub SITL's pressure sensor noise
+        return DEPTH_M + min(0.35 * (t - 72.0), 6.0) + SITL_DEPTH_NOISE_M * noise.standard_normal()
+
+    for k in range(30):
+        t0 = 72.0 + k
+        est.process(RpmSample(t0, 0.0))
+        for j in range(5):
+            t1 = t0 + 0.2 * j
+            if dvl:
+                est.process(DvlSample(t1 + 0.003, (0.0, 0.0, 0.35 if t1 < 72.0 + 6.0 / 0.35 else 0.0)))
+            _run(est, t1, t1 + 0.2, depth_of=depth_of)
+    cov = est.nav_state().cov
+    return float(before[0, 0]), float(before[1, 1]), float(cov[0, 0]), float(cov[1, 1])
+
+
+def test_a_dive_no_dvl_measured_widens_the_horizontal_covariance_by_its_drift():
+    # ArduSub's simulated BlueROV2 Heavy drifts 0.36 m per metre dived, its IMU followed about
+    # 70 %: the rest was outside the 99 % ellipse of an unwidened covariance
+    widened, plain = _dive_sigma_h(False, 0.1), _dive_sigma_h(False, 0.0)
+    # a minute at a steady depth: the filter's depth (the sensor's 0.115 m smoothed) wanders
+    # out of the level band now and then, a few centimetres at most
+    for axis in (0, 1):
+        assert math.sqrt(widened[axis] - plain[axis]) < 0.1 * 0.3, (widened, plain)
+    # the run's depth change (the filter's depth: within a few cm)
+    for axis in (2, 3):
+        assert math.sqrt(widened[axis] - plain[axis]) == pytest.approx(0.1 * 6.0, abs=0.01), (widened, plain)
+    # a DVL over the seabed measured the drift: nothing added
+    with_dvl, with_dvl_plain = _dive_sigma_h(True, 0.1), _dive_sigma_h(True, 0.0)
+    for axis in (0, 1):
+        added_before = with_dvl[axis] - with_dvl_plain[axis]
+        assert with_dvl[axis + 2] - with_dvl_plain[axis + 2] == pytest.approx(added_before, abs=1e-9)
