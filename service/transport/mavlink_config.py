@@ -106,6 +106,10 @@ class ConvertConfig:
     # GPS_RAW_INT that merely echoes GPS_INPUT (GPS1_TYPE=14) is dropped for this long
     # after the last GPS_INPUT, or the same acoustic fix would be fused twice
     gps_input_echo_window_s: float = 5.0
+    # a pressure or position message equal to the previous one (REPEAT_CHECKED) within this
+    # long (mission s) of when that reading came first is the same reading passed on again; a
+    # steady reading still aids at least this often (a quantised barometer at rest repeats)
+    repeat_window_s: float = 2.0
     altitude_orientation: int = 25  # MAV_SENSOR_ROTATION_PITCH_270 = looking down
     autopilot_component: int = 1  # MAV_COMP_ID_AUTOPILOT1
     reboot_backjump_s: float = 2.0  # a clock going back further than this is a reboot

@@ -521,6 +521,19 @@ def altitude_from_distance_sensor(msg: Any, t_s: float, cfg: ConvertConfig) -> A
 # --------------------------------------------------------------------------- in: stateful
 # Message types deliberately not turned into samples, and why (summary.json says so; a type
 # neither handled nor listed here is reported as unknown).
+# Readings a sender may pass on again unchanged when its stream runs faster than its sensor:
+# ArduSub's simulator streams SCALED_PRESSURE* at 20 Hz from a 10 Hz barometer (every value
+# twice in the free-drive tlog), the Water Linked UGPS extension sends each acoustic fix ~4×
+# (GPS_INPUT, the real BlueROV2 log). Fused again, one reading counts as several (σ/√n): the
+# free-drive's depth failed its innovation test half the time. A message of these types whose
+# fields but the send-time stamp (and a yaw beside a position: the UGPS extension passes the
+# vehicle's on) equal the previous one's from the same sender, within
+# ``repeat_window_s`` of that reading's first arrival, is that repeat (GPS_RAW_INT keeps its fix
+# time in the comparison: a new fix at rest differs in it).
+REPEAT_CHECKED = frozenset({"SCALED_PRESSURE", "SCALED_PRESSURE2", "SCALED_PRESSURE3", "GPS_RAW_INT", "GPS_INPUT",
+                            "GLOBAL_VISION_POSITION_ESTIMATE"})
+_NOT_THE_READING = frozenset({"time_boot_ms", "yaw"})
+WHY_REPEAT = "the previous reading again (a stream faster than its sensor), not a new one"
 # ArduPilot's simulator's own messages: the source is SITL (MavlinkConverter.take_simulator)
 SIMULATOR_MESSAGES = frozenset(("SIM_STATE", "SIMSTATE"))
 _WHY_AUTOPILOT_SOLUTION = "the autopilot's own estimate (an output of its EKF, not a sensor)"
@@ -650,6 +663,8 @@ class MavlinkConverter:
         self.rejected: dict[str, int] = {}
         self.types: dict[str, TypeAccount] = {}
         self.held = 0  # samples held until the clock was known (released later)
+        # the latest reading of each (REPEAT_CHECKED type, system, component), and when it came first
+        self._last_reading: dict[tuple[str, int, int], tuple[tuple, float]] = {}
         self._held: list[tuple[Any, str, float | None]] = []
         self._first_unix_s: float | None = None
         self._first_hold_recv_s: float | None = None
@@ -860,6 +875,14 @@ class MavlinkConverter:
                 self._held.append((msg, mtype, recv_s))
             return []
         acc.stamp(t_s)
+        if mtype in REPEAT_CHECKED:
+            key = (mtype, msg.get_srcSystem(), msg.get_srcComponent())
+            reading = tuple(getattr(msg, f) for f in msg.fieldnames if f not in _NOT_THE_READING)
+            last = self._last_reading.get(key)
+            if last is not None and last[0] == reading and 0.0 <= t_s - last[1] < self.config.repeat_window_s:
+                acc.ignored[WHY_REPEAT] = acc.ignored.get(WHY_REPEAT, 0) + 1
+                return []
+            self._last_reading[key] = (reading, t_s)
         try:
             sample = handler(self, msg, mtype, t_s)
         except IgnoredMessage as e:

@@ -51,6 +51,12 @@ def test_freedrive_with_the_defaults_is_honest_where_it_says_valid(tmp_path):
     # independent); with the calibrated σ of the embedded table 5.9 % were outside, 5–6 m off at
     # σ 1.7 m
     assert s["valid_outside_99_fraction"] <= 0.02, s
+    # ... and valid while submerged: ArduSub's simulator streams its 10 Hz barometer at 20 Hz,
+    # each reading twice; fused twice, the depth failed its innovation test (nis:depth) and the
+    # solution was invalid for 55 % of the submerged time
+    assert s["valid_fraction_submerged"] >= 0.95, s
+    depth = result.summary["message_types"]["SCALED_PRESSURE2"]
+    assert depth["samples"] == pytest.approx(depth["messages"] / 2, rel=0.01), depth
 
 
 @pytest.mark.realdata

@@ -349,3 +349,32 @@ def test_an_imu_message_without_an_id_field_is_one_stream_named_without_one():
     c = converter(imu_message="auto")
     (s,) = c.convert(wire("scaled_imu2_encode", 1000, 1, 2, -1000, 0, 0, 0, 5, 6, 7))
     assert c.integrated_imu_stream() == "SCALED_IMU2 from 1/1"
+
+
+def test_a_reading_passed_on_again_is_one_sample_not_two():
+    """A stream faster than its sensor repeats the reading (ArduSub SITL's barometer: 10 Hz
+    streamed at 20 Hz; the UGPS extension's GPS_INPUT: each acoustic fix ~4×)."""
+    from adaptnav.service.transport.mavlink_convert import WHY_REPEAT
+
+    c = converter()
+    assert len(c.convert(wire("scaled_pressure2_encode", 1000, 1500.25, 0.0, 1500))) == 1
+    assert c.convert(wire("scaled_pressure2_encode", 1050, 1500.25, 0.0, 1500)) == []  # the same reading
+    assert len(c.convert(wire("scaled_pressure2_encode", 1100, 1500.75, 0.0, 1500))) == 1
+    # a steady reading is still a reading every repeat_window_s (a quantised sensor at rest)
+    assert len(c.convert(wire("scaled_pressure2_encode", 3200, 1500.75, 0.0, 1500))) == 1
+    assert c.accounting()["SCALED_PRESSURE2"]["ignored"] == {WHY_REPEAT: 1}
+
+    def fix(yaw_cdeg, lat=483861418):
+        return wire("gps_input_encode", 0, 0, 253, 0, 0, 3, lat, -1246305732, 0.0, 1.6, 65535,
+                    0, 0, 0, 0, 0, 0, 21, yaw_cdeg, src=(255, 0))
+    c = converter()
+    c.convert(wire("attitude_encode", 5000, 0.0, 0.0, 0.0, 0, 0, 0))  # the boot clock
+    assert len(c.convert(fix(100))) == 1
+    assert c.convert(fix(250)) == []  # the vehicle's yaw beside the same fix
+    assert len(c.convert(fix(250, lat=483861419))) == 1  # a new fix (1 cm north)
+    # GPS_RAW_INT: the same position at a new fix time is a new fix
+    c = converter()
+    for fix_time_us in (1_000_000, 1_000_000, 1_200_000):
+        c.convert(wire("gps_raw_int_encode", fix_time_us, 3, 483861418, -1246305732, 0, 160, 65535, 0, 0, 9))
+    account = c.accounting()["GPS_RAW_INT"]
+    assert account["samples"] + sum(account.get("rejected", {}).values()) == 2 and account["ignored"] == {WHY_REPEAT: 1}

@@ -85,7 +85,7 @@ def test_a_fix_only_log_without_an_imu_is_usable_but_not_valid(tmp_path, capsys)
 
     mav = mavlink2.MAVLink(None, 1, 1)
     frames = [mav.heartbeat_encode(mavlink2.MAV_TYPE_SUBMARINE, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)]
-    frames += [mav.scaled_pressure2_encode(1000 + 100 * k, 1100.0, 0.0, 1500) for k in range(50)]
+    frames += [mav.scaled_pressure2_encode(1000 + 100 * k, 1100.0 + 0.01 * k, 0.0, 1500) for k in range(50)]
     p = tmp_path / "depth_only.tlog"
     with open(p, "wb") as f:
         for k, m in enumerate(frames):

@@ -136,7 +136,7 @@ def test_gps_input_with_time_usec_zero_and_a_fix_before_any_boot_clock_is_held(t
         t = 1.0 + 0.1 * k
         s.emit(t, "attitude_encode", int(round(t * 1000)), 0.0, 0.0, 0.0, 0, 0, 0)
         if k % 10 == 5:
-            s.emit(t, "gps_input_encode", 0, 0, 253, 0, 0, 3, 483861418, -1246305732, 0.0, 1.6, 65535,
+            s.emit(t, "gps_input_encode", 0, 0, 253, 0, 0, 3, 483861418 + k, -1246305732, 0.0, 1.6, 65535,
                    0, 0, 0, 0, 0, 0, 21, 0, src=(255, 0))
     src, samples = read(s.write(tmp_path / "fix_first.tlog"))
     usbl = [x for x in samples if x.KIND == "usbl"]
