@@ -118,6 +118,15 @@ def test_auto_grade_from_quantisation_and_measured_noise():
     nav = imu_grades.resolve(ImuConfig(), f, 7e-7 / math.sqrt(dt) * rng.standard_normal((n, 3)), dt)
     assert (tac.grade, tac.earth_rotation) == ("tactical", False)
     assert (nav.grade, nav.earth_rotation) == ("navigation", True)
+    # a FOG on a vehicle whose turn rate steps in the window (a rudder kick; the simulator's
+    # 1 s motion steps: 0.25–4 mrad/s) is still a FOG: the std of the second differences
+    # called it tactical
+    w_nav = 7e-7 / math.sqrt(dt) * rng.standard_normal((n, 3))
+    k = np.arange(n)
+    w_nav[:, 2] += 2e-3 * (k >= 60) - 1.5e-3 * (k >= 140)
+    assert imu_grades.white_sigma(w_nav) * math.sqrt(dt) > imu_grades.NAVIGATION_GYRO_DENSITY_MAX
+    stepped = imu_grades.resolve(ImuConfig(), f, w_nav, dt)
+    assert (stepped.grade, stepped.earth_rotation) == ("navigation", True), stepped.why
     # AND every figure can be overridden, the grade can be forced
     forced = imu_grades.resolve(ImuConfig(grade="navigation", gyro_bias_sigma_rad_s=1e-6, earth_rotation="off"), f, w, dt)
     assert forced.figures.gyro_bias_sigma_rad_s == 1e-6 and not forced.earth_rotation

@@ -87,6 +87,20 @@ class AuvLog:
     # the IMU's sender: "companion" (its driver, component 200) or "vehicle_computer" (the
     # vehicle's own computer, component 1, whose heartbeat says generic autopilot, not ArduPilot)
     imu_sender: str = "companion"
+    # other members of the class (defaults: the layout above)
+    imu_rate_hz: float = 100.0           # the FOG's HIGHRES_IMU rate (100–200 Hz; 50 Hz)
+    imu_clock_offset_s: float = 0.0      # the IMU's UNIX time_usec minus the recorder's UNIX clock
+    stop_s: tuple[float, float] | None = None  # (from, to) s of the log: the vehicle stops (10 s ramps)
+    fix_at_s: float = 5.0                # the single fix, this long into the log
+    fix_time_usec: bool = False          # GPS_INPUT.time_usec the fix's UNIX time (BlueOS UGPS: 0)
+    # the fix as "GPS_INPUT" (1, 220) or "GLOBAL_VISION_POSITION_ESTIMATE" (255, 0: local NED
+    # from the autopilot's EKF origin, which its GPS_GLOBAL_ORIGIN gives once at the start)
+    fix_message: str = "GPS_INPUT"
+    ekf_origin_at_s: float | None = 0.2  # GLOBAL_VISION_POSITION_ESTIMATE: GPS_GLOBAL_ORIGIN this long into the log (None: never)
+    dvl_message: str = "VISION_POSITION_DELTA"  # or "VISION_SPEED_ESTIMATE" (body velocity at the ping)
+    depth_in_scaled_pressure2: bool = True  # False: the depth sensor in SCALED_PRESSURE, no internal barometer
+    system_time: bool = True             # the autopilot's SYSTEM_TIME in the log at all
+    imu_drop_prob: float = 0.0           # HIGHRES_IMU messages lost on the link (each independently)
 
 
 def _boot_s(t_sim: np.ndarray | float) -> np.ndarray | float:
@@ -104,7 +118,7 @@ def _scenario(v: AuvLog, rng: np.random.Generator):
         f"trajectory.leg_spacing_m={v.leg_spacing_m}", f"trajectory.speed_m_s={v.speed_m_s}",
         "trajectory.depth_m=25.0", "trajectory.start_depth_m=25.0", "environment.bottom_depth_m=45.0",
         f"origin.lat_deg={v.lat_deg}", f"origin.lon_deg={v.lon_deg}",
-        "imu.grade=\"navigation\"", "imu.rate_hz=100.0", "heading.enabled=false", "usbl.enabled=false",
+        "imu.grade=\"navigation\"", f"imu.rate_hz={v.imu_rate_hz}", "heading.enabled=false", "usbl.enabled=false",
         "gnss.fix_times_s=[]", "depth.rate_hz=5.0", "truth.rate_hz=10.0",
         "dvl.enabled=true", "dvl.rate_hz=1.0", "dvl.start_s=0.37", f"dvl.scale_factor_error={scale}",
         f"dvl.misalignment_rpy_deg=[{mis[0]}, {mis[1]}, {mis[2]}]", "dvl.outlier_prob=0.005",
@@ -153,6 +167,29 @@ def _true_head_velocity(sc, d, t_s) -> np.ndarray:
     return rot_bd.inv().apply(vel_b)
 
 
+def _simulate_with_stop(sc, v: AuvLog):
+    """:func:`adaptnav.sim.simulator.simulate` with the vehicle stopping over ``v.stop_s`` (log
+    seconds): the motion model's reported surge and turn rate scaled down to 0 and back up over
+    10 s ramps (heading held while stopped; the model's noise stays)."""
+    from unittest import mock
+
+    import adaptnav.sim.vehicle as vehicle
+    from adaptnav.sim.simulator import simulate
+
+    a, b = (v.lead_in_s + s for s in v.stop_s)
+    real = vehicle.sample_velocities
+    k = [0]
+
+    def stopping(params, v_rep, w_rep, rng, size=None):
+        t = k[0] * sc.motion.step_s
+        k[0] += 1
+        f = float(np.clip(max((a - t) / 10.0, (t - b) / 10.0), 0.0, 1.0))
+        return real(params, v_rep * f, w_rep * f, rng, size)
+
+    with mock.patch.object(vehicle, "sample_velocities", stopping):
+        return simulate(sc)
+
+
 def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     """Simulate ``v`` and write ``<name>.tlog`` and ``<name>.truth.csv`` into ``out_dir``."""
     from adaptnav.sim.simulator import simulate
@@ -162,7 +199,10 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     rng = np.random.default_rng([v.seed, 11])
     rng_scn, rng_att, rng_ap_imu, rng_fix, rng_link = rng.spawn(5)
     sc = _scenario(v, rng_scn)
-    res = simulate(sc)
+    if v.stop_s is None:
+        res = simulate(sc)
+    else:
+        res = _simulate_with_stop(sc, v)
     origin = sc.origin.geo()
     d = res.dense
     f_b, w_b = rotating_earth_imu(d.pos_n_m, d.vel_n_m_s, d.q_nb, origin,
@@ -180,18 +220,22 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
         w.emit(t + 0.3, GCS_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 192, 0, 4)
         w.emit(t + 0.5, IMU_SRC, "heartbeat_encode", mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
                mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 4)
-        unix_us = int(round((UNIX0_S + t) * 1e6)) if v.system_time_unix else 0
-        w.emit(t + 0.1, AP_SRC, "system_time_encode", unix_us, int(_boot_s(t + 0.1) * 1000))
+        unix_us = int(round((UNIX0_S + t + 0.1) * 1e6)) if v.system_time_unix else 0  # at its boot stamp
+        if v.system_time:
+            w.emit(t + 0.1, AP_SRC, "system_time_encode", unix_us, int(_boot_s(t + 0.1) * 1000))
 
     # the companion's navigation-grade IMU, UNIX time
     keep = (t_imu >= t0) & (t_imu < t1)
-    for t, f, g in zip(t_imu[keep], f_b[keep], w_b[keep]):
-        w.emit(float(t), imu_src, "highres_imu_encode", int(round((UNIX0_S + t) * 1e6)),
+    sent = keep.copy()
+    if v.imu_drop_prob > 0.0:
+        sent &= np.random.default_rng([v.seed, 12]).random(len(keep)) >= v.imu_drop_prob
+    for t, f, g in zip(t_imu[sent], f_b[sent], w_b[sent]):
+        w.emit(float(t), imu_src, "highres_imu_encode", int(round((UNIX0_S + t + v.imu_clock_offset_s) * 1e6)),
                *map(float, f), *map(float, g), 0.0, 0.0, 0.0, 1013.25, 0.0, 0.0, 22.0, 0x1FFF, 0)
 
     # the autopilot's own consumer IMU (RAW_IMU, int16 mg / mrad/s) at 4 Hz
     if v.autopilot_raw_imu:
-        idx = np.nonzero(keep)[0][::25]
+        idx = np.nonzero(keep)[0][::max(1, int(round(sc.imu.rate_hz / 4.0)))]
         g = IMU_GRADES["consumer"]
         ba, wa = triad_errors(g.accel, len(idx), 0.25, rng_ap_imu)
         bg, wg = triad_errors(g.gyro, len(idx), 0.25, rng_ap_imu)
@@ -213,8 +257,11 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
     for s in res.samples["depth"]:
         if t0 <= s.t_s < t1:
             boot_ms = int(_boot_s(s.t_s) * 1000)
-            w.emit(s.t_s, AP_SRC, "scaled_pressure2_encode", boot_ms, s.pressure_pa / 100.0, 0.0, 1200, 0)
-            w.emit(s.t_s, AP_SRC, "scaled_pressure_encode", boot_ms, 1002.5, 0.0, 3100, 0)
+            if v.depth_in_scaled_pressure2:
+                w.emit(s.t_s, AP_SRC, "scaled_pressure2_encode", boot_ms, s.pressure_pa / 100.0, 0.0, 1200, 0)
+                w.emit(s.t_s, AP_SRC, "scaled_pressure_encode", boot_ms, 1002.5, 0.0, 3100, 0)
+            else:
+                w.emit(s.t_s, AP_SRC, "scaled_pressure_encode", boot_ms, s.pressure_pa / 100.0, 0.0, 1200, 0)
 
     # the BlueOS DVL driver: v·dt at each valid ping, Euler-angle differences, confidence
     last_ping_t = None
@@ -240,18 +287,36 @@ def write_auv_tlog(v: AuvLog, out_dir: str | Path) -> tuple[Path, Path]:
         conf = 100.0 * (1.0 - min(0.4, fom) / 0.4)
         dang = [0.0, 0.0, 0.0] if last_att is None else list(map(float, cur_att - last_att))
         stamp_us = int(round((UNIX0_S + t) * 1e6)) if v.dvl_time_usec else 0
-        w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_position_delta_encode", stamp_us, int(round(dt * 1e6)), dang,
-               list(map(float, v_d * dt)), conf)
+        if v.dvl_message == "VISION_SPEED_ESTIMATE":
+            cov = [fom**2, 0.0, 0.0, 0.0, fom**2, 0.0, 0.0, 0.0, fom**2]
+            w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_speed_estimate_encode", stamp_us, *map(float, v_d), cov, 0)
+        else:
+            w.emit(t + v.dvl_latency_s, DVL_SRC, "vision_position_delta_encode", stamp_us, int(round(dt * 1e6)), dang,
+                   list(map(float, v_d * dt)), conf)
         last_att = cur_att
 
     # one underwater-GPS fix, already under water, 5 s into the log
-    t_fix = t0 + 5.0
+    t_fix = t0 + v.fix_at_s
     i_fix = int(round(t_fix * sc.imu.rate_hz))
     hdop = 1.6
     ne = d.pos_n_m[i_fix, :2] + hdop * rng_fix.standard_normal(2)
     lat, lon, _ = origin.to_geodetic(np.array([ne[0], ne[1], 0.0]))
-    w.emit(t_fix + 0.3, UGPS_SRC, "gps_input_encode", 0, 0, 253, 0, 0, 3, int(round(math.degrees(lat) * 1e7)),
-           int(round(math.degrees(lon) * 1e7)), 0.0, hdop, 65535, 0, 0, 0, 0, 0, 0, 12, 0)
+    if v.fix_message == "GLOBAL_VISION_POSITION_ESTIMATE":
+        # the autopilot's EKF origin: where the vehicle was launched, 80 m north, 30 m west of here
+        ekf_origin = GeoOrigin(*origin.to_geodetic(np.array([80.0, -30.0, 0.0]))[:2], 0.0)
+        if v.ekf_origin_at_s is not None:
+            w.emit(t0 + v.ekf_origin_at_s, AP_SRC, "gps_global_origin_encode", int(round(math.degrees(ekf_origin.lat_rad) * 1e7)),
+                   int(round(math.degrees(ekf_origin.lon_rad) * 1e7)), 0, int(round((UNIX0_S + t0) * 1e6)))
+        x, y, _ = ekf_origin.to_ned(np.array([lat]), np.array([lon]))[0]
+        cov = [float("nan")] * 21
+        cov[0] = cov[6] = hdop**2
+        usec = int(round((UNIX0_S + t_fix) * 1e6)) if v.fix_time_usec else 0
+        w.emit(t_fix + 0.3, DVL_SRC, "global_vision_position_estimate_encode", usec, float(x), float(y),
+               float(d.pos_n_m[i_fix, 2]), 0.0, 0.0, 0.0, cov, 0)
+    else:
+        usec = int(round((UNIX0_S + t_fix) * 1e6)) if v.fix_time_usec else 0
+        w.emit(t_fix + 0.3, UGPS_SRC, "gps_input_encode", usec, 0, 253, 0, 0, 3, int(round(math.degrees(lat) * 1e7)),
+               int(round(math.degrees(lon) * 1e7)), 0.0, hdop, 65535, 0, 0, 0, 0, 0, 0, 12, 0)
 
     tlog = out / f"{v.name}.tlog"
     w.write(tlog)
@@ -294,6 +359,7 @@ def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     att = None
     origin = None
+    ekf_origin = None
     ne = np.zeros(2)
     rows = []
     try:
@@ -301,12 +367,17 @@ def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             kind = m.get_type()
             if kind == "ATTITUDE":
                 att = (m.roll, m.pitch, m.yaw)
-            elif kind == "GPS_INPUT" and origin is None:
-                origin = GeoOrigin(math.radians(m.lat * 1e-7), math.radians(m.lon * 1e-7), 0.0)
+            elif kind == "GPS_GLOBAL_ORIGIN":
+                ekf_origin = GeoOrigin(math.radians(m.latitude * 1e-7), math.radians(m.longitude * 1e-7), 0.0)
+            elif _is_fix(m) and origin is None:
+                origin = GeoOrigin(*_fix_lat_lon_rad(m, ekf_origin), 0.0)
                 rows.append((m._timestamp, 0.0, 0.0))
-            elif kind == "VISION_POSITION_DELTA" and origin is not None and att is not None and m.confidence > 0:
+            elif kind in ("VISION_POSITION_DELTA", "VISION_SPEED_ESTIMATE") and origin is not None and att is not None \
+                    and getattr(m, "confidence", 100.0) > 0:
                 R_nb = Rotation.from_euler("ZYX", [att[2], att[1], att[0]])
-                vel_ne = R_nb.apply(np.asarray(m.position_delta, dtype=float) / (m.time_delta_usec * 1e-6))[:2]
+                vel_b = (np.asarray(m.position_delta, dtype=float) / (m.time_delta_usec * 1e-6)
+                         if kind == "VISION_POSITION_DELTA" else np.array([m.x, m.y, m.z]))
+                vel_ne = R_nb.apply(vel_b)[:2]
                 ne = ne + vel_ne * (m._timestamp - rows[-1][0])
                 rows.append((m._timestamp, ne[0], ne[1]))
     finally:
@@ -314,6 +385,36 @@ def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     a = np.array(rows)
     lat, lon, _ = origin.to_geodetic(np.column_stack([a[:, 1], a[:, 2], np.zeros(len(a))]))
     return a[:, 0], lat, lon
+
+
+def _is_fix(m) -> bool:
+    return m.get_type() == "GPS_INPUT" or m.get_type() == "GLOBAL_VISION_POSITION_ESTIMATE"
+
+
+def _fix_lat_lon_rad(m, ekf_origin: GeoOrigin | None) -> tuple[float, float]:
+    """The single fix's latitude and longitude (rad): GPS_INPUT's, or a GLOBAL_VISION_POSITION_ESTIMATE's
+    local NED position placed from the autopilot's EKF origin (its GPS_GLOBAL_ORIGIN)."""
+    if m.get_type() == "GPS_INPUT":
+        return math.radians(m.lat * 1e-7), math.radians(m.lon * 1e-7)
+    lat, lon, _ = ekf_origin.to_geodetic(np.array([m.x, m.y, 0.0]))
+    return float(lat), float(lon)
+
+
+def _read_fix(tlog: Path):
+    """(the fix message, its latitude and longitude rad) of the log's single fix."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    ekf_origin = None
+    try:
+        while (m := conn.recv_match(type=["GPS_INPUT", "GLOBAL_VISION_POSITION_ESTIMATE", "GPS_GLOBAL_ORIGIN"])) is not None:
+            if m.get_type() == "GPS_GLOBAL_ORIGIN":
+                ekf_origin = GeoOrigin(math.radians(m.latitude * 1e-7), math.radians(m.longitude * 1e-7), 0.0)
+            else:
+                return (m, *_fix_lat_lon_rad(m, ekf_origin))
+    finally:
+        conn.close()
+    raise ValueError(f"{tlog}: no fix")
 
 
 def shared_errors_m(tlog: Path, truth: dict[str, np.ndarray], dvl_errors: dict) -> np.ndarray:
@@ -331,16 +432,10 @@ def shared_error_ne_m(tlog: Path, truth: dict[str, np.ndarray], dvl_errors: dict
     since the fix (first order; Kinsey & Whitcomb, IEEE JOE 2006). Neither the replay nor the
     dead reckoning removes these; a result better than this is luck (its own errors — for the
     dead reckoning its compass's — cancelling part of them)."""
-    from pymavlink import mavutil
-
-    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    try:
-        fix = conn.recv_match(type="GPS_INPUT")
-    finally:
-        conn.close()
+    fix, fix_lat, fix_lon = _read_fix(tlog)
     o = GeoOrigin(math.radians(truth["lat_deg"][0]), math.radians(truth["lon_deg"][0]), 0.0)
     tn = o.to_ned(np.radians(truth["lat_deg"]), np.radians(truth["lon_deg"]))[:, :2]
-    fix_ne = o.to_ned(np.array([math.radians(fix.lat * 1e-7)]), np.array([math.radians(fix.lon * 1e-7)]))[0, :2]
+    fix_ne = o.to_ned(np.array([fix_lat]), np.array([fix_lon]))[0, :2]
     t = truth["t_unix_s"]
     k = t >= fix._timestamp
     at_fix = np.array([np.interp(fix._timestamp, t, tn[:, j]) for j in range(2)])

@@ -94,6 +94,11 @@ VARIANTS = (
     # DVL driver stamps each delta with the ping's UNIX time
     AuvLog("lawnmower_ins", seed=3, pattern="lawnmower", heading_deg=0.0, leg_length_m=200.0, duration_s=360.0,
            ahrs=ins_ahrs_errors(59.4), dvl_time_usec=True),
+    # a 50 Hz FOG, 2 % of its messages lost, the autopilot's SYSTEM_TIME with UNIX time: the
+    # grade is still read off the gyro's noise (its std over an alignment window that held a
+    # step of the simulator's turn rate called it tactical: no earth model, the compass's heading)
+    AuvLog("transit_50hz", seed=2, pattern="straight", heading_deg=30.0, duration_s=360.0, imu_rate_hz=50.0,
+           imu_drop_prob=0.02, system_time_unix=True),
 )
 
 
