@@ -273,6 +273,13 @@ class Estimator:
         # source, the recent gated fixes (tuples: snapshots share them)
         self._fix_evidence: dict[str, tuple] = {}
         self.position_resets: list[tuple[float, str, float]] = []  # (t_s, source, size m)
+        # the vehicle starts at the origin, within initial.sigma_pos_m (a configured origin, a
+        # launch point); False: the origin is a place it passes later (a replay's origin from
+        # a fix) — until a fix places it the position is unknown, and that fix places it
+        # whatever it says (_seed_position)
+        self.origin_is_start = True
+        # (t_s, north, east m): how far each first fix moved the position it placed
+        self.position_seeds: list[tuple[float, float, float]] = []
         # the horizontal position has no information yet (started at the origin, no fix, no
         # restored state): the first fix places it (_seed_position)
         self._pos_unknown = False
@@ -400,7 +407,9 @@ class Estimator:
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
 
-        ``not_initialized`` / ``ahrs_only`` (no dead reckoning), ``no_motion_measurement``
+        ``not_initialized`` / ``ahrs_only`` (no dead reckoning), ``position_unknown`` (the
+        origin is not where the vehicle started, :attr:`origin_is_start`, and no fix has placed
+        it yet), ``no_motion_measurement``
         (the attitude drives the strapdown and neither a velocity over ground nor a fix has been
         fused for ``attitude_driven.motion_aid_max_age_s``), ``sigma_h`` (horizontal σ
         above the bound), ``converging`` (a velocity/attitude reset less than
@@ -412,6 +421,8 @@ class Estimator:
             return ["not_initialized"]
         if self._mode == "ahrs":
             return ["ahrs_only"]
+        if self._pos_unknown and not self.origin_is_start:
+            return ["position_unknown"]
         c = self.config.integrity
         if self._attitude_driven and \
                 self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
@@ -1698,10 +1709,13 @@ class Estimator:
         y = meas.innovation()
         S = meas.H @ self._P @ meas.H.T + meas.R  # reported as for an update
         nis = float(y @ np.linalg.solve(S, y))
-        if not nis <= self._gate[y.size]:
+        if self.origin_is_start and not nis <= self._gate[y.size]:
             # beyond what the start allows (a launch point known within σ_0, a spoofed or wild
-            # first fix): gated like any fix, a reset only on consistent evidence
+            # first fix): gated like any fix, a reset only on consistent evidence. A start that
+            # is not the origin allows anything: a fix 60 s into the log, 90 m from where the
+            # vehicle started, was gated and the whole track stayed 90 m off
             return self._fuse(meas, t_s, source)
+        self.position_seeds.append((float(t_s), float(y[0]), float(y[1])))
         self._x[X_POS_NE] += y[:2]
         self._P[POS_NE, :] = 0.0
         self._P[:, POS_NE] = 0.0

@@ -99,6 +99,12 @@ VARIANTS = (
     # step of the simulator's turn rate called it tactical: no earth model, the compass's heading)
     AuvLog("transit_50hz", seed=2, pattern="straight", heading_deg=30.0, duration_s=360.0, imu_rate_hz=50.0,
            imu_drop_prob=0.02, system_time_unix=True),
+    # the fix 45 s in, 70 m from where the log starts: the origin (a replay's, from that fix) is
+    # not the start, so the fix places the position whatever it says (it was gated against the
+    # start's σ 10 m and the whole track stayed 70 m off), and the rows before it are placed
+    # by it afterwards (positions unknown, not valid, when computed)
+    AuvLog("lawnmower_late_fix", seed=3, pattern="lawnmower", heading_deg=0.0, leg_length_m=200.0,
+           duration_s=360.0, fix_at_s=45.0),
 )
 
 
@@ -161,7 +167,10 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         assert dvl["status"] == "used" and not dvl.get("rejected"), (name, dvl)
         # valid throughout; the only warning: the origin rests on the one fix (nothing confirms it)
         others = [w for w in s["warnings"] if not w.startswith("origin: from a single")]
-        assert s["valid_fraction"] > 0.99 and not others, (name, s["warnings"])
+        v = v_by_name[name]
+        assert s["valid_fraction"] > 0.99 - (v.fix_at_s + 1.0) / v.duration_s and not others, (name, s["warnings"])
+        placed = s["rows_placed_by_the_first_fix"]
+        assert placed["rows"] >= 10 * (v.fix_at_s - 3.0), placed  # from the alignment, ~2 s in, at 10 Hz
         # north from the earth rate: after 6 min the heading is within 0.25° of the truth (the
         # autopilot's compass: degrees; without the earth model it ends 13° off, the speed error
         # of a gyrocompass without the turning plumb line 0.3–0.4°) — or from the vehicle's
