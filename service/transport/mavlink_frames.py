@@ -105,6 +105,7 @@ def untruncated(bad: Any, mav: Any) -> Any | None:
 _STAMP = struct.Struct(">Q")
 _V1_MAGIC = 0xFE
 SIM_STATE_ID = 108
+GPS_GLOBAL_ORIGIN_ID = 49
 
 
 class TlogReader:
@@ -163,6 +164,24 @@ class TlogReader:
     def has_message(self, msgid: int, max_records: int = 20_000) -> bool:
         """Is a message ``msgid`` among the first ``max_records`` records (a walk over the
         frame headers, nothing decoded)?"""
+        return self._find(msgid, max_records) is not None
+
+    def first_message(self, msgid: int, max_records: int = 20_000) -> Any:
+        """The first message ``msgid`` among the first ``max_records`` records, decoded (None:
+        none there, or it does not decode)."""
+        found = self._find(msgid, max_records)
+        if found is None:
+            return None
+        from pymavlink.dialects.v20 import ardupilotmega
+
+        pos, size = found
+        try:
+            return ardupilotmega.MAVLink(None).decode(bytearray(self._data[pos + 8:pos + size]))
+        except Exception:  # noqa: BLE001 — a damaged frame: the reading pass counts it
+            return None
+
+    def _find(self, msgid: int, max_records: int) -> tuple[int, int] | None:
+        """(record offset, record size) of the first frame ``msgid`` (a walk over the headers)."""
         data, end = self._data, len(self._data)
         pos = records = 0
         while pos + 18 <= end and records < max_records:
@@ -176,7 +195,7 @@ class TlogReader:
                 pos += 1
                 continue
             if found == msgid:
-                return True
+                return pos, size
             pos += size
             records += 1
-        return False
+        return None

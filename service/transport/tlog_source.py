@@ -41,7 +41,7 @@ from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
 from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth
 from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
-from adaptnav.service.transport.mavlink_frames import SIM_STATE_ID, TlogReader, untruncated
+from adaptnav.service.transport.mavlink_frames import GPS_GLOBAL_ORIGIN_ID, SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
 from adaptnav.fusion.config import AlignmentConfig
 from adaptnav.fusion.frames import GeoOrigin
@@ -181,6 +181,8 @@ class TlogSource:
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
         self._simulator_thrusters()
+        if origin is None:
+            self._scan_ekf_origin()
 
     # --------------------------------------------------------------------- helpers
     def _reject(self, reason: str) -> None:
@@ -232,10 +234,10 @@ class TlogSource:
         if min_imu_rate_hz is not None:
             self.config = replace(self.config, min_imu_rate_hz=min_imu_rate_hz)
             self.config.validate()
+        origin_from = self.converter.origin_from  # configured, or the log's GPS_GLOBAL_ORIGIN
         self.converter = MavlinkConverter(convert, self.converter.origin)
+        self.converter.origin_from = origin_from
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
-        if self.converter.origin is not None:
-            self.converter.origin_from = "config"
         self._simulator_thrusters()
 
     def _simulator_thrusters(self) -> None:
@@ -281,6 +283,23 @@ class TlogSource:
         pos = self.truth_origin.to_ned(math.radians(t.lat_deg), math.radians(t.lon_deg), t.alt_m)
         self.counters["truth_samples"] = self.counters.get("truth_samples", 0) + 1
         return TruthSample(t.t_s, tuple(float(v) for v in pos), t.vel_n_m_s, t.q_nb, (0.0, 0.0, 0.0), math.nan)
+
+    def _scan_ekf_origin(self, max_messages: int = 2_000_000) -> None:
+        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) wherever it is in a ``.tlog``: what
+        places GLOBAL_VISION_POSITION_ESTIMATE's local positions (a USBL driver's fixes). Live,
+        the bridge asks for it at link-up; a log may carry it only when something asked, after
+        the first fixes (which were refused as ``no_origin`` and the replay had no position)."""
+        if not self._tlog:
+            return
+        reader = TlogReader(self.path)
+        try:
+            msg = reader.first_message(GPS_GLOBAL_ORIGIN_ID, max_messages)
+        finally:
+            reader.close()
+        if msg is not None and (msg.latitude or msg.longitude):
+            self.converter.origin = GeoOrigin(math.radians(msg.latitude * 1e-7), math.radians(msg.longitude * 1e-7),
+                                              msg.altitude / 1000.0)
+            self.converter.origin_from = "GPS_GLOBAL_ORIGIN"
 
     def _scan_truth(self, max_messages: int = 20_000) -> bool:
         """Does the log carry a simulator's truth (SIM_STATE near its start; a DataFlash SIM record)?"""

@@ -359,7 +359,7 @@ def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     att = None
     origin = None
-    ekf_origin = None
+    ekf_origin = _ekf_origin(tlog)  # a user reads it wherever it is in the log
     ne = np.zeros(2)
     rows = []
     try:
@@ -367,8 +367,6 @@ def dvl_dead_reckoning(tlog: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             kind = m.get_type()
             if kind == "ATTITUDE":
                 att = (m.roll, m.pitch, m.yaw)
-            elif kind == "GPS_GLOBAL_ORIGIN":
-                ekf_origin = GeoOrigin(math.radians(m.latitude * 1e-7), math.radians(m.longitude * 1e-7), 0.0)
             elif _is_fix(m) and origin is None:
                 origin = GeoOrigin(*_fix_lat_lon_rad(m, ekf_origin), 0.0)
                 rows.append((m._timestamp, 0.0, 0.0))
@@ -400,18 +398,27 @@ def _fix_lat_lon_rad(m, ekf_origin: GeoOrigin | None) -> tuple[float, float]:
     return float(lat), float(lon)
 
 
+def _ekf_origin(tlog: Path) -> GeoOrigin | None:
+    """The autopilot's GPS_GLOBAL_ORIGIN, wherever it is in the log (None: none)."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    try:
+        m = conn.recv_match(type="GPS_GLOBAL_ORIGIN")
+    finally:
+        conn.close()
+    return None if m is None else GeoOrigin(math.radians(m.latitude * 1e-7), math.radians(m.longitude * 1e-7), 0.0)
+
+
 def _read_fix(tlog: Path):
     """(the fix message, its latitude and longitude rad) of the log's single fix."""
     from pymavlink import mavutil
 
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    ekf_origin = None
+    ekf_origin = _ekf_origin(tlog)
     try:
-        while (m := conn.recv_match(type=["GPS_INPUT", "GLOBAL_VISION_POSITION_ESTIMATE", "GPS_GLOBAL_ORIGIN"])) is not None:
-            if m.get_type() == "GPS_GLOBAL_ORIGIN":
-                ekf_origin = GeoOrigin(math.radians(m.latitude * 1e-7), math.radians(m.longitude * 1e-7), 0.0)
-            else:
-                return (m, *_fix_lat_lon_rad(m, ekf_origin))
+        while (m := conn.recv_match(type=["GPS_INPUT", "GLOBAL_VISION_POSITION_ESTIMATE"])) is not None:
+            return (m, *_fix_lat_lon_rad(m, ekf_origin))
     finally:
         conn.close()
     raise ValueError(f"{tlog}: no fix")

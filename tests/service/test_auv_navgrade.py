@@ -96,9 +96,13 @@ VARIANTS = (
            ahrs=ins_ahrs_errors(59.4), dvl_time_usec=True),
     # a 50 Hz FOG, 2 % of its messages lost, the autopilot's SYSTEM_TIME with UNIX time: the
     # grade is still read off the gyro's noise (its std over an alignment window that held a
-    # step of the simulator's turn rate called it tactical: no earth model, the compass's heading)
+    # step of the simulator's turn rate called it tactical: no earth model, the compass's heading);
+    # the fix a USBL driver's GLOBAL_VISION_POSITION_ESTIMATE, in the local frame of the
+    # autopilot's EKF origin, whose GPS_GLOBAL_ORIGIN comes 30 s later (refused as no_origin
+    # before the replay read the origin wherever it is in the log)
     AuvLog("transit_50hz", seed=2, pattern="straight", heading_deg=30.0, duration_s=360.0, imu_rate_hz=50.0,
-           imu_drop_prob=0.02, system_time_unix=True),
+           imu_drop_prob=0.02, system_time_unix=True, fix_message="GLOBAL_VISION_POSITION_ESTIMATE",
+           ekf_origin_at_s=30.0),
     # the fix 45 s in, 70 m from where the log starts: the origin (a replay's, from that fix) is
     # not the start, so the fix places the position whatever it says (it was gated against the
     # start's σ 10 m and the whole track stayed 70 m off), and the rows before it are placed
@@ -169,6 +173,7 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         others = [w for w in s["warnings"] if not w.startswith("origin: from a single")]
         v = v_by_name[name]
         assert s["valid_fraction"] > 0.99 - (v.fix_at_s + 1.0) / v.duration_s and not others, (name, s["warnings"])
+        assert s["message_types"][v.fix_message]["samples"] == 1, (name, s["message_types"][v.fix_message])
         placed = s["rows_placed_by_the_first_fix"]
         assert placed["rows"] >= 10 * (v.fix_at_s - 3.0), placed  # from the alignment, ~2 s in, at 10 Hz
         # north from the earth rate: after 6 min the heading is within 0.25° of the truth (the
