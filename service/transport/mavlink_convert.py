@@ -166,11 +166,27 @@ class MissionClock:
     continues from the last time seen.  A change of ``unix_offset_s`` by more than
     ``jump_s`` is counted in ``unix_jumps`` (a receive clock stepped by NTP, a GPS time
     arriving).
+
+    A UNIX-stamped source whose clock is not the reference's (a companion or INS keeping its
+    own time, seconds off the recorder's or the autopilot's GPS time) is seen in its *lag*,
+    the time from its stamp to its reception (both on the mission clock), minimum over
+    ``window_s``: a few milliseconds of transport for a clock that agrees. Below
+    ``-skew_future_s`` (stamped in the future of its own reception) or above ``skew_late_s``
+    its samples are placed by that lag — its least-delayed one at its reception — instead of
+    by its stamp (``skewed`` says which sources and by how much): an IMU clock 2 s ahead
+    made every sample 2 s early (valid 8 % of the log), 5 s behind made 95 % of them too late
+    to fuse.
     """
 
-    def __init__(self, reboot_backjump_s: float = 2.0, window_s: float = 10.0, jump_s: float = 1.0):
+    def __init__(self, reboot_backjump_s: float = 2.0, window_s: float = 10.0, jump_s: float = 1.0,
+                 skew_future_s: float = 0.1, skew_late_s: float = 1.0):
         self.reboot_backjump_s = reboot_backjump_s
         self.jump_s = jump_s
+        self.window_s = window_s
+        self.skew_future_s = skew_future_s
+        self.skew_late_s = skew_late_s
+        self._source_lag: dict[Any, _WindowMin] = {}
+        self.skewed: dict[Any, float] = {}  # source → the lag its samples are placed by (s)
         self.boot_offset_s = 0.0
         self.last_boot_s: float | None = None
         self.now_s: float | None = None  # latest mission time mapped
@@ -264,11 +280,22 @@ class MissionClock:
         or a DataFlash log's GPS time): it outranks the receive relation until a reboot."""
         self._set_unix_offset(unix_s - t_s, reference)
 
-    def from_unix_s(self, unix_s: float) -> float | None:
-        """UNIX time → ``t_s`` (None while no reference links UNIX to the mission clock)."""
+    def from_unix_s(self, unix_s: float, recv_s: float | None = None, source: Any = None) -> float | None:
+        """UNIX time → ``t_s`` (None while no reference links UNIX to the mission clock); with
+        the ``source`` that stamped it and its reception ``recv_s``, a source whose clock is
+        not the reference's is placed by its lag (class docstring)."""
         if self.unix_offset_s is None:
             return None
-        return self._advance(unix_s - self.unix_offset_s)
+        t = unix_s - self.unix_offset_s
+        if source is not None and recv_s is not None and self.recv_offset_s is not None:
+            window = self._source_lag.get(source)
+            if window is None:
+                window = self._source_lag[source] = _WindowMin(self.window_s)
+            lag = window.push(recv_s, recv_s - self.recv_offset_s - t)
+            if lag < -self.skew_future_s or lag > self.skew_late_s:
+                t += lag
+                self.skewed[source] = lag
+        return self._advance(t)
 
     def from_receive(self, recv_s: float | None) -> float | None:
         """Reception time → ``t_s``; without a receive stamp the latest mission time."""
@@ -741,7 +768,9 @@ class MavlinkConverter:
         c = self.time
         return {"base": c.base, "unix_reference": c.unix_reference, "unix_offset_s": c.unix_offset_s,
                 "receive_offset_s": c.recv_offset_s,
-                "reboots": c.reboots, "wraps": c.wraps, "unix_jumps": c.unix_jumps, "held_samples": self.held}
+                "reboots": c.reboots, "wraps": c.wraps, "unix_jumps": c.unix_jumps, "held_samples": self.held,
+                # UNIX-stamped sources whose clock is off the reference's, placed by their lag (s)
+                "sources_off_the_clock": {f"{s[0]}/{s[1]}": round(lag, 3) for s, lag in c.skewed.items()}}
 
     # ------------------------------------------------------------------ internals
     def _count_reject(self, acc: TypeAccount, reason: str) -> list:
@@ -822,7 +851,7 @@ class MavlinkConverter:
         if usec is not None and usec >= UNIX_EPOCH_MIN_US:
             if self._first_unix_s is None:
                 self._first_unix_s = usec / 1e6
-            return self.time.from_unix_s(usec / 1e6)
+            return self.time.from_unix_s(usec / 1e6, recv_s, (msg.get_srcSystem(), msg.get_srcComponent()))
         if usec is not None and own_clock and (usec > 0 or first_boot_stamp):  # later 0: "no time"
             if mtype == "SERVO_OUTPUT_RAW":
                 return self.time.from_u32_usec(usec, recv_s)

@@ -79,6 +79,27 @@ def test_unix_time_usec_imu_at_100_hz_is_placed_on_the_boot_clock(tmp_path):
     assert src.counters["clock"]["unix_reference"] == "receive"
 
 
+@pytest.mark.parametrize("clock_off_s", [2.0, -5.0])
+def test_an_imu_keeping_its_own_unix_clock_is_placed_by_its_reception(tmp_path, clock_off_s):
+    """A companion's INS whose UNIX clock is 2 s ahead of (or 5 s behind) the recording
+    computer's: its stamps would put each sample 2 s early (or 5 s late, too late to fuse);
+    placed by its lag, each lands at its reception less the transport delay, on the others'
+    clock, and the clock report names the source."""
+    s = Stream()
+    s.heartbeat(0.0)
+    for k in range(1000):
+        t = 20.0 + k * 0.01
+        imu_highres(s, t, int(round((UNIX0 + t + clock_off_s) * 1e6)), src=(1, 200))
+        if k % 5 == 0:
+            s.emit(t, "attitude_encode", int(round(t * 1000)), 0.0, 0.0, 0.5, 0, 0, 0)
+    src, samples = read(s.write(tmp_path / "own_clock.tlog"))
+    imu = [x for x in samples if x.KIND == "imu"]
+    assert len(imu) == 999
+    assert imu[0].t_s == pytest.approx(20.0, abs=0.01) and imu[-1].t_s == pytest.approx(29.99, abs=0.01)
+    assert np.allclose(np.diff([x.t_s for x in imu]), 0.01, atol=1e-6)
+    assert src.counters["clock"]["sources_off_the_clock"] == {"1/200": pytest.approx(-clock_off_s, abs=0.01)}
+
+
 def test_dvl_from_a_companion_system_255_as_vision_position_delta(tmp_path):
     s = Stream()
     s.heartbeat(0.0)
