@@ -247,21 +247,23 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         inp.source.set_origin(cfg.origin.geo())
     items: Any = iter(inp.source)
     origin_note = None
+    origin_is_start = True  # the vehicle starts at the origin within initial.sigma_pos_m
     origin_warnings: list[str] = []  # a first fix passed over, or an unconfirmed one taken
     if inp.scenario is None and cfg.origin.lat_deg == 0.0 and cfg.origin.lon_deg == 0.0:
         # no origin configured (real logs): the first position fix is the NED origin
-        head, fix, origin_warnings = _read_until_fix(items)
+        head, fix, origin_warnings, t_first = _read_until_fix(items)
         items = itertools.chain(head, items)
         if fix is not None:
             cfg = replace(cfg, origin=replace(cfg.origin, lat_deg=math.degrees(fix.lat_rad),
                                               lon_deg=math.degrees(fix.lon_rad)))
             origin_note = f"first {fix.KIND} fix at t={fix.t_s:.3f} s"
+            # a fix this long after the data starts is not where the vehicle started
+            origin_is_start = t_first is None or fix.t_s - t_first <= ORIGIN_FIX_AT_START_S
             log.info("NED origin from the %s", origin_note)
     params0, motion_prior = cfg.motion.initial_params(autopilot_thrust)
     log.info("motion model: %s", motion_prior)
     estimator = make_estimator(cfg, params0, objects=calibrate)  # sightings come from the calibrator
-    if origin_note is not None:  # the origin is where a fix placed the vehicle, later than its start
-        estimator.origin_is_start = False
+    estimator.origin_is_start = origin_is_start
     if getattr(inp.source, "in_time_order", False):  # no sample can be late: no history for them
         estimator.keep_history = False
     calibrator = None
@@ -317,7 +319,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
             calibrator.close()
     wall_s = time.monotonic() - wall0
     placed = None
-    if origin_note is not None and estimator.position_seeds:
+    if not origin_is_start and estimator.position_seeds:
         # the earliest fix that placed it (a late fix re-fused may have placed it again: the last word)
         t_first = min(s[0] for s in estimator.position_seeds)
         seed = [s for s in estimator.position_seeds if s[0] == t_first][-1]
@@ -518,9 +520,18 @@ def nothing_usable(summary: dict) -> bool:
     return not summary.get("messages_read") or not summary.get("samples_used")
 
 
+# An origin taken from a fix more than this long after the data starts is not the start: the
+# vehicle may have gone anywhere before it (a fix 45 s in, 70 m from the start, was gated against
+# the start's 10 m), so the start is "position unknown" until a fix places it. Sooner, the
+# start is the origin within initial.sigma_pos_m — as for a simulator whose radio fix under
+# water the filter refuses (surface_only) and whose origin is nevertheless the start.
+ORIGIN_FIX_AT_START_S = 10.0
+
+
 def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_000):
     """Items read until a GNSS/USBL fix confirmed by the next one (both included), at most
-    ``max_data_s`` of data or ``max_items``; returns (items read, the fix or None, warnings).
+    ``max_data_s`` of data or ``max_items``; returns (items read, the fix or None, warnings,
+    the data's first time or None).
     A fix the next one does not confirm is passed over; with a single fix in the window,
     that one is taken — each said in ``warnings`` (for summary.json and the log)."""
     head: list = []
@@ -535,7 +546,7 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
             if candidate is None:
                 candidate = item
             elif _fixes_agree(candidate, item):
-                return head, candidate, warnings
+                return head, candidate, warnings, t0
             else:
                 warnings.append(f"origin: the {candidate.KIND} fix at t={candidate.t_s:.3f} s is not confirmed "
                                 f"by the next one (t={item.t_s:.3f} s): not taken for the origin")
@@ -552,7 +563,7 @@ def _read_until_fix(items: Any, max_data_s: float = 600.0, max_items: int = 200_
     if candidate is not None:
         warnings.append(f"origin: from a single {candidate.KIND} fix at t={candidate.t_s:.3f} s, "
                         "not confirmed by another")
-    return head, candidate, warnings
+    return head, candidate, warnings, t0
 
 
 def _finite_or_none(x: Any) -> float | None:
