@@ -33,7 +33,7 @@ with one fix observes on a straight leg — plus its own heading error acting on
 plus the rest (its integration of the DVL: timing, noise, outliers, turns, its start); each
 variant prints that split (:func:`tests.service.auv_tlog.error_budget`). With the compass
 ATTITUDE the replay wins both end and RMS on 13 of 16 (mean end 2.50 / DR 12.10 / shared
-2.26 m, RMS 2.75 / 7.92 / 2.00 m). The three others: on straight1 (end/RMS: ours 4.03/3.39, DR
+2.26 m, RMS 2.71 / 7.92 / 2.00 m at stop 29; 2.75 before the rows before the fix were placed by it). The three others: on straight1 (end/RMS: ours 4.03/3.39, DR
 2.90/1.99, shared 3.83/3.33 m) and straight5 (3.63/4.12, 2.30/3.51, 3.50/3.77) the dead
 reckoning is better than the shared error — its compass error (−0.51°, 0.22° on average,
 against σ ≈ 3° drawn) cancelled part of the fix's: luck; on lawnmower5 (RMS 4.37, DR 3.74,
@@ -48,7 +48,7 @@ is then 0.080° RMS over the 16 logs against the ATTITUDE's 0.083° (each the be
 the filter's own σ at the end, 0.078°, says as much), and the RMS of its rest is below the
 dead reckoning's on all 16 (0.15–0.44 m against 0.29–2.94 m: the dead reckoning holds each
 ping's velocity for the second before it, which turns and drop-outs punish). Mean end 2.36 /
-DR 2.51 / shared 2.26 m, RMS 2.16 / 2.64 / 2.00 m; both won on 8 of 16. On the other 8 our
+DR 2.51 / shared 2.26 m, RMS 2.11 / 2.64 / 2.00 m (2.16 before stop 29); both won on 8 of 16. On the other 8 our
 own parts at the end are within 0.25 m of the dead reckoning's or below them — small beside
 the shared 1.2–4.0 m — and it wins by the direction of its errors: on straight7 (end 1.83,
 DR 0.99, shared 1.84 m; heading part ours 0.62, DR 0.92 m) its heading error pointed against
