@@ -319,7 +319,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
             calibrator.close()
     wall_s = time.monotonic() - wall0
     placed = None
-    if not origin_is_start and estimator.position_seeds:
+    if origin_note is not None and estimator.position_seeds:  # (a start the origin within σ_0 as well)
         # the earliest fix that placed it (a late fix re-fused may have placed it again: the last word)
         t_first = min(s[0] for s in estimator.position_seeds)
         seed = [s for s in estimator.position_seeds if s[0] == t_first][-1]
@@ -493,8 +493,9 @@ def place_rows_before_the_first_fix(path: Path, seed: tuple[float, float, float]
     position (``seed``: its time and north/east shift, :attr:`Estimator.position_seeds`) —
     offline, the dead-reckoned track before a fix is placed by it as the track after it is
     (without, a fix 35 s into a log left 52 m on every earlier row: RMS 16 m where the rest
-    was 2 m). They stay ``valid`` 0: nothing placed them when they were computed, and their
-    σ columns are the start's. Returns what was done, for ``summary.json``."""
+    was 2 m). Their ``valid`` flags and σ columns stay what they were when computed (a start
+    more than ORIGIN_FIX_AT_START_S before the fix: not valid). Returns what was done, for
+    ``summary.json``."""
     t_seed, d_north, d_east = seed
     with open(path, newline="") as f:
         rows = list(csv.reader(f))

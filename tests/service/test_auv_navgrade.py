@@ -174,11 +174,9 @@ def test_replay_with_defaults_beats_dvl_dead_reckoning_on_a_navigation_grade_auv
         v = v_by_name[name]
         assert s["valid_fraction"] > 0.99 - (v.fix_at_s + 1.0) / v.duration_s and not others, (name, s["warnings"])
         assert s["message_types"][v.fix_message]["samples"] == 1, (name, s["message_types"][v.fix_message])
+        # the rows before the fix, from the alignment ~2 s in at 10 Hz, placed by it afterwards
         placed = s["rows_placed_by_the_first_fix"]
-        if v.fix_at_s > 10.0:  # a fix that late is not the start: the rows before it placed by it
-            assert placed["rows"] >= 10 * (v.fix_at_s - 3.0), placed  # from the alignment, ~2 s in, at 10 Hz
-        else:  # the start is the origin within initial.sigma_pos_m
-            assert placed is None, placed
+        assert placed["rows"] >= 10 * (v.fix_at_s - 3.0), placed
         # north from the earth rate: after 6 min the heading is within 0.25° of the truth (the
         # autopilot's compass: degrees; without the earth model it ends 13° off, the speed error
         # of a gyrocompass without the turning plumb line 0.3–0.4°) — or from the vehicle's
