@@ -274,9 +274,9 @@ class Estimator:
         self._fix_evidence: dict[str, tuple] = {}
         self.position_resets: list[tuple[float, str, float]] = []  # (t_s, source, size m)
         # the vehicle starts at the origin, within initial.sigma_pos_m (a configured origin, a
-        # launch point); False: the origin is a place it passes later (a replay's origin from
-        # a fix) — until a fix places it the position is unknown, and that fix places it
-        # whatever it says (_seed_position)
+        # launch point, a fix near the start); False: the origin is a place it passes later (a
+        # replay's origin from a fix long after the data starts) — until a fix places it the
+        # position is unknown, and that fix places it whatever it says (_seed_position)
         self.origin_is_start = True
         # (t_s, north, east m): how far each first fix moved the position it placed
         self.position_seeds: list[tuple[float, float, float]] = []
@@ -875,12 +875,14 @@ class Estimator:
         the north/east variances, as a position reset's — the estimate moves only when a fix
         comes, and then as far as the drift may have taken it)."""
         self._depth_win = (self._depth_win[:2] if self._depth_win else [t_s, depth_m]) + [t_s, depth_m]
+        k = self.config.learned_velocity.vertical_drift_sigma_per_m
+        if k <= 0.0:  # off (the default: an AUV's dives are its motion model's)
+            return
         # the run on the filter's depth (the sensor's noise, 0.1 m per sample on ArduSub's
         # simulator, would start runs at a steady depth)
         self._vertical_run, grown_m2 = aid_depth.vertical_run_step(self._vertical_run, t_s, float(self._x[X_DEPTH]))
-        k = self.config.learned_velocity.vertical_drift_sigma_per_m
-        if grown_m2 > 0.0 and k > 0.0 and not (self._t_dvl_fused >= self._vertical_run[0]
-                                               or t_s - self._t_dvl_fused <= _DVL_MEASURES_DRIFT_S):
+        if grown_m2 > 0.0 and not (self._t_dvl_fused >= self._vertical_run[0]
+                                   or t_s - self._t_dvl_fused <= _DVL_MEASURES_DRIFT_S):
             self._P[0, 0] += k * k * grown_m2
             self._P[1, 1] += k * k * grown_m2
 

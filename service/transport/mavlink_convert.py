@@ -6,8 +6,7 @@ seconds ``t_s``:
 ====================  ===============================================  =================
 message               fields → sample                                  conversion
 ====================  ===============================================  =================
-RAW_IMU, SCALED_IMU  x/y/z acc [mg], x/y/z gyro [mrad/s] → ImuSample  ×g/1000, ×1e-3
-(and SCALED_IMU2)
+RAW_IMU, SCALED_IMU*  x/y/z acc [mg], x/y/z gyro [mrad/s] → ImuSample  ×g/1000, ×1e-3
 HIGHRES_IMU           acc [m/s²], gyro [rad/s] → ImuSample             none
 ATTITUDE              roll, pitch, yaw [rad] → AttitudeSample          yaw wrapped
 SCALED_PRESSURE2      press_abs [hPa] → DepthSample.pressure_pa        ×100
@@ -57,7 +56,7 @@ import math
 import os
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -687,6 +686,9 @@ class MavlinkConverter:
         self.last_gps_input_t: float | None = None
         self.origin = origin
         self.origin_from: str | None = "config" if origin is not None else None
+        # where the EKF origin may be found when a local fix needs one before it came (a log's
+        # reader: its GPS_GLOBAL_ORIGIN further on); None: nowhere (live, the bridge asks for it)
+        self.origin_lookup: Callable[[], GeoOrigin | None] | None = None
         self.rejected: dict[str, int] = {}
         self.types: dict[str, TypeAccount] = {}
         self.held = 0  # samples held until the clock was known (released later)
@@ -1064,6 +1066,13 @@ class MavlinkConverter:
         return usbl_from_gps_input(msg, t_s, self.config)
 
     def _vision_position(self, msg, mtype, t_s):
+        if self.origin is None and self.origin_lookup is not None:
+            # a log may carry the autopilot's GPS_GLOBAL_ORIGIN after the first such fixes: asked
+            # once, at the first fix that needs it (a walk over the file, none for other logs)
+            lookup, self.origin_lookup = self.origin_lookup, None
+            self.origin = lookup()
+            if self.origin is not None:
+                self.origin_from = "GPS_GLOBAL_ORIGIN"
         if self.origin is None:
             raise ConversionError("no_origin", "GLOBAL_VISION_POSITION_ESTIMATE before any origin")
         return usbl_from_global_vision(msg, t_s, self.origin, self.config)

@@ -181,8 +181,8 @@ class TlogSource:
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self.has_truth = self._scan_truth()
         self._simulator_thrusters()
-        if origin is None:
-            self._scan_ekf_origin()
+        if origin is None and self._tlog:
+            self.converter.origin_lookup = self._ekf_origin_in_log
 
     # --------------------------------------------------------------------- helpers
     def _reject(self, reason: str) -> None:
@@ -234,9 +234,9 @@ class TlogSource:
         if min_imu_rate_hz is not None:
             self.config = replace(self.config, min_imu_rate_hz=min_imu_rate_hz)
             self.config.validate()
-        origin_from = self.converter.origin_from  # configured, or the log's GPS_GLOBAL_ORIGIN
-        self.converter = MavlinkConverter(convert, self.converter.origin)
-        self.converter.origin_from = origin_from
+        old = self.converter  # its origin: configured, or none yet (then the log's, when needed)
+        self.converter = MavlinkConverter(convert, old.origin)
+        self.converter.origin_from, self.converter.origin_lookup = old.origin_from, old.origin_lookup
         self.dataflash = DataflashConverter(self.converter, self.config.dataflash_baro_instance)
         self._simulator_thrusters()
 
@@ -284,22 +284,20 @@ class TlogSource:
         self.counters["truth_samples"] = self.counters.get("truth_samples", 0) + 1
         return TruthSample(t.t_s, tuple(float(v) for v in pos), t.vel_n_m_s, t.q_nb, (0.0, 0.0, 0.0), math.nan)
 
-    def _scan_ekf_origin(self, max_messages: int = 2_000_000) -> None:
-        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) wherever it is in a ``.tlog``: what
+    def _ekf_origin_in_log(self, max_messages: int = 2_000_000) -> GeoOrigin | None:
+        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) wherever it is in the ``.tlog``: what
         places GLOBAL_VISION_POSITION_ESTIMATE's local positions (a USBL driver's fixes). Live,
         the bridge asks for it at link-up; a log may carry it only when something asked, after
-        the first fixes (which were refused as ``no_origin`` and the replay had no position)."""
-        if not self._tlog:
-            return
+        the first fixes (which were refused as ``no_origin`` and the replay had no position).
+        The converter asks (``origin_lookup``) at the first such fix without an origin."""
         reader = TlogReader(self.path)
         try:
             msg = reader.first_message(GPS_GLOBAL_ORIGIN_ID, max_messages)
         finally:
             reader.close()
-        if msg is not None and (msg.latitude or msg.longitude):
-            self.converter.origin = GeoOrigin(math.radians(msg.latitude * 1e-7), math.radians(msg.longitude * 1e-7),
-                                              msg.altitude / 1000.0)
-            self.converter.origin_from = "GPS_GLOBAL_ORIGIN"
+        if msg is None or not (msg.latitude or msg.longitude):
+            return None
+        return GeoOrigin(math.radians(msg.latitude * 1e-7), math.radians(msg.longitude * 1e-7), msg.altitude / 1000.0)
 
     def _scan_truth(self, max_messages: int = 20_000) -> bool:
         """Does the log carry a simulator's truth (SIM_STATE near its start; a DataFlash SIM record)?"""
