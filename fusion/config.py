@@ -91,7 +91,7 @@ class LearnedVelocityConfig:
     # g: the gap's 1-σ multiple. A coast is not a first-order lag (quadratic drag leaves a slow
     # tail) and the gap is a scale of the error, not its bound: at 1 each 1 Hz update of a coast
     # still moved the position back 0.4–0.6 m through k_speed's covariance with it (ArduSub stop-
-    # and-go drives, README "Drives of other shapes": worst log 4.87 % at 1, 4.34 % at 2, 4.15 % at 3)
+    # and-go drives, docs/vehicle.md "Drives of other shapes": worst log 4.87 % at 1, 4.34 % at 2, 4.15 % at 3)
     transient_sigma_per_gap: float = 3.0
     # ... except while the thrust falls (a coast: the slow lag's speed above the command's). A
     # hull under thrust reaches its new speed fast (thrust ≫ drag at low speed: ArduSub SITL's
@@ -101,7 +101,7 @@ class LearnedVelocityConfig:
     # 1 Hz update of the tail had an innovation of one sign, which k_speed's covariance with the
     # position turned into the position moving back 1–2.3 m at every stop. In a coast the speed
     # is taken at coast_mean_fraction of the way from the command to the slow lag, 1σ
-    # coast_sigma_per_gap gaps (the 17 ArduSub SITL logs, README "Stops and the autopilot's
+    # coast_sigma_per_gap gaps (the 17 ArduSub SITL logs, docs/vehicle.md "Stops and the autopilot's
     # tilt": stops tlog 4.41 → 1.84 %)
     coast_mean_fraction: float = 0.5
     coast_sigma_per_gap: float = 1.0

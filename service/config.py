@@ -198,7 +198,7 @@ class ZenohConfig:
     ``connect_timeout_s``: in client mode, how long opening the session waits for a
     ``connect`` endpoint to answer (the daemon or router may start later); -1 = forever.
     ``tls``, ``auth``, ``access_control``: the bus's security (see their classes and
-    README "Security").
+    docs/vehicle.md "Security").
     ``shared_memory``: Zenoh's shared-memory transport between processes on this computer.
     Off by default: it maps a 16 MB pool and sends every message above 3 kB through it, and
     ours are small JSON (a nav state ~6 kB) — on the daemon of an ArduSub vehicle it cost

@@ -165,7 +165,7 @@ class OdometryConfig:
     estimator_type: int = 3  # MAV_ESTIMATOR_TYPE_VIO
     vision_position_delta: bool = False  # also send VISION_POSITION_DELTA between outputs
     # below this quality nothing is sent (silence, not a down-rated solution); set ArduSub's
-    # VISO_QUAL_MIN to the same number (README) so both ends draw the line at one σ_h
+    # VISO_QUAL_MIN to the same number (docs/vehicle.md, ArduSub parameters) so both ends draw the line at one σ_h
     # (quality 10 ⇔ σ_h ≈ 33 m with the defaults)
     min_quality: int = 10
     # horizontal velocity 1-σ above which no aid has constrained the velocity for longer than
