@@ -173,8 +173,98 @@ def drive_zigzag(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     _surface(gcs)
 
 
+def drive_manual(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> None:
+    """(g) The whole drive in MANUAL (no depth hold, no ALT_HOLD at all): dive on the z stick
+    (z 200, 16 s), five lanes at x 500-700 (40-55 s) with the z stick trimmed a little off
+    neutral so the depth wanders (the simulator's hull is buoyant: z 440-500 rises ~0.1 m/s,
+    z 420 about holds on the vectored frame and sinks ~0.08 m/s on the Heavy, z 400-410
+    sinks; the vectored frame wanders ~3.4-9.6 m, the Heavy ~7-18 m), 90° turns between the
+    lanes (yaw stick 400, z stick neutral), surface on the z stick (z 900, 40 s); ~5.5 min from
+    arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
+    gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
+    gcs.mode(MODE_MANUAL)
+    gcs.arm()
+    gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
+    gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
+    gcs.hold_sticks(16, z=200)  # dive
+    gcs.hold_sticks(3, z=420)
+    lanes = [(55, 600, 400), (40, 550, 440), (55, 700, 410), (40, 500, 440), (50, 650, 400)]  # (s, x, z trim)
+    for k, (lane_s, x, z) in enumerate(lanes):
+        gcs.hold_sticks(lane_s, x=x, z=z)
+        if k < len(lanes) - 1:
+            turn_by(gcs, 90 if k % 2 == 0 else -90, r=400)
+    gcs.hold_sticks(3, z=420)
+    gcs.hold_sticks(40, z=900)  # surface (the Heavy from ~18 m)
+    gcs.hold_sticks(5)
+
+
+def drive_box(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> None:
+    """(h) A box driven without stopping: a rectangle of four sides at x 550 (40, 35, 40, 35 s)
+    under depth hold, each corner a 90° turn taken while thrusting (x 550, yaw stick 400 until
+    the autopilot's yaw has turned 90°, ~6 s), then the same rectangle in the reverse direction
+    (left turns); ~6.6 min from arming to disarming. ``legs`` and ``leg_s`` are ignored (the
+    timings are the pattern's)."""
+    _dive(gcs)
+    sides = [40.0, 35.0, 40.0, 35.0]
+    for sign in (1, -1):  # clockwise, then anticlockwise
+        for side_s in sides:
+            gcs.hold_sticks(side_s, x=550)
+            turn_by(gcs, sign * 90, r=400, x=550)  # the corner on the move
+    gcs.hold_sticks(5, x=550)
+    _surface(gcs)
+
+
+def drive_creep(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> None:
+    """(i) An inspection at low throttle: lanes close to neutral (x 250, 150, 200, 250: ~0.15-
+    0.26 m/s, 35-45 s), crab legs on the lateral thrusters (y +250 and -250, 25 s), long hovers
+    with the sticks neutral (20-40 s) under depth hold, turns of 45°, -90° and 60° from the
+    hover (yaw stick 300-400); ~6.7 min from arming to disarming. ``legs`` and ``leg_s`` are
+    ignored (the timings are the pattern's)."""
+    _dive(gcs)
+    gcs.hold_sticks(45, x=250)
+    gcs.hold_sticks(30)  # hover
+    turn_by(gcs, 45, r=300)
+    gcs.hold_sticks(45, x=150)
+    gcs.hold_sticks(25, y=250)  # crab
+    gcs.hold_sticks(40)  # hover
+    turn_by(gcs, -90, r=400)
+    gcs.hold_sticks(45, x=200)
+    gcs.hold_sticks(25, y=-250)  # crab back
+    gcs.hold_sticks(25)  # hover
+    turn_by(gcs, 60, r=300)
+    gcs.hold_sticks(35, x=250)
+    gcs.hold_sticks(20)  # hover
+    _surface(gcs)
+
+
+def drive_redive(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> None:
+    """(j) Two dives: dive, two lanes (x 600, 550, 45 s) with a 90° turn, surface and stay there
+    40 s with the sticks neutral (the buoyant hull floats: a GNSS fix at the surface), dive
+    again (z 200, 16 s, then depth hold), three lanes (x 650, 500, 600, 35-40 s) with a -120°
+    turn and a 90° turn on the move (x 300), surface; ~6 min from arming to disarming.
+    ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
+    _dive(gcs)
+    gcs.hold_sticks(45, x=600)
+    turn_by(gcs, 90, r=500)
+    gcs.hold_sticks(45, x=550)
+    gcs.hold_sticks(5)
+    gcs.mode(MODE_MANUAL)
+    gcs.hold_sticks(20, z=800)  # surface
+    gcs.hold_sticks(40)  # at the surface
+    gcs.hold_sticks(16, z=200)  # dive again
+    gcs.mode(MODE_ALT_HOLD)
+    gcs.hold_sticks(3)
+    gcs.hold_sticks(40, x=650)
+    turn_by(gcs, -120, r=500)
+    gcs.hold_sticks(40, x=500)
+    turn_by(gcs, 90, r=500, x=300)  # on the move
+    gcs.hold_sticks(35, x=600)
+    _surface(gcs)
+
+
 PATTERNS = {"default": None, "survey": drive_survey, "brisk": drive_brisk, "arcs": drive_arcs,
-            "stops": drive_stops, "mixed": drive_mixed, "zigzag": drive_zigzag}
+            "stops": drive_stops, "mixed": drive_mixed, "zigzag": drive_zigzag, "manual": drive_manual,
+            "box": drive_box, "creep": drive_creep, "redive": drive_redive}
 
 
 def record(out: Path, log_bitmask: int | None = None, legs: int | None = 4, leg_s: float | None = 60.0,

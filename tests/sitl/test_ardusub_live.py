@@ -72,13 +72,23 @@ class NavLog(threading.Thread):
 PROFILE = Path(__file__).resolve().parents[2] / "deploy" / "vehicles" / "bluerov2-sitl.toml"
 
 
+def _profile() -> Path | None:
+    """The vehicle profile the daemon runs with: ``$ADAPTNAV_SITL_PROFILE`` (a path, or ``none``
+    for the daemon's defaults, as a user who has not calibrated the vehicle runs it), else
+    :data:`PROFILE`."""
+    given = os.environ.get("ADAPTNAV_SITL_PROFILE", "")
+    if given.lower() == "none":
+        return None
+    return Path(given) if given else PROFILE
+
+
 def start_daemon(tmp_path, bridge_port, state_dir):
     from adaptnav.service.daemon import Daemon
     from adaptnav.service.runtime.replay import build_config
 
     from ..service.test_daemon_support import free_port
 
-    cfg = build_config(None, PROFILE, [
+    cfg = build_config(None, _profile(), [
         f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "zenoh.scouting=false", "vehicle.name=sitl",
         f'state_dir="{state_dir}"', "calibrator.enabled=false", "mavlink.enabled=true",
         f'mavlink.url="udpin:127.0.0.1:{bridge_port}"', f"origin.lat_deg={HOME[0]}", f"origin.lon_deg={HOME[1]}"])
