@@ -178,7 +178,7 @@ def drive_manual(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     (z 200, 16 s), five lanes at x 500-700 (40-55 s) with the z stick trimmed a little off
     neutral so the depth wanders (the simulator's hull is buoyant: z 440-500 rises ~0.1 m/s,
     z 420 about holds on the vectored frame and sinks ~0.08 m/s on the Heavy, z 400-410
-    sinks; the vectored frame wanders ~3.4-9.6 m, the Heavy ~7-18 m), 90° turns between the
+    sinks; the vectored frame wanders ~4.4-10 m, the Heavy ~7-18 m), 90° turns between the
     lanes (yaw stick 400, z stick neutral), surface on the z stick (z 900, 40 s); ~5.5 min from
     arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
     gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
