@@ -41,16 +41,26 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def free_instance() -> int:
-    """An instance number whose RC-input port (UDP 5501 + 10·N, bound on all interfaces) is free."""
+def free_instance() -> tuple[int, Any]:
+    """An instance number whose RC-input port (UDP 5501 + 10·N) and serial ports (TCP 5760 +
+    10·N, bound on all interfaces) are free, and the lock that reserves it: two harnesses
+    started in the same second probed the same free ports and started the same instance (the
+    second autopilot could not bind them). The lock (``flock`` on a file per instance in the
+    temporary directory) is held until the caller closes it."""
+    import fcntl
+    import tempfile
+
     for n in range(1, 60):
+        lock = open(Path(tempfile.gettempdir()) / f"adaptnav-sitl-instance-{n}.lock", "w")
         try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                 s.bind(("0.0.0.0", 5501 + 10 * n))
             with socket.socket() as s:
                 s.bind(("0.0.0.0", 5760 + 10 * n))
-            return n
+            return n, lock
         except OSError:
+            lock.close()
             continue
     raise RuntimeError("no free SITL instance")
 
@@ -62,7 +72,7 @@ class ArduSub:
         self.workdir = Path(workdir)
         self.model = model  # SITL's vehicle: "vectored" (BlueROV2), "vectored_6dof" (BlueROV2 Heavy)
         self.gcs_port, self.bridge_port, self.home = gcs_port, bridge_port, home
-        self.instance = free_instance()
+        self.instance, self._instance_lock = free_instance()  # held while this object lives
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> "ArduSub":
