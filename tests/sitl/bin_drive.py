@@ -67,12 +67,17 @@ def turn_by(gcs: Gcs, deg: float, r: int = 500, x: int = 0, timeout_s: float = 3
     gcs.stick = {"x": x, "y": 0, "z": 500, "r": 0}
 
 
-def _dive(gcs: Gcs) -> None:
+def _arm(gcs: Gcs) -> None:
+    """Sticks neutral, MANUAL, armed, 5 s at rest (the log's first seconds)."""
     gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
     gcs.mode(MODE_MANUAL)
     gcs.arm()
     gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
     gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
+
+
+def _dive(gcs: Gcs) -> None:
+    _arm(gcs)
     gcs.hold_sticks(14, z=200)  # dive
     gcs.mode(MODE_ALT_HOLD)
     gcs.hold_sticks(3)
@@ -181,11 +186,7 @@ def drive_manual(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     sinks; the vectored frame wanders ~4.4-10 m, the Heavy ~7-18 m), 90° turns between the
     lanes (yaw stick 400, z stick neutral), surface on the z stick (z 900, 40 s); ~5.5 min from
     arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
-    gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
-    gcs.mode(MODE_MANUAL)
-    gcs.arm()
-    gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
-    gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
+    _arm(gcs)
     gcs.hold_sticks(16, z=200)  # dive
     gcs.hold_sticks(3, z=420)
     lanes = [(55, 600, 400), (40, 550, 440), (55, 700, 410), (40, 500, 440), (50, 650, 400)]  # (s, x, z trim)
