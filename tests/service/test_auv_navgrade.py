@@ -15,6 +15,7 @@ Measure::
     python -m tests.service.test_auv_navgrade OUT_DIR           # the three variants of the test
     python -m tests.service.test_auv_navgrade OUT_DIR --sweep   # seeds 1-8 × straight/lawnmower
     python -m tests.service.test_auv_navgrade OUT_DIR --sweep --ahrs ins  # ATTITUDE from a PHINS-class INS
+    python -m tests.service.test_auv_navgrade OUT_DIR --sweep --seeds 9-16  # the held-out seeds
     python -m tests.service.test_auv_navgrade OUT_DIR --bisect 3 lawnmower  # heading error per source
 
 The bisection (each of the generator's error sources alone, and each removed) on the 6-min
@@ -271,7 +272,7 @@ def bisect(out_dir: str, seed: int, pattern: str) -> None:
             run(f"all but {name}", {}, (), no_ahrs)
 
 
-def main(out_dir: str, sweep: bool = False, ahrs: str | None = None) -> None:
+def main(out_dir: str, sweep: bool = False, ahrs: str | None = None, seeds: range = range(1, 9)) -> None:
     from dataclasses import replace
 
     from adaptnav.sim.navgrade import COMPASS_AHRS, ins_ahrs_errors
@@ -279,7 +280,7 @@ def main(out_dir: str, sweep: bool = False, ahrs: str | None = None) -> None:
     out = Path(out_dir)
     variants = VARIANTS if not sweep else tuple(
         AuvLog(f"{pattern}{seed}", seed=seed, pattern=pattern, heading_deg=30.0 * seed, leg_length_m=200.0,
-               duration_s=360.0) for seed in range(1, 9) for pattern in ("straight", "lawnmower"))
+               duration_s=360.0) for seed in seeds for pattern in ("straight", "lawnmower"))
     # the ATTITUDE's source: a compass-grade AHRS, or the vehicle's own navigation-grade INS
     # (default: the sweep's compass, the test's variants their own)
     if ahrs is not None or sweep:
@@ -311,6 +312,8 @@ if __name__ == "__main__":
     if "--bisect" in sys.argv[2:]:  # OUT --bisect SEED PATTERN
         i = sys.argv.index("--bisect")
         bisect(sys.argv[1], int(sys.argv[i + 1]), sys.argv[i + 2])
-    else:  # OUT [--sweep] [--ahrs compass|ins]
+    else:  # OUT [--sweep [--seeds FIRST-LAST]] [--ahrs compass|ins]
         ahrs = sys.argv[sys.argv.index("--ahrs") + 1] if "--ahrs" in sys.argv else None
-        main(sys.argv[1], "--sweep" in sys.argv[2:], ahrs)
+        first, last = (map(int, sys.argv[sys.argv.index("--seeds") + 1].split("-")) if "--seeds" in sys.argv
+                       else (1, 8))
+        main(sys.argv[1], "--sweep" in sys.argv[2:], ahrs, range(first, last + 1))
