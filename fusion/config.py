@@ -277,6 +277,12 @@ class AttitudeConfig:
 class GnssConfig:
     enabled: bool = True
     max_depth_m: float = 0.5                   # surface-only: estimated depth below this
+    # the part of a fix's σ that averaging does not remove: a receiver's error is correlated
+    # over minutes (multipath, atmosphere; a consumer u-blox's short-term noise is a fraction of
+    # its CEP), so fixes at 5 Hz for a minute are not 300 independent ones (σ_fix/17). After a
+    # fused fix the horizontal position variance is at least (this × σ_fix)²: what the vehicle
+    # takes under water is the receiver's error at the dive. 0: every fix independent
+    correlated_fraction: float = 0.5
     # body-frame (FRD) position of the antenna relative to the vehicle reference point (m);
     # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -493,6 +499,8 @@ class FilterConfig:
                              f"1 / imu_gap_s ({1.0 / self.imu_gap_s:g} Hz)")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
+        if not 0.0 <= self.gnss.correlated_fraction <= 1.0:
+            raise ValueError("gnss.correlated_fraction must be within [0, 1]")
         lv = self.learned_velocity
         if not (lv.skid_sigma_s >= 0.0 and 0.0 < lv.skid_max_fraction <= 1.0
                 and 0.0 < lv.coast_skid_max_fraction <= 1.0):

@@ -868,6 +868,18 @@ class Estimator:
         y, s, nis = out.tolist()
         return [self._attempt(sample.t_s, sample.KIND, (z,), (y,), (s,), nis, True)], ok
 
+    def _floor_position_variance(self, sigma_m: float) -> None:
+        """North and east position variances raised to at least ``sigma_m²`` (an inflation:
+        independent noise added to the position, the estimate unchanged) — the error of a
+        surface fix that the next ones share (``gnss.correlated_fraction``)."""
+        if not sigma_m > 0.0:
+            return
+        kalman.flush_core(self._core, self._qdiag)
+        floor = sigma_m * sigma_m
+        for i in (0, 1):
+            if self._P[i, i] < floor:
+                self._P[i, i] = floor
+
     def _keep_depth(self, t_s: float, depth_m: float) -> None:
         """The current stationary-detection window's first and latest depth (``_depth_win``),
         and the vertical run: its horizontal drift, unmeasured without a DVL, grows the
@@ -1490,6 +1502,8 @@ class Estimator:
             meas = _at_lever(meas, self._x, self._arm[kind])
         if aid.absolute_position:
             status = self._fuse_position(meas, sample.t_s, kind)
+            if kind == "gnss" and status.fused:
+                self._floor_position_variance(config.correlated_fraction * float(sample.sigma_h_m))
             if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)

@@ -378,3 +378,41 @@ def test_a_dive_no_dvl_measured_widens_the_horizontal_covariance_by_its_drift():
     for axis in (0, 1):
         added_before = with_dvl[axis] - with_dvl_plain[axis]
         assert with_dvl[axis + 2] - with_dvl_plain[axis + 2] == pytest.approx(added_before, abs=1e-9)
+
+
+def _surface_sigma_h(correlated_fraction: float, seconds: float = 60.0, bias_n_m: float = 2.0,
+                     sigma_fix_m: float = 2.0) -> tuple[float, float]:
+    """A vehicle at rest at the surface, a receiver at 5 Hz reporting σ ``sigma_fix_m`` whose
+    error is a bias (``bias_n_m`` north, what a receiver keeps for minutes) plus 0.3 m of white
+    noise: (the filter's horizontal σ, its north error) after ``seconds``."""
+    from adaptnav.fusion.config import GnssConfig
+    from adaptnav.fusion.samples import GnssSample
+
+    est = _est(FilterConfig(gnss=GnssConfig(correlated_fraction=correlated_fraction)))
+    rng = np.random.default_rng(3)
+    for k in range(int(round(seconds * IMU_HZ))):
+        t = k / IMU_HZ
+        est.process(AttitudeSample(t + 0.001, 0.0, 0.0, 0.0))
+        if k % 5 == 0:
+            est.process(DepthSample(t + 0.002, _pressure(0.2)))
+        if k % 10 == 0:
+            n, e = bias_n_m + 0.3 * rng.standard_normal(), 0.3 * rng.standard_normal()
+            lat, lon, _ = ORIGIN.to_geodetic(np.array([n, e, 0.0]))
+            est.process(GnssSample(t + 0.003, float(lat), float(lon), sigma_fix_m))
+        est.process(ImuBatch(np.array([t + 1.0 / IMU_HZ]), np.array([[0.0, 0.0, -GRAVITY_M_S2]]),
+                             np.zeros((1, 3))))
+    s = est.nav_state()
+    P = np.asarray(s.cov)[:2, :2]
+    return float(math.sqrt(np.linalg.eigvalsh(P)[-1])), float(s.pos_n_m[0])
+
+
+def test_a_minute_of_surface_fixes_is_not_three_hundred_independent_ones():
+    # a receiver's error is correlated over minutes: a receiver reporting 2 m whose error is a
+    # 2 m bias, fused at 5 Hz as independent fixes, leaves the filter at σ 0.5 m (the motion's
+    # process noise holds it there) with the position 2 m off — outside its 99 % ellipse, where
+    # every dive would start valid; the default keeps half the fix's σ
+    sigma_white, err_white = _surface_sigma_h(0.0)
+    sigma, err = _surface_sigma_h(0.5)
+    assert abs(err_white - 2.0) < 0.3 and abs(err - 2.0) < 0.3  # both where the receiver says
+    assert abs(err_white) > 3.03 * sigma_white  # outside the 99 % ellipse (2-D: 3.03 σ)
+    assert 0.95 <= sigma <= 1.3 and abs(err) < 3.03 * sigma  # inside it
