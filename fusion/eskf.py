@@ -871,9 +871,7 @@ class Estimator:
     def _floor_position_variance(self, sigma_m: float) -> None:
         """North and east position variances raised to at least ``sigma_m²`` (an inflation:
         independent noise added to the position, the estimate unchanged) — the error of a
-        surface fix that the next ones share (``gnss.correlated_fraction``)."""
-        if not sigma_m > 0.0:
-            return
+        fix that the next ones share (``gnss.correlated_fraction``)."""
         kalman.flush_core(self._core, self._qdiag)
         floor = sigma_m * sigma_m
         for i in (0, 1):
@@ -1502,8 +1500,11 @@ class Estimator:
             meas = _at_lever(meas, self._x, self._arm[kind])
         if aid.absolute_position:
             status = self._fuse_position(meas, sample.t_s, kind)
-            if kind == "gnss" and status.fused:
-                self._floor_position_variance(config.correlated_fraction * float(sample.sigma_h_m))
+            # a source whose fixes share their error for minutes says so in its config
+            # (gnss.correlated_fraction): the fixes that follow do not average it away
+            shared = getattr(config, "correlated_fraction", 0.0)
+            if shared > 0.0 and status.fused:
+                self._floor_position_variance(shared * float(sample.sigma_h_m))
             if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)
