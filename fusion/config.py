@@ -291,6 +291,12 @@ class GnssConfig:
 @dataclass(frozen=True)
 class UsblConfig:
     enabled: bool = True
+    # as gnss.correlated_fraction: the part of a fix's σ that the next fixes share (a
+    # transducer's residual misalignment, the sound-speed profile, multipath — the same for
+    # every fix of a leg), so an underwater GPS at 1–2 Hz is not 100 independent fixes a
+    # minute. After a fused fix the horizontal position variance is at least
+    # (this × σ_fix)². 0: every fix independent
+    correlated_fraction: float = 0.5
     # body-frame (FRD) position of the transponder relative to the vehicle reference point (m);
     # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -499,8 +505,9 @@ class FilterConfig:
                              f"1 / imu_gap_s ({1.0 / self.imu_gap_s:g} Hz)")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
-        if not 0.0 <= self.gnss.correlated_fraction <= 1.0:
-            raise ValueError("gnss.correlated_fraction must be within [0, 1]")
+        for name, aid in (("gnss", self.gnss), ("usbl", self.usbl)):
+            if not 0.0 <= aid.correlated_fraction <= 1.0:
+                raise ValueError(f"{name}.correlated_fraction must be within [0, 1]")
         lv = self.learned_velocity
         if not (lv.skid_sigma_s >= 0.0 and 0.0 < lv.skid_max_fraction <= 1.0
                 and 0.0 < lv.coast_skid_max_fraction <= 1.0):

@@ -868,13 +868,21 @@ class Estimator:
         y, s, nis = out.tolist()
         return [self._attempt(sample.t_s, sample.KIND, (z,), (y,), (s,), nis, True)], ok
 
-    def _floor_position_variance(self, sigma_m: float) -> None:
+    def _position_variance_ne(self) -> tuple[float, float]:
+        """The north and east position variances now (m²)."""
+        kalman.flush_core(self._core, self._qdiag)
+        return float(self._P[0, 0]), float(self._P[1, 1])
+
+    def _floor_position_variance(self, sigma_m: float, prior_ne: tuple[float, float]) -> None:
         """North and east position variances raised to at least ``sigma_m²`` (an inflation:
         independent noise added to the position, the estimate unchanged) — the error of a
-        fix that the next ones share (``gnss.correlated_fraction``)."""
+        fix that the next ones share (``gnss.correlated_fraction``, ``usbl.correlated_fraction``)
+        — but never above ``prior_ne``, the variances before the fix: a poor fix after good
+        ones shares their error too and takes nothing away (a Water Linked UGPS reporting
+        11 m between fixes of 1.6 m on one spot had raised the σ to 5.6 m)."""
         kalman.flush_core(self._core, self._qdiag)
-        floor = sigma_m * sigma_m
         for i in (0, 1):
+            floor = min(sigma_m * sigma_m, prior_ne[i])
             if self._P[i, i] < floor:
                 self._P[i, i] = floor
 
@@ -1499,12 +1507,13 @@ class Estimator:
         if kind in self._arm:
             meas = _at_lever(meas, self._x, self._arm[kind])
         if aid.absolute_position:
-            status = self._fuse_position(meas, sample.t_s, kind)
-            # a source whose fixes share their error for minutes says so in its config
-            # (gnss.correlated_fraction): the fixes that follow do not average it away
+            # a source whose fixes share their error says so in its config (gnss. and
+            # usbl.correlated_fraction): the fixes that follow do not average it away
             shared = getattr(config, "correlated_fraction", 0.0)
-            if shared > 0.0 and status.fused:
-                self._floor_position_variance(shared * float(sample.sigma_h_m))
+            prior_ne = self._position_variance_ne() if shared > 0.0 else None
+            status = self._fuse_position(meas, sample.t_s, kind)
+            if prior_ne is not None and status.fused:
+                self._floor_position_variance(shared * float(sample.sigma_h_m), prior_ne)
             if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)

@@ -177,7 +177,14 @@ class GnssConfig:
     fix_times_s: tuple[float, ...] = (0.0,)
     rate_hz: float = 0.0
     max_depth_m: float = 0.5
-    sigma_m: float = 1.5
+    sigma_m: float = 1.5                # the σ a fix reports per axis: its whole error
+    # of it, a part shared by fixes minutes apart (multipath, atmosphere; sim/sensors.py):
+    # 0 = every fix independent (the default scenarios, whose figures are published so)
+    bias_sigma_m: float = 0.0
+    bias_time_s: float = 300.0
+
+    def validate(self) -> None:
+        _check_bias("gnss", self.sigma_m, self.bias_sigma_m, self.bias_time_s)
 
 
 @dataclass(frozen=True)
@@ -187,8 +194,23 @@ class UsblConfig:
     start_s: float = 60.0
     lost_after_s: float | None = None   # no fixes after this time (None = never lost)
     outages_s: tuple[tuple[float, float], ...] = ()   # [start, end) intervals without fixes
-    sigma_m: float = 2.0
+    sigma_m: float = 2.0                # the horizontal σ a fix reports per axis: its whole error
     sigma_depth_m: float = 1.0
+    # of sigma_m, a part shared by fixes within tens of seconds (the transducer's residual
+    # misalignment, the sound-speed profile, multipath; sim/sensors.py): 0 = independent fixes
+    bias_sigma_m: float = 0.0
+    bias_time_s: float = 60.0
+
+    def validate(self) -> None:
+        _check_bias("usbl", self.sigma_m, self.bias_sigma_m, self.bias_time_s)
+
+
+def _check_bias(name: str, sigma_m: float, bias_sigma_m: float, bias_time_s: float) -> None:
+    if not 0.0 <= bias_sigma_m <= sigma_m:
+        raise ValueError(f"{name}.bias_sigma_m must be in [0, sigma_m] (the reported σ is the whole error), "
+                         f"got {bias_sigma_m} with sigma_m {sigma_m}")
+    if not bias_time_s > 0.0:
+        raise ValueError(f"{name}.bias_time_s must be > 0, got {bias_time_s}")
 
 
 @dataclass(frozen=True)

@@ -3,10 +3,17 @@ r"""Aiding-sensor models on top of the dense truth (vectorised over sample times
 - heading: ``ψ + N(0, σ²)``, wrapped to [−π, π).
 - depth: absolute pressure ``p = p_atm + ρ(t) g d + N(0, (ρ₀ g σ_d)²)`` — the density ρ
   changes with the environment, so a filter that keeps the old ρ sees a small depth bias.
-- GNSS: only while the true depth ≤ ``max_depth_m``; horizontal noise σ per axis.
+- GNSS: only while the true depth ≤ ``max_depth_m``; horizontal error σ per axis (the σ the
+  fix reports), of which ``bias_sigma_m`` is a first-order Gauss–Markov process with
+  correlation time ``bias_time_s`` and the rest white: a receiver's error is mostly shared
+  by fixes minutes apart (multipath, ionosphere and troposphere residuals; Groves, *Principles
+  of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed., §9.4), its
+  short-term noise a fraction of its CEP.
 - USBL: geodetic position + depth with σ_h per horizontal axis and σ_v, every
   ``period_s`` from ``start_s`` until ``lost_after_s`` (inclusive), none within
-  ``outages_s`` intervals ``[start, end)``.
+  ``outages_s`` intervals ``[start, end)``; of σ_h, ``bias_sigma_m`` is Gauss–Markov as the
+  GNSS's (a transducer's residual misalignment and the sound-speed profile bend every fix of a
+  leg alike; the ping-to-ping part is white).
 - DVL bottom track: ``v_d = R_db (R_bn v_n + ω_b × r_b) + N(0, σ²)`` with lever arm
   ``r_b`` and mounting ``R_bd``; ``valid`` false during outages, random drop-outs, or
   when the altitude exceeds the bottom-lock range.
@@ -108,6 +115,30 @@ def depth_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[Dep
     return [DepthSample(float(a), float(b)) for a, b in zip(t, p)]
 
 
+def gauss_markov(t_s: np.ndarray, sigma: float, time_constant_s: float, dims: int, rng) -> np.ndarray:
+    """A stationary first-order Gauss–Markov process of standard deviation ``sigma`` and
+    correlation time ``time_constant_s`` sampled at the increasing times ``t_s``, ``dims``
+    independent axes: ``x₀ ~ N(0, σ²)``, ``x_k = a x_{k−1} + σ √(1 − a²) n_k`` with
+    ``a = exp(−Δt/τ)`` (exact for any spacing). ``sigma`` 0: zeros, and nothing drawn from
+    ``rng`` (the white noise drawn before stays the same stream)."""
+    out = np.zeros((len(t_s), dims))
+    if sigma <= 0.0 or not len(t_s):
+        return out
+    n = rng.standard_normal((len(t_s), dims))
+    a = np.exp(-np.diff(t_s) / time_constant_s)
+    out[0] = sigma * n[0]
+    for k in range(1, len(t_s)):
+        out[k] = a[k - 1] * out[k - 1] + sigma * math.sqrt(1.0 - a[k - 1] ** 2) * n[k]
+    return out
+
+
+def _white_sigma(cfg) -> float:
+    """The white part of a fix's reported σ (``sigma_m``) beside its shared ``bias_sigma_m``."""
+    if cfg.bias_sigma_m <= 0.0:
+        return cfg.sigma_m  # (not √(σ²): the published scenarios' draws, bit for bit)
+    return math.sqrt(max(cfg.sigma_m ** 2 - cfg.bias_sigma_m ** 2, 0.0))
+
+
 def gnss_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[GnssSample]:
     cfg = scenario.gnss
     listed = [x for x in cfg.fix_times_s if 0.0 <= x <= scenario.duration_s]
@@ -116,7 +147,8 @@ def gnss_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[Gnss
     if not len(t):
         return []
     pos = truth.pos(t)
-    noise = cfg.sigma_m * rng.standard_normal((len(t), 2))  # drawn for all: stable streams
+    noise = _white_sigma(cfg) * rng.standard_normal((len(t), 2))  # drawn for all: stable streams
+    noise += gauss_markov(t, cfg.bias_sigma_m, cfg.bias_time_s, 2, rng)
     keep = pos[:, 2] <= cfg.max_depth_m
     pos = pos.copy()
     pos[:, :2] += noise
@@ -134,7 +166,9 @@ def usbl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[Usbl
     if not len(t):
         return []
     pos = truth.pos(t)
-    noisy = pos + rng.standard_normal((len(t), 3)) * np.array([cfg.sigma_m, cfg.sigma_m, cfg.sigma_depth_m])
+    white_h = _white_sigma(cfg)
+    noisy = pos + rng.standard_normal((len(t), 3)) * np.array([white_h, white_h, cfg.sigma_depth_m])
+    noisy[:, :2] += gauss_markov(t, cfg.bias_sigma_m, cfg.bias_time_s, 2, rng)
     lat, lon, _ = scenario.origin.geo().to_geodetic(noisy)
     # outages drop fixes after the noise is drawn: the other fixes stay the same draws
     keep = np.ones(len(t), dtype=bool)
