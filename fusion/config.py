@@ -431,7 +431,8 @@ class StationaryConfig:
 
     Only out of the water (estimated depth below ``max_depth_m``): in water an idle vehicle
     drifts with the current, and the learned velocity (no thrust ⇒ no water-relative
-    velocity) already holds it.
+    velocity) already holds it. A vehicle floating at the surface reads the same depth as one
+    on deck, so where position fixes come (``fix_holdoff_s``) they judge whether it moves.
     """
 
     enabled: bool = True
@@ -442,6 +443,7 @@ class StationaryConfig:
     max_depth_rate_m_s: float = 0.03           # depth change over the window (when a depth aid exists)
     max_rpm: float = 1.0                       # thrusters idle (when RPM is known)
     sigma_m_s: float = 0.01                    # zero-velocity pseudo-measurement 1-σ
+    fix_holdoff_s: float = 10.0                # no update within this long after a fused position fix
 
 
 @dataclass(frozen=True)

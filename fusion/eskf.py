@@ -298,6 +298,7 @@ class Estimator:
         self._depth_win: list[float] = []  # [t0, depth0, t, depth] of the current window
         self._vertical_run: tuple | None = None  # aid_depth.vertical_run_step's (_keep_depth)
         self._t_dvl_fused = -math.inf
+        self._t_fix_fused = -math.inf  # the last absolute position fix fused (data time, s)
         self.zero_velocity_updates = 0
         # free-inertial velocity: the strapdown's velocity increments summed without the
         # aiding corrections — what the IMU alone says about velocity *changes* (the
@@ -1290,8 +1291,12 @@ class Estimator:
         self._depth_win = dw[2:] * 2 if len(dw) == 4 else []
         idle = math.isfinite(self._rpm_raw) and abs(self._rpm_raw) <= c.max_rpm
         recent_dvl = t_end - self._t_dvl_fused < c.window_s
+        # a floating vehicle drifts with the water, thrusters idle or not: where fixes come,
+        # they say whether it moves (a rest update there had the surface drift learnt as none,
+        # and the dive carried no current at a σ of 0.01 m/s)
+        recent_fix = t_end - self._t_fix_fused < c.fix_holdoff_s
         dry = self._x[X_DEPTH] < c.max_depth_m
-        if not (quiet and depth_steady and idle and dry and not recent_dvl):
+        if not (quiet and depth_steady and idle and dry and not recent_dvl and not recent_fix):
             return []
         payload = (t_end,)
         self._record("zupt", payload)
@@ -1512,8 +1517,10 @@ class Estimator:
             shared = getattr(config, "correlated_fraction", 0.0)
             prior_ne = self._position_variance_ne() if shared > 0.0 else None
             status = self._fuse_position(meas, sample.t_s, kind)
-            if prior_ne is not None and status.fused:
-                self._floor_position_variance(shared * float(sample.sigma_h_m), prior_ne)
+            if status.fused:
+                self._t_fix_fused = sample.t_s
+                if prior_ne is not None:
+                    self._floor_position_variance(shared * float(sample.sigma_h_m), prior_ne)
             if self.dvl_calibration is not None and status.fused:  # a fix closes a DVL track interval
                 self.dvl_calibration.on_fix(sample.t_s, self.origin.to_ned(sample.lat_rad, sample.lon_rad)[:2],
                                             sample.sigma_h_m)
