@@ -280,9 +280,12 @@ class GnssConfig:
     # the part of a fix's σ that averaging does not remove: a receiver's error is correlated
     # over minutes (multipath, atmosphere; a consumer u-blox's short-term noise is a fraction of
     # its CEP), so fixes at 5 Hz for a minute are not 300 independent ones (σ_fix/17). After a
-    # fused fix the horizontal position variance is at least (this × σ_fix)²: what the vehicle
-    # takes under water is the receiver's error at the dive. 0: every fix independent
-    correlated_fraction: float = 0.5
+    # fused fix the horizontal position variance is at least (this × σ_fix)² (never above the
+    # variance before the fix): what the vehicle takes under water is the receiver's error at
+    # the dive. 1: a fix's σ is what a minute of them leaves — a consumer receiver's
+    # short-term noise (~0.3 m) beside its metres of CEP (docs/vehicle.md, stop 31).
+    # 0: every fix independent
+    correlated_fraction: float = 1.0
     # body-frame (FRD) position of the antenna relative to the vehicle reference point (m);
     # the filter navigates the IMU (filter.imu.lever_arm_b_m) and models this aid here
     lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -410,9 +410,15 @@ def test_a_minute_of_surface_fixes_is_not_three_hundred_independent_ones():
     # a receiver's error is correlated over minutes: a receiver reporting 2 m whose error is a
     # 2 m bias, fused at 5 Hz as independent fixes, leaves the filter at σ 0.5 m (the motion's
     # process noise holds it there) with the position 2 m off — outside its 99 % ellipse, where
-    # every dive would start valid; the default keeps half the fix's σ
+    # every dive would start valid; half the fix's σ kept (stop 30's default) is inside it, the
+    # default keeps the fix's σ (what a minute of a receiver's fixes leaves)
+    from adaptnav.fusion.config import GnssConfig
+
     sigma_white, err_white = _surface_sigma_h(0.0)
-    sigma, err = _surface_sigma_h(0.5)
-    assert abs(err_white - 2.0) < 0.3 and abs(err - 2.0) < 0.3  # both where the receiver says
+    sigma_half, err_half = _surface_sigma_h(0.5)
+    sigma, err = _surface_sigma_h(GnssConfig().correlated_fraction)
+    for e in (err_white, err_half, err):
+        assert abs(e - 2.0) < 0.3  # all where the receiver says
     assert abs(err_white) > 3.03 * sigma_white  # outside the 99 % ellipse (2-D: 3.03 σ)
-    assert 0.95 <= sigma <= 1.3 and abs(err) < 3.03 * sigma  # inside it
+    assert 0.95 <= sigma_half <= 1.3 and abs(err_half) < 3.03 * sigma_half  # inside it
+    assert 1.9 <= sigma <= 2.6 and abs(err) < 3.03 * sigma
