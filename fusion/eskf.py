@@ -732,7 +732,7 @@ class Estimator:
         self.settle()
         if np.isfinite(self._clock[0]):
             self._clock[:] += delta_s
-        for name in ("_t_imu_last", "_next_lv_t", "_t_release", "_good_t"):
+        for name in ("_t_imu_last", "_next_lv_t", "_t_release", "_good_t", "_t_dvl_fused", "_t_fix_fused"):
             setattr(self, name, getattr(self, name) + delta_s)
         self._alignment.aligner.t_last_s += delta_s
         self._clones.shift_time(delta_s)
