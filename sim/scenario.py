@@ -20,6 +20,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from adaptnav.fusion.frames import GeoOrigin
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
 from adaptnav.fusion.typed_config import ConfigError, load_toml
@@ -136,14 +138,35 @@ class EnvironmentConfig:
 
 @dataclass(frozen=True)
 class CurrentConfig:
-    """Constant horizontal sea current; direction it flows *towards*, from north to east."""
+    """Horizontal sea current; directions are where it flows *towards*, from north to east.
+
+    ``speed_m_s``/``direction_deg``: the current at depth, constant. ``surface_drift_*``: what
+    moves a vehicle at the surface besides it (wind drift of the top layer, waves' Stokes
+    drift, a floating hull's leeway), full at the surface and fading linearly to none at
+    ``surface_layer_m`` — the drift a GNSS sees before a dive and the water under it does not
+    share (default none: the published scenarios unchanged).
+    """
 
     speed_m_s: float = 0.1
     direction_deg: float = 45.0
+    surface_drift_speed_m_s: float = 0.0
+    surface_drift_direction_deg: float = 0.0
+    surface_layer_m: float = 2.0
+
+    def validate(self) -> None:
+        if self.speed_m_s < 0 or self.surface_drift_speed_m_s < 0 or self.surface_layer_m <= 0:
+            raise ValueError("current: speeds must be ≥ 0 and surface_layer_m > 0")
 
     def vel_n_m_s(self) -> tuple[float, float]:
+        """The current at depth (north, east), m/s."""
         a = math.radians(self.direction_deg)
         return (self.speed_m_s * math.cos(a), self.speed_m_s * math.sin(a))
+
+    def surface_drift_n_m_s(self, depth_m) -> np.ndarray:
+        """The surface drift (…, 2) (north, east) m/s at ``depth_m`` (down, m; any shape)."""
+        a = math.radians(self.surface_drift_direction_deg)
+        fade = np.clip(1.0 - np.asarray(depth_m, dtype=float) / self.surface_layer_m, 0.0, 1.0)
+        return self.surface_drift_speed_m_s * fade[..., None] * np.array([math.cos(a), math.sin(a)])
 
 
 @dataclass(frozen=True)

@@ -253,7 +253,10 @@ def dvl_samples(scenario: Scenario, truth: TruthInterpolator, rng) -> list[DvlSa
     if cfg.water_track:
         water = ~lock & ~dropped & (altitude >= cfg.min_altitude_m + 4.5) & tilt_ok
         cur = np.array(tuple(scenario.current.vel_n_m_s()) + (0.0,))
-        rel_b = rot_nb.inv().apply(vel_n - cur[None, :])
+        water_n = vel_n - cur[None, :]
+        if scenario.current.surface_drift_speed_m_s > 0:
+            water_n[:, :2] -= scenario.current.surface_drift_n_m_s(pos[:, 2])
+        rel_b = rot_nb.inv().apply(water_n)
         wt = rot_bd.inv().apply(rel_b) * (1.0 + cfg.scale_factor_error) + wt_noise
         vel_d = np.where(water[:, None], wt, vel_d)
     return [DvlSample(float(t[i]), tuple(map(float, vel_d[i])), bool(valid[i] or water[i]),
@@ -284,12 +287,15 @@ def truth_samples(scenario: Scenario, dense: DenseTruth, steps: MotionSteps,
     idx = np.minimum(np.round(t / dt).astype(int), len(dense.t_s) - 1)
     k = np.minimum((dense.t_s[idx] / scenario.motion.step_s + 1e-9).astype(int), len(steps.k_v) - 1)
     cur = tuple(map(float, scenario.current.vel_n_m_s())) + (0.0,)
+    drift = (scenario.current.surface_drift_n_m_s(dense.pos_n_m[idx, 2])
+             if scenario.current.surface_drift_speed_m_s > 0 else None)
     # biases are per IMU sample (index i−1 for instant i); instant 0 takes the first
     bi = np.maximum(idx - 1, 0)
     out = []
     for j, i in enumerate(idx):
         out.append(TruthSample(
             float(t[j]), tuple(map(float, dense.pos_n_m[i])), tuple(map(float, dense.vel_n_m_s[i])),
-            tuple(map(float, dense.q_nb[i])), cur, float(steps.k_v[k[j]]),
+            tuple(map(float, dense.q_nb[i])), cur if drift is None else (cur[0] + float(drift[j, 0]), cur[1] + float(drift[j, 1]), 0.0),
+            float(steps.k_v[k[j]]),
             tuple(map(float, bias_acc[bi[j]])), tuple(map(float, bias_gyro[bi[j]]))))
     return out

@@ -11,7 +11,8 @@ Per motion step ``k`` (length ``T = motion.step_s``), from the *water-relative* 
    ``pose_{k+1} = propagate(pose_k, V_k, W_k, S_k, T)`` — so the water-relative poses at
    the step instants follow the model *exactly* and :func:`invert_step` recovers
    ``(V_k, W_k, S_k)``;
-3. ground position = water-relative position + current · t (constant current).
+3. ground position = water-relative position + current · t (constant current), plus the
+   integral of the surface drift while the vehicle is in the surface layer.
 
 Inside a step the yaw rate is ``W_k`` (yaw is continuous) and the body velocity blends
 linearly over ``ramp_s`` from the previous step's value to a constant ``u'_k`` (no
@@ -413,6 +414,12 @@ def dense_truth(scenario: Scenario, steps: MotionSteps) -> DenseTruth:
     # part starts from the model pose so step instants land on the model poses.
     pos[:, :2] = _trapezoid_cumsum(vel_water, dt) + steps.pose_water[0, :2] + cur[None, :] * t[:, None]
     pos[:, 2] = _trapezoid_cumsum(vd[:, None], dt)[:, 0] + down[0]
+    if scenario.current.surface_drift_speed_m_s > 0:
+        # the surface layer's drift carries the vehicle while it is in it (not the guidance:
+        # it steers the water-relative pose plus the current at depth, as an unaided vehicle)
+        drift = scenario.current.surface_drift_n_m_s(pos[:, 2])
+        vel[:, :2] += drift
+        pos[:, :2] += _trapezoid_cumsum(drift, dt)
     tr = scenario.trajectory
     surge = np.hypot(vel_water[:, 0], vel_water[:, 1])
     extra = 0.0

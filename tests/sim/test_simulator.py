@@ -289,3 +289,44 @@ def test_dvl_scale_misalignment_outliers_and_lock_over_a_trench():
     g = np.vdot(zb, zm) / np.vdot(zb, zb)  # zm ≈ g zb, g = (1 + s) e^{-iψ}
     assert abs(abs(g) - 1.008) < 0.001
     assert abs(math.degrees(-np.angle(g)) - 0.6) < 0.05
+
+
+def test_a_surface_drift_carries_the_vehicle_in_the_surface_layer_only():
+    # a minute afloat in 0.15 m/s of surface drift (leeway, wind drift) towards 200°, over a
+    # current of 0.1 m/s towards 45° at depth, then the dive to 10 m
+    r = simulate(load_scenario("short", ["duration_s=150", "trajectory.start_delay_s=60",
+                                         "current.surface_drift_speed_m_s=0.15",
+                                         "current.surface_drift_direction_deg=200"]))
+    cur = np.array(r.scenario.current.vel_n_m_s())
+    a = math.radians(200.0)
+    drift = 0.15 * np.array([math.cos(a), math.sin(a)])
+    d = r.dense
+    afloat = d.t_s <= 60.0
+    assert np.abs(d.pos_n_m[afloat, 2]).max() == 0.0
+    # afloat the ground moves with current + drift (the hull's own speed at rest ~ σ_V1)
+    moved = d.pos_n_m[np.searchsorted(d.t_s, 60.0), :2] - d.pos_n_m[0, :2]
+    assert np.linalg.norm(moved - (cur + drift) * 60.0) < 1.0, moved
+    assert np.linalg.norm(moved - cur * 60.0) > 7.0  # the drift's 9 m are there
+    # the truth's current is the water's at the vehicle's depth
+    truth = {round(s.t_s, 3): s for s in r.samples["truth"]}
+    np.testing.assert_allclose(truth[30.0].current_n_m_s[:2], cur + drift, atol=1e-12)
+    deep = [s for s in r.samples["truth"] if s.pos_n_m[2] >= r.scenario.current.surface_layer_m]
+    assert deep and all(np.allclose(s.current_n_m_s[:2], cur, atol=1e-12) for s in deep)
+    # the IMU is drawn from the same truth: a perfect one integrates through the descent's
+    # fading drift onto it
+    p = simulate(load_scenario("short", ["duration_s=150", "trajectory.start_delay_s=60", 'imu.grade="perfect"',
+                                         "current.surface_drift_speed_m_s=0.15",
+                                         "current.surface_drift_direction_deg=200"]))
+    dt = p.imu.t_s[1] - p.imu.t_s[0]
+    i0 = int(np.searchsorted(p.dense.t_s, 55.0))
+    q, v, pos = p.dense.q_nb[i0].copy(), p.dense.vel_n_m_s[i0].copy(), p.dense.pos_n_m[i0].copy()
+    g = np.array([0.0, 0.0, GRAVITY_M_S2])
+    for i in range(i0, i0 + 3000):  # 55 s → 85 s: the vehicle leaves the surface layer
+        dth = p.imu.omega_b_rad_s[i] * dt
+        q_mid = quat_mul(q, quat_from_rotvec(0.5 * dth))
+        q = quat_mul(q, quat_from_rotvec(dth))
+        v_new = v + quat_to_dcm(q_mid) @ p.imu.specific_force_b_m_s2[i] * dt + g * dt
+        pos = pos + 0.5 * (v + v_new) * dt
+        v = v_new
+    assert p.dense.pos_n_m[i0 + 3000, 2] > 2.0
+    assert np.abs(pos - p.dense.pos_n_m[i0 + 3000]).max() < 1e-6
