@@ -155,7 +155,7 @@ _DVL_MEASURES_DRIFT_S = 2.0
 class _Snapshot:
     __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
                  "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
-                 "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid", "vertical_run")
+                 "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid", "vertical_run", "t_dvl_fused", "t_fix_fused")
 
 
 class Estimator:
@@ -992,6 +992,10 @@ class Estimator:
         s.attitude_driven = self._attitude_driven
         s.t_motion_aid = self._t_motion_aid
         s.vertical_run = self._vertical_run
+        # the rest detector's hold-offs: a re-run must see the fixes and DVL fused before it
+        # as they were, not one fused after the late sample's time
+        s.t_dvl_fused = self._t_dvl_fused
+        s.t_fix_fused = self._t_fix_fused
         s.clones = self._clones.copy() if self._clones.active else None
         return s
 
@@ -1016,6 +1020,8 @@ class Estimator:
         self._attitude_driven = s.attitude_driven
         self._t_motion_aid = s.t_motion_aid
         self._vertical_run = s.vertical_run
+        self._t_dvl_fused = s.t_dvl_fused
+        self._t_fix_fused = s.t_fix_fused
         if s.clones is not None:
             self._clones = s.clones.copy()
         elif self._clones.active:
