@@ -68,6 +68,8 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
     ignore_sigint()
     if parent_pid is not None:  # dies with its daemon, even a SIGKILLed one
         die_with_parent(parent_pid)
+    if cfg.calibrator.nice > 0:
+        os.nice(cfg.calibrator.nice)  # raising the niceness needs no privilege
     calibrator = make_calibrator(cfg, params0, seed)
     clock = DataClock()
     gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)

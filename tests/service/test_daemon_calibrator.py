@@ -39,6 +39,9 @@ def test_calibrator_killed_restarted_fusion_uninterrupted(tmp_path):
         assert first, f"calibrator never came up: {calibrator_health()}"
         pid = first["pid"]
         assert pid and pid != os.getpid()
+        # EM runs below the navigation loop's priority (calibrator.nice, default 10)
+        background = min(19, os.getpriority(os.PRIO_PROCESS, 0) + 10)
+        assert os.getpriority(os.PRIO_PROCESS, pid) == background
         os.kill(pid, signal.SIGKILL)
         # WHILE the child is dead: nav states keep coming (counted from the moment the
         # daemon has seen the death, until it has restarted the child)
@@ -49,6 +52,7 @@ def test_calibrator_killed_restarted_fusion_uninterrupted(tmp_path):
         again = wait_until(lambda: (c := calibrator_health()) and c["state"] == "running" and c["pid"] != pid and c,
                            timeout_s=120)
         n_back = len(col.get(col.keys.nav_state))
+        restarted_nice = os.getpriority(os.PRIO_PROCESS, again["pid"]) if again else None
         # and after it
         assert col.wait_for(col.keys.nav_state, lambda docs: len(docs) >= n_back + 10)
         health = bus.get("health")
@@ -58,6 +62,7 @@ def test_calibrator_killed_restarted_fusion_uninterrupted(tmp_path):
         daemon.stop()
     assert dead, "the daemon never saw the child die"
     assert again, "calibrator was not restarted"
+    assert restarted_nice == background, "the restarted child runs at the daemon's priority"
     assert again["restarts"] == 1
     assert health["runner_alive"] is True
     # fusion uninterrupted: nav states in data time without a gap, the whole time (the
