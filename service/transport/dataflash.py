@@ -40,9 +40,11 @@ Every other record type is accounted for: ignored with the reason in :data:`IGNO
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 from types import SimpleNamespace
-from typing import Any, NamedTuple
+from typing import Any, Iterator, NamedTuple
 
 from adaptnav.fusion.frames import wrap_angle
 from adaptnav.fusion.samples import AltitudeSample, AttitudeSample, DepthSample, GnssSample, ImuSample
@@ -63,6 +65,66 @@ DOWNWARD = 25  # ROTATION_PITCH_270
 USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG", "VISO", "VISV")
 # the records a replay reads (decodes); the others are only counted, from the reader's index
 READ = frozenset(USED) | {"PARM"}
+
+_FORMATS_PATCH_LOCK = threading.Lock()
+
+
+def _opaque_format(n_bytes: int) -> str:
+    """Format letters of exactly ``n_bytes`` bytes of text fields (64, 16, 4, 1 bytes each)."""
+    out = []
+    for letter, size in (("Z", 64), ("N", 16), ("n", 4), ("B", 1)):
+        k, n_bytes = divmod(max(n_bytes, 0), size)
+        out.append(letter * k)
+    return "".join(out)
+
+
+@contextlib.contextmanager
+def tolerant_formats() -> Iterator[list[str]]:
+    """While pymavlink's binary DataFlash reader indexes a log: an FMT record whose format
+    letters are damaged (a flipped byte) declares its record type as opaque bytes of the
+    declared length, instead of raising — DFReader's index gives up on the whole log at one
+    such record (e.g. ``Unsupported format char: '\\' in message GRXS``), though every
+    other type still reads. Yields the names of the types so declared (their records are
+    skipped whole, as a type ``<name>_damaged``; if one is a type the replay reads, its
+    samples are lost and said)."""
+    from pymavlink import DFReader
+
+    damaged: list[str] = []
+    original = DFReader.DFFormat
+
+    class _Tolerant(original):  # type: ignore[misc, valid-type]
+        opaque = False
+
+        def __init__(self, type, name, flen, format, columns, oldfmt=None):  # noqa: A002 - DFReader's names
+            try:
+                super().__init__(type, name, flen, format, columns, oldfmt)
+            except Exception:  # noqa: BLE001 - DFReader raises a bare Exception
+                label = DFReader.null_term(name) if isinstance(name, str) else repr(name)
+                if label not in damaged:  # the index may build a type's format twice
+                    damaged.append(label)
+                letters = _opaque_format(int(flen) - 3)
+                # renamed: nothing that reads the type by its name (the replay, DFReader's
+                # clock from GPS records) takes its bytes for fields
+                super().__init__(type, f"{label}_damaged", flen, letters,
+                                 ",".join(f"_{i}" for i in range(len(letters))), oldfmt)
+                self.opaque = True
+
+        # the log's units and multipliers (FMTU) are for the declared columns, not the bytes
+        def set_unit_ids(self, unit_ids, unit_lookup):
+            if not self.opaque:
+                super().set_unit_ids(unit_ids, unit_lookup)
+
+        def set_mult_ids(self, mult_ids, mult_lookup):
+            if not self.opaque:
+                super().set_mult_ids(mult_ids, mult_lookup)
+
+    with _FORMATS_PATCH_LOCK:
+        DFReader.DFFormat = _Tolerant
+        try:
+            yield damaged
+        finally:
+            DFReader.DFFormat = original
+
 
 _WHY_ESTIMATE = "the autopilot's own estimate (an output of its EKF/AHRS, not a sensor)"
 _WHY_CONTROL = "the autopilot's controllers, pilot input and modes (no navigation content)"

@@ -189,3 +189,38 @@ def test_a_damaged_chunk_of_a_blueos_recording_loses_only_its_messages(tmp_path)
     assert t[-1] == t_whole[-1]
     lost = src_whole.counters["messages_read"] - src.counters["messages_read"]
     assert 0 < lost < 1.5 * src_whole.counters["messages_read"] / n_chunks
+
+
+def _with_format_damaged(data: bytes, name: str, letters: str) -> bytes:
+    """The log with one letter of one FMT record's format replaced by a byte no format uses
+    (a flipped bit on the card)."""
+    at = data.index(name.encode().ljust(4, b"\0") + letters.encode()) + 4 + 1  # its second letter
+    return data[:at] + b"\\" + data[at + 1:]
+
+
+@pytest.mark.parametrize("name, letters, lost", [
+    ("GRXS", "QddfBBBHBBBBB", None),     # a type nothing reads: nothing lost
+    ("GPS", "QBBIHBcLLeffffB", "gnss")])  # the position fixes' type: only they are lost
+def test_a_damaged_record_format_loses_only_its_records(tmp_path, name, letters, lost):
+    """pymavlink's DataFlash index raised on one damaged FMT record and the whole log was
+    'not a readable log' (found by mutating the public BIN): the type is now skipped, said and
+    counted, and every other record reads as from the whole log."""
+    from collections import Counter
+
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    log_name = "ardusub-4.7-sitl-drive.BIN"
+    whole = TlogSource(TEST_DATA / log_name)
+    kinds_whole = Counter(getattr(s, "KIND", "") for s in whole)
+    path = tmp_path / log_name
+    path.write_bytes(_with_format_damaged((TEST_DATA / log_name).read_bytes(), name, letters))
+    src = TlogSource(path)
+    kinds = Counter(getattr(s, "KIND", "") for s in src)
+    assert src.counters["rejected"][f"damaged_format:{name}"] == 1
+    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + 1
+    # (without position fixes there is no NED origin to place the simulator's truth in)
+    gone = {lost} | ({"truth"} if lost == "gnss" else set())
+    expected = Counter({k: n for k, n in kinds_whole.items() if k not in gone})
+    assert kinds == expected and kinds["imu"] + kinds["imu_batch"] > 1000
+    if lost is not None:
+        assert kinds_whole[lost] > 0
