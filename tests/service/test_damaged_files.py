@@ -200,6 +200,7 @@ def _with_format_damaged(data: bytes, name: str, letters: str) -> bytes:
 
 @pytest.mark.parametrize("name, letters, lost", [
     ("GRXS", "QddfBBBHBBBBB", None),     # a type nothing reads: nothing lost
+    ("FMT", "BBnNZ", None),              # FMT's own record: the reader's built-in declaration reads
     ("GPS", "QBBIHBcLLeffffB", "gnss")])  # the position fixes' type: only they are lost
 def test_a_damaged_record_format_loses_only_its_records(tmp_path, name, letters, lost):
     """pymavlink's DataFlash index raised on one damaged FMT record and the whole log was
