@@ -126,6 +126,42 @@ def tolerant_formats() -> Iterator[list[str]]:
             DFReader.DFFormat = original
 
 
+# what pymavlink's DataFlash reader prints when a record does not parse (it is dropped; the
+# other complaints are the resync around one: bytes skipped)
+_PARSE_FAILED = ("Failed to parse", "bad msg at offset")
+
+
+@contextlib.contextmanager
+def reader_complaints() -> Iterator[dict[str, Any]]:
+    """While pymavlink's DataFlash reader runs: what it prints (a damaged log made it print a
+    line per bad record and per resync — 142,221 lines for one damaged length byte — to the
+    terminal of whoever replayed it, and the records it dropped so were counted nowhere) is
+    counted instead. Yields ``{"lines": n, "parse_failures": n, "first": text}``; DFReader's
+    module-level ``print`` is replaced meanwhile (only that module's: the compiled indexer's
+    complaints, "bad header …", still go to stderr)."""
+    from pymavlink import DFReader
+
+    said: dict[str, Any] = {"lines": 0, "parse_failures": 0, "first": ""}
+
+    def complain(*args: Any, **kwargs: Any) -> None:  # noqa: ARG001 - print's signature
+        said["lines"] += 1
+        text = " ".join(str(a) for a in args)
+        if not said["first"]:
+            said["first"] = text
+        if text.startswith(_PARSE_FAILED):
+            said["parse_failures"] += 1
+
+    before = DFReader.__dict__.get("print")  # a use around this one (nested): put back after
+    DFReader.print = complain
+    try:
+        yield said
+    finally:
+        if before is None:
+            del DFReader.print
+        else:
+            DFReader.print = before
+
+
 _WHY_ESTIMATE = "the autopilot's own estimate (an output of its EKF/AHRS, not a sensor)"
 _WHY_CONTROL = "the autopilot's controllers, pilot input and modes (no navigation content)"
 _WHY_HOUSEKEEPING = "log format / housekeeping (no navigation content)"

@@ -39,7 +39,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
-from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth, tolerant_formats
+from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth, reader_complaints, tolerant_formats
 from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
 from adaptnav.service.transport.mavlink_frames import GPS_GLOBAL_ORIGIN_ID, SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
@@ -321,13 +321,15 @@ class TlogSource:
                 pass
             return False
         try:
-            conn = self._connect()
+            with reader_complaints():  # the reading pass counts and says them
+                conn = self._connect()
         except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
             return False
         try:
             if self._dataflash:  # DFReader indexes the file by record type: no scan
                 try:
-                    return conn.recv_match(type="SIM") is not None
+                    with reader_complaints():  # the reading pass counts and says them
+                        return conn.recv_match(type="SIM") is not None
                 except Exception:  # a damaged log: the reading pass reports it
                     return False
             for _ in range(max_messages):
@@ -394,6 +396,23 @@ class TlogSource:
         if self._blueos:
             yield from self._blueos_messages()
             return
+        if self._dataflash:
+            with reader_complaints() as said:
+                yield from self._reader_messages()
+            if said["lines"]:
+                failed = said["parse_failures"]  # records dropped (a record may fail more than once)
+                self.counters["corrupt_frames"] += failed
+                if failed:
+                    rej = self.counters["rejected"]
+                    rej["reader_parse_failure"] = rej.get("reader_parse_failure", 0) + failed
+                log.warning("%s: pymavlink's reader failed to parse records %d time(s) (%d complaint(s), the "
+                            "first: %s)", self.path.name, failed, said["lines"], said["first"][:200])
+            return
+        yield from self._reader_messages()
+
+    def _reader_messages(self) -> Iterator[Any]:
+        """The messages of pymavlink's reader of the file (a DataFlash log, or telemetry of a
+        kind our own readers do not take)."""
         try:
             conn = self._connect()
         except Exception as e:  # noqa: BLE001 — empty or foreign file (DFReader mmaps it): nothing to read

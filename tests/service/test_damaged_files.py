@@ -225,3 +225,29 @@ def test_a_damaged_record_format_loses_only_its_records(tmp_path, name, letters,
     assert kinds == expected and kinds["imu"] + kinds["imu_batch"] > 1000
     if lost is not None:
         assert kinds_whole[lost] > 0
+
+
+def test_a_damaged_record_length_loses_only_its_records_and_counts_them(tmp_path):
+    """One bit of GPS's declared length flipped (51 → 55 bytes): pymavlink's reader failed on
+    every GPS record and the one after it, printed 142,221 lines to the terminal, and the
+    records it dropped were counted nowhere (corrupt frames 0). Its complaints are counted now,
+    and every other kind reads as from the whole log."""
+    from collections import Counter
+
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    log_name = "ardusub-4.7-sitl-drive.BIN"
+    data = bytearray((TEST_DATA / log_name).read_bytes())
+    at = bytes(data).index(b"GPS\0QBBIHBcLLeffffB") - 1  # the FMT record's length byte, before the name
+    assert data[at] == 51
+    data[at] ^= 0x04
+    path = tmp_path / log_name
+    path.write_bytes(bytes(data))
+    whole = TlogSource(TEST_DATA / log_name)
+    kinds_whole = Counter(getattr(s, "KIND", "") for s in whole)
+    src = TlogSource(path)
+    kinds = Counter(getattr(s, "KIND", "") for s in src)
+    failed = src.counters["rejected"]["reader_parse_failure"]
+    assert failed >= kinds_whole["gnss"] > 1000  # every GPS record (and what it swallowed)
+    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + failed
+    assert kinds == Counter({k: n for k, n in kinds_whole.items() if k not in ("gnss", "truth")})
