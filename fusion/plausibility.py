@@ -25,7 +25,11 @@ clock jump. A *jump* is a stream that continues consistently from a new time:
 ``D`` moves to the new time, the jump is counted (``clock_jump``) and recorded in
 :attr:`Door.jumps` as ``(kind, from_s, to_s)``, and :meth:`Door.check` returns the size of
 the jump so that the caller re-bases what depends on time (the estimator's clock,
-:meth:`adaptnav.fusion.eskf.Estimator.shift_time`).
+:meth:`adaptnav.fusion.eskf.Estimator.shift_time`). For a source whose clock cannot step
+forward (``forward_jumps_are_gaps``: an autopilot's boot clock, as tlogs and DataFlash logs
+carry it) a forward one is data missing — a telemetry dropout, a damaged block — during which
+the vehicle moved: ``D`` moves on, ``data_gap`` is counted and recorded in :attr:`Door.gaps`,
+and nothing is re-based (the filter coasts through the gap, its covariance growing).
 
 Non-finite numbers are not judged here: the estimator rejects and counts them
 (``non_finite``). Pure functions of the samples: no clock, no I/O.
@@ -97,8 +101,13 @@ class Door:
     """
 
     def __init__(self, config: PlausibilityConfig, origin: GeoOrigin | None = None,
-                 water_density_kg_m3: float = 1025.0, atmospheric_pressure_pa: float = 101325.0) -> None:
+                 water_density_kg_m3: float = 1025.0, atmospheric_pressure_pa: float = 101325.0,
+                 forward_jumps_are_gaps: bool = False) -> None:
         self.config = config
+        # a source whose clock cannot step forward (an autopilot's boot clock): a stream that
+        # goes on from a later time is data missing, not a new time base (module docstring)
+        self.forward_jumps_are_gaps = forward_jumps_are_gaps
+        self.gaps: list[tuple[str, float, float]] = []
         self.origin = origin
         self._origin_set = origin is not None and (origin.lat_rad != 0.0 or origin.lon_rad != 0.0)
         self._rho_g = water_density_kg_m3 * GRAVITY_M_S2
@@ -136,9 +145,15 @@ class Door:
         if cand.n < c.jump_confirm_samples:
             self.rejected[reason] += 1
             return reason, 0.0
-        # a stream that continues consistently from a new time: a clock jump
         del self._cand[kind]
         self._cand.clear()
+        if t > d and self.forward_jumps_are_gaps:
+            # data missing (a dropout, a damaged block): time passed, the filter coasts through
+            self.gaps.append((kind, d, t))
+            self.rejected["data_gap"] += 1
+            self.t_data_s = t
+            return None, 0.0
+        # a stream that continues consistently from a new time: a clock jump
         self.jumps.append((kind, d, t))
         self.rejected["clock_jump"] += 1
         self.t_data_s = t

@@ -41,7 +41,7 @@ from adaptnav.fusion.typed_config import apply_overrides, as_dict, build
 from adaptnav.service.runtime.clock import LogClock, RealtimeClock
 from adaptnav.service.runtime.events import LifecycleLog
 from adaptnav.service.runtime.health import Health
-from adaptnav.service.runtime.runner import RunSummary, default_release_gate, run
+from adaptnav.service.runtime.runner import RunSummary, default_release_gate, door_for, run
 from adaptnav.service.runtime.sinks import (AidStatusCsvSink, DeferredSinks, MetricsSink, ParamsCsvSink, PlotSink,
                                             SeriesRecorder, Sink, TrajectoryCsvSink)
 from adaptnav.service.runtime.sources import McapSource, SimSource, simulate, tlog_source  # noqa: F401 (re-exported)
@@ -301,6 +301,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         backend.idle = deferred.work
         sinks = [deferred, *(s for s in sinks if not getattr(s, "deferrable", False))]
     clock = RealtimeClock(realtime) if realtime else LogClock()
+    # a log on an autopilot's boot clock: a stream going on from a later time is data missing
+    door = door_for(estimator, forward_jumps_are_gaps=not getattr(inp.source, "clock_steps_forward", True))
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()
     # what exists now (a simulated mission held in memory is ~10⁵ objects per hour) is
@@ -310,7 +312,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     try:
         summary = run(items, estimator, sinks, clock, calibrator,
                       output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog,
-                      release_gate=default_release_gate(cfg.calibrator.online))
+                      release_gate=default_release_gate(cfg.calibrator.online), door=door)
     finally:
         gc.unfreeze()
         if bar is not None:
@@ -355,6 +357,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         # the origin was a fix's, later than the start: the rows before that fix, placed by it
         "rows_placed_by_the_first_fix": placed,
         "clock_jumps_s": list(summary.clock_jumps),
+        # data missing on a clock that cannot step (a dropout): (from, to) data times, s
+        "data_gaps_s": [[d, t] for _, d, t in (door.gaps if door is not None else [])],
         "calibrate": bool(calibrate),
         "calibrator": ({"location": calibrator_location, "latency_s": calibrator.latency_s,
                         "wait_s": getattr(calibrator.backend, "wait_s", 0.0),
@@ -476,6 +480,11 @@ def replay_warnings(summary: dict) -> list[str]:
         out.append(f"the input's time base jumped {len(jumps)} time(s) "
                    f"({', '.join(f'{j:+.3f} s' for j in jumps[:5])}{', ...' if len(jumps) > 5 else ''}): "
                    "navigation re-based each one; times in the outputs follow the input's")
+    gaps = summary.get("data_gaps_s") or []
+    if gaps:
+        out.append(f"the input misses data {len(gaps)} time(s) "
+                   f"({', '.join(f'{t - d:.1f} s at {d:.1f} s' for d, t in gaps[:5])}{', ...' if len(gaps) > 5 else ''}): "
+                   "navigation coasted through each, its uncertainty growing")
     depth = (summary.get("filter") or {}).get("depth_noise") or {}
     if depth.get("fraction_at_bound"):
         out.append(f"the depth sensor was noisier than the bound of {depth['max_sigma_m']} m "

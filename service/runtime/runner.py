@@ -409,9 +409,10 @@ def default_release_gate(calibrator_config: Any = None) -> Any:
     return lambda params: gate_reason(params, bounds)
 
 
-def door_for(estimator: Any) -> Any:
+def door_for(estimator: Any, forward_jumps_are_gaps: bool = False) -> Any:
     """The plausibility door of ``estimator`` (its config's bounds, origin and depth
-    conversion), or ``None`` for an estimator without a filter config."""
+    conversion), or ``None`` for an estimator without a filter config;
+    ``forward_jumps_are_gaps`` as :class:`~adaptnav.fusion.plausibility.Door`'s."""
     from adaptnav.fusion.plausibility import Door
 
     cfg = getattr(estimator, "config", None)
@@ -419,7 +420,7 @@ def door_for(estimator: Any) -> Any:
     if bounds is None:
         return None
     return Door(bounds, getattr(estimator, "origin", None), cfg.depth.water_density_kg_m3,
-                cfg.depth.atmospheric_pressure_pa)
+                cfg.depth.atmospheric_pressure_pa, forward_jumps_are_gaps=forward_jumps_are_gaps)
 
 
 class Runner:

@@ -253,6 +253,10 @@ class TlogReplaySource(SampleStreamSource):
     """A :class:`adaptnav.service.transport.tlog_source.TlogSource` batched for the estimator; its own
     counters (messages read, corrupt frames, what is missing) are the ones reported."""
 
+    # its samples are on the autopilot's boot clock, which does not step forward: a stream
+    # going on from a later time is data missing (a telemetry dropout), not a new time base
+    clock_steps_forward = False
+
     def __init__(self, tlog: Any) -> None:
         super().__init__(tlog)
         self.tlog = tlog
