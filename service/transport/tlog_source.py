@@ -320,30 +320,29 @@ class TlogSource:
             except Exception:  # noqa: BLE001 — a damaged file or record: the reading pass reports it
                 pass
             return False
-        try:
-            with reader_complaints():  # the reading pass counts and says them
+        with reader_complaints():  # pymavlink's: the reading pass counts and says them
+            try:
                 conn = self._connect()
-        except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
-            return False
-        try:
-            if self._dataflash:  # DFReader indexes the file by record type: no scan
-                try:
-                    with reader_complaints():  # the reading pass counts and says them
+            except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
+                return False
+            try:
+                if self._dataflash:  # DFReader indexes the file by record type: no scan
+                    try:
                         return conn.recv_match(type="SIM") is not None
-                except Exception:  # a damaged log: the reading pass reports it
-                    return False
-            for _ in range(max_messages):
-                try:
-                    m = conn.recv_match()
-                except Exception:
-                    continue
-                if m is None:
-                    return False
-                if m.get_type() == "SIM_STATE":
-                    return True
-            return False
-        finally:
-            conn.close()
+                    except Exception:  # a damaged log: the reading pass reports it
+                        return False
+                for _ in range(max_messages):
+                    try:
+                        m = conn.recv_match()
+                    except Exception:
+                        continue
+                    if m is None:
+                        return False
+                    if m.get_type() == "SIM_STATE":
+                        return True
+                return False
+            finally:
+                conn.close()
 
     def _connect(self) -> Any:
         """pymavlink's reader of the file. A text DataFlash log is checked line by line first

@@ -28,21 +28,29 @@ def tactical():
                                             "dvl.beam_bias_m_s=[0, 0, 0, 0]", "dvl.outlier_prob=0.0"]))
 
 
-def test_perfect_imu_reproduces_the_truth(perfect):
-    # GIVEN a perfect IMU, WHEN a textbook strapdown integrates it from the true initial
-    # state for 60 s, THEN it lands on the truth to rounding error.
-    d, imu = perfect.dense, perfect.imu
+def _textbook_strapdown(result, i0: int, n: int):
+    """``(q, v, p)`` after ``n`` IMU samples from instant ``i0``, integrated by a textbook
+    strapdown from the truth at ``i0``."""
+    d, imu = result.dense, result.imu
     dt = imu.t_s[1] - imu.t_s[0]
-    q, v, p = d.q_nb[0].copy(), d.vel_n_m_s[0].copy(), d.pos_n_m[0].copy()
+    q, v, p = d.q_nb[i0].copy(), d.vel_n_m_s[i0].copy(), d.pos_n_m[i0].copy()
     g = np.array([0.0, 0.0, GRAVITY_M_S2])
-    n = 6000
-    for i in range(n):
+    for i in range(i0, i0 + n):
         dth = imu.omega_b_rad_s[i] * dt
         q_mid = quat_mul(q, quat_from_rotvec(0.5 * dth))
         q = quat_mul(q, quat_from_rotvec(dth))
         v_new = v + quat_to_dcm(q_mid) @ imu.specific_force_b_m_s2[i] * dt + g * dt
         p = p + 0.5 * (v + v_new) * dt
         v = v_new
+    return q, v, p
+
+
+def test_perfect_imu_reproduces_the_truth(perfect):
+    # GIVEN a perfect IMU, WHEN a textbook strapdown integrates it from the true initial
+    # state for 60 s, THEN it lands on the truth to rounding error.
+    d = perfect.dense
+    n = 6000
+    q, v, p = _textbook_strapdown(perfect, 0, n)
     assert np.abs(p - d.pos_n_m[n]).max() < 1e-6
     assert np.abs(v - d.vel_n_m_s[n]).max() < 1e-9
     assert abs(abs(np.dot(q, d.q_nb[n])) - 1.0) < 1e-12
@@ -317,16 +325,7 @@ def test_a_surface_drift_carries_the_vehicle_in_the_surface_layer_only():
     p = simulate(load_scenario("short", ["duration_s=150", "trajectory.start_delay_s=60", 'imu.grade="perfect"',
                                          "current.surface_drift_speed_m_s=0.15",
                                          "current.surface_drift_direction_deg=200"]))
-    dt = p.imu.t_s[1] - p.imu.t_s[0]
     i0 = int(np.searchsorted(p.dense.t_s, 55.0))
-    q, v, pos = p.dense.q_nb[i0].copy(), p.dense.vel_n_m_s[i0].copy(), p.dense.pos_n_m[i0].copy()
-    g = np.array([0.0, 0.0, GRAVITY_M_S2])
-    for i in range(i0, i0 + 3000):  # 55 s → 85 s: the vehicle leaves the surface layer
-        dth = p.imu.omega_b_rad_s[i] * dt
-        q_mid = quat_mul(q, quat_from_rotvec(0.5 * dth))
-        q = quat_mul(q, quat_from_rotvec(dth))
-        v_new = v + quat_to_dcm(q_mid) @ p.imu.specific_force_b_m_s2[i] * dt + g * dt
-        pos = pos + 0.5 * (v + v_new) * dt
-        v = v_new
+    _, _, pos = _textbook_strapdown(p, i0, 3000)  # 55 s → 85 s: the vehicle leaves the surface layer
     assert p.dense.pos_n_m[i0 + 3000, 2] > 2.0
     assert np.abs(pos - p.dense.pos_n_m[i0 + 3000]).max() < 1e-6
