@@ -25,11 +25,15 @@ clock jump. A *jump* is a stream that continues consistently from a new time:
 ``D`` moves to the new time, the jump is counted (``clock_jump``) and recorded in
 :attr:`Door.jumps` as ``(kind, from_s, to_s)``, and :meth:`Door.check` returns the size of
 the jump so that the caller re-bases what depends on time (the estimator's clock,
-:meth:`adaptnav.fusion.eskf.Estimator.shift_time`). For a source whose clock cannot step
-forward (``forward_jumps_are_gaps``: an autopilot's boot clock, as tlogs and DataFlash logs
-carry it) a forward one is data missing — a telemetry dropout, a damaged block — during which
-the vehicle moved: ``D`` moves on, ``data_gap`` is counted and recorded in :attr:`Door.gaps`,
-and nothing is re-based (the filter coasts through the gap, its covariance growing).
+:meth:`adaptnav.fusion.eskf.Estimator.shift_time`) — right for a clock that *steps* (a
+companion computer's clock set by NTP or GNSS after boot). But a forward jump may instead be
+data *missing* — a telemetry dropout, a damaged block of a log, a link that stalled — during
+which the vehicle moved. The caller that can tell them apart gives ``forward_jump_is_gap``,
+asked ``(from_s, to_s)`` for each confirmed forward jump: an autopilot's boot clock cannot step
+forward (tlogs, DataFlash logs: always a gap); live, the wall clock tells (it advanced with
+the data across a dropout, not across a step); a recording's log clock likewise. For a gap
+``D`` moves on, ``data_gap`` is counted and recorded in :attr:`Door.gaps`, and nothing is
+re-based (the filter coasts through the gap, its covariance growing).
 
 Non-finite numbers are not judged here: the estimator rejects and counts them
 (``non_finite``). Pure functions of the samples: no clock, no I/O.
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,15 +103,18 @@ class Door:
         distance bound.
     water_density_kg_m3, atmospheric_pressure_pa : float
         For the pressure → depth bound.
+    forward_jump_is_gap : callable ``(from_s, to_s) -> bool``, optional
+        Whether a confirmed forward jump of the data clock is data missing (coasted through)
+        rather than a step of the clock (re-based); None: always a step.
     """
 
     def __init__(self, config: PlausibilityConfig, origin: GeoOrigin | None = None,
                  water_density_kg_m3: float = 1025.0, atmospheric_pressure_pa: float = 101325.0,
-                 forward_jumps_are_gaps: bool = False) -> None:
+                 forward_jump_is_gap: Callable[[float, float], bool] | None = None) -> None:
         self.config = config
-        # a source whose clock cannot step forward (an autopilot's boot clock): a stream that
-        # goes on from a later time is data missing, not a new time base (module docstring)
-        self.forward_jumps_are_gaps = forward_jumps_are_gaps
+        # whether a confirmed forward jump from_s → to_s is data missing rather than a new
+        # time base (module docstring); None: every jump is a clock step
+        self.forward_jump_is_gap = forward_jump_is_gap
         self.gaps: list[tuple[str, float, float]] = []
         self.origin = origin
         self._origin_set = origin is not None and (origin.lat_rad != 0.0 or origin.lon_rad != 0.0)
@@ -147,7 +155,7 @@ class Door:
             return reason, 0.0
         del self._cand[kind]
         self._cand.clear()
-        if t > d and self.forward_jumps_are_gaps:
+        if t > d and self.forward_jump_is_gap is not None and self.forward_jump_is_gap(d, t):
             # data missing (a dropout, a damaged block): time passed, the filter coasts through
             self.gaps.append((kind, d, t))
             self.rejected["data_gap"] += 1

@@ -45,7 +45,7 @@ def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
 
     from adaptnav.fusion.samples import SampleError
     from adaptnav.service.transport import codec
-    from adaptnav.service.transport.logs import write_mcap
+    from adaptnav.service.transport.logs import LOG_CLOCK_KEY, RECEPTION_WALL_CLOCK, write_mcap
 
     inbox: queue.Queue = queue.Queue()
     malformed = [0]
@@ -78,6 +78,7 @@ def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
         from adaptnav.service.runtime.foxglove import TimeBase, bus_message_encoder
 
         extra = bus_message_encoder(origin, TimeBase.wall())
+    metadata = {**(metadata or {}), LOG_CLOCK_KEY: RECEPTION_WALL_CLOCK}
     counts = write_mcap(out, messages(), metadata=metadata, log_time_ns=lambda _t: time.time_ns(), extra=extra)
     return counts, malformed[0]
 

@@ -11,7 +11,8 @@ flag silent sensors) and wall time (:meth:`wall_s`, for statistics only).
   ``(t_s − t0_s) / speed`` monotonic seconds have passed since the first item.
 - :class:`LiveClock` — live: data arrives in real time from the bus, so it never waits;
   "now" advances with :func:`time.monotonic`, anchored to the first sample's data time,
-  so a sensor that stops sending is seen as silent even if nothing else arrives.
+  so a sensor that stops sending is seen as silent even if nothing else arrives. It also
+  tells a dropout from a step of the data's clock (:meth:`LiveClock.forward_jump_is_gap`).
 
 Only ``service/`` reads a wall clock (DESIGN.md layout rules); all take ``time.monotonic``.
 """
@@ -126,16 +127,32 @@ class LiveClock(_WallMixin):
     data time seen, in case the sensor clock runs fast).
     """
 
+    # a forward jump is a dropout when the wall clock advanced at least this fraction of it
+    GAP_WALL_FRACTION = 0.5
+
     def __init__(self) -> None:
         self._init_wall()
         self._offset_s = math.nan
         self._t_s = math.nan
+        self._t_wall_s = math.nan  # monotonic time at which the latest data time was seen
 
     def wait_until(self, t_s: float, stop: Any = None) -> None:
+        now = time.monotonic()
         if math.isnan(self._offset_s):
-            self._offset_s = t_s - time.monotonic()
+            self._offset_s = t_s - now
         if not (t_s <= self._t_s):
             self._t_s = t_s
+            self._t_wall_s = now
+
+    def forward_jump_is_gap(self, from_s: float, to_s: float) -> bool:
+        """A stream went on from data time ``to_s`` after ``from_s`` (the latest data time):
+        data missing (a link that dropped, a driver that stalled — the vehicle moved
+        meanwhile) when the wall clock advanced with it, at least half as much since
+        ``from_s`` was seen; a step of the data's clock (NTP or GNSS setting a companion's
+        clock) when it did not — a step comes with no wall time to match it."""
+        if math.isnan(self._t_wall_s) or not self._t_s >= from_s - 1.0:
+            return False  # not the data time this clock saw last: no evidence of a dropout
+        return time.monotonic() - self._t_wall_s >= self.GAP_WALL_FRACTION * (to_s - from_s)
 
     def now_data_s(self) -> float:
         if math.isnan(self._offset_s):

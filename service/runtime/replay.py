@@ -302,7 +302,7 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         sinks = [deferred, *(s for s in sinks if not getattr(s, "deferrable", False))]
     clock = RealtimeClock(realtime) if realtime else LogClock()
     # a log on an autopilot's boot clock: a stream going on from a later time is data missing
-    door = door_for(estimator, forward_jumps_are_gaps=not getattr(inp.source, "clock_steps_forward", True))
+    door = door_for(estimator, getattr(inp.source, "forward_jump_is_gap", None))
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()
     # what exists now (a simulated mission held in memory is ~10⁵ objects per hour) is

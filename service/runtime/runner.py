@@ -144,6 +144,7 @@ class _Loop:
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
         self.data_t = -math.inf  # the release rule's data time: latest time of an admitted item
+        self._gaps_seen = 0  # the door's data gaps already logged
         self._quiet_until = (_QUIET_UNTIL if hasattr(calibrator, "quiet_until_s")
                              else lambda cal: -math.inf)
 
@@ -237,6 +238,11 @@ class _Loop:
                 return None
         if jump:
             self.clock_jump(jump)
+        elif len(door.gaps) != self._gaps_seen:
+            self._gaps_seen = len(door.gaps)
+            kind, from_s, to_s = door.gaps[-1]
+            log.warning("runner: no input for %.1f s of data (%s resumed at %.3f s): data missing, "
+                        "navigation coasted through it", to_s - from_s, kind, to_s)
         return item
 
     def clock_jump(self, jump_s: float) -> None:
@@ -409,10 +415,11 @@ def default_release_gate(calibrator_config: Any = None) -> Any:
     return lambda params: gate_reason(params, bounds)
 
 
-def door_for(estimator: Any, forward_jumps_are_gaps: bool = False) -> Any:
+def door_for(estimator: Any, forward_jump_is_gap: Any = None) -> Any:
     """The plausibility door of ``estimator`` (its config's bounds, origin and depth
     conversion), or ``None`` for an estimator without a filter config;
-    ``forward_jumps_are_gaps`` as :class:`~adaptnav.fusion.plausibility.Door`'s."""
+    ``forward_jump_is_gap`` as :class:`~adaptnav.fusion.plausibility.Door`'s (a source's or a
+    clock's method of that name)."""
     from adaptnav.fusion.plausibility import Door
 
     cfg = getattr(estimator, "config", None)
@@ -420,7 +427,7 @@ def door_for(estimator: Any, forward_jumps_are_gaps: bool = False) -> Any:
     if bounds is None:
         return None
     return Door(bounds, getattr(estimator, "origin", None), cfg.depth.water_density_kg_m3,
-                cfg.depth.atmospheric_pressure_pa, forward_jumps_are_gaps=forward_jumps_are_gaps)
+                cfg.depth.atmospheric_pressure_pa, forward_jump_is_gap=forward_jump_is_gap)
 
 
 class Runner:
@@ -439,7 +446,8 @@ class Runner:
         if not (output_rate_hz > 0 and math.isfinite(output_rate_hz)):
             raise ValueError(f"output_rate_hz must be a positive number, got {output_rate_hz}")
         if door is None:
-            door = door_for(estimator)
+            # live, the clock tells a dropout from a step of the data's clock (LiveClock)
+            door = door_for(estimator, getattr(clock, "forward_jump_is_gap", None))
         if health is not None:
             health.estimator_rejected = getattr(estimator, "rejected", None)
             health.door_rejected = getattr(door, "rejected", None)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -253,13 +253,15 @@ class TlogReplaySource(SampleStreamSource):
     """A :class:`adaptnav.service.transport.tlog_source.TlogSource` batched for the estimator; its own
     counters (messages read, corrupt frames, what is missing) are the ones reported."""
 
-    # its samples are on the autopilot's boot clock, which does not step forward: a stream
-    # going on from a later time is data missing (a telemetry dropout), not a new time base
-    clock_steps_forward = False
-
     def __init__(self, tlog: Any) -> None:
         super().__init__(tlog)
         self.tlog = tlog
+
+    @staticmethod
+    def forward_jump_is_gap(from_s: float, to_s: float) -> bool:
+        """Always: the samples are on the autopilot's boot clock, which does not step forward;
+        a stream going on from a later time is data missing (a telemetry dropout)."""
+        return True
 
     @property
     def missing(self) -> list[str]:
@@ -314,9 +316,17 @@ class McapSource(SampleStreamSource):
 
     Undecodable messages are counted by reason (``decode:<field>``) and skipped; a
     truncated file replays up to the damage and says so in ``truncated``.
+
+    A forward jump of the data's clock (:meth:`forward_jump_is_gap`) is data missing when a
+    damaged chunk was lost there, or when the recording's log clock is the recorder's wall
+    clock (``adaptnav record``) and it advanced with the data — as the live daemon judged it.
     """
 
     MAX_LOGGED = 10
+    # (data time, log time) pairs kept for judging jumps: one per 50 ms of data and at every
+    # jump; 4096 of them span minutes, far more than the reorder window reads ahead
+    CLOCK_PAIRS = 4096
+    CLOCK_PAIR_STEP_S = 0.05
 
     def __init__(self, path: Path) -> None:
         from adaptnav.service.transport import logs
@@ -331,6 +341,10 @@ class McapSource(SampleStreamSource):
             streams = ["truth"]  # simulated logs carry truth; the summary is lost with truncation
         super().__init__(self._samples(), streams=streams, metadata=self.reader.metadata)
         self.duration_s = self.scenario.duration_s if self.scenario is not None else None
+        self._log_clock_is_wall = (self.reader.metadata.get(logs.LOG_CLOCK_KEY) == logs.RECEPTION_WALL_CLOCK
+                                   or self.reader.metadata.get("recorded_by") == "adaptnav record")
+        self._clock_pairs: deque[tuple[float, float]] = deque(maxlen=self.CLOCK_PAIRS)
+        self._damaged_after_s: list[float] = []  # data time of the last sample before each lost chunk
 
     def _samples(self):
         from adaptnav.fusion.samples import SampleError
@@ -338,6 +352,7 @@ class McapSource(SampleStreamSource):
         from adaptnav.service.transport import logs
 
         logged = 0
+        t_last = -math.inf
         for item in self.reader:
             if isinstance(item, SampleError):
                 reason = str(item).split(":")[0].strip() or "malformed"
@@ -348,6 +363,7 @@ class McapSource(SampleStreamSource):
                 continue
             if isinstance(item, logs.DamagedChunkError):
                 self.counters.decode_errors["damaged_chunk"] += 1
+                self._damaged_after_s.append(t_last)
                 log.warning("%s", item)
                 continue
             if isinstance(item, logs.TruncatedLogError):
@@ -360,7 +376,30 @@ class McapSource(SampleStreamSource):
                 # own calibrator (--calibrate) or none
                 self.counters.by_kind["calibration_release"] += 1
                 continue
+            t = getattr(item, "t_s", math.nan)
+            if isinstance(t, float) and math.isfinite(t):
+                t_last = t
+                if self._log_clock_is_wall and self.reader.log_time_ns is not None:
+                    pairs = self._clock_pairs
+                    if not pairs or abs(t - pairs[-1][0]) >= self.CLOCK_PAIR_STEP_S:
+                        pairs.append((t, self.reader.log_time_ns * 1e-9))
             yield item
+
+    def forward_jump_is_gap(self, from_s: float, to_s: float) -> bool:
+        """Whether the data going on at ``to_s`` after ``from_s`` is data missing (class docstring)."""
+        if any(from_s - 2.0 <= t <= to_s for t in self._damaged_after_s):
+            return True
+        log_after = log_before = None
+        middle = from_s + 0.5 * (to_s - from_s)
+        for t, log_s in reversed(self._clock_pairs):  # newest first, read ahead of the door
+            if t > middle:
+                log_after = log_s  # ends as the first logged after the jump
+            elif t <= from_s + self.CLOCK_PAIR_STEP_S:
+                log_before = log_s
+                break
+        if log_after is None or log_before is None:
+            return False  # no log clock to tell: a step, as before
+        return log_after - log_before >= 0.5 * (to_s - from_s)
 
     def report_counters(self) -> dict:
         c = self.counters

@@ -41,6 +41,13 @@ SKIPPED = "skipped"  # key of write_mcap's counts: messages that could not be wr
 log = logging.getLogger(__name__)
 
 
+# metadata key saying what a log's message log times are; ``RECEPTION_WALL_CLOCK``: the
+# recorder's wall clock at reception, a clock of its own beside the data's (``adaptnav
+# record``), so replay can tell a dropout (both advance) from a step of the data's clock
+LOG_CLOCK_KEY = "log_clock"
+RECEPTION_WALL_CLOCK = "reception_wall_clock"
+
+
 class LogError(Exception):
     """A problem with a log file as a whole (the message says what)."""
 
@@ -239,7 +246,8 @@ class McapLog:
     none), ``scenario`` (the simulated :class:`adaptnav.sim.scenario.Scenario` rebuilt from the
     metadata, or ``None``), ``streams`` (kinds of the file's channels when its summary is
     readable, else ``None``). Filled while iterating: ``stats`` (:class:`ReadStats`) and
-    ``counters`` (a dict: ``messages_read``, ``corrupt_frames``, ``decode_errors`` by kind).
+    ``counters`` (a dict: ``messages_read``, ``corrupt_frames``, ``decode_errors`` by kind),
+    ``log_time_ns`` (the log time of the message last yielded).
     """
 
     def __init__(self, path: str | Path, stats: ReadStats | None = None) -> None:
@@ -252,6 +260,7 @@ class McapLog:
             self.metadata = {}
         self.scenario = _scenario_from(self.metadata)
         self.streams = _summary_streams(self.path)
+        self.log_time_ns: int | None = None
         self._it: Iterator[Any] | None = None
 
     @property
@@ -306,6 +315,7 @@ class McapLog:
                     stats.decoded += 1
                     kind = codec.kind_of(sample)
                     stats.per_kind[kind] = stats.per_kind.get(kind, 0) + 1
+                    self.log_time_ns = record.log_time
                     yield sample
                 elif isinstance(record, Channel):
                     channels[record.id] = record

@@ -118,3 +118,49 @@ def test_watchdog_fed_only_while_the_runner_is_sound(live, tmp_path, monkeypatch
     assert fed_while_wedged == [], "the watchdog was fed while the runner was wedged"
     assert daemon.runner_sound(5.0)
     assert os.environ["NOTIFY_SOCKET"] == sock_path
+
+
+DROPOUT_S = 7.0
+
+
+def _sigma_h_m(nav: dict) -> float:
+    cov = np.asarray(nav["cov"], dtype=float).reshape(18, 18)
+    return float(np.sqrt(cov[0, 0] + cov[1, 1]))
+
+
+def test_a_link_dropout_is_coasted_through_and_a_step_of_the_clock_re_based(live):
+    """Live, both look the same at the door: a stream going on from a time seconds later.
+    A link that drops (the autopilot's clock runs on while nothing arrives) is data missing —
+    the vehicle moved meanwhile, so the filter coasts through it, its uncertainty growing; it
+    was re-based "as if no time had passed". A companion's clock set forward (NTP, GNSS) is a
+    step: re-based. The wall clock tells them apart: it ran through the dropout, not the step."""
+    daemon, bus, col = live(*SETTINGS)
+    key = bus.keys.nav_state
+    feeder = Feeder(bus)
+    feeder.start()
+    kinds = set(feeder.kinds)
+    try:
+        col.wait_for(key, lambda docs: len(docs) >= 20)
+        feeder.kinds = set()          # the link drops; the vehicle's clock runs on
+        time.sleep(DROPOUT_S)         # the dropout is wall time passing, not a wait for a result
+        before = col.get(key)[-1]
+        t_resumed = feeder.t_s
+        feeder.kinds = kinds
+        gap_health = wait_until(lambda: (h := bus.get("health")) and h["rejected"].get("data_gap") and h,
+                                timeout_s=20)
+        after = col.wait_for(key, lambda docs: docs[-1]["t_s"] > t_resumed + 0.5, timeout_s=20)
+        after = [d for d in after if d["t_s"] > t_resumed][0]
+        feeder.t0_s += 1000.0         # the data's clock set 1000 s forward
+        step_health = wait_until(lambda: (h := bus.get("health")) and h["rejected"].get("clock_jump") and h,
+                                 timeout_s=20)
+        stepped = col.wait_for(key, lambda docs: docs[-1]["t_s"] > t_resumed + 1000.0, timeout_s=20)
+    finally:
+        feeder.stop()
+    assert gap_health, f"the dropout was not seen as data missing: {bus.get('health')['rejected']}"
+    assert "clock_jump" not in gap_health["rejected"], gap_health["rejected"]
+    assert DROPOUT_S - 1.0 < after["t_s"] - before["t_s"] < DROPOUT_S + 2.0
+    # coasted: the filter's uncertainty grew with the time it saw nothing (re-based, it did not)
+    assert _sigma_h_m(after) > _sigma_h_m(before) + 1.0, (_sigma_h_m(before), _sigma_h_m(after))
+    assert step_health, f"the step was not re-based: {bus.get('health')['rejected']}"
+    assert step_health["rejected"]["clock_jump"] == 1 and step_health["rejected"]["data_gap"] == 1
+    assert stepped[-1]["t_s"] > t_resumed + 1000.0 and np.all(np.isfinite(stepped[-1]["pos_n_m"]))

@@ -172,6 +172,11 @@ def test_a_damaged_chunk_of_an_mcap_log_loses_only_its_messages(tmp_path, capsys
     assert d["duration_s"] == pytest.approx(w["duration_s"], abs=0.5)  # read to the end
     lost = w["messages_read"] - d["messages_read"]
     assert 0 < lost < 1.5 * w["messages_read"] / n_chunks
+    # the chunk's seconds are data missing, coasted through: taken for a step of the clock
+    # and re-based, the filter left the vehicle's motion meanwhile out (411 m at the end)
+    assert d["clock_jumps_s"] == [] and len(d["data_gaps_s"]) == 1, (d["clock_jumps_s"], d["data_gaps_s"])
+    metrics = json.loads((tmp_path / "damaged" / "metrics.json").read_text())
+    assert metrics["max_horizontal_error_m"] < 30.0 and metrics["nees_fraction_in_95"] > 0.8, metrics
 
 
 def test_a_damaged_chunk_of_a_blueos_recording_loses_only_its_messages(tmp_path):
@@ -307,3 +312,53 @@ def test_a_telemetry_dropout_is_coasted_through_not_taken_for_a_clock_step(tmp_p
     late = min(rows, key=lambda r: abs(float(r["t_s"]) - (after + 20.0)))
     assert np.hypot(float(late["north_m"]) - float(late["truth_north_m"]),
                     float(late["east_m"]) - float(late["truth_east_m"])) < 2.5
+
+
+@pytest.fixture(scope="module")
+def mission_60s():
+    from adaptnav.service.runtime.sources import simulate
+    from adaptnav.sim.scenario import load_scenario
+
+    return [i for i in simulate(load_scenario("short", ["duration_s=60"])).iter_blocks()
+            if getattr(i, "KIND", "") != "truth"]
+
+
+def _timed(item, t_from_s: float, shift_s: float):
+    """``item`` with its samples from ``t_from_s`` on stamped ``shift_s`` later."""
+    from adaptnav.fusion.samples import ImuBatch
+
+    if isinstance(item, ImuBatch):
+        t = np.asarray(item.t_s, dtype=float)
+        return ImuBatch(np.where(t >= t_from_s, t + shift_s, t), item.specific_force_b_m_s2, item.omega_b_rad_s)
+    return replace(item, t_s=item.t_s + shift_s) if item.t_s >= t_from_s else item
+
+
+@pytest.mark.parametrize("case", ["dropout", "step"])
+def test_a_recording_tells_a_dropout_from_a_step_by_its_log_clock(tmp_path, capsys, mission_60s, case):
+    """In a bus recording (``adaptnav record``) log times are the recorder's wall clock. When
+    the data goes on 12 s later, the log clock says which it was, as the live daemon's wall
+    clock did: advanced with the data — nothing arrived for 12 s (a dropout: coasted
+    through); not advanced — the data's clock was set forward (a step: re-based)."""
+    from adaptnav.service.transport.logs import LOG_CLOCK_KEY, RECEPTION_WALL_CLOCK, write_mcap
+
+    t_from, span = 25.0, 12.0
+    if case == "dropout":  # the messages of [25, 37) s never arrived
+        items = [i for i in mission_60s if not (t_from <= float(np.min(i.t_s)) < t_from + span)]
+        wall_ns = lambda t: int((1.8e9 + t) * 1e9)  # noqa: E731 — the recorder's clock ran with the data
+    else:  # from 25 s on the data is stamped 12 s later; the recorder's clock did not jump
+        items = [_timed(i, t_from, span) for i in mission_60s]
+        wall_ns = lambda t: int((1.8e9 + (t - span if t >= t_from + span else t)) * 1e9)  # noqa: E731
+    log = tmp_path / f"{case}.mcap"
+    write_mcap(log, items, metadata={"recorded_by": "adaptnav record", LOG_CLOCK_KEY: RECEPTION_WALL_CLOCK},
+               log_time_ns=wall_ns)
+    code, _ = _cli(capsys, "replay", str(log), "--out", str(tmp_path / "out"), "--no-plots", "--no-progress")
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    if case == "dropout":
+        assert summary["clock_jumps_s"] == [], summary["clock_jumps_s"]
+        (gap,) = summary["data_gaps_s"]
+        assert span - 1.0 < gap[1] - gap[0] < span + 1.0
+    else:
+        assert summary["data_gaps_s"] == [], summary["data_gaps_s"]
+        (jump,) = summary["clock_jumps_s"]
+        assert jump == pytest.approx(span, abs=1.0)
