@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import threading
 from types import SimpleNamespace
 from typing import Any, Iterator, NamedTuple
@@ -67,6 +68,7 @@ USED = ("IMU", "ATT", "BARO", "RCOU", "GPS", "GPA", "RFND", "SIM", "SIM2", "MSG"
 READ = frozenset(USED) | {"PARM"}
 
 _FORMATS_PATCH_LOCK = threading.Lock()
+_STDERR_PATCH_LOCK = threading.Lock()  # fd 2 redirected by one reader at a time
 
 
 def _opaque_format(n_bytes: int) -> str:
@@ -124,6 +126,43 @@ def tolerant_formats() -> Iterator[list[str]]:
             yield damaged
         finally:
             DFReader.DFFormat = original
+
+
+@contextlib.contextmanager
+def indexer_complaints() -> Iterator[dict[str, Any]]:
+    """While pymavlink's compiled DataFlash indexer runs (it builds a binary log's index when
+    the log is opened): its complaints are counted, not printed. On a damaged log it prints
+    ``bad header 0x… at <offset>`` to the C stderr for every position it resynchronises at —
+    116,622 lines for one flipped length byte. Yields ``{"bad_headers": n, "first": text}``
+    (``0xffff``, erased flash — a card's unwritten space after the log — is not counted).
+
+    The process's file descriptor 2 is redirected to a temporary file meanwhile (the only way
+    to catch a C library's ``fprintf``); whatever else was written to it then — by another
+    thread, say — is written back to stderr afterwards, in order, so nothing is lost."""
+    import os
+    import tempfile
+
+    said: dict[str, Any] = {"bad_headers": 0, "first": ""}
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as caught, _STDERR_PATCH_LOCK:
+        real = os.dup(2)
+        os.dup2(caught.fileno(), 2)
+        try:
+            yield said
+        finally:
+            sys.stderr.flush()
+            os.dup2(real, 2)
+            os.close(real)
+            caught.seek(0)
+            for line in caught:
+                if line.startswith(b"bad header 0xffff"):
+                    continue  # erased flash (a card's unwritten space after the log): not damage
+                if line.startswith(b"bad header"):
+                    said["bad_headers"] += 1
+                    if not said["first"]:
+                        said["first"] = line.decode("ascii", "replace").strip()
+                else:
+                    os.write(2, line)
 
 
 # what pymavlink's DataFlash reader prints when a record does not parse (it is dropped; the

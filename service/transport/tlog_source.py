@@ -39,7 +39,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
-from adaptnav.service.transport.dataflash import DataflashConverter, SimTruth, reader_complaints, tolerant_formats
+from adaptnav.service.transport.dataflash import (DataflashConverter, SimTruth, indexer_complaints, reader_complaints,
+                                                  tolerant_formats)
 from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
 from adaptnav.service.transport.mavlink_frames import GPS_GLOBAL_ORIGIN_ID, SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
@@ -174,7 +175,7 @@ class TlogSource:
         # holds format records, else telemetry as a tlog holds it (as pymavlink decides)
         self._text_dataflash = suffix == ".log" and _is_text_dataflash(self.path)
         self._dataflash = suffix == ".bin" or self._text_dataflash
-        self._damaged_formats_said = False
+        self._index_said = False
         self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
         self._text_lines_dropped_said = False
         self._text_log_clean = False  # a text log checked line by line and found whole
@@ -376,15 +377,24 @@ class TlogSource:
             return DFReader.DFReader_text(str(path), zero_time_base=False)
         if not self._dataflash:
             return mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
-        with tolerant_formats() as damaged:
+        with tolerant_formats() as damaged, indexer_complaints() as indexer:
             conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
-        if damaged and not self._damaged_formats_said:  # opened more than once (the truth scan)
-            self._damaged_formats_said = True
+        if self._index_said:  # opened more than once (the truth scan): said and counted once
+            return conn
+        self._index_said = True
+        if damaged:
             self.counters["corrupt_frames"] += len(damaged)
             for name in damaged:
                 self._reject(f"damaged_format:{name}")
             log.warning("%s: %d record format(s) damaged (%s): their records are skipped, the rest is read",
                         self.path.name, len(damaged), ", ".join(damaged))
+        bad = indexer["bad_headers"]
+        if bad:  # positions where no record header was found: damaged bytes, skipped
+            self.counters["corrupt_frames"] += bad
+            rej = self.counters["rejected"]
+            rej["indexer_bad_header"] = rej.get("indexer_bad_header", 0) + bad
+            log.warning("%s: pymavlink's indexer found no record header at %d position(s) (the first: %s): "
+                        "damaged bytes skipped", self.path.name, bad, indexer["first"])
         return conn
 
     # --------------------------------------------------------------------- iteration

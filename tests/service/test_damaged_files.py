@@ -232,11 +232,11 @@ def test_a_damaged_record_format_loses_only_its_records(tmp_path, name, letters,
         assert kinds_whole[lost] > 0
 
 
-def test_a_damaged_record_length_loses_only_its_records_and_counts_them(tmp_path):
+def test_a_damaged_record_length_loses_only_its_records_and_counts_them(tmp_path, capfd):
     """One bit of GPS's declared length flipped (51 → 55 bytes): pymavlink's reader failed on
-    every GPS record and the one after it, printed 142,221 lines to the terminal, and the
-    records it dropped were counted nowhere (corrupt frames 0). Its complaints are counted now,
-    and every other kind reads as from the whole log."""
+    every GPS record and the one after it, printed 142,221 lines to the terminal, its compiled
+    indexer 116,622 more, and the records it dropped were counted nowhere (corrupt frames 0).
+    Both complaints are counted now, and every other kind reads as from the whole log."""
     from collections import Counter
 
     from adaptnav.service.transport.tlog_source import TlogSource
@@ -253,8 +253,13 @@ def test_a_damaged_record_length_loses_only_its_records_and_counts_them(tmp_path
     src = TlogSource(path)
     kinds = Counter(getattr(s, "KIND", "") for s in src)
     failed = src.counters["rejected"]["reader_parse_failure"]
+    bad_headers = src.counters["rejected"]["indexer_bad_header"]
     assert failed >= kinds_whole["gnss"] > 1000  # every GPS record (and what it swallowed)
-    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + failed
+    assert bad_headers >= kinds_whole["gnss"]
+    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + failed + bad_headers
+    printed = capfd.readouterr()  # (our own one-line warnings may quote the first complaint)
+    assert not [line for line in (printed.err + printed.out).splitlines()
+                if line.startswith(("bad header", "Failed to parse"))]
     assert kinds == Counter({k: n for k, n in kinds_whole.items() if k not in ("gnss", "truth")})
 
 
