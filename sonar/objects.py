@@ -1034,6 +1034,8 @@ class ObjectFrontEnd:
         self.blocks = 0
         self.sightings = 0
         self.rejected: dict[str, int] = {}
+        self._geometry: tuple[int, float] | None = None  # (samples, slant range m): the first ping's
+        self.resampled = 0  # pings of another geometry put on the stream's
         self._work: dict = {}  # the detector's scratch arrays (detect_objects)
 
     def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None, vel_cov=None) -> list[ObjectSighting]:
@@ -1064,10 +1066,19 @@ class ObjectFrontEnd:
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
             return []
-        if self._pings and (ping.t_s <= self._pings[-1].t_s or ping.n_samples != self._pings[-1].n_samples
-                            or ping.slant_range_m != self._pings[-1].slant_range_m):
-            self.rejected["out of order or other geometry"] = self.rejected.get("out of order or other geometry", 0) + 1
+        if self._pings and ping.t_s <= self._pings[-1].t_s:
+            self.rejected["out of order"] = self.rejected.get("out of order", 0) + 1
             return []
+        if not (ping.slant_range_m > 0 and ping.n_samples >= 8):  # False for NaN
+            self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1
+            return []
+        if self._geometry is None:
+            self._geometry = (ping.n_samples, ping.slant_range_m)
+        elif (ping.n_samples, ping.slant_range_m) != self._geometry:
+            # the sonar's range or sample count changed (the operator, auto-range): every
+            # later ping was refused; now on the stream's first geometry, one image width
+            ping = ping.resampled(*self._geometry)
+            self.resampled += 1
         if vel_n_m_s is not None:
             v = np.asarray(vel_n_m_s, float).reshape(-1)[:2]
             if np.all(np.isfinite(v)):

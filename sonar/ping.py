@@ -92,6 +92,16 @@ class SonarPing:
         """Slant-range spacing of the samples (m)."""
         return self.slant_range_m / max(self.n_samples, 1)
 
+    def resampled(self, n_samples: int, slant_range_m: float) -> "SonarPing":
+        """This ping on another geometry — ``n_samples`` per side over ``slant_range_m`` —
+        (:func:`resample_slant`); itself when it already has it."""
+        if n_samples == self.n_samples and slant_range_m == self.slant_range_m:
+            return self
+        return dataclasses.replace(
+            self, port=resample_slant(self.port, self.slant_range_m, n_samples, slant_range_m),
+            starboard=resample_slant(self.starboard, self.slant_range_m, n_samples, slant_range_m),
+            slant_range_m=slant_range_m)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (``type``, ``schema_version``, arrays as lists, NaN → None)."""
         out: dict[str, Any] = {"type": self.KIND, "schema_version": SCHEMA_VERSION}
@@ -166,3 +176,29 @@ class SonarPing:
             "required": required,
             "additionalProperties": False,
         }
+
+
+def resample_slant(values: np.ndarray, slant_range_m: float, n_samples: int,
+                   to_slant_range_m: float) -> np.ndarray:
+    """One channel's samples over ``slant_range_m`` → ``n_samples`` over ``to_slant_range_m``.
+
+    Each sample is the mean echo over its range bin (sample ``k`` covers ``[k, k + 1)`` times
+    the spacing): a coarser grid averages the samples it covers, a finer one repeats them —
+    no aliasing of speckle either way. Bins beyond the ping's range have no data (NaN, as
+    non-finite samples are taken downstream); non-finite input samples count as no echo.
+    A sonar's range or sample count changes within a survey (the operator, auto-range)."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    n_in = v.size
+    out = np.full(int(n_samples), np.nan, dtype=np.float32)
+    if n_in == 0 or not (slant_range_m > 0 and to_slant_range_m > 0) or n_samples <= 0:
+        return out
+    v = np.where(np.isfinite(v), v, 0.0)
+    step_in = slant_range_m / n_in
+    edges_in = np.arange(n_in + 1) * step_in
+    integral_in = np.concatenate(([0.0], np.cumsum(v))) * step_in   # ∫ echo dr at each input edge
+    edges = np.minimum(np.arange(int(n_samples) + 1) * (to_slant_range_m / n_samples), slant_range_m)
+    covered = np.diff(edges)
+    integral = np.diff(np.interp(edges, edges_in, integral_in))
+    has_data = covered > 1e-9 * step_in
+    out[has_data] = integral[has_data] / covered[has_data]
+    return out

@@ -25,8 +25,10 @@ pings with step ``S`` (``S ≤ W``) and processes each window exactly once:
    each window's keypoints detected once and kept for the next registration.
 
 Pure: no clock, no transport, no randomness.  Bad pings (non-finite or non-increasing
-time, a sample count or slant range different from the stream's) are counted in
-:attr:`SonarFrontEnd.rejected` by reason and skipped.
+time, no usable geometry) are counted in :attr:`SonarFrontEnd.rejected` by reason and
+skipped.  A ping of another sample count or slant range than the stream's first (the range
+changed) is resampled onto that geometry (:meth:`adaptnav.sonar.ping.SonarPing.resampled`;
+beyond the stream's range nothing is kept) and counted in :attr:`SonarFrontEnd.resampled`.
 """
 from __future__ import annotations
 
@@ -176,7 +178,8 @@ class SonarFrontEnd:
         self._n = 0                    # pings accepted so far (global index of the next)
         self._next_start = 0           # global index of the next window's first ping
         self._emit_from = 0            # first ping index not yet covered by an emission range
-        self._shape: tuple[int, float] | None = None
+        self._shape: tuple[int, float] | None = None  # the stream's geometry: its first ping's
+        self.resampled = 0             # pings of another geometry put on the stream's
         self._along_res_m = c.along_res_m if c.along_res_m > 0 else math.nan
         self._prev: _Window | None = None
         self._pos = np.zeros(2)
@@ -225,6 +228,11 @@ class SonarFrontEnd:
         if reason:
             self.rejected[reason] += 1
             return []
+        if (ping.n_samples, ping.slant_range_m) != self._shape:
+            # the sonar's range or sample count changed (the operator, auto-range): the ping
+            # on the stream's first geometry, so that windows stay one image width
+            ping = ping.resampled(*self._shape)
+            self.resampled += 1
         self._dead_reckon(ping, pos_n_m)
         sig = math.nan if pos_sigma_m is None else float(pos_sigma_m)
         self._sigma.append(sig if math.isfinite(sig) and sig >= 0 else math.nan)
@@ -245,11 +253,8 @@ class SonarFrontEnd:
             return "non-increasing time"
         if not (math.isfinite(ping.slant_range_m) and ping.slant_range_m > 0) or ping.n_samples < 8:
             return "bad geometry"
-        shape = (ping.n_samples, ping.slant_range_m)
         if self._shape is None:
-            self._shape = shape
-        elif shape != self._shape:
-            return "sample count or range changed"
+            self._shape = (ping.n_samples, ping.slant_range_m)
         return ""
 
     def _dead_reckon(self, ping: SonarPing, pos_n_m) -> None:

@@ -133,16 +133,19 @@ class Waterfall:
 def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, int]]:
     """Pings fit for a waterfall: time-ordered, one per time, one geometry.
 
-    Drops (and counts by reason) pings with a non-finite time, a duplicate time, or a
-    sample count / slant range different from the most common one; sorts the rest by
-    time (stable, so equal-time duplicates keep the first received).
+    Drops (and counts by reason) pings with a non-finite time, a duplicate time or no
+    usable geometry (no slant range, under 8 samples); puts a ping of another sample count or
+    slant range than the most common one on that geometry (the range changed mid-file:
+    :meth:`SonarPing.resampled`); sorts the rest by time (stable, so equal-time duplicates
+    keep the first received).
 
     Returns
     -------
     pings : list of SonarPing
     dropped : dict[str, int]
         Reason → count (empty when nothing was dropped); ``"reordered"`` counts pings
-        that arrived before an earlier-stamped one (kept, sorted).
+        that arrived before an earlier-stamped one (kept, sorted), ``"resampled"`` the pings
+        put on the common geometry (kept).
     """
     from collections import Counter
 
@@ -155,13 +158,21 @@ def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, 
             dropped["non-finite time"] += 1
     if not finite:
         return [], dict(dropped)
-    geom = Counter((p.n_samples, p.slant_range_m) for p in finite).most_common(1)[0][0]
-    same = []
+    usable = []
     for p in finite:
-        if (p.n_samples, p.slant_range_m) == geom:
-            same.append(p)
+        if p.slant_range_m > 0 and p.n_samples >= 8:  # False for NaN
+            usable.append(p)
         else:
-            dropped["other sample count or range"] += 1
+            dropped["no geometry"] += 1
+    if not usable:
+        return [], dict(dropped)
+    geom = Counter((p.n_samples, p.slant_range_m) for p in usable).most_common(1)[0][0]
+    same = []
+    for p in usable:
+        if (p.n_samples, p.slant_range_m) != geom:
+            p = p.resampled(*geom)
+            dropped["resampled"] += 1
+        same.append(p)
     t = np.array([p.t_s for p in same])
     n_back = int(np.sum(t[1:] < np.maximum.accumulate(t)[:-1])) if t.size > 1 else 0
     if n_back:

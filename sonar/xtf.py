@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adaptnav.sonar.ping import SonarPing
+from adaptnav.sonar.ping import SonarPing, resample_slant
 
 KNOT_M_S = 1852.0 / 3600.0
 
@@ -49,6 +49,9 @@ class XtfReadReport:
         Pings dropped because their samples were cut short (truncated file).
     n_no_nav : int
         Pings whose navigation was all zero (kept, nav set to NaN).
+    n_sides_resampled : int
+        Pings whose port channel had another sample count than starboard (kept, port
+        resampled onto starboard's samples).
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -59,6 +62,7 @@ class XtfReadReport:
     n_undecoded: int = 0
     n_truncated: int = 0
     n_no_nav: int = 0
+    n_sides_resampled: int = 0
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -66,6 +70,8 @@ class XtfReadReport:
         """One-line human summary."""
         counts = ", ".join(f"{k}: {v}" for k, v in sorted(self.packet_counts.items()))
         text = f"packets {{{counts}}}; undecoded {self.n_undecoded}; truncated pings {self.n_truncated}"
+        if self.n_sides_resampled:
+            text += f"; port resampled onto starboard's samples in {self.n_sides_resampled} pings"
         if self.error:
             text += f"; stopped early: {self.error}"
         return text
@@ -92,6 +98,14 @@ def _channel_sides(file_header) -> tuple[int, int] | None:
     port = types.index(1) if 1 in types else 0
     stbd = types.index(2) if 2 in types else 1
     return port, stbd
+
+
+def _slant_range_m(chan, pkt) -> float:
+    """A channel's slant range (m); some recorders leave it 0: time span × one-way sound speed."""
+    slant = float(chan.SlantRange)
+    if not slant > 0:
+        slant = float(chan.TimeDuration) * float(pkt.SoundVelocity)
+    return slant
 
 
 def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[SonarPing], XtfReadReport]:
@@ -180,12 +194,15 @@ def _to_ping(pkt, sides: tuple[int, int], nav_deg: bool, speed_in_knots: bool,
         return None
     port, stbd = np.asarray(data[i_port]), np.asarray(data[i_stbd])
     n_port, n_stbd = int(chans[i_port].NumSamples), int(chans[i_stbd].NumSamples)
-    if port.size != n_port or stbd.size != n_stbd or n_port != n_stbd or n_port == 0:
+    if port.size != n_port or stbd.size != n_stbd or n_port == 0 or n_stbd == 0:
         report.n_truncated += 1
         return None
-    slant = float(chans[i_stbd].SlantRange)
-    if not slant > 0:  # some recorders leave it 0: time span × one-way sound speed
-        slant = float(chans[i_stbd].TimeDuration) * float(pkt.SoundVelocity)
+    slant = _slant_range_m(chans[i_stbd], pkt)
+    if n_port != n_stbd:
+        # the sides sampled differently (a recorder's choice, not damage): port on starboard's
+        # samples — over its own range (port is stored far-to-near)
+        port = resample_slant(port[::-1], _slant_range_m(chans[i_port], pkt), n_stbd, slant)[::-1]
+        report.n_sides_resampled += 1
     lat, lon = float(pkt.SensorYcoordinate), float(pkt.SensorXcoordinate)
     no_nav = lat == 0.0 and lon == 0.0
     if no_nav:

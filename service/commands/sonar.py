@@ -51,7 +51,7 @@ def run(args) -> int:
 
     pings, dropped = clean_pings(pings)
     if dropped:
-        print(f"adaptnav sonar: warning: pings set aside/reordered: {dropped}", file=sys.stderr)
+        print(f"adaptnav sonar: warning: pings set aside, reordered or resampled: {dropped}", file=sys.stderr)
     if len(pings) < 2:
         return _fail(f"{args.file}: fewer than 2 usable pings")
     if args.sonar_cmd == "waterfall":

@@ -105,6 +105,31 @@ def test_detector_finds_most_objects_with_few_false_ones_and_measures_height(rec
     assert -0.5 < float(np.median(h_err)) < 0.1
 
 
+def test_a_change_of_range_mid_leg_keeps_the_detector_going(reciprocal_passes):
+    """The sonar's range and sample count change mid-leg (50 m × 512 → 60 m × 700): every
+    later ping was refused ("other geometry") and the leg gave no more object sightings, so
+    no loop closure. Now they are put on the leg's first geometry and found as before."""
+    sb, (pa, xa), _ = reciprocal_passes
+    n_before = 100
+    wider = SidescanRenderer(sb, 60.0, 700)
+    k = np.arange(len(pa))
+    tail = wider.render_track(k[n_before:] * DS_M / 1.5, xa[n_before:], 0.0, ALT_M, np.random.default_rng(13), 1.5)
+    t_change = pa[n_before].t_s
+
+    def sightings(pings):
+        fe = ObjectFrontEnd()
+        out = [(o, o.pos_n_m) for p, q in zip(pings, xa) for o in fe.push(p, q, np.eye(2), 0.0)]
+        return fe, [(o, q) for o, q in out if o.t_s > t_change and not o.weak]
+
+    fe, changed = sightings(list(pa[:n_before]) + list(tail))
+    _, whole = sightings(pa)
+    assert fe.resampled == len(pa) - n_before and not fe.rejected, fe.rejected
+    k_changed = _truth_match(sb, [q for _, q in changed])
+    k_whole = _truth_match(sb, [q for _, q in whole])
+    assert int((k_changed >= 0).sum()) >= 0.7 * int((k_whole >= 0).sum()) > 10
+    assert (k_changed >= 0).mean() >= 0.85  # precision as on the unchanged leg
+
+
 def test_weak_sightings_near_the_nadir_find_objects_the_median_erased(reciprocal_passes):
     """Nearer than 20 m a tyre's or small boulder's shadow is 1–3 px, which the waterfall's
     3×3 median fills in: sought on the unfiltered image too (weak sightings), more of the

@@ -220,9 +220,59 @@ def test_bad_pings_are_counted_and_skipped():
     assert fe.push(ok) == []
     fe.push(SonarPing(math.nan, np.ones(64), np.ones(64), 20.0))
     fe.push(SonarPing(0.5, np.ones(64), np.ones(64), 20.0))          # goes back in time
-    fe.push(SonarPing(2.0, np.ones(32), np.ones(32), 20.0))          # other sample count
-    assert dict(fe.rejected) == {"non-finite time": 1, "non-increasing time": 1,
-                                 "sample count or range changed": 1}
+    fe.push(SonarPing(2.0, np.ones(64), np.ones(64), 0.0))           # no range
+    fe.push(SonarPing(3.0, np.ones(32), np.ones(32), 20.0))          # other sample count: kept
+    assert dict(fe.rejected) == {"non-finite time": 1, "non-increasing time": 1, "bad geometry": 1}
+    assert fe.resampled == 1
+
+
+def test_a_change_of_range_mid_stream_keeps_the_visual_motion_going(world):
+    """The operator (or the sonar's auto-range) changes range and sample count mid-survey:
+    every later ping was rejected ("sample count or range changed") and the side-scan went
+    blind for the rest of the mission. Now they are put on the stream's geometry."""
+    seabed, ren = world
+    wider = SidescanRenderer(seabed, 30.0, 700)
+    rng = np.random.default_rng(9)
+    yaw = math.radians(2.0)
+    start = np.array([12.0, 40.0])
+    n, n_before = 520, 150  # the pass runs 195 m of the 200 m seabed
+    first, pos, t = _pass(ren, rng, start, yaw, n, 100.0)
+    second = wider.render_track(t[n_before:], pos[n_before:], yaw, 8.0, rng, SPEED)
+    pings = list(first[:n_before]) + list(second)
+    cfg = FrontEndConfig()
+    fe = SonarFrontEnd(cfg)
+    out = fe.push(pings[0], start)
+    for p in pings[1:]:
+        out += fe.push(p)
+    assert not fe.rejected and fe.resampled == n - n_before
+    after = [m for m in out if isinstance(m, VisualMotion) and m.t_s > t[n_before]]  # mixed windows too
+    windows_after = fe.windows - (n_before - cfg.window_pings) // cfg.step_pings - 1
+    assert windows_after >= 4 and len(after) >= 0.8 * windows_after, (len(after), windows_after)
+    true_along = cfg.step_pings * DS
+    along = np.array([m.along_m for m in after])
+    assert np.median(np.abs(along - true_along)) < 0.1 * true_along
+    assert np.median(np.abs([m.across_m for m in after])) < 0.3
+    obs_after = [o for o in out if isinstance(o, LandmarkObservation) and o.t_s > t[n_before]]
+    assert len(obs_after) >= 5
+
+
+def test_a_ping_resampled_onto_another_geometry_keeps_its_echo_at_its_range():
+    rng = np.random.default_rng(4)
+    port = rng.random(512).astype(np.float32)
+    stbd = rng.random(512).astype(np.float32)
+    stbd[300] = 50.0  # a strong target at (300.5 / 512) × 25 m
+    ping = SonarPing(1.0, port, stbd, 25.0)
+    for n, r in ((700, 30.0), (256, 25.0), (1024, 20.0)):
+        moved = ping.resampled(n, r)
+        assert moved.n_samples == n and moved.slant_range_m == r and moved.t_s == ping.t_s
+        k = int(np.nanargmax(moved.starboard))
+        assert abs((k + 0.5) * r / n - 300.5 * 25.0 / 512) <= r / n + 25.0 / 512
+        covered = min(r, 25.0)
+        # the echo over the common range is kept (mean over the bins that have data)
+        kept = moved.port[: int(covered / (r / n))]
+        assert np.nanmean(kept) == pytest.approx(np.mean(port[: int(covered / (25.0 / 512))]), rel=0.02)
+        assert np.all(np.isnan(moved.port[int(math.ceil(25.0 / (r / n))):]))  # beyond its range: no data
+    assert ping.resampled(512, 25.0) is ping
     with pytest.raises(ValueError):
         FrontEndConfig(window_pings=16, step_pings=32)
 

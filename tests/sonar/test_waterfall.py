@@ -115,10 +115,12 @@ def test_clean_pings_sorts_and_counts_bad_ones():
         return SonarPing(t_s=t, port=np.ones(n), starboard=np.ones(n), slant_range_m=rng_m)
 
     raw = [ping(0.0), ping(2.0), ping(1.0), ping(math.nan), ping(2.0), ping(3.0, n=8),
-           ping(4.0, rng_m=30.0), ping(5.0)]
+           ping(4.0, rng_m=30.0), ping(5.0), ping(6.0, rng_m=0.0)]
     kept, dropped = clean_pings(raw)
-    assert [p.t_s for p in kept] == [0.0, 1.0, 2.0, 5.0]
-    assert dropped == {"non-finite time": 1, "other sample count or range": 2,
+    assert [p.t_s for p in kept] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    # the range changed: on the common geometry, not dropped
+    assert all(p.n_samples == 16 and p.slant_range_m == 20.0 for p in kept)
+    assert dropped == {"non-finite time": 1, "no geometry": 1, "resampled": 2,
                        "duplicate time": 1, "reordered": 1}
     # non-finite samples do not poison the image
     bad = [SonarPing(t_s=float(i), port=np.full(64, np.inf if i == 3 else 1.0),

@@ -57,3 +57,48 @@ def test_cli_mbes_exit_code_2_without_traceback(capsys):
     rc = main(["sonar", "motion", str(need(MBES)), "--json"])
     err = capsys.readouterr().err
     assert rc == 2 and "no side-scan channels" in err and "Traceback" not in err
+
+
+def _port_halved(src, dst):
+    """``src`` with each sonar packet's port channel at half its samples (the mean of each
+    pair), as a recorder that samples the two sides differently writes it."""
+    import struct
+
+    data = src.read_bytes()
+    out = bytearray(data[:1024])  # the file header (two channels: 1024 bytes)
+    o = 1024
+    while o + 14 <= len(data):
+        magic, kind = struct.unpack_from("<HB", data, o)
+        assert magic == 0xFACE
+        size = struct.unpack_from("<I", data, o + 10)[0]
+        packet = data[o:o + size]
+        if kind == 0:  # sonar: ping header, then per channel its header and uint16 samples
+            n = struct.unpack_from("<I", packet, 256 + 42)[0]
+            port = np.frombuffer(packet, "<u2", n, 256 + 64).astype(float)
+            halved = (0.5 * (port[0::2] + port[1::2])).round().astype("<u2")
+            head = bytearray(packet[256:256 + 64])
+            struct.pack_into("<I", head, 42, n // 2)
+            new = bytearray(packet[:256]) + head + halved.tobytes() + packet[256 + 64 + 2 * n:]
+            struct.pack_into("<I", new, 10, len(new))
+            packet = bytes(new)
+        out += packet
+        o += size
+    dst.write_bytes(bytes(out))
+
+
+def test_sides_sampled_differently_are_read_not_dropped(tmp_path):
+    """A recorder that samples port and starboard differently: every ping was dropped as
+    "truncated" and the file read as holding no side-scan ping. Port is now resampled onto
+    starboard's samples."""
+    src = need(SCOTSMAN)
+    odd = tmp_path / "halved-port.xtf"
+    _port_halved(src, odd)
+    full, _ = read_xtf(src)
+    pings, report = read_xtf(odd)
+    assert len(pings) == len(full) and report.n_truncated == 0 and report.n_sides_resampled == len(full)
+    assert "port resampled" in report.summary()
+    for a, b in zip(pings[::50], full[::50]):
+        assert a.n_samples == b.n_samples and np.array_equal(a.starboard, b.starboard)
+        # the echo at each range is kept: the recorder averaged pairs, the reader repeats each
+        pairs = np.round(0.5 * (b.port[0::2].astype(float) + b.port[1::2]))
+        assert np.allclose(a.port, np.repeat(pairs, 2), atol=0.51)
