@@ -419,16 +419,41 @@ def remove_lines(port: np.ndarray, stbd: np.ndarray, sample_spacing_m: float, al
 def along_track_distance_m(pings: Sequence[SonarPing]) -> np.ndarray:
     """Distance travelled at each ping from speed × time (trapezoid); NaN if unknown.
 
-    Speeds missing on fewer than half the pings are interpolated; otherwise all NaN.
+    Speeds missing on fewer than half the pings are interpolated. A file without speed (many
+    recorders leave it 0) but with positions on at least half its pings takes the distance
+    along its position track instead (:func:`_track_distance_m`); otherwise all NaN.
     """
     t = np.array([p.t_s for p in pings], dtype=float)
     v = np.array([p.speed_m_s for p in pings], dtype=float)
     ok = np.isfinite(v)
-    if len(pings) < 2 or ok.sum() < 0.5 * len(pings) or not np.all(np.diff(t) > 0):
+    if len(pings) < 2 or not np.all(np.diff(t) > 0):
         return np.full(len(pings), np.nan)
+    if ok.sum() < 0.5 * len(pings):
+        return _track_distance_m(t, np.array([p.lat_rad for p in pings], dtype=float),
+                                 np.array([p.lon_rad for p in pings], dtype=float))
     # a few pings without speed (e.g. the first, before the nav is up): interpolate
     v = np.interp(np.arange(v.size), np.flatnonzero(ok), v[ok])
     return np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+
+
+def _track_distance_m(t: np.ndarray, lat_rad: np.ndarray, lon_rad: np.ndarray) -> np.ndarray:
+    """Distance along the pings' position track at each ping time (m); NaN if under half the
+    pings have a position. A recorder repeats one fix over the pings until the next: only the
+    pings where the position changed count, the distance between them is spread over time
+    (else the track would advance in steps, stopping between fixes)."""
+    from adaptnav.fusion.frames import GeoOrigin
+
+    ok = np.flatnonzero(np.isfinite(lat_rad) & np.isfinite(lon_rad))
+    if ok.size < max(2, 0.5 * t.size):
+        return np.full(t.size, np.nan)
+    lat, lon = lat_rad[ok], lon_rad[ok]
+    new_fix = np.concatenate([[True], (np.diff(lat) != 0.0) | (np.diff(lon) != 0.0)])
+    ok, lat, lon = ok[new_fix], lat[new_fix], lon[new_fix]
+    if ok.size < 2:
+        return np.full(t.size, np.nan)
+    ne = GeoOrigin(float(lat[0]), float(lon[0])).to_ned(lat, lon)[:, :2]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ne, axis=0).T))])
+    return np.interp(t, t[ok], s)  # held before the first fix and after the last
 
 
 def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:

@@ -57,3 +57,36 @@ def test_waterfall_png_has_a_labelled_scale_bar():
     white = (img == 255).all(axis=2)
     longest = max(int(np.diff(np.flatnonzero(np.diff(np.r_[0, row, 0]))).max(initial=0)) for row in white)
     assert longest == 200
+
+
+def _without_speed(src, dst):
+    """``src`` with every ping's SensorSpeed 0, as many recorders write it."""
+    import struct
+
+    data = bytearray(src.read_bytes())
+    o = 1024  # after the file header (two channels)
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        if kind == 0:
+            struct.pack_into("<f", data, o + 152, 0.0)  # XTFPingHeader.SensorSpeed
+        o += size
+    dst.write_bytes(bytes(data))
+
+
+def test_motion_of_a_file_without_speed_follows_its_positions(tmp_path, capsys):
+    """A file without speed (0 in every ping) failed: "the file has no speed". The distance
+    along its position track now spaces the pings, as the speed did."""
+    f = tmp_path / "nospeed.xtf"
+    _without_speed(need(SCOTSMAN), f)
+    from adaptnav.sonar.xtf import read_xtf
+
+    assert all(not np.isfinite(p.speed_m_s) for p in read_xtf(f)[0])
+    runs = {}
+    for name, path in (("speed", need(SCOTSMAN)), ("positions", f)):
+        rc = main(["sonar", "motion", str(path), "--window", "150", "--step", "40", "--json"])
+        assert rc == 0, capsys.readouterr().err
+        runs[name] = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(runs["positions"]) == len(runs["speed"]) == (461 - 150) // 40
+    for a, b in zip(runs["positions"], runs["speed"]):
+        # the fixes cover 55.7 m, the speed 53.9: within 5 %
+        assert abs(a["along_m"] - b["along_m"]) < 0.05 * b["along_m"] and abs(a["across_m"]) < 0.3
