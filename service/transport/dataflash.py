@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import struct
 import sys
 import threading
 from types import SimpleNamespace
@@ -80,11 +81,65 @@ def _opaque_format(n_bytes: int) -> str:
     return "".join(out)
 
 
+_FMT_HEADER = b"\xa3\x95\x80"  # a record header and the FMT type (128)
+_FMT_RECORD_LEN = 89           # 3 + Type B, Length B, Name 4s, Format 16s, Columns 64s
+_LENGTH_VOTES = 200            # records of a type looked at to tell which of the two is right
+
+
+def _letters_size(letters: bytes) -> int | None:
+    """Bytes of a record body of these format letters (None: a letter DFReader does not know)."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    size = 0
+    for c in letters.decode("ascii", "replace"):
+        spec = FORMAT_TO_STRUCT.get(c)
+        if spec is None:
+            return None
+        size += struct.calcsize("<" + spec[0])
+    return size
+
+
+def format_length_repairs(data: Any) -> list[tuple[int, str, int, int]]:
+    """FMT records of a binary DataFlash log whose length byte is damaged: ``(offset of the
+    length byte, type name, declared length, length of its format letters)``.
+
+    A record's declared length is always its letters' size + 3 in a whole log (ArduSub 4.1
+    and 4.7 alike). When they disagree, one of the two bytes was damaged: the records of the
+    type say which — a header follows each record at the length that is right. The length
+    is repaired only when its letters' length puts a header after most of its records and
+    the declared one does not; otherwise the letters are taken as damaged
+    (:func:`tolerant_formats` skips the type). With pymavlink's reader a wrong length lost
+    every record of the type and the record after each, and sent its indexer resynchronising
+    through the log (116,622 complaints for one flipped bit of GPS's length)."""
+    repairs = []
+    at = data.find(_FMT_HEADER)
+    while at >= 0 and at + _FMT_RECORD_LEN <= len(data):
+        mtype, declared = data[at + 3], data[at + 4]
+        letters = bytes(data[at + 9:at + 25]).split(b"\0", 1)[0]
+        size = _letters_size(letters)
+        if size is not None and mtype != 0x80 and declared != size + 3:
+            expected = size + 3
+            votes = {declared: 0, expected: 0}
+            seen = 0
+            rec = data.find(b"\xa3\x95" + bytes([mtype]), at + _FMT_RECORD_LEN)
+            while rec >= 0 and seen < _LENGTH_VOTES:
+                seen += 1
+                for length in votes:
+                    if data[rec + length:rec + length + 2] == b"\xa3\x95":
+                        votes[length] += 1
+                rec = data.find(b"\xa3\x95" + bytes([mtype]), rec + 3)
+            if seen >= 3 and votes[expected] >= 0.8 * seen and votes[declared] < 0.5 * votes[expected]:
+                name = bytes(data[at + 5:at + 9]).split(b"\0", 1)[0].decode("ascii", "replace")
+                repairs.append((at + 4, name, int(declared), expected))
+        at = data.find(_FMT_HEADER, at + 3)
+    return repairs
+
+
 @contextlib.contextmanager
 def tolerant_formats() -> Iterator[list[str]]:
     """While pymavlink's binary DataFlash reader indexes a log: an FMT record whose format
-    letters are damaged (a flipped byte) declares its record type as opaque bytes of the
-    declared length, instead of raising — DFReader's index gives up on the whole log at one
+    letters are damaged (a flipped byte), or whose letters' size disagrees with its declared
+    length, declares its record type as opaque bytes of the declared length, instead of raising — DFReader's index gives up on the whole log at one
     such record (e.g. ``Unsupported format char: '\\' in message GRXS``), though every
     other type still reads. Yields the names of the types so declared (their records are
     skipped whole, as a type ``<name>_damaged``; if one is a type the replay reads, its
@@ -100,6 +155,10 @@ def tolerant_formats() -> Iterator[list[str]]:
         def __init__(self, type, name, flen, format, columns, oldfmt=None):  # noqa: A002 - DFReader's names
             try:
                 super().__init__(type, name, flen, format, columns, oldfmt)
+                if struct.calcsize(self.msg_struct) != int(flen) - 3:
+                    # letters and length disagree (one of them damaged, the length not
+                    # repairable: format_length_repairs): every record would fail to parse
+                    raise ValueError("format letters and length disagree")
             except Exception:  # noqa: BLE001 - DFReader raises a bare Exception
                 label = DFReader.null_term(name) if isinstance(name, str) else repr(name)
                 if label not in damaged:  # the index may build a type's format twice

@@ -39,8 +39,8 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
-from adaptnav.service.transport.dataflash import (DataflashConverter, SimTruth, indexer_complaints, reader_complaints,
-                                                  tolerant_formats)
+from adaptnav.service.transport.dataflash import (DataflashConverter, SimTruth, format_length_repairs,
+                                                  indexer_complaints, reader_complaints, tolerant_formats)
 from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
 from adaptnav.service.transport.mavlink_frames import GPS_GLOBAL_ORIGIN_ID, SIM_STATE_ID, TlogReader, untruncated
 from adaptnav.fusion.alignment import IMU_RATE_WINDOW, imu_too_slow
@@ -176,6 +176,7 @@ class TlogSource:
         self._text_dataflash = suffix == ".log" and _is_text_dataflash(self.path)
         self._dataflash = suffix == ".bin" or self._text_dataflash
         self._index_said = False
+        self._length_repairs: list | None = None  # a binary DataFlash log's damaged FMT lengths (once)
         self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
         self._text_lines_dropped_said = False
         self._text_log_clean = False  # a text log checked line by line and found whole
@@ -351,7 +352,11 @@ class TlogSource:
         one bad line (a byte that is not UTF-8, garbage where it looks for a new record type),
         skips a line of too few fields or an unknown name without a word, and reads a line
         that a block of zeros merged with the next as one record of wrong values. A log with
-        such lines is read from a copy without them, each counted as a corrupt frame and said."""
+        such lines is read from a copy without them, each counted as a corrupt frame and said.
+        A binary one is read from a copy when a record format's length byte needs repair
+        (:meth:`_open_binary_dataflash`)."""
+        if self._dataflash and not self._text_dataflash:
+            return self._open_binary_dataflash()
         if not self._text_dataflash or self._text_log_clean:
             return self._open(self.path)
         clean, dropped = _clean_text_dataflash(self.path.read_bytes())
@@ -365,6 +370,33 @@ class TlogSource:
                         "by a block of zeros, non-text bytes); the rest is read", self.path.name, dropped)
         with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".log") as copy:
             copy.write(clean)
+            copy.flush()
+            return self._open(Path(copy.name))  # mapped: outlives the name
+
+    def _open_binary_dataflash(self) -> Any:
+        """A binary DataFlash log, read from a copy with its damaged FMT length bytes repaired
+        when it has some (:func:`~adaptnav.service.transport.dataflash.format_length_repairs`),
+        each counted as a corrupt frame and said once."""
+        import mmap
+
+        if self._length_repairs is None:
+            try:
+                with open(self.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                    self._length_repairs = format_length_repairs(data)
+            except (OSError, ValueError):  # empty or unreadable: the reader says so
+                self._length_repairs = []
+            for _, name, declared, right in self._length_repairs:
+                self.counters["corrupt_frames"] += 1
+                self._reject(f"repaired_format_length:{name}")
+                log.warning("%s: record format %s declares %d bytes, its fields take %d and its records "
+                            "agree: the length is repaired", self.path.name, name, declared, right)
+        if not self._length_repairs:
+            return self._open(self.path)
+        data = bytearray(self.path.read_bytes())
+        for at, _, _, right in self._length_repairs:
+            data[at] = right
+        with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".bin") as copy:
+            copy.write(data)
             copy.flush()
             return self._open(Path(copy.name))  # mapped: outlives the name
 

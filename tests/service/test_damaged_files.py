@@ -232,35 +232,92 @@ def test_a_damaged_record_format_loses_only_its_records(tmp_path, name, letters,
         assert kinds_whole[lost] > 0
 
 
-def test_a_damaged_record_length_loses_only_its_records_and_counts_them(tmp_path, capfd):
-    """One bit of GPS's declared length flipped (51 → 55 bytes): pymavlink's reader failed on
-    every GPS record and the one after it, printed 142,221 lines to the terminal, its compiled
-    indexer 116,622 more, and the records it dropped were counted nowhere (corrupt frames 0).
-    Both complaints are counted now, and every other kind reads as from the whole log."""
-    from collections import Counter
-
-    from adaptnav.service.transport.tlog_source import TlogSource
-
+def _damaged_gps_format(tmp_path, change) -> Path:
+    """The SITL drive's DataFlash log with ``change(data, at)`` applied, ``at`` the offset of
+    the GPS record format's length byte (its letters follow the name, 5 bytes on)."""
     log_name = "ardusub-4.7-sitl-drive.BIN"
     data = bytearray((TEST_DATA / log_name).read_bytes())
     at = bytes(data).index(b"GPS\0QBBIHBcLLeffffB") - 1  # the FMT record's length byte, before the name
     assert data[at] == 51
-    data[at] ^= 0x04
+    change(data, at)
+    path = tmp_path / log_name
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _kinds(src):
+    from collections import Counter
+
+    return Counter(getattr(s, "KIND", "") for s in src)
+
+
+def _nothing_printed(capfd):
+    printed = capfd.readouterr()  # (our own one-line warnings may quote the first complaint)
+    return not [line for line in (printed.err + printed.out).splitlines()
+                if line.startswith(("bad header", "Failed to parse", "bad msg"))]
+
+
+def test_a_damaged_record_length_is_repaired(tmp_path, capfd):
+    """One bit of GPS's declared length flipped (51 → 55 bytes): pymavlink's reader failed on
+    every GPS record and the one after it, printed 142,221 lines to the terminal, its compiled
+    indexer 116,622 more, and the records it lost were counted nowhere (corrupt frames 0). The
+    letters' size and GPS's own records say 51: the byte is repaired and the log reads whole."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    path = _damaged_gps_format(tmp_path, lambda data, at: data.__setitem__(at, data[at] ^ 0x04))
+    whole = TlogSource(TEST_DATA / path.name)
+    kinds_whole = _kinds(whole)
+    src = TlogSource(path)
+    assert _kinds(src) == kinds_whole and kinds_whole["gnss"] > 1000
+    assert src.counters["rejected"]["repaired_format_length:GPS"] == 1
+    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + 1
+    assert _nothing_printed(capfd)
+
+
+def test_format_letters_that_disagree_with_the_length_lose_only_their_type(tmp_path, capfd):
+    """One letter of GPS's format changed to another of a different size ('f', 4 bytes → 'd',
+    8): the length byte and the records say 51, so the letters are what is damaged; every GPS
+    record failed to parse. The type is skipped whole and said; the rest reads as from the
+    whole log."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    def change(data, at):
+        k = at + 5 + bytes(data[at + 5:at + 21]).index(b"f")
+        data[k] = ord("d")
+
+    path = _damaged_gps_format(tmp_path, change)
+    whole = TlogSource(TEST_DATA / path.name)
+    kinds_whole = _kinds(whole)
+    src = TlogSource(path)
+    assert _kinds(src) == {k: n for k, n in kinds_whole.items() if k not in ("gnss", "truth")}
+    assert src.counters["rejected"]["damaged_format:GPS"] == 1
+    assert "reader_parse_failure" not in src.counters["rejected"]
+    assert _nothing_printed(capfd)
+
+
+def test_damaged_record_headers_are_counted_not_printed(tmp_path, capfd):
+    """Forty records' header bytes zeroed in the middle of the log (bit errors on the card):
+    pymavlink's indexer printed a line per resynchronisation. They are counted as corrupt
+    frames (``indexer_bad_header``), nothing is printed, and at most those records are lost."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    log_name = "ardusub-4.7-sitl-drive.BIN"
+    data = bytearray((TEST_DATA / log_name).read_bytes())
+    hits, at = 0, len(data) // 2
+    while hits < 40:
+        at = bytes(data).index(b"\xa3\x95", at + 5000)
+        data[at] = 0
+        hits += 1
     path = tmp_path / log_name
     path.write_bytes(bytes(data))
     whole = TlogSource(TEST_DATA / log_name)
-    kinds_whole = Counter(getattr(s, "KIND", "") for s in whole)
+    n_whole = sum(_kinds(whole).values())
     src = TlogSource(path)
-    kinds = Counter(getattr(s, "KIND", "") for s in src)
-    failed = src.counters["rejected"]["reader_parse_failure"]
-    bad_headers = src.counters["rejected"]["indexer_bad_header"]
-    assert failed >= kinds_whole["gnss"] > 1000  # every GPS record (and what it swallowed)
-    assert bad_headers >= kinds_whole["gnss"]
-    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + failed + bad_headers
-    printed = capfd.readouterr()  # (our own one-line warnings may quote the first complaint)
-    assert not [line for line in (printed.err + printed.out).splitlines()
-                if line.startswith(("bad header", "Failed to parse"))]
-    assert kinds == Counter({k: n for k, n in kinds_whole.items() if k not in ("gnss", "truth")})
+    n = sum(_kinds(src).values())
+    assert n_whole - 40 <= n <= n_whole
+    assert src.counters["rejected"]["indexer_bad_header"] >= 40
+    assert src.counters["corrupt_frames"] >= whole.counters["corrupt_frames"] + 40
+    assert _nothing_printed(capfd)
 
 
 def _tlog_without(src: Path, dst: Path, t_from_s: float, span_s: float) -> None:
