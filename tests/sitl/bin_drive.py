@@ -37,7 +37,7 @@ GCS_RATES = {"RAW_IMU": 50, "ATTITUDE": 50, "SCALED_PRESSURE2": 10, "SERVO_OUTPU
 
 def drive(gcs: Gcs, legs: int, leg_s: float) -> None:
     """Dive in MANUAL, lanes and turns under depth hold, a sideways leg, surface."""
-    _dive(gcs)
+    dive(gcs)
     for leg in range(legs):
         gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 450)
         if leg < legs - 1:
@@ -67,7 +67,7 @@ def turn_by(gcs: Gcs, deg: float, r: int = 500, x: int = 0, timeout_s: float = 3
     gcs.stick = {"x": x, "y": 0, "z": 500, "r": 0}
 
 
-def _arm(gcs: Gcs) -> None:
+def arm(gcs: Gcs) -> None:
     """Sticks neutral, MANUAL, armed, 5 s at rest (the log's first seconds)."""
     gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
     gcs.mode(MODE_MANUAL)
@@ -76,8 +76,9 @@ def _arm(gcs: Gcs) -> None:
     gcs.hold_sticks(5)  # at rest, armed: the log's first seconds
 
 
-def _dive(gcs: Gcs) -> None:
-    _arm(gcs)
+def dive(gcs: Gcs) -> None:
+    """Armed (:func:`arm`), 14 s down at z 200, then depth hold (ALT_HOLD)."""
+    arm(gcs)
     gcs.hold_sticks(14, z=200)  # dive
     gcs.mode(MODE_ALT_HOLD)
     gcs.hold_sticks(3)
@@ -93,7 +94,7 @@ def _surface(gcs: Gcs) -> None:
 def drive_survey(gcs: Gcs, legs: int = 5, leg_s: float = 80.0) -> None:
     """(a) A slow survey: a lawnmower of long lanes at low throttle (x 530/520), 90° turns and
     short cross legs (12 s), alternating right/left pairs; ~8.5 min submerged at 5 x 80 s."""
-    _dive(gcs)
+    dive(gcs)
     for leg in range(legs):
         gcs.hold_sticks(leg_s, x=530 if leg % 2 == 0 else 520)
         if leg < legs - 1:
@@ -107,7 +108,7 @@ def drive_survey(gcs: Gcs, legs: int = 5, leg_s: float = 80.0) -> None:
 def drive_brisk(gcs: Gcs, legs: int = 6, leg_s: float = 40.0) -> None:
     """(b) A brisk drive: x 750-800, turns both ways (90-180°, some while moving), and depth
     changes under ALT_HOLD with the z stick in the middle of lanes (down, then up as much)."""
-    _dive(gcs)
+    dive(gcs)
     turns = [120, -90, 180, -150, 90, -120]
     for leg in range(legs):
         x = 800 if leg % 2 == 0 else 750
@@ -123,7 +124,7 @@ def drive_brisk(gcs: Gcs, legs: int = 6, leg_s: float = 40.0) -> None:
 def drive_arcs(gcs: Gcs, legs: int = 5, leg_s: float = 55.0) -> None:
     """(c) Continuous gentle yaw: lanes at x 600 with r ±150-250 held throughout (arcs,
     circles), the sign and rate changing each lane; no straight line."""
-    _dive(gcs)
+    dive(gcs)
     rates = [200, -150, 250, -200, 150]
     for leg in range(legs):
         gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 550, r=rates[leg % len(rates)])
@@ -133,7 +134,7 @@ def drive_arcs(gcs: Gcs, legs: int = 5, leg_s: float = 55.0) -> None:
 def drive_stops(gcs: Gcs, legs: int = 4, leg_s: float = 50.0, hover_s: float = 30.0) -> None:
     """(d) Drive, hover, drive again: lanes at x 600/500 each followed by a 30 s hover with the
     sticks neutral (depth hold), a 90° turn from the hover, then the next lane."""
-    _dive(gcs)
+    dive(gcs)
     for leg in range(legs):
         gcs.hold_sticks(leg_s, x=600 if leg % 2 == 0 else 500)
         gcs.hold_sticks(hover_s)
@@ -147,7 +148,7 @@ def drive_mixed(gcs: Gcs, legs: int = 6, leg_s: float | None = None) -> None:
     (x 800, 530, 680, the fourth in reverse at -450, 750, 560) so one learned speed scale has to
     serve them all, turns of 90-150° both ways between lanes (the third on the move at x 300);
     ~6 min from arming to disarming. ``leg_s`` given: every lane that long."""
-    _dive(gcs)
+    dive(gcs)
     sticks = [800, 530, 680, -450, 750, 560]
     lane_s = [45.0, 40.0, 44.0, 45.0, 40.0, 45.0]
     turns = [120, -90, 150, -120, 100]
@@ -164,7 +165,7 @@ def drive_zigzag(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     sideways leg (y -400, 20 s), a lane astern (x -300, 30 s), a lane at x 700 (30 s) ending in
     a 180° pivot, a lane at x 400 with a descent in its middle (z 300 for 10 s); ~5 min from
     arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
-    _dive(gcs)
+    dive(gcs)
     gcs.hold_sticks(60, x=250)  # a long lane at low throttle
     for k in range(6):  # a zigzag while thrusting
         gcs.hold_sticks(8, x=650, r=300 if k % 2 == 0 else -300)
@@ -186,7 +187,7 @@ def drive_manual(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     sinks; the vectored frame wanders ~4.4-10 m, the Heavy ~7-18 m), 90° turns between the
     lanes (yaw stick 400, z stick neutral), surface on the z stick (z 900, 40 s); ~5.5 min from
     arming to disarming. ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
-    _arm(gcs)
+    arm(gcs)
     gcs.hold_sticks(16, z=200)  # dive
     gcs.hold_sticks(3, z=420)
     lanes = [(55, 600, 400), (40, 550, 440), (55, 700, 410), (40, 500, 440), (50, 650, 400)]  # (s, x, z trim)
@@ -205,7 +206,7 @@ def drive_box(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -> 
     the autopilot's yaw has turned 90°, ~6 s), then the same rectangle in the reverse direction
     (left turns); ~6.6 min from arming to disarming. ``legs`` and ``leg_s`` are ignored (the
     timings are the pattern's)."""
-    _dive(gcs)
+    dive(gcs)
     sides = [40.0, 35.0, 40.0, 35.0]
     for sign in (1, -1):  # clockwise, then anticlockwise
         for side_s in sides:
@@ -221,7 +222,7 @@ def drive_creep(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) -
     with the sticks neutral (20-40 s) under depth hold, turns of 45°, -90° and 60° from the
     hover (yaw stick 300-400); ~6.7 min from arming to disarming. ``legs`` and ``leg_s`` are
     ignored (the timings are the pattern's)."""
-    _dive(gcs)
+    dive(gcs)
     gcs.hold_sticks(45, x=250)
     gcs.hold_sticks(30)  # hover
     turn_by(gcs, 45, r=300)
@@ -244,7 +245,7 @@ def drive_redive(gcs: Gcs, legs: int | None = None, leg_s: float | None = None) 
     again (z 200, 16 s, then depth hold), three lanes (x 650, 500, 600, 35-40 s) with a -120°
     turn and a 90° turn on the move (x 300), surface; ~6 min from arming to disarming.
     ``legs`` and ``leg_s`` are ignored (the timings are the pattern's)."""
-    _dive(gcs)
+    dive(gcs)
     gcs.hold_sticks(45, x=600)
     turn_by(gcs, 90, r=500)
     gcs.hold_sticks(45, x=550)

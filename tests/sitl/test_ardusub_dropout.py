@@ -25,7 +25,8 @@ import pytest
 
 from adaptnav.fusion.frames import GeoOrigin
 
-from .ardusub import HOME, MODE_ALT_HOLD, MODE_MANUAL, ArduSub, Gcs, free_udp_port
+from .ardusub import HOME, ArduSub, Gcs, free_udp_port
+from .bin_drive import dive
 from .test_ardusub_live import GCS_RATES, RECORDED, NavLog, start_daemon, truth_ned
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
@@ -106,13 +107,7 @@ def test_a_link_dropout_mid_lane_is_coasted_through(tmp_path):
         navlog.daemon_ref = daemon
         gcs.wait(lambda: daemon.sink.latest_state is not None and daemon.sink.latest_state["valid"], 120,
                  "a valid solution")
-        gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
-        gcs.mode(MODE_MANUAL)
-        gcs.arm()
-        gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
-        gcs.hold_sticks(14, z=200)  # dive
-        gcs.mode(MODE_ALT_HOLD)
-        gcs.hold_sticks(3)
+        dive(gcs)
         gcs.stick = {"x": 600, "y": 0, "z": 500, "r": 0}  # a lane, held by the ground station's thread
         time.sleep(25.0)
         t_cut = time.time()
