@@ -21,7 +21,10 @@ A sample more than ``max_ahead_s`` after ``D`` or more than ``max_behind_s`` bef
 rejected (``time_ahead`` / ``time_behind``) — a single outlier stamp is never taken for a
 clock jump. A *jump* is a stream that continues consistently from a new time:
 ``jump_confirm_samples`` samples in a row of one stream, increasing, each within
-``max_ahead_s`` of the previous, all on the far side of ``D``. Then the jump is accepted:
+``max_ahead_s`` of the previous, all on the far side of ``D``, and no other stream going
+on at ``D`` meanwhile — if one does, the clock did not jump: the stream is stamped by a clock
+of its own (a driver's clock off) and stays refused (it re-based the whole filter, and the
+IMU, still on ``D``, then came too late to be used). Then the jump is accepted:
 ``D`` moves to the new time, the jump is counted (``clock_jump``) and recorded in
 :attr:`Door.jumps` as ``(kind, from_s, to_s)``, and :meth:`Door.check` returns the size of
 the jump so that the caller re-bases what depends on time (the estimator's clock,
@@ -139,7 +142,7 @@ class Door:
             in_window = d == -math.inf
         if in_window:
             if self._cand:
-                self._cand.pop(kind, None)
+                self._stream_on_time(kind)
             if t > d:
                 self.t_data_s = t
             return None, 0.0
@@ -166,6 +169,15 @@ class Door:
         self.rejected["clock_jump"] += 1
         self.t_data_s = t
         return None, t - d
+
+    def _stream_on_time(self, kind: str) -> None:
+        """A sample of ``kind`` within the window of the data clock: its own candidate jump
+        ends, and every other stream's starts over — the clock did not jump while this stream
+        goes on at it; a stream that continues from another time is stamped by a clock of its
+        own (a driver's clock off), and its samples stay refused."""
+        self._cand.pop(kind, None)
+        for cand in self._cand.values():
+            cand.n = 0
 
     # -- values ----------------------------------------------------------------------------
     def _value(self, s) -> str | None:
@@ -234,7 +246,8 @@ class Door:
         t_lo, t_hi = (-math.inf, math.inf) if d == -math.inf else (d - c.max_behind_s, d + c.max_ahead_s)
         if imu_run_in_bounds(t_s, f_b, w_b, c.max_specific_force_m_s2, c.max_rate_rad_s, t_lo, t_hi,
                              c.max_ahead_s):
-            self._cand.pop("imu", None)
+            if self._cand:
+                self._stream_on_time("imu")
             if t_s[-1] > d:
                 self.t_data_s = float(t_s[-1])
             return None, 0.0

@@ -216,3 +216,26 @@ def test_a_release_outside_the_calibrators_bounds_is_refused_counted_and_not_per
     assert summary.releases_refused == 1 and summary.releases_accepted == 0
     assert health.rejected_by_reason() == {"release_refused:var_vv": 1}
     assert len(seen) == 1 and not seen[0].accepted and "var_vv" in seen[0].reason
+
+
+def test_one_stream_on_a_clock_of_its_own_is_refused_not_taken_for_a_jump(sim60, baseline):
+    """From 30 s on the depth sensor's samples are stamped 10 s ahead (its driver's clock off)
+    while the IMU and the rest go on at the data clock. Its five samples in a row used to
+    confirm a "clock jump": the filter was re-based 10 s ahead and every IMU sample after
+    came too late to be used — navigation stopped. The clock cannot have jumped while the
+    other streams go on at it: the depth samples are refused, navigation goes on."""
+    base, _, _, _ = baseline
+
+    def depth_ahead(item):
+        if isinstance(item, DepthSample) and item.t_s > INJECT_AFTER_S:
+            return DepthSample(item.t_s + 10.0, item.pressure_pa)
+        return item
+
+    states, health, _, summary = _run(sim60, shift=depth_ahead)
+    assert not summary.clock_jumps and not summary.errors
+    assert health.rejected_by_reason().get("time_ahead", 0) > 100
+    # every output epoch of the baseline, to the end of the data
+    assert [s.t_s for s in states] == [s.t_s for s in base]
+    late = [(s, b) for s, b in zip(states, base) if s.t_s > INJECT_AFTER_S]
+    assert all(s.valid for s, _ in late)
+    assert max(np.hypot(*(s.pos_n_m[:2] - b.pos_n_m[:2])) for s, b in late) < 1.0
