@@ -285,8 +285,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
              recorder, metrics_sink, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
+    # the source tells data missing from a step of its clock where it can (a boot clock, a log clock)
+    door = door_for(estimator, getattr(inp.source, "forward_jump_is_gap", None))
     if plots:
-        sinks.append(PlotSink(recorder, out, title or inp.label))
+        sinks.append(PlotSink(recorder, out, title or inp.label, gaps=door.gaps if door is not None else ()))
     if mcap is not None:
         from adaptnav.service.runtime.foxglove import open_mcap_sink, replay_time_base
 
@@ -301,8 +303,6 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         backend.idle = deferred.work
         sinks = [deferred, *(s for s in sinks if not getattr(s, "deferrable", False))]
     clock = RealtimeClock(realtime) if realtime else LogClock()
-    # a log on an autopilot's boot clock: a stream going on from a later time is data missing
-    door = door_for(estimator, getattr(inp.source, "forward_jump_is_gap", None))
     bar, prog = _progress_bar(inp.duration_s, title or inp.label, progress)
     wall0 = time.monotonic()
     # what exists now (a simulated mission held in memory is ~10⁵ objects per hour) is

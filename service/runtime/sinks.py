@@ -31,7 +31,7 @@ import math
 from collections import Counter, deque
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -568,15 +568,20 @@ class MetricsSink(Sink):
 
 
 class PlotSink(Sink):
-    """Writes ``track.png``, ``params.png``, ``innovations.png`` into ``out_dir`` at close."""
+    """Writes ``track.png``, ``params.png``, ``innovations.png`` into ``out_dir`` at close;
+    ``gaps`` — the door's data gaps ``(kind, from_s, to_s)``, filled while the run goes on — are
+    shaded on the error plot."""
 
-    def __init__(self, recorder: SeriesRecorder, out_dir: str | Path, title: str = "") -> None:
+    def __init__(self, recorder: SeriesRecorder, out_dir: str | Path, title: str = "",
+                 gaps: Sequence[tuple[str, float, float]] = ()) -> None:
         self.recorder = recorder
         self.out_dir = Path(out_dir)
         self.title = title
+        self.gaps = gaps
         self.written: list[Path] = []
 
     def close(self) -> None:
         from adaptnav.service.tools import plots
 
-        self.written = plots.write_all(self.recorder, self.out_dir, self.title)
+        self.written = plots.write_all(self.recorder, self.out_dir, self.title,
+                                       gaps_s=[(a, b) for _, a, b in self.gaps])

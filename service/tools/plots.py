@@ -9,8 +9,9 @@
 """
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -74,7 +75,9 @@ def error_sigma_series(rec: Any, track: Any, truth: Any) -> tuple[np.ndarray, np
     return t_min, sigma_h_m, err_h_m, fix_t_min
 
 
-def plot_track(rec: Any, path: Path, title: str = "") -> bool:
+def plot_track(rec: Any, path: Path, title: str = "", gaps_s: Sequence[tuple[float, float]] = ()) -> bool:
+    """The track (and the truth's) and the horizontal error with its 3σ over time; the spans
+    of ``gaps_s`` (data missing, coasted through: ``(from_s, to_s)``) shaded."""
     track = rec.track()
     if len(track.t_s) == 0:
         return False
@@ -95,6 +98,9 @@ def plot_track(rec: Any, path: Path, title: str = "") -> bool:
     ax1.fill_between(t_min, 0.0, 3.0 * sigma_h, alpha=0.25, color="tab:orange", label="3σ (horizontal)")
     if len(fix_t_min):
         ax1.plot(fix_t_min, np.zeros(len(fix_t_min)), "k|", ms=10, label="fused position fixes")
+    for k, (a, b) in enumerate(gaps_s):
+        ax1.axvspan((a - track.t_s[0]) / 60.0, (b - track.t_s[0]) / 60.0, color="0.6", alpha=0.4,
+                    label="no input (coasted)" if k == 0 else None)
     ax1.set_xlabel("time (min)")
     ax1.set_ylabel("m")
     ax1.set_title("horizontal error and ±3σ")
@@ -204,11 +210,12 @@ def plot_innovations(rec: Any, path: Path, title: str = "") -> bool:
     return True
 
 
-def write_all(rec: Any, out_dir: Path, title: str = "") -> list[Path]:
-    """Write the three plots that have data; return the paths written."""
+def write_all(rec: Any, out_dir: Path, title: str = "", gaps_s: Sequence[tuple[float, float]] = ()) -> list[Path]:
+    """Write the three plots that have data (``gaps_s`` as :func:`plot_track`'s); return the
+    paths written."""
     out_dir = Path(out_dir)
     written = []
-    for name, fn in (("track.png", plot_track), ("params.png", plot_params),
+    for name, fn in (("track.png", partial(plot_track, gaps_s=gaps_s)), ("params.png", plot_params),
                      ("innovations.png", plot_innovations)):
         if fn(rec, out_dir / name, title):
             written.append(out_dir / name)
