@@ -18,6 +18,7 @@ with the packet counts, so a CLI can print a clear message.
 from __future__ import annotations
 
 import calendar
+import dataclasses
 import math
 import warnings
 from collections import Counter
@@ -52,6 +53,9 @@ class XtfReadReport:
     n_sides_resampled : int
         Pings whose port channel had another sample count than starboard (kept, port
         resampled onto starboard's samples).
+    n_times_spread : int
+        Pings re-timed because the file stamps them to the whole second (kept, spread evenly
+        over their second).
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -63,6 +67,7 @@ class XtfReadReport:
     n_truncated: int = 0
     n_no_nav: int = 0
     n_sides_resampled: int = 0
+    n_times_spread: int = 0
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -72,6 +77,8 @@ class XtfReadReport:
         text = f"packets {{{counts}}}; undecoded {self.n_undecoded}; truncated pings {self.n_truncated}"
         if self.n_sides_resampled:
             text += f"; port resampled onto starboard's samples in {self.n_sides_resampled} pings"
+        if self.n_times_spread:
+            text += f"; {self.n_times_spread} pings stamped to the whole second spread over it"
         if self.error:
             text += f"; stopped early: {self.error}"
         return text
@@ -98,6 +105,31 @@ def _channel_sides(file_header) -> tuple[int, int] | None:
     port = types.index(1) if 1 in types else 0
     stbd = types.index(2) if 2 in types else 1
     return port, stbd
+
+
+def _spread_repeated_times(pings: list[SonarPing]) -> int:
+    """Pings stamped to the whole second (a recorder that leaves ``HSeconds`` 0): every ping
+    of a second had one time, and all but the first were dropped as duplicates. When most
+    pings repeat the time before them, the pings of each run of equal times are spread
+    evenly (in file order) up to the next run's time — the last run at the median spacing.
+    Returns the number of pings re-timed (0: the file's own times kept)."""
+    t = np.array([p.t_s for p in pings], dtype=float)
+    if t.size < 3 or not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+        return 0
+    repeated = np.diff(t) == 0.0
+    if repeated.mean() <= 0.5:
+        return 0
+    starts = np.flatnonzero(np.concatenate([[True], ~repeated]))   # first ping of each run
+    ends = np.concatenate([starts[1:], [t.size]])
+    spacing = np.median(np.diff(t[starts]) / np.diff(starts)) if starts.size > 1 else 0.0
+    out = t.copy()
+    for a, b in zip(starts, ends):
+        t_next = t[b] if b < t.size else t[a] + (b - a) * spacing
+        out[a:b] = t[a] + (t_next - t[a]) * np.arange(b - a) / (b - a)
+    moved = np.flatnonzero(out != t)
+    for k in moved:
+        pings[k] = dataclasses.replace(pings[k], t_s=float(out[k]))
+    return int(moved.size)
 
 
 def _slant_range_m(chan, pkt) -> float:
@@ -173,6 +205,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
                 pings.append(ping)
     report.packet_counts = dict(counts)
     report.warnings = sorted({str(w.message) for w in caught})
+    report.n_times_spread = _spread_repeated_times(pings)
     if sides is None:
         raise SonarFileError(
             f"{path}: no side-scan channels (file header declares "

@@ -102,3 +102,38 @@ def test_sides_sampled_differently_are_read_not_dropped(tmp_path):
         # the echo at each range is kept: the recorder averaged pairs, the reader repeats each
         pairs = np.round(0.5 * (b.port[0::2].astype(float) + b.port[1::2]))
         assert np.allclose(a.port, np.repeat(pairs, 2), atol=0.51)
+
+
+def _whole_seconds(src, dst):
+    """``src`` with every ping's hundredths of a second 0, as some recorders write the time."""
+    import struct
+
+    data = bytearray(src.read_bytes())
+    o = 1024
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        if kind == 0:
+            data[o + 21] = 0  # XTFPingHeader.HSeconds
+        o += size
+    dst.write_bytes(bytes(data))
+
+
+def test_pings_stamped_to_the_whole_second_are_spread_over_it(tmp_path):
+    """A recorder that stamps pings to the whole second: the ~9 pings of each second had one
+    time, and all but one were dropped as duplicates before any waterfall. They are spread
+    evenly over their second now."""
+    from adaptnav.sonar.waterfall import clean_pings
+
+    src = need(SCOTSMAN)
+    coarse = tmp_path / "whole-seconds.xtf"
+    _whole_seconds(src, coarse)
+    full, _ = read_xtf(src)
+    pings, report = read_xtf(coarse)
+    assert report.n_times_spread > 0.8 * len(full) and "whole second" in report.summary()
+    kept, dropped = clean_pings(pings)
+    assert len(kept) == len(full) and "duplicate time" not in dropped
+    t, t_true = np.array([p.t_s for p in pings]), np.array([p.t_s for p in full])
+    assert np.all(np.diff(t) > 0)
+    assert np.max(np.abs(t - t_true)[:-20]) < 0.15  # within a ping spacing of the file's own times
+    # a file with its own hundredths is left alone
+    assert read_xtf(src)[1].n_times_spread == 0
