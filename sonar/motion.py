@@ -208,6 +208,7 @@ class WindowRegistrar:
         """
         if window < 8 or step < 1:
             raise ValueError("window must be ≥ 8 rows and step ≥ 1")
+        self._cache = None  # another waterfall: features cached from the last one are not its
         img = to_uint8(waterfall.image)
         n = waterfall.image.shape[0]
         starts = list(range(0, n - window + 1, step))
