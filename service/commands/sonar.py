@@ -1,6 +1,6 @@
 """`adaptnav sonar`: side-scan files → waterfall picture, visual motion records.
 
-    adaptnav sonar waterfall FILE.xtf --out FILE.png [--res-m 0.05]
+    adaptnav sonar waterfall FILE.xtf --out FILE.png [--res-m 0.05]   (a long file: FILE-001.png, …)
     adaptnav sonar motion FILE.xtf [--window PINGS --step PINGS] [--detector sift|orb] --json
 
 Files without side-scan channels, unreadable or truncated files give a one-line
@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from pathlib import Path
 
 HELP = "side-scan sonar: waterfall images and visual motion from XTF files"
 
@@ -93,18 +94,31 @@ def with_scale_bar(img, res_m_per_px: float):
     return np.ascontiguousarray(out)
 
 
+# pings per picture of `sonar waterfall`: a longer file is written as numbered tiles (a 206 MB
+# XTF at the sample spacing was one 212,258 × 2048 picture and took 8.9 GB to make)
+WATERFALL_TILE_PINGS = 3000
+
+
 def _waterfall(args, pings) -> int:
     import cv2
 
     from adaptnav.sonar.waterfall import WaterfallConfig, build_waterfall, to_uint8
 
     res = args.res_m or pings[0].sample_spacing_m
-    wf = build_waterfall(pings, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))
-    if not cv2.imwrite(args.out, with_scale_bar(to_uint8(wf.image), wf.ground_res_m)):
-        return _fail(f"could not write {args.out}")
-    print(f"{args.out}: {wf.image.shape[0]} rows x {wf.image.shape[1]} columns, "
-          f"{wf.ground_res_m:.3f} m/px across, "
-          f"{wf.along_res_m:.3f} m/{'px' if math.isfinite(wf.along_res_m) else 'ping'} along")
+    tiles = [pings[k:k + WATERFALL_TILE_PINGS] for k in range(0, len(pings), WATERFALL_TILE_PINGS)]
+    if len(tiles) > 1 and len(tiles[-1]) < 2:  # a last ping alone makes no picture: to the one before
+        tiles[-2] += tiles.pop()
+    out = Path(args.out)
+    for k, tile in enumerate(tiles):
+        path = out if len(tiles) == 1 else out.with_name(f"{out.stem}-{k + 1:03d}{out.suffix}")
+        wf = build_waterfall(tile, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))
+        if not cv2.imwrite(str(path), with_scale_bar(to_uint8(wf.image), wf.ground_res_m)):
+            return _fail(f"could not write {path}")
+        print(f"{path}: {wf.image.shape[0]} rows x {wf.image.shape[1]} columns, "
+              f"{wf.ground_res_m:.3f} m/px across, "
+              f"{wf.along_res_m:.3f} m/{'px' if math.isfinite(wf.along_res_m) else 'ping'} along"
+              + (f" (pings {k * WATERFALL_TILE_PINGS}–{k * WATERFALL_TILE_PINGS + len(tile) - 1})"
+                 if len(tiles) > 1 else ""))
     return 0
 
 

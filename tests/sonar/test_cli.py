@@ -110,3 +110,27 @@ def test_motion_registers_a_long_file_chunk_by_chunk(capsys, monkeypatch):
     pairs = [(c, w) for c, w in zip(chunked, whole) if c["along_m"] is not None and w["along_m"] is not None]
     assert len(pairs) >= 0.9 * len(whole)
     assert all(abs(c["along_m"] - w["along_m"]) < 0.1 * abs(w["along_m"]) + 0.1 for c, w in pairs)
+
+
+def test_a_long_waterfall_is_written_as_numbered_tiles(tmp_path, capsys, monkeypatch):
+    """One picture of a whole survey does not fit in memory (a 206 MB XTF took 8.9 GB for a
+    212,258-row picture): a file longer than a tile is written as numbered tiles covering
+    every ping once; a short one stays one picture under the name given."""
+    from adaptnav.service.commands import sonar
+
+    out = tmp_path / "wf.png"
+    assert main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(out), "--res-m", "0.1"]) == 0
+    rows_whole = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE).shape[0]
+    capsys.readouterr()
+    monkeypatch.setattr(sonar, "WATERFALL_TILE_PINGS", 200)  # 461 pings: 200 + 200 + 61
+    tiled = tmp_path / "tiles" / "wf.png"
+    tiled.parent.mkdir()
+    assert main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(tiled), "--res-m", "0.1"]) == 0
+    said = capsys.readouterr().out
+    names = sorted(p.name for p in tiled.parent.iterdir())
+    assert names == ["wf-001.png", "wf-002.png", "wf-003.png"], names
+    assert "pings 0–199" in said and "pings 400–460" in said
+    imgs = [cv2.imread(str(tiled.parent / n), cv2.IMREAD_GRAYSCALE) for n in names]
+    assert all(img is not None and img.shape[1] == 600 for img in imgs)
+    # the same track, cut in three (each tile's rows start at its first ping)
+    assert abs(sum(img.shape[0] for img in imgs) - rows_whole) <= 0.02 * rows_whole + 3
