@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections import Counter
 
 import pytest
@@ -11,7 +12,7 @@ from adaptnav.fusion.samples import DepthSample, ImuSample, RpmSample
 from adaptnav.service.transport.bus import Bus, message
 from adaptnav.service.commands.record import record
 from adaptnav.service.config import ZenohConfig
-from adaptnav.service.transport.logs import ReadStats, read_mcap
+from adaptnav.service.transport.logs import LOG_CLOCK_KEY, RECEPTION_WALL_CLOCK, ReadStats, read_mcap
 
 from .test_daemon_support import free_port, wait_until
 
@@ -100,3 +101,9 @@ def test_record_writes_every_message(tmp_path):
     assert imu_back == samples[:50]
     nav = [m for m in back if m.KIND == "nav_state"]
     assert nav[0].body["pos_n_m"] == [1.0, 2.0, 3.0] and nav[0].t_s == 0.5
+    # the log times are the recorder's wall clock, and the file says so (replay tells a dropout
+    # from a step of the data's clock by it: McapSource.forward_jump_is_gap)
+    log = read_mcap(out)
+    assert log.metadata[LOG_CLOCK_KEY] == RECEPTION_WALL_CLOCK
+    times = [(getattr(m, "t_s", None), log.log_time_ns) for m in log if getattr(m, "KIND", "") == "imu"]
+    assert all(abs(ns * 1e-9 - time.time()) < 600.0 for _, ns in times)  # wall time, not the data's 0–0.5 s
