@@ -117,7 +117,7 @@ def format_length_repairs(data: Any) -> list[tuple[int, str, int, int]]:
         mtype, declared = data[at + 3], data[at + 4]
         letters = bytes(data[at + 9:at + 25]).split(b"\0", 1)[0]
         size = _letters_size(letters)
-        if size is not None and mtype != 0x80 and declared != size + 3:
+        if size is not None and declared != size + 3:
             expected = size + 3
             votes = {declared: 0, expected: 0}
             seen = 0
