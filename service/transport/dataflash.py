@@ -99,38 +99,73 @@ def _letters_size(letters: bytes) -> int | None:
     return size
 
 
-def format_length_repairs(data: Any) -> list[tuple[int, str, int, int]]:
-    """FMT records of a binary DataFlash log whose length byte is damaged: ``(offset of the
-    length byte, type name, declared length, length of its format letters)``.
+class FormatRepair(NamedTuple):
+    """One byte of a damaged FMT record set right (:func:`format_repairs`)."""
+
+    offset: int      # of the byte in the file
+    value: int       # what it is set to
+    name: str        # the record type's name
+    what: str        # "length" or "letters"
+    was: str         # the damaged value, for the message
+
+
+def _header_votes(data: Any, mtype: int, after: int, lengths) -> tuple[int, dict[int, int]]:
+    """``(records looked at, {length: records followed by a header at that length})`` for up
+    to ``_LENGTH_VOTES`` records of type ``mtype`` after offset ``after``."""
+    votes = {length: 0 for length in lengths}
+    seen = 0
+    rec = data.find(b"\xa3\x95" + bytes([mtype]), after)
+    while rec >= 0 and seen < _LENGTH_VOTES:
+        seen += 1
+        for length in votes:
+            if data[rec + length:rec + length + 2] == b"\xa3\x95":
+                votes[length] += 1
+        rec = data.find(b"\xa3\x95" + bytes([mtype]), rec + 3)
+    return seen, votes
+
+
+def format_repairs(data: Any) -> list[FormatRepair]:
+    """The bytes of a binary DataFlash log's FMT records that a single damaged byte or bit
+    made wrong, and what they were.
 
     A record's declared length is always its letters' size + 3 in a whole log (ArduSub 4.1
-    and 4.7 alike). When they disagree, one of the two bytes was damaged: the records of the
-    type say which — a header follows each record at the length that is right. The length
-    is repaired only when its letters' length puts a header after most of its records and
-    the declared one does not; otherwise the letters are taken as damaged
-    (:func:`tolerant_formats` skips the type). With pymavlink's reader a wrong length lost
-    every record of the type and the record after each, and sent its indexer resynchronising
-    through the log (116,622 complaints for one flipped bit of GPS's length)."""
-    repairs = []
+    and 4.7 alike). When they disagree, one of the two was damaged: the records of the type
+    say which — a header follows each record at the length that is right. The length is
+    repaired when its letters' length puts a header after most of its records and the
+    declared one does not. A letter DFReader does not know (a flipped bit) is repaired when
+    exactly one letter a bit away from it gives the declared length (and the records agree
+    with that length). Otherwise :func:`tolerant_formats` skips the type whole. With
+    pymavlink's reader a wrong length lost every record of the type and the record after
+    each, and sent its indexer resynchronising through the log (116,622 complaints for one
+    flipped bit of GPS's length); a wrong letter lost the whole log or every record of its
+    type. A letter changed into another of the same size cannot be told from the right one."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    repairs: list[FormatRepair] = []
     at = data.find(_FMT_HEADER)
     while at >= 0 and at + _FMT_RECORD_LEN <= len(data):
         mtype, declared = data[at + 3], data[at + 4]
         letters = bytes(data[at + 9:at + 25]).split(b"\0", 1)[0]
+        name = bytes(data[at + 5:at + 9]).split(b"\0", 1)[0].decode("ascii", "replace")
         size = _letters_size(letters)
         if size is not None and declared != size + 3:
             expected = size + 3
-            votes = {declared: 0, expected: 0}
-            seen = 0
-            rec = data.find(b"\xa3\x95" + bytes([mtype]), at + _FMT_RECORD_LEN)
-            while rec >= 0 and seen < _LENGTH_VOTES:
-                seen += 1
-                for length in votes:
-                    if data[rec + length:rec + length + 2] == b"\xa3\x95":
-                        votes[length] += 1
-                rec = data.find(b"\xa3\x95" + bytes([mtype]), rec + 3)
+            seen, votes = _header_votes(data, mtype, at + _FMT_RECORD_LEN, (declared, expected))
             if seen >= 3 and votes[expected] >= 0.8 * seen and votes[declared] < 0.5 * votes[expected]:
-                name = bytes(data[at + 5:at + 9]).split(b"\0", 1)[0].decode("ascii", "replace")
-                repairs.append((at + 4, name, int(declared), expected))
+                repairs.append(FormatRepair(at + 4, expected, name, "length", str(declared)))
+        elif size is None:
+            unknown = [k for k, c in enumerate(letters) if chr(c) not in FORMAT_TO_STRUCT]
+            if len(unknown) == 1:
+                k = unknown[0]
+                rest = _letters_size(letters[:k] + letters[k + 1:])
+                near = (letters[k] ^ (1 << b) for b in range(8))  # the letters a bit away
+                fits = [c for c in near if chr(c) in FORMAT_TO_STRUCT and rest is not None
+                        and rest + _letters_size(bytes([c])) + 3 == declared]
+                if len(fits) == 1:
+                    seen, votes = _header_votes(data, mtype, at + _FMT_RECORD_LEN, (declared,))
+                    if seen == 0 or votes[declared] >= 0.8 * seen:
+                        repairs.append(FormatRepair(at + 9 + k, fits[0], name, "letters",
+                                                    letters.decode("ascii", "replace")))
         at = data.find(_FMT_HEADER, at + 3)
     return repairs
 
@@ -157,7 +192,7 @@ def tolerant_formats() -> Iterator[list[str]]:
                 super().__init__(type, name, flen, format, columns, oldfmt)
                 if struct.calcsize(self.msg_struct) != int(flen) - 3:
                     # letters and length disagree (one of them damaged, the length not
-                    # repairable: format_length_repairs): every record would fail to parse
+                    # repairable: format_repairs): every record would fail to parse
                     raise ValueError("format letters and length disagree")
             except Exception:  # noqa: BLE001 - DFReader raises a bare Exception
                 label = DFReader.null_term(name) if isinstance(name, str) else repr(name)

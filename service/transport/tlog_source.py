@@ -39,7 +39,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.service.transport.dataflash import IGNORED_WHY as DATAFLASH_IGNORED_WHY
 from adaptnav.service.transport.dataflash import READ as DATAFLASH_READ
 from adaptnav.service.transport.dataflash import USED as DATAFLASH_USED
-from adaptnav.service.transport.dataflash import (DataflashConverter, SimTruth, format_length_repairs,
+from adaptnav.service.transport.dataflash import (DataflashConverter, SimTruth, format_repairs,
                                                   indexer_complaints, reader_complaints, tolerant_formats)
 from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
 from adaptnav.service.transport.mavlink_frames import GPS_GLOBAL_ORIGIN_ID, SIM_STATE_ID, TlogReader, untruncated
@@ -176,7 +176,7 @@ class TlogSource:
         self._text_dataflash = suffix == ".log" and _is_text_dataflash(self.path)
         self._dataflash = suffix == ".bin" or self._text_dataflash
         self._index_said = False
-        self._length_repairs: list | None = None  # a binary DataFlash log's damaged FMT lengths (once)
+        self._format_repairs: list | None = None  # a binary DataFlash log's damaged FMT bytes (found once)
         self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
         self._text_lines_dropped_said = False
         self._text_log_clean = False  # a text log checked line by line and found whole
@@ -374,27 +374,27 @@ class TlogSource:
             return self._open(Path(copy.name))  # mapped: outlives the name
 
     def _open_binary_dataflash(self) -> Any:
-        """A binary DataFlash log, read from a copy with its damaged FMT length bytes repaired
-        when it has some (:func:`~adaptnav.service.transport.dataflash.format_length_repairs`),
+        """A binary DataFlash log, read from a copy with its damaged FMT record bytes repaired
+        when it has some (:func:`~adaptnav.service.transport.dataflash.format_repairs`),
         each counted as a corrupt frame and said once."""
         import mmap
 
-        if self._length_repairs is None:
+        if self._format_repairs is None:
             try:
                 with open(self.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-                    self._length_repairs = format_length_repairs(data)
+                    self._format_repairs = format_repairs(data)
             except (OSError, ValueError):  # empty or unreadable: the reader says so
-                self._length_repairs = []
-            for _, name, declared, right in self._length_repairs:
+                self._format_repairs = []
+            for r in self._format_repairs:
                 self.counters["corrupt_frames"] += 1
-                self._reject(f"repaired_format_length:{name}")
-                log.warning("%s: record format %s declares %d bytes, its fields take %d and its records "
-                            "agree: the length is repaired", self.path.name, name, declared, right)
-        if not self._length_repairs:
+                self._reject(f"repaired_format_{r.what}:{r.name}")
+                log.warning("%s: record format %s: its %s (%s) damaged, its records agree on one repair: "
+                            "repaired", self.path.name, r.name, r.what, r.was)
+        if not self._format_repairs:
             return self._open(self.path)
         data = bytearray(self.path.read_bytes())
-        for at, _, _, right in self._length_repairs:
-            data[at] = right
+        for r in self._format_repairs:
+            data[r.offset] = r.value
         with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".bin") as copy:
             copy.write(data)
             copy.flush()

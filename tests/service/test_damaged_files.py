@@ -274,6 +274,26 @@ def test_a_damaged_record_length_is_repaired(tmp_path, capfd):
     assert _nothing_printed(capfd)
 
 
+def test_a_format_letter_a_flipped_bit_made_unknown_is_repaired(tmp_path, capfd):
+    """One bit of a GPS format letter flipped ('L' → '\\', a letter DFReader does not know):
+    the type was skipped whole, every fix and the truth with it. One letter a bit away makes
+    the declared length, and the records agree with that length: the letter is repaired and
+    the log reads whole."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    def change(data, at):
+        k = at + 5 + bytes(data[at + 5:at + 21]).index(b"L")
+        data[k] ^= 0x10  # 'L' → '\\'
+
+    path = _damaged_gps_format(tmp_path, change)
+    whole = TlogSource(TEST_DATA / path.name)
+    src = TlogSource(path)
+    assert _kinds(src) == _kinds(whole)
+    assert src.counters["rejected"]["repaired_format_letters:GPS"] == 1
+    assert src.counters["corrupt_frames"] == whole.counters["corrupt_frames"] + 1
+    assert _nothing_printed(capfd)
+
+
 def test_format_letters_that_disagree_with_the_length_lose_only_their_type(tmp_path, capfd):
     """One letter of GPS's format changed to another of a different size ('f', 4 bytes → 'd',
     8): the length byte and the records say 51, so the letters are what is damaged; every GPS
