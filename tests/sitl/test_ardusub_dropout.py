@@ -25,9 +25,9 @@ import pytest
 
 from adaptnav.fusion.frames import GeoOrigin
 
-from .ardusub import HOME, ArduSub, Gcs, free_udp_port
+from .ardusub import HOME, free_udp_port
 from .bin_drive import dive
-from .test_ardusub_live import GCS_RATES, RECORDED, NavLog, start_daemon, truth_ned
+from .test_ardusub_live import GCS_RATES, ardusub_session, start_daemon, truth_ned
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
@@ -88,68 +88,61 @@ def test_a_link_dropout_mid_lane_is_coasted_through(tmp_path):
     out = Path(os.environ.get("ADAPTNAV_SITL_OUT", tmp_path))
     out.mkdir(parents=True, exist_ok=True)
     origin = GeoOrigin(math.radians(HOME[0]), math.radians(HOME[1]), 0.0)
-    gcs_port, daemon_port = free_udp_port(), free_udp_port()
+    daemon_port = free_udp_port()
     relay = LinkRelay(daemon_port)
     relay.start()
-    work = tmp_path / "ardusub"
-    work.mkdir()
-    sub = ArduSub(work, gcs_port, relay.port).start()
-    gcs = Gcs(gcs_port, keep=RECORDED)
-    navlog = NavLog()
-    navlog.start()
-    report: dict = {}
-    daemon = None
     try:
-        gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
-        for mtype, hz in GCS_RATES.items():
-            gcs.interval(mtype, hz)
-        daemon = start_daemon(tmp_path, daemon_port, tmp_path / "state")
-        navlog.daemon_ref = daemon
-        gcs.wait(lambda: daemon.sink.latest_state is not None and daemon.sink.latest_state["valid"], 120,
-                 "a valid solution")
-        dive(gcs)
-        gcs.stick = {"x": 600, "y": 0, "z": 500, "r": 0}  # a lane, held by the ground station's thread
-        time.sleep(25.0)
-        t_cut = time.time()
-        relay.cut(DROPOUT_S)
-        time.sleep(DROPOUT_S + 15.0)  # the dropout, then 15 s of the lane after it
-        gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
-        time.sleep(3.0)
-        health = daemon._health_report()
-        report["rejected"] = {k: v for k, v in health["rejected"].items() if k in ("data_gap", "clock_jump")}
-        report["datagrams_dropped"] = relay.dropped
+        with ardusub_session(tmp_path, relay.port) as (sub, gcs, navlog):
+            report: dict = {}
+            daemon = None
+            try:
+                for mtype, hz in GCS_RATES.items():
+                    gcs.interval(mtype, hz)
+                daemon = start_daemon(tmp_path, daemon_port, tmp_path / "state")
+                navlog.daemon_ref = daemon
+                gcs.wait(lambda: daemon.sink.latest_state is not None and daemon.sink.latest_state["valid"], 120,
+                         "a valid solution")
+                dive(gcs)
+                gcs.stick = {"x": 600, "y": 0, "z": 500, "r": 0}  # a lane, held by the ground station's thread
+                time.sleep(25.0)
+                t_cut = time.time()
+                relay.cut(DROPOUT_S)
+                time.sleep(DROPOUT_S + 15.0)  # the dropout, then 15 s of the lane after it
+                gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
+                time.sleep(3.0)
+                health = daemon._health_report()
+                report["rejected"] = {k: v for k, v in health["rejected"].items() if k in ("data_gap", "clock_jump")}
+                report["datagrams_dropped"] = relay.dropped
 
-        truth = truth_ned(gcs, origin)
-        t_unix, pos, valid = navlog.arrays("t_unix_s")
-        states = [s for s in navlog.states if s.get("t_unix_s") is not None and s["pos_n_m"][0] is not None]
+                truth = truth_ned(gcs, origin)
+                t_unix, pos, valid = navlog.arrays("t_unix_s")
+                states = [s for s in navlog.states if s.get("t_unix_s") is not None and s["pos_n_m"][0] is not None]
 
-        def error_at(wall_s: float) -> tuple[float, float]:
-            k = int(np.argmin(np.abs(truth[:, 0] - wall_s)))
-            ours = [np.interp(wall_s, t_unix, pos[:, i]) for i in range(2)]
-            s = min(states, key=lambda st: abs(st["t_unix_s"] - wall_s))
-            return math.hypot(ours[0] - truth[k, 1], ours[1] - truth[k, 2]), _sigma_h_m(s)
+                def error_at(wall_s: float) -> tuple[float, float]:
+                    k = int(np.argmin(np.abs(truth[:, 0] - wall_s)))
+                    ours = [np.interp(wall_s, t_unix, pos[:, i]) for i in range(2)]
+                    s = min(states, key=lambda st: abs(st["t_unix_s"] - wall_s))
+                    return math.hypot(ours[0] - truth[k, 1], ours[1] - truth[k, 2]), _sigma_h_m(s)
 
-        def moved(a: float, b: float) -> float:
-            ka, kb = (int(np.argmin(np.abs(truth[:, 0] - w))) for w in (a, b))
-            return math.hypot(truth[kb, 1] - truth[ka, 1], truth[kb, 2] - truth[ka, 2])
+                def moved(a: float, b: float) -> float:
+                    ka, kb = (int(np.argmin(np.abs(truth[:, 0] - w))) for w in (a, b))
+                    return math.hypot(truth[kb, 1] - truth[ka, 1], truth[kb, 2] - truth[ka, 2])
 
-        t_back = t_cut + DROPOUT_S
-        err_before, sigma_before = error_at(t_cut - 0.5)
-        err_after, sigma_after = error_at(t_back + 2.0)
-        err_late, sigma_late = error_at(t_back + 14.0)
-        report.update(moved_during_dropout_m=round(moved(t_cut, t_back), 2),
-                      error_before_m=round(err_before, 2), sigma_h_before_m=round(sigma_before, 2),
-                      error_2s_after_m=round(err_after, 2), sigma_h_2s_after_m=round(sigma_after, 2),
-                      error_14s_after_m=round(err_late, 2), sigma_h_14s_after_m=round(sigma_late, 2),
-                      truth_depth_m=round(float(truth[-1, 3]), 2))
+                t_back = t_cut + DROPOUT_S
+                err_before, sigma_before = error_at(t_cut - 0.5)
+                err_after, sigma_after = error_at(t_back + 2.0)
+                err_late, sigma_late = error_at(t_back + 14.0)
+                report.update(moved_during_dropout_m=round(moved(t_cut, t_back), 2),
+                              error_before_m=round(err_before, 2), sigma_h_before_m=round(sigma_before, 2),
+                              error_2s_after_m=round(err_after, 2), sigma_h_2s_after_m=round(sigma_after, 2),
+                              error_14s_after_m=round(err_late, 2), sigma_h_14s_after_m=round(sigma_late, 2),
+                              truth_depth_m=round(float(truth[-1, 3]), 2))
+            finally:
+                (out / "dropout.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+                print(json.dumps(report, indent=2, default=str))
+                if daemon is not None:
+                    daemon.stop()
     finally:
-        (out / "dropout.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-        print(json.dumps(report, indent=2, default=str))
-        navlog.stop()
-        if daemon is not None:
-            daemon.stop()
-        gcs.close()
-        sub.stop()
         relay.stop()
 
     assert report["datagrams_dropped"] > 100 and report["truth_depth_m"] > 1.0

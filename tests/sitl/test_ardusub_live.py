@@ -15,6 +15,7 @@ surface), no DVL: what ArduSub sends and the thrusters through the motion model.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -69,6 +70,27 @@ class NavLog(threading.Thread):
                 np.array([bool(s["valid"]) for s in rows]))
 
 
+@contextlib.contextmanager
+def ardusub_session(tmp_path, bridge_port: int, tlog: Path | None = None):
+    """A real ArduSub in ``tmp_path/ardusub`` (SERIAL1 sending to ``bridge_port``), a ground
+    station keeping :data:`RECORDED` (into ``tlog``) and the daemon's nav log, once ArduSub's
+    heartbeat is heard; all stopped after. Yields ``(sub, gcs, navlog)``."""
+    gcs_port = free_udp_port()
+    work = tmp_path / "ardusub"
+    work.mkdir()
+    sub = ArduSub(work, gcs_port, bridge_port).start()
+    gcs = Gcs(gcs_port, keep=RECORDED, tlog=tlog)
+    navlog = NavLog()
+    navlog.start()
+    try:
+        gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
+        yield sub, gcs, navlog
+    finally:
+        navlog.stop()
+        gcs.close()
+        sub.stop()
+
+
 PROFILE = Path(__file__).resolve().parents[2] / "deploy" / "vehicles" / "bluerov2-sitl.toml"
 
 
@@ -110,116 +132,107 @@ def test_daemon_navigates_a_real_ardusub_and_ardusub_follows(tmp_path):
     out = Path(os.environ.get("ADAPTNAV_SITL_OUT", tmp_path))
     out.mkdir(parents=True, exist_ok=True)
     origin = GeoOrigin(math.radians(HOME[0]), math.radians(HOME[1]), 0.0)
-    gcs_port, bridge_port = free_udp_port(), free_udp_port()
-    work = tmp_path / "ardusub"
-    work.mkdir()
     state_dir = tmp_path / "state"
-    sub = ArduSub(work, gcs_port, bridge_port).start()
-    gcs = Gcs(gcs_port, keep=RECORDED, tlog=out / "session.tlog")
-    navlog = NavLog()
-    navlog.start()
-    report: dict = {}
-    daemon = None
-    try:
-        gcs.wait(lambda: gcs.count("HEARTBEAT") > 0, 120, "ArduSub's heartbeat")
-        for name, value in EXT_NAV_PARAMS.items():
-            gcs.set_param(name, value)
-        t_reboot = time.time()
-        sub.restart()  # VISO_TYPE takes effect after a reboot
-        gcs.wait(lambda: any(w > t_reboot + 1 for w, _ in gcs.messages["HEARTBEAT"]), 120, "heartbeat after reboot")
-        for mtype, hz in GCS_RATES.items():
-            gcs.interval(mtype, hz)
-
-        daemon = start_daemon(tmp_path, bridge_port, state_dir)
-        navlog.daemon_ref = daemon
-        t_ext = gcs.wait_text("using external nav", 240, since_wall=t_reboot)
-        report["external_nav_accepted_after_daemon_start_s"] = round(t_ext - t_reboot, 1)
-        gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
-        gcs.mode(MODE_MANUAL)
-        gcs.arm()
-        gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
-        odo0, wall0 = _sent(daemon.bridge), time.time()
-        gcs.hold_sticks(14, z=200)  # dive
-        gcs.mode(MODE_ALT_HOLD)
-        gcs.hold_sticks(3)
-        for leg in range(LEGS):  # lanes and turns at depth
-            gcs.hold_sticks(LEG_S, x=600)
-            if leg < LEGS - 1:
-                gcs.hold_sticks(6, r=500)
-        gcs.hold_sticks(5)
-        t_end_drive = time.time()
-        report["odometry_rate_hz"] = round((_sent(daemon.bridge) - odo0) / (t_end_drive - wall0), 2)
-        report["bridge_health"] = {k: v for k, v in daemon.bridge.health().items()
-                                   if k not in ("message_types", "messages_by_type")}
-
-        # -- figures of the drive
-        truth = truth_ned(gcs, origin)
-        sub_mask = (truth[:, 3] > 0.5) & (truth[:, 0] <= t_end_drive)
-        tr = truth[sub_mask]
-        t_unix, pos, valid = navlog.arrays("t_unix_s")
-        ours = np.column_stack([np.interp(tr[:, 0], t_unix, pos[:, i]) for i in range(2)])
-        err = np.hypot(ours[:, 0] - tr[:, 1], ours[:, 1] - tr[:, 2])
-        dist = float(np.sum(np.hypot(np.diff(tr[:, 1]), np.diff(tr[:, 2]))))
-        report.update(submerged_s=round(float(tr[-1, 0] - tr[0, 0]), 1), distance_submerged_m=round(dist, 1),
-                      max_depth_m=round(float(tr[:, 3].max()), 2),
-                      error_end_submerged_m=round(float(err[-1]), 2),
-                      error_end_percent_of_distance=round(100 * float(err[-1]) / dist, 2),
-                      error_max_submerged_m=round(float(err.max()), 2),
-                      valid_fraction_submerged=round(float(np.mean(
-                          np.interp(tr[:, 0], t_unix, valid.astype(float)) > 0.5)), 3))
-        # ArduSub's LOCAL_POSITION_NED against our nav state at the same boot time
-        t_s, pos_s, _ = navlog.arrays("t_s")
-        lpn = [(m.time_boot_ms / 1000.0, m.x, m.y) for w, m in gcs.messages["LOCAL_POSITION_NED"]
-               if t_ext + 5 <= w <= t_end_drive]
-        lpn = np.array([r for r in lpn if t_s[0] <= r[0] <= t_s[-1]])
-        d = np.hypot(lpn[:, 1] - np.interp(lpn[:, 0], t_s, pos_s[:, 0]), lpn[:, 2] - np.interp(lpn[:, 0], t_s, pos_s[:, 1]))
-        report["arduSub_vs_ours_rms_m"] = round(float(np.sqrt(np.mean(d**2))), 3)
-        report["arduSub_vs_ours_max_m"] = round(float(d.max()), 3)
-
-        # -- the daemon stops: ArduSub falls back (if it was following us then: the texts
-        # received so far say whether it was, since ArduSub says so only on a change)
-        last_reset = daemon.bridge.last_sent["reset_counter"]
-        t_stop = time.time()
-        daemon.stop()
-        navlog.daemon_ref = None
+    bridge_port = free_udp_port()
+    with ardusub_session(tmp_path, bridge_port, tlog=out / "session.tlog") as (sub, gcs, navlog):
+        report: dict = {}
         daemon = None
-        report["aiding_at_stop"] = gcs.ext_nav_in_use(t_stop)
-        if report["aiding_at_stop"]:
-            t_fb = gcs.wait_text("stopped aiding", 60, since_wall=t_stop)
-            report["fallback_after_stop_s"] = round(t_fb - t_stop, 1)
-        else:
-            report["fallback_after_stop_s"] = None  # ArduSub had already stopped using us
-        # the vehicle keeps still at depth while the daemon is down
-        time.sleep(max(0.0, t_stop + 20.0 - time.time()))
-
-        # -- restart under water: silent until trustworthy, then a position within 3σ, a new reset_counter
-        daemon = start_daemon(tmp_path, bridge_port, state_dir)
-        navlog.daemon_ref = daemon
-        t_restart = time.time()
         try:
-            gcs.wait(lambda: daemon.bridge.first_sent is not None, 90, "a solution sent after the restart")
-            first = daemon.bridge.first_sent
-            t_first = time.time()
+            for name, value in EXT_NAV_PARAMS.items():
+                gcs.set_param(name, value)
+            t_reboot = time.time()
+            sub.restart()  # VISO_TYPE takes effect after a reboot
+            gcs.wait(lambda: any(w > t_reboot + 1 for w, _ in gcs.messages["HEARTBEAT"]), 120, "heartbeat after reboot")
+            for mtype, hz in GCS_RATES.items():
+                gcs.interval(mtype, hz)
+
+            daemon = start_daemon(tmp_path, bridge_port, state_dir)
+            navlog.daemon_ref = daemon
+            t_ext = gcs.wait_text("using external nav", 240, since_wall=t_reboot)
+            report["external_nav_accepted_after_daemon_start_s"] = round(t_ext - t_reboot, 1)
+            gcs.stick = {"x": 0, "y": 0, "z": 500, "r": 0}
+            gcs.mode(MODE_MANUAL)
+            gcs.arm()
+            gcs.wait(lambda: any(m.base_mode & 128 for _, m in gcs.messages["HEARTBEAT"][-3:]), 30, "armed")
+            odo0, wall0 = _sent(daemon.bridge), time.time()
+            gcs.hold_sticks(14, z=200)  # dive
+            gcs.mode(MODE_ALT_HOLD)
+            gcs.hold_sticks(3)
+            for leg in range(LEGS):  # lanes and turns at depth
+                gcs.hold_sticks(LEG_S, x=600)
+                if leg < LEGS - 1:
+                    gcs.hold_sticks(6, r=500)
+            gcs.hold_sticks(5)
+            t_end_drive = time.time()
+            report["odometry_rate_hz"] = round((_sent(daemon.bridge) - odo0) / (t_end_drive - wall0), 2)
+            report["bridge_health"] = {k: v for k, v in daemon.bridge.health().items()
+                                       if k not in ("message_types", "messages_by_type")}
+
+            # -- figures of the drive
             truth = truth_ned(gcs, origin)
-            k = int(np.argmin(np.abs(truth[:, 0] - t_first)))
-            sigma = math.sqrt(max(first["pose_covariance"][0], first["pose_covariance"][6]))
-            e = math.hypot(first["x"] - truth[k, 1], first["y"] - truth[k, 2])
-            report["restart"] = {"first_sent_after_s": round(t_first - t_restart, 1), "error_m": round(e, 2),
-                                 "sigma_m": round(sigma, 2), "within_3_sigma": e <= 3 * sigma,
-                                 "silenced_before_first": daemon.bridge.counters["nav_silenced"],
-                                 "truth_depth_m": round(float(truth[k, 3]), 2),
-                                 "reset_counter_before": last_reset, "reset_counter_after": first["reset_counter"]}
-        except TimeoutError:
-            report["restart"] = {"first_sent_after_s": None, "note": "nothing sent within 90 s (never trustworthy)",
-                                 "reset_counter_before": last_reset, "reset_counter_base": daemon.bridge.reset_base}
-    finally:
-        (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-        print(json.dumps(report, indent=2, default=str))
-        navlog.stop()
-        if daemon is not None:
+            sub_mask = (truth[:, 3] > 0.5) & (truth[:, 0] <= t_end_drive)
+            tr = truth[sub_mask]
+            t_unix, pos, valid = navlog.arrays("t_unix_s")
+            ours = np.column_stack([np.interp(tr[:, 0], t_unix, pos[:, i]) for i in range(2)])
+            err = np.hypot(ours[:, 0] - tr[:, 1], ours[:, 1] - tr[:, 2])
+            dist = float(np.sum(np.hypot(np.diff(tr[:, 1]), np.diff(tr[:, 2]))))
+            report.update(submerged_s=round(float(tr[-1, 0] - tr[0, 0]), 1), distance_submerged_m=round(dist, 1),
+                          max_depth_m=round(float(tr[:, 3].max()), 2),
+                          error_end_submerged_m=round(float(err[-1]), 2),
+                          error_end_percent_of_distance=round(100 * float(err[-1]) / dist, 2),
+                          error_max_submerged_m=round(float(err.max()), 2),
+                          valid_fraction_submerged=round(float(np.mean(
+                              np.interp(tr[:, 0], t_unix, valid.astype(float)) > 0.5)), 3))
+            # ArduSub's LOCAL_POSITION_NED against our nav state at the same boot time
+            t_s, pos_s, _ = navlog.arrays("t_s")
+            lpn = [(m.time_boot_ms / 1000.0, m.x, m.y) for w, m in gcs.messages["LOCAL_POSITION_NED"]
+                   if t_ext + 5 <= w <= t_end_drive]
+            lpn = np.array([r for r in lpn if t_s[0] <= r[0] <= t_s[-1]])
+            d = np.hypot(lpn[:, 1] - np.interp(lpn[:, 0], t_s, pos_s[:, 0]), lpn[:, 2] - np.interp(lpn[:, 0], t_s, pos_s[:, 1]))
+            report["arduSub_vs_ours_rms_m"] = round(float(np.sqrt(np.mean(d**2))), 3)
+            report["arduSub_vs_ours_max_m"] = round(float(d.max()), 3)
+
+            # -- the daemon stops: ArduSub falls back (if it was following us then: the texts
+            # received so far say whether it was, since ArduSub says so only on a change)
+            last_reset = daemon.bridge.last_sent["reset_counter"]
+            t_stop = time.time()
             daemon.stop()
-        gcs.close()
-        sub.stop()
+            navlog.daemon_ref = None
+            daemon = None
+            report["aiding_at_stop"] = gcs.ext_nav_in_use(t_stop)
+            if report["aiding_at_stop"]:
+                t_fb = gcs.wait_text("stopped aiding", 60, since_wall=t_stop)
+                report["fallback_after_stop_s"] = round(t_fb - t_stop, 1)
+            else:
+                report["fallback_after_stop_s"] = None  # ArduSub had already stopped using us
+            # the vehicle keeps still at depth while the daemon is down
+            time.sleep(max(0.0, t_stop + 20.0 - time.time()))
+
+            # -- restart under water: silent until trustworthy, then a position within 3σ, a new reset_counter
+            daemon = start_daemon(tmp_path, bridge_port, state_dir)
+            navlog.daemon_ref = daemon
+            t_restart = time.time()
+            try:
+                gcs.wait(lambda: daemon.bridge.first_sent is not None, 90, "a solution sent after the restart")
+                first = daemon.bridge.first_sent
+                t_first = time.time()
+                truth = truth_ned(gcs, origin)
+                k = int(np.argmin(np.abs(truth[:, 0] - t_first)))
+                sigma = math.sqrt(max(first["pose_covariance"][0], first["pose_covariance"][6]))
+                e = math.hypot(first["x"] - truth[k, 1], first["y"] - truth[k, 2])
+                report["restart"] = {"first_sent_after_s": round(t_first - t_restart, 1), "error_m": round(e, 2),
+                                     "sigma_m": round(sigma, 2), "within_3_sigma": e <= 3 * sigma,
+                                     "silenced_before_first": daemon.bridge.counters["nav_silenced"],
+                                     "truth_depth_m": round(float(truth[k, 3]), 2),
+                                     "reset_counter_before": last_reset, "reset_counter_after": first["reset_counter"]}
+            except TimeoutError:
+                report["restart"] = {"first_sent_after_s": None, "note": "nothing sent within 90 s (never trustworthy)",
+                                     "reset_counter_before": last_reset, "reset_counter_base": daemon.bridge.reset_base}
+        finally:
+            (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+            print(json.dumps(report, indent=2, default=str))
+            if daemon is not None:
+                daemon.stop()
 
     # -- the targets (issue 11), after the figures are safe
     h = report["bridge_health"]
