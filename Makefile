@@ -36,10 +36,11 @@ test: $(STAMP) $(KERNELS) browser
 golden: $(STAMP) $(KERNELS)
 	$(BIN)/python -m tests.golden.golden
 
-# the daemon against a real ArduSub (../shared/sitl) on loopback, and the same autopilot's
-# DataFlash log of a drive replayed: paces on the wall clock (~13 min), so not part of
-# `make test`; skips when the binary is absent. Figures and the recordings go to out/sitl
-# (report.json, session.tlog; bin/report.json, bin/ardusub.BIN, bin/session.tlog).
+# the daemon against a real ArduSub (../shared/sitl) on loopback, its MAVLink link cut for
+# 10 s mid-lane, and the same autopilot's DataFlash log of a drive replayed: paces on the
+# wall clock (~12 min), so not part of `make test`; skips when the binary is absent. Figures
+# and the recordings go to out/sitl (report.json, session.tlog, dropout.json; bin/report.json,
+# bin/ardusub.BIN, bin/session.tlog).
 test-sitl: $(STAMP)
 	ADAPTNAV_SITL_OUT=out/sitl $(BIN)/python -m pytest -q -s -n 0 -m sitl tests/sitl
 
