@@ -1069,7 +1069,7 @@ class ObjectFrontEnd:
         if self._pings and ping.t_s <= self._pings[-1].t_s:
             self.rejected["out of order"] = self.rejected.get("out of order", 0) + 1
             return []
-        if not (ping.slant_range_m > 0 and ping.n_samples >= 8):  # False for NaN
+        if not ping.has_geometry:
             self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1
             return []
         if self._geometry is None:

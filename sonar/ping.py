@@ -92,6 +92,11 @@ class SonarPing:
         """Slant-range spacing of the samples (m)."""
         return self.slant_range_m / max(self.n_samples, 1)
 
+    @property
+    def has_geometry(self) -> bool:
+        """A slant range (finite, > 0) and at least 8 samples a side: a ping an image can be made of."""
+        return bool(self.slant_range_m > 0 and math.isfinite(self.slant_range_m) and self.n_samples >= 8)
+
     def resampled(self, n_samples: int, slant_range_m: float) -> "SonarPing":
         """This ping on another geometry — ``n_samples`` per side over ``slant_range_m`` —
         (:func:`resample_slant`); itself when it already has it."""

@@ -251,7 +251,7 @@ class SonarFrontEnd:
             return "non-finite time"
         if self._last is not None and t <= self._last[0]:
             return "non-increasing time"
-        if not (math.isfinite(ping.slant_range_m) and ping.slant_range_m > 0) or ping.n_samples < 8:
+        if not ping.has_geometry:
             return "bad geometry"
         if self._shape is None:
             self._shape = (ping.n_samples, ping.slant_range_m)

@@ -160,7 +160,7 @@ def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, 
         return [], dict(dropped)
     usable = []
     for p in finite:
-        if p.slant_range_m > 0 and p.n_samples >= 8:  # False for NaN
+        if p.has_geometry:
             usable.append(p)
         else:
             dropped["no geometry"] += 1

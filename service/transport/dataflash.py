@@ -174,8 +174,9 @@ def format_repairs(data: Any) -> list[FormatRepair]:
 def tolerant_formats() -> Iterator[list[str]]:
     """While pymavlink's binary DataFlash reader indexes a log: an FMT record whose format
     letters are damaged (a flipped byte), or whose letters' size disagrees with its declared
-    length, declares its record type as opaque bytes of the declared length, instead of raising — DFReader's index gives up on the whole log at one
-    such record (e.g. ``Unsupported format char: '\\' in message GRXS``), though every
+    length, declares its record type as opaque bytes of the declared length, instead of
+    raising — DFReader's index gives up on the whole log at one such record (e.g.
+    ``Unsupported format char: '\\' in message GRXS``), though every
     other type still reads. Yields the names of the types so declared (their records are
     skipped whole, as a type ``<name>_damaged``; if one is a type the replay reads, its
     samples are lost and said)."""
@@ -270,8 +271,8 @@ def reader_complaints() -> Iterator[dict[str, Any]]:
     line per bad record and per resync — 142,221 lines for one damaged length byte — to the
     terminal of whoever replayed it, and the records it dropped so were counted nowhere) is
     counted instead. Yields ``{"lines": n, "parse_failures": n, "first": text}``; DFReader's
-    module-level ``print`` is replaced meanwhile (only that module's: the compiled indexer's
-    complaints, "bad header …", still go to stderr)."""
+    module-level ``print`` is replaced meanwhile (only that module's: the compiled indexer
+    writes to the C stderr, :func:`indexer_complaints`)."""
     from pymavlink import DFReader
 
     said: dict[str, Any] = {"lines": 0, "parse_failures": 0, "first": ""}

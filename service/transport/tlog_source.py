@@ -188,9 +188,9 @@ class TlogSource:
             self.converter.origin_lookup = self._ekf_origin_in_log
 
     # --------------------------------------------------------------------- helpers
-    def _reject(self, reason: str) -> None:
+    def _reject(self, reason: str, n: int = 1) -> None:
         rej = self.counters["rejected"]
-        rej[reason] = rej.get(reason, 0) + 1
+        rej[reason] = rej.get(reason, 0) + n
 
     def _keep_imu(self, sample: ImuSample) -> bool:
         """Track the IMU rate; withhold samples of a stream too slow for strapdown."""
@@ -368,10 +368,7 @@ class TlogSource:
             self.counters["corrupt_frames"] += dropped
             log.warning("%s: %d lines are not records of the log's formats (garbage, lines merged "
                         "by a block of zeros, non-text bytes); the rest is read", self.path.name, dropped)
-        with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".log") as copy:
-            copy.write(clean)
-            copy.flush()
-            return self._open(Path(copy.name))  # mapped: outlives the name
+        return self._open_copy(clean, ".log")
 
     def _open_binary_dataflash(self) -> Any:
         """A binary DataFlash log, read from a copy with its damaged FMT record bytes repaired
@@ -395,7 +392,11 @@ class TlogSource:
         data = bytearray(self.path.read_bytes())
         for r in self._format_repairs:
             data[r.offset] = r.value
-        with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=".bin") as copy:
+        return self._open_copy(data, ".bin")
+
+    def _open_copy(self, data: bytes | bytearray, suffix: str) -> Any:
+        """pymavlink's reader of ``data`` (a mended copy of the log) from a temporary file."""
+        with tempfile.NamedTemporaryFile(prefix="adaptnav-", suffix=suffix) as copy:
             copy.write(data)
             copy.flush()
             return self._open(Path(copy.name))  # mapped: outlives the name
@@ -423,8 +424,7 @@ class TlogSource:
         bad = indexer["bad_headers"]
         if bad:  # positions where no record header was found: damaged bytes, skipped
             self.counters["corrupt_frames"] += bad
-            rej = self.counters["rejected"]
-            rej["indexer_bad_header"] = rej.get("indexer_bad_header", 0) + bad
+            self._reject("indexer_bad_header", bad)
             log.warning("%s: pymavlink's indexer found no record header at %d position(s) (the first: %s): "
                         "damaged bytes skipped", self.path.name, bad, indexer["first"])
         return conn
@@ -444,8 +444,7 @@ class TlogSource:
                 failed = said["parse_failures"]  # records dropped (a record may fail more than once)
                 self.counters["corrupt_frames"] += failed
                 if failed:
-                    rej = self.counters["rejected"]
-                    rej["reader_parse_failure"] = rej.get("reader_parse_failure", 0) + failed
+                    self._reject("reader_parse_failure", failed)
                 log.warning("%s: pymavlink's reader failed to parse records %d time(s) (%d complaint(s), the "
                             "first: %s)", self.path.name, failed, said["lines"], said["first"][:200])
             return
