@@ -232,3 +232,33 @@ def test_compiled_exp_and_sincos_match_libm():
     for x in np.concatenate([rng.uniform(-4.0, 4.0, 2000), rng.uniform(-1e5, 1e5, 2000), [0.0, np.pi / 2, -np.pi]]):
         s, c = sincos(x)
         assert abs(s - math.sin(x)) <= 2.3e-16 and abs(c - math.cos(x)) <= 2.3e-16, x
+
+
+def test_move_normals_are_box_muller_of_the_generators_words_and_standard_normal():
+    """The moves' normals: the Box–Muller pairs of the generator's raw words (written out
+    in numpy here), standard normal by the Kolmogorov–Smirnov test, the two of a pair
+    uncorrelated, an odd count served, the generator advanced by the words used."""
+    from scipy import stats
+
+    from adaptnav.calibration.particle_filter import move_normals
+
+    n_words = 100_001
+    words = np.random.default_rng(7).bit_generator.random_raw(n_words)
+    u1 = ((words >> np.uint64(32)).astype(float) + 0.5) * 2.0 ** -32
+    u2 = ((words & np.uint64(0xFFFFFFFF)).astype(float) + 0.5) * 2.0 ** -32
+    r = np.sqrt(-2.0 * np.log(u1))
+    expected = np.concatenate([r * np.cos(2.0 * np.pi * u2), r * np.sin(2.0 * np.pi * u2)])
+
+    rng = np.random.default_rng(7)
+    z = move_normals(rng, (2 * n_words - 1,))  # odd: the last word's sine is not used
+    np.testing.assert_allclose(z, expected[:z.size], rtol=0.0, atol=2e-15)
+    after = np.random.default_rng(7)
+    after.bit_generator.random_raw(n_words)
+    assert rng.random() == after.random()
+
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    assert abs(z.mean()) < 5.0 / math.sqrt(z.size) and abs(z.var() - 1.0) < 0.02
+    assert abs(np.corrcoef(z[:n_words - 1], z[n_words:])[0, 1]) < 0.02  # cosine with its sine
+    shaped = move_normals(np.random.default_rng(3), (5, 3, 7))
+    assert shaped.shape == (5, 3, 7) and np.isfinite(shaped).all()
+    assert np.array_equal(shaped, move_normals(np.random.default_rng(3), (5, 3, 7)))
