@@ -870,6 +870,18 @@ class OnlineCalibrator:
         (and runs the detector); None before the first ping."""
         return None if self.sonar is None else self.sonar.front_end.pings_to_block()
 
+    def side_scan_report(self) -> dict | None:
+        """What the object front end made of the side-scan pings (None before the first):
+        ``pings`` taken, ``resampled`` (another range or sample count put on the stream's
+        first), ``rejected`` by reason (pings: ``bad geometry``, ``out of order``,
+        ``non-finite`` navigation; objects: ``turning``, seen while the vehicle turned),
+        ``blocks`` run and ``sightings`` found."""
+        if self.sonar is None:
+            return None
+        fe = self.sonar.front_end
+        return {"pings": int(fe.pings_taken), "resampled": int(fe.resampled), "rejected": dict(fe.rejected),
+                "blocks": int(fe.blocks), "sightings": int(fe.sightings)}
+
     def finish(self) -> None:
         """The data ended: what is still held for completion leaves by :meth:`poll` — the
         side-scan's last, incomplete block of pings (:meth:`CalibratorSonar.finish`)."""

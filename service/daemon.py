@@ -566,6 +566,9 @@ class Daemon:
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
         if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
             rep["mavlink"] = self.bridge.health()
+        side_scan = getattr(self.calibrator, "side_scan", None)
+        if side_scan is not None:  # what the calibrator's object front end made of the pings
+            rep["calibrator"]["side_scan"] = side_scan
         rep["nav_states"] = self.sink.nav_count
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         rep["runner_heartbeat_age_s"] = round(time.monotonic() - self.source.heartbeat_s, 3)

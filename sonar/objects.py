@@ -1038,6 +1038,11 @@ class ObjectFrontEnd:
         self.resampled = 0  # pings of another geometry put on the stream's
         self._work: dict = {}  # the detector's scratch arrays (detect_objects)
 
+    @property
+    def pings_taken(self) -> int:
+        """Pings taken into the stream (not rejected)."""
+        return self._n
+
     def push(self, ping, pos_n_m, nav_cov, yaw_rad: float, vel_n_m_s=None, vel_cov=None) -> list[ObjectSighting]:
         """Take one ping with the navigation at its time; return a block's sightings when one completes.
 

@@ -59,6 +59,7 @@ class InlineBackend:
         self.calibrator = calibrator
         self.clock = DataClock()
         self.ready: list[tuple[float, Any]] = []   # (τ, release), oldest first
+        self.side_scan: dict | None = None  # the object front end's counts, at finish()
 
     def send(self, sample: Any) -> None:
         self.calibrator.observe(sample)
@@ -87,9 +88,17 @@ class InlineBackend:
             finish()
             for rel in self.calibrator.poll():
                 self.ready.append((self.clock.tau, rel))
+        self.side_scan = side_scan_report(self.calibrator)
 
     def close(self) -> None:
         pass
+
+
+def side_scan_report(calibrator: Any) -> dict | None:
+    """The calibrator's side-scan counts (:meth:`OnlineCalibrator.side_scan_report`), None
+    without side-scan or for a calibrator that keeps none."""
+    report = getattr(calibrator, "side_scan_report", None)
+    return None if report is None else report()
 
 
 def child_message(out: Any, tau: float) -> tuple:
@@ -141,7 +150,7 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 calibrator.finish()
                 for rel in calibrator.poll():
                     out_q.send(child_message(rel, clock.tau))
-                out_q.send(("finished", None, clock.tau))
+                out_q.send(("finished", side_scan_report(calibrator), clock.tau))
                 continue
             if msg[0] == _SHIFT:  # the runner re-based a clock jump: τ moves with the data
                 clock.tau += msg[1]
@@ -323,6 +332,7 @@ class ProcessBackend:
         self.child_cpu_s = math.nan  # the child's CPU time at finish() (Linux /proc)
         self._finished = False  # the child handed over what it held at the end of the data
         self._pings_out = 0     # side-scan pings sent (or batched)
+        self.side_scan: dict | None = None  # the child's object front end's counts, at finish()
         self._block_ping = -1   # the count of the ping that completes the child's next block
         # the runner's deferrable work (replay: DeferredSinks.work), done while it waits for
         # the child instead of sleeping: a slice per call, False when there is none
@@ -389,6 +399,7 @@ class ProcessBackend:
             self._unacked_shift_s -= float(tau)
         elif kind == "finished":
             self._finished = True
+            self.side_scan = body
         elif kind == "error":
             raise RuntimeError(f"calibrator process failed: {body}")
         return True

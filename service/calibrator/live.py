@@ -32,7 +32,7 @@ from typing import Any
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
 from adaptnav.service.calibrator.batching import DataClock, compact_imu, split_due
-from adaptnav.service.calibrator.lagged import child_message, limit_child_threads
+from adaptnav.service.calibrator.lagged import child_message, limit_child_threads, side_scan_report
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict
 
@@ -73,6 +73,7 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
     calibrator = make_calibrator(cfg, params0, seed)
     clock = DataClock()
     gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)
+    last_side_scan = None
     out_q.put(("ready", None, None))
     while True:
         try:
@@ -90,6 +91,12 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
             tau = clock.advance(sample)
             for release in calibrator.poll():  # stamped with the data time it was computed at
                 out_q.put(child_message(release, tau))
+        if batch:
+            # the object front end's counts for the daemon's health, when they changed
+            report = side_scan_report(calibrator)
+            if report is not None and report != last_side_scan:
+                out_q.put(("side_scan", report, None))
+                last_side_scan = report
 
 
 
@@ -120,6 +127,7 @@ class CalibratorProcess:
         self.restarts = 0
         self.state = "stopped"
         self.counters: Counter[str] = Counter()
+        self.side_scan: dict | None = None  # the child's object front end's counts, latest
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
         self._in_q: Any = None
@@ -195,6 +203,8 @@ class CalibratorProcess:
             elif kind == "shifted":
                 with self._held_lock:
                     self._unacked_shift_s -= float(msg[2])
+            elif kind == "side_scan":  # the object front end's counts (health)
+                self.side_scan = body
 
     def wait_running(self, timeout_s: float) -> bool:
         """Block until the child has said it is ready (True) or ``timeout_s`` passed."""

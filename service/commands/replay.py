@@ -136,6 +136,11 @@ def run(args):
         print("  rejected by reason: " + ", ".join(f"{k} {v}" for k, v in s["rejected_samples"].items()))
     if s["missing_streams"]:
         print("  missing: " + "; ".join(map(str, s["missing_streams"])))
+    sss = (s.get("calibrator") or {}).get("side_scan")
+    if sss:
+        print(f"  side-scan objects: {sss['pings']} pings taken, {sss['resampled']} resampled to the first "
+              f"range and sample count, {sss['sightings']} sightings in {sss['blocks']} blocks"
+              + ("; refused: " + ", ".join(f"{k} {v}" for k, v in sss["rejected"].items()) if sss["rejected"] else ""))
     if s["errors"]:
         print(f"  processing errors (logged): {s['errors']}")
     print(rp.targets_text(res.metrics))

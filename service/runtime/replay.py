@@ -362,7 +362,9 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "calibrate": bool(calibrate),
         "calibrator": ({"location": calibrator_location, "latency_s": calibrator.latency_s,
                         "wait_s": getattr(calibrator.backend, "wait_s", 0.0),
-                        "process_cpu_s": _finite_or_none(getattr(calibrator.backend, "child_cpu_s", None))}
+                        "process_cpu_s": _finite_or_none(getattr(calibrator.backend, "child_cpu_s", None)),
+                        # what the calibrator's object front end made of the side-scan pings
+                        "side_scan": getattr(calibrator.backend, "side_scan", None)}
                        if calibrator is not None else None),
         "origin": {"lat_deg": cfg.origin.lat_deg, "lon_deg": cfg.origin.lon_deg,
                    "from": origin_note or ("scenario" if inp.scenario is not None else "config")},

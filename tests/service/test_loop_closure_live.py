@@ -26,6 +26,8 @@ def test_child_returns_object_batches():
                 continue
             pings += item.KIND == "sonar"
             cal.observe(item)
+            while cal._in_q.qsize() > 50:  # the child's pace: none dropped on a full queue
+                time.sleep(0.001)
         cal.flush()
         expected = pings // 160 - 1  # blocks of 160 pings (+ 20 of context) completed
         got: list = []
@@ -33,6 +35,10 @@ def test_child_returns_object_batches():
         while time.monotonic() < deadline and not got:
             got += [x for x in cal.poll(float("inf")) if x.KIND == "sonar_objects"]
             time.sleep(0.05)
+        # the front end's counts for the daemon's health: every ping taken, none refused
+        while time.monotonic() < deadline and (cal.side_scan or {}).get("pings") != pings:
+            time.sleep(0.05)
+        report = cal.side_scan
     finally:
         cal.stop()
     assert expected >= 2
@@ -40,3 +46,6 @@ def test_child_returns_object_batches():
     batch = got[0]
     assert batch.sightings and all(o.side in ("port", "starboard") and o.ground_range_m > 0 for o in batch.sightings)
     assert batch.links == []  # the estimator fills them
+    assert cal.dropped == 0
+    assert report is not None and report["pings"] == pings and report["resampled"] == 0
+    assert report["blocks"] >= expected and "bad geometry" not in report["rejected"]

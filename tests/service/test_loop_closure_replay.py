@@ -119,3 +119,39 @@ def test_closure_is_referred_to_its_clones_across_a_fix():
     status = est.fuse_closure(lc)
     assert status.fused
     assert np.linalg.norm(np.array(status.innovation) - truth_offset) < 0.1 * jump, (status.innovation, truth_offset)
+
+
+class _RangeChangedAt:
+    """The simulation's stream with every side-scan ping from ``t_s`` on rendered at another
+    range and sample count (the operator or auto-range changed it mid-survey)."""
+
+    def __init__(self, result, t_s: float) -> None:
+        self._result, self._t_s = result, t_s
+        self.changed = 0
+
+    def __getattr__(self, name):
+        return getattr(self._result, name)
+
+    def iter_blocks(self):
+        for item in self._result.iter_blocks():
+            if item.KIND == "sonar" and item.t_s >= self._t_s:
+                self.changed += 1
+                item = item.resampled(int(item.n_samples * 1.37), item.slant_range_m * 1.2)
+            yield item
+
+
+@pytest.mark.parametrize("location", ["process", "inline"])
+def test_the_replay_summary_says_what_the_object_front_end_made_of_the_pings(survey, tmp_path, location):
+    """The calibrator's object front end (in the child or inline) counts the pings it took,
+    put on the first geometry, refused; the replay's summary carries them."""
+    sc, res = survey
+    changed = _RangeChangedAt(res, 300.0)
+    n_pings = sum(1 for item in res.iter_blocks() if item.KIND == "sonar")
+    inp = ReplayInput(SimSource(sc, changed), sc, "survey, range changed", sc.duration_s)
+    replay(inp, build_config(sc), tmp_path / location, calibrate=True, calibrator_location=location,
+           progress=False, plots=False)
+    report = json.loads((tmp_path / location / "summary.json").read_text())["calibrator"]["side_scan"]
+    assert changed.changed > 100
+    assert report["pings"] == n_pings and report["resampled"] == changed.changed
+    # no ping refused; objects seen in a turn are (their placement is unsure)
+    assert set(report["rejected"]) <= {"turning"} and report["blocks"] >= 5 and report["sightings"] > 0
