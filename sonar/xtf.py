@@ -56,6 +56,9 @@ class XtfReadReport:
     n_times_spread : int
         Pings re-timed because the file stamps them to the whole second (kept, spread evenly
         over their second).
+    n_other_channels : int
+        Sonar packets without the port and starboard channels read (a dual-frequency sonar
+        that writes each frequency's channels in packets of their own: the other frequency's).
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -68,6 +71,7 @@ class XtfReadReport:
     n_no_nav: int = 0
     n_sides_resampled: int = 0
     n_times_spread: int = 0
+    n_other_channels: int = 0
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -79,6 +83,8 @@ class XtfReadReport:
             text += f"; port resampled onto starboard's samples in {self.n_sides_resampled} pings"
         if self.n_times_spread:
             text += f"; {self.n_times_spread} pings stamped to the whole second spread over it"
+        if self.n_other_channels:
+            text += f"; {self.n_other_channels} sonar packets of other channels (another frequency) skipped"
         if self.error:
             text += f"; stopped early: {self.error}"
         return text
@@ -222,6 +228,15 @@ def _to_ping(pkt, sides: tuple[int, int], nav_deg: bool, speed_in_knots: bool,
     data = list(getattr(pkt, "data", []) or [])
     chans = list(getattr(pkt, "ping_chan_headers", []) or [])
     i_port, i_stbd = sides
+    # a packet's channels are the file's channels its headers number (ChannelNumber): a
+    # dual-frequency sonar may write each frequency's pair in packets of its own. Numbers
+    # that do not tell (repeated, as some recorders leave them 0): the file's order
+    numbers = [int(getattr(c, "ChannelNumber", k)) for k, c in enumerate(chans)]
+    if len(set(numbers)) == len(numbers) and numbers != list(range(len(numbers))):
+        if i_port not in numbers or i_stbd not in numbers:
+            report.n_other_channels += 1
+            return None
+        i_port, i_stbd = numbers.index(i_port), numbers.index(i_stbd)
     if len(data) <= max(i_port, i_stbd) or len(chans) <= max(i_port, i_stbd):
         report.n_truncated += 1
         return None

@@ -137,3 +137,50 @@ def test_pings_stamped_to_the_whole_second_are_spread_over_it(tmp_path):
     assert np.max(np.abs(t - t_true)[:-20]) < 0.15  # within a ping spacing of the file's own times
     # a file with its own hundredths is left alone
     assert read_xtf(src)[1].n_times_spread == 0
+
+
+def _dual_frequency(src, dst):
+    """``src`` as a dual-frequency sonar writes it with each frequency's pair in packets of
+    its own: the file header declares four channels (low-frequency port, starboard, then the
+    high-frequency pair), each ping is followed by a high-frequency packet 0.05 s later whose
+    channels are numbered 2 and 3 and whose samples are all 7."""
+    import struct
+
+    data = src.read_bytes()
+    head = bytearray(data[:1024])
+    struct.pack_into("<H", head, 166, 4)  # NumberOfSonarChannels
+    head[256 + 2 * 128:256 + 4 * 128] = head[256:256 + 2 * 128]  # the pair's ChanInfo again
+    out = bytearray(head)
+    o = 1024
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        packet = data[o:o + size]
+        out += packet
+        if kind == 0:
+            high = bytearray(packet)
+            h = 256
+            for number in (2, 3):  # ping channel headers: ChannelNumber, then the samples
+                struct.pack_into("<H", high, h, number)
+                n = struct.unpack_from("<I", high, h + 42)[0]
+                high[h + 64:h + 64 + 2 * n] = np.full(n, 7, "<u2").tobytes()
+                h += 64 + 2 * n
+            if high[21] < 95:
+                high[21] += 5  # XTFPingHeader.HSeconds
+            out += high
+        o += size
+    dst.write_bytes(bytes(out))
+
+
+def test_a_dual_frequency_file_with_a_packet_per_frequency_reads_one_frequency(tmp_path):
+    """A packet's channels are the ones its channel headers number: the high-frequency packets
+    of a sonar that writes each frequency apart were read as port and starboard, pings of the
+    two frequencies interleaved. Now the packets of the pair read are taken, the others counted."""
+    src = need(SCOTSMAN)
+    dual = tmp_path / "dual-frequency.xtf"
+    _dual_frequency(src, dual)
+    full, _ = read_xtf(src)
+    pings, report = read_xtf(dual)
+    assert len(pings) == len(full) and report.n_other_channels == len(full)
+    assert "other channels" in report.summary()
+    for a, b in zip(pings[::40], full[::40]):
+        assert a.t_s == b.t_s and np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
