@@ -134,3 +134,18 @@ def test_a_long_waterfall_is_written_as_numbered_tiles(tmp_path, capsys, monkeyp
     assert all(img is not None and img.shape[1] == 600 for img in imgs)
     # the same track, cut in three (each tile's rows start at its first ping)
     assert abs(sum(img.shape[0] for img in imgs) - rows_whole) <= 0.02 * rows_whole + 3
+
+
+def test_motion_of_a_dual_frequency_file_says_the_other_frequency_was_skipped(tmp_path, capsys):
+    """The other frequency's packets are set aside, said on stderr, and the motion is the
+    low-frequency pair's: the same records as the file with that pair only."""
+    from tests.sonar.test_xtf import _dual_frequency
+
+    dual = tmp_path / "dual.xtf"
+    _dual_frequency(need(SCOTSMAN), dual)
+    args = ["--window", "150", "--step", "40", "--json"]
+    assert main(["sonar", "motion", str(dual), *args]) == 0
+    out, err = capsys.readouterr()
+    assert "461 sonar packets of other channels (another frequency) skipped" in err
+    assert main(["sonar", "motion", str(need(SCOTSMAN)), *args]) == 0
+    assert out == capsys.readouterr().out
