@@ -186,6 +186,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
         except Exception as exc:  # pyxtf raises RuntimeError/ValueError/struct errors
             raise SonarFileError(f"{path}: not a readable XTF file ({exc})") from None
         sides = _channel_sides(file_header)
+        n_channels = int(getattr(file_header, "NumberOfSonarChannels", 0) or 0)
         nav_deg = int(getattr(file_header, "NavUnits", 3)) == 3
         while True:
             try:
@@ -206,7 +207,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
                 continue
             if name != "sonar" or sides is None:
                 continue
-            ping = _to_ping(pkt, sides, nav_deg, speed_in_knots, report)
+            ping = _to_ping(pkt, sides, n_channels, nav_deg, speed_in_knots, report)
             if ping is not None:
                 pings.append(ping)
     report.packet_counts = dict(counts)
@@ -222,7 +223,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
     return pings, report
 
 
-def _to_ping(pkt, sides: tuple[int, int], nav_deg: bool, speed_in_knots: bool,
+def _to_ping(pkt, sides: tuple[int, int], n_channels: int, nav_deg: bool, speed_in_knots: bool,
              report: XtfReadReport) -> SonarPing | None:
     """One decoded XTF sonar packet → SonarPing, or None (counted) when truncated."""
     data = list(getattr(pkt, "data", []) or [])
@@ -230,13 +231,17 @@ def _to_ping(pkt, sides: tuple[int, int], nav_deg: bool, speed_in_knots: bool,
     i_port, i_stbd = sides
     # a packet's channels are the file's channels its headers number (ChannelNumber): a
     # dual-frequency sonar may write each frequency's pair in packets of its own. Numbers
-    # that do not tell (repeated, as some recorders leave them 0): the file's order
+    # that do not tell — repeated (recorders that leave them 0), or not all among the file's
+    # channels (numbered from 1) — leave the file's order
     numbers = [int(getattr(c, "ChannelNumber", k)) for k, c in enumerate(chans)]
-    if len(set(numbers)) == len(numbers) and numbers != list(range(len(numbers))):
+    if (len(set(numbers)) == len(numbers) and numbers != list(range(len(numbers)))
+            and all(0 <= k < n_channels for k in numbers)):
         if i_port not in numbers or i_stbd not in numbers:
-            report.n_other_channels += 1
-            return None
-        i_port, i_stbd = numbers.index(i_port), numbers.index(i_stbd)
+            if len(numbers) < n_channels:  # a packet of another pair: counted, not a ping
+                report.n_other_channels += 1
+                return None
+        else:
+            i_port, i_stbd = numbers.index(i_port), numbers.index(i_stbd)
     if len(data) <= max(i_port, i_stbd) or len(chans) <= max(i_port, i_stbd):
         report.n_truncated += 1
         return None

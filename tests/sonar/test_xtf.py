@@ -184,3 +184,28 @@ def test_a_dual_frequency_file_with_a_packet_per_frequency_reads_one_frequency(t
     assert "other channels" in report.summary()
     for a, b in zip(pings[::40], full[::40]):
         assert a.t_s == b.t_s and np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
+
+
+def test_channels_numbered_from_one_are_read_in_the_files_order(tmp_path):
+    """Numbers that do not fit the file's channels (counted from 1 by some recorders) say
+    nothing about which channel is which: the file's order is kept, every ping read."""
+    import struct
+
+    src = need(SCOTSMAN)
+    data = bytearray(src.read_bytes())
+    o = 1024
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        if kind == 0:
+            h = o + 256
+            for number in (1, 2):
+                struct.pack_into("<H", data, h, number)
+                h += 64 + 2 * struct.unpack_from("<I", data, h + 42)[0]
+        o += size
+    odd = tmp_path / "from-one.xtf"
+    odd.write_bytes(bytes(data))
+    full, _ = read_xtf(src)
+    pings, report = read_xtf(odd)
+    assert len(pings) == len(full) and report.n_other_channels == 0
+    assert all(np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
+               for a, b in zip(pings, full))
