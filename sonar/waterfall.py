@@ -443,16 +443,27 @@ def _track_distance_m(t: np.ndarray, lat_rad: np.ndarray, lon_rad: np.ndarray) -
     (else the track would advance in steps, stopping between fixes)."""
     from adaptnav.fusion.frames import GeoOrigin
 
-    ok = np.flatnonzero(np.isfinite(lat_rad) & np.isfinite(lon_rad))
+    ok = np.isfinite(lat_rad) & np.isfinite(lon_rad)
+    if not ok.any():
+        return np.full(t.size, np.nan)
+    k = int(np.argmax(ok))
+    ne = np.full((t.size, 2), np.nan)
+    ne[ok] = GeoOrigin(float(lat_rad[k]), float(lon_rad[k])).to_ned(lat_rad[ok], lon_rad[ok])[:, :2]
+    return planar_track_distance_m(t, ne[:, 0], ne[:, 1])
+
+
+def planar_track_distance_m(t: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    """:func:`_track_distance_m` on planar coordinates (m: local north/east, or a projected
+    grid's easting/northing); NaN if under half the pings have a position."""
+    ok = np.flatnonzero(np.isfinite(x_m) & np.isfinite(y_m))
     if ok.size < max(2, 0.5 * t.size):
         return np.full(t.size, np.nan)
-    lat, lon = lat_rad[ok], lon_rad[ok]
-    new_fix = np.concatenate([[True], (np.diff(lat) != 0.0) | (np.diff(lon) != 0.0)])
-    ok, lat, lon = ok[new_fix], lat[new_fix], lon[new_fix]
+    x, y = x_m[ok], y_m[ok]
+    new_fix = np.concatenate([[True], (np.diff(x) != 0.0) | (np.diff(y) != 0.0)])
+    ok, x, y = ok[new_fix], x[new_fix], y[new_fix]
     if ok.size < 2:
         return np.full(t.size, np.nan)
-    ne = GeoOrigin(float(lat[0]), float(lon[0])).to_ned(lat, lon)[:, :2]
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ne, axis=0).T))])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
     return np.interp(t, t[ok], s)  # held before the first fix and after the last
 
 

@@ -59,6 +59,8 @@ class XtfReadReport:
     n_other_channels : int
         Sonar packets without the port and starboard channels read (a dual-frequency sonar
         that writes each frequency's channels in packets of their own: the other frequency's).
+    n_speed_from_grid : int
+        Pings given the speed of their projected-coordinate track (``NavUnits`` 0, no speed).
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -72,6 +74,7 @@ class XtfReadReport:
     n_sides_resampled: int = 0
     n_times_spread: int = 0
     n_other_channels: int = 0
+    n_speed_from_grid: int = 0
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -83,6 +86,8 @@ class XtfReadReport:
             text += f"; port resampled onto starboard's samples in {self.n_sides_resampled} pings"
         if self.n_times_spread:
             text += f"; {self.n_times_spread} pings stamped to the whole second spread over it"
+        if self.n_speed_from_grid:
+            text += f"; no speed: {self.n_speed_from_grid} pings given their projected track's"
         if self.n_other_channels:
             text += f"; {self.n_other_channels} sonar packets of other channels (another frequency) skipped"
         if self.error:
@@ -138,6 +143,28 @@ def _spread_repeated_times(pings: list[SonarPing]) -> int:
     return int(moved.size)
 
 
+def _speed_from_grid(pings: list[SonarPing], grid_m: np.ndarray) -> int:
+    """A file in projected coordinates (``NavUnits`` 0: easting, northing in metres) gives
+    no geodetic position; when it gives no speed either (``SensorSpeed`` 0 on most pings), each
+    ping's speed is taken from its grid track (the distance along the fixes,
+    :func:`adaptnav.sonar.waterfall.planar_track_distance_m`, over time), so the pings can
+    still be spaced along track. Returns the number of pings given a speed."""
+    from adaptnav.sonar.waterfall import planar_track_distance_m
+
+    if len(pings) < 3 or np.isfinite([p.speed_m_s for p in pings]).mean() >= 0.5:
+        return 0
+    t = np.array([p.t_s for p in pings], dtype=float)
+    if not np.all(np.diff(t) > 0):
+        return 0
+    s = planar_track_distance_m(t, grid_m[:, 0], grid_m[:, 1])
+    if not np.all(np.isfinite(s)):
+        return 0
+    speed = np.gradient(s, t)
+    for k, v in enumerate(speed.tolist()):
+        pings[k] = dataclasses.replace(pings[k], speed_m_s=float(v))
+    return len(pings)
+
+
 def _slant_range_m(chan, pkt) -> float:
     """A channel's slant range (m); some recorders leave it 0: time span × one-way sound speed."""
     slant = float(chan.SlantRange)
@@ -177,6 +204,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
     report = XtfReadReport()
     counts: Counter[str] = Counter()
     pings: list[SonarPing] = []
+    grid: list[tuple[float, float]] = []  # a projected file's positions, one per ping
     sides = None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -210,9 +238,14 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
             ping = _to_ping(pkt, sides, n_channels, nav_deg, speed_in_knots, report)
             if ping is not None:
                 pings.append(ping)
+                if not nav_deg:  # projected (easting, northing) in metres: kept for the speed
+                    x, y = float(pkt.SensorXcoordinate), float(pkt.SensorYcoordinate)
+                    grid.append((x, y) if (x, y) != (0.0, 0.0) else (math.nan, math.nan))
     report.packet_counts = dict(counts)
     report.warnings = sorted({str(w.message) for w in caught})
     report.n_times_spread = _spread_repeated_times(pings)
+    if grid:
+        report.n_speed_from_grid = _speed_from_grid(pings, np.array(grid, dtype=float))
     if sides is None:
         raise SonarFileError(
             f"{path}: no side-scan channels (file header declares "

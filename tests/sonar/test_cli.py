@@ -92,6 +92,50 @@ def test_motion_of_a_file_without_speed_follows_its_positions(tmp_path, capsys):
         assert abs(a["along_m"] - b["along_m"]) < 0.05 * b["along_m"] and abs(a["across_m"]) < 0.3
 
 
+def _projected_without_speed(src, dst):
+    """``src`` in projected coordinates (``NavUnits`` 0: easting, northing in metres, a local
+    grid 500 km east of its meridian) and without speed, as a survey package exports it."""
+    import math
+    import struct
+
+    data = bytearray(src.read_bytes())
+    struct.pack_into("<H", data, 164, 0)  # XTFFileHeader.NavUnits
+    o = 1024
+    lat0 = None
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        if kind == 0:
+            lon, = struct.unpack_from("<d", data, o + 168)  # SensorXcoordinate
+            lat, = struct.unpack_from("<d", data, o + 160)  # SensorYcoordinate
+            if (lat, lon) != (0.0, 0.0):
+                lat0 = lat if lat0 is None else lat0
+                east = 500_000.0 + 6_371_000.0 * math.cos(math.radians(lat0)) * math.radians(lon + 70.0)
+                struct.pack_into("<d", data, o + 168, east)
+                struct.pack_into("<d", data, o + 160, 6_371_000.0 * math.radians(lat))
+            struct.pack_into("<f", data, o + 152, 0.0)  # SensorSpeed
+        o += size
+    dst.write_bytes(bytes(data))
+
+
+def test_motion_of_a_projected_file_without_speed_follows_its_grid_track(tmp_path, capsys):
+    """A file in projected coordinates gives no latitude and longitude: without speed it had
+    no along-track distance at all ("the file has no speed"). Its pings now take the speed of
+    their grid track: the same motion as the geodetic file's fixes give."""
+    geo, grid = tmp_path / "nospeed.xtf", tmp_path / "projected.xtf"
+    _without_speed(need(SCOTSMAN), geo)
+    _projected_without_speed(need(SCOTSMAN), grid)
+    runs = {}
+    for name, path in (("geo", geo), ("grid", grid)):
+        rc = main(["sonar", "motion", str(path), "--window", "150", "--step", "40", "--json"])
+        out, err = capsys.readouterr()
+        assert rc == 0, err
+        runs[name] = [json.loads(x) for x in out.splitlines()]
+    assert "given their projected track's" in err
+    assert len(runs["grid"]) == len(runs["geo"]) == (461 - 150) // 40
+    for a, b in zip(runs["grid"], runs["geo"]):
+        assert abs(a["along_m"] - b["along_m"]) < 0.02 * b["along_m"]
+
+
 def test_motion_registers_a_long_file_chunk_by_chunk(capsys, monkeypatch):
     """`sonar motion` built one waterfall of the whole file: a 206 MB XTF took 2.4 GB. It is
     built chunk by chunk now; the chunks cover every window pair once, as the whole file did,
