@@ -61,6 +61,8 @@ class XtfReadReport:
         that writes each frequency's channels in packets of their own: the other frequency's).
     n_speed_from_grid : int
         Pings given the speed of their projected-coordinate track (``NavUnits`` 0, no speed).
+    n_sample_format_mended : int
+        Channels whose samples' format contradicted their size (read by their size).
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -75,6 +77,7 @@ class XtfReadReport:
     n_times_spread: int = 0
     n_other_channels: int = 0
     n_speed_from_grid: int = 0
+    n_sample_format_mended: int = 0
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -88,6 +91,9 @@ class XtfReadReport:
             text += f"; {self.n_times_spread} pings stamped to the whole second spread over it"
         if self.n_speed_from_grid:
             text += f"; no speed: {self.n_speed_from_grid} pings given their projected track's"
+        if self.n_sample_format_mended:
+            text += (f"; {self.n_sample_format_mended} channel records whose sample format contradicted "
+                     "their size read by their size")
         if self.n_other_channels:
             text += f"; {self.n_other_channels} sonar packets of other channels (another frequency) skipped"
         if self.error:
@@ -163,6 +169,22 @@ def _speed_from_grid(pings: list[SonarPing], grid_m: np.ndarray) -> int:
     for k, v in enumerate(speed.tolist()):
         pings[k] = dataclasses.replace(pings[k], speed_m_s=float(v))
     return len(pings)
+
+
+_UNSIGNED = {1: np.uint8, 2: np.uint16, 4: np.uint32}
+
+
+def _samples(values, n_samples: int, report: XtfReadReport) -> np.ndarray:
+    """A channel's samples. pyxtf reads ``NumSamples × BytesPerSample`` bytes but types them
+    by ``SampleFormat`` when the file sets it: a file whose two disagree (a converter that
+    changed the sample size and left the format, e.g. 1 byte per sample typed as 16-bit) gave
+    half as many values as samples, every ping "truncated". The bytes are the samples: read
+    as unsigned integers of their size (counted in ``n_sample_format_mended``)."""
+    a = np.asarray(values)
+    if n_samples > 0 and a.size != n_samples and a.nbytes % n_samples == 0 and a.nbytes // n_samples in _UNSIGNED:
+        report.n_sample_format_mended += 1
+        return a.view(_UNSIGNED[a.nbytes // n_samples])
+    return a
 
 
 def _slant_range_m(chan, pkt) -> float:
@@ -278,8 +300,8 @@ def _to_ping(pkt, sides: tuple[int, int], n_channels: int, nav_deg: bool, speed_
     if len(data) <= max(i_port, i_stbd) or len(chans) <= max(i_port, i_stbd):
         report.n_truncated += 1
         return None
-    port, stbd = np.asarray(data[i_port]), np.asarray(data[i_stbd])
     n_port, n_stbd = int(chans[i_port].NumSamples), int(chans[i_stbd].NumSamples)
+    port, stbd = _samples(data[i_port], n_port, report), _samples(data[i_stbd], n_stbd, report)
     if port.size != n_port or stbd.size != n_stbd or n_port == 0 or n_stbd == 0:
         report.n_truncated += 1
         return None

@@ -209,3 +209,51 @@ def test_channels_numbered_from_one_are_read_in_the_files_order(tmp_path):
     assert len(pings) == len(full) and report.n_other_channels == 0
     assert all(np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
                for a, b in zip(pings, full))
+
+
+def _eight_bit(src, dst, sample_format: int):
+    """``src`` with 1-byte samples (each the 16-bit one over 128), ``BytesPerSample`` 1 and
+    ``SampleFormat`` as given (8: 1-byte integer; 3: 2-byte, a converter that left it)."""
+    import struct
+
+    data = src.read_bytes()
+    head = bytearray(data[:1024])
+    for i in range(2):  # ChanInfo: BytesPerSample at 6, SampleFormat at 74
+        struct.pack_into("<H", head, 256 + 128 * i + 6, 1)
+        head[256 + 128 * i + 74] = sample_format
+    out, o = bytearray(head), 1024
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        packet = data[o:o + size]
+        if kind == 0:
+            new, h = bytearray(packet[:256]), 256
+            for _ in range(2):
+                n = struct.unpack_from("<I", packet, h + 42)[0]
+                samples = np.frombuffer(packet, "<u2", n, h + 64)
+                new += packet[h:h + 64] + (samples >> 7).clip(0, 255).astype(np.uint8).tobytes()
+                h += 64 + 2 * n
+            new += packet[h:]
+            struct.pack_into("<I", new, 10, len(new))
+            packet = bytes(new)
+        out += packet
+        o += size
+    dst.write_bytes(bytes(out))
+
+
+def test_one_byte_samples_are_read_even_when_the_format_says_two(tmp_path):
+    """8-bit samples read as they are; a file whose SampleFormat still says 16-bit while
+    BytesPerSample says 1 had every ping dropped as "truncated" (pyxtf types the bytes by the
+    format): its bytes are read as the samples they are now, the same pings."""
+    src = need(SCOTSMAN)
+    good, odd = tmp_path / "8bit.xtf", tmp_path / "8bit-format-16.xtf"
+    _eight_bit(src, good, 8)
+    _eight_bit(src, odd, 3)
+    ref, ref_report = read_xtf(good)
+    pings, report = read_xtf(odd)
+    full, _ = read_xtf(src)
+    assert len(ref) == len(pings) == len(full) and ref_report.n_sample_format_mended == 0
+    assert report.n_truncated == 0 and report.n_sample_format_mended == 2 * len(full)
+    assert "sample format contradicted" in report.summary()
+    for a, b, c in zip(pings[::30], ref[::30], full[::30]):
+        assert np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
+        assert np.array_equal(b.starboard, np.clip(c.starboard.astype(np.uint16) >> 7, 0, 255))
