@@ -18,6 +18,31 @@ def need(path: Path) -> Path:
     return path
 
 
+def rewrite_xtf(src: Path, dst: Path, packet=None, header=None) -> None:
+    """``src`` written to ``dst`` as another recorder would have written it: ``header`` edits
+    the file header (the first 1024 bytes: two or up to six channels) in place, ``packet``
+    takes each sonar packet (bytes) and returns the packet, or the packets, written instead;
+    each written packet's size field is set to its length."""
+    import struct
+
+    data = src.read_bytes()
+    head = bytearray(data[:1024])
+    if header is not None:
+        header(head)
+    out, o = bytearray(head), 1024
+    while o + 14 <= len(data):
+        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
+        written = data[o:o + size]
+        if kind == 0 and packet is not None:
+            written = packet(written)
+        for one in ([written] if isinstance(written, (bytes, bytearray)) else written):
+            one = bytearray(one)
+            struct.pack_into("<I", one, 10, len(one))
+            out += one
+        o += size
+    dst.write_bytes(bytes(out))
+
+
 @pytest.fixture(scope="session")
 def scotsman_pings():
     from adaptnav.sonar.xtf import read_xtf

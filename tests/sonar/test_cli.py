@@ -1,10 +1,11 @@
 import json
+import struct
 
 import cv2
 import numpy as np
 
 from adaptnav.service.cli import main
-from tests.sonar.conftest import SCOTSMAN, need
+from tests.sonar.conftest import SCOTSMAN, need, rewrite_xtf
 
 
 def test_waterfall_png_port_left_starboard_right(tmp_path, capsys):
@@ -61,16 +62,12 @@ def test_waterfall_png_has_a_labelled_scale_bar():
 
 def _without_speed(src, dst):
     """``src`` with every ping's SensorSpeed 0, as many recorders write it."""
-    import struct
+    def no_speed(packet):
+        packet = bytearray(packet)
+        struct.pack_into("<f", packet, 152, 0.0)  # XTFPingHeader.SensorSpeed
+        return packet
 
-    data = bytearray(src.read_bytes())
-    o = 1024  # after the file header (two channels)
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        if kind == 0:
-            struct.pack_into("<f", data, o + 152, 0.0)  # XTFPingHeader.SensorSpeed
-        o += size
-    dst.write_bytes(bytes(data))
+    rewrite_xtf(src, dst, packet=no_speed)
 
 
 def test_motion_of_a_file_without_speed_follows_its_positions(tmp_path, capsys):
@@ -96,25 +93,21 @@ def _projected_without_speed(src, dst):
     """``src`` in projected coordinates (``NavUnits`` 0: easting, northing in metres, a local
     grid 500 km east of its meridian) and without speed, as a survey package exports it."""
     import math
-    import struct
+    lat0 = []
 
-    data = bytearray(src.read_bytes())
-    struct.pack_into("<H", data, 164, 0)  # XTFFileHeader.NavUnits
-    o = 1024
-    lat0 = None
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        if kind == 0:
-            lon, = struct.unpack_from("<d", data, o + 168)  # SensorXcoordinate
-            lat, = struct.unpack_from("<d", data, o + 160)  # SensorYcoordinate
-            if (lat, lon) != (0.0, 0.0):
-                lat0 = lat if lat0 is None else lat0
-                east = 500_000.0 + 6_371_000.0 * math.cos(math.radians(lat0)) * math.radians(lon + 70.0)
-                struct.pack_into("<d", data, o + 168, east)
-                struct.pack_into("<d", data, o + 160, 6_371_000.0 * math.radians(lat))
-            struct.pack_into("<f", data, o + 152, 0.0)  # SensorSpeed
-        o += size
-    dst.write_bytes(bytes(data))
+    def projected(packet):
+        packet = bytearray(packet)
+        lon, = struct.unpack_from("<d", packet, 168)  # SensorXcoordinate
+        lat, = struct.unpack_from("<d", packet, 160)  # SensorYcoordinate
+        if (lat, lon) != (0.0, 0.0):
+            lat0[:] = lat0 or [lat]
+            east = 500_000.0 + 6_371_000.0 * math.cos(math.radians(lat0[0])) * math.radians(lon + 70.0)
+            struct.pack_into("<d", packet, 168, east)
+            struct.pack_into("<d", packet, 160, 6_371_000.0 * math.radians(lat))
+        struct.pack_into("<f", packet, 152, 0.0)  # SensorSpeed
+        return packet
+
+    rewrite_xtf(src, dst, packet=projected, header=lambda head: struct.pack_into("<H", head, 164, 0))
 
 
 def test_motion_of_a_projected_file_without_speed_follows_its_grid_track(tmp_path, capsys):

@@ -1,10 +1,11 @@
 import shutil
+import struct
 
 import numpy as np
 import pytest
 
 from adaptnav.sonar.xtf import SonarFileError, read_xtf
-from tests.sonar.conftest import MBES, SCOTSMAN, need
+from tests.sonar.conftest import MBES, SCOTSMAN, need, rewrite_xtf
 
 
 def test_scotsman_pings_nav_and_orientation(scotsman_pings):
@@ -62,28 +63,15 @@ def test_cli_mbes_exit_code_2_without_traceback(capsys):
 def _port_halved(src, dst):
     """``src`` with each sonar packet's port channel at half its samples (the mean of each
     pair), as a recorder that samples the two sides differently writes it."""
-    import struct
+    def halve(packet):  # ping header, then per channel its header and uint16 samples
+        n = struct.unpack_from("<I", packet, 256 + 42)[0]
+        port = np.frombuffer(packet, "<u2", n, 256 + 64).astype(float)
+        halved = (0.5 * (port[0::2] + port[1::2])).round().astype("<u2")
+        head = bytearray(packet[256:256 + 64])
+        struct.pack_into("<I", head, 42, n // 2)
+        return packet[:256] + head + halved.tobytes() + packet[256 + 64 + 2 * n:]
 
-    data = src.read_bytes()
-    out = bytearray(data[:1024])  # the file header (two channels: 1024 bytes)
-    o = 1024
-    while o + 14 <= len(data):
-        magic, kind = struct.unpack_from("<HB", data, o)
-        assert magic == 0xFACE
-        size = struct.unpack_from("<I", data, o + 10)[0]
-        packet = data[o:o + size]
-        if kind == 0:  # sonar: ping header, then per channel its header and uint16 samples
-            n = struct.unpack_from("<I", packet, 256 + 42)[0]
-            port = np.frombuffer(packet, "<u2", n, 256 + 64).astype(float)
-            halved = (0.5 * (port[0::2] + port[1::2])).round().astype("<u2")
-            head = bytearray(packet[256:256 + 64])
-            struct.pack_into("<I", head, 42, n // 2)
-            new = bytearray(packet[:256]) + head + halved.tobytes() + packet[256 + 64 + 2 * n:]
-            struct.pack_into("<I", new, 10, len(new))
-            packet = bytes(new)
-        out += packet
-        o += size
-    dst.write_bytes(bytes(out))
+    rewrite_xtf(src, dst, packet=halve)
 
 
 def test_sides_sampled_differently_are_read_not_dropped(tmp_path):
@@ -106,16 +94,12 @@ def test_sides_sampled_differently_are_read_not_dropped(tmp_path):
 
 def _whole_seconds(src, dst):
     """``src`` with every ping's hundredths of a second 0, as some recorders write the time."""
-    import struct
+    def whole(packet):
+        packet = bytearray(packet)
+        packet[21] = 0  # XTFPingHeader.HSeconds
+        return packet
 
-    data = bytearray(src.read_bytes())
-    o = 1024
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        if kind == 0:
-            data[o + 21] = 0  # XTFPingHeader.HSeconds
-        o += size
-    dst.write_bytes(bytes(data))
+    rewrite_xtf(src, dst, packet=whole)
 
 
 def test_pings_stamped_to_the_whole_second_are_spread_over_it(tmp_path):
@@ -144,31 +128,22 @@ def _dual_frequency(src, dst):
     its own: the file header declares four channels (low-frequency port, starboard, then the
     high-frequency pair), each ping is followed by a high-frequency packet 0.05 s later whose
     channels are numbered 2 and 3 and whose samples are all 7."""
-    import struct
+    def four_channels(head):
+        struct.pack_into("<H", head, 166, 4)  # NumberOfSonarChannels
+        head[256 + 2 * 128:256 + 4 * 128] = head[256:256 + 2 * 128]  # the pair's ChanInfo again
 
-    data = src.read_bytes()
-    head = bytearray(data[:1024])
-    struct.pack_into("<H", head, 166, 4)  # NumberOfSonarChannels
-    head[256 + 2 * 128:256 + 4 * 128] = head[256:256 + 2 * 128]  # the pair's ChanInfo again
-    out = bytearray(head)
-    o = 1024
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        packet = data[o:o + size]
-        out += packet
-        if kind == 0:
-            high = bytearray(packet)
-            h = 256
-            for number in (2, 3):  # ping channel headers: ChannelNumber, then the samples
-                struct.pack_into("<H", high, h, number)
-                n = struct.unpack_from("<I", high, h + 42)[0]
-                high[h + 64:h + 64 + 2 * n] = np.full(n, 7, "<u2").tobytes()
-                h += 64 + 2 * n
-            if high[21] < 95:
-                high[21] += 5  # XTFPingHeader.HSeconds
-            out += high
-        o += size
-    dst.write_bytes(bytes(out))
+    def with_high(packet):
+        high, h = bytearray(packet), 256
+        for number in (2, 3):  # ping channel headers: ChannelNumber, then the samples
+            struct.pack_into("<H", high, h, number)
+            n = struct.unpack_from("<I", high, h + 42)[0]
+            high[h + 64:h + 64 + 2 * n] = np.full(n, 7, "<u2").tobytes()
+            h += 64 + 2 * n
+        if high[21] < 95:
+            high[21] += 5  # XTFPingHeader.HSeconds
+        return [packet, high]
+
+    rewrite_xtf(src, dst, packet=with_high, header=four_channels)
 
 
 def test_a_dual_frequency_file_with_a_packet_per_frequency_reads_one_frequency(tmp_path):
@@ -189,21 +164,17 @@ def test_a_dual_frequency_file_with_a_packet_per_frequency_reads_one_frequency(t
 def test_channels_numbered_from_one_are_read_in_the_files_order(tmp_path):
     """Numbers that do not fit the file's channels (counted from 1 by some recorders) say
     nothing about which channel is which: the file's order is kept, every ping read."""
-    import struct
-
     src = need(SCOTSMAN)
-    data = bytearray(src.read_bytes())
-    o = 1024
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        if kind == 0:
-            h = o + 256
-            for number in (1, 2):
-                struct.pack_into("<H", data, h, number)
-                h += 64 + 2 * struct.unpack_from("<I", data, h + 42)[0]
-        o += size
+
+    def from_one(packet):
+        packet, h = bytearray(packet), 256
+        for number in (1, 2):
+            struct.pack_into("<H", packet, h, number)
+            h += 64 + 2 * struct.unpack_from("<I", packet, h + 42)[0]
+        return packet
+
     odd = tmp_path / "from-one.xtf"
-    odd.write_bytes(bytes(data))
+    rewrite_xtf(src, odd, packet=from_one)
     full, _ = read_xtf(src)
     pings, report = read_xtf(odd)
     assert len(pings) == len(full) and report.n_other_channels == 0
@@ -214,30 +185,21 @@ def test_channels_numbered_from_one_are_read_in_the_files_order(tmp_path):
 def _eight_bit(src, dst, sample_format: int):
     """``src`` with 1-byte samples (each the 16-bit one over 128), ``BytesPerSample`` 1 and
     ``SampleFormat`` as given (8: 1-byte integer; 3: 2-byte, a converter that left it)."""
-    import struct
+    def one_byte(head):
+        for i in range(2):  # ChanInfo: BytesPerSample at 6, SampleFormat at 74
+            struct.pack_into("<H", head, 256 + 128 * i + 6, 1)
+            head[256 + 128 * i + 74] = sample_format
 
-    data = src.read_bytes()
-    head = bytearray(data[:1024])
-    for i in range(2):  # ChanInfo: BytesPerSample at 6, SampleFormat at 74
-        struct.pack_into("<H", head, 256 + 128 * i + 6, 1)
-        head[256 + 128 * i + 74] = sample_format
-    out, o = bytearray(head), 1024
-    while o + 14 <= len(data):
-        kind, size = data[o + 2], struct.unpack_from("<I", data, o + 10)[0]
-        packet = data[o:o + size]
-        if kind == 0:
-            new, h = bytearray(packet[:256]), 256
-            for _ in range(2):
-                n = struct.unpack_from("<I", packet, h + 42)[0]
-                samples = np.frombuffer(packet, "<u2", n, h + 64)
-                new += packet[h:h + 64] + (samples >> 7).clip(0, 255).astype(np.uint8).tobytes()
-                h += 64 + 2 * n
-            new += packet[h:]
-            struct.pack_into("<I", new, 10, len(new))
-            packet = bytes(new)
-        out += packet
-        o += size
-    dst.write_bytes(bytes(out))
+    def shrink(packet):
+        new, h = bytearray(packet[:256]), 256
+        for _ in range(2):
+            n = struct.unpack_from("<I", packet, h + 42)[0]
+            samples = np.frombuffer(packet, "<u2", n, h + 64)
+            new += packet[h:h + 64] + (samples >> 7).clip(0, 255).astype(np.uint8).tobytes()
+            h += 64 + 2 * n
+        return new + packet[h:]
+
+    rewrite_xtf(src, dst, packet=shrink, header=one_byte)
 
 
 def test_one_byte_samples_are_read_even_when_the_format_says_two(tmp_path):
