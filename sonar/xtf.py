@@ -237,7 +237,9 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
             raise SonarFileError(f"{path}: not a readable XTF file ({exc})") from None
         sides = _channel_sides(file_header)
         n_channels = int(getattr(file_header, "NumberOfSonarChannels", 0) or 0)
-        nav_deg = int(getattr(file_header, "NavUnits", 3)) == 3
+        nav_units = int(getattr(file_header, "NavUnits", 3))
+        nav_deg = nav_units == 3
+        nav_grid = nav_units == 0  # projected: easting, northing in metres (other values: neither)
         while True:
             try:
                 pkt = next(gen)
@@ -260,7 +262,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
             ping = _to_ping(pkt, sides, n_channels, nav_deg, speed_in_knots, report)
             if ping is not None:
                 pings.append(ping)
-                if not nav_deg:  # projected (easting, northing) in metres: kept for the speed
+                if nav_grid:  # projected (easting, northing) in metres: kept for the speed
                     x, y = float(pkt.SensorXcoordinate), float(pkt.SensorYcoordinate)
                     grid.append((x, y) if (x, y) != (0.0, 0.0) else (math.nan, math.nan))
     report.packet_counts = dict(counts)
