@@ -81,6 +81,14 @@ class XtfReadReport:
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
+    @property
+    def mended(self) -> bool:
+        """The file was read whole, but something was done to it that its user should know
+        (sides resampled, times spread, speeds from a projected track, sample format mended,
+        another frequency's packets skipped)."""
+        return bool(self.n_sides_resampled or self.n_times_spread or self.n_speed_from_grid
+                    or self.n_sample_format_mended or self.n_other_channels)
+
     def summary(self) -> str:
         """One-line human summary."""
         counts = ", ".join(f"{k}: {v}" for k, v in sorted(self.packet_counts.items()))

@@ -48,10 +48,7 @@ def run(args) -> int:
         return _fail(str(exc))
     if report.error or report.n_truncated:
         print(f"adaptnav sonar: warning: {report.summary()}", file=sys.stderr)
-    elif (report.n_sides_resampled or report.n_times_spread or report.n_other_channels
-          or report.n_speed_from_grid or report.n_sample_format_mended):
-        # read whole, with something to know about the file (sides, times, other frequency,
-        # speeds from a projected track)
+    elif report.mended:
         print(f"adaptnav sonar: note: {report.summary()}", file=sys.stderr)
     from adaptnav.sonar.waterfall import clean_pings
 
