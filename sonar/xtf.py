@@ -180,15 +180,29 @@ def _speed_from_grid(pings: list[SonarPing], grid_m: np.ndarray) -> int:
 
 
 _UNSIGNED = {1: np.uint8, 2: np.uint16, 4: np.uint32}
+_IBM_FLOAT = 1  # XTF SampleFormat: 4-byte IBM System/360 float
 
 
-def _samples(values, n_samples: int, report: XtfReadReport) -> np.ndarray:
+def ibm32_to_float(words: np.ndarray) -> np.ndarray:
+    """IBM System/360 single-precision floats (their 32-bit words) as float64: sign bit,
+    7-bit base-16 exponent biased by 64, 24-bit fraction in [1/16, 1)."""
+    u = np.asarray(words).view(np.uint32)  # the words as read, of any 4-byte type
+    fraction = (u & 0x00FFFFFF).astype(np.float64) * 2.0 ** -24
+    exponent16 = ((u >> 24) & 0x7F).astype(np.int64) - 64
+    value = np.ldexp(fraction, 4 * exponent16)
+    return np.where(u >> 31, -value, value)
+
+
+def _samples(values, n_samples: int, report: XtfReadReport, ibm_float: bool = False) -> np.ndarray:
     """A channel's samples. pyxtf reads ``NumSamples × BytesPerSample`` bytes but types them
     by ``SampleFormat`` when the file sets it: a file whose two disagree (a converter that
     changed the sample size and left the format, e.g. 1 byte per sample typed as 16-bit) gave
     half as many values as samples, every ping "truncated". The bytes are the samples: read
-    as unsigned integers of their size (counted in ``n_sample_format_mended``)."""
+    as unsigned integers of their size (counted in ``n_sample_format_mended``). IBM floats
+    (``SampleFormat`` 1), which pyxtf leaves as their 32-bit words, are decoded."""
     a = np.asarray(values)
+    if ibm_float and a.nbytes == 4 * n_samples:
+        return ibm32_to_float(a)
     if n_samples > 0 and a.size != n_samples and a.nbytes % n_samples == 0 and a.nbytes // n_samples in _UNSIGNED:
         report.n_sample_format_mended += 1
         return a.view(_UNSIGNED[a.nbytes // n_samples])
@@ -248,6 +262,9 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
         nav_units = int(getattr(file_header, "NavUnits", 3))
         nav_deg = nav_units == 3
         nav_grid = nav_units == 0  # projected: easting, northing in metres (other values: neither)
+        info = list(getattr(file_header, "sonar_info", []) or [])
+        ibm_float = tuple(k < len(info) and int(getattr(info[k], "SampleFormat", 0)) == _IBM_FLOAT
+                          for k in (sides or ()))
         while True:
             try:
                 pkt = next(gen)
@@ -267,7 +284,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
                 continue
             if name != "sonar" or sides is None:
                 continue
-            ping = _to_ping(pkt, sides, n_channels, nav_deg, speed_in_knots, report)
+            ping = _to_ping(pkt, sides, n_channels, nav_deg, speed_in_knots, report, ibm_float)
             if ping is not None:
                 pings.append(ping)
                 if nav_grid:  # projected (easting, northing) in metres: kept for the speed
@@ -289,8 +306,9 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
 
 
 def _to_ping(pkt, sides: tuple[int, int], n_channels: int, nav_deg: bool, speed_in_knots: bool,
-             report: XtfReadReport) -> SonarPing | None:
-    """One decoded XTF sonar packet → SonarPing, or None (counted) when truncated."""
+             report: XtfReadReport, ibm_float: tuple[bool, ...] = (False, False)) -> SonarPing | None:
+    """One decoded XTF sonar packet → SonarPing, or None (counted) when truncated;
+    ``ibm_float``: the port and starboard channels' samples are IBM floats."""
     data = list(getattr(pkt, "data", []) or [])
     chans = list(getattr(pkt, "ping_chan_headers", []) or [])
     i_port, i_stbd = sides
@@ -311,7 +329,8 @@ def _to_ping(pkt, sides: tuple[int, int], n_channels: int, nav_deg: bool, speed_
         report.n_truncated += 1
         return None
     n_port, n_stbd = int(chans[i_port].NumSamples), int(chans[i_stbd].NumSamples)
-    port, stbd = _samples(data[i_port], n_port, report), _samples(data[i_stbd], n_stbd, report)
+    port = _samples(data[i_port], n_port, report, ibm_float[0])
+    stbd = _samples(data[i_stbd], n_stbd, report, ibm_float[1])
     if port.size != n_port or stbd.size != n_stbd or n_port == 0 or n_stbd == 0:
         report.n_truncated += 1
         return None

@@ -182,24 +182,41 @@ def test_channels_numbered_from_one_are_read_in_the_files_order(tmp_path):
                for a, b in zip(pings, full))
 
 
-def _eight_bit(src, dst, sample_format: int):
-    """``src`` with 1-byte samples (each the 16-bit one over 128), ``BytesPerSample`` 1 and
-    ``SampleFormat`` as given (8: 1-byte integer; 3: 2-byte, a converter that left it)."""
-    def one_byte(head):
+def _rewrite_samples(src, dst, bytes_per_sample: int, sample_format: int, encode):
+    """``src`` with every 16-bit sample written as ``encode(samples) -> bytes`` of
+    ``bytes_per_sample`` each, and the channels' ``BytesPerSample`` and ``SampleFormat`` as given."""
+    def header(head):
         for i in range(2):  # ChanInfo: BytesPerSample at 6, SampleFormat at 74
-            struct.pack_into("<H", head, 256 + 128 * i + 6, 1)
+            struct.pack_into("<H", head, 256 + 128 * i + 6, bytes_per_sample)
             head[256 + 128 * i + 74] = sample_format
 
-    def shrink(packet):
+    def samples(packet):
         new, h = bytearray(packet[:256]), 256
         for _ in range(2):
             n = struct.unpack_from("<I", packet, h + 42)[0]
-            samples = np.frombuffer(packet, "<u2", n, h + 64)
-            new += packet[h:h + 64] + (samples >> 7).clip(0, 255).astype(np.uint8).tobytes()
+            new += packet[h:h + 64] + encode(np.frombuffer(packet, "<u2", n, h + 64))
             h += 64 + 2 * n
         return new + packet[h:]
 
-    rewrite_xtf(src, dst, packet=shrink, header=one_byte)
+    rewrite_xtf(src, dst, packet=samples, header=header)
+
+
+def _eight_bit(src, dst, sample_format: int):
+    """``src`` with 1-byte samples (each the 16-bit one over 128), ``BytesPerSample`` 1 and
+    ``SampleFormat`` as given (8: 1-byte integer; 3: 2-byte, a converter that left it)."""
+    _rewrite_samples(src, dst, 1, sample_format,
+                     lambda samples: (samples >> 7).clip(0, 255).astype(np.uint8).tobytes())
+
+
+def _ibm32_words(values: np.ndarray) -> np.ndarray:
+    """Non-negative integers below 16⁶ as IBM single-precision words (exact): the fraction
+    v / 16^e in [1/16, 1) with e the number of hex digits of v."""
+    v = np.asarray(values, dtype=np.int64)
+    e = np.zeros_like(v)
+    while np.any(v >= 16 ** e):
+        e += v >= 16 ** e
+    mantissa = v << (24 - 4 * e)  # v / 16^e × 2^24
+    return np.where(v == 0, 0, ((e + 64) << 24) | mantissa).astype("<u4")
 
 
 def test_one_byte_samples_are_read_even_when_the_format_says_two(tmp_path):
@@ -219,3 +236,22 @@ def test_one_byte_samples_are_read_even_when_the_format_says_two(tmp_path):
     for a, b, c in zip(pings[::30], ref[::30], full[::30]):
         assert np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
         assert np.array_equal(b.starboard, np.clip(c.starboard.astype(np.uint16) >> 7, 0, 255))
+
+
+def test_ibm_float_samples_are_decoded(tmp_path):
+    """SampleFormat 1 (4-byte IBM float, old recorders and converters): pyxtf has no type for
+    it and returned the raw 32-bit words, so every echo was a number near 10⁹ with no
+    relation to its strength. Decoded, the pings are the 16-bit file's, sample for sample."""
+    src = need(SCOTSMAN)
+    ibm = tmp_path / "ibm-float.xtf"
+    _rewrite_samples(src, ibm, 4, 1, lambda samples: _ibm32_words(samples).tobytes())
+    pings, report = read_xtf(ibm)
+    full, _ = read_xtf(src)
+    assert len(pings) == len(full) and report.n_truncated == 0 and report.n_sample_format_mended == 0
+    for a, b in zip(pings, full):
+        assert np.array_equal(a.port, b.port) and np.array_equal(a.starboard, b.starboard)
+    # the words themselves, against published IBM encodings (one sign, fractions, zero)
+    from adaptnav.sonar.xtf import ibm32_to_float
+    words = np.array([0x41100000, 0xC276A000, 0x40280000, 0x00000000, 0x42640000], dtype=np.uint32)
+    assert ibm32_to_float(words).tolist() == [1.0, -118.625, 0.15625, 0.0, 100.0]
+    assert _ibm32_words(np.array([1, 100, 0])).tolist() == [0x41100000, 0x42640000, 0]
