@@ -22,6 +22,7 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     """``adaptnav run --calibrator-only``: calibrate from the bus, publish releases."""
     import json
 
+    from adaptnav.service.calibrator.lagged import side_scan_report
     from adaptnav.service.transport.bus import Bus, nonblocking_enqueue
     from adaptnav.service.runtime.persistence import load_state
 
@@ -38,7 +39,11 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     # the daemon's free-inertial velocity: the surge-noise evidence (calibration.inertial)
     bus.subscribe_samples(nonblocking_enqueue(inbox, overflow), key=bus.keys.nav_inertial,
                          kinds={"inertial_velocity"})
-    last: dict[str, Any] = {"params": params0.to_dict()}
+    # what the status query answers with; its keys fixed here (the query reads it from a Zenoh
+    # thread): "side_scan" is what the object front end made of the pings
+    # (OnlineCalibrator.side_scan_report; null before the first ping and without side-scan), as a calibrator child's is
+    # in the daemon's health, refreshed by this loop after each ping
+    last: dict[str, Any] = {"params": params0.to_dict(), "side_scan": side_scan_report(calibrator)}
     received: Counter[str] = Counter()  # samples taken, by kind
     bus.queryable("calibrator", lambda: json.dumps(
         {"type": "calibrator_status", "schema_version": 1, **last, "received": dict(received),
@@ -51,8 +56,11 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
             except queue.Empty:
                 sample = None
             if sample is not None:
-                received[getattr(sample, "KIND", type(sample).__name__)] += 1
+                kind = getattr(sample, "KIND", type(sample).__name__)
+                received[kind] += 1
                 calibrator.observe(sample)
+                if kind == "sonar":
+                    last["side_scan"] = side_scan_report(calibrator)
             for release in calibrator.poll():
                 if release.KIND != "calibration_release":
                     continue  # side-scan objects for a filter: a remote node has none (calibration.sidescan)

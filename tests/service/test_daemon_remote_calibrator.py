@@ -81,3 +81,44 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
     times = [d["t_s"] for d in inertial]
     assert all(b > a for a, b in zip(times, times[1:]))
     assert node_status and node_status["received"].get("inertial_velocity", 0) > 100, node_status
+
+
+def test_remote_calibrator_node_says_what_its_side_scan_front_end_made_of_the_pings(tmp_path):
+    """The node's status (query ``calibrator``) carries its object front end's counts, as the
+    daemon's health does for a calibrator child: every side-scan ping published is counted."""
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+    from adaptnav.sim.scenario import load_scenario
+
+    scenario = load_scenario("survey", ["seed=2", "duration_s=60.0", "dvl.enabled=false", "sonar.enabled=true"])
+    port = free_port()
+    node_cfg = build_config(scenario, None, [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false",
+                                             "vehicle.name=testauv", f'state_dir="{tmp_path}/n"'])
+    # the vehicle's side of the bus: a peer listening where the node connects
+    vehicle = Bus(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "testauv")
+    stop = threading.Event()
+    node = threading.Thread(target=run_node, args=(node_cfg, stop), daemon=True)
+    node.start()
+    try:
+        first = wait_until(lambda: vehicle.get("calibrator", 0.5), 60)
+        assert first, "the calibrator node did not answer"
+        assert "side_scan" in first and first["side_scan"] is None  # null before the first ping
+        pings = 0
+        for s in simulate(scenario).iter_samples():
+            if s.KIND in ("sonar", "rpm", "depth", "heading"):
+                vehicle.publish_sample(s)
+                pings += s.KIND == "sonar"
+                if pings and pings % 100 == 0 and s.KIND == "sonar":  # the node's pace: none dropped
+                    wait_until(lambda: vehicle.get("calibrator", 1.0)["received"].get("sonar", 0) >= pings - 50, 60)
+        status = wait_until(lambda: (st := vehicle.get("calibrator", 1.0)) and st["received"].get("sonar") == pings
+                            and st, 60)
+    finally:
+        stop.set()
+        node.join(10)
+        vehicle.close()
+    assert pings > 300
+    assert status, "the node did not take every ping"
+    assert status["overflow"] == {}
+    report = status["side_scan"]
+    assert report["pings"] == pings and report["resampled"] == 0 and "bad geometry" not in report["rejected"]
+    assert report["blocks"] >= pings // 160 - 1
