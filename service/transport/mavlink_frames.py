@@ -139,13 +139,44 @@ class TlogReader:
             self._data.close()
 
     def __iter__(self):
+        from pymavlink.dialects.v20.ardupilotmega import MAVError, MAVLink_bad_data
+
         data, end = self._data, len(self._data)
-        parse, needed, unpack = self.mav.parse_char, self.mav.bytes_needed, _STAMP.unpack_from
+        mav = self.mav
+        parse, needed, unpack = mav.parse_char, mav.bytes_needed, _STAMP.unpack_from
+        decode, held = mav.decode, mav.buf_len
         pos, t_s = 0, None
         while True:
             if pos + 8 <= end:
                 t_s = unpack(data, pos)[0] * 1e-6
             pos = min(pos + 8, end)  # a short stamp at the end is read and dropped, as pymavlink does
+            # a whole frame with nothing held by the parser: decoded at once, as parse_char
+            # would decode it after staging its header and body (the same message, or the same
+            # BAD_DATA) — its byte-wise staging was a fifth of a tlog's replay. Only where the
+            # parser's first read (bytes_needed) would not reach past the frame; anything else
+            # (no magic byte, unknown incompat flags, a frame cut by the file's end) goes the
+            # parser's way below
+            if pos + 3 <= end and not held():
+                magic, n, flags = data[pos], data[pos + 1], data[pos + 2]
+                if magic == _V2_MAGIC and not flags & ~_IFLAG_SIGNED:
+                    size = _V2_HEADER + n + 2 + (13 if flags & _IFLAG_SIGNED else 0)
+                elif magic == _V1_MAGIC:
+                    size = 6 + n + 2
+                else:
+                    size = 0
+                if size and pos + size <= end and needed() <= size:
+                    frame = bytearray(data[pos:pos + size])
+                    pos += size
+                    try:
+                        msg = decode(frame)
+                    except MAVError as e:  # robust parsing's answer to a frame it cannot decode
+                        msg = MAVLink_bad_data(frame, e.message)
+                    except Exception as e:  # noqa: BLE001 — said to the caller, which counts it
+                        yield e
+                        continue
+                    msg._timestamp = t_s
+                    yield msg
+                    continue
             while True:
                 chunk = data[pos:pos + needed()]
                 pos += len(chunk)

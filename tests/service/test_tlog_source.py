@@ -181,25 +181,97 @@ def test_frames_logged_with_trailing_zeros_cut_after_the_crc_are_restored_and_us
     assert [round(math.degrees(f.lat_rad) * 1e7) for f in fixes] == [lat0_e7 + 10 * i for i in range(2, 40, 5)]
 
 
+def _pymavlink_reads(path) -> tuple[list, int]:
+    """pymavlink's own log reader on ``path``: (type, record stamp, frame bytes, a damaged
+    frame's reason) of each message, and the bytes its parser holds at the end."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    theirs = []
+    while (m := conn.recv_match()) is not None:
+        theirs.append((m.get_type(), m._timestamp, bytes(m.get_msgbuf()), getattr(m, "reason", None)))
+    left = conn.mav.buf_len()
+    conn.close()
+    return theirs, left
+
+
+def _tlog_reader_reads(path) -> tuple[list, int]:
+    from adaptnav.service.transport.mavlink_frames import TlogReader
+
+    reader = TlogReader(path)
+    ours = [(m.get_type(), m._timestamp, bytes(m.get_msgbuf()), getattr(m, "reason", None)) for m in reader]
+    left = reader.mav.buf_len()
+    reader.close()
+    return ours, left
+
+
+def _parse_char_reads(path) -> tuple[list, int]:
+    """pymavlink's parser fed a tlog as its log reader feeds it (a record's stamp, then
+    ``bytes_needed()`` at a time until a message comes; robust parsing), without its
+    reader's start-of-file index: the reference for every frame, whole or damaged."""
+    import struct
+
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    mav = ardupilotmega.MAVLink(None)
+    mav.robust_parsing = True
+    data, pos, t_s, out = Path(path).read_bytes(), 0, None, []
+    while True:
+        if pos + 8 <= len(data):
+            t_s = struct.unpack_from(">Q", data, pos)[0] * 1e-6
+        pos = min(pos + 8, len(data))
+        while True:
+            chunk = data[pos:pos + mav.bytes_needed()]
+            pos += len(chunk)
+            msg = mav.parse_char(chunk)
+            if msg is not None:
+                out.append((msg.get_type(), t_s, bytes(msg.get_msgbuf()), getattr(msg, "reason", None)))
+                break
+            if not chunk:
+                return out, mav.buf_len()
+
+
+def test_the_tlog_reader_reads_frames_of_every_kind_as_pymavlinks_parser_does(tmp_path):
+    """Frames of every kind a recorder may hold, read as pymavlink's parser reads them: v2,
+    v1 (one of 2 bytes of payload after a v2 frame: the parser's first read of 12 bytes then
+    takes 2 bytes of the next record's stamp, and the frame after it is lost), signed, a
+    payload cut of its trailing zeros, a flipped bit (CRC), an unknown message id, incompat
+    flags it does not know, garbage between records, and a last frame cut by the file's end."""
+    from adaptnav.service.transport.mavlink_convert import mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    signer = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+    signer.signing.secret_key, signer.signing.sign_outgoing = bytes(range(32)), True
+    signer.signing.link_id, signer.signing.timestamp = 1, 1_000
+    v2 = [mav.attitude_encode(1000 * i, 0.1, -0.2, 0.3, 0.0, 0.0, 0.01).pack(mav) for i in range(6)]
+    v1_short = mav.param_request_list_encode(1, 1).pack(mav, force_mavlink1=True)
+    v1 = mav.heartbeat_encode(12, 3, 0, 0, 4).pack(mav, force_mavlink1=True)
+    signed = signer.attitude_encode(5000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).pack(signer)
+    zeros = mav.scaled_pressure2_encode(7000, 0.0, 0.0, 0).pack(mav)  # payload truncated to 4 bytes
+    flipped = bytearray(v2[2])
+    flipped[14] ^= 0x08
+    unknown = bytearray(v2[3])
+    unknown[7:10] = (0xEE, 0xEE, 0x0E)  # msgid 0x0EEEEE
+    incompat = bytearray(v2[4])
+    incompat[2] = 0x02
+    frames = [v2[0], v1, signed, zeros, bytes(flipped), v2[5], bytes(unknown), bytes(incompat), v2[1],
+              v1_short, v2[2], b"\x00\x17garbage", v1_short, v1_short, v2[0], v2[1][:9]]
+    path = tmp_path / "kinds.tlog"
+    write_tlog(path, frames)
+    theirs, left = _parse_char_reads(path)
+    kinds = [m[0] for m in theirs]
+    assert {"ATTITUDE", "HEARTBEAT", "SCALED_PRESSURE2", "UNKNOWN_978670", "PARAM_REQUEST_LIST"} <= set(kinds)
+    assert kinds.count("BAD_DATA") >= 4
+    assert _tlog_reader_reads(path) == (theirs, left)
+
+
 @pytest.mark.parametrize("name", ["ardusub-4.1.0-corrupt-frames.tlog", "ardusub-4.1.2-bench.tlog"])
 def test_the_tlog_reader_reads_what_pymavlink_reads(name, tmp_path):
     """The replay's own tlog loop gives pymavlink's log reader's messages (damaged frames
     included, each with its record's stamp), also on a file cut inside a frame."""
-    from pymavlink import mavutil
-
-    from adaptnav.service.transport.mavlink_frames import TlogReader
-
     data = log_path(name).read_bytes()
     cut = tmp_path / "cut.tlog"
     cut.write_bytes(data[: len(data) // 2 + 11])
     for path in (log_path(name), cut):
-        conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
-        theirs = []
-        while (m := conn.recv_match()) is not None:
-            theirs.append((m.get_type(), m._timestamp, bytes(m.get_msgbuf())))
-        reader = TlogReader(path)
-        ours = [(m.get_type(), m._timestamp, bytes(m.get_msgbuf())) for m in reader]
-        assert len(ours) > 10_000 and ours == theirs
-        assert reader.mav.buf_len() == conn.mav.buf_len()
-        reader.close()
-        conn.close()
+        theirs, left = _pymavlink_reads(path)
+        assert len(theirs) > 10_000 and _tlog_reader_reads(path) == (theirs, left)
