@@ -36,6 +36,8 @@ class Measurement(NamedTuple):
         ang = self.angular
         if ang is NOT_ANGULAR.get(ang.size):  # make()'s shared all-False masks
             return y
+        if ang is ALL_ANGULAR.get(ang.size):  # angles only: np.where would take every wrapped one
+            return wrap_angle(y)
         if ang.size == 1:  # a heading: np.where and any() cost more than the wrap
             return wrap_angle(y) if ang[0] else y
         if ang.any():
@@ -98,9 +100,11 @@ class AidSource:
 
 
 # the all-False ``angular`` masks of 1–3 components, shared (read-only) by every Measurement
-# without angular components: an aid building its Measurement directly passes these
+# without angular components: an aid building its Measurement directly passes these; and the
+# all-True ones, for a measurement of angles only (the attitude's three)
 NOT_ANGULAR = {m: np.zeros(m, bool) for m in (1, 2, 3)}
-for _a in NOT_ANGULAR.values():
+ALL_ANGULAR = {m: np.ones(m, bool) for m in (1, 2, 3)}
+for _a in (*NOT_ANGULAR.values(), *ALL_ANGULAR.values()):
     _a.setflags(write=False)
 
 
