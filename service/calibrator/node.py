@@ -40,9 +40,9 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     bus.subscribe_samples(nonblocking_enqueue(inbox, overflow), key=bus.keys.nav_inertial,
                          kinds={"inertial_velocity"})
     # what the status query answers with; its keys fixed here (the query reads it from a Zenoh
-    # thread): "side_scan" is what the object front end made of the pings
-    # (OnlineCalibrator.side_scan_report; null before the first ping and without side-scan), as a calibrator child's is
-    # in the daemon's health, refreshed by this loop after each ping
+    # thread). "side_scan": what the object front end made of the pings, as the daemon's health
+    # has it for a calibrator child (OnlineCalibrator.side_scan_report; null before the first
+    # ping and without side-scan), refreshed by this loop after each ping
     last: dict[str, Any] = {"params": params0.to_dict(), "side_scan": side_scan_report(calibrator)}
     received: Counter[str] = Counter()  # samples taken, by kind
     bus.queryable("calibrator", lambda: json.dumps(

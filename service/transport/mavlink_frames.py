@@ -152,7 +152,7 @@ class TlogReader:
             pos = min(pos + 8, end)  # a short stamp at the end is read and dropped, as pymavlink does
             # a whole frame with nothing held by the parser: decoded at once, as parse_char
             # would decode it after staging its header and body (the same message, or the same
-            # BAD_DATA) — its byte-wise staging was a fifth of a tlog's replay. Only where the
+            # BAD_DATA) — its byte-wise staging was a tenth of a tlog's replay. Only where the
             # parser's first read (bytes_needed) would not reach past the frame; anything else
             # (no magic byte, unknown incompat flags, a frame cut by the file's end) goes the
             # parser's way below
