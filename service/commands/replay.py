@@ -143,10 +143,30 @@ def run(args):
               + ("; refused: " + ", ".join(f"{k} {v}" for k, v in sss["rejected"].items()) if sss["rejected"] else ""))
     if s["errors"]:
         print(f"  processing errors (logged): {s['errors']}")
+    for line in consistency_lines(s.get("aid_consistency") or {}):
+        print(line)
     print(rp.targets_text(res.metrics))
     print(f"outputs: {', '.join(res.files)} in {out}")
     _warn(s)
     return 1 if rp.nothing_usable(s) else 0
+
+
+def consistency_lines(report: dict) -> list[str]:
+    """The summary's ``aid_consistency`` as a small table: per aid, fused of attempts, the
+    mean NIS per degree of freedom and the share within its χ² 95 % bound (a consistent
+    filter: ≈ 1 and ≈ 95 %), and the refusals."""
+    rows = [(src, a) for src, a in report.items() if a["attempts"]]
+    if not rows:
+        return []
+    out = ["  aids, their innovations against the covariance (no truth needed; a right covariance: NIS per dof ≈ 1,"
+           " ≈ 95 % within the χ² 95 % bound):",
+           f"    {'source':18s} {'fused':>15s} {'NIS/dof':>8s} {'in 95 %':>8s}  refused"]
+    for src, a in rows:
+        nis = "–" if a["nis_per_dof_mean"] is None else f"{a['nis_per_dof_mean']:.3g}"
+        within = "–" if a["within_95"] is None else f"{100 * a['within_95']:.1f}"
+        refused = ", ".join(f"{k} {v}" for k, v in a["refused"].items())
+        out.append(f"    {src:18s} {a['fused']:>7d} / {a['attempts']:<5d} {nis:>8s} {within:>8s}  {refused}")
+    return out
 
 
 def _warn(summary, prefix=""):

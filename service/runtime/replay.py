@@ -276,12 +276,13 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     recorder = SeriesRecorder(initial_params=params0, aid_rows=plots or report is not None)
     metrics_sink = MetricsSink(recorder, out / "metrics.json")
     validity = ValidityCounter()
+    consistency = AidConsistency(cfg.filter.gate_threshold)
     origin_known = inp.scenario is not None or origin_configured or origin_note is not None
     sinks = [TrajectoryCsvSink(out / "trajectory.csv", truth=truth,
                                truth_max_age_s=0.5 / cfg.outputs.nav_rate_hz,
                                unix_of=getattr(inp.source, "unix_of", None),
                                origin=cfg.origin.geo() if origin_known else None),
-             validity,
+             validity, consistency,
              AidStatusCsvSink(out / "aid_status.csv"),
              ParamsCsvSink(out / "params.csv", params0),
              recorder, metrics_sink, LifecycleLog(warnings=False)]  # lifecycle events at INFO (`adaptnav -v replay`)
@@ -372,6 +373,8 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         "valid_fraction": validity.fraction,
         "first_valid_t_s": validity.first_valid_t_s,
         "filter": _filter_report(estimator),
+        # each aid's attempts and what their innovations say of the covariance (no truth needed)
+        "aid_consistency": consistency.report(),
         "motion_prior": motion_prior,
     }
     if getattr(estimator, "side_scan", None):  # side-scan loop closures (service.loop_closures)
@@ -433,6 +436,60 @@ class ValidityCounter(Sink):
     @property
     def fraction(self) -> float | None:
         return self.valid / self.states if self.states else None
+
+
+class AidConsistency(Sink):
+    """Sink: what each aid's attempts say of the filter without any truth — a real log's check
+    of the covariance. Per source: attempts, fused, refused by reason, and over the attempts
+    that reached the test (fused or gated) the normalised innovation squared per degree of
+    freedom, ``ε/m`` (``ε = test_ratio × gate(m)``, the gate of ``filter.gate_sigma``): its
+    mean (a consistent filter ≈ 1; well above, the covariance or the aid's σ too small; well
+    below, the aid's σ too large) and the fraction of attempts within the χ²(m) 95 % quantile
+    (≈ 0.95). An aid whose σ is chosen for errors that stay (the autopilot's ATTITUDE, fused at
+    tens of Hz) sits far below 1 by design; above 1 is the failure that matters.
+    ``gate_of_dof``: ``m -> gate`` (:meth:`FilterConfig.gate_threshold`)."""
+
+    deferrable = True
+
+    def __init__(self, gate_of_dof: Any) -> None:
+        from adaptnav.fusion.integrity import chi2_quantile
+
+        self._gate_of_dof, self._chi2 = gate_of_dof, chi2_quantile
+        self._limits: dict[int, tuple[float, float]] = {}  # m → (gate, χ²(m) 95 % quantile)
+        self._by_source: dict[str, dict] = {}
+
+    def on_aid(self, statuses: list) -> None:
+        for s in statuses:
+            a = self._by_source.get(s.source)
+            if a is None:
+                a = self._by_source[s.source] = {"attempts": 0, "fused": 0, "refused": {}, "tested": 0,
+                                                 "nis_per_dof_sum": 0.0, "within_95": 0}
+            a["attempts"] += 1
+            if s.fused:
+                a["fused"] += 1
+            else:
+                a["refused"][s.reason or "unspecified"] = a["refused"].get(s.reason or "unspecified", 0) + 1
+            m = len(s.innovation)
+            if not (s.fused or s.reason == "gate") or not m or not math.isfinite(s.test_ratio):
+                continue
+            limits = self._limits.get(m)
+            if limits is None:
+                limits = self._limits[m] = (float(self._gate_of_dof(m)), self._chi2(0.95, m))
+            nis = s.test_ratio * limits[0]
+            a["tested"] += 1
+            a["nis_per_dof_sum"] += nis / m
+            a["within_95"] += nis <= limits[1]
+
+    def report(self) -> dict:
+        """``{source: {attempts, fused, refused, tested, nis_per_dof_mean, within_95}}``
+        (the last two None for a source never tested)."""
+        out = {}
+        for source, a in sorted(self._by_source.items()):
+            n = a["tested"]
+            out[source] = {"attempts": a["attempts"], "fused": a["fused"], "refused": dict(sorted(a["refused"].items())),
+                           "tested": n, "nis_per_dof_mean": a["nis_per_dof_sum"] / n if n else None,
+                           "within_95": a["within_95"] / n if n else None}
+        return out
 
 
 def _filter_report(estimator: Any) -> dict:
