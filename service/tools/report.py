@@ -113,7 +113,10 @@ def params_figure(rec: Any) -> str | None:
 
 
 # -- tables ----------------------------------------------------------------------------------
-def aid_table(rec: Any) -> str:
+def aid_table(rec: Any, consistency: dict | None = None) -> str:
+    """Fused and rejected per aid; with the replay's ``aid_consistency`` (summary.json) its mean
+    NIS per degree of freedom and the share within the χ² 95 % bound."""
+    consistency = consistency or {}
     fused: Counter[str] = Counter()
     rejected: dict[str, Counter[str]] = defaultdict(Counter)
     for _, src, ok, _, _ in rec.aid_rows:
@@ -126,8 +129,13 @@ def aid_table(rec: Any) -> str:
         n_rej = sum(rejected[src].values())
         total = fused[src] + n_rej
         reasons = ", ".join(f"{_esc(k)} {v}" for k, v in rejected[src].most_common()) or "–"
-        rows.append([_esc(src), fused[src], n_rej, f"{100.0 * fused[src] / total:.1f} %" if total else "–", reasons])
-    return _table(["source", "fused", "rejected", "fused share", "rejected by reason"], rows)
+        c = consistency.get(src) or {}
+        nis, within = c.get("nis_per_dof_mean"), c.get("within_95")
+        rows.append([_esc(src), fused[src], n_rej, f"{100.0 * fused[src] / total:.1f} %" if total else "–",
+                     _num(nis, ".3g") if nis is not None else "–",
+                     f"{100.0 * within:.1f} %" if within is not None else "–", reasons])
+    return _table(["source", "fused", "rejected", "fused share", "NIS per dof (≈ 1)", "within χ² 95 % (≈ 95 %)",
+                   "rejected by reason"], rows)
 
 
 def releases_table(rec: Any) -> str:
@@ -212,7 +220,10 @@ def render(rec: Any, summary: dict, title: str = "") -> str:
     fig = error_figure(rec)
     if fig:
         parts += ["<h2>Horizontal error and ±3σ</h2>", f"<figure id='error'>{fig}</figure>"]
-    parts += ["<h2>Aids: fused and rejected</h2>", aid_table(rec)]
+    parts += ["<h2>Aids: fused and rejected</h2>",
+              "<p class='note'>The NIS columns test the filter's covariance against each aid's innovations, "
+              "no truth needed: about 1 and 95 % when it is right; far above, over-confident.</p>",
+              aid_table(rec, summary.get("aid_consistency"))]
     fig = innovations_figure(rec)
     if fig:
         parts += ["<h2>Normalised innovations</h2>",

@@ -79,3 +79,16 @@ def test_the_replay_command_prints_the_table(tmp_path, capsys):
         assert (int(fused), slash, int(attempts)) == (report[source]["fused"], "/", report[source]["attempts"])
         assert float(nis) == pytest.approx(report[source]["nis_per_dof_mean"], rel=5e-3)
         assert float(within) == pytest.approx(100 * report[source]["within_95"], abs=0.051)
+
+
+def test_the_report_page_carries_the_figures(tmp_path):
+    """``--report``: the aid table has the NIS columns with the summary's figures."""
+    page = tmp_path / "report.html"
+    assert cli_main(["replay", "--scenario", "short", "--set", "duration_s=60", "--out", str(tmp_path / "r"),
+                     "--no-plots", "--no-progress", "--report", str(page)]) == 0
+    html = page.read_text()
+    report = json.loads((tmp_path / "r" / "summary.json").read_text())["aid_consistency"]
+    assert "NIS per dof" in html
+    for source in ("depth", "heading"):
+        assert format(report[source]["nis_per_dof_mean"], ".3g") in html
+        assert f"{100.0 * report[source]['within_95']:.1f} %" in html
