@@ -405,6 +405,12 @@ class Estimator:
         if sigma_rho > 0.0:
             cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * sigma_rho / rho) ** 2
 
+    def integrity_report(self) -> dict:
+        """The integrity monitor's window per aid (:meth:`adaptnav.fusion.integrity.NisMonitor.report`):
+        attempts, mean NIS per degree of freedom, its bound, failing (then ``nis:<source>`` is
+        among :meth:`invalid_reasons`)."""
+        return self._nis.report()
+
     def invalid_reasons(self, sigma_h_m: float | None = None) -> list[str]:
         """Why the solution is not valid now (empty: valid), see ``[filter.integrity]``.
 

@@ -79,6 +79,18 @@ class NisMonitor:
             c = self._bound[key] = chi2_quantile(self.quantile, dof)
         return c
 
+    def report(self) -> dict:
+        """Per source, its window now: ``attempts`` in it, ``nis_per_dof`` — the mean NIS per
+        degree of freedom (each attempt capped as :meth:`add` counts it; ≈ 1 when the covariance
+        is right) — the ``bound_per_dof`` it is held to, and whether it is ``failing``."""
+        out = {}
+        for source, s in sorted(list(self._source.items())):
+            n = len(s.nis)
+            if n:
+                out[source] = {"attempts": n, "nis_per_dof": s.total / (n * s.dof),
+                               "bound_per_dof": s.bound / (self.window * s.dof), "failing": source in self._failing}
+        return out
+
     def failing(self) -> list[str]:
         """Sources whose last ``window`` NIS sum exceeds the χ² bound (full windows only)."""
         return sorted(self._failing) if self._failing else []

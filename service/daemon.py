@@ -573,6 +573,9 @@ class Daemon:
         rep["runner_alive"] = bool(self._threads and self._threads[0].is_alive())
         rep["runner_heartbeat_age_s"] = round(time.monotonic() - self.source.heartbeat_s, 3)
         rep["state_finite"] = self.sink.state_finite
+        # per aid, what its recent innovations say of the covariance (the validity's nis:<source>)
+        integrity = getattr(self.estimator, "integrity_report", None)
+        rep["integrity"] = integrity() if integrity is not None else {}
         resets = list(getattr(self.estimator, "position_resets", ()))
         rep["position_resets"] = {"count": len(resets), "last": [
             {"t_s": t, "source": src, "size_m": round(size, 3)} for t, src, size in resets[-3:]]}

@@ -53,6 +53,12 @@ def test_sample_in_nav_state_out_and_queryables(live):
     assert health, f"imu count {bus.get('health')['sensors']['imu']} != published {feeder.published['imu']}"
     assert health["sensors"]["heading"]["count"] == feeder.published["heading"]
     assert health["runner_alive"] is True
+    # the integrity monitor's window per aid: the vehicle at rest, its heading and depth exact
+    integrity = health["integrity"]
+    for source in ("heading", "depth"):
+        w = integrity[source]
+        assert 1 <= w["attempts"] <= min(feeder.published[source], 20)
+        assert 0.0 <= w["nis_per_dof"] < w["bound_per_dof"] and w["failing"] is False
 
 
 def test_malformed_and_nan_counted_service_alive(live):
