@@ -19,7 +19,6 @@ from __future__ import annotations
 import html
 import io
 import math
-from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -113,25 +112,16 @@ def params_figure(rec: Any) -> str | None:
 
 
 # -- tables ----------------------------------------------------------------------------------
-def aid_table(rec: Any, consistency: dict | None = None) -> str:
-    """Fused and rejected per aid; with the replay's ``aid_consistency`` (summary.json) its mean
-    NIS per degree of freedom and the share within the χ² 95 % bound."""
-    consistency = consistency or {}
-    fused: Counter[str] = Counter()
-    rejected: dict[str, Counter[str]] = defaultdict(Counter)
-    for _, src, ok, _, _ in rec.aid_rows:
-        if ok:
-            fused[src] += 1
-    for (src, reason), n in rec.rejected_reasons.items():
-        rejected[src][reason] += n
+def aid_table(consistency: dict) -> str:
+    """Per aid, from the replay's ``aid_consistency`` (summary.json): fused and rejected, by
+    reason, its mean NIS per degree of freedom and the share within the χ² 95 % bound."""
     rows = []
-    for src in sorted(set(fused) | set(rejected)):
-        n_rej = sum(rejected[src].values())
-        total = fused[src] + n_rej
-        reasons = ", ".join(f"{_esc(k)} {v}" for k, v in rejected[src].most_common()) or "–"
-        c = consistency.get(src) or {}
-        nis, within = c.get("nis_per_dof_mean"), c.get("within_95")
-        rows.append([_esc(src), fused[src], n_rej, f"{100.0 * fused[src] / total:.1f} %" if total else "–",
+    for src, a in sorted(consistency.items()):
+        n_rej = a["attempts"] - a["fused"]
+        reasons = ", ".join(f"{_esc(k)} {v}" for k, v in sorted(a["refused"].items(), key=lambda kv: -kv[1])) or "–"
+        nis, within = a["nis_per_dof_mean"], a["within_95"]
+        share = f"{100.0 * a['fused'] / a['attempts']:.1f} %" if a["attempts"] else "–"
+        rows.append([_esc(src), a["fused"], n_rej, share,
                      _num(nis, ".3g") if nis is not None else "–",
                      f"{100.0 * within:.1f} %" if within is not None else "–", reasons])
     return _table(["source", "fused", "rejected", "fused share", "NIS per dof (≈ 1)", "within χ² 95 % (≈ 95 %)",
@@ -223,7 +213,7 @@ def render(rec: Any, summary: dict, title: str = "") -> str:
     parts += ["<h2>Aids: fused and rejected</h2>",
               "<p class='note'>The NIS columns test the filter's covariance against each aid's innovations, "
               "no truth needed: about 1 and 95 % when it is right; far above, over-confident.</p>",
-              aid_table(rec, summary.get("aid_consistency"))]
+              aid_table(summary.get("aid_consistency") or {})]
     fig = innovations_figure(rec)
     if fig:
         parts += ["<h2>Normalised innovations</h2>",
