@@ -9,7 +9,8 @@ each message a JSON text in mavlink2rest's form::
      "message": {"type": "ATTITUDE", "time_boot_ms": 123456, "roll": 0.01, ...}}
 
 where a field named ``type`` is ``mavtype``, an enum value is ``{"type": "MAV_..."}``, a
-bitmask ``{"bits": n}`` or ``"FLAG_A | FLAG_B"``, a char array text (or a list of characters
+bitmask ``{"bits": n}`` or, as rust-mavlink's bitflags 2 write it, ``"FLAG_A | FLAG_B | 0x100"``
+(the bits no flag names as one hex number, ``""`` for none), a char array text (or a list of characters
 or codes), and non-finite floats are JSON5's ``NaN``/``Infinity``.  MAVLink 2 extension fields
 may be missing (BlueOS 1.4, mavlink-server#213): they take their defaults.  The log time of a
 record is the vehicle computer's UNIX clock at reception (as a tlog's stamp).
@@ -154,14 +155,24 @@ class BlueOsMcapReader:
             if "type" in v:
                 return self._constant(str(v["type"]), name, field)
             raise MalformedMessage(f"{name}.{field}: {v!r}")
-        if isinstance(v, str):  # a bitmask written out ("A | B"), a constant, or empty
-            parts = [p.strip() for p in v.split("|") if p.strip()]
-            return sum(self._constant(p, name, field) for p in parts)
+        if isinstance(v, str):  # a bitmask written out ("A | B | 0x100"), a constant, or empty
+            bits = 0
+            for part in filter(None, (p.strip() for p in v.split("|"))):
+                bits |= self._constant(part, name, field)
+            return bits
         if v is None:  # JSON's null for a non-finite float
             return math.nan if ftype in ("float", "double") else 0
         return v
 
     def _constant(self, constant: str, name: str, field: str) -> int:
+        """A name of the dialect, or the number bitflags 2 writes for bits no flag names
+        (``0x100``; decimal too). A name the dialect lacks (a newer sender) cannot be turned
+        into bits: the message is malformed rather than read with a guess."""
+        if constant[:1].isdigit():
+            try:
+                return int(constant, 0)
+            except ValueError:
+                raise MalformedMessage(f"{name}.{field}: not a number {constant!r}") from None
         value = getattr(self._mav, constant, None)
         if not isinstance(value, int):
             raise MalformedMessage(f"{name}.{field}: unknown constant {constant!r}")

@@ -31,10 +31,26 @@ def _extension_fields() -> dict[str, set[str]]:
     return out
 
 
-def mavlink2rest_json(msg, drop_extensions: bool = False, extensions: dict | None = None) -> dict:
+def bitflags_text(value: int, flags: dict) -> str:
+    """A bitmask as rust-mavlink's bitflags 2 write it in human-readable serde (newer
+    mavlink2rest): the named flags it holds joined by ``" | "`` in the enum's order, the bits no
+    flag names as one hex number (``"0x..."``), ``""`` for none."""
+    parts, rest = [], int(value)
+    for bit, entry in sorted(flags.items()):
+        if bit and bit & rest == bit:
+            parts.append(entry.name)
+            rest &= ~bit
+    if rest:
+        parts.append(hex(rest))
+    return " | ".join(parts)
+
+
+def mavlink2rest_json(msg, drop_extensions: bool = False, extensions: dict | None = None,
+                      bitmask_text: bool = False) -> dict:
     """``msg`` as BlueOS's mavlink-server writes it (mavlink2rest's JSON): ``type`` → ``mavtype``,
-    enum values ``{"type": NAME}``, bitmasks ``{"bits": n}``, char arrays as text; the MAVLink 2
-    extension fields left out with ``drop_extensions`` (BlueOS 1.4's recordings)."""
+    enum values ``{"type": NAME}``, bitmasks ``{"bits": n}`` (or, ``bitmask_text``, as text:
+    :func:`bitflags_text`), char arrays as text; the MAVLink 2 extension fields left out with
+    ``drop_extensions`` (BlueOS 1.4's recordings)."""
     from pymavlink.dialects.v20 import ardupilotmega as mav
 
     cls = type(msg)
@@ -48,7 +64,7 @@ def mavlink2rest_json(msg, drop_extensions: bool = False, extensions: dict | Non
         if isinstance(v, bytes):
             v = v.decode("utf-8", "replace").split("\x00", 1)[0]
         elif enum and cls.fielddisplays_by_name.get(field) == "bitmask":
-            v = {"bits": int(v)}
+            v = bitflags_text(v, mav.enums.get(enum, {})) if bitmask_text else {"bits": int(v)}
         elif enum and isinstance(v, int) and v in mav.enums.get(enum, {}):
             v = {"type": mav.enums[enum][v].name}
         body["mavtype" if field == "type" else field] = v
@@ -57,9 +73,11 @@ def mavlink2rest_json(msg, drop_extensions: bool = False, extensions: dict | Non
             "message": body}
 
 
-def write_blueos_mcap(tlog, out, drop_extensions: bool = False, per_type_topics: bool = False):
+def write_blueos_mcap(tlog, out, drop_extensions: bool = False, per_type_topics: bool = False,
+                      bitmask_text: bool = False):
     """A tlog's messages as a BlueOS recording (``mavlink/out``, or ``mavlink/<sys>/<comp>/<TYPE>``
-    with ``per_type_topics``), each at its tlog stamp as the record's log time."""
+    with ``per_type_topics``), each at its tlog stamp as the record's log time; bitmasks as
+    text with ``bitmask_text`` (:func:`mavlink2rest_json`)."""
     import json
 
     from mcap.writer import Writer
@@ -79,7 +97,7 @@ def write_blueos_mcap(tlog, out, drop_extensions: bool = False, per_type_topics:
             if topic not in channels:
                 channels[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=0)
             ns = int(round(msg._timestamp * 1e9))
-            data = json.dumps(mavlink2rest_json(msg, drop_extensions, extensions)).encode()
+            data = json.dumps(mavlink2rest_json(msg, drop_extensions, extensions, bitmask_text)).encode()
             w.add_message(channels[topic], log_time=ns, data=data, publish_time=ns)
         w.finish()
     return out

@@ -24,10 +24,13 @@ def _replay(path, out):
     return json.loads((out / "summary.json").read_text()), (out / "trajectory.csv").read_bytes()
 
 
-@pytest.mark.parametrize("per_type_topics", [False, True])
-def test_a_blueos_recording_replays_to_the_tlog_s_solution(tmp_path, per_type_topics):
+@pytest.mark.parametrize("per_type_topics, bitmask_text", [(False, False), (True, False), (False, True)])
+def test_a_blueos_recording_replays_to_the_tlog_s_solution(tmp_path, per_type_topics, bitmask_text):
+    """Also with the bitmasks as newer mavlink2rest writes them (text: HIGHRES_IMU's
+    ``fields_updated`` says which of its fields are fresh)."""
     tlog = DATA / "ardusub-sitl-session.tlog"
-    mcap = write_blueos_mcap(tlog, tmp_path / "session.mcap", per_type_topics=per_type_topics)
+    mcap = write_blueos_mcap(tlog, tmp_path / "session.mcap", per_type_topics=per_type_topics,
+                             bitmask_text=bitmask_text)
     s_tlog, traj_tlog = _replay(tlog, tmp_path / "tlog")
     s_mcap, traj_mcap = _replay(mcap, tmp_path / "mcap")
     assert traj_mcap == traj_tlog  # every row, every digit
@@ -91,3 +94,32 @@ def test_a_recording_cut_off_replays_what_it_holds_and_says_so(tmp_path):
     # the same solution up to the cut (the last rows' truth columns wait for truth after the cut)
     keep = int(0.9 * len(rows))
     assert len(rows) > 100 and rows[:keep] == rows_whole[:keep]
+
+
+def test_a_bitmask_as_text_keeps_the_bits_no_flag_names(tmp_path):
+    """rust-mavlink's bitflags 2 write the bits their dialect has no name for as one hex number
+    (``"A | B | 0x100"``): those bits are kept, not the record lost; a flag name our dialect
+    lacks cannot be turned into bits, so that record is counted malformed, never guessed at."""
+    from mcap.writer import Writer
+
+    from adaptnav.service.transport.blueos_mcap import BlueOsMcapReader, MalformedMessage
+
+    fix = {"time_usec": 0, "gps_id": 0, "time_week_ms": 0, "time_week": 0, "fix_type": 3, "lat": 473977420,
+           "lon": 85455940, "alt": -2.0, "hdop": 1.5, "vdop": 1.0, "vn": 0.0, "ve": 0.0, "vd": 0.0,
+           "speed_accuracy": 0.0, "horiz_accuracy": 1.2, "vert_accuracy": 0.0, "satellites_visible": 8}
+    flags = ["GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | GPS_INPUT_IGNORE_FLAG_VEL_VERT | 0x100", "",
+             "GPS_INPUT_IGNORE_FLAG_ALT|24", "GPS_INPUT_IGNORE_FLAG_FROM_THE_FUTURE | GPS_INPUT_IGNORE_FLAG_ALT"]
+    out = tmp_path / "flags.mcap"
+    with open(out, "wb") as f:
+        w = Writer(f)
+        w.start()
+        ch = w.register_channel(topic="mavlink/out", message_encoding="json", schema_id=0)
+        for i, text in enumerate(flags):
+            doc = {"header": {"system_id": 1, "component_id": 220, "sequence": i},
+                   "message": {"type": "GPS_INPUT", "ignore_flags": text, **fix}}
+            w.add_message(ch, log_time=(i + 1) * 10**9, data=json.dumps(doc).encode(), publish_time=(i + 1) * 10**9)
+        w.finish()
+    got = list(BlueOsMcapReader(out))
+    assert [m.ignore_flags for m in got[:3]] == [8 | 16 | 0x100, 0, 1 | 24]
+    assert got[0].horiz_accuracy == pytest.approx(1.2) and got[0].get_srcComponent() == 220
+    assert isinstance(got[3], MalformedMessage) and "GPS_INPUT_IGNORE_FLAG_FROM_THE_FUTURE" in str(got[3])
