@@ -32,7 +32,7 @@ Figures (``--quick``: shorter missions, same code):
   filter falls (the learned-velocity fusion); ``live_work_bytecodes_epoch_to_publish_max``:
   the costliest epoch up to its publication (the tail). A sample every 5 ms finds its
   caches cold: live, each costs several times its hot-loop time, about in proportion to
-  the work.
+  the work: ``cold_call_*`` (:func:`cold_call`) measures that factor on the machine of the run.
 - ``rss_*``: the daemon's resident memory while 1 h of simulated data is pushed through
   it at full speed (flow-controlled on its queue depth): at half time, at the end, and
   the growth over the last half; the calibrator child's RSS alongside. ``rss_*_mavlink``
@@ -689,8 +689,39 @@ def live_work(sim_s: float) -> dict:
     return out
 
 
+def cold_call(calls: int = 400, gap_s: float = 0.005) -> dict:
+    """What a sample every ``gap_s`` costs on this machine against back to back
+    (``cold_call_*``): one IMU payload off the bus decoded (:func:`decode_sample`, a fixed
+    piece of the live path's Python), wall time per call, p50 of ``calls`` each way. Live, the
+    daemon sleeps between IMU samples and its caches go cold meanwhile (on a shared virtual
+    machine another guest may run on the core); the ratio says how much dearer every piece
+    of the latency path is here than its hot-loop figure (``live_work_us_*``)."""
+    from adaptnav.fusion.samples import ImuSample
+    from adaptnav.service.transport.bus import decode_sample, encode_sample
+
+    payload = encode_sample(ImuSample(1.0, (0.1, 0.2, -9.8), (0.01, 0.02, 0.03)))
+    clock = time.perf_counter_ns
+
+    def timed() -> float:
+        t0 = clock()
+        decode_sample(payload)
+        return (clock() - t0) * 1e-3
+
+    for _ in range(200):
+        timed()
+    hot = [timed() for _ in range(calls)]
+    cold = []
+    for _ in range(calls):
+        time.sleep(gap_s)
+        cold.append(timed())
+    out = {"cold_call_decode_hot_us_p50": _pct(hot, 50), "cold_call_decode_after_sleep_us_p50": _pct(cold, 50),
+           "cold_call_gap_s": gap_s}
+    out["cold_call_ratio"] = out["cold_call_decode_after_sleep_us_p50"] / out["cold_call_decode_hot_us_p50"]
+    return out
+
+
 # memory_mavlink (the daemon of an ArduSub vehicle) on request only: another hour pushed through
-PARTS = ("replay", "floor", "latency", "cold_start", "memory", "live_work")
+PARTS = ("replay", "floor", "latency", "cold_call", "cold_start", "memory", "live_work")
 EXTRA_PARTS = ("memory_mavlink",)
 
 
@@ -710,6 +741,8 @@ def run(args) -> dict:
         figures.update(latency(15.0 if quick else 60.0))
     if "live_work" in parts:
         figures.update(live_work(15.0 if quick else 60.0))
+    if "cold_call" in parts:
+        figures.update(cold_call())
     if "cold_start" in parts:
         figures.update(cold_start())
     if "memory" in parts:
