@@ -4,6 +4,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from types import SimpleNamespace
 
 from adaptnav.fusion.samples import DepthSample, ImuSample
 
@@ -55,10 +56,12 @@ def test_held_samples_go_out_when_the_imu_stalls():
 
 
 class _Recorder:
-    """Stands in for the runner: what it is fed, in order, and in which thread."""
+    """Stands in for the runner: what it is fed, in order, and in which thread. Its epochs
+    are not known yet (``loop``), so nothing is held for a burst (test_live_burst.py)."""
 
     def __init__(self) -> None:
         self.fed: list = []
+        self.loop = SimpleNamespace(next_k=None, imu_period_s=float("nan"))
 
     def feed(self, item) -> None:
         self.fed.append((item.t_s, threading.get_ident()))

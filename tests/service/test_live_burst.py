@@ -1,0 +1,143 @@
+"""The daemon's bus samples between output epochs run in one burst (:class:`LiveBurst`): the
+same nav states, bit for bit, as each sample run as it arrives; the epoch's own sample still
+runs alone; and a burst held when the IMU stops is run all the same."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from adaptnav.fusion.samples import ImuBatch
+from adaptnav.fusion.typed_config import as_dict, build
+from adaptnav.service.config import ServiceConfig
+from adaptnav.service.daemon import Daemon
+from adaptnav.service.runtime.replay import build_config
+from adaptnav.service.runtime.runner import Runner
+from adaptnav.service.runtime.sinks import Sink
+from adaptnav.service.transport.bus import Bus, decode_sample, encode_sample
+from adaptnav.service.runtime.sources import simulate
+from adaptnav.sim.scenario import load_scenario
+
+from .test_daemon_support import free_port, wait_until
+
+pytestmark = pytest.mark.timeout(300)
+
+
+class _States(Sink):
+    def __init__(self) -> None:
+        self.states: list = []
+
+    def on_nav(self, state) -> None:
+        self.states.append(state)
+
+
+def _payloads(duration_s: float):
+    """A 200 Hz survey with a DVL, depth, heading and RPM between the IMU samples, as the
+    daemon's Zenoh callback gets it (encoded bus payloads)."""
+    scenario = load_scenario("survey", ["imu.rate_hz=200", "dvl.enabled=true", "sonar.enabled=false",
+                                        f"duration_s={duration_s}"])
+    out = []
+    for item in simulate(scenario).iter_blocks():
+        samples = item.samples() if isinstance(item, ImuBatch) else [item]
+        out.extend(encode_sample(s) for s in samples if s.KIND != "truth")
+    return scenario, out
+
+
+def _run_inline(scenario, payloads, tmp_path, burst: bool):
+    """The daemon's callback path without its threads (nothing queued, the lock free): every
+    payload decoded and handed to ``_from_bus``, as Zenoh's callback does."""
+    cfg = build(ServiceConfig, as_dict(build_config(scenario, None, [
+        f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "zenoh.scouting=false", f'state_dir="{tmp_path}"',
+        "vehicle.name=burst", "calibrator.enabled=false"])))
+    d = Daemon(cfg)
+    d.estimator = d._make_estimator()
+    d.bus = Bus(cfg.zenoh, cfg.vehicle.name)
+    states = _States()
+    d._runner = Runner(d.estimator, [*d.sinks(), states], d.clock, None, output_rate_hz=cfg.outputs.nav_rate_hz,
+                       health=d.health)
+    fed: list[str] = []
+    feed = d._runner.feed
+
+    def counting_feed(item):
+        fed.append(type(item).__name__)
+        feed(item)
+
+    d._runner.feed = counting_feed
+    if not burst:
+        d.burst.hold = lambda item, loop: False
+    try:
+        for p in payloads:
+            d._from_bus(decode_sample(p))
+        assert not d.burst.items or burst
+        d.burst.run(d.source.take, d._runner.feed)
+    finally:
+        d.bus.close()
+    return states.states, fed
+
+
+def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path):
+    scenario, payloads = _payloads(150.0)
+    single, fed_single = _run_inline(scenario, payloads, tmp_path / "single", burst=False)
+    burst, fed_burst = _run_inline(scenario, payloads, tmp_path / "burst", burst=True)
+    assert "ImuBatch" not in fed_single
+    # most IMU samples went in batches: the bursts happened (20 IMU samples per 0.1 s epoch)
+    assert fed_burst.count("ImuBatch") > 0.8 * 150 * 10
+    assert fed_burst.count("ImuSample") < 0.5 * fed_single.count("ImuSample")
+    assert len(burst) == len(single) > 1400
+    valid = sum(s.valid for s in single)
+    assert valid > 0.9 * len(single)
+    for a, b in zip(single, burst):
+        assert a.t_s == b.t_s and a.valid == b.valid and a.invalid_reasons == b.invalid_reasons
+        for name in ("pos_n_m", "vel_n_m_s", "q_nb", "bias_acc_b_m_s2", "bias_gyro_b_rad_s", "current_n_m_s", "cov"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} at {a.t_s}")
+
+
+def test_the_epochs_own_sample_is_not_held():
+    """What a client waits for (the nav state of the epoch's IMU sample) is run as it comes:
+    the burst is run at the sample before it."""
+    from adaptnav.fusion.samples import ImuSample
+    from adaptnav.service.daemon import LiveBurst
+
+    class Loop:  # the runner's epoch bookkeeping at 200 Hz, next epoch at 1.0 s
+        next_k, imu_period_s = 10, 0.005
+
+        @staticmethod
+        def due_s():
+            return 1.0 - 0.0025
+
+    burst = LiveBurst()
+    imu = [ImuSample(round(0.9 + 0.005 * i, 6), (0.0, 0.0, -9.8), (0.0, 0.0, 0.0)) for i in range(1, 21)]
+    held = [burst.hold(s, Loop) for s in imu]
+    # 0.905 … 0.990 held; 0.995 (the one before the epoch's) runs the burst, 1.000 is the epoch's
+    assert held == [True] * 18 + [False] * 2
+    taken = []
+    burst.run(lambda item, feed: taken.append(item), None)
+    assert len(taken) == 1 and isinstance(taken[0], ImuBatch)
+    assert taken[0].t_s.tolist() == [s.t_s for s in imu[:18]]
+    # an aid is held only inside a burst; a stream whose period is not known yet runs as it comes
+    from adaptnav.fusion.samples import DepthSample
+
+    assert not burst.hold(DepthSample(0.95, 150000.0), Loop)
+    Loop.imu_period_s = float("nan")
+    assert not burst.hold(imu[0], Loop)
+
+
+def test_a_burst_held_when_the_imu_stops_is_run(live):
+    """The IMU stops mid-interval: the runner thread runs what was held (its health counts
+    every sample published), not the next sample that never comes."""
+    from adaptnav.fusion.samples import HeadingSample, ImuSample
+
+    daemon, bus, _ = live()
+    n = 0
+    t = 0.0
+    for k in range(1, 4 * 200 + 37):  # 4 s of 200 Hz IMU, ending mid-epoch; a heading every 0.2 s
+        t = k * 0.005
+        bus.publish_sample(ImuSample(t, (0.0, 0.0, -9.80665), (0.0, 0.0, 0.0)))
+        n += 1
+        if k % 40 == 0:
+            bus.publish_sample(HeadingSample(t + 0.001, 0.3))
+    health = wait_until(lambda: (h := bus.get("health")) and h["sensors"].get("imu", {}).get("count") == n and h,
+                        timeout_s=60)
+    assert health, f"imu count {bus.get('health')['sensors'].get('imu')} != published {n}"
+    assert len(daemon.burst) == 0
+    state = bus.get("state")
+    assert state is not None and state["t_s"] <= t
