@@ -252,7 +252,7 @@ class LiveBurst:
     before the sample that completes the next epoch, then run in data order — each run of
     IMU samples as one :class:`ImuBatch` (the estimator's compiled propagation, which the
     runner splits at epochs) — they pay it about once per epoch: the daemon's CPU at 200 Hz
-    ~9.5 → ~6 % of a core. The epoch's own sample still runs alone, as it arrives: what a
+    10.7 → 8.0 % of a core (``adaptnav bench service --only latency``). The epoch's own sample still runs alone, as it arrives: what a
     client waits for is unchanged, and so are the states, bit for bit
     (``tests/service/test_live_burst.py``). A held aid waits at most an output period, or
     :attr:`MAX_HOLD_S` when the IMU stops (the runner thread runs it then).
