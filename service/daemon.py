@@ -182,6 +182,23 @@ class QueueSource:
         while self._held and self._held[0][0] < t_s:
             yield heapq.heappop(self._held)[-1]
 
+    def _split_at_held(self, batch: Any, last: float):
+        """A batch (rising finite times) with held samples inside its span: its pieces and
+        each held sample where it goes among single samples — before the first IMU sample
+        past its time. Yields all but the last piece, and returns that."""
+        t = np.asarray(batch.t_s, dtype=float)
+        if t.ndim != 1 or not np.isfinite(t).all() or not (np.diff(t) > 0).all():
+            return batch  # not a burst's run: the estimator judges it as it comes
+        f, w = np.asarray(batch.specific_force_b_m_s2), np.asarray(batch.omega_b_rad_s)
+        start = 0
+        while self._held and self._held[0][0] < last:
+            cut = int(np.searchsorted(t, self._held[0][0], side="right"))  # samples at or before it go first
+            if cut > start:
+                yield ImuBatch(t[start:cut], f[start:cut], w[start:cut], batch.source)
+                start = cut
+            yield from self._pop_held_before(float(t[start]))
+        return ImuBatch(t[start:], f[start:], w[start:], batch.source) if start else batch
+
     def _expired(self, now: float):
         while self._held and now - self._held[0][3] > self.max_hold_s:
             self.counters["released_on_timeout"] += 1
@@ -199,6 +216,8 @@ class QueueSource:
                 first, last = (float(t[0]), float(t[-1])) if t.size else (None, None)
             if first is not None:
                 yield from self._pop_held_before(first)
+                if kind == "imu_batch" and self._held and self._held[0][0] < last:
+                    item = yield from self._split_at_held(item, last)
                 self._imu_t = max(self._imu_t, last)
                 self._imu_wall = now
             yield item

@@ -74,8 +74,32 @@ def _run_inline(scenario, payloads, tmp_path, burst: bool):
     return states.states, fed
 
 
-def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path):
+def _aids_ahead(payloads, lead: int = 3, offset_s: float = 0.0371):
+    """The aids moved off the epochs (``offset_s`` later: the survey's fall on them, where the
+    IMU samples run singly) and each arriving ``lead`` IMU samples before its time (a sensor of
+    another process ahead of the IMU stream: the daemon's queue source holds it)."""
+    import dataclasses
+
+    samples = [decode_sample(p) for p in payloads]
+    samples = [s if s.KIND == "imu" else dataclasses.replace(s, t_s=s.t_s + offset_s) for s in samples]
+    samples.sort(key=lambda s: (s.t_s, s.KIND != "imu"))
+    out = [encode_sample(s) for s in samples]
+    for i in range(len(out)):
+        if decode_sample(out[i]).KIND != "imu":
+            j, moved = i, 0
+            while j > 0 and moved < lead:
+                if decode_sample(out[j - 1]).KIND == "imu":
+                    moved += 1
+                out[j - 1], out[j] = out[j], out[j - 1]
+                j -= 1
+    return out
+
+
+@pytest.mark.parametrize("aids_ahead", [False, True])
+def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path, aids_ahead):
     scenario, payloads = _payloads(150.0)
+    if aids_ahead:
+        payloads = _aids_ahead(payloads)
     single, fed_single = _run_inline(scenario, payloads, tmp_path / "single", burst=False)
     burst, fed_burst = _run_inline(scenario, payloads, tmp_path / "burst", burst=True)
     assert "ImuBatch" not in fed_single
