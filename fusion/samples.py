@@ -21,7 +21,9 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
 
 SCHEMA_VERSION = 1
 # who measured an IMU sample (ImuSample.source): unknown, a flight controller's own, a dedicated IMU
@@ -482,6 +484,15 @@ class ImuBatch:
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    @classmethod
+    def of(cls, run: Sequence[ImuSample], source: str | None = None) -> "ImuBatch":
+        """A non-empty run of :class:`ImuSample` as one batch; ``source`` the run's first
+        sample's unless given."""
+        return cls(np.fromiter((s.t_s for s in run), dtype=float, count=len(run)),
+                   np.array([s.specific_force_b_m_s2 for s in run], dtype=float).reshape(-1, 3),
+                   np.array([s.omega_b_rad_s for s in run], dtype=float).reshape(-1, 3),
+                   run[0].source if source is None else source)
 
     def samples(self):
         """The batch as individual :class:`ImuSample` (for code paths without batching)."""

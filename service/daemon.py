@@ -271,9 +271,9 @@ class LiveBurst:
     before the sample that completes the next epoch, then run in data order — each run of
     IMU samples as one :class:`ImuBatch` (the estimator's compiled propagation, which the
     runner splits at epochs) — they pay it about once per epoch: the daemon's CPU at 200 Hz
-    10.7 → 8.0 % of a core (``adaptnav bench service --only latency``). The epoch's own sample still runs alone, as it arrives: what a
-    client waits for is unchanged, and so are the states, bit for bit
-    (``tests/service/test_live_burst.py``). A held aid waits at most an output period, or
+    10.7 → 8.0 % of a core (``adaptnav bench service --only latency``). The epoch's own
+    sample still runs alone, as it arrives: what a client waits for is unchanged, and so are
+    the states, bit for bit (``tests/service/test_live_burst.py``). A held aid waits at most an output period, or
     :attr:`MAX_HOLD_S` when the IMU stops (the runner thread runs it then).
     """
 
@@ -315,7 +315,7 @@ class LiveBurst:
             first = items[i]
             j = i + 1
             if getattr(first, "KIND", None) == "imu" and math.isfinite(first.t_s):
-                t, source = first.t_s, first.source
+                t, source = first.t_s, first.source  # one run: one source, rising times
                 while (j < n and getattr(items[j], "KIND", None) == "imu" and items[j].source == source
                        and items[j].t_s > t):
                     t = items[j].t_s
@@ -323,9 +323,7 @@ class LiveBurst:
             if j - i == 1:
                 take(first, feed)
             else:
-                run = items[i:j]
-                take(ImuBatch(np.array([s.t_s for s in run]), np.array([s.specific_force_b_m_s2 for s in run]),
-                              np.array([s.omega_b_rad_s for s in run]), source), feed)
+                take(ImuBatch.of(items[i:j]), feed)
             i = j
 
 

@@ -28,9 +28,7 @@ def compact_imu(batch: list[Any]) -> list[Any]:
         if len(run) == 1:
             out.append(run[0])
         elif run:
-            out.append(ImuBatch(np.array([s.t_s for s in run], dtype=float),
-                                np.array([s.specific_force_b_m_s2 for s in run], dtype=float),
-                                np.array([s.omega_b_rad_s for s in run], dtype=float)))
+            out.append(ImuBatch.of(run, source=""))  # a run may mix sources: the calibrator reads none
         run.clear()
 
     for s in batch:

@@ -37,8 +37,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-import numpy as np
-
 from adaptnav.fusion.samples import ImuBatch, ImuSample, kinds, replay_order_key
 
 log = logging.getLogger(__name__)
@@ -81,15 +79,6 @@ class SourceCounters:
         }
 
 
-def _batch(run: list[ImuSample]) -> ImuBatch:
-    return ImuBatch(
-        np.fromiter((s.t_s for s in run), dtype=float, count=len(run)),
-        np.array([s.specific_force_b_m_s2 for s in run], dtype=float).reshape(-1, 3),
-        np.array([s.omega_b_rad_s for s in run], dtype=float).reshape(-1, 3),
-        run[0].source,
-    )
-
-
 def _imu_ok(s: ImuSample) -> bool:
     return all(map(math.isfinite, s.specific_force_b_m_s2)) and all(map(math.isfinite, s.omega_b_rad_s))
 
@@ -122,21 +111,21 @@ def order_and_batch(samples: Iterable[Any], counters: SourceCounters, horizon_s:
             released = item.t_s
         if item.KIND == "imu":
             if run and item.source != run[0].source:  # a run is one stream (ImuBatch.source)
-                yield _batch(run)
+                yield ImuBatch.of(run)
                 run.clear()
             if _imu_ok(item) and (not run or item.t_s > run[-1].t_s):
                 run.append(item)
                 if len(run) >= max_batch:
-                    yield _batch(run)
+                    yield ImuBatch.of(run)
                     run.clear()
                 return
             if run:
-                yield _batch(run)
+                yield ImuBatch.of(run)
                 run.clear()
             yield item  # the estimator rejects and counts it
             return
         if run:
-            yield _batch(run)
+            yield ImuBatch.of(run)
             run.clear()
         yield item
 
@@ -156,7 +145,7 @@ def order_and_batch(samples: Iterable[Any], counters: SourceCounters, horizon_s:
     while heap:
         yield from release(heapq.heappop(heap)[3])
     if run:
-        yield _batch(run)
+        yield ImuBatch.of(run)
 
 
 class SampleStreamSource:
