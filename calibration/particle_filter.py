@@ -99,33 +99,37 @@ def pack_observations(observations):
     """The window's observations as the arrays of :func:`adaptnav.calibration._kernels.filter_window`:
     ``(obs_ptr (T+2,), obs_kind (K,), obs_off (K,), fdata)``; None when one of them has
     no packed form (a :class:`LandmarkSighting` updates a per-particle map)."""
-    ptr, kinds, offs, data = [0], [], [], []
+    ptr, kinds, offs, chunks = [0], [], [], []
+    size = 0  # floats in ``chunks`` so far
     for obs_list in observations:
         for ob in obs_list or ():
             kind = type(ob)
-            offs.append(len(data))
             if kind is RangeObservation:
                 lm = np.asarray(ob.landmarks_m, dtype=float).reshape(-1, 2)
                 kinds.append(OBS_RANGE)
-                data += [lm.shape[0], ob.sigma_m, *lm[:, 0], *lm[:, 1],
-                         *np.asarray(ob.ranges_m, dtype=float).reshape(-1)]
+                chunk = np.concatenate(([lm.shape[0], ob.sigma_m], lm[:, 0], lm[:, 1],
+                                        np.asarray(ob.ranges_m, dtype=float).reshape(-1)))
             elif kind is PositionFix:
                 kinds.append(OBS_FIX)
-                data += [ob.pos_n_m[0], ob.pos_n_m[1], ob.sigma_m]
+                chunk = (ob.pos_n_m[0], ob.pos_n_m[1], ob.sigma_m)
             elif kind is HeadingObservation:
                 kinds.append(OBS_HEADING)
-                data += [ob.yaw_rad, ob.sigma_rad]
+                chunk = (ob.yaw_rad, ob.sigma_rad)
             elif kind is FixedLandmarkObservation:
                 s = ob.sighting
                 kinds.append(OBS_FIXED_LANDMARK)
-                data += [s.along_m, s.across_m, s.sigma_along_m ** 2, s.sigma_across_m ** 2,
-                         *np.asarray(ob.landmark_mean_m, dtype=float).reshape(2),
-                         *np.asarray(ob.landmark_cov_m2, dtype=float).reshape(4)]
+                chunk = np.concatenate(([s.along_m, s.across_m, s.sigma_along_m ** 2, s.sigma_across_m ** 2],
+                                        np.asarray(ob.landmark_mean_m, dtype=float).reshape(2),
+                                        np.asarray(ob.landmark_cov_m2, dtype=float).reshape(4)))
             else:
                 return None
+            offs.append(size)
+            chunks.append(chunk)
+            size += len(chunk)
         ptr.append(len(kinds))
+    fdata = np.concatenate(chunks).astype(float, copy=False) if chunks else np.empty(0)
     return (np.asarray(ptr, dtype=np.int64), np.asarray(kinds, dtype=np.int64),
-            np.asarray(offs, dtype=np.int64), np.asarray(data, dtype=float))
+            np.asarray(offs, dtype=np.int64), fdata)
 
 
 def _no_particle_explains(t: int):

@@ -38,6 +38,7 @@ import numpy as np
 
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
+from adaptnav.service.calibrator.heap import keep_freed_heap
 from adaptnav.service.calibrator.batching import DataClock, data_time, next_due, pack_batch, split_due, unpack_batch
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
@@ -123,6 +124,7 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
             cv2.setNumThreads(1)
         except ImportError:  # pragma: no cover - OpenCV is a dependency
             pass
+        keep_freed_heap()  # the EM's arrays stay mapped between iterations (heap.py)
         calibrator = make_calibrator(cfg, params0, seed)
         clock = DataClock()
         pings = 0  # side-scan pings observed

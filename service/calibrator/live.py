@@ -30,6 +30,7 @@ from collections import Counter, deque
 from typing import Any
 
 from adaptnav.fusion.motion_model import MotionParams
+from adaptnav.service.calibrator.heap import keep_freed_heap
 from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_sigint
 from adaptnav.service.calibrator.batching import DataClock, compact_imu, split_due
 from adaptnav.service.calibrator.lagged import child_message, limit_child_threads, side_scan_report
@@ -70,6 +71,7 @@ def _child_main(cfg: Any, params0: MotionParams, seed: int, in_q: Any, out_q: An
         die_with_parent(parent_pid)
     if cfg.calibrator.nice > 0:
         os.nice(cfg.calibrator.nice)  # raising the niceness needs no privilege
+    keep_freed_heap()  # the EM's arrays stay mapped between iterations (heap.py)
     calibrator = make_calibrator(cfg, params0, seed)
     clock = DataClock()
     gc.freeze()  # the imported modules stay out of the collector's full passes (as in replay)

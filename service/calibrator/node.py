@@ -12,6 +12,7 @@ import threading
 from collections import Counter
 from typing import Any
 
+from adaptnav.service.calibrator.heap import keep_freed_heap
 from adaptnav.service.compose import make_calibrator
 from adaptnav.service.transport import codec
 
@@ -28,6 +29,7 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
 
     restored = load_state(cfg.state_dir)
     params0 = restored.params if restored and restored.params else cfg.motion.params0
+    keep_freed_heap()  # a process of EM iterations: their arrays stay mapped (heap.py)
     calibrator = make_calibrator(cfg, params0, cfg.calibrator.seed)
     # a node, not a second daemon: a Zenoh *client* of the router, or of the daemon's peer
     # (which then routes between it and the other programs: peers behind one peer do not

@@ -43,6 +43,10 @@ def run(args) -> dict:
         return json.loads(out)
     import numpy as np
 
+    from adaptnav.service.calibrator.heap import keep_freed_heap
+
+    heap_kept = keep_freed_heap()  # as the calibrator's processes run EM (service/calibrator/heap.py)
+
     from adaptnav.calibration.mstep import m_step
     from adaptnav.calibration.particle_filter import run_particle_filter
     from adaptnav.calibration.smoother import ffbsi_exact, ffbsi_mcmc
@@ -91,4 +95,5 @@ def run(args) -> dict:
         "goal_em_iteration_s": 0.01,
         "reference_particles_exact_backward_s": 0.77,
         "timing": "best of repeats, process time, one core (BLAS on one thread, as the calibrator child)",
+        "heap_kept": heap_kept,
     }
