@@ -73,8 +73,9 @@ class SideScanEstimator(Estimator):
         super().__init__(*args, **kwargs)
         self.objects = bool(objects)
         self.nav_keep_s = float(nav_keep_s)
-        self._association_config = association
-        self._associator: Any = None  # created with the first batch (imports sonar)
+        # made here, not with the first object batch: importing the sonar package then cost
+        # that batch's bus callback 25 ms (a live latency spike at the survey's first objects)
+        self.associator: Any = self._make_associator(association) if self.objects else None
         # (t, north, east, yaw unwrapped, cov 2×2 (4), jump north, jump east, velocity cov 2×2 (4)) per ping
         self._nav: deque = deque()
         # the accumulated jumps at the last ping (north, east; m) and (t, position NE, velocity
@@ -177,19 +178,16 @@ class SideScanEstimator(Estimator):
         cov = np.asarray(lc.cov, float) + ((t_a - lc.t_a_s) ** 2 + (t_b - lc.t_b_s) ** 2) * 0.5 * (p_vv + p_vv.T)
         return self.fuse_loop_closure(t_a, t_b, lc.offset_at(j_a, j_b), cov)
 
-    @property
-    def associator(self) -> Any:
-        """The cross-leg associator (created on first use: it imports sonar)."""
-        if self._associator is None:
-            import dataclasses
+    def _make_associator(self, association: Any) -> Any:
+        """The cross-leg associator (``association``: its config, default its defaults), its
+        memory capped at the clone horizon: a pair older than the clones cannot be fused."""
+        import dataclasses
 
-            from adaptnav.sonar.association import AssociationConfig, LegAssociator
+        from adaptnav.sonar.association import AssociationConfig, LegAssociator
 
-            cfg = self._association_config or AssociationConfig()
-            # a pair older than the clones cannot be fused: no need to remember it
-            cfg = dataclasses.replace(cfg, memory_s=min(cfg.memory_s, self.config.loop_closure.clone_horizon_s))
-            self._associator = LegAssociator(cfg, relative_covs=self.relative_position_covariances)
-        return self._associator
+        cfg = association if association is not None else AssociationConfig()
+        cfg = dataclasses.replace(cfg, memory_s=min(cfg.memory_s, self.config.loop_closure.clone_horizon_s))
+        return LegAssociator(cfg, relative_covs=self.relative_position_covariances)
 
     def _objects(self, batch: Any) -> list:
         """Place, associate, fuse (module docstring); the accepted pairs go into ``batch.links``."""
