@@ -329,19 +329,24 @@ class Bus:
     def put(self, key: str, payload: bytes) -> None:
         self._publisher(key).put(payload)
 
-    def publish_sample_to_others(self, sample: Any) -> None:
+    def publish_sample_to_others(self, sample: Any) -> bool:
         """Publish a sample that did not come over the bus (e.g. from MAVLink) for the other
         nodes only — recorders, a remote calibrator — never back to this session's own
-        subscribers (it would be fused twice)."""
+        subscribers (it would be fused twice). False, with nothing encoded, while no other
+        node subscribes to its key: encoding every autopilot sample for nobody was a third of
+        the daemon's work on an ArduSub vehicle. Whether one does is Zenoh's matching status,
+        kept by a listener (a call into Zenoh per sample would wait for the GIL)."""
         key = self.keys.sensor(sample.KIND)
-        pub = self._publishers.get(("remote", key))
-        if pub is None:
+        entry = self._publishers.get(("remote", key))
+        if entry is None:
             with self._lock:
-                pub = self._publishers.get(("remote", key))
-                if pub is None:
-                    pub = self._publishers[("remote", key)] = self.session.declare_publisher(
-                        key, allowed_destination=zenoh.Locality.REMOTE)
-        pub.put(encode_sample(sample))
+                entry = self._publishers.get(("remote", key))
+                if entry is None:
+                    entry = self._publishers[("remote", key)] = _RemotePublisher(self.session, key)
+        if not entry.matching:
+            return False
+        entry.publisher.put(encode_sample(sample))
+        return True
 
     def publish_sample(self, sample: Any) -> None:
         self.put(self.keys.sensor(sample.KIND), encode_sample(sample))
@@ -440,6 +445,24 @@ class Bus:
                 pass
         self._publishers.clear()
         self.session.close()
+
+
+class _RemotePublisher:
+    """A publisher to the other nodes only, and whether any of them subscribes (``matching``,
+    kept current by a Zenoh matching listener)."""
+
+    def __init__(self, session: Any, key: str) -> None:
+        self.publisher = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
+        self.matching = False
+        self.listener = self.publisher.declare_matching_listener(self._changed)
+        self.matching = self.publisher.matching_status.matching
+
+    def _changed(self, status: Any) -> None:
+        self.matching = status.matching
+
+    def undeclare(self) -> None:
+        self.listener.undeclare()
+        self.publisher.undeclare()
 
 
 def _wait_matching(entity: Any, timeout_s: float) -> bool:

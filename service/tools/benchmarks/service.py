@@ -113,8 +113,13 @@ def _start_daemon(scenario, port: int, state_dir: str, env: dict | None = None,
         *endpoints, "zenoh.scouting=false", f'state_dir="{state_dir}"',
         "vehicle.name=bench", "calibrator.enabled=true", 'calibrator.location="process"',
         "health.queue_size=20000", *overrides])
+    return _spawn_daemon(as_dict(cfg), env)
+
+
+def _spawn_daemon(config: dict, env: dict | None = None) -> subprocess.Popen:
+    """:func:`daemon_main` in a subprocess with the effective config ``config`` (a dict)."""
     code = ("import sys; from adaptnav.service.tools.benchmarks.service import daemon_main; "
-            f"sys.exit(daemon_main({json.dumps(as_dict(cfg))!r}))")
+            f"sys.exit(daemon_main({json.dumps(config)!r}))")
     return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, env=env)
 
@@ -720,8 +725,122 @@ def cold_call(calls: int = 400, gap_s: float = 0.005) -> dict:
     return out
 
 
+# ArduSub's stream as the daemon's bridge had it in a SITL session (RAW_IMU and ATTITUDE at
+# 50 Hz, SCALED_PRESSURE2, SERVO_OUTPUT_RAW, SIM_STATE at 10 Hz, GPS_RAW_INT 5 Hz, ...)
+MAVLINK_SESSION_TLOG = Path(__file__).resolve().parents[3] / "tests" / "data" / "ardusub-4.7-sitl-mixed-session.tlog"
+
+
+def tlog_sender_main(path: str, port: int, warm_s: float, duration_s: float) -> int:
+    """Entry of the autopilot stand-in (its own process): sends the autopilot's frames of
+    the tlog ``path`` (system 1, component 1), byte for byte, to the daemon's bridge on UDP
+    ``port`` at the pace they were logged. Prints one JSON line: frames sent and the
+    measured window (monotonic clock, after ``warm_s`` of alignment)."""
+    import socket
+
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(path, robust_parsing=True)
+    frames: list[tuple[float, bytes]] = []
+    while True:
+        msg = log.recv_match()
+        if msg is None:
+            break
+        if msg.get_type() != "BAD_DATA" and msg.get_srcSystem() == 1 and msg.get_srcComponent() == 1:
+            frames.append((msg._timestamp, bytes(msg.get_msgbuf())))
+    if not frames:
+        raise RuntimeError(f"{path}: no autopilot frames")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    t0, wall0 = frames[0][0], time.monotonic()
+    window = [math.nan, math.nan]
+    sent = 0
+    for t, frame in frames:
+        if t - t0 >= warm_s + duration_s:
+            break
+        while (delay := wall0 + (t - t0) - time.monotonic()) > 0:
+            time.sleep(delay)
+        if math.isnan(window[0]) and t - t0 >= warm_s:
+            window[0] = time.monotonic()
+        sock.sendto(frame, ("127.0.0.1", port))
+        sent += 1
+    window[1] = time.monotonic()
+    sock.close()
+    print(json.dumps({"frames_sent": sent, "window_monotonic_s": window,
+                      "log_s": frames[-1][0] - t0}))
+    return 0
+
+
+def mavlink_cpu(duration_s: float, tlog: Path = MAVLINK_SESSION_TLOG) -> dict:
+    """The daemon's CPU share on an ArduSub vehicle's path: a daemon with the defaults
+    (calibrator child on, MAVLink bridge on UDP loopback) fed ArduSub's own frames from a
+    recorded SITL session at their logged pace by a third process
+    (:func:`tlog_sender_main`); CPU of the daemon and its calibrator child over
+    ``duration_s`` after 15 s of alignment, % of one core; what the bridge took
+    (``mavlink_samples``, from the daemon's health) to show the stream was navigated."""
+    from adaptnav.fusion.typed_config import as_dict
+
+    from adaptnav.service.config import ZenohConfig, load_config
+    from adaptnav.service.transport.bus import Bus
+
+    if not tlog.is_file():
+        return {"mavlink_cpu_skipped": f"{tlog} not found (a source checkout's tests/data)"}
+    port, udp = _free_port(), _free_port(udp=True)
+    warm_s = 15.0
+    with tempfile.TemporaryDirectory(prefix="adaptnav-bench-") as tmp:
+        cfg = load_config(None, [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false",
+                                 f'state_dir="{tmp}"', "vehicle.name=bench", "calibrator.enabled=true",
+                                 'calibrator.location="process"', "mavlink.enabled=true",
+                                 f'mavlink.url="udpin:127.0.0.1:{udp}"'])
+        proc = _spawn_daemon(as_dict(cfg))
+        bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
+        try:
+            _wait_up(bus, proc)
+            cal = None
+            deadline = time.monotonic() + 60
+            while cal is None and time.monotonic() < deadline:
+                cal = _calibrator_pid(proc.pid)
+                time.sleep(0.05)
+            cpu: list[tuple[float, float, float]] = []
+            done = threading.Event()
+
+            def sample_cpu() -> None:
+                while True:
+                    cpu.append((time.monotonic(), _cpu_s(proc.pid), _cpu_s(cal)))
+                    if done.wait(0.25):
+                        return
+
+            sampler = threading.Thread(target=sample_cpu, daemon=True)
+            sampler.start()
+            code = ("import sys; from adaptnav.service.tools.benchmarks.service import tlog_sender_main; "
+                    f"sys.exit(tlog_sender_main({str(tlog)!r}, {udp}, {warm_s}, {duration_s}))")
+            try:
+                res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     timeout=duration_s * 3 + 300)
+            finally:
+                done.set()
+                sampler.join()
+            if res.returncode != 0:
+                raise RuntimeError(f"tlog sender failed: {res.stderr[-2000:]}")
+            fig = json.loads(res.stdout.strip().splitlines()[-1])
+            health = bus.get("health") or {}
+            arr = np.array(cpu)
+            w0, w1 = fig.pop("window_monotonic_s")
+            i0 = int(np.searchsorted(arr[:, 0], w0))
+            i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
+            wall = arr[i1, 0] - arr[i0, 0]
+            bridge = health.get("mavlink", {})
+            return {"mavlink_daemon_cpu_percent": float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall),
+                    "mavlink_calibrator_cpu_percent": float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall),
+                    "mavlink_window_s": float(wall), "mavlink_frames_sent": fig["frames_sent"],
+                    "mavlink_frames_per_s": fig["frames_sent"] / (warm_s + duration_s),
+                    "mavlink_samples": bridge.get("samples"), "mavlink_imu_stream": bridge.get("imu_stream"),
+                    "mavlink_tlog": tlog.name}
+        finally:
+            bus.close()
+            _stop(proc)
+
+
 # memory_mavlink (the daemon of an ArduSub vehicle) on request only: another hour pushed through
-PARTS = ("replay", "floor", "latency", "cold_call", "cold_start", "memory", "live_work")
+PARTS = ("replay", "floor", "latency", "mavlink_cpu", "cold_call", "cold_start", "memory", "live_work")
 EXTRA_PARTS = ("memory_mavlink",)
 
 
@@ -739,6 +858,8 @@ def run(args) -> dict:
         figures.update(zenoh_floor(200 if quick else 1000))
     if "latency" in parts:
         figures.update(latency(15.0 if quick else 60.0))
+    if "mavlink_cpu" in parts:
+        figures.update(mavlink_cpu(20.0 if quick else 60.0))
     if "live_work" in parts:
         figures.update(live_work(15.0 if quick else 60.0))
     if "cold_call" in parts:
