@@ -3,8 +3,8 @@
 Threads and processes::
 
     Zenoh callbacks ──decode──┬─(runner idle)──► runner (owns the Estimator, one
-                              └─► input queue ──► runner thread    thread at a time)
-    MAVLink bridge  ──samples──────►   ▲              │ on_nav  → adaptnav/<v>/nav/state (10 Hz)
+    MAVLink bridge ──convert──┴─► input queue ──► runner thread    thread at a time)
+                                       ▲              │ on_nav  → adaptnav/<v>/nav/state (10 Hz)
     calibrator process ─releases───────┘              │ on_aid  → latest per source
           ▲ samples (batched, non-blocking) ◄─────────┘ observe
     housekeeping thread (1 Hz): health + aid statuses published, calibrator supervised
@@ -12,9 +12,10 @@ Threads and processes::
 
 - The runner is :class:`adaptnav.service.runtime.runner.Runner` (the loop of
   :func:`~adaptnav.service.runtime.runner.run`, item by item) with a
-  :class:`~service.clock.LiveClock` — the same loop as replay. A bus sample that finds
-  the queue empty and the runner idle is run in its Zenoh callback (no thread hand-off
-  on the live path: IMU→nav latency); everything else is queued for the runner thread.
+  :class:`~service.clock.LiveClock` — the same loop as replay. A sample (bus or MAVLink)
+  that finds the queue empty and the runner idle is run in the thread that received it
+  (no thread hand-off on the live path: IMU→nav latency, CPU); everything else is queued
+  for the runner thread.
 - Releases are applied between samples in data order (stamped with their data time).
 - Learned params + slow filter states are snapshotted *in the runner* (whichever thread
   drives it: the estimator is not shared) and written by the housekeeping thread atomically
@@ -147,7 +148,7 @@ class QueueSource:
 
     The runner thread waits (:meth:`wait`) and hands every queued item to the runner
     (:meth:`drain`); an item that need not wait behind queued ones goes through
-    :meth:`take` directly (the daemon's bus samples, :meth:`Daemon._from_bus`).
+    :meth:`take` directly (the daemon's bus and MAVLink samples, :meth:`Daemon._from_transport`).
     """
 
     IMU_KINDS = ("imu", "imu_batch")
@@ -262,7 +263,8 @@ class QueueSource:
 
 
 class LiveBurst:
-    """Bus samples between output epochs, run in one burst just before the epoch's sample.
+    """Samples between output epochs (bus or MAVLink), run in one burst just before the
+    epoch's sample.
 
     Live, a sample arrives every few ms and the daemon sleeps in between, so each one finds
     the interpreter's and the filter's code and data gone from the caches (``adaptnav bench
@@ -411,9 +413,12 @@ class Daemon:
         self.queue: queue.Queue = queue.Queue(maxsize=cfg.health.queue_size)
         self.source = QueueSource(self.queue, self.stop_event)
         # one thread at a time drives the runner (it owns the estimator): the runner thread
-        # or a Zenoh callback (_from_bus); set while the runner thread runs
+        # or a receiving thread (_from_transport); set while the runner thread runs
         self._runner_lock = threading.Lock()
         self._runner: Any = None
+        # where the samples went (_from_transport): held for a burst, run on receipt, queued
+        # for the runner thread (it was busy); in the health report as "live_path"
+        self.live_path: Counter[str] = Counter()
         self.burst = LiveBurst()  # bus samples held for the next burst (under _runner_lock)
         self.overflow: Counter[str] = Counter()
         self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
@@ -483,27 +488,31 @@ class Daemon:
         if not self.source.put(item):
             self.overflow["queue_overflow"] += 1
 
-    def _from_bus(self, item: Any) -> None:
-        """A sample off the bus, in the Zenoh callback that decoded it: handled right here
-        when nothing is queued and no other thread is in the runner, else queued behind
-        what is. The live IMU stream then reaches the filter without a hand-off to the
-        runner thread (a wake-up per sample, and the GIL passed back and forth between the
-        two threads); the lock keeps one thread at a time in the runner, and queued items
-        go first, so the order is the queue's. Between epochs it is held for the next burst
-        (:class:`LiveBurst`)."""
-        lock, queued = self._runner_lock, self.queue.queue  # its deque: len() without the queue's lock
+    def _from_transport(self, item: Any) -> None:
+        """A sample in the thread that received it (a Zenoh callback, the MAVLink bridge's
+        thread): handled right here when nothing is queued and no other thread is in the
+        runner, else queued behind what is. The live IMU stream then reaches the filter
+        without a hand-off to the runner thread (a wake-up per sample, and the GIL passed
+        back and forth between the two threads); the lock keeps one thread at a time in the
+        runner, and queued items go first, so the order is the queue's. Between epochs it
+        is held for the next burst (:class:`LiveBurst`)."""
+        lock, queued, path = self._runner_lock, self.queue.queue, self.live_path  # deque: len() without its lock
         if not queued and lock.acquire(blocking=False):
             try:
                 runner = self._runner
                 if runner is not None and not queued and not self.stop_event.is_set():
                     burst = self.burst
-                    if not burst.hold(item, runner.loop):
+                    if burst.hold(item, runner.loop):
+                        path["held_for_burst"] += 1
+                    else:
+                        path["run_on_receipt"] += 1
                         if burst.items:
                             burst.run(self.source.take, runner.feed)
                         self.source.take(item, runner.feed)
                     return
             finally:
                 lock.release()
+        path["queued"] += 1
         self.enqueue(item)
 
     def start(self) -> None:
@@ -513,7 +522,7 @@ class Daemon:
         self._warm_up()
         self.estimator = self._make_estimator()
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
-        self.bus.subscribe_samples(self._from_bus)
+        self.bus.subscribe_samples(self._from_transport)
         if cfg.calibrator.enabled and cfg.calibrator.location == "remote":
             from adaptnav.service.calibrator.node import RemoteCalibrator
 
@@ -546,7 +555,8 @@ class Daemon:
     def _start_bridge(self) -> None:
         from adaptnav.service.transport.mavlink_bridge import MavlinkBridge
 
-        # the bridge thread converts and enqueues; nav output goes back through BusSink
+        # the bridge thread converts and runs (or queues) its samples; nav output goes back
+        # through BusSink
         # its reset_counter persists next to the learned state: a restart is a reset
         self.bridge = MavlinkBridge(None, self._from_mavlink, self.cfg.origin.geo(), self.cfg.mavlink,
                                     state_path=Path(self.cfg.state_dir) / "mavlink_bridge.json",
@@ -555,8 +565,10 @@ class Daemon:
     def _from_mavlink(self, sample: Any) -> None:
         """A sample from the autopilot: to the runner, and on the bus for the other nodes
         (``adaptnav record`` then records every sample the daemon fuses, whatever transport
-        it came in on, and a replay of the recording reproduces the live solution)."""
-        self.enqueue(sample)
+        it came in on, and a replay of the recording reproduces the live solution). Run in
+        the bridge's thread as a bus sample is in its callback (:meth:`_from_transport`):
+        handing each autopilot sample to the runner thread woke it ~150 times a second."""
+        self._from_transport(sample)
         try:
             self.bus.publish_sample_to_others(sample)
         except Exception as e:  # noqa: BLE001 — the bus must never cost the filter a sample
@@ -574,9 +586,9 @@ class Daemon:
                 + ([InertialSink(self.bus)] if cal.enabled and cal.location == "remote" else []))
 
     def _run(self) -> None:
-        """The runner thread: queued items (MAVLink, bursts, bus samples that found the
-        runner busy) and the release of held ones; bus samples that find it idle are run
-        in their Zenoh callback (:meth:`_from_bus`)."""
+        """The runner thread: queued items (samples that found the runner busy), bursts
+        the IMU left held, and the release of held ones; samples that find it idle are run
+        in the thread that received them (:meth:`_from_transport`)."""
         from adaptnav.service.runtime.runner import Runner, default_release_gate
 
         runner = Runner(self.estimator, self.sinks(), self.clock, self.calibrator,
@@ -662,6 +674,7 @@ class Daemon:
             return self.latest_health
         rep["queue_depth"] = self.source.qsize()
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
+        rep["live_path"] = dict(self.live_path)
         if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
             rep["mavlink"] = self.bridge.health()
         side_scan = getattr(self.calibrator, "side_scan", None)

@@ -68,7 +68,7 @@ class _Recorder:
 
 
 def test_a_bus_sample_is_run_in_its_callback_only_with_nothing_before_it(tmp_path):
-    """Daemon._from_bus (the Zenoh callback): a sample that finds the queue empty and the
+    """Daemon._from_transport (the Zenoh callback): a sample that finds the queue empty and the
     runner free is run at once in the calling thread; one that finds the runner busy is
     queued, and so is a later one behind it although the runner is free by then."""
     from adaptnav.service.daemon import Daemon
@@ -78,15 +78,15 @@ def test_a_bus_sample_is_run_in_its_callback_only_with_nothing_before_it(tmp_pat
     d = Daemon(daemon_config(free_port(), tmp_path))
     d._runner = rec = _Recorder()
     me = threading.get_ident()
-    d._from_bus(_imu(0.10))
+    d._from_transport(_imu(0.10))
     assert rec.fed == [(0.10, me)] and d.queue.empty()
     with d._runner_lock:  # the runner thread is draining the queue
-        d._from_bus(_imu(0.11))
+        d._from_transport(_imu(0.11))
     assert rec.fed == [(0.10, me)] and d.queue.qsize() == 1
-    d._from_bus(_imu(0.12))  # the runner is free, but 0.11 waits in the queue: behind it
+    d._from_transport(_imu(0.12))  # the runner is free, but 0.11 waits in the queue: behind it
     assert rec.fed == [(0.10, me)] and d.queue.qsize() == 2
     d.source.drain(rec.feed)
     assert [t for t, _ in rec.fed] == [0.10, 0.11, 0.12]
     d.stop_event.set()  # after a stop nothing more is run in a callback
-    d._from_bus(_imu(0.13))
+    d._from_transport(_imu(0.13))
     assert len(rec.fed) == 3 and d.queue.qsize() == 1

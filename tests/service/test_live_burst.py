@@ -44,7 +44,7 @@ def _payloads(duration_s: float):
 
 def _run_inline(scenario, payloads, tmp_path, burst: bool):
     """The daemon's callback path without its threads (nothing queued, the lock free): every
-    payload decoded and handed to ``_from_bus``, as Zenoh's callback does."""
+    payload decoded and handed to ``_from_transport``, as Zenoh's callback does."""
     cfg = build(ServiceConfig, as_dict(build_config(scenario, None, [
         f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "zenoh.scouting=false", f'state_dir="{tmp_path}"',
         "vehicle.name=burst", "calibrator.enabled=false"])))
@@ -66,7 +66,7 @@ def _run_inline(scenario, payloads, tmp_path, burst: bool):
         d.burst.hold = lambda item, loop: False
     try:
         for p in payloads:
-            d._from_bus(decode_sample(p))
+            d._from_transport(decode_sample(p))
         assert not d.burst.items or burst
         d.burst.run(d.source.take, d._runner.feed)
     finally:

@@ -593,7 +593,7 @@ def replay_speed(duration_s: float, repeats: int = 2) -> dict:
 
 def _live_daemon(cfg):
     """A daemon as started, without its threads: estimator, bus session, sinks, the runner
-    set as its runner thread sets it (so its bus callback, ``_from_bus``, runs it)."""
+    set as its runner thread sets it (so its bus callback, ``_from_transport``, runs it)."""
     from adaptnav.service.daemon import Daemon
     from adaptnav.service.runtime.runner import Runner
     from adaptnav.service.transport.bus import Bus
@@ -665,7 +665,7 @@ def live_work(sim_s: float) -> dict:
                     t0 = time.perf_counter()
                     if counted and traced:
                         _sys.settrace(tracer)
-                    d._from_bus(decode_sample(payload))  # what the Zenoh callback does
+                    d._from_transport(decode_sample(payload))  # what the Zenoh callback does
                     _sys.settrace(None)
                     t1 = time.perf_counter()
                     if not counted:
