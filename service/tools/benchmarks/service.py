@@ -16,6 +16,10 @@ Figures (``--quick``: shorter missions, same code):
   ``latency_*_floor_ratio_*``; beside each, the machine's 1-min load average
   (``load_avg_*``: on a shared 2-core machine the tail is mostly waiting for a core).
   ``zenoh_floor_*``: bare pub→sub between two sessions of one process.
+- ``mavlink_*``: the daemon's CPU share on an ArduSub vehicle's path (:func:`mavlink_cpu`):
+  the defaults, MAVLink bridge on UDP loopback, fed ArduSub's own frames from a recorded SITL
+  session (``tests/data``) at their logged pace by a third process; ``mavlink_samples``: what
+  the bridge converted (the stream was navigated, not just received).
 - ``replay_*``: a 1 h simulated survey with all sensors (IMU, DVL, depth, heading,
   RPM, USBL, side-scan sonar) replayed through the runner with the calibrator in its
   child process, releases applied deterministically at data time τ + ``latency_s``
