@@ -338,6 +338,50 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+def _wait_calibrator(proc: subprocess.Popen, timeout_s: float = 60.0) -> int | None:
+    """The daemon's calibrator child once it is up (None if it does not come)."""
+    deadline = time.monotonic() + timeout_s
+    while (cal := _calibrator_pid(proc.pid)) is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return cal
+
+
+def _run_beside(proc: subprocess.Popen, cal: int | None, code: str, duration_s: float,
+                what: str) -> tuple[dict, float, float]:
+    """Run ``code`` (a client or a feeder printing its figures as one JSON line, with
+    ``window_monotonic_s``: its measured window) in a third process while sampling the CPU
+    time of the daemon ``proc`` and its calibrator child ``cal``; returns its figures (the
+    window replaced by ``window_s``) and both CPU shares over that window, % of one core."""
+    cpu: list[tuple[float, float, float]] = []
+    done = threading.Event()
+
+    def sample_cpu() -> None:
+        while True:
+            cpu.append((time.monotonic(), _cpu_s(proc.pid), _cpu_s(cal)))
+            if done.wait(0.25):
+                return
+
+    sampler = threading.Thread(target=sample_cpu, daemon=True)
+    sampler.start()
+    try:
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=duration_s * 3 + 300)
+    finally:
+        done.set()
+        sampler.join()
+    if res.returncode != 0:
+        raise RuntimeError(f"{what} failed: {res.stderr[-2000:]}")
+    fig = json.loads(res.stdout.strip().splitlines()[-1])
+    arr = np.array(cpu)
+    w0, w1 = fig.pop("window_monotonic_s")
+    i0 = int(np.searchsorted(arr[:, 0], w0))
+    i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
+    wall = arr[i1, 0] - arr[i0, 0]
+    fig["window_s"] = float(wall)
+    return (fig, float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall),
+            float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall))
+
+
 def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool = False) -> dict:
     """Latency as an outside client sees it, and the daemon's CPU share meanwhile.
 
@@ -366,44 +410,13 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
         bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
         try:
             _wait_up(bus, proc)
-            cal = None
-            deadline = time.monotonic() + 60
-            while not echo and cal is None and time.monotonic() < deadline:
-                cal = _calibrator_pid(proc.pid)
-                time.sleep(0.05)
+            cal = None if echo else _wait_calibrator(proc)
             code = ("import sys; from adaptnav.service.tools.benchmarks.service import client_main; "
                     f"sys.exit(client_main({port}, 'bench', {rate_hz}, {sonar}, {duration_s}))")
             load_start = os.getloadavg()[0]
-            # CPU time of both processes sampled through the run; the share is taken over
-            # the client's measured window (data flowing, alignment over)
-            cpu: list[tuple[float, float, float]] = []
-            done = threading.Event()
-
-            def sample_cpu() -> None:
-                while True:
-                    cpu.append((time.monotonic(), _cpu_s(proc.pid), _cpu_s(cal)))
-                    if done.wait(0.25):
-                        return
-
-            sampler = threading.Thread(target=sample_cpu, daemon=True)
-            sampler.start()
-            try:
-                res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                     timeout=duration_s * 3 + 300)
-            finally:
-                done.set()
-                sampler.join()
-            if res.returncode != 0:
-                raise RuntimeError(f"latency client failed: {res.stderr[-2000:]}")
-            fig = json.loads(res.stdout.strip().splitlines()[-1])
+            fig, daemon_pct, cal_pct = _run_beside(proc, cal, code, duration_s, "latency client")
+            fig.update(daemon_cpu_percent=daemon_pct, calibrator_cpu_percent=cal_pct)
             h = bus.get("health") or {}
-            arr = np.array(cpu)
-            w0, w1 = fig.pop("window_monotonic_s")
-            i0 = int(np.searchsorted(arr[:, 0], w0))
-            i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
-            wall = arr[i1, 0] - arr[i0, 0]
-            fig["daemon_cpu_percent"] = float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall)
-            fig["calibrator_cpu_percent"] = float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall)
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
             fig["load_avg"] = [load_start, os.getloadavg()[0]]
         finally:
@@ -798,43 +811,13 @@ def mavlink_cpu(duration_s: float, tlog: Path = MAVLINK_SESSION_TLOG) -> dict:
         bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
         try:
             _wait_up(bus, proc)
-            cal = None
-            deadline = time.monotonic() + 60
-            while cal is None and time.monotonic() < deadline:
-                cal = _calibrator_pid(proc.pid)
-                time.sleep(0.05)
-            cpu: list[tuple[float, float, float]] = []
-            done = threading.Event()
-
-            def sample_cpu() -> None:
-                while True:
-                    cpu.append((time.monotonic(), _cpu_s(proc.pid), _cpu_s(cal)))
-                    if done.wait(0.25):
-                        return
-
-            sampler = threading.Thread(target=sample_cpu, daemon=True)
-            sampler.start()
             code = ("import sys; from adaptnav.service.tools.benchmarks.service import tlog_sender_main; "
                     f"sys.exit(tlog_sender_main({str(tlog)!r}, {udp}, {warm_s}, {duration_s}))")
-            try:
-                res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                     timeout=duration_s * 3 + 300)
-            finally:
-                done.set()
-                sampler.join()
-            if res.returncode != 0:
-                raise RuntimeError(f"tlog sender failed: {res.stderr[-2000:]}")
-            fig = json.loads(res.stdout.strip().splitlines()[-1])
+            fig, daemon_pct, cal_pct = _run_beside(proc, _wait_calibrator(proc), code, duration_s, "tlog sender")
             health = bus.get("health") or {}
-            arr = np.array(cpu)
-            w0, w1 = fig.pop("window_monotonic_s")
-            i0 = int(np.searchsorted(arr[:, 0], w0))
-            i1 = min(int(np.searchsorted(arr[:, 0], w1)), len(arr) - 1)
-            wall = arr[i1, 0] - arr[i0, 0]
             bridge = health.get("mavlink", {})
-            return {"mavlink_daemon_cpu_percent": float(100.0 * (arr[i1, 1] - arr[i0, 1]) / wall),
-                    "mavlink_calibrator_cpu_percent": float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall),
-                    "mavlink_window_s": float(wall), "mavlink_frames_sent": fig["frames_sent"],
+            return {"mavlink_daemon_cpu_percent": daemon_pct, "mavlink_calibrator_cpu_percent": cal_pct,
+                    "mavlink_window_s": fig["window_s"], "mavlink_frames_sent": fig["frames_sent"],
                     "mavlink_frames_per_s": fig["frames_sent"] / (warm_s + duration_s),
                     "mavlink_samples": bridge.get("samples"), "mavlink_imu_stream": bridge.get("imu_stream"),
                     "mavlink_tlog": tlog.name}
