@@ -419,7 +419,7 @@ class Daemon:
         # where the samples went (_from_transport): held for a burst, run on receipt, queued
         # for the runner thread (it was busy); in the health report as "live_path"
         self.live_path: Counter[str] = Counter()
-        self.burst = LiveBurst()  # bus samples held for the next burst (under _runner_lock)
+        self.burst = LiveBurst()  # samples held for the next burst (under _runner_lock)
         self.overflow: Counter[str] = Counter()
         self.health = Health(silent_after_s=cfg.health.sensor_timeout_s)
         self.clock = LiveClock()
@@ -496,7 +496,8 @@ class Daemon:
         back and forth between the two threads); the lock keeps one thread at a time in the
         runner, and queued items go first, so the order is the queue's. Between epochs it
         is held for the next burst (:class:`LiveBurst`)."""
-        lock, queued, path = self._runner_lock, self.queue.queue, self.live_path  # deque: len() without its lock
+        # the queue's deque: its len() without the queue's lock
+        lock, queued, path = self._runner_lock, self.queue.queue, self.live_path
         if not queued and lock.acquire(blocking=False):
             try:
                 runner = self._runner

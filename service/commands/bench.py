@@ -18,8 +18,8 @@ def add_arguments(parser):
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     parser.add_argument("--quick", action="store_true", help="smaller problem sizes (smoke run)")
     parser.add_argument("--only", metavar="PARTS", default=None,
-                        help="service: comma-separated parts to measure (replay, floor, latency, mavlink_cpu, cold_call, cold_start, "
-                             "memory, live_work; default all)")
+                        help="service: comma-separated parts to measure (replay, floor, latency, mavlink_cpu, "
+                             "cold_call, cold_start, memory, live_work; default all)")
     from adaptnav.service.tools.benchmarks import soak
 
     soak.add_arguments(parser)  # --minutes, --sample-s

@@ -744,7 +744,8 @@ def cold_call(calls: int = 400, gap_s: float = 0.005) -> dict:
 
 # ArduSub's stream as the daemon's bridge had it in a SITL session (RAW_IMU and ATTITUDE at
 # 50 Hz, SCALED_PRESSURE2, SERVO_OUTPUT_RAW, SIM_STATE at 10 Hz, GPS_RAW_INT 5 Hz, ...)
-MAVLINK_SESSION_TLOG = Path(__file__).resolve().parents[3] / "tests" / "data" / "ardusub-4.7-sitl-mixed-session.tlog"
+MAVLINK_SESSION_TLOG = (Path(__file__).resolve().parents[3] / "tests" / "data"
+                        / "ardusub-4.7-sitl-mixed-session.tlog")
 
 
 def tlog_sender_main(path: str, port: int, warm_s: float, duration_s: float) -> int:
