@@ -45,5 +45,7 @@ def test_em_arrays_stay_mapped_between_iterations():
     assert kept["kept"] is True
     # the arrays (cloud, weights, ancestors, normals: ~7.6 MB, ~1850 pages) are reused
     assert max(kept["faults"][1:]) < 100, kept
+    # the control: glibc's defaults give the pages back, so each filter faults them in again
+    # (~1850 here; fewer where transparent huge pages back the arrays, never none)
     control = _faults("default")
-    assert min(control["faults"][1:]) > 1000, control
+    assert min(control["faults"][1:]) > max(kept["faults"][1:]), (kept, control)
