@@ -15,7 +15,6 @@ Only the calibrator's processes: the daemon's allocations are small and steady.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 
 log = logging.getLogger(__name__)
@@ -34,12 +33,12 @@ def keep_freed_heap() -> bool:
     """Raise glibc malloc's mmap and trim thresholds in this process (see the module
     docstring). False, changing nothing, where the C library has no ``mallopt`` (musl,
     macOS) or refuses the values."""
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
-        log.debug("no mallopt in the C library (%s): the heap is left as it is", name)
+        # the symbols already loaded in this process (the C library's among them); not
+        # ctypes.util.find_library, which starts ldconfig or a compiler to find a name
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        log.debug("no mallopt in the C library: the heap is left as it is")
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
