@@ -269,8 +269,8 @@ class LiveBurst:
     Live, a sample arrives every few ms and the daemon sleeps in between, so each one finds
     the interpreter's and the filter's code and data gone from the caches (``adaptnav bench
     service`` ``cold_call_*``: 6–30× the back-to-back cost on a shared virtual machine) and
-    pays its whole path cold. Held from the first IMU sample after an epoch to the one just
-    before the sample that completes the next epoch, then run in data order — each run of
+    pays its whole path cold. Held from the first sample after an epoch (IMU or aid) to the
+    IMU sample just before the one that completes the next epoch, then run in data order — each run of
     IMU samples as one :class:`ImuBatch` (the estimator's compiled propagation, which the
     runner splits at epochs) — they pay it about once per epoch: the daemon's CPU at 200 Hz
     10.7 → 8.0 % of a core (``adaptnav bench service --only latency``). The epoch's own
@@ -294,15 +294,20 @@ class LiveBurst:
         items = self.items
         if len(items) >= self.MAX_ITEMS:
             return False
-        if getattr(item, "KIND", None) == "imu":
+        if items and getattr(item, "KIND", None) != "imu":
+            pass  # an aid inside a burst: held, its place among the IMU samples kept
+        else:
             period = loop.imu_period_s
+            t_s = getattr(item, "t_s", None)
             # not the epoch's sample, nor the one before it (the burst runs there, off the
             # epoch's path: the bound lies half a period before it, between two samples); a
-            # stream whose period or epochs are not known yet runs as it comes
-            if loop.next_k is None or not period > 0.0 or not item.t_s < loop.due_s() - period:
+            # stream whose period or epochs are not known yet runs as it comes. An aid opens
+            # a burst by the same rule: one that comes right after an epoch's state (a sensor
+            # sampled on the epoch) would otherwise run as the state leaves and take the core
+            # its delivery needs
+            if (loop.next_k is None or not period > 0.0 or not isinstance(t_s, (int, float))
+                    or not t_s < loop.due_s() - period):
                 return False
-        elif not items:  # an aid is held only inside a burst (between IMU samples held)
-            return False
         if not items:
             self.since_s = time.monotonic()
         items.append(item)

@@ -3,6 +3,8 @@ same nav states, bit for bit, as each sample run as it arrives; the epoch's own 
 runs alone; and a burst held when the IMU stops is run all the same."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -64,14 +66,18 @@ def _run_inline(scenario, payloads, tmp_path, burst: bool):
     d._runner.feed = counting_feed
     if not burst:
         d.burst.hold = lambda item, loop: False
+    calls: list[tuple[str, int, int]] = []  # per payload: its kind, items fed, states emitted
     try:
         for p in payloads:
-            d._from_transport(decode_sample(p))
+            sample = decode_sample(p)
+            n_fed, n_states = len(fed), len(states.states)
+            d._from_transport(sample)
+            calls.append((sample.KIND, len(fed) - n_fed, len(states.states) - n_states))
         assert not d.burst.items or burst
         d.burst.run(d.source.take, d._runner.feed)
     finally:
         d.bus.close()
-    return states.states, fed
+    return states.states, fed, calls
 
 
 def _aids_ahead(payloads, lead: int = 3, offset_s: float = 0.0371):
@@ -100,8 +106,14 @@ def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path, aids_ahe
     scenario, payloads = _payloads(150.0)
     if aids_ahead:
         payloads = _aids_ahead(payloads)
-    single, fed_single = _run_inline(scenario, payloads, tmp_path / "single", burst=False)
-    burst, fed_burst = _run_inline(scenario, payloads, tmp_path / "burst", burst=True)
+    single, fed_single, _ = _run_inline(scenario, payloads, tmp_path / "single", burst=False)
+    burst, fed_burst, calls = _run_inline(scenario, payloads, tmp_path / "burst", burst=True)
+    # the aids that come right after an epoch's state (sampled on the epoch) wait for the
+    # burst: nothing runs between a state and the next IMU sample, when its delivery needs the core
+    after_state = [fed for i, (kind, _, emitted) in enumerate(calls) if emitted and i > 2000
+                   for kind2, fed, _ in itertools.takewhile(lambda c: c[0] != "imu", calls[i + 1:])]
+    assert not any(after_state)
+    assert aids_ahead or len(after_state) > 500  # (moved off the epochs: none come there)
     assert "ImuBatch" not in fed_single
     # most IMU samples went in batches: the bursts happened (20 IMU samples per 0.1 s epoch)
     assert fed_burst.count("ImuBatch") > 0.8 * 150 * 10
@@ -137,12 +149,18 @@ def test_the_epochs_own_sample_is_not_held():
     burst.run(lambda item, feed: taken.append(item), None)
     assert len(taken) == 1 and isinstance(taken[0], ImuBatch)
     assert taken[0].t_s.tolist() == [s.t_s for s in imu[:18]]
-    # an aid is held only inside a burst; a stream whose period is not known yet runs as it comes
+    # an aid opens a burst by the IMU samples' rule: one sampled on the last epoch (it came
+    # right after that epoch's state) is held, one at the sample before the epoch's runs as
+    # it comes; a stream whose period is not known yet runs as it comes
     from adaptnav.fusion.samples import DepthSample
 
-    assert not burst.hold(DepthSample(0.95, 150000.0), Loop)
+    assert not burst.hold(DepthSample(0.995, 150000.0), Loop)
+    assert burst.hold(DepthSample(0.9, 150000.0), Loop) and len(burst) == 1
+    assert burst.hold(DepthSample(0.996, 150000.0), Loop)  # inside a burst: held, in its order
+    burst.run(lambda item, feed: None, None)
     Loop.imu_period_s = float("nan")
     assert not burst.hold(imu[0], Loop)
+    assert not burst.hold(DepthSample(0.9, 150000.0), Loop)
 
 
 def test_a_burst_held_when_the_imu_stops_is_run(live):
