@@ -27,6 +27,8 @@ def test_samples_go_to_other_nodes_only_while_one_subscribes():
         recorder = peer(port, "others")
         got: list = []
         recorder.subscribe_samples(got.append)
+        encodings: list[str] = []
+        recorder.session.declare_subscriber(recorder.keys.sensor("depth"), lambda z: encodings.append(str(z.encoding)))
         # the subscription reaches the daemon's session: from then on every sample goes out
         assert wait_until(lambda: daemon_side.publish_sample_to_others(DepthSample(2.0, 101325.0)), 30.0)
         sent = [DepthSample(3.0 + 0.1 * i, 101325.0 + 100.0 * i) for i in range(50)]
@@ -34,6 +36,11 @@ def test_samples_go_to_other_nodes_only_while_one_subscribes():
         assert wait_until(lambda: len(got) >= 51, 30.0)
         assert [s.pressure_pa for s in got[-50:]] == [s.pressure_pa for s in sent]
         assert own == []
+        # declared as a driver's publisher of that key is (the schema in its encoding), so a
+        # recorder or a remote calibrator cannot tell the two apart
+        recorder.publish_sample(DepthSample(9.0, 101325.0))
+        assert wait_until(lambda: len(encodings) >= 52, 30.0)
+        assert set(encodings) == {encodings[-1]} and "adaptnav.depth" in encodings[-1]
     finally:
         if recorder is not None:
             recorder.close()
