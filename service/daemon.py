@@ -362,9 +362,10 @@ class BusSink(Sink):
         pos = doc["pos_n_m"]
         bridge = self.d.bridge
         # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
-        lat, lon, alt = self.origin.to_geodetic(pos)
-        doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = (float(np.degrees(lat)), float(np.degrees(lon)),
-                                                        float(alt))
+        # (to_geodetic's numbers in Python floats: no arrays on the latency path)
+        north_m, east_m, down_m = pos.tolist()
+        lat, lon = self.origin.to_geodetic_ne(north_m, east_m)
+        doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = math.degrees(lat), math.degrees(lon), self.origin.alt_m - down_m
         if bridge is not None:  # UNIX time when the MAVLink link gives a wall-clock reference
             doc.update(geo_time_fields(state, bridge.converter.time.unix_of))
         payload = message("nav_state", doc)
