@@ -787,13 +787,26 @@ def tlog_sender_main(path: str, port: int, warm_s: float, duration_s: float) -> 
     return 0
 
 
+def unnavigated_reason(frames_sent: int, samples: int | None, imu_stream: str | None) -> str:
+    """Why a :func:`mavlink_cpu` run did not measure a daemon navigating ArduSub's stream
+    ("" when it did): the bridge took no IMU stream, or fewer samples than a quarter of the
+    frames sent (ArduSub's session gives ~0.9 sample a frame: its RAW_IMU, ATTITUDE, pressure,
+    thrust, GPS; the rest are heartbeats and status)."""
+    if not imu_stream:
+        return f"the bridge integrated no IMU stream ({samples} samples of {frames_sent} frames)"
+    if not samples or samples < 0.25 * frames_sent:
+        return f"the bridge took {samples} samples of {frames_sent} frames sent"
+    return ""
+
+
 def mavlink_cpu(duration_s: float, tlog: Path = MAVLINK_SESSION_TLOG) -> dict:
     """The daemon's CPU share on an ArduSub vehicle's path: a daemon with the defaults
     (calibrator child on, MAVLink bridge on UDP loopback) fed ArduSub's own frames from a
     recorded SITL session at their logged pace by a third process
     (:func:`tlog_sender_main`); CPU of the daemon and its calibrator child over
     ``duration_s`` after 15 s of alignment, % of one core; what the bridge took
-    (``mavlink_samples``, from the daemon's health) to show the stream was navigated."""
+    (``mavlink_samples``, from the daemon's health) to show the stream was navigated — a run
+    in which it was not raises (:func:`unnavigated_reason`): an idle daemon's CPU is no figure."""
     from adaptnav.fusion.typed_config import as_dict
 
     from adaptnav.service.config import ZenohConfig, load_config
@@ -817,6 +830,9 @@ def mavlink_cpu(duration_s: float, tlog: Path = MAVLINK_SESSION_TLOG) -> dict:
             fig, daemon_pct, cal_pct = _run_beside(proc, _wait_calibrator(proc), code, duration_s, "tlog sender")
             health = bus.get("health") or {}
             bridge = health.get("mavlink", {})
+            why = unnavigated_reason(fig["frames_sent"], bridge.get("samples"), bridge.get("imu_stream"))
+            if why:  # the CPU of a daemon that navigated nothing is not this figure
+                raise RuntimeError(f"mavlink_cpu: {why}")
             return {"mavlink_daemon_cpu_percent": daemon_pct, "mavlink_calibrator_cpu_percent": cal_pct,
                     "mavlink_window_s": fig["window_s"], "mavlink_frames_sent": fig["frames_sent"],
                     "mavlink_frames_per_s": fig["frames_sent"] / (warm_s + duration_s),
