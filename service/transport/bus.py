@@ -72,12 +72,15 @@ class Keys:
 
     def express(self, key: str) -> bool:
         """Whether a publisher on ``key`` sends each message at once, never held for a batch:
-        the IMU samples and the nav states, the two ends of the navigation's latency. Zenoh
-        batches otherwise while the writer keeps writing, holding a message up to
+        the IMU samples, where the navigation's latency starts. Zenoh batches otherwise
+        while the writer keeps writing, holding a message up to
         ``transport.link.tx.queue.batching.time_limit`` (1 ms): a driver that publishes a
         side-scan ping right after an IMU sample held the sample while it encoded the ping
-        (the IMU's hop 0.4 → 1.3 ms at p50)."""
-        return key == self.imu or key == self.nav_state
+        (the IMU's hop 1.3 → 1.0 ms at p50). Not the nav states: each express message takes
+        a transmission-queue slot of its own, and a droppable one is then dropped when the
+        link's thread is starved — the daemon of `tests/service/test_demo.py` lost up to 18
+        of ~1780 states with two busy processes beside it, none batched."""
+        return key == self.imu
 
     def query(self, name: str) -> str:
         return f"{self.root}/query/{name}"
@@ -359,7 +362,8 @@ class Bus:
                 if entry is None:
                     # as a driver's publisher, but dropping when congested: the daemon that
                     # forwards must never wait for a slow recorder
-                    qos = {**self._qos(key), "congestion_control": zenoh.CongestionControl.DROP}
+                    # (not express either: droppable messages are kept whole in batches, Keys.express)
+                    qos = {**self._qos(key), "congestion_control": zenoh.CongestionControl.DROP, "express": False}
                     entry = self._publishers[("remote", key)] = _RemotePublisher(self.session, key, qos)
         if not entry.matching:
             return False
