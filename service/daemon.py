@@ -294,9 +294,8 @@ class LiveBurst:
         items = self.items
         if len(items) >= self.MAX_ITEMS:
             return False
-        if items and getattr(item, "KIND", None) != "imu":
-            pass  # an aid inside a burst: held, its place among the IMU samples kept
-        else:
+        aid_inside_burst = bool(items) and getattr(item, "KIND", None) != "imu"  # held: its place kept
+        if not aid_inside_burst:
             period = loop.imu_period_s
             t_s = getattr(item, "t_s", None)
             # not the epoch's sample, nor the one before it (the burst runs there, off the

@@ -336,13 +336,15 @@ class Bus:
                     pub = self._publishers[key] = self.session.declare_publisher(key, **self._qos(key))
         return pub
 
-    def _qos(self, key: str) -> dict[str, Any]:
+    def _qos(self, key: str, waits: bool | None = None) -> dict[str, Any]:
         """How every publisher on ``key`` is declared: its schema, whether it waits or drops
-        when congested (:meth:`Keys.lossless`), whether it is sent at once (:meth:`Keys.express`)."""
+        when congested (``waits``, by default :meth:`Keys.lossless`), and whether it is sent
+        at once (:meth:`Keys.express`) — only where it waits: a droppable message sent on its
+        own is what a starved link drops (:meth:`Keys.express`)."""
         keys = self.keys
-        return {"encoding": json_encoding(keys.schema_of(key)), "express": keys.express(key),
-                "congestion_control": (zenoh.CongestionControl.BLOCK if keys.lossless(key)
-                                       else zenoh.CongestionControl.DROP)}
+        waits = keys.lossless(key) if waits is None else waits
+        return {"encoding": json_encoding(keys.schema_of(key)), "express": waits and keys.express(key),
+                "congestion_control": zenoh.CongestionControl.BLOCK if waits else zenoh.CongestionControl.DROP}
 
     def put(self, key: str, payload: bytes) -> None:
         self._publisher(key).put(payload)
@@ -360,11 +362,10 @@ class Bus:
             with self._lock:
                 entry = self._publishers.get(("remote", key))
                 if entry is None:
-                    # as a driver's publisher, but dropping when congested: the daemon that
-                    # forwards must never wait for a slow recorder
-                    # (not express either: droppable messages are kept whole in batches, Keys.express)
-                    qos = {**self._qos(key), "congestion_control": zenoh.CongestionControl.DROP, "express": False}
-                    entry = self._publishers[("remote", key)] = _RemotePublisher(self.session, key, qos)
+                    # dropping when congested: the daemon that forwards must never wait for a
+                    # slow recorder
+                    entry = self._publishers[("remote", key)] = _RemotePublisher(
+                        self.session, key, self._qos(key, waits=False))
         if not entry.matching:
             return False
         entry.publisher.put(encode_sample(sample))
