@@ -219,8 +219,6 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     sample's time: on the output epochs' phase, float rounding puts about half of the
     epochs' stamps a hair past them (where an epoch waited for the next sample, one IMU
     period, issue 17). Prints the figures as one JSON line."""
-    import dataclasses
-
     from adaptnav.sim.scenario import load_scenario
 
     from adaptnav.service.config import ZenohConfig
@@ -235,6 +233,10 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     # fall behind and then publish in bursts, which the latency then measured
     stream = list(_flatten(simulate(scenario).iter_blocks()))
     bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), vehicle)
+    # encoded before publishing too, as a sensor driver's process encodes its own samples:
+    # encoding a 21 kB ping here held this process's interpreter while the state came back
+    # (its arrival waited for it), and an IMU sample's encoding lay inside its timed span
+    outbox = _client_outbox(stream, bus, rate_hz)
     recv: dict[float, float] = {}
 
     def on_nav(key: str, payload: bytes) -> None:
@@ -245,30 +247,25 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     bus.subscribe_raw(bus.keys.nav_state, on_nav)
     pub: dict[float, float] = {}
     window_mono = [math.nan, math.nan]  # monotonic (system-wide) clock: the measured window
+    t0 = outbox[0][0] if outbox else None
     try:
         time.sleep(0.3)
         wall0 = time.perf_counter()
-        t0 = imu_t_s = None
-        for sample in stream:
-            if t0 is None:
-                t0 = sample.t_s
-            if sample.t_s - t0 >= duration_s + warm_s:
+        for t_s, key, payload, imu_t_s in outbox:
+            if t_s - t0 >= duration_s + warm_s:
                 window_mono[1] = time.monotonic()
                 break
-            if math.isnan(window_mono[0]) and sample.t_s - t0 >= warm_s:
+            if math.isnan(window_mono[0]) and t_s - t0 >= warm_s:
                 window_mono[0] = time.monotonic()
-            due = wall0 + (sample.t_s - t0)
+            due = wall0 + (t_s - t0)
             # no busy wait: it took a core from the daemon on a 2-core machine, and the
             # latency is timed from the publication, wherever the sleep ends
             if (d := due - time.perf_counter()) > 0:
                 time.sleep(d)
             now = time.perf_counter()
-            if sample.KIND == "imu":
-                imu_t_s = sample.t_s if imu_t_s is None else imu_t_s + 1.0 / rate_hz
-                sample = dataclasses.replace(sample, t_s=imu_t_s)
-            bus.publish_sample(sample)
-            if sample.KIND == "imu" and sample.t_s - t0 >= warm_s:
-                pub[sample.t_s] = now
+            bus.put(key, payload)
+            if imu_t_s is not None and t_s - t0 >= warm_s:
+                pub[imu_t_s] = now
         time.sleep(0.5)
     finally:
         bus.close()
@@ -280,6 +277,25 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
                       "states": len(after), "unmatched": len(after) - len(lat),
                       "window_monotonic_s": window_mono}))
     return 0
+
+
+def _client_outbox(stream: list, bus: Any, rate_hz: float) -> list[tuple[float, str, bytes, float | None]]:
+    """The client's samples as published: ``(data time, key, payload, IMU stamp or None)``.
+    The IMU samples are stamped as a simulated IMU counts its time (:func:`client_main`)."""
+    import dataclasses
+
+    from adaptnav.service.transport.bus import encode_sample
+
+    out = []
+    imu_t_s = None
+    for sample in stream:
+        t_s = sample.t_s
+        stamp = None
+        if sample.KIND == "imu":
+            imu_t_s = stamp = t_s if imu_t_s is None else imu_t_s + 1.0 / rate_hz
+            sample = dataclasses.replace(sample, t_s=stamp)
+        out.append((t_s, bus.keys.sensor(sample.KIND), encode_sample(sample), stamp))
+    return out
 
 
 NAV_STATE_BYTES = 7985  # a nav state message as the daemon publishes it (18x18 covariance)
