@@ -73,6 +73,11 @@ class LearnedVelocityConfig:
     # fused at a fixed rate, not per IMU sample; 1 Hz matches the motion model's step
     # (its variances are per step: faster fusion would count the same error twice)
     rate_hz: float = 1.0
+    # the updates at t = k / rate_hz + phase_s (s): half the service's default output period
+    # (outputs.nav_rate_hz 10 Hz), so that none falls on an output epoch. One there ran on
+    # the way to that epoch's published state: ~0.2 ms of a live nav state's latency, in
+    # one epoch in 16 (issue 17); between epochs it runs with the samples held for the next
+    phase_s: float = 0.05
     rpm_hold_s: float = 1.0                    # latest RpmSample is used this long
     sigma_heave_m_s: float = 0.05              # heave ≈ 0 pseudo-measurement
     variance_scale: float = 1.0                # inflation of the motion model's variances
@@ -510,6 +515,10 @@ class FilterConfig:
                              f"1 / imu_gap_s ({1.0 / self.imu_gap_s:g} Hz)")
         if not 0 < self.learned_velocity.rate_hz <= 100.0:
             raise ValueError("learned_velocity.rate_hz must be within (0, 100] Hz")
+        lv = self.learned_velocity
+        if not 0.0 <= lv.phase_s < 1.0 / lv.rate_hz:
+            raise ValueError(f"learned_velocity.phase_s must be within [0, 1 / rate_hz) = [0, {1.0 / lv.rate_hz:g}) s, "
+                             f"got {lv.phase_s!r}")
         for name, aid in (("gnss", self.gnss), ("usbl", self.usbl)):
             if not 0.0 <= aid.correlated_fraction <= 1.0:
                 raise ValueError(f"{name}.correlated_fraction must be within [0, 1]")

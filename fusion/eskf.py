@@ -212,6 +212,7 @@ class Estimator:
         self._rpm_raw = math.nan  # latest RPM (rev/min), for stationary detection
         self._next_lv_t = math.nan
         self._lv_period = 1.0 / config.learned_velocity.rate_hz
+        self._lv_phase_s = float(config.learned_velocity.phase_s)
         # per aid kind: (its config section, what its setup() made of it), once
         self._aid_cfg = {kind: (getattr(config, kind), aid.setup(getattr(config, kind)) if aid.setup else None)
                          for kind, aid in AIDS.items()}
@@ -1155,7 +1156,9 @@ class Estimator:
         self._start(start, "ins")
         self._attitude_driven = False
         self._clones.clear()  # a new alignment: earlier epochs' errors are not this filter's
-        self._next_lv_t = math.floor(self._clock[0] / self._lv_period + 1.0) * self._lv_period
+        # the first update epoch k period + phase after the start (LearnedVelocityConfig.phase_s)
+        phase = self._lv_phase_s
+        self._next_lv_t = math.floor((self._clock[0] - phase) / self._lv_period + 1.0) * self._lv_period + phase
 
     def _start_attitude_driven(self, sample) -> None:
         """No usable IMU but attitude samples: INS mode on a virtual IMU made of the attitude's

@@ -529,6 +529,13 @@ class ServiceConfig:
         return replace(self, filter=filt)
 
     def validate(self) -> None:
+        lv, rate_hz = self.filter.learned_velocity, self.outputs.nav_rate_hz
+        if lv.enabled and any(_on_grid(k / lv.rate_hz + lv.phase_s, 1.0 / rate_hz) for k in range(100)):
+            # allowed (the numbers are right), but each update then runs before an epoch's state
+            # is published: on its latency path
+            log.warning("filter.learned_velocity.phase_s = %g s puts updates on the output epochs of "
+                        "outputs.nav_rate_hz = %g Hz (each then delays that nav state)%s", lv.phase_s, rate_hz,
+                        f"; {0.5 / rate_hz:g} s lies between them" if lv.rate_hz <= rate_hz else "")
         # a DVL delta is valid dvl_latency_s before it arrives, a "mean" one another Δt/2
         # earlier (mid-interval): the filter must still hold that past (late measurements are
         # re-fused up to filter.max_delay_s, older ones rejected as too late — every sample of
@@ -545,6 +552,12 @@ class ServiceConfig:
                 f"{'dvl_max_interval_s/2 + ' if mean else ''}dvl_latency_s = {lag_s:g} s before it arrives, beyond "
                 f"filter.max_delay_s = {self.filter.max_delay_s:g} s (older samples are rejected as too late): raise "
                 f"filter.max_delay_s to {lag_s:g} or {fix}")
+
+
+def _on_grid(t_s: float, period_s: float) -> bool:
+    """Whether ``t_s`` is a whole multiple of ``period_s`` (to 1 ms)."""
+    r = math.remainder(t_s, period_s)
+    return abs(r) < 1e-3
 
 
 def read_config_file(path: str | Path) -> dict:

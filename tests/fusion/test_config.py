@@ -23,7 +23,9 @@ def test_toml_with_overrides_builds_the_tree():
 
 @pytest.mark.parametrize("text, where", [("[dvl]\nlever_arm = [0, 0, 0]", "dvl"),
                                           ("gate_sigma = -1.0", "gate_sigma"),
-                                          ("covariance_step_s = 5.0", "covariance_step_s")])
+                                          ("covariance_step_s = 5.0", "covariance_step_s"),
+                                          ("[learned_velocity]\nphase_s = 1.0", "phase_s"),
+                                          ("[learned_velocity]\nphase_s = -0.05", "phase_s")])
 def test_bad_keys_and_values_are_errors_that_name_them(text, where):
     with pytest.raises(ConfigError, match=where):
         load_toml(FilterConfig, text)

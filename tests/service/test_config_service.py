@@ -39,6 +39,21 @@ def test_deploy_config_loads_and_matches_defaults():
     assert isinstance(cfg.motion.params0, MotionParams)
 
 
+def test_learned_velocity_updates_on_the_output_epochs_are_named(caplog):
+    """Allowed, but each would delay an epoch's nav state: the warning says so and where
+    they would lie between the epochs."""
+    with caplog.at_level("WARNING", logger="adaptnav.service.config"):
+        load_config(DEPLOY_TOML, [])  # 1 Hz at +0.05 s, 10 Hz epochs: between them
+        assert "phase_s" not in caplog.text
+        load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20"])
+    assert "phase_s = 0.05 s puts updates on the output epochs" in caplog.text and "0.025 s lies between" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="adaptnav.service.config"):
+        load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20", "filter.learned_velocity.phase_s=0.025"])
+        load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20", "filter.learned_velocity.enabled=false"])
+    assert "phase_s" not in caplog.text
+
+
 def test_overrides_typed_and_nested(tmp_path):
     cfg = load_config(DEPLOY_TOML, ["zenoh.mode=client", 'zenoh.connect=["tcp/10.0.0.1:7447"]',
                                     "motion.params0.k_v=1.2", "mavlink.enabled=true",

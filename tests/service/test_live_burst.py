@@ -27,9 +27,13 @@ pytestmark = pytest.mark.timeout(300)
 class _States(Sink):
     def __init__(self) -> None:
         self.states: list = []
+        self.learned_velocity: list[float] = []  # the times of the learned-velocity updates
 
     def on_nav(self, state) -> None:
         self.states.append(state)
+
+    def on_aid(self, statuses) -> None:
+        self.learned_velocity += [s.t_s for s in statuses if s.source == "learned_velocity"]
 
 
 def _payloads(duration_s: float):
@@ -66,13 +70,15 @@ def _run_inline(scenario, payloads, tmp_path, burst: bool):
     d._runner.feed = counting_feed
     if not burst:
         d.burst.hold = lambda item, loop: False
-    calls: list[tuple[str, int, int]] = []  # per payload: its kind, items fed, states emitted
+    # per payload: its kind, items fed, states emitted, learned-velocity updates made
+    calls: list[tuple[str, int, int, int]] = []
     try:
         for p in payloads:
             sample = decode_sample(p)
-            n_fed, n_states = len(fed), len(states.states)
+            n_fed, n_states, n_lv = len(fed), len(states.states), len(states.learned_velocity)
             d._from_transport(sample)
-            calls.append((sample.KIND, len(fed) - n_fed, len(states.states) - n_states))
+            calls.append((sample.KIND, len(fed) - n_fed, len(states.states) - n_states,
+                          len(states.learned_velocity) - n_lv))
         assert not d.burst.items or burst
         d.burst.run(d.source.take, d._runner.feed)
     finally:
@@ -110,10 +116,14 @@ def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path, aids_ahe
     burst, fed_burst, calls = _run_inline(scenario, payloads, tmp_path / "burst", burst=True)
     # the aids that come right after an epoch's state (sampled on the epoch) wait for the
     # burst: nothing runs between a state and the next IMU sample, when its delivery needs the core
-    after_state = [fed for i, (kind, _, emitted) in enumerate(calls) if emitted and i > 2000
-                   for kind2, fed, _ in itertools.takewhile(lambda c: c[0] != "imu", calls[i + 1:])]
+    after_state = [fed for i, (kind, _, emitted, _) in enumerate(calls) if emitted and i > 2000
+                   for kind2, fed, _, _ in itertools.takewhile(lambda c: c[0] != "imu", calls[i + 1:])]
     assert not any(after_state)
     assert aids_ahead or len(after_state) > 500  # (moved off the epochs: none come there)
+    # nor does a learned-velocity update run on the way to an epoch's state (its updates lie
+    # between the epochs, filter.learned_velocity.phase_s): they run in the bursts
+    assert not any(lv for _, _, emitted, lv in calls if emitted)
+    assert sum(lv for *_, lv in calls) > 100  # (one a second: they were made)
     assert "ImuBatch" not in fed_single
     # most IMU samples went in batches: the bursts happened (20 IMU samples per 0.1 s epoch)
     assert fed_burst.count("ImuBatch") > 0.8 * 150 * 10
