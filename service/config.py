@@ -530,10 +530,10 @@ class ServiceConfig:
 
     def validate(self) -> None:
         lv, rate_hz = self.filter.learned_velocity, self.outputs.nav_rate_hz
-        if lv.enabled and any(_on_grid(k / lv.rate_hz + lv.phase_s, 1.0 / rate_hz) for k in range(100)):
-            # allowed (the numbers are right), but each update then runs before an epoch's state
-            # is published: on its latency path
-            log.warning("filter.learned_velocity.phase_s = %g s puts updates on the output epochs of "
+        if lv.enabled and any(_near_grid(k / lv.rate_hz + lv.phase_s, 1.0 / rate_hz) for k in range(100)):
+            # allowed (the numbers are right), but an update then may run in an epoch's own IMU
+            # sample, before its state is published: on its latency path
+            log.warning("filter.learned_velocity.phase_s = %g s puts updates at or next to the output epochs of "
                         "outputs.nav_rate_hz = %g Hz (each then delays that nav state)%s", lv.phase_s, rate_hz,
                         f"; {0.5 / rate_hz:g} s lies between them" if lv.rate_hz <= rate_hz else "")
         # a DVL delta is valid dvl_latency_s before it arrives, a "mean" one another Δt/2
@@ -554,10 +554,10 @@ class ServiceConfig:
                 f"filter.max_delay_s to {lag_s:g} or {fix}")
 
 
-def _on_grid(t_s: float, period_s: float) -> bool:
-    """Whether ``t_s`` is a whole multiple of ``period_s`` (to 1 ms)."""
-    r = math.remainder(t_s, period_s)
-    return abs(r) < 1e-3
+def _near_grid(t_s: float, period_s: float) -> bool:
+    """Whether ``t_s`` lies near a whole multiple of ``period_s``: within 10 ms (an IMU sample
+    or two: the epoch's own sample is the one nearest it) or a quarter of the period."""
+    return abs(math.remainder(t_s, period_s)) < min(0.01, 0.25 * period_s)
 
 
 def read_config_file(path: str | Path) -> dict:

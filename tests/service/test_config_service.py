@@ -46,12 +46,16 @@ def test_learned_velocity_updates_on_the_output_epochs_are_named(caplog):
         load_config(DEPLOY_TOML, [])  # 1 Hz at +0.05 s, 10 Hz epochs: between them
         assert "phase_s" not in caplog.text
         load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20"])
-    assert "phase_s = 0.05 s puts updates on the output epochs" in caplog.text and "0.025 s lies between" in caplog.text
+    assert "phase_s = 0.05 s puts updates at or next to the output epochs" in caplog.text
+    assert "0.025 s lies between" in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING", logger="adaptnav.service.config"):
         load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20", "filter.learned_velocity.phase_s=0.025"])
         load_config(DEPLOY_TOML, ["outputs.nav_rate_hz=20", "filter.learned_velocity.enabled=false"])
     assert "phase_s" not in caplog.text
+    with caplog.at_level("WARNING", logger="adaptnav.service.config"):  # 3 ms after each epoch
+        load_config(DEPLOY_TOML, ["filter.learned_velocity.phase_s=0.003"])
+    assert "phase_s = 0.003 s puts updates at or next to the output epochs" in caplog.text
 
 
 def test_overrides_typed_and_nested(tmp_path):
