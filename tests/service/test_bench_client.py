@@ -10,13 +10,6 @@ from adaptnav.service.tools.benchmarks.service import _client_outbox
 from adaptnav.service.transport.bus import Keys, decode_sample
 
 
-class _Keys:
-    """What the outbox asks of a bus: its keys (no session is needed to encode)."""
-
-    def __init__(self) -> None:
-        self.keys = Keys("bench")
-
-
 def test_the_outbox_is_the_stream_encoded_with_the_imu_counting_its_time():
     rate_hz = 200.0
     # an IMU whose stamps wander off the counted times (jitter): the client re-stamps them
@@ -24,11 +17,11 @@ def test_the_outbox_is_the_stream_encoded_with_the_imu_counting_its_time():
            for k in range(5)]
     depth = DepthSample(10.011, 301325.0)
     stream = imu[:3] + [depth] + imu[3:]
-    bus = _Keys()
-    out = _client_outbox(stream, bus, rate_hz)
+    keys = Keys("bench")
+    out = _client_outbox(stream, keys, rate_hz)
 
     assert [t for t, *_ in out] == [s.t_s for s in stream]  # paced by the data's own times
-    assert [key for _, key, _, _ in out] == [bus.keys.sensor(s.KIND) for s in stream]
+    assert [key for _, key, _, _ in out] == [keys.sensor(s.KIND) for s in stream]
     stamps = [stamp for *_, stamp in out]
     assert stamps[3] is None  # only IMU samples are timed
     counted = [10.0 + k / rate_hz for k in range(5)]

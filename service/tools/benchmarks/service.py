@@ -236,7 +236,7 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     # encoded before publishing too, as a sensor driver's process encodes its own samples:
     # encoding a 21 kB ping here held this process's interpreter while the state came back
     # (its arrival waited for it), and an IMU sample's encoding lay inside its timed span
-    outbox = _client_outbox(stream, bus, rate_hz)
+    outbox = _client_outbox(stream, bus.keys, rate_hz)
     recv: dict[float, float] = {}
 
     def on_nav(key: str, payload: bytes) -> None:
@@ -279,8 +279,9 @@ def client_main(port: int, vehicle: str, rate_hz: float, sonar: bool, duration_s
     return 0
 
 
-def _client_outbox(stream: list, bus: Any, rate_hz: float) -> list[tuple[float, str, bytes, float | None]]:
-    """The client's samples as published: ``(data time, key, payload, IMU stamp or None)``.
+def _client_outbox(stream: list, keys: Any, rate_hz: float) -> list[tuple[float, str, bytes, float | None]]:
+    """The client's samples as published on ``keys`` (a :class:`~adaptnav.service.transport.bus.Keys`):
+    ``(data time, key, payload, IMU stamp or None)``.
     The IMU samples are stamped as a simulated IMU counts its time (:func:`client_main`)."""
     import dataclasses
 
@@ -294,7 +295,7 @@ def _client_outbox(stream: list, bus: Any, rate_hz: float) -> list[tuple[float, 
         if sample.KIND == "imu":
             imu_t_s = stamp = t_s if imu_t_s is None else imu_t_s + 1.0 / rate_hz
             sample = dataclasses.replace(sample, t_s=stamp)
-        out.append((t_s, bus.keys.sensor(sample.KIND), encode_sample(sample), stamp))
+        out.append((t_s, keys.sensor(sample.KIND), encode_sample(sample), stamp))
     return out
 
 
