@@ -251,6 +251,11 @@ class Estimator:
         self._h_heading = np.zeros((1, N_ERR))
         self._h_heading[0, ATT.start + 2] = 1.0
         self._fast_out = np.zeros(3)
+        # rehearse_epoch's scratch: a core to propagate, one IMU sample (no allocation per call)
+        self._rehearsal_core = np.zeros(kalman.CORE_SIZE)
+        self._rehearsal_t = np.zeros(1)
+        self._rehearsal_f = np.zeros((1, 3))
+        self._rehearsal_w = np.zeros((1, 3))
         # input history for late measurements: entries (kind, payload, the state before it or
         # None: see _record) and their state times
         self._hist_t: list[float] = []
@@ -357,6 +362,31 @@ class Estimator:
             q_nb=x[X_Q], bias_acc_b_m_s2=x[X_BA], bias_gyro_b_rad_s=x[X_BG],
             current_n_m_s=x[X_CUR], k_speed=float(x[X_KS]), cov=cov, valid=valid,
             reset_counter=self._reset_counter, invalid_reasons=tuple(reasons))
+
+    def rehearse_epoch(self, dt_s: float) -> NavState | None:
+        """Rehearse an output epoch's IMU sample ``dt_s`` after the state time; nothing of the
+        filter changes. The compiled steps that sample takes (the sample check, the propagation,
+        the state guard) run on a scratch copy of the core with the latest specific force and
+        rate; the published state (:meth:`nav_state`, which only reads) is computed of the
+        filter itself and returned. None outside INS mode or for a ``dt_s`` not in (0, 1] s.
+
+        Why: live, the epoch's sample comes after the daemon slept an IMU period, and finds
+        the interpreter's and the filter's code and data gone from the caches; run a
+        millisecond before it (:class:`adaptnav.service.runtime.rehearsal.EpochRehearsal`),
+        this leaves them there."""
+        if self._mode != "ins" or not 0.0 < dt_s <= 1.0:
+            return None
+        scratch = self._rehearsal_core
+        scratch[:] = self._core
+        t = self._rehearsal_t
+        t[0] = float(self._clock[0]) + dt_s
+        f, w = self._rehearsal_f, self._rehearsal_w
+        f[0] = self._acc[ACC_F]
+        w[0] = self._acc[ACC_OMEGA]
+        if sd.imu_clean(t, f, w, float(self._clock[0]), self.config.imu_gap_s):
+            kalman.propagate_core(t, f, w, scratch, self._qdiag, self.config.covariance_step_s)
+            kalman.core_ok(scratch, _MAX_SPEED_M_S)
+        return self.nav_state()
 
     def horizontal_nav(self) -> tuple | None:
         """What a side-scan ping records of the current state

@@ -54,6 +54,7 @@ from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.memory import BurstTrimmer
 from adaptnav.service.runtime.persistence import load_state, save_state
+from adaptnav.service.runtime.rehearsal import EpochRehearsal
 from adaptnav.service.runtime.sinks import Sink, geo_time_fields
 
 log = logging.getLogger(__name__)
@@ -354,20 +355,25 @@ class BusSink(Sink):
         payload = self.latest_payload
         return None if payload is None else json.loads(payload)
 
-    def on_nav(self, state: Any) -> None:
+    def document(self, state: Any) -> tuple[dict, bytes]:
+        """The nav state's message: its fields, and the payload as published."""
         # the vectors as arrays: orjson writes them (NavState.to_dict's lists cost a
         # Python float per element of the covariance, on the latency path)
         doc = state.fields()
-        pos = doc["pos_n_m"]
         bridge = self.d.bridge
         # latitude/longitude (deg) and altitude (m) beside local NED, from the mission origin
         # (to_geodetic's numbers in Python floats: no arrays on the latency path)
-        north_m, east_m, down_m = pos.tolist()
+        north_m, east_m, down_m = doc["pos_n_m"].tolist()
         lat, lon = self.origin.to_geodetic_ne(north_m, east_m)
         doc["lat_deg"], doc["lon_deg"], doc["alt_m"] = math.degrees(lat), math.degrees(lon), self.origin.alt_m - down_m
         if bridge is not None:  # UNIX time when the MAVLink link gives a wall-clock reference
             doc.update(geo_time_fields(state, bridge.converter.time.unix_of))
-        payload = message("nav_state", doc)
+        return doc, message("nav_state", doc)
+
+    def on_nav(self, state: Any) -> None:
+        doc, payload = self.document(state)
+        pos = doc["pos_n_m"]
+        bridge = self.d.bridge
         self.latest_payload = payload
         self.nav_count += 1
         self.d.bus.put(self.d.bus.keys.nav_state, payload)
@@ -444,6 +450,10 @@ class Daemon:
         self._malformed_reported: Counter[str] = Counter()
         self._overflow_reported: Counter[str] = Counter()
         self._trimmer = BurstTrimmer()
+        # the output epoch's path rehearsed before its IMU sample comes (started in start())
+        self.rehearsal: EpochRehearsal | None = (
+            EpochRehearsal(self._runner_lock, self._rehearse, cfg.outputs.rehearsal_lead_s)
+            if cfg.outputs.rehearsal_lead_s > 0.0 else None)
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
@@ -502,8 +512,11 @@ class Daemon:
         runner, and queued items go first, so the order is the queue's. Between epochs it
         is held for the next burst (:class:`LiveBurst`)."""
         # the queue's deque: its len() without the queue's lock
-        lock, queued, path = self._runner_lock, self.queue.queue, self.live_path
-        if not queued and lock.acquire(blocking=False):
+        lock, queued, path, rehearsal = self._runner_lock, self.queue.queue, self.live_path, self.rehearsal
+        arrived_s = rehearsal.clock() if rehearsal is not None else 0.0
+        # a rehearsal holding the lock is short: waited for, not queued behind (the epoch's sample)
+        if not queued and (lock.acquire(blocking=False)
+                           or (rehearsal is not None and rehearsal.holding and lock.acquire(timeout=0.005))):
             try:
                 runner = self._runner
                 if runner is not None and not queued and not self.stop_event.is_set():
@@ -515,11 +528,23 @@ class Daemon:
                         if burst.items:
                             burst.run(self.source.take, runner.feed)
                         self.source.take(item, runner.feed)
+                        if rehearsal is not None and getattr(item, "KIND", None) == "imu":
+                            rehearsal.plan(arrived_s, item.t_s, runner.loop)
                     return
             finally:
                 lock.release()
         path["queued"] += 1
         self.enqueue(item)
+
+    def _rehearse(self, dt_s: float) -> bool:
+        """An output epoch's path, ``dt_s`` ahead, rehearsed (:mod:`~adaptnav.service.runtime.rehearsal`):
+        the estimator's and the nav state's message; nothing changes, nothing is sent. Under
+        the runner lock. False when there is no navigation to rehearse yet."""
+        state = self.estimator.rehearse_epoch(dt_s) if self._runner is not None else None
+        if state is None:
+            return False
+        self.sink.document(state)
+        return True
 
     def start(self) -> None:
         cfg = self.cfg
@@ -555,6 +580,8 @@ class Daemon:
         self._threads = [runner, house]
         for t in self._threads:
             t.start()
+        if self.rehearsal is not None:
+            self.rehearsal.start()
         sd_notify("READY=1\nSTATUS=navigating")
         log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
 
@@ -681,6 +708,8 @@ class Daemon:
         rep["queue_depth"] = self.source.qsize()
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
         rep["live_path"] = dict(self.live_path)
+        if self.rehearsal is not None:  # the output epochs' rehearsals: done, late, busy, no_room
+            rep["epoch_rehearsal"] = dict(self.rehearsal.counts)
         if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
             rep["mavlink"] = self.bridge.health()
         side_scan = getattr(self.calibrator, "side_scan", None)
@@ -792,6 +821,8 @@ class Daemon:
             return
         sd_notify("STOPPING=1")
         self.stop_event.set()
+        if self.rehearsal is not None:
+            self.rehearsal.stop(timeout_s)
         for t in self._threads:
             t.join(timeout_s)
         if self.bridge is not None:

@@ -105,6 +105,9 @@ def test_bad_file(tmp_path):
     ("filter.dvl.lever_arm_b_m=[0.0, inf, 0.0]", "lever_arm_b_m"),
     ("filter.max_delay_s=1e9", "max_delay_s"),
     ("persistence.period_s=0", "period_s"),
+    ("outputs.rehearsal_lead_s=nan", "rehearsal_lead_s"),
+    ("outputs.rehearsal_lead_s=-0.001", "rehearsal_lead_s"),
+    ("outputs.rehearsal_lead_s=0.2", "rehearsal_lead_s"),  # its caches cold again by the sample
 ])
 def test_config_refuses_non_finite_and_out_of_range_values_naming_the_key(override, key):
     with pytest.raises(ConfigError, match=key):

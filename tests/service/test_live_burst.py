@@ -12,6 +12,7 @@ from adaptnav.fusion.samples import ImuBatch
 from adaptnav.fusion.typed_config import as_dict, build
 from adaptnav.service.config import ServiceConfig
 from adaptnav.service.daemon import Daemon
+from adaptnav.service.runtime.rehearsal import EpochRehearsal
 from adaptnav.service.runtime.replay import build_config
 from adaptnav.service.runtime.runner import Runner
 from adaptnav.service.runtime.sinks import Sink
@@ -48,9 +49,11 @@ def _payloads(duration_s: float):
     return scenario, out
 
 
-def _run_inline(scenario, payloads, tmp_path, burst: bool):
+def _run_inline(scenario, payloads, tmp_path, burst: bool, rehearsed: list | None = None):
     """The daemon's callback path without its threads (nothing queued, the lock free): every
-    payload decoded and handed to ``_from_transport``, as Zenoh's callback does."""
+    payload decoded and handed to ``_from_transport``, as Zenoh's callback does. ``rehearsed``:
+    the output epochs rehearsed (:class:`EpochRehearsal`, on a clock that is the data time),
+    each planned one run at its time; their outcomes appended there, one per payload."""
     cfg = build(ServiceConfig, as_dict(build_config(scenario, None, [
         f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "zenoh.scouting=false", f'state_dir="{tmp_path}"',
         "vehicle.name=burst", "calibrator.enabled=false"])))
@@ -70,13 +73,21 @@ def _run_inline(scenario, payloads, tmp_path, burst: bool):
     d._runner.feed = counting_feed
     if not burst:
         d.burst.hold = lambda item, loop: False
+    now = [0.0]
+    lead_s = 0.0015
+    d.rehearsal = (EpochRehearsal(d._runner_lock, d._rehearse, lead_s, clock=lambda: now[0])
+                   if rehearsed is not None else None)
     # per payload: its kind, items fed, states emitted, learned-velocity updates made
     calls: list[tuple[str, int, int, int]] = []
     try:
         for p in payloads:
             sample = decode_sample(p)
             n_fed, n_states, n_lv = len(fed), len(states.states), len(states.learned_velocity)
+            now[0] = max(now[0], sample.t_s)  # it comes at its data time
             d._from_transport(sample)
+            if rehearsed is not None:  # the rehearsal thread wakes at the planned time
+                now[0] = max(now[0], sample.t_s + d._runner.loop.imu_period_s - lead_s)
+                rehearsed.append(d.rehearsal.run_due())
             calls.append((sample.KIND, len(fed) - n_fed, len(states.states) - n_states,
                           len(states.learned_velocity) - n_lv))
         assert not d.burst.items or burst
@@ -135,6 +146,75 @@ def test_a_burst_gives_the_states_of_samples_run_as_they_come(tmp_path, aids_ahe
         assert a.t_s == b.t_s and a.valid == b.valid and a.invalid_reasons == b.invalid_reasons
         for name in ("pos_n_m", "vel_n_m_s", "q_nb", "bias_acc_b_m_s2", "bias_gyro_b_rad_s", "current_n_m_s", "cov"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} at {a.t_s}")
+
+
+def test_a_rehearsed_epoch_changes_no_state(tmp_path):
+    """Each output epoch rehearsed right before its IMU sample: the states are those of a
+    daemon without rehearsals, bit for bit, and the rehearsals fall where they are meant to,
+    after the sample before an epoch's (each is followed by the sample that emits a state)."""
+    scenario, payloads = _payloads(60.0)
+    plain, _, _ = _run_inline(scenario, payloads, tmp_path / "plain", burst=True)
+    rehearsed: list = []
+    states, _, calls = _run_inline(scenario, payloads, tmp_path / "rehearsed", burst=True, rehearsed=rehearsed)
+    assert len(states) == len(plain) > 500
+    for a, b in zip(plain, states):
+        assert a.t_s == b.t_s and a.valid == b.valid and a.invalid_reasons == b.invalid_reasons
+        for name in ("pos_n_m", "vel_n_m_s", "q_nb", "bias_acc_b_m_s2", "bias_gyro_b_rad_s", "current_n_m_s", "cov"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{name} at {a.t_s}")
+    done = [i for i, outcome in enumerate(rehearsed) if outcome == "done"]
+    # (before the filter started there is nothing to rehearse)
+    assert not {o for o in rehearsed if o is not None} - {"done", "not_ready"}
+    # after the alignment (the filter is an INS), nearly every epoch was rehearsed …
+    after_start = [i for i, c in enumerate(calls) if c[2]]
+    assert len(done) > 0.9 * len(after_start)
+    # … right before its own sample: the next IMU sample after each rehearsal emits a state
+    for i in done:
+        nxt = next(c for c in calls[i + 1:] if c[0] == "imu")
+        assert nxt[2] == 1, f"rehearsal after payload {i} was not followed by the epoch's sample"
+
+
+def test_a_rehearsal_is_planned_before_the_epochs_sample_and_skipped_when_late():
+    """The plan: ``lead_s`` before the sample after this one when that one completes the next
+    epoch; none when the IMU is too fast for the lead; a late or busy one is skipped, counted."""
+    import threading
+
+    class Loop:  # the runner's epoch bookkeeping at 200 Hz, next epoch at 1.0 s
+        next_k, imu_period_s = 10, 0.005
+
+        @staticmethod
+        def due_s():
+            return 1.0 - 0.0025
+
+    now = [100.0]
+    lock = threading.Lock()
+    ran: list[float] = []
+
+    def rehearse(dt_s: float) -> bool:
+        ran.append(dt_s)
+        return True
+
+    r = EpochRehearsal(lock, rehearse, 0.0015, clock=lambda: now[0])
+    assert not r.plan(100.0, 0.990, Loop)  # two samples before the epoch's: nothing yet
+    assert r.plan(100.0, 0.995, Loop)      # the one before: the next one is the epoch's
+    assert r.run_due() is None             # not its time yet
+    now[0] = 100.0035                      # 5 ms − 1.5 ms after the sample came
+    assert r.run_due() == "done" and ran == [0.005]
+    assert r.run_due() is None             # once
+    now[0] = 100.1                         # the next epoch's: a sample comes at 100.1
+    assert r.plan(100.1, 0.995, Loop)
+    now[0] = 100.1035 + 0.001              # woke more than half the lead late: not run
+    assert r.run_due() == "late" and ran == [0.005]
+    now[0] = 100.2
+    assert r.plan(100.2, 0.995, Loop)
+    with lock:                             # the runner is busy: not run
+        now[0] = 100.2035
+        assert r.run_due() == "busy"
+    Loop.imu_period_s = 0.0025             # 400 Hz: 2.5 ms − 1.5 ms leaves no room for the lead
+    now[0] = 200.0
+    assert not r.plan(200.0, 0.9965, Loop)
+    assert dict(r.counts) == {"done": 1, "late": 1, "busy": 1, "no_room": 1}
+    with pytest.raises(ValueError):
+        EpochRehearsal(lock, rehearse, 0.0)
 
 
 def test_the_epochs_own_sample_is_not_held():
