@@ -16,6 +16,8 @@ Figures (``--quick``: shorter missions, same code):
   ``latency_*_floor_ratio_*``; beside each, the machine's 1-min load average
   (``load_avg_*``: on a shared 2-core machine the tail is mostly waiting for a core).
   ``zenoh_floor_*``: bare pub→sub between two sessions of one process.
+  ``latency_*_epoch_rehearsal``: the daemon's output-epoch rehearsals over its run (health
+  ``epoch_rehearsal``: done, late, busy, no_room; :mod:`adaptnav.service.runtime.rehearsal`).
 - ``mavlink_*``: the daemon's CPU share on an ArduSub vehicle's path (:func:`mavlink_cpu`):
   the defaults, MAVLink bridge on UDP loopback, fed ArduSub's own frames from a recorded SITL
   session (``tests/data``) at their logged pace by a third process; ``mavlink_samples``: what
@@ -435,6 +437,7 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
             fig.update(daemon_cpu_percent=daemon_pct, calibrator_cpu_percent=cal_pct)
             h = bus.get("health") or {}
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
+            fig["epoch_rehearsal"] = h.get("epoch_rehearsal")  # the daemon's, over its whole run
             fig["load_avg"] = [load_start, os.getloadavg()[0]]
         finally:
             bus.close()
@@ -525,6 +528,7 @@ def latency(latency_s: float) -> dict:
         out[f"daemon_cpu_percent_{tag}"] = fig["daemon_cpu_percent"]
         out[f"calibrator_cpu_percent_{tag}"] = fig["calibrator_cpu_percent"]
         out["latency_calibrator_state"] = fig["calibrator_state"]
+        out[f"latency_{tag}_epoch_rehearsal"] = fig["epoch_rehearsal"]
     out["latency_ms_p50"] = max(out["latency_100hz_ms_p50"], out["latency_200hz_ms_p50"])
     out["latency_ms_p99"] = max(out["latency_100hz_ms_p99"], out["latency_200hz_ms_p99"])
     out["daemon_cpu_percent"] = out["daemon_cpu_percent_200hz"]
