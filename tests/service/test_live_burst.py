@@ -271,5 +271,8 @@ def test_a_burst_held_when_the_imu_stops_is_run(live):
                         timeout_s=60)
     assert health, f"imu count {bus.get('health')['sensors'].get('imu')} != published {n}"
     assert len(daemon.burst) == 0
+    # the rehearsals' outcomes are reported (which ones: the pace of this machine's publishing)
+    rehearsals = health["epoch_rehearsal"]
+    assert set(rehearsals) <= {"done", "not_ready", "late", "busy", "no_room", "failed"} and "failed" not in rehearsals
     state = bus.get("state")
     assert state is not None and state["t_s"] <= t
