@@ -11,9 +11,9 @@ before the epoch's sample is expected (that sample's arrival + one IMU period), 
 its own thread under the runner lock: the estimator's :meth:`~adaptnav.fusion.eskf.Estimator.rehearse_epoch`
 (the sample's compiled steps on a scratch copy, the published state computed) and the nav
 state's message built, not sent. Nothing of the filter changes, and nothing is published: the
-states are the same, bit for bit, with or without it. Measured with
-``adaptnav bench service --only latency`` (the outside client at 100 Hz, alternated pairs):
-decode → ``put`` p50 0.32–0.39 → 0.23–0.26 ms; ~0.3 ms of CPU per epoch.
+states are the same, bit for bit, with or without it. Timed across the outside client's and
+the daemon's processes at 100 Hz (alternated windows; docs/measurements.md, stop 40): decode →
+``put`` p50 0.32–0.39 → 0.21–0.26 ms; ~0.3 ms of CPU per epoch.
 
 A rehearsal that would start more than half its lead late is skipped (``late``: it could still
 hold the lock when the sample comes), and so is one that finds the runner busy (``busy``); the
@@ -35,8 +35,8 @@ class EpochRehearsal:
     """Plans and runs the rehearsals (module docstring).
 
     ``lock``: the runner lock; ``rehearse(dt_s)``: the rehearsal of a sample ``dt_s`` after the
-    state time, False when there was nothing to rehearse (no navigation yet); ``lead_s``: how long before the epoch's sample is expected; ``clock``: the
-    monotonic clock (s)."""
+    state time, False when there was nothing to rehearse (no navigation yet); ``lead_s``: how
+    long before the epoch's sample is expected; ``clock``: the monotonic clock (s)."""
 
     def __init__(self, lock: Any, rehearse: Callable[[float], Any], lead_s: float,
                  clock: Callable[[], float] = time.monotonic) -> None:

@@ -37,4 +37,3 @@ def test_horizontal_nav_is_nav_states_numbers_with_the_dvl_terms():
         cal = est.dvl_calibration
         with_dvl_terms += cal is not None and bool(np.any(cal.position_cov_ne() > 0.0))
     assert compared > 100 and with_dvl_terms > 50, (compared, with_dvl_terms)
-
