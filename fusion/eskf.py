@@ -863,7 +863,8 @@ class Estimator:
         aid = AIDS["dvl"]
         config, setup = self._aid_cfg["dvl"]
         self._dvl_lock(sample.t_s)
-        meas = aid.measure(sample, AidContext(self._x, self._acc[ACC_OMEGA], self.origin, config, setup))
+        # the aid's model (dvl._measure's bottom track) without its context and checks, done above
+        meas = aid_dvl.bottom_track(sample, self._x, self._acc[ACC_OMEGA], config, setup)
         y, sdiag = self._fast_y3, self._sdiag[:3]
         try:
             nis, fused, ok = kalman.fuse_vector_core(self._core, self._qdiag, meas.z, meas.h, meas.H, meas.R,

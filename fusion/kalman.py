@@ -39,7 +39,7 @@ import numpy as np
 from adaptnav.kernels import jit
 
 from .state import (ACC_EARTH_RATE, ACC_G_OVER_R, ACC_R, ACC_RF, ACC_SIZE, ACC_STEP, ACC_T, ATT, BA, BG, N_ERR,
-                    N_NOM, POS, VEL, X_BA, X_POS, X_Q, X_VEL)
+                    N_NOM, POS, VEL, X_BA, X_CUR, X_POS, X_Q, X_VEL)
 from .strapdown import rotvec_quat, strapdown_step
 
 # first indices of the state and accumulator blocks (adaptnav.fusion.state), as plain ints:
@@ -419,3 +419,94 @@ def fuse_vector_core(core, qdiag, z, h, H, R, gate, dx, y_out, s_diag_out, flush
         y_out[i] = z[i] - h[i]
     nis, fused = fuse_core(core, qdiag, y_out, H, R, gate, dx, s_diag_out, flush)
     return nis, fused, core_ok(core, max_speed_m_s)
+
+
+_X_CUR = X_CUR.start  # the current (north, east) in the nominal state
+
+
+@jit(cache=True)
+def dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
+                     misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out):
+    """The DVL's bottom-track model (:func:`adaptnav.fusion.aiding.dvl.bottom_track`) in one call:
+    ``H`` (3 × 18, every entry written), ``h`` = h(x̂) and ``R`` of
+    :func:`~adaptnav.fusion.aiding.dvl.measure` (``R_nb`` from ``x``'s quaternion as
+    :func:`~adaptnav.fusion.aiding.common.dcm`; ``lever_block`` = ``R_db [l]×``) plus the
+    lever arm's doubt (:func:`~adaptnav.fusion.aiding.dvl.lever_arm_doubt`, when
+    ``lever_arm_sigma_m`` > 0); ``z`` the head velocity corrected with ``(s, ψ)``
+    (:func:`~adaptnav.fusion.aiding.dvl.correct_velocity`); ``aux_out`` ← what the calibration
+    takes: the uncorrected velocity rotated to n (north, east), and in the heading-aligned
+    level frame its forward and lateral parts, the heading and the current along it.
+
+    Why: the same sums as the numpy model (written in its order, without BLAS's fused
+    multiply-adds: they differ in the last bits) for ~40 µs less numpy glue per DVL sample
+    (a sample every 0.2 s; 62 → see the estimator's ``_fast_dvl``)."""
+    w, a, b, c = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
+    R = np.empty((3, 3))
+    R[0, 0] = 1 - 2 * (b * b + c * c)
+    R[0, 1] = 2 * (a * b - w * c)
+    R[0, 2] = 2 * (a * c + w * b)
+    R[1, 0] = 2 * (a * b + w * c)
+    R[1, 1] = 1 - 2 * (a * a + c * c)
+    R[1, 2] = 2 * (b * c - w * a)
+    R[2, 0] = 2 * (a * c - w * b)
+    R[2, 1] = 2 * (b * c + w * a)
+    R[2, 2] = 1 - 2 * (a * a + b * b)
+    v0, v1, v2 = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]
+    # A = R_db R_nbᵀ
+    A = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = R_db[i, 0] * R[j, 0] + R_db[i, 1] * R[j, 1] + R_db[i, 2] * R[j, 2]
+    for i in range(3):
+        for j in range(N_ERR):
+            H_out[i, j] = 0.0
+        for j in range(3):
+            H_out[i, _E_VEL + j] = A[i, j]
+            H_out[i, _E_BG + j] = lever_block[i, j]
+        # A [v]×, [v]× = [[0, −v2, v1], [v2, 0, −v0], [−v1, v0, 0]]
+        H_out[i, _E_ATT] = A[i, 1] * v2 - A[i, 2] * v1
+        H_out[i, _E_ATT + 1] = -A[i, 0] * v2 + A[i, 2] * v0
+        H_out[i, _E_ATT + 2] = A[i, 0] * v1 - A[i, 1] * v0
+    o0, o1, o2 = omega_b[0], omega_b[1], omega_b[2]
+    l0, l1, l2 = lever_b[0], lever_b[1], lever_b[2]
+    vb0 = R[0, 0] * v0 + R[1, 0] * v1 + R[2, 0] * v2 + (o1 * l2 - o2 * l1)
+    vb1 = R[0, 1] * v0 + R[1, 1] * v1 + R[2, 1] * v2 + (o2 * l0 - o0 * l2)
+    vb2 = R[0, 2] * v0 + R[1, 2] * v1 + R[2, 2] * v2 + (o0 * l1 - o1 * l0)
+    for i in range(3):
+        h_out[i] = R_db[i, 0] * vb0 + R_db[i, 1] * vb1 + R_db[i, 2] * vb2
+    s2 = sigma_m_s * sigma_m_s
+    for i in range(3):
+        for j in range(3):
+            R_out[i, j] = s2 if i == j else 0.0
+    if lever_arm_sigma_m > 0.0:
+        # σ² (R_db [ω]×)(R_db [ω]×)ᵀ
+        B = np.empty((3, 3))
+        for i in range(3):
+            B[i, 0] = R_db[i, 1] * o2 - R_db[i, 2] * o1
+            B[i, 1] = -R_db[i, 0] * o2 + R_db[i, 2] * o0
+            B[i, 2] = R_db[i, 0] * o1 - R_db[i, 1] * o0
+        l2s = lever_arm_sigma_m * lever_arm_sigma_m
+        for i in range(3):
+            for j in range(3):
+                R_out[i, j] += l2s * (B[i, 0] * B[j, 0] + B[i, 1] * B[j, 1] + B[i, 2] * B[j, 2])
+    # the uncorrected velocity in n: R_nb (R_dbᵀ v_d)
+    t0 = R_db[0, 0] * vel_d0 + R_db[1, 0] * vel_d1 + R_db[2, 0] * vel_d2
+    t1 = R_db[0, 1] * vel_d0 + R_db[1, 1] * vel_d1 + R_db[2, 1] * vel_d2
+    t2 = R_db[0, 2] * vel_d0 + R_db[1, 2] * vel_d1 + R_db[2, 2] * vel_d2
+    vn = R[0, 0] * t0 + R[0, 1] * t1 + R[0, 2] * t2
+    ve = R[1, 0] * t0 + R[1, 1] * t1 + R[1, 2] * t2
+    c0, s0 = R[0, 0], R[1, 0]
+    norm = np.hypot(c0, s0)
+    ch, sh = c0 / norm, s0 / norm
+    aux_out[0] = vn
+    aux_out[1] = ve
+    aux_out[2] = ch * vn + sh * ve
+    aux_out[3] = -sh * vn + ch * ve
+    aux_out[4] = np.arctan2(s0, c0)
+    aux_out[5] = ch * x[_X_CUR] + sh * x[_X_CUR + 1]
+    # R_z(ψ) v_d / (1 + s)
+    k = 1.0 / (1.0 + scale_error)
+    cp, sp = np.cos(misalignment_rad) * k, np.sin(misalignment_rad) * k
+    z_out[0] = cp * vel_d0 - sp * vel_d1
+    z_out[1] = sp * vel_d0 + cp * vel_d1
+    z_out[2] = vel_d2 * k

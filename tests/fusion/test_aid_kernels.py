@@ -1,0 +1,79 @@
+"""The compiled measurement models of the commonest aids against the numpy models they
+replace, on seeded random states: the same sums (BLAS's fused multiply-adds and libm's
+trigonometry differ from numpy's in the last bits only), so a tolerance of a few ulps."""
+import math
+
+import numpy as np
+import pytest
+
+from adaptnav.fusion.aiding import dvl
+from adaptnav.fusion.aiding.common import dcm
+from adaptnav.fusion.config import DvlConfig
+from adaptnav.fusion.frames import euler_to_quat
+from adaptnav.fusion.samples import DvlSample
+from adaptnav.fusion.state import X_CUR, initial_nominal
+
+TIGHT = dict(rtol=1e-13, atol=1e-14)
+
+
+def _states(rng, n=200):
+    for _ in range(n):
+        roll, pitch, yaw = rng.uniform(-0.4, 0.4), rng.uniform(-1.2, 1.2), rng.uniform(-math.pi, math.pi)
+        x = initial_nominal(rng.normal(size=3) * 100, rng.normal(size=3), euler_to_quat(roll, pitch, yaw))
+        x[X_CUR] = rng.normal(size=2) * 0.3
+        yield x
+
+
+@pytest.mark.parametrize("calibrated", [False, True])
+@pytest.mark.parametrize("lever_arm_sigma_m", [0.0, 0.5])
+def test_the_compiled_bottom_track_is_the_numpy_model(calibrated, lever_arm_sigma_m):
+    rng = np.random.default_rng(11)
+    config = DvlConfig(enabled=True, lever_arm_b_m=(0.51, 0.12, 0.33), rotation_bd_rpy_rad=(0.01, 0.02, 0.7),
+                       lever_arm_sigma_m=lever_arm_sigma_m,
+                       scale_sigma=0.005 if calibrated else 0.0, misalignment_sigma_rad=0.01 if calibrated else 0.0)
+    setup = dvl._setup(config)
+    lever_b, R_db, cal, _ = setup
+    assert (cal is not None) == calibrated
+    for k, x in enumerate(_states(rng)):
+        if cal is not None:  # a calibration away from its prior's zero (replaced, never changed in place)
+            cal.theta = np.array([rng.normal() * 0.005, rng.normal() * 0.01, 0.0, 0.0])
+        theta = None if cal is None else cal.theta.copy()
+        omega = rng.normal(size=3) * 0.1
+        vel_d = tuple(rng.normal(size=3).tolist())
+        sample = DvlSample(float(k), vel_d, sigma_m_s=0.2 if k % 7 == 0 else math.nan)
+        got = dvl.bottom_track(sample, x, omega, config, setup)
+        if cal is not None and cal.theta is not theta:
+            theta = cal.theta  # a straight-leg segment closed (not with random states)
+        z = vel_d if cal is None else dvl.correct_velocity(vel_d, float(theta[0]), float(theta[1]))
+        want = dvl.measure(sample, x, omega, lever_b, R_db, config.sigma_m_s, z)
+        R = want.R + (dvl.lever_arm_doubt(omega, lever_arm_sigma_m, R_db) if lever_arm_sigma_m > 0 else 0.0)
+        np.testing.assert_allclose(got.H, want.H, **TIGHT)
+        np.testing.assert_allclose(got.h, want.h, **TIGHT)
+        np.testing.assert_allclose(got.R, R, **TIGHT)
+        np.testing.assert_allclose(got.z, want.z, **TIGHT)
+        assert got.H.shape == (3, 18) and not got.angular.any()
+        assert np.all(got.H[:, [0, 1, 2, 9, 10, 11, 15, 16, 17]] == 0.0)
+
+
+def test_the_compiled_bottom_track_feeds_the_calibration_what_numpy_computes():
+    """The uncorrected velocity in n and its heading-aligned parts, as the numpy model had them."""
+    from adaptnav.fusion import kalman
+
+    rng = np.random.default_rng(5)
+    R_db = np.ascontiguousarray(dvl.rotation_db((0.01, -0.02, 0.3)))
+    lever = np.array([0.4, -0.1, 0.2])
+    block = dvl.lever_block_of(lever, R_db)
+    for x in _states(rng):
+        vel_d = rng.normal(size=3)
+        H, h, R, z, aux = np.empty((3, 18)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty(6)
+        kalman.dvl_bottom_track(x, rng.normal(size=3), lever, R_db, block, *vel_d.tolist(), 0.003, -0.004, 0.03,
+                                0.5, H, h, R, z, aux)
+        R_nb = dcm(x)
+        v_n = R_nb @ (R_db.T @ vel_d)
+        c0, s0 = R_nb[0, 0], R_nb[1, 0]
+        ch, sh = c0 / math.hypot(c0, s0), s0 / math.hypot(c0, s0)
+        cn, ce = x[X_CUR]
+        want = [v_n[0], v_n[1], ch * v_n[0] + sh * v_n[1], -sh * v_n[0] + ch * v_n[1], math.atan2(s0, c0),
+                ch * cn + sh * ce]
+        np.testing.assert_allclose(aux, want, **TIGHT)
+        np.testing.assert_allclose(z, dvl.correct_velocity(vel_d, 0.003, -0.004), **TIGHT)
