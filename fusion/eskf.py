@@ -862,7 +862,10 @@ class Estimator:
             return None
         aid = AIDS["dvl"]
         config, setup = self._aid_cfg["dvl"]
-        self._dvl_lock(sample.t_s)
+        # _dvl_lock, its k_speed walk written only when not already the DVL's (~2 µs a sample)
+        self._t_dvl_lock = float(sample.t_s)
+        if self._qdiag[KS.start] != config.k_speed_rw_rthz ** 2:
+            self._set_k_speed_walk(True)
         # the aid's model (dvl._measure's bottom track) without its context and checks, done above
         meas = aid_dvl.bottom_track(sample, self._x, self._acc[ACC_OMEGA], config, setup)
         y, sdiag = self._fast_y3, self._sdiag[:3]

@@ -77,3 +77,51 @@ def test_the_compiled_bottom_track_feeds_the_calibration_what_numpy_computes():
                 ch * cn + sh * ce]
         np.testing.assert_allclose(aux, want, **TIGHT)
         np.testing.assert_allclose(z, dvl.correct_velocity(vel_d, 0.003, -0.004), **TIGHT)
+
+
+def test_the_error_injection_is_g_p_gt():
+    """inject_error's covariance reset on the attitude rows and columns only: G P Gᵀ with
+    G = I + ½[δθ]× in the attitude block — every other entry exactly, those to the last bits."""
+    from adaptnav.fusion import kalman
+    from adaptnav.fusion.state import ATT, N_ERR
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        A = rng.normal(size=(N_ERR, N_ERR))
+        P = A @ A.T
+        x = initial_nominal(rng.normal(size=3), rng.normal(size=3), euler_to_quat(*rng.uniform(-1, 1, 3)))
+        dx = rng.normal(size=N_ERR) * 0.01
+        rx, ry, rz = dx[ATT]
+        G = np.eye(N_ERR)
+        G[ATT, ATT] += 0.5 * np.array([[0.0, -rz, ry], [rz, 0.0, -rx], [-ry, rx, 0.0]])
+        want = G @ P @ G.T
+        got = P.copy()
+        kalman.inject_error(x, dx, got)
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(P).max())
+        other = np.ones(N_ERR, bool)
+        other[ATT] = False
+        assert np.array_equal(got[np.ix_(other, other)], P[np.ix_(other, other)])
+
+
+@pytest.mark.parametrize("spread", [1.0, 0.0])  # spread 0: many equal values
+def test_the_median_window_is_the_sorted_list_and_bisect(spread):
+    """median_window_push against what DepthNoise kept before: a deque of the window and a
+    sorted list (del s[bisect_left(s, oldest)], insort), the median as numpy.median — exactly."""
+    from bisect import bisect_left, insort
+    from collections import deque
+
+    from adaptnav.fusion import kalman
+
+    rng = np.random.default_rng(9)
+    W = 60
+    window = np.zeros(2 + 2 * W)
+    ring, srt = deque(maxlen=W), []
+    for _ in range(1000):
+        v = float(np.round(abs(rng.normal()) * 0.05, 2 if spread == 0.0 else 12))
+        if len(ring) == W:
+            del srt[bisect_left(srt, ring[0])]
+        ring.append(v)
+        insort(srt, v)
+        n, med = kalman.median_window_push(window, v)
+        assert n == len(srt) and med == np.median(srt)
+        assert window[2 + W:2 + W + n].tolist() == srt
