@@ -836,14 +836,11 @@ class Estimator:
         yaw_rad = sample.yaw_rad
         if not self._fast_taken(sample, yaw_rad):
             return None
-        yaw, h_x, h_y = aid_heading.yaw_row(self._x)
-        H = self._h_heading
-        H[0, ATT.start] = h_x
-        H[0, ATT.start + 1] = h_y
-        done = self._fast_scalar(sample, float(yaw_rad), yaw, H, self.config.heading.sigma_rad**2, True)
-        if done[0] and done[0][0].fused:  # the rejection run ends (not fused: _aid has kept its count)
-            self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)
-        return done
+        # h(x̂) and the row's attitude part (heading.yaw_row's) computed in the kernel
+        done = self._fast_scalar(sample, float(yaw_rad), None, self._h_heading, self.config.heading.sigma_rad**2, True)
+        if done[0] and done[0][0].fused and "heading" in self._reject_since:
+            self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)  # the rejection run ends
+        return done  # (not fused: _aid has kept its count)
 
     def _fast_dvl(self, sample) -> tuple[list[AidStatus], bool] | None:
         """A bottom-track DVL sample with lock on time in INS mode: :meth:`_aid`'s steps with the
@@ -890,18 +887,24 @@ class Estimator:
         self._record("sample", sample)
         return True
 
-    def _fast_scalar(self, sample, z: float, h: float, H: np.ndarray, var: float,
+    def _fast_scalar(self, sample, z: float, h: float | None, H: np.ndarray, var: float,
                      angular: bool) -> tuple[list[AidStatus], bool]:
         """Update, injection and the state guard of a scalar aid in one compiled call
         (:func:`~adaptnav.fusion.kalman.fuse_scalar_core`; ~20 µs of Python per sample before,
         the commonest samples after the IMU's), with the measurement ``z``, ``h`` = h(x̂), the
-        row ``H`` and variance ``var`` of the aid's own model. Returns ``([status], state ok)``.
+        row ``H`` and variance ``var`` of the aid's own model; ``h`` None: a heading, whose ``h``
+        and the attitude part of ``H`` the kernel computes from the state
+        (:func:`~adaptnav.fusion.kalman.fuse_heading_core`). Returns ``([status], state ok)``.
         Not fused (gated, or a number not finite): :meth:`_aid` answers the sample instead —
         the flush is done (a no-op again), the gate gives the same verdict on the same numbers,
         and the reset after a long rejection and the non-finite count stay in one place."""
         out = self._fast_out
-        fused, ok = kalman.fuse_scalar_core(self._core, self._qdiag, z, h, H, var, angular, self._gate[1],
-                                            self._dx, out, True, _MAX_SPEED_M_S)
+        if h is None:
+            fused, ok = kalman.fuse_heading_core(self._core, self._qdiag, z, H, var, self._gate[1], self._dx, out,
+                                                 True, _MAX_SPEED_M_S)
+        else:
+            fused, ok = kalman.fuse_scalar_core(self._core, self._qdiag, z, h, H, var, angular, self._gate[1],
+                                                self._dx, out, True, _MAX_SPEED_M_S)
         if not fused:
             try:
                 return self._aid(sample), self._state_ok()

@@ -58,10 +58,11 @@ def test_the_compiled_aid_path_gives_the_general_paths_numbers(monkeypatch):
     m = _mission()
     slow, slow_statuses = _run(m, fast=False)
     calls = []
-    kernel = eskf.kalman.fuse_scalar_core
+    kernel, heading_kernel = eskf.kalman.fuse_scalar_core, eskf.kalman.fuse_heading_core
     monkeypatch.setattr(eskf.kalman, "fuse_scalar_core", lambda *a: calls.append(a[6]) or kernel(*a))
+    monkeypatch.setattr(eskf.kalman, "fuse_heading_core", lambda *a: calls.append(True) or heading_kernel(*a))
     fast, fast_statuses = _run(m, fast=True)
-    # both kinds went through the compiled path, most samples of each
+    # both kinds went through the compiled path (depth: not angular; heading: its own kernel), most samples of each
     assert calls.count(False) > 500 and calls.count(True) > 500
     # and the samples it hands back happened: gated, reset, not finite, late
     assert fast.resets["attitude:heading"] >= 1

@@ -125,3 +125,19 @@ def test_the_median_window_is_the_sorted_list_and_bisect(spread):
         n, med = kalman.median_window_push(window, v)
         assert n == len(srt) and med == np.median(srt)
         assert window[2 + W:2 + W + n].tolist() == srt
+
+
+def test_the_compiled_heading_row_is_yaw_row_exactly():
+    """The heading's compiled path (kalman.fuse_heading_core) computes h and the row with
+    heading_row, its general path with heading.yaw_row: both libm's trigonometry, bit for bit;
+    against the numpy model (euler_of, euler_jacobian) to the last bits."""
+    from adaptnav.fusion import kalman
+    from adaptnav.fusion.aiding import heading
+
+    rng = np.random.default_rng(17)
+    for k, x in enumerate(_states(rng, 2000)):
+        x[6:10] *= 1.0 + 1e-3 * (k % 3)  # a slightly unnormalised quaternion too
+        got = kalman.heading_row(x)
+        assert got == heading.yaw_row(x)
+        np.testing.assert_allclose(got[0], heading.predict(x)[0], rtol=1e-15, atol=1e-15)
+        np.testing.assert_allclose(got[1:], heading.jacobian(x)[0, 6:8], rtol=1e-14, atol=1e-15)
