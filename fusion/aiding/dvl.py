@@ -254,16 +254,21 @@ class DvlCalibration:
         # only: kept with what it was computed from (P is replaced, never changed in place; the
         # reference kept means a new P cannot take its identity)
         memo = self._cov_ne_memo
-        if memo is None or memo[0] != d0 or memo[1] != d1 or memo[2] is not self.P:
-            H = np.array([[-d0, -d1], [-d1, d0]])
-            k0, k1 = (H @ self.theta[:2]).tolist()
-            k0 -= self._applied_n
-            k1 -= self._applied_e
-            # + k kᵀ: np.outer's products, as floats
-            kk = np.array([[k0 * k0, k0 * k1], [k1 * k0, k1 * k1]])
-            cov = H @ self.P[:2, :2] @ H.T + kk
+        P = self.P
+        if memo is None or memo[0] != d0 or memo[1] != d1 or memo[2] is not P:
+            # H = [[−d0, −d1], [−d1, d0]]; H θ̂ and H P Hᵀ written out on floats (the track changes
+            # with every DVL sample, so the memo misses every other epoch: numpy's 2 × 2 products
+            # and arrays were ~6 µs of it; the same sums, to the last bits)
+            (p00, p01), (p10, p11) = P[:2, :2].tolist()
+            s, psi = self.theta.tolist()[:2]
+            k0 = -d0 * s - d1 * psi - self._applied_n
+            k1 = -d1 * s + d0 * psi - self._applied_e
+            a00, a01 = -d0 * p00 - d1 * p10, -d0 * p01 - d1 * p11  # H P
+            a10, a11 = -d1 * p00 + d0 * p10, -d1 * p01 + d0 * p11
+            cov = np.array([[-a00 * d0 - a01 * d1 + k0 * k0, -a00 * d1 + a01 * d0 + k0 * k1],
+                            [-a10 * d0 - a11 * d1 + k1 * k0, -a10 * d1 + a11 * d0 + k1 * k1]])
             cov.setflags(write=False)
-            memo = self._cov_ne_memo = (d0, d1, self.P, cov)
+            memo = self._cov_ne_memo = (d0, d1, P, cov)
         return memo[3].copy() if copy else memo[3]
 
     def correct(self, vel_d_m_s) -> tuple[float, float, float]:

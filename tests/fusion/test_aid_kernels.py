@@ -141,3 +141,24 @@ def test_the_compiled_heading_row_is_yaw_row_exactly():
         assert got == heading.yaw_row(x)
         np.testing.assert_allclose(got[0], heading.predict(x)[0], rtol=1e-15, atol=1e-15)
         np.testing.assert_allclose(got[1:], heading.jacobian(x)[0, 6:8], rtol=1e-14, atol=1e-15)
+
+
+def test_the_dvl_track_covariance_is_the_numpy_formula():
+    """DvlCalibration.position_cov_ne on floats: H P Hᵀ + k kᵀ with H = [[−d0, −d1], [−d1, d0]],
+    k = H θ̂ − applied, as numpy's products computed them — to the last bits."""
+    rng = np.random.default_rng(21)
+    for _ in range(300):
+        cal = dvl.DvlCalibration(0.005, 0.01)
+        cal.on_fix(0.0, (0.0, 0.0), 1.0)
+        A = rng.normal(size=(4, 4)) * 0.01
+        cal.P = A @ A.T
+        cal.theta = rng.normal(size=4) * 0.01
+        d0, d1 = rng.normal(size=2) * 300.0
+        cal._track_n, cal._track_e = d0, d1
+        cal._applied_n, cal._applied_e = rng.normal(size=2)
+        H = np.array([[-d0, -d1], [-d1, d0]])
+        k = H @ cal.theta[:2] - np.array([cal._applied_n, cal._applied_e])
+        want = H @ cal.P[:2, :2] @ H.T + np.outer(k, k)
+        got = cal.position_cov_ne()
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+        assert got.flags.writeable and not cal.position_cov_ne(copy=False).flags.writeable
