@@ -245,10 +245,25 @@ class DvlCalibration:
         of dvl_outage, where the filter said σ 0.3–0.6 m: NEES north 15–20 on its own); the
         published covariance adds it (a *consider* covariance: Schmidt 1966; Groves 2013 §3.4.3).
         Zero before the first fix (the track is counted from a fix). ``copy=False``: the array
-        kept (read-only; for a caller that only adds it, with every published state).
+        kept (read-only).
         """
         if self._fix is None:
             return np.zeros((2, 2)) if copy else _ZERO22
+        cov = self._cov_ne_memo_now()[3]
+        return cov.copy() if copy else cov
+
+    def position_cov_ne_values(self) -> tuple[float, float, float, float]:
+        """:meth:`position_cov_ne` as Python floats, row by row (``c_nn, c_ne, c_en, c_ee``): for
+        the callers that add it to every published state and side-scan ping — four scalar
+        additions cost a third of a 2 × 2 slice's in-place add (~6 µs of an output epoch in a
+        replay)."""
+        if self._fix is None:
+            return _ZERO4
+        return self._cov_ne_memo_now()[4]
+
+    def _cov_ne_memo_now(self) -> tuple:
+        """The memo of :meth:`position_cov_ne` for the current track and ``P``: ``(d0, d1, P,
+        cov (2, 2) read-only, cov as four floats)``."""
         d0, d1 = self._track_n, self._track_e
         # asked with every published state and side-scan ping, changed by DVL samples and fixes
         # only: kept with what it was computed from (P is replaced, never changed in place; the
@@ -265,11 +280,12 @@ class DvlCalibration:
             k1 = -d1 * s + d0 * psi - self._applied_e
             a00, a01 = -d0 * p00 - d1 * p10, -d0 * p01 - d1 * p11  # H P
             a10, a11 = -d1 * p00 + d0 * p10, -d1 * p01 + d0 * p11
-            cov = np.array([[-a00 * d0 - a01 * d1 + k0 * k0, -a00 * d1 + a01 * d0 + k0 * k1],
-                            [-a10 * d0 - a11 * d1 + k1 * k0, -a10 * d1 + a11 * d0 + k1 * k1]])
+            values = (-a00 * d0 - a01 * d1 + k0 * k0, -a00 * d1 + a01 * d0 + k0 * k1,
+                      -a10 * d0 - a11 * d1 + k1 * k0, -a10 * d1 + a11 * d0 + k1 * k1)
+            cov = np.array(values).reshape(2, 2)
             cov.setflags(write=False)
-            memo = self._cov_ne_memo = (d0, d1, P, cov)
-        return memo[3].copy() if copy else memo[3]
+            memo = self._cov_ne_memo = (d0, d1, P, cov, values)
+        return memo
 
     def correct(self, vel_d_m_s) -> tuple[float, float, float]:
         """The measured head velocity with the estimated scale and misalignment removed
@@ -384,6 +400,7 @@ class DvlCalibration:
             self._last_t = t_s
 
 
+_ZERO4 = (0.0, 0.0, 0.0, 0.0)
 _ZERO22 = np.zeros((2, 2))
 _ZERO22.setflags(write=False)
 

@@ -162,3 +162,27 @@ def test_the_dvl_track_covariance_is_the_numpy_formula():
         got = cal.position_cov_ne()
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
         assert got.flags.writeable and not cal.position_cov_ne(copy=False).flags.writeable
+
+
+def test_the_dvl_track_covariance_values_follow_the_array():
+    """position_cov_ne_values (what every published state adds) is position_cov_ne's array as
+    floats, exactly — zero before the first fix, and again after the track or P changed (the
+    memo they share is not kept past either)."""
+    cal = dvl.DvlCalibration(0.005, 0.01)
+    assert cal.position_cov_ne_values() == (0.0, 0.0, 0.0, 0.0)
+    cal.on_fix(0.0, (0.0, 0.0), 1.0)
+    rng = np.random.default_rng(5)
+    for step in range(6):
+        if step % 2 == 0:
+            cal._track_n, cal._track_e = (rng.normal(size=2) * 100.0).tolist()
+        else:
+            A = rng.normal(size=(4, 4)) * 0.01
+            cal.P = A @ A.T
+        values = cal.position_cov_ne_values()
+        assert values == tuple(cal.position_cov_ne().ravel().tolist())
+        assert all(type(v) is float for v in values)
+        d0, d1 = cal._track_n, cal._track_e
+        H = np.array([[-d0, -d1], [-d1, d0]])
+        k = H @ cal.theta[:2] - np.array([cal._applied_n, cal._applied_e])
+        want = H @ cal.P[:2, :2] @ H.T + np.outer(k, k)  # of this step's track and P
+        np.testing.assert_allclose(np.reshape(values, (2, 2)), want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
