@@ -334,6 +334,12 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
                 export = exported_name(module, name)
                 cc.export(export, sig)(dispatcher.py_func)
                 arg_specs[export] = specs
+            elif sigs and not name.startswith("_"):
+                # a public kernel is called from Python: left out, it would compile just in time
+                # in every process, silently (a private helper is compiled into its callers)
+                print(f"adaptnav warmup: {module}.{name} is not compiled ahead of time (its calls' "
+                      f"signatures do not widen to one the guard can check: {[str(s[0]) for s in sigs]})",
+                      file=sys.stderr)
     path.parent.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings(), _declared_error_models():
         warnings.simplefilter("ignore")
