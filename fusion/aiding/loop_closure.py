@@ -202,6 +202,20 @@ class CloneBank:
         # from before a clone was made never reads an entry written after it
         return self._sigma[a][b] if a >= b else self._sigma[b][a].T
 
+    def _sigma_column(self, i: int) -> np.ndarray:
+        """:meth:`sigma` ``(i, j)`` for every clone ``j`` ((n, 2, 2)): of the older ones and
+        itself a slice of ``i``'s row, of each newer one its entry, transposed (two
+        :meth:`sigma` calls and a difference per clone were most of a closure's :meth:`apply`)."""
+        ids = self._ids
+        ii = ids[i]
+        first, stack = self._row_stack[ii]
+        column = stack[ids[0] - first:]
+        if i + 1 == len(ids):
+            return column
+        rows = self._row_stack
+        newer = np.array([rows[ij][1][ii - rows[ij][0]] for ij in ids[i + 1:]]).transpose(0, 2, 1)
+        return np.concatenate([column, newer])
+
     def relative_cov(self, a: int, b: int) -> np.ndarray:
         """``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` (2×2, read-only): the covariance of ``d_a − d_b`` for
         clones at list positions ``a`` and ``b``. Kept per pair of clones (their Σ never
@@ -280,7 +294,7 @@ class CloneBank:
         n = len(self._ids)
         # K (Σ_bj − Σ_aj) for every clone j in one stacked product (one gemm per j, as one call
         # each did), subtracted from C's 2-column blocks (a new array: snapshots share C)
-        D = np.array([self.sigma(b, j) - self.sigma(a, j) for j in range(n)]).reshape(n, 2, 2)
+        D = self._sigma_column(b) - self._sigma_column(a)
         KD = np.matmul(K, D)  # (n, 18, 2)
         self.C = (self.C.reshape(N_ERR, n, 2) - KD.transpose(1, 0, 2)).reshape(N_ERR, 2 * n)
 

@@ -244,8 +244,9 @@ def test_many_relative_covariances_are_the_single_ones_bit_for_bit():
 
 
 def test_relative_covariances_from_the_rows_stacks_after_pruning_and_in_a_snapshot():
-    """:meth:`CloneBank.relative_covs` gathers from the rows' stacks: bit for bit what
-    :meth:`CloneBank.relative_cov` reads entry by entry, after clones were pruned (rows that
+    """:meth:`CloneBank.relative_covs` and the columns of Σ :meth:`CloneBank.apply` uses
+    gather from the rows' stacks: bit for bit what :meth:`CloneBank.relative_cov` and
+    :meth:`CloneBank.sigma` read entry by entry, after clones were pruned (rows that
     start before the oldest kept clone), for older, newer and the same clone, with a Σ_bb that
     is not exactly symmetric (it is added as stored, not transposed), and in a snapshot taken
     before more clones were made (its rows are not the live bank's)."""
@@ -261,6 +262,8 @@ def test_relative_covariances_from_the_rows_stacks_after_pruning_and_in_a_snapsh
 
     def check(cl):
         n = len(cl.t_s)
+        for i in range(n):  # the columns apply() reads
+            assert cl._sigma_column(i).tobytes() == np.array([cl.sigma(i, j) for j in range(n)]).tobytes()
         a = np.array([k for k in range(n) for _ in range(2)])
         for b in range(n):
             many = cl.relative_covs(a, b)
