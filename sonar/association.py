@@ -260,6 +260,26 @@ class LoopClosure:
                 "nis": self.nis}
 
 
+# a box this much larger than a distance gate holds every pair the gate may pass, whatever
+# the rounding of the norm (m)
+_BOX_MARGIN_M = 1e-3
+
+
+def _near_pairs(p_old: np.ndarray, p_new: np.ndarray, offset: np.ndarray, radius_m: float,
+                mask: np.ndarray) -> np.ndarray:
+    """``mask`` (n_old, n_new) where also ``‖p_old[i] − p_new[j] − offset‖ ≤ radius_m``, the norm
+    as ``np.linalg.norm`` gives it (the same booleans). The norm only of the pairs within a box
+    ``radius_m`` + a margin far above the rounding (outside it one component alone is over the
+    radius, so is the norm): of every pair of :meth:`LegAssociator._with_weak` (a weak sighting
+    in it) it took 0.155 s of CPU per data hour of the survey, the box 0.103 s."""
+    near = mask.copy()
+    for k in (0, 1):
+        near &= np.abs(p_old[:, k, None] - p_new[None, :, k] - offset[k]) <= radius_m + _BOX_MARGIN_M
+    i, j = np.nonzero(near)
+    near[i, j] = np.linalg.norm(p_old[i] - p_new[j] - offset, axis=1) <= radius_m
+    return near
+
+
 def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis lengths of residuals ``r`` (n, 2) in covariances ``R`` (n, 2, 2)."""
     return np.einsum("ki,kij,kj->k", r, np.linalg.inv(R), r)
@@ -942,10 +962,8 @@ class LegAssociator:
         w_new = np.array([o.weak for o in new])
         t_old = np.concatenate([stored["t_s"][k_old], weak["t_s"][k_weak]])
         t_new = np.array([o.t_s for o in new])
-        near = (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s)
-        i_near, j_near = np.nonzero(near)  # (the distance only of these)
-        near[i_near, j_near] = np.linalg.norm(p_old[i_near] - p_new[j_near] - drift.predict([ta], [tb])[0],
-                                              axis=1) <= 10.0
+        near = _near_pairs(p_old, p_new, drift.predict([ta], [tb])[0], 10.0,
+                           (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s))
         cand = list(zip(*(v.tolist() for v in np.nonzero(near))))
         if not cand:
             return lc

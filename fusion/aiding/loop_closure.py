@@ -88,6 +88,12 @@ class CloneBank:
         # Σ between clones, a row per clone: id → {id of it or an older clone → 2×2}; rows are
         # immutable once created (shared by snapshots)
         self._sigma: dict[int, dict[int, np.ndarray]] = {}
+        # the same rows as stacks (read-only; the dicts' entries are views of them): id →
+        # (id of its first entry, (k, 2, 2)) — a clone's row holds every clone then kept, ids
+        # consecutive (made one after another, dropped oldest first), itself last — and the
+        # clones' own Σ_ii in list order: :meth:`relative_covs` gathers from them
+        self._row_stack: dict[int, tuple[int, np.ndarray]] = {}
+        self._diag = np.zeros((0, 2, 2))
         self._ids: list[int] = []
         self._rel: dict[tuple[int, int], np.ndarray] = {}  # relative_cov by clone ids
         self._next_id = 0
@@ -141,11 +147,14 @@ class CloneBank:
         # Cov(d_new, d_old) = Cov(δx[POS_NE], d_old) = C_old[POS_NE]: the 2×2 blocks of all of
         # them copied at once, one view each (a slice and a copy per clone was a third of a clone)
         n = len(self._ids)
-        blocks = self.C[POS_NE].reshape(2, n, 2).transpose(1, 0, 2).copy()
-        row = dict(zip(self._ids, blocks))
-        row[cid] = P[POS_NE, POS_NE].copy()
-        self._sigma[cid] = row
-        # new lists, not appends: snapshots share the old ones (copy())
+        stack = np.empty((n + 1, 2, 2))
+        stack[:n] = self.C[POS_NE].reshape(2, n, 2).transpose(1, 0, 2)
+        stack[n] = P[POS_NE, POS_NE]
+        stack.setflags(write=False)
+        self._sigma[cid] = dict(zip(self._ids + [cid], stack))
+        self._row_stack[cid] = (self._ids[0] if self._ids else cid, stack)
+        # new lists and arrays, not appends: snapshots share the old ones (copy())
+        self._diag = np.concatenate([self._diag, stack[n:]])
         self._ids = self._ids + [cid]
         self.t_s = self.t_s + [float(t_s)]
         self.pos_n_m = self.pos_n_m + [np.asarray(x_pos_n_m, float)[:2].copy()]
@@ -167,6 +176,8 @@ class CloneBank:
         # again); the live rows keep their entries for dropped clones (bounded, never read):
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
         self._sigma = {cid: row for cid, row in self._sigma.items() if cid not in gone}
+        self._row_stack = {cid: row for cid, row in self._row_stack.items() if cid not in gone}
+        self._diag = self._diag[k0:]
         self._rel = {}
 
     def joint_covariance(self, P: np.ndarray) -> np.ndarray:
@@ -191,6 +202,20 @@ class CloneBank:
         # from before a clone was made never reads an entry written after it
         return self._sigma[a][b] if a >= b else self._sigma[b][a].T
 
+    def _sigma_column(self, i: int) -> np.ndarray:
+        """:meth:`sigma` ``(i, j)`` for every clone ``j`` ((n, 2, 2)): of the older ones and
+        itself a slice of ``i``'s row, of each newer one its entry, transposed (two
+        :meth:`sigma` calls and a difference per clone were most of a closure's :meth:`apply`)."""
+        ids = self._ids
+        ii = ids[i]
+        first, stack = self._row_stack[ii]
+        column = stack[ids[0] - first:]
+        if i + 1 == len(ids):
+            return column
+        rows = self._row_stack
+        newer = np.array([rows[ij][1][ii - rows[ij][0]] for ij in ids[i + 1:]]).transpose(0, 2, 1)
+        return np.concatenate([column, newer])
+
     def relative_cov(self, a: int, b: int) -> np.ndarray:
         """``Σ_aa + Σ_bb − Σ_ab − Σ_ba`` (2×2, read-only): the covariance of ``d_a − d_b`` for
         clones at list positions ``a`` and ``b``. Kept per pair of clones (their Σ never
@@ -206,28 +231,24 @@ class CloneBank:
 
     def relative_covs(self, a: np.ndarray, b: int) -> np.ndarray:
         """:meth:`relative_cov` of every clone ``a[k]`` with clone ``b`` ((K, 2, 2)): the same
-        arithmetic element by element, one stack per distinct clone (the association asks for
-        a batch's clone against every stored sighting's, and the pruning of every new clone
-        empties the per-pair cache an hour in)."""
-        ids, sig = self._ids, self._sigma
+        arithmetic element by element, gathered from the rows' stacks (the association asks
+        for a batch's clone against every stored sighting's, and the pruning of every new clone
+        empties the per-pair cache an hour in; a loop over the distinct clones was ~0.2 ms a
+        call, 400 calls per data hour). ``Σ_ab`` of an older ``a`` is in ``b``'s row, of a
+        newer one in that one's row."""
+        ids = self._ids
+        a = np.asarray(a, dtype=np.intp).reshape(-1)
         ib = ids[b]
-        row_b = sig[ib]
-        uniq, at = np.unique(np.asarray(a, dtype=np.intp), return_inverse=True)
-        s_aa, s_ab, s_ba = [], [], []
-        for k in uniq.tolist():
-            ia = ids[k]
-            s_aa.append(sig[ia][ia])
-            # as sigma(a, b) and sigma(b, a): stored once per pair as (newer, older)
-            if ia >= ib:
-                ab = sig[ia][ib]
-                s_ab.append(ab)
-                s_ba.append(ab if ia == ib else ab.T)
-            else:
-                ba = row_b[ia]
-                s_ab.append(ba.T)
-                s_ba.append(ba)
-        out = np.array(s_aa) + row_b[ib] - np.array(s_ab) - np.array(s_ba)
-        return out[at.reshape(-1)]
+        first_b, row_b = self._row_stack[ib]
+        ia = a + ids[0]  # (ids are consecutive)
+        # Cov(d_b, d_a) for a not newer than b: b's row, as sigma() reads it (a == b: Σ_bb untransposed)
+        ba = row_b[np.minimum(ia, ib) - first_b]
+        s_ab, s_ba = np.where((ia == ib)[:, None, None], ba, ba.transpose(0, 2, 1)), ba
+        newer = np.flatnonzero(ia > ib)
+        if newer.size:  # Σ_ab stored in a's row, as (newer, older)
+            ab = np.array([self._row_stack[i][1][ib - self._row_stack[i][0]] for i in ia[newer].tolist()])
+            s_ab[newer], s_ba[newer] = ab, ab.transpose(0, 2, 1)
+        return self._diag[a] + row_b[-1] - s_ab - s_ba
 
     def nearest_many(self, t_s: np.ndarray) -> np.ndarray:
         """:meth:`nearest` of every time in ``t_s`` (list positions, −1 where None)."""
@@ -273,7 +294,7 @@ class CloneBank:
         n = len(self._ids)
         # K (Σ_bj − Σ_aj) for every clone j in one stacked product (one gemm per j, as one call
         # each did), subtracted from C's 2-column blocks (a new array: snapshots share C)
-        D = np.array([self.sigma(b, j) - self.sigma(a, j) for j in range(n)]).reshape(n, 2, 2)
+        D = self._sigma_column(b) - self._sigma_column(a)
         KD = np.matmul(K, D)  # (n, 18, 2)
         self.C = (self.C.reshape(N_ERR, n, 2) - KD.transpose(1, 0, 2)).reshape(N_ERR, 2 * n)
 

@@ -241,3 +241,41 @@ def test_many_relative_covariances_are_the_single_ones_bit_for_bit():
         many = cl.relative_covs(a, b)
         one = np.array([cl.relative_cov(k, b) for k in a.tolist()])
         assert many.tobytes() == one.tobytes()
+
+
+def test_relative_covariances_from_the_rows_stacks_after_pruning_and_in_a_snapshot():
+    """:meth:`CloneBank.relative_covs` and the columns of Σ :meth:`CloneBank.apply` uses
+    gather from the rows' stacks: bit for bit what :meth:`CloneBank.relative_cov` and
+    :meth:`CloneBank.sigma` read entry by entry, after clones were pruned (rows that
+    start before the oldest kept clone), for older, newer and the same clone, with a Σ_bb that
+    is not exactly symmetric (it is added as stored, not transposed), and in a snapshot taken
+    before more clones were made (its rows are not the live bank's)."""
+    rng = np.random.default_rng(7)
+    bank = aid_loop.CloneBank(period_s=1.0, horizon_s=6.5)
+
+    def clone(t):
+        P = rng.standard_normal((N_ERR, N_ERR))
+        P = P @ P.T + np.eye(N_ERR)
+        P[0, 1] += 1e-3  # not symmetric in the last bits
+        bank.transform(np.eye(N_ERR) + 0.1 * rng.standard_normal((N_ERR, N_ERR)))
+        assert bank.maybe_clone(t, np.zeros(2), P)
+
+    def check(cl):
+        n = len(cl.t_s)
+        for i in range(n):  # the columns apply() reads
+            assert cl._sigma_column(i).tobytes() == np.array([cl.sigma(i, j) for j in range(n)]).tobytes()
+        a = np.array([k for k in range(n) for _ in range(2)])
+        for b in range(n):
+            many = cl.relative_covs(a, b)
+            one = np.array([cl.relative_cov(k, b) for k in a.tolist()])
+            assert many.tobytes() == one.tobytes()
+
+    for t in range(5):
+        clone(float(t))
+    snap = bank.copy()
+    for t in range(5, 12):
+        clone(float(t))
+    assert bank.t_s[0] > 0.0  # pruned
+    check(bank)
+    check(snap)
+    assert snap.relative_covs(np.array([0]), 4).tobytes() != bank.relative_covs(np.array([0]), 4).tobytes()

@@ -137,3 +137,28 @@ def test_the_gate_s_shortcut_never_drops_a_pair_the_full_distance_keeps():
     assert np.all(_m2(r[skipped], S[skipped]) > gate)
     far = _m2(r, S) > 4.0 * gate
     assert skipped[far].mean() > 0.5
+
+
+def test_near_pairs_in_a_box_are_every_pair_the_norm_passes():
+    """:func:`_near_pairs` takes the norm only inside a box a margin wider than the radius: the
+    same booleans as the norm of every pair, pairs on the radius and just outside it included
+    (along an axis, where a box without the margin would drop what the rounded norm passes),
+    and nothing outside ``mask``."""
+    from adaptnav.sonar.association import _near_pairs
+
+    rng = np.random.default_rng(3)
+    offset = np.array([0.3, -0.7])
+    p_new = rng.uniform(-30.0, 30.0, (40, 2))
+    p_old = np.concatenate([rng.uniform(-30.0, 30.0, (200, 2)),
+                            # on the radius along an axis, a hair inside and outside it, diagonally
+                            p_new[:4] + offset + np.array([[10.0, 0.0], [0.0, -10.0],
+                                                           [np.nextafter(10.0, 0.0), 0.0],
+                                                           [np.nextafter(10.0, 11.0), 0.0]]),
+                            p_new[4:5] + offset + 10.0 / np.sqrt(2.0)])
+    mask = rng.random((len(p_old), len(p_new))) < 0.9
+    mask[200:, :5] = True
+    d = p_old[:, None] - p_new[None] - offset
+    want = mask & (np.linalg.norm(d.reshape(-1, 2), axis=1).reshape(mask.shape) <= 10.0)
+    got = _near_pairs(p_old, p_new, offset, 10.0, mask)
+    assert np.array_equal(got, want)
+    assert want[200:, :5].any() and want.sum() > 100
