@@ -76,10 +76,13 @@ class CloneBank:
         (copy on write), Σ entries are never modified (append-only dict; pruned keys are
         harmless); ``M`` is part of the core array the snapshot copies. Copying ``C``
         (18 × 2 per clone, up to 360 columns) for every snapshot was a tenth of a replay
-        with side-scan.
+        with side-scan. Except the cache of relative covariances: keyed by clone ids, which a
+        restored snapshot gives out again to clones of its own, the live bank's entries for
+        its later clones would be read for them; the snapshot starts an empty one.
         """
         out = CloneBank.__new__(CloneBank)
         out.__dict__.update(self.__dict__)
+        out._rel = {}
         return out
 
     def clear(self) -> None:

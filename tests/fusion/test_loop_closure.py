@@ -279,3 +279,27 @@ def test_relative_covariances_from_the_rows_stacks_after_pruning_and_in_a_snapsh
     check(bank)
     check(snap)
     assert snap.relative_covs(np.array([0]), 4).tobytes() != bank.relative_covs(np.array([0]), 4).tobytes()
+
+
+def test_a_restored_snapshot_reads_no_relative_covariance_of_the_discarded_clones():
+    """The estimator restores a snapshot to fuse a late sample at its time and runs on from
+    there: its next clone takes the id a discarded clone of the live bank had. A relative
+    covariance the live bank computed for that id must not be read back for the new clone
+    (the snapshot starts with its own cache)."""
+    rng = np.random.default_rng(11)
+
+    def clone(bank, t):
+        P = rng.standard_normal((N_ERR, N_ERR))
+        P = P @ P.T + np.eye(N_ERR)
+        assert bank.maybe_clone(t, np.zeros(2), P)
+
+    live = aid_loop.CloneBank(period_s=1.0, horizon_s=100.0)
+    for t in range(3):
+        clone(live, float(t))
+    snap = live.copy()
+    clone(live, 3.0)
+    live.relative_cov(3, 0)  # cached for (id 3, id 0) in the live bank
+    clone(snap, 3.0)  # the restored snapshot's own clone 3: another P
+    want = snap.sigma(3, 3) + snap.sigma(0, 0) - snap.sigma(3, 0) - snap.sigma(0, 3)
+    assert snap.relative_cov(3, 0).tobytes() == want.tobytes()
+    assert snap.relative_covs(np.array([3]), 0)[0].tobytes() == want.tobytes()
