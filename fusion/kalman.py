@@ -42,7 +42,7 @@ from adaptnav.kernels import jit
 
 from .state import (ACC_EARTH_RATE, ACC_G_OVER_R, ACC_R, ACC_RF, ACC_SIZE, ACC_STEP, ACC_T, ATT, BA, BG, N_ERR,
                     N_NOM, POS, VEL, X_BA, X_CUR, X_POS, X_Q, X_VEL)
-from .strapdown import rotvec_quat, strapdown_step
+from .strapdown import _dcm, rotvec_quat, strapdown_step
 
 # first indices of the state and accumulator blocks (adaptnav.fusion.state), as plain ints:
 # numba takes module-level ints as compile-time constants, so ``x[_X_VEL + 1]`` costs what
@@ -459,17 +459,8 @@ def dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel
     Why: the same sums as the numpy model (written in its order, without BLAS's fused
     multiply-adds: they differ in the last bits) for ~40 µs less numpy glue per DVL sample
     (a sample every 0.2 s; 62 → see the estimator's ``_fast_dvl``)."""
-    w, a, b, c = x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3]
     R = np.empty((3, 3))
-    R[0, 0] = 1 - 2 * (b * b + c * c)
-    R[0, 1] = 2 * (a * b - w * c)
-    R[0, 2] = 2 * (a * c + w * b)
-    R[1, 0] = 2 * (a * b + w * c)
-    R[1, 1] = 1 - 2 * (a * a + c * c)
-    R[1, 2] = 2 * (b * c - w * a)
-    R[2, 0] = 2 * (a * c - w * b)
-    R[2, 1] = 2 * (b * c + w * a)
-    R[2, 2] = 1 - 2 * (a * a + b * b)
+    _dcm(x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3], R)
     v0, v1, v2 = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]
     # A = R_db R_nbᵀ
     A = np.empty((3, 3))

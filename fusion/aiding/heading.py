@@ -5,11 +5,10 @@ r"""Heading (compass/AHRS yaw): ``h(x) = ψ = atan2(R₁₀, R₀₀)``, innovat
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ..state import ATT, N_ERR, X_Q
+from .. import kalman
+from ..state import ATT, N_ERR
 from ..config import HeadingConfig
 from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of
 
@@ -31,18 +30,11 @@ def yaw_row(x) -> tuple:
     """``(ψ, ∂ψ/∂δθ_x, ∂ψ/∂δθ_y)``: :func:`predict` and the attitude part of :func:`jacobian`
     (``∂ψ/∂δθ_z`` = 1) from one attitude (R₀₀, R₁₀, R₂₀ as in common.dcm; yaw, pitch as in
     common.euler_of / euler_jacobian) without building R twice and the full Euler Jacobian
-    (a heading every 0.1 s). libm's trigonometry (``math``): numpy's on a Python float costs
-    ~1 µs a call (5 µs of a heading's 25 µs), and its atan2/asin/tan differ from libm's in
-    the last bit only (for ~8 % of inputs); both estimator paths measure with this."""
-    w, a, b, c = x[X_Q].tolist()
-    r00 = 1 - 2 * (b * b + c * c)
-    r10 = 2 * (a * b + w * c)
-    r20 = 2 * (a * c - w * b)
-    yaw = math.atan2(r10, r00)
-    # np.clip(r20, -1, 1) without its overhead (NaN stays NaN)
-    pitch = -math.asin(1.0 if r20 > 1.0 else (-1.0 if r20 < -1.0 else r20))
-    tp = math.tan(pitch)
-    return yaw, math.cos(yaw) * tp, math.sin(yaw) * tp
+    (a heading every 0.1 s): :func:`adaptnav.fusion.kalman.heading_row`, which the compiled
+    heading update computes too — libm's trigonometry: numpy's on a Python float cost ~1 µs a
+    call (5 µs of a heading's 25 µs), and its atan2/asin/tan differ from libm's in the last
+    bit only (for ~8 % of inputs); both estimator paths measure with this."""
+    return kalman.heading_row(x)
 
 
 def measure(sample, x, sigma_rad) -> Measurement:
