@@ -129,8 +129,8 @@ def test_the_median_window_is_the_sorted_list_and_bisect(spread):
 
 def test_the_compiled_heading_row_is_yaw_row_exactly():
     """The heading's compiled path (kalman.fuse_heading_core) computes h and the row with
-    heading_row, its general path with heading.yaw_row: both libm's trigonometry, bit for bit;
-    against the numpy model (euler_of, euler_jacobian) to the last bits."""
+    heading_row, its general path with heading.yaw_row (which calls it: one model, whatever
+    either becomes); against the numpy model (euler_of, euler_jacobian) to the last bits."""
     from adaptnav.fusion import kalman
     from adaptnav.fusion.aiding import heading
 
