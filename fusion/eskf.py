@@ -865,10 +865,7 @@ class Estimator:
             return None
         aid = AIDS["dvl"]
         config, setup = self._aid_cfg["dvl"]
-        # _dvl_lock, its k_speed walk written only when not already the DVL's (~2 µs a sample)
-        self._t_dvl_lock = float(sample.t_s)
-        if self._qdiag[KS.start] != config.k_speed_rw_rthz ** 2:
-            self._set_k_speed_walk(True)
+        self._dvl_lock(sample.t_s)
         # the aid's model (dvl._measure's bottom track) without its context and checks, done above
         meas = aid_dvl.bottom_track(sample, self._x, self._acc[ACC_OMEGA], config, setup)
         y, sdiag = self._fast_y3, self._sdiag[:3]
@@ -1721,9 +1718,11 @@ class Estimator:
         self._after_reset("velocity", status.source, status.t_s)
 
     def _dvl_lock(self, t_s: float) -> None:
-        """A bottom-track sample with lock: a DVL vehicle, k_speed walks slowly from now on."""
+        """A bottom-track sample with lock: a DVL vehicle, k_speed walks slowly from now on
+        (the walk written only when it is not already the DVL's: ~2 µs of every sample)."""
         self._t_dvl_lock = float(t_s)
-        self._set_k_speed_walk(True)
+        if self._qdiag[KS.start] != self.config.dvl.k_speed_rw_rthz ** 2:
+            self._set_k_speed_walk(True)
 
     def _set_k_speed_walk(self, dvl_lock: bool) -> None:
         """k_speed's random walk: slow once the DVL has had lock (``dvl.k_speed_rw_rthz``)."""
