@@ -189,7 +189,7 @@ def test_each_aid_source_has_its_config_section_and_is_dispatched_by_its_kind(ki
     assert [(s.source, s.reason) for s in aligned(with_enabled(False)).process(EXAMPLES[kind])] == [(kind, "disabled")]
 
 
-def test_the_one_pass_attitude_and_heading_rows_are_the_general_models_bit_for_bit():
+def test_the_one_pass_attitude_and_heading_rows_are_the_general_models():
     """attitude.euler_rows and heading.yaw_row (the per-sample paths, 10–50 Hz) give the
     floats of the general model (common.dcm → euler_of / euler_jacobian): the same
     operations — attitude exactly, heading to the last bits (its trigonometry is libm's,
