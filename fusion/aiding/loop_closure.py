@@ -73,7 +73,7 @@ class CloneBank:
         """A copy for the estimator's snapshots (one per input sample while clones exist).
 
         Shares everything: the lists and ``C`` are never modified in place, only replaced
-        (copy on write), Σ entries are never modified (append-only dict; pruned keys are
+        (copy on write), Σ's rows are never modified (added per clone; a pruned one is
         harmless); ``M`` is part of the core array the snapshot copies. Copying ``C``
         (18 × 2 per clone, up to 360 columns) for every snapshot was a tenth of a replay
         with side-scan. Except the cache of relative covariances: keyed by clone ids, which a
@@ -88,13 +88,10 @@ class CloneBank:
     def clear(self) -> None:
         self.t_s: list[float] = []
         self.pos_n_m: list[np.ndarray] = []
-        # Σ between clones, a row per clone: id → {id of it or an older clone → 2×2}; rows are
-        # immutable once created (shared by snapshots)
-        self._sigma: dict[int, dict[int, np.ndarray]] = {}
-        # the same rows as stacks (read-only; the dicts' entries are views of them): id →
-        # (id of its first entry, (k, 2, 2)) — a clone's row holds every clone then kept, ids
+        # Σ between clones, a row per clone, immutable once created (shared by snapshots): id →
+        # (id of its first entry, (k, 2, 2) read-only) — Σ with every clone then kept, ids
         # consecutive (made one after another, dropped oldest first), itself last — and the
-        # clones' own Σ_ii in list order: :meth:`relative_covs` gathers from them
+        # clones' own Σ_ii in list order: :meth:`sigma`, :meth:`relative_covs` read them
         self._row_stack: dict[int, tuple[int, np.ndarray]] = {}
         self._diag = np.zeros((0, 2, 2))
         self._ids: list[int] = []
@@ -154,7 +151,6 @@ class CloneBank:
         stack[:n] = self.C[POS_NE].reshape(2, n, 2).transpose(1, 0, 2)
         stack[n] = P[POS_NE, POS_NE]
         stack.setflags(write=False)
-        self._sigma[cid] = dict(zip(self._ids + [cid], stack))
         self._row_stack[cid] = (self._ids[0] if self._ids else cid, stack)
         # new lists and arrays, not appends: snapshots share the old ones (copy())
         self._diag = np.concatenate([self._diag, stack[n:]])
@@ -178,7 +174,6 @@ class CloneBank:
         # the rows of dropped clones are dropped here only (snapshots never look them up
         # again); the live rows keep their entries for dropped clones (bounded, never read):
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
-        self._sigma = {cid: row for cid, row in self._sigma.items() if cid not in gone}
         self._row_stack = {cid: row for cid, row in self._row_stack.items() if cid not in gone}
         self._diag = self._diag[k0:]
         self._rel = {}
@@ -201,9 +196,12 @@ class CloneBank:
     def sigma(self, i: int, j: int) -> np.ndarray:
         """Σ between clones at list positions ``i`` and ``j`` (2×2)."""
         a, b = self._ids[i], self._ids[j]
-        # stored once per pair as (newer, older): ids only grow, so a snapshot restored
-        # from before a clone was made never reads an entry written after it
-        return self._sigma[a][b] if a >= b else self._sigma[b][a].T
+        # stored once per pair, in the newer clone's row
+        if a < b:
+            first, stack = self._row_stack[b]
+            return stack[a - first].T
+        first, stack = self._row_stack[a]
+        return stack[b - first]
 
     def _sigma_column(self, i: int) -> np.ndarray:
         """:meth:`sigma` ``(i, j)`` for every clone ``j`` ((n, 2, 2)): of the older ones and
