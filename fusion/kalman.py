@@ -395,9 +395,9 @@ def fuse_scalar_core(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, m
     the row ``H`` (1 × 18) and variance ``var``, then the guard :func:`core_ok`.
 
     Why: depth and heading (a sample each every 0.1 s) paid ~20 µs of Python per sample
-    around ~1 µs of arithmetic, mostly numpy glue and three guarded kernel calls; their
-    measurement models stay the aid modules' (the trigonometry in numpy: numba's libm
-    rounds differently from numpy's SIMD functions). ``out`` ← ``(y, S, nis)``; returns
+    around ~1 µs of arithmetic, mostly numpy glue and three guarded kernel calls; the depth's
+    model stays its aid module's, the heading has its own kernel (:func:`fuse_heading_core`,
+    its model computed inside). ``out`` ← ``(y, S, nis)``; returns
     ``(fused, ok)``, ``ok`` as :func:`core_ok`.
     """
     return _fuse_scalar(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_speed_m_s)
