@@ -11,7 +11,6 @@ the depth signal's high-frequency residual, bounded below by ``depth.sigma_m`` a
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 
@@ -142,7 +141,8 @@ class DepthNoise:
         self.floor_m = float(config.sigma_m)
         self.bound_m = float(config.adaptive_max_sigma_m)
         self.enabled = self.bound_m > self.floor_m  # the σ adapts (fixed bounds; asked twice per depth)
-        self._last: deque = deque(maxlen=2)        # (t_s, depth_m) of the two latest depths
+        # the two latest depths (s, m): -inf before there are any (every interval test fails)
+        self._t0 = self._z0 = self._t1 = self._z1 = -math.inf
         # the window of |Δ²z|, also kept sorted, so that the median of every depth is two
         # look-ups (numpy.median of the window per depth was a tenth of the replaying
         # process's CPU; bisect on a Python list ~6 µs per depth in a replay): the count, the
@@ -150,8 +150,9 @@ class DepthNoise:
         self._window = np.zeros(2 + 2 * self.WINDOW)
         self._n = 0             # |Δ²z| in the window
         self._median = math.nan  # their median
+        # σ by time stamp of the latest _MEMO to 2 × _MEMO depths (trimmed in bulk: dicts keep
+        # their insertion order, the oldest go first)
         self._memo: dict[float, float] = {}
-        self._memo_t: deque = deque()
         self.measured_sigma_m = math.nan  # σ̂ (m), nan before MIN_COUNT differences
         self.sigma_m = self.floor_m       # the σ fused with now (m)
         self.max_used_sigma_m = self.floor_m
@@ -160,31 +161,34 @@ class DepthNoise:
 
     def sigma_at(self, t_s: float, depth_m: float) -> float:
         """The σ (m) to fuse the depth ``depth_m`` measured at ``t_s`` with."""
-        memo = self._memo.get(t_s)
-        if memo is not None:
-            return memo
-        if not (math.isfinite(depth_m) and (not self._last or t_s > self._last[-1][0])):
-            return self.sigma_m  # out of order or not finite: the current σ, the estimate untouched
-        if len(self._last) == 2:
-            (t0, z0), (t1, z1) = self._last
-            dt1, dt2 = t1 - t0, t_s - t1
-            if 0.0 < dt1 <= self.MAX_GAP_S and 0.0 < dt2 <= self.MAX_GAP_S and \
-                    abs(dt2 - dt1) <= self.MAX_UNEVEN * max(dt1, dt2):
-                self._n, self._median = median_window_push(self._window, abs(depth_m - 2.0 * z1 + z0))
-        self._last.append((t_s, depth_m))
+        t1 = self._t1
+        if not t_s > t1:  # seen before (a re-fusion answers its σ), out of order or no time
+            memo = self._memo.get(t_s)
+            return self.sigma_m if memo is None else memo
+        if not math.isfinite(depth_m):
+            return self.sigma_m  # the current σ, the estimate untouched
+        z1 = self._z1
+        dt1, dt2 = t1 - self._t0, t_s - t1
+        if 0.0 < dt1 <= self.MAX_GAP_S and 0.0 < dt2 <= self.MAX_GAP_S and \
+                abs(dt2 - dt1) <= self.MAX_UNEVEN * max(dt1, dt2):
+            self._n, self._median = median_window_push(self._window, abs(depth_m - 2.0 * z1 + self._z0))
+        self._t0, self._z0, self._t1, self._z1 = t1, z1, t_s, depth_m
         if self._n >= self.MIN_COUNT:
             self.measured_sigma_m = self._median / (0.6745 * math.sqrt(6.0))
             if self.enabled:  # off: measured (reported), not used
                 noisier = self.measured_sigma_m > self.DEADBAND * self.floor_m
                 self.sigma_m = min(self.measured_sigma_m, self.bound_m) if noisier else self.floor_m
+        sigma = self.sigma_m
         self.samples += 1
-        self.samples_at_bound += self.enabled and self.sigma_m >= self.bound_m
-        self.max_used_sigma_m = max(self.max_used_sigma_m, self.sigma_m)
-        self._memo[t_s] = self.sigma_m
-        self._memo_t.append(t_s)
-        if len(self._memo_t) > self._MEMO:
-            self._memo.pop(self._memo_t.popleft(), None)
-        return self.sigma_m
+        if self.enabled and sigma >= self.bound_m:
+            self.samples_at_bound += 1
+        if sigma > self.max_used_sigma_m:
+            self.max_used_sigma_m = sigma
+        memo = self._memo
+        memo[t_s] = sigma
+        if len(memo) > 2 * self._MEMO:
+            self._memo = dict(list(memo.items())[-self._MEMO:])
+        return sigma
 
     def variance_m2(self, t_s: float, depth_m: float) -> float:
         """The variance (m²) to fuse the depth ``depth_m`` measured at ``t_s`` with: σ² of
