@@ -38,6 +38,7 @@ import hashlib
 import importlib.machinery
 import json
 import importlib.util
+import logging
 import os
 import sys
 import sysconfig
@@ -104,20 +105,52 @@ def aot_path(existing: bool = False) -> Path:
     return dirs[0] / name
 
 
+aot_error: str | None = None  # why a compiled module present was not used (None: it was, or none is)
+
+
 def _load_aot() -> Any:
-    global _aot
+    """The compiled module, or None: absent, forced off, or unreadable — a module or argument
+    specs cut short (power lost during ``adaptnav warmup``), of the wrong kind, not what the
+    build wrote. Unreadable, the kernels run just in time (:data:`aot_error` says why, logged
+    once) and the next ``adaptnav warmup`` builds it again: the filter must start either way."""
+    global _aot, aot_error
     if _aot is False:
         _aot = None
         if os.environ.get("ADAPTNAV_KERNELS", "").lower() != "jit":
             path = aot_path(existing=True)
             specs_path = path.with_name(path.name.split(".")[0] + ".json")
             if path.is_file() and specs_path.is_file():
-                spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
-                module = importlib.util.module_from_spec(spec)
-                spec.loader.exec_module(module)
-                module.arg_specs = json.loads(specs_path.read_text())
-                _aot = module
+                try:
+                    arg_specs = json.loads(specs_path.read_text())
+                    if not (isinstance(arg_specs, dict) and all(isinstance(v, list) for v in arg_specs.values())):
+                        raise ValueError("argument specs are not a JSON object of lists")
+                    # the module as the build wrote it (a shorter one kills the process as it loads,
+                    # SIGBUS; ~1 ms for its 1.5 MB)
+                    digest = arg_specs.pop(_MODULE_DIGEST, None)
+                    if digest != [_file_digest(path)]:
+                        raise ValueError("the module is not the one its specs were written for")
+                    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+                    module = importlib.util.module_from_spec(spec)
+                    spec.loader.exec_module(module)
+                    missing = sorted(e for e in arg_specs if not callable(getattr(module, e, None)))
+                    if missing:
+                        raise ValueError(f"{len(missing)} kernels of its specs missing ({missing[0]}, ...)")
+                except Exception as e:  # noqa: BLE001 - any unreadable build: just in time instead
+                    aot_error = f"{path.name}: {type(e).__name__}: {e}"
+                    logging.getLogger(__name__).warning(
+                        "compiled kernels unusable, running them just in time (run `adaptnav warmup` "
+                        "to build them again): %s", aot_error)
+                else:
+                    module.arg_specs = arg_specs
+                    _aot = module
     return _aot
+
+
+_MODULE_DIGEST = "__module_sha256__"  # the specs' entry with the compiled module's digest
+
+
+def _file_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def exported_name(module: str, name: str) -> str:
@@ -141,10 +174,11 @@ def jit(**options: Any) -> Callable[[Callable], Any]:
             return _stamp_cache(numba.njit(**options)(py_func))
         export = exported_name(module, py_func.__name__)
         compiled = getattr(aot, export, None)
+        specs = aot.arg_specs.get(export)
         fallback = _Deferred(module, py_func.__name__)
-        if compiled is None:
+        if compiled is None or specs is None:  # not built (a kernel without specs is never guessed at)
             return fallback
-        out = _guarded(compiled, aot.arg_specs[export], fallback)
+        out = _guarded(compiled, specs, fallback)
         out._kernel = (module, py_func.__name__)
         return out
     return decorate
@@ -341,11 +375,20 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
                       f"signatures do not widen to one the guard can check: {[str(s[0]) for s in sigs]})",
                       file=sys.stderr)
     path.parent.mkdir(parents=True, exist_ok=True)
+    specs_path = path.with_name(path.name.split(".")[0] + ".json")
+    # the specs mark a build complete: gone while the module is rewritten, then written whole
+    # (renamed into place), so that a build cut short leaves nothing that looks complete
+    specs_path.unlink(missing_ok=True)
     with warnings.catch_warnings(), _declared_error_models():
         warnings.simplefilter("ignore")
         cc.compile()
-    specs_path = path.with_name(path.name.split(".")[0] + ".json")
-    specs_path.write_text(json.dumps(arg_specs, indent=1, sort_keys=True))  # last: marks it complete
+    arg_specs[_MODULE_DIGEST] = [_file_digest(path)]
+    partial = specs_path.with_name(specs_path.name + ".partial")
+    with open(partial, "w") as f:
+        f.write(json.dumps(arg_specs, indent=1, sort_keys=True))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(partial, specs_path)
     for stale in path.parent.glob("_aot_kernels_*"):
         if stale.name not in (path.name, specs_path.name):
             stale.unlink(missing_ok=True)

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from adaptnav import kernels
 from adaptnav.fusion.motion_model import MotionParams
 from adaptnav.fusion.samples import SENSORS, SOURCE_PRIORITY, ImuBatch
 
@@ -738,6 +739,9 @@ class Daemon:
         if cal is not None:
             rep["calibrator"].update(state=cal.state, pid=cal.pid(), restarts=cal.restarts,
                                      dropped_samples=cal.dropped)
+        # the filter's kernels: compiled ahead of time, or just in time and why (a damaged build:
+        # `adaptnav warmup` builds it again; the filter runs either way, slower to start)
+        rep["kernels"] = {"ahead_of_time": kernels.using_aot(), "problem": kernels.aot_error}
         rep["params"] = self.params.to_dict()
         rep["motion_prior"] = self.motion_prior
         rep["type"] = "health"

@@ -145,3 +145,79 @@ def test_the_daemons_side_scan_path_does_not_import_the_detectors_libraries():
             "print(sorted(m for m in ('cv2', 'scipy.ndimage') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+_PROBE = """
+import json, sys
+import numpy as np
+from adaptnav import kernels
+from adaptnav.fusion import kalman
+core = np.zeros(kalman.CORE_SIZE)
+core[kalman.CORE_P] = np.eye(kalman.N_ERR).ravel()
+print(json.dumps({"aot": kernels.using_aot(), "error": kernels.aot_error,
+                  "core_ok_deferred": isinstance(kalman.core_ok, kernels._Deferred),
+                  "flush_deferred": isinstance(kalman.flush_core, kernels._Deferred),
+                  "core_ok": bool(kalman.core_ok(core, 1.0))}))
+"""
+
+
+def _probe(kernel_dir) -> dict:
+    import json
+    import os
+
+    env = dict(os.environ, ADAPTNAV_KERNEL_DIR=str(kernel_dir))
+    env.pop("ADAPTNAV_KERNELS", None)
+    out = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, env=env, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1]) | {"stderr": out.stderr}
+
+
+@pytest.mark.parametrize("damage", ["specs_cut_short", "specs_not_an_object", "module_cut_short",
+                                    "specs_name_a_kernel_the_module_lacks"])
+def test_a_damaged_compiled_module_runs_the_kernels_just_in_time(tmp_path, damage):
+    """Power lost while ``adaptnav warmup`` wrote the compiled kernels (or a disk that returned
+    garbage) must not keep the filter from starting: the module is not used, the kernels run
+    just in time, the reason is logged and kept (``kernels.aot_error``)."""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    import json
+    import shutil
+
+    so = kernels.aot_path(existing=True)
+    specs = so.with_name(so.name.split(".")[0] + ".json")
+    shutil.copy(so, tmp_path / so.name)
+    text = specs.read_text()
+    if damage == "specs_cut_short":
+        text = text[: len(text) // 2]
+    elif damage == "specs_not_an_object":
+        text = json.dumps(list(json.loads(text)))
+    elif damage == "module_cut_short":
+        (tmp_path / so.name).write_bytes(so.read_bytes()[: so.stat().st_size // 3])
+    else:
+        d = json.loads(text)
+        d["adaptnav_fusion_kalman__no_such_kernel"] = d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
+        text = json.dumps(d)
+    (tmp_path / specs.name).write_text(text)
+    got = _probe(tmp_path)
+    assert got["aot"] is False and got["error"] and so.name in got["error"], got
+    assert "compiled kernels unusable" in got["stderr"], got["stderr"]
+    assert got["core_ok"] is True  # the filter's kernels work, just in time
+
+
+def test_a_kernel_missing_from_the_specs_alone_runs_just_in_time(tmp_path):
+    """Specs without one kernel (a build that left it out): that kernel just in time, the
+    others compiled — never a compiled function called without the guard of its specs."""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    import json
+    import shutil
+
+    so = kernels.aot_path(existing=True)
+    specs = so.with_name(so.name.split(".")[0] + ".json")
+    shutil.copy(so, tmp_path / so.name)
+    d = json.loads(specs.read_text())
+    del d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
+    (tmp_path / specs.name).write_text(json.dumps(d))
+    got = _probe(tmp_path)
+    assert got["aot"] is True and got["error"] is None, got
+    assert got["core_ok_deferred"] is True and got["flush_deferred"] is False, got
+    assert got["core_ok"] is True

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from adaptnav import kernels
 
 from .test_daemon_support import Feeder, wait_until
 
@@ -53,6 +54,8 @@ def test_sample_in_nav_state_out_and_queryables(live):
     assert health, f"imu count {bus.get('health')['sensors']['imu']} != published {feeder.published['imu']}"
     assert health["sensors"]["heading"]["count"] == feeder.published["heading"]
     assert health["runner_alive"] is True
+    # the kernels' build as this process found it (a damaged one: tests/test_kernels.py)
+    assert health["kernels"] == {"ahead_of_time": kernels.using_aot(), "problem": None}
     # the integrity monitor's window per aid: the vehicle at rest, its heading and depth exact
     integrity = health["integrity"]
     for source in ("heading", "depth"):
