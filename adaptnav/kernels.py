@@ -377,18 +377,17 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     specs_path = path.with_name(path.name.split(".")[0] + ".json")
     # the specs mark a build complete: gone while the module is rewritten, then written whole
-    # (renamed into place), so that a build cut short leaves nothing that looks complete
+    # (atomically), so that a build cut short leaves nothing that looks complete
     specs_path.unlink(missing_ok=True)
     with warnings.catch_warnings(), _declared_error_models():
         warnings.simplefilter("ignore")
         cc.compile()
     arg_specs[_MODULE_DIGEST] = [_file_digest(path)]
-    partial = specs_path.with_name(specs_path.name + ".partial")
-    with open(partial, "w") as f:
-        f.write(json.dumps(arg_specs, indent=1, sort_keys=True))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(partial, specs_path)
+    from adaptnav.service.runtime.persistence import atomic_write_bytes  # (the build is the service's step)
+
+    # readable by whoever may load the module (a service user, the build run as root)
+    atomic_write_bytes(specs_path, json.dumps(arg_specs, indent=1, sort_keys=True).encode(),
+                       mode=path.stat().st_mode & 0o666)
     for stale in path.parent.glob("_aot_kernels_*"):
         if stale.name not in (path.name, specs_path.name):
             stale.unlink(missing_ok=True)

@@ -221,3 +221,13 @@ def test_a_kernel_missing_from_the_specs_alone_runs_just_in_time(tmp_path):
     assert got["aot"] is True and got["error"] is None, got
     assert got["core_ok_deferred"] is True and got["flush_deferred"] is False, got
     assert got["core_ok"] is True
+
+
+def test_the_specs_are_as_readable_as_the_compiled_module():
+    """The build writes the specs atomically through a temporary file (owner-only by
+    default): a service running as another user than the build must still read them."""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    so = kernels.aot_path(existing=True)
+    specs = so.with_name(so.name.split(".")[0] + ".json")
+    assert specs.stat().st_mode & 0o444 == so.stat().st_mode & 0o444
