@@ -93,16 +93,9 @@ def aot_name() -> str:
     return f"_aot_kernels_{h.hexdigest()[:16]}"
 
 
-def aot_path(existing: bool = False) -> Path:
-    """The compiled module's file: where it would be built, or (``existing``) the first
-    place it is found (the build place when nowhere)."""
-    name = aot_name() + importlib.machinery.EXTENSION_SUFFIXES[0]
-    dirs = kernel_dirs()
-    if existing:
-        for d in dirs:
-            if (d / name).is_file():
-                return d / name
-    return dirs[0] / name
+def aot_path() -> Path:
+    """Where the compiled module is built (:func:`loaded_aot_path`: the one in use)."""
+    return kernel_dirs()[0] / (aot_name() + importlib.machinery.EXTENSION_SUFFIXES[0])
 
 
 aot_error: str | None = None  # why a compiled module present was not used (None: it was, or none is)
@@ -111,39 +104,50 @@ aot_error: str | None = None  # why a compiled module present was not used (None
 def _load_aot() -> Any:
     """The compiled module, or None: absent, forced off, or unreadable — a module or argument
     specs cut short (power lost during ``adaptnav warmup``), of the wrong kind, not what the
-    build wrote. Unreadable, the kernels run just in time (:data:`aot_error` says why, logged
-    once) and the next ``adaptnav warmup`` builds it again: the filter must start either way."""
+    build wrote. An unreadable one is passed over for the next place (:func:`kernel_dirs`);
+    none usable, the kernels run just in time. Either way :data:`aot_error` says what was
+    passed over and why (logged once), and the next ``adaptnav warmup`` builds again: the
+    filter must start whatever lies on the disk."""
     global _aot, aot_error
     if _aot is False:
         _aot = None
         if os.environ.get("ADAPTNAV_KERNELS", "").lower() != "jit":
-            path = aot_path(existing=True)
-            specs_path = path.with_name(path.name.split(".")[0] + ".json")
-            if path.is_file() and specs_path.is_file():
+            name = aot_path().name
+            problems = []
+            for path in (d / name for d in kernel_dirs()):
+                specs_path = path.with_name(path.name.split(".")[0] + ".json")
+                if not (path.is_file() and specs_path.is_file()):
+                    continue
                 try:
-                    arg_specs = json.loads(specs_path.read_text())
-                    if not (isinstance(arg_specs, dict) and all(isinstance(v, list) for v in arg_specs.values())):
-                        raise ValueError("argument specs are not a JSON object of lists")
-                    # the module as the build wrote it (a shorter one kills the process as it loads,
-                    # SIGBUS; ~1 ms for its 1.5 MB)
-                    digest = arg_specs.pop(_MODULE_DIGEST, None)
-                    if digest != [_file_digest(path)]:
-                        raise ValueError("the module is not the one its specs were written for")
-                    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
-                    module = importlib.util.module_from_spec(spec)
-                    spec.loader.exec_module(module)
-                    missing = sorted(e for e in arg_specs if not callable(getattr(module, e, None)))
-                    if missing:
-                        raise ValueError(f"{len(missing)} kernels of its specs missing ({missing[0]}, ...)")
-                except Exception as e:  # noqa: BLE001 - any unreadable build: just in time instead
-                    aot_error = f"{path.name}: {type(e).__name__}: {e}"
-                    logging.getLogger(__name__).warning(
-                        "compiled kernels unusable, running them just in time (run `adaptnav warmup` "
-                        "to build them again): %s", aot_error)
-                else:
-                    module.arg_specs = arg_specs
-                    _aot = module
+                    _aot = _load_module(path, specs_path)
+                    break
+                except Exception as e:  # noqa: BLE001 - any unreadable build: the next, or just in time
+                    problems.append(f"{path}: {type(e).__name__}: {e}")
+            if problems:
+                aot_error = "; ".join(problems)
+                logging.getLogger(__name__).warning(
+                    "compiled kernels unusable, %s (run `adaptnav warmup` to build them again): %s",
+                    "running them just in time" if _aot is None else f"using {_aot.__file__}", aot_error)
     return _aot
+
+
+def _load_module(path: Path, specs_path: Path) -> Any:
+    """The compiled module at ``path`` with its argument specs, checked (:func:`_load_aot`)."""
+    arg_specs = json.loads(specs_path.read_text())
+    if not (isinstance(arg_specs, dict) and all(isinstance(v, list) for v in arg_specs.values())):
+        raise ValueError("argument specs are not a JSON object of lists")
+    # the module as the build wrote it (a shorter one kills the process as it loads, SIGBUS;
+    # ~1 ms for its 1.5 MB)
+    if arg_specs.pop(_MODULE_DIGEST, None) != [_file_digest(path)]:
+        raise ValueError("the module is not the one its specs were written for")
+    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    missing = sorted(e for e in arg_specs if not callable(getattr(module, e, None)))
+    if missing:
+        raise ValueError(f"{len(missing)} kernels of its specs missing ({missing[0]}, ...)")
+    module.arg_specs = arg_specs
+    return module
 
 
 _MODULE_DIGEST = "__module_sha256__"  # the specs' entry with the compiled module's digest
@@ -160,6 +164,12 @@ def exported_name(module: str, name: str) -> str:
 def using_aot() -> bool:
     """True when the kernels come from the ahead-of-time module."""
     return _load_aot() is not None
+
+
+def loaded_aot_path() -> Path | None:
+    """The compiled module in use (None: the kernels run just in time)."""
+    aot = _load_aot()
+    return None if aot is None else Path(aot.__file__)
 
 
 def jit(**options: Any) -> Callable[[Callable], Any]:

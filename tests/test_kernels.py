@@ -149,40 +149,38 @@ def test_the_daemons_side_scan_path_does_not_import_the_detectors_libraries():
 
 _PROBE = """
 import json, sys
+from pathlib import Path
 import numpy as np
 from adaptnav import kernels
+if sys.argv[1] == "only":  # the damaged build the only place looked in (no good one to fall back on)
+    kernels.kernel_dirs = lambda: [Path(sys.argv[2])]
 from adaptnav.fusion import kalman
 core = np.zeros(kalman.CORE_SIZE)
 core[kalman.CORE_P] = np.eye(kalman.N_ERR).ravel()
-print(json.dumps({"aot": kernels.using_aot(), "error": kernels.aot_error,
+print(json.dumps({"aot": str(kernels.loaded_aot_path()), "error": kernels.aot_error,
                   "core_ok_deferred": isinstance(kalman.core_ok, kernels._Deferred),
                   "flush_deferred": isinstance(kalman.flush_core, kernels._Deferred),
                   "core_ok": bool(kalman.core_ok(core, 1.0))}))
 """
 
 
-def _probe(kernel_dir) -> dict:
+def _probe(kernel_dir, only: bool) -> dict:
     import json
     import os
 
     env = dict(os.environ, ADAPTNAV_KERNEL_DIR=str(kernel_dir))
     env.pop("ADAPTNAV_KERNELS", None)
-    out = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, env=env, check=True)
+    out = subprocess.run([sys.executable, "-c", _PROBE, "only" if only else "all", str(kernel_dir)],
+                         capture_output=True, text=True, env=env, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1]) | {"stderr": out.stderr}
 
 
-@pytest.mark.parametrize("damage", ["specs_cut_short", "specs_not_an_object", "module_cut_short",
-                                    "specs_name_a_kernel_the_module_lacks"])
-def test_a_damaged_compiled_module_runs_the_kernels_just_in_time(tmp_path, damage):
-    """Power lost while ``adaptnav warmup`` wrote the compiled kernels (or a disk that returned
-    garbage) must not keep the filter from starting: the module is not used, the kernels run
-    just in time, the reason is logged and kept (``kernels.aot_error``)."""
-    if not kernels.using_aot():
-        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+def _damaged_copy(tmp_path, damage: str):
+    """The compiled module and its specs copied into ``tmp_path``, damaged as ``damage`` says."""
     import json
     import shutil
 
-    so = kernels.aot_path(existing=True)
+    so = kernels.loaded_aot_path()
     specs = so.with_name(so.name.split(".")[0] + ".json")
     shutil.copy(so, tmp_path / so.name)
     text = specs.read_text()
@@ -192,15 +190,46 @@ def test_a_damaged_compiled_module_runs_the_kernels_just_in_time(tmp_path, damag
         text = json.dumps(list(json.loads(text)))
     elif damage == "module_cut_short":
         (tmp_path / so.name).write_bytes(so.read_bytes()[: so.stat().st_size // 3])
-    else:
+    elif damage == "specs_name_a_kernel_the_module_lacks":
         d = json.loads(text)
         d["adaptnav_fusion_kalman__no_such_kernel"] = d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
         text = json.dumps(d)
+    elif damage == "specs_without_core_ok":
+        d = json.loads(text)
+        del d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
+        text = json.dumps(d)
     (tmp_path / specs.name).write_text(text)
-    got = _probe(tmp_path)
-    assert got["aot"] is False and got["error"] and so.name in got["error"], got
-    assert "compiled kernels unusable" in got["stderr"], got["stderr"]
+    return so
+
+
+_DAMAGE = ["specs_cut_short", "specs_not_an_object", "module_cut_short", "specs_name_a_kernel_the_module_lacks"]
+
+
+@pytest.mark.parametrize("damage", _DAMAGE)
+def test_a_damaged_compiled_module_runs_the_kernels_just_in_time(tmp_path, damage):
+    """Power lost while ``adaptnav warmup`` wrote the compiled kernels (or a disk that returned
+    garbage) must not keep the filter from starting: the module is not used, the kernels run
+    just in time, the reason is logged and kept (``kernels.aot_error``)."""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    so = _damaged_copy(tmp_path, damage)
+    got = _probe(tmp_path, only=True)
+    assert got["aot"] == "None" and got["error"] and str(tmp_path / so.name) in got["error"], got
+    assert "compiled kernels unusable, running them just in time" in got["stderr"], got["stderr"]
     assert got["core_ok"] is True  # the filter's kernels work, just in time
+
+
+@pytest.mark.parametrize("damage", _DAMAGE[::3])
+def test_a_damaged_compiled_module_is_passed_over_for_a_good_one_further_on(tmp_path, damage):
+    """The unit's build in ADAPTNAV_KERNEL_DIR damaged, the install's in the package good: the
+    package's is used (no minute of compiling at a boot at sea), the damaged one reported."""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    so = _damaged_copy(tmp_path, damage)
+    got = _probe(tmp_path, only=False)
+    assert got["aot"] == str(so) and str(tmp_path / so.name) in got["error"], got
+    assert f"compiled kernels unusable, using {so}" in got["stderr"], got["stderr"]
+    assert got["core_ok_deferred"] is False and got["core_ok"] is True
 
 
 def test_a_kernel_missing_from_the_specs_alone_runs_just_in_time(tmp_path):
@@ -208,17 +237,9 @@ def test_a_kernel_missing_from_the_specs_alone_runs_just_in_time(tmp_path):
     others compiled — never a compiled function called without the guard of its specs."""
     if not kernels.using_aot():
         pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
-    import json
-    import shutil
-
-    so = kernels.aot_path(existing=True)
-    specs = so.with_name(so.name.split(".")[0] + ".json")
-    shutil.copy(so, tmp_path / so.name)
-    d = json.loads(specs.read_text())
-    del d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
-    (tmp_path / specs.name).write_text(json.dumps(d))
-    got = _probe(tmp_path)
-    assert got["aot"] is True and got["error"] is None, got
+    so = _damaged_copy(tmp_path, "specs_without_core_ok")
+    got = _probe(tmp_path, only=True)
+    assert got["aot"] == str(tmp_path / so.name) and got["error"] is None, got
     assert got["core_ok_deferred"] is True and got["flush_deferred"] is False, got
     assert got["core_ok"] is True
 
@@ -228,6 +249,6 @@ def test_the_specs_are_as_readable_as_the_compiled_module():
     default): a service running as another user than the build must still read them."""
     if not kernels.using_aot():
         pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
-    so = kernels.aot_path(existing=True)
+    so = kernels.loaded_aot_path()
     specs = so.with_name(so.name.split(".")[0] + ".json")
     assert specs.stat().st_mode & 0o444 == so.stat().st_mode & 0o444

@@ -98,7 +98,7 @@ def run(args):
 
     path = kernels.aot_path()
     if not args.jit_only and kernels.using_aot():
-        print(f"adaptnav warmup: kernels compiled ahead of time: {kernels.aot_path(existing=True)}")
+        print(f"adaptnav warmup: kernels compiled ahead of time: {kernels.loaded_aot_path()}")
         return 0
     tmp = None
     saved_cache_dir = os.environ.get("NUMBA_CACHE_DIR")
