@@ -99,6 +99,7 @@ def aot_path() -> Path:
 
 
 aot_error: str | None = None  # why a compiled module present was not used (None: it was, or none is)
+passed_over: list[Path] = []  # the compiled modules found unusable (adaptnav warmup removes them)
 
 
 def _load_aot() -> Any:
@@ -123,6 +124,7 @@ def _load_aot() -> Any:
                     break
                 except Exception as e:  # noqa: BLE001 - any unreadable build: the next, or just in time
                     problems.append(f"{path}: {type(e).__name__}: {e}")
+                    passed_over.append(path)
             if problems:
                 aot_error = "; ".join(problems)
                 logging.getLogger(__name__).warning(

@@ -230,6 +230,16 @@ def test_a_damaged_compiled_module_is_passed_over_for_a_good_one_further_on(tmp_
     assert got["aot"] == str(so) and str(tmp_path / so.name) in got["error"], got
     assert f"compiled kernels unusable, using {so}" in got["stderr"], got["stderr"]
     assert got["core_ok_deferred"] is False and got["core_ok"] is True
+    # the next warmup removes the damaged one (and builds nothing: a good one is there)
+    import os
+
+    env = dict(os.environ, ADAPTNAV_KERNEL_DIR=str(tmp_path))
+    env.pop("ADAPTNAV_KERNELS", None)
+    out = subprocess.run([sys.executable, "-m", "adaptnav", "warmup"], capture_output=True, text=True, env=env,
+                         check=True)
+    assert f"removed the damaged build {tmp_path / so.name}" in out.stdout, out.stdout
+    assert not list(tmp_path.glob("_aot_kernels_*")), list(tmp_path.iterdir())
+    assert _probe(tmp_path, only=False)["error"] is None
 
 
 def test_a_kernel_missing_from_the_specs_alone_runs_just_in_time(tmp_path):

@@ -98,6 +98,15 @@ def run(args):
 
     path = kernels.aot_path()
     if not args.jit_only and kernels.using_aot():
+        # a damaged build passed over for a good one elsewhere: removed, so that it is not
+        # looked at (and warned of) at every start
+        for damaged in kernels.passed_over:
+            try:
+                damaged.with_name(damaged.name.split(".")[0] + ".json").unlink(missing_ok=True)
+                damaged.unlink(missing_ok=True)
+                print(f"adaptnav warmup: removed the damaged build {damaged}")
+            except OSError as e:
+                print(f"adaptnav warmup: could not remove the damaged build {damaged}: {e}", file=sys.stderr)
         print(f"adaptnav warmup: kernels compiled ahead of time: {kernels.loaded_aot_path()}")
         return 0
     tmp = None
