@@ -10,15 +10,16 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from adaptnav.fusion import kalman
+from adaptnav.fusion import eskf, kalman
 from adaptnav.fusion.aiding import learned_velocity as aid_lv
 from adaptnav.fusion.config import FilterConfig
 from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.frames import euler_to_quat
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
+from adaptnav.fusion.samples import RpmSample
 from adaptnav.fusion.state import ACC_OMEGA, ACC_RF, ACC_R, ACC_T, X_CUR, X_KS, initial_nominal
 
-from .mission import ORIGIN
+from .mission import ORIGIN, make_mission, run
 
 LAST_BITS = dict(rtol=1e-12, atol=1e-15)
 
@@ -162,3 +163,51 @@ def test_the_compiled_lv_epoch_is_the_general_paths(name):
         seen["fused" if fused else "gated"] += 1
         seen["scaled" if want.R[0, 0] != released else "as released"] += 1
     assert min(seen["fused"], seen["gated"], seen["scaled"], seen["as released"]) > 20, seen
+
+
+def _lv_mission():
+    """No DVL: the learned velocity holds the speed; the adaptation, transient, skid and heave on;
+    thrust changes (transients, coasts); the RPM 60 % high for 40 s: gated, then a velocity reset."""
+    m = make_mission(np.random.default_rng(41), 240.0, heading_period_s=0.5, depth_period_s=0.5,
+                     usbl_period_s=20.0, lv_rate_hz=1.0)
+    aids = []
+    for s in m.aids:
+        if isinstance(s, RpmSample):
+            f = 1.0 + 0.2 * math.sin(s.t_s / 7.0)
+            if 150.0 <= s.t_s < 190.0:
+                f = 1.6
+            s = dataclasses.replace(s, rpm=s.rpm * f)
+        aids.append(s)
+    m.aids = aids
+    return m
+
+
+def _lv_run(m, compiled: bool):
+    est = _estimator(transient_time_s=2.0, skid_sigma_s=0.5, heave_sigma_per_vertical_speed=0.3)
+    est._lv_compiled = compiled
+    _, statuses = run(est, m)
+    return est, statuses
+
+
+def test_the_compiled_lv_path_gives_the_general_paths_numbers(monkeypatch):
+    m = _lv_mission()
+    slow, slow_statuses = _lv_run(m, compiled=False)
+    calls = []
+    kernel = eskf.kalman.lv_epoch
+    monkeypatch.setattr(eskf.kalman, "lv_epoch", lambda *a: calls.append(1) or kernel(*a))
+    fast, fast_statuses = _lv_run(m, compiled=True)
+    lv = [s for s in fast_statuses if s.source == "learned_velocity"]
+    assert len(calls) > 200 and len(lv) == len(calls)  # every epoch (a reset: the status of its re-fusion)
+    assert fast.resets["velocity:learned_velocity"] >= 1 and any(s.reason == "gate" for s in lv)
+    assert slow.resets == fast.resets
+    assert fast._surge.r_hat_m2_s2 is not None
+    # the same decisions; the numbers to the last bits (BLAS's sums in the general path)
+    slow_lv = [s for s in slow_statuses if s.source == "learned_velocity"]
+    assert [(s.t_s, s.fused, s.reason) for s in lv] == [(s.t_s, s.fused, s.reason) for s in slow_lv]
+    for a, b in zip(lv, slow_lv):  # (seen: 2e-13 relative at most)
+        np.testing.assert_allclose(a.observation, b.observation, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(a.innovation, b.innovation, rtol=0.0, atol=1e-11)
+        np.testing.assert_allclose(a.innovation_variance, b.innovation_variance, rtol=1e-11)
+    np.testing.assert_allclose(fast._x, slow._x, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(fast._P, slow._P, rtol=0.0, atol=1e-12 * np.abs(slow._P).max())
+    np.testing.assert_allclose(fast._surge.r_hat_m2_s2, slow._surge.r_hat_m2_s2, rtol=1e-12)
