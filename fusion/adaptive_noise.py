@@ -14,6 +14,10 @@ the fusion period, ``window = learned_velocity.adaptive_window_s`` and
 after a calibrator release (its variance is used as it is: the calibrator has caught up).
 Gated innovations count too: after a change of water every surge innovation may exceed
 the gate, and those are exactly the ones that say the model is too tight.
+
+The estimator's compiled epoch (:func:`adaptnav.fusion.kalman.lv_epoch`, INS mode) does
+:meth:`SurgeVariance.adapt`'s arithmetic in the same order on the estimate held here; this
+class stays the reference its tests compare it with (tests/fusion/test_lv_kernels.py).
 """
 from __future__ import annotations
 

@@ -1462,9 +1462,19 @@ class Estimator:
         self._set_k_speed_walk(self._t_dvl_lock > -math.inf)
         if t - self._rpm[0] > cfg.rpm_hold_s:
             return rejected(t, "learned_velocity", "stale")
-        meas = self._lv_measure(t, adapt=True)
-        status = self._fuse(meas, t, "learned_velocity")
+        if self._lv_compiled and self._mode == "ins" and not self._attitude_driven:
+            status = self._lv_fast(t, cfg)  # the common case, compiled
+            if status.fused and "learned_velocity" not in self._reject_since:
+                return status  # (_rejected_too_long's answer: no run of rejections to end)
+            meas = None
+        else:
+            meas = self._lv_measure(t, adapt=True)
+            status = self._fuse(meas, t, "learned_velocity")
         if self._rejected_too_long(status, self.config.reset.velocity_after_s):
+            if meas is None:  # the compiled path's measurement, still in its scratch (not fused)
+                buf = self._lv_kit[3]
+                meas = aid_lv.make(buf[kalman.LV_Z].copy(), buf[kalman.LV_JAC].copy(), buf[kalman.LV_R].copy(),
+                                   buf[kalman.LV_H].copy())
             # the learned velocity is in doubt: its surge variance takes the rejected
             # innovation (re-admitted, not gated again) and k_speed its initial σ again
             self._surge.doubt(meas)
@@ -1473,6 +1483,35 @@ class Estimator:
             # measured again: the innovation before the reset is what the reset removed
             status = self._fuse(self._lv_measure(t, adapt=False), t, "learned_velocity")
         return status
+
+    # the compiled path's parameters and scratch (:meth:`_lv_fast`): (motion params, config
+    # section, their packed numbers, the scratch array), made on its first use; False: the
+    # general path always (tests compare the two)
+    _lv_kit: tuple | None = None
+    _lv_compiled = True
+
+    def _lv_fast(self, t: float, cfg) -> AidStatus:
+        """:meth:`_lv_measure` (adapted) and :meth:`_fuse` in INS mode in one compiled call
+        (:func:`~adaptnav.fusion.kalman.lv_epoch`: the aid's model
+        :func:`~adaptnav.fusion.aiding.learned_velocity.measure` with the additions below, the
+        surge variance's adaptation :meth:`SurgeVariance.adapt`, the update), then the status
+        (:meth:`_attempt`). Why: the epoch was ~110 µs in a replay, mostly Python steps (a numpy
+        model, its Measurement, the adaptation's h P hᵀ, the additions' copies); ~30 µs now, most
+        of it the covariance flush and update the old path also paid. The measurement stays in
+        the scratch for a reset after a long rejection (:meth:`_learned_velocity`)."""
+        kit = self._lv_kit
+        params = self.motion_params
+        if kit is None or kit[0] is not params or kit[1] is not cfg:
+            kit = self._lv_kit = (params, cfg, aid_lv.kernel_params(params, cfg), np.zeros(kalman.LV_BUF_SIZE))
+        r = self._rpm
+        surge = self._surge
+        r_hat = surge.r_hat_m2_s2
+        out = kalman.lv_epoch(self._core, self._qdiag, kit[2], kit[3], self._dx, r[1], r[2], r[5], r[6],
+                              0.0 if r_hat is None else r_hat, r_hat is not None, t - self._t_release,
+                              self._gate[3], True)
+        if out[12]:
+            surge.r_hat_m2_s2 = out[11]
+        return self._attempt(t, "learned_velocity", out[2:5], out[5:8], out[8:11], out[0], out[1])
 
     def _lv_measure(self, t: float, adapt: bool) -> Measurement:
         """The learned-velocity measurement now, its surge variance adapted

@@ -594,3 +594,184 @@ def fuse_heading_core(core, qdiag, z, H, var, gate, dx, out, flush, max_speed_m_
     H[0, _E_ATT + 1] = h_y
     H[0, _E_ATT + 2] = 1.0
     return _fuse_scalar(core, qdiag, z, yaw, H, var, True, gate, dx, out, flush, max_speed_m_s)
+
+
+from .state import ACC_OMEGA, CUR, KS, X_KS  # noqa: E402  (the learned velocity's kernel)
+
+_E_CUR, _E_KS, _X_KS = CUR.start, KS.start, X_KS
+_CORE_OMEGA = _CORE_ACC + ACC_OMEGA.start  # the bias-corrected rate ω̂_b in the core array
+# the learned velocity's numbers (:func:`lv_epoch`'s ``p``, packed once per release and config by
+# :func:`adaptnav.fusion.aiding.learned_velocity.kernel_params`): the motion model's, the
+# estimator's additions', the surge variance's adaptation's, and 2.0 (see there)
+LV_K_V, LV_TURN_SPEED_LOSS, LV_SWAY_PER_TURN, LV_SWAY_PER_SURGE = 0, 1, 2, 3
+LV_VAR_VV, LV_VAR_VW, LV_VAR_V1, LV_VAR_S, LV_HEAVE_PER_SURGE = 4, 5, 6, 7, 8
+LV_SIGMA_HEAVE, LV_VARIANCE_SCALE, LV_TRANSIENT_TIME, LV_COAST_MEAN_FRACTION = 9, 10, 11, 12
+LV_COAST_SIGMA_PER_GAP, LV_TRANSIENT_SIGMA_PER_GAP, LV_SKID_SIGMA, LV_COAST_SKID_MAX = 13, 14, 15, 16
+LV_SKID_MAX, LV_HEAVE_SIGMA_PER_VERTICAL_SPEED = 17, 18
+LV_ADAPTIVE, LV_ALPHA, LV_MAX_SCALE, LV_SUSPEND_S, LV_TWO = 19, 20, 21, 22, 23
+LV_N_PARAMS = 24
+# :func:`lv_epoch`'s scratch ``buf``: z, y, diag S, h (3 each), R (3 × 3), H (3 × 18), row-major
+LV_Z, LV_Y, LV_S, LV_H = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+LV_R, LV_JAC = slice(12, 21), slice(21, 21 + 3 * N_ERR)
+LV_BUF_SIZE = 21 + 3 * N_ERR
+
+
+@jit(cache=True)
+def lv_epoch(core, qdiag, p, buf, dx, surge, sway, slow_surge, slow_sway, r_hat, has_r_hat, since_release_s, gate,
+             flush):
+    """The learned velocity's epoch in INS mode in one call: its measurement, the surge
+    variance's adaptation and the update — ``Estimator._lv_measure(t, adapt=True)`` and
+    ``Estimator._fuse``, whose numpy model (:func:`adaptnav.fusion.aiding.learned_velocity.measure`)
+    and adaptation (:meth:`adaptnav.fusion.adaptive_noise.SurgeVariance.adapt`) stay the
+    reference the tests compare this with.
+
+    From the core's state and bias-corrected rate, ``p`` (:data:`LV_N_PARAMS`,) and the thrust's
+    speeds ``surge``, ``sway``, ``slow_surge``, ``slow_sway`` (m/s; the estimator's ``_rpm[1, 2, 5,
+    6]``): ``z``, ``h`` = h(x̂), ``H`` (3 × 18, every entry written) and ``R`` (the transient's,
+    the skid's and the heave's variances added as the estimator adds them) into ``buf``
+    (:data:`LV_Z`, :data:`LV_H`, :data:`LV_JAC`, :data:`LV_R`; what a velocity reset after a long
+    rejection takes). With the adaptation on (``p[LV_ADAPTIVE]``) the covariance is propagated
+    (:func:`flush_core`) and the estimate ``r_hat`` (m²/s²; ``has_r_hat`` False: none yet) takes
+    this epoch's innovation; the surge variance is scaled to it unless the latest release is
+    younger than ``p[LV_SUSPEND_S]`` (``since_release_s``). Then ``y = z − h`` (:data:`LV_Y`) and
+    :func:`fuse_core` with ``gate`` (diag S into :data:`LV_S`, the correction into ``dx``; ``flush``
+    True in INS mode — an argument: a constant would type :func:`fuse_core`'s ``Literal[bool]``, a
+    second signature, which keeps it out of the ahead-of-time build).
+
+    Returns ``(nis, fused, z₀, z₁, z₂, y₀, y₁, y₂, S₀₀, S₁₁, S₂₂, r_hat, has_r_hat)``: the status's
+    numbers and the estimate, without a call to read them back.
+
+    Why: the numpy model, its Measurement, the adaptation's ``h P hᵀ`` and the additions' copies
+    were ~110 µs of Python steps per epoch in a replay (once a data second). The same operations
+    in the same order, without BLAS's fused multiply-adds and sums (the yaw rate's dot, ``Rᵀ v``,
+    ``Rᵀ [v]×``, ``h P hᵀ``: they differ in the last bits), squares through libm's ``pow`` as
+    Python's ``x ** 2``, ``min``/``max`` as Python's (the first argument unless the second is
+    smaller/larger)."""
+    r_model, extra0, extra = _lv_model(core, p, buf, surge, sway, slow_surge, slow_sway)
+    r00 = r_model
+    if p[LV_ADAPTIVE] > 0.0:
+        # SurgeVariance.adapt with the prior covariance: the estimate takes the innovation
+        # less h P hᵀ and the transient's variance, capped; R₀₀ scaled up to it, never down
+        x, P, acc, clock = core_views(core)
+        flush_core(core, qdiag)
+        hph = 0.0
+        for j in range(N_ERR):
+            hp = 0.0
+            for i in range(N_ERR):
+                hp += buf[21 + i] * P[i, j]
+            hph += hp * buf[21 + j]
+        y0 = buf[0] - buf[9]
+        if np.isfinite(y0) and np.isfinite(hph):
+            sample = y0 * y0 - hph - extra0
+            cap = 100.0 * r_model * p[LV_MAX_SCALE]
+            sample = cap if cap < sample else sample
+            alpha = p[LV_ALPHA]
+            r_hat = (1 - alpha) * r_hat + alpha * sample if has_r_hat else sample
+            has_r_hat = True
+            scale = r_hat / r_model
+            scale = 1.0 if 1.0 > scale else scale
+            scale = p[LV_MAX_SCALE] if p[LV_MAX_SCALE] < scale else scale
+            if scale != 1.0 and since_release_s >= p[LV_SUSPEND_S]:
+                r00 = r_model * scale
+    if extra:
+        r00 += extra0
+    buf[12] = r00
+    y = buf[3:6]
+    for i in range(3):
+        y[i] = buf[i] - buf[9 + i]
+    R = buf[12:21].reshape((3, 3))
+    H = buf[21:21 + 3 * N_ERR].reshape((3, N_ERR))
+    nis, fused = fuse_core(core, qdiag, y, H, R, gate, dx, buf[6:9], flush)
+    return (nis, fused, buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6], buf[7], buf[8],
+            r_hat, has_r_hat)
+
+
+@jit(cache=True)
+def _lv_model(core, p, buf, surge, sway, slow_surge, slow_sway):
+    """:func:`lv_epoch`'s measurement: ``z``, ``h``, ``H`` and ``R`` into ``buf`` with ``R₀₀`` =
+    σ_V² s + e₀ (s the ``variance_scale``, e₀ the transient's surge variance) when an addition
+    was made, else σ_V² s. Returns ``(σ_V² s, e₀ or 0, an addition made)``."""
+    x = core[0:N_X]
+    two = p[LV_TWO]
+    R = np.empty((3, 3))
+    _dcm(x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3], R)
+    o = _CORE_OMEGA
+    w = R[2, 0] * core[o] + R[2, 1] * core[o + 1] + R[2, 2] * core[o + 2]  # the yaw rate
+    # a coast (the thrust fell below the slow lag's speed): its speed between the two
+    coast = p[LV_TRANSIENT_TIME] > 0 and abs(slow_surge) > abs(surge)
+    speed = surge
+    if coast:
+        speed += p[LV_COAST_MEAN_FRACTION] * (slow_surge - surge)
+    k_v = p[LV_K_V]
+    w2 = w ** two
+    model = k_v * speed * (1.0 - p[LV_TURN_SPEED_LOSS] * w2)
+    sway_model = k_v * sway
+    skid = p[LV_SWAY_PER_TURN] * speed * w + p[LV_SWAY_PER_SURGE] * model
+    var_v = speed ** two * p[LV_VAR_VV] + w2 * p[LV_VAR_VW] + p[LV_VAR_V1]
+    vs = p[LV_VARIANCE_SCALE]
+    r_model = var_v * vs
+    r11 = (p[LV_VAR_S] + sway ** two * p[LV_VAR_VV]) * vs
+    r22 = p[LV_SIGMA_HEAVE] ** two * vs
+    h_w = p[LV_HEAVE_PER_SURGE]
+    r0, r1, r2 = x[_X_VEL] - x[_X_CUR], x[_X_VEL + 1] - x[_X_CUR + 1], x[_X_VEL + 2]
+    H = buf[21:21 + 3 * N_ERR].reshape((3, N_ERR))
+    for i in range(3):
+        for j in range(N_ERR):
+            H[i, j] = 0.0
+        for j in range(3):
+            H[i, _E_VEL + j] = R[j, i]
+        # Rᵀ [rel]×, [rel]× = [[0, −r2, r1], [r2, 0, −r0], [−r1, r0, 0]]
+        H[i, _E_ATT] = R[1, i] * r2 - R[2, i] * r1
+        H[i, _E_ATT + 1] = -R[0, i] * r2 + R[2, i] * r0
+        H[i, _E_ATT + 2] = R[0, i] * r1 - R[1, i] * r0
+        H[i, _E_CUR] = -R[0, i]
+        H[i, _E_CUR + 1] = -R[1, i]
+    for j in range(N_ERR):
+        H[2, j] -= h_w * H[0, j]
+    H[0, _E_KS] = -model
+    H[1, _E_KS] = -sway_model
+    vb0 = R[0, 0] * r0 + R[1, 0] * r1 + R[2, 0] * r2
+    vb1 = R[0, 1] * r0 + R[1, 1] * r1 + R[2, 1] * r2
+    vb2 = R[0, 2] * r0 + R[1, 2] * r1 + R[2, 2] * r2
+    vb2 -= h_w * vb0
+    ks1 = x[_X_KS] - 1.0
+    vb0 -= ks1 * model
+    vb1 -= ks1 * sway_model
+    buf[0], buf[1], buf[2] = model, sway_model + skid, 0.0
+    buf[9], buf[10], buf[11] = vb0, vb1, vb2
+    # the variance the model leaves unknown on this vehicle: a thrust change settling, a skid
+    e0, e1 = 0.0, 0.0
+    extra = False
+    ks_abs = abs(x[_X_KS])
+    if p[LV_TRANSIENT_TIME] > 0:
+        scale = ks_abs * k_v
+        g_surge = p[LV_COAST_SIGMA_PER_GAP] if coast else p[LV_TRANSIENT_SIGMA_PER_GAP]
+        e0 = (scale * g_surge * (surge - slow_surge)) ** two
+        e1 = (scale * p[LV_TRANSIENT_SIGMA_PER_GAP] * (sway - slow_sway)) ** two
+        extra = not (e0 == 0.0 and e1 == 0.0)
+    if p[LV_SKID_SIGMA] > 0:
+        u = surge
+        if p[LV_TRANSIENT_TIME] > 0:
+            a, b = abs(surge), abs(slow_surge)
+            u = b if b > a else a  # max(a, b)
+        cap = p[LV_COAST_SKID_MAX] if coast else p[LV_SKID_MAX]
+        g = p[LV_SKID_SIGMA] * abs(w)
+        g = cap if cap < g else g  # min(g, cap)
+        s_var = (ks_abs * k_v * u * g) ** two
+        if s_var > 0.0:
+            if extra:
+                e1 = e1 + s_var
+            else:
+                e0, e1 = 0.0, s_var
+            extra = True
+    heave = (p[LV_HEAVE_SIGMA_PER_VERTICAL_SPEED] * x[_X_VEL + 2]) ** two
+    r00 = r_model
+    if extra or heave > 0.0:
+        if extra:
+            r00 += e0
+            r11 += e1
+        r22 += heave
+    for i in range(9):
+        buf[12 + i] = 0.0
+    buf[12], buf[16], buf[20] = r00, r11, r22
+    return r_model, e0 if extra else 0.0, extra

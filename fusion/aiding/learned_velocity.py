@@ -128,3 +128,22 @@ def measure(x: np.ndarray, speed_m_s: float, yaw_rate_rad_s: float, params: Moti
         rel[:2] -= x[X_CUR]
     return make([model, sway + skid, 0.0], _jacobian(R_nb, rel, model, sway, h_w), R,
                 _predict(R_nb, rel, x, model, sway, h_w))
+
+
+def kernel_params(params: MotionParams, config) -> np.ndarray:
+    """The (``kalman.LV_N_PARAMS``,) numbers the compiled epoch reads
+    (:func:`adaptnav.fusion.kalman.lv_epoch`, indices ``kalman.LV_*``): the motion model's, the
+    learned velocity's (:class:`~adaptnav.fusion.config.LearnedVelocityConfig`: the estimator's
+    additions and the surge variance's adaptation, as
+    :class:`~adaptnav.fusion.adaptive_noise.SurgeVariance` takes them) and 2.0 — the exponent of
+    Python's ``x ** 2``, read at run time: a constant one is compiled into ``x * x``, which
+    differs from libm's ``pow`` (Python's) in the last bit of ~1 square in 1000."""
+    adaptive = config.adaptive_window_s > 0
+    alpha = min(1.0, (1.0 / config.rate_hz) / config.adaptive_window_s) if adaptive else 0.0
+    return np.array([params.k_v, params.turn_speed_loss, params.sway_per_turn, params.sway_per_surge,
+                     params.var_vv, params.var_vw, params.var_v1, params.var_s, params.heave_per_surge,
+                     config.sigma_heave_m_s, config.variance_scale, config.transient_time_s,
+                     config.coast_mean_fraction, config.coast_sigma_per_gap, config.transient_sigma_per_gap,
+                     config.skid_sigma_s, config.coast_skid_max_fraction, config.skid_max_fraction,
+                     config.heave_sigma_per_vertical_speed, 1.0 if adaptive else 0.0, alpha,
+                     config.adaptive_max_scale, config.adaptive_suspend_after_release_s, 2.0], dtype=float)
