@@ -270,6 +270,11 @@ class Estimator:
         self._restored = False  # slow states restored: an alignment keeps them
         self._speed_cache: dict[float, float] = {}
         self._surge = SurgeVariance(config.learned_velocity)  # the adaptive surge variance
+        # the learned velocity's compiled epoch (_lv_fast): its parameters and scratch (motion
+        # params, config section, their packed numbers, the scratch array), made on first use;
+        # _lv_compiled False: the general path always (tests compare the two)
+        self._lv_kit: tuple | None = None
+        self._lv_compiled = True
         self._heading_source: aid_attitude.HeadingSource | None = None  # ATTITUDE next to a FOG
         # the depth sensor's own noise (the σ it is fused with)
         self.depth_noise = aid_depth.DepthNoise(config.depth)
@@ -1483,12 +1488,6 @@ class Estimator:
             # measured again: the innovation before the reset is what the reset removed
             status = self._fuse(self._lv_measure(t, adapt=False), t, "learned_velocity")
         return status
-
-    # the compiled path's parameters and scratch (:meth:`_lv_fast`): (motion params, config
-    # section, their packed numbers, the scratch array), made on its first use; False: the
-    # general path always (tests compare the two)
-    _lv_kit: tuple | None = None
-    _lv_compiled = True
 
     def _lv_fast(self, t: float, cfg) -> AidStatus:
         """:meth:`_lv_measure` (adapted) and :meth:`_fuse` in INS mode in one compiled call
