@@ -710,3 +710,33 @@ def slant_to_ground(samples, spacing_m, altitude_m, ground_m, out):
             a = samples[i, first[j]]
             v = a + frac[j] * (samples[i, first[j] + 1] - a)
             out[i, j] = v if valid[j] else zero
+
+
+@jit(cache=True)
+def bracket_rows(s, lo_v, hi_v, below, count, cand):
+    """Per row ``i`` of ``s`` (R, M) float32: how many values are below ``lo_v[i]`` (``below``)
+    and how many lie in ``[lo_v[i], hi_v[i]]`` (``count``), the first ``W`` of the latter (in
+    row order) in ``cand[i]`` (R, W) float32, the rest of that row +inf
+    (:func:`adaptnav.sonar.waterfall.row_medians`: the sorted row's middle values are the
+    sorted candidates' ``r − below`` th when ``below ≤ r < below + count ≤ W``). Every value
+    is stored and the counters advanced by the comparisons (no branch per value)."""
+    n_rows, m = s.shape
+    width = cand.shape[1]
+    buf = np.empty(m + 1, np.float32)
+    for i in range(n_rows):
+        a = lo_v[i]
+        b = hi_v[i]
+        n_below = 0
+        n = 0
+        for k in range(m):
+            v = s[i, k]
+            n_below += v < a
+            buf[n] = v
+            n += (v >= a) & (v <= b)
+        below[i] = n_below
+        count[i] = n
+        n_kept = min(n, width)
+        for k in range(n_kept):
+            cand[i, k] = buf[k]
+        for k in range(n_kept, width):
+            cand[i, k] = np.inf
