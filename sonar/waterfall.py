@@ -189,21 +189,26 @@ def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, 
 
 def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     """Port and starboard samples as (P, N) float32 arrays (sample 0 nearest)."""
+    both = stack_sides(pings)
+    return both[0], both[1]
+
+
+def stack_sides(pings: Sequence[SonarPing]) -> np.ndarray:
+    """Port (``[0]``) and starboard (``[1]``) samples as one (2, P, N) float32 array (sample 0
+    nearest; non-finite samples 0)."""
     if not pings:
         raise ValueError("no pings")
     n = pings[0].n_samples
     bad = [i for i, p in enumerate(pings) if p.n_samples != n]
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
-    out = []
-    for side in ([p.port for p in pings], [p.starboard for p in pings]):
-        # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
-        a = np.concatenate(side).astype(np.float32, copy=False).reshape(len(pings), n)  # (a new array already)
-        non_finite = ~np.isfinite(a)
-        if non_finite.any():
-            a[non_finite] = 0.0
-        out.append(a)
-    return out[0], out[1]
+    # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
+    a = np.concatenate([p.port for p in pings] + [p.starboard for p in pings])
+    a = a.astype(np.float32, copy=False).reshape(2, len(pings), n)  # (a new array already)
+    non_finite = ~np.isfinite(a)
+    if non_finite.any():
+        a[non_finite] = 0.0
+    return a
 
 
 def row_percentile(a: np.ndarray, q: float) -> np.ndarray:
@@ -231,8 +236,9 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
 
     Parameters
     ----------
-    samples : numpy.ndarray, shape (P, N)
-        One side's intensities, sample 0 nearest the vehicle.
+    samples : numpy.ndarray, shape (P, N) or (K, P, N)
+        One side's intensities, sample 0 nearest the vehicle; or K sides' (each its own
+        smoothing over pings: the pings' steps, which are row by row, done for all at once).
     sample_spacing_m : float
         Slant spacing (m).
     fraction : float
@@ -244,9 +250,14 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
 
     Returns
     -------
-    numpy.ndarray, shape (P,)
+    numpy.ndarray, shape (P,) or (K, P)
         Slant range (m) of the first return; NaN when a ping has no return.
     """
+    if samples.ndim == 3:
+        k, p, n = samples.shape
+        rng_m = detect_first_return(samples.reshape(k * p, n), sample_spacing_m, fraction=fraction,
+                                    blanking_m=blanking_m, smooth_pings=1).reshape(k, p)
+        return np.stack([_smooth_over_pings(r, smooth_pings) for r in rng_m])
     if samples.ndim == 2 and samples.shape[1] >= 5:
         from adaptnav.sonar import _kernels
 
@@ -271,7 +282,12 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     shift = np.where(raw_above.any(axis=1), offs[np.argmax(raw_above, axis=1)], 0)
     idx = (idx + shift).astype(float)
     idx[~above.any(axis=1) | (level <= 0)] = np.nan
-    rng_m = (idx + 0.5) * sample_spacing_m
+    return _smooth_over_pings((idx + 0.5) * sample_spacing_m, smooth_pings)
+
+
+def _smooth_over_pings(rng_m: np.ndarray, smooth_pings: int) -> np.ndarray:
+    """:func:`detect_first_return`'s median over ``smooth_pings`` pings of one side's ranges
+    (NaN kept; filled with the side's median for the filter)."""
     if smooth_pings > 1 and rng_m.size >= smooth_pings:
         finite = np.isfinite(rng_m)
         filled = rng_m if finite.all() else np.where(finite, rng_m, np.nanmedian(rng_m))
@@ -345,8 +361,9 @@ def slant_to_ground_numpy(samples: np.ndarray, sample_spacing_m: float, altitude
 
 
 def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
-               cfg: WaterfallConfig) -> np.ndarray:
-    """Altitude per ping and side (P, 2) following ``cfg.bottom``."""
+               cfg: WaterfallConfig, sides: np.ndarray | None = None) -> np.ndarray:
+    """Altitude per ping and side (P, 2) following ``cfg.bottom``; ``sides``, when given, is
+    ``port`` and ``stbd`` stacked (:func:`stack_sides`: both sides' first returns at once)."""
     dr = pings[0].sample_spacing_m
     recorded = np.array([p.altitude_m for p in pings], dtype=float)
     recorded[~(recorded > 0)] = np.nan
@@ -354,8 +371,10 @@ def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
         return np.stack([recorded, recorded], axis=1)
     if cfg.bottom not in ("auto", "detect"):
         raise ValueError(f"bottom must be 'auto', 'altitude' or 'detect', not {cfg.bottom!r}")
-    det = np.stack([detect_first_return(s, dr, fraction=cfg.bottom_fraction,
-                                        blanking_m=cfg.blanking_m) for s in (port, stbd)], axis=1)
+    if sides is None:
+        sides = np.stack([port, stbd])
+    det = np.ascontiguousarray(detect_first_return(sides, dr, fraction=cfg.bottom_fraction,
+                                                   blanking_m=cfg.blanking_m).T)
     if cfg.bottom == "detect":
         return det
     rec = np.stack([recorded, recorded], axis=1)
@@ -569,11 +588,12 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     Waterfall
     """
     cfg = config
-    port, stbd = stack_pings(pings)
+    sides = stack_sides(pings)
+    port, stbd = sides[0], sides[1]
     dr = pings[0].sample_spacing_m
     res = float(cfg.ground_res_m or dr)
     n_side = int(math.ceil(pings[0].slant_range_m / res))
-    alt = _altitudes(pings, port, stbd, cfg)
+    alt = _altitudes(pings, port, stbd, cfg, sides)
     if cfg.line_removal:
         port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
     image = np.empty((len(pings), 2 * n_side), np.float32)
