@@ -499,7 +499,12 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     if data.ndim == 2 and image.ndim == 2 and image.dtype.kind == "f" and data.shape == image.shape \
             and data.shape[0] and (data == data[:1]).all():
         keep = np.flatnonzero(data[0])
-        s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
+        if keep.size and keep[-1] - keep[0] + 1 == keep.size:  # one run of columns (a waterfall's): a
+            # slice copied (0.03 ms for 200 x 1000, the column gather 0.2 ms)
+            cols = image[:, keep[0]:keep[-1] + 1]
+            s = cols.T.copy() if axis == 0 else cols.copy()
+        else:
+            s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
         m = s.shape[1]
         out = np.full(image.shape[1 - axis], np.nan, dtype=s.dtype)
         if m:
