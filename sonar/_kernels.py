@@ -144,8 +144,8 @@ def _box_cols(src, size, out):
 @jit(cache=True)
 def uniform_filter_rows(src, size, out):
     """``scipy.ndimage.uniform_filter1d(src, size, axis=1)`` (mode ``reflect``) of a float32
-    (R, C) image into ``out`` float32 (:func:`_box_cols`; ``size`` ≤ C)."""
-    _box_cols(src, size, out)
+    (R, C) image into ``out`` float32 (:func:`_box_cols_lines`; ``size`` ≤ C)."""
+    _box_cols_lines(src, size, out)
 
 
 @jit(cache=True, error_model="numpy")
@@ -175,11 +175,11 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
     # for the first row only, which stands for every row (less memory written and read)
     same_rows = True
     for i in range(1, n_rows):
-        for k in range(n_cols):
-            if data[i, k] != data[0, k]:
-                same_rows = False
-                break
-        if not same_rows:
+        differ = False
+        for k in range(n_cols):  # (no break in the row: the loop vectorises, 0.21 → 0.01 ms)
+            differ |= data[i, k] != data[0, k]
+        if differ:
+            same_rows = False
             break
     m_rows = 1 if same_rows else n_rows
     # (equal rows: the rows pass of as many rows as its reflections reach gives the same sums)
@@ -188,9 +188,9 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
         for k in range(n_cols):
             msk[i, k] = np.float32(data[i, k])
     _gauss_rows(x, w_rows, tmp)
-    _gauss_cols(tmp, w_cols, img)
+    _gauss_cols_fused(tmp, w_cols, img)
     _gauss_rows(msk[:s_rows], w_rows, tmp[:s_rows])
-    _gauss_cols(tmp[:m_rows], w_cols, wgt[:m_rows])
+    _gauss_cols_fused(tmp[:m_rows], w_cols, wgt[:m_rows])
     # (selects, not branches: the loops vectorise; a pixel without weight divides by 1)
     for i in range(n_rows):
         wgt_row = wgt[0] if same_rows else wgt[i]
@@ -203,10 +203,10 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             x[i, k] = v if data[i, k] else zero  # num's input: the image where there is data
     num = wgt
     _box_rows(x, box_rows, tmp)
-    _box_cols(tmp, box_cols, num)
+    _box_cols_lines(tmp, box_cols, num)
     den = x
     _box_rows(msk[:s_rows], box_rows, tmp[:s_rows])
-    _box_cols(tmp[:m_rows], box_cols, den[:m_rows])
+    _box_cols_lines(tmp[:m_rows], box_cols, den[:m_rows])
     for i in range(n_rows):
         den_row = den[0] if same_rows else den[i]
         for k in range(n_cols):
@@ -710,3 +710,154 @@ def slant_to_ground(samples, spacing_m, altitude_m, ground_m, out):
             a = samples[i, first[j]]
             v = a + frac[j] * (samples[i, first[j] + 1] - a)
             out[i, j] = v if valid[j] else zero
+
+
+@jit(cache=True)
+def bracket_rows(s, lo_v, hi_v, below, count, cand):
+    """Per row ``i`` of ``s`` (R, M) float32: how many values are below ``lo_v[i]`` (``below``)
+    and how many lie in ``[lo_v[i], hi_v[i]]`` (``count``), the first ``W`` of the latter (in
+    row order) in ``cand[i]`` (R, W) float32, the rest of that row +inf
+    (:func:`adaptnav.sonar.waterfall.row_medians`: the sorted row's middle values are the
+    sorted candidates' ``r − below`` th when ``below ≤ r < below + count ≤ W``). Every value
+    is stored and the counters advanced by the comparisons (no branch per value)."""
+    n_rows, m = s.shape
+    width = cand.shape[1]
+    buf = np.empty(m + 1, np.float32)
+    for i in range(n_rows):
+        a = lo_v[i]
+        b = hi_v[i]
+        n_below = 0
+        n = 0
+        for k in range(m):
+            v = s[i, k]
+            n_below += v < a
+            buf[n] = v
+            n += (v >= a) & (v <= b)
+        below[i] = n_below
+        count[i] = n
+        n_kept = min(n, width)
+        for k in range(n_kept):
+            cand[i, k] = buf[k]
+        for k in range(n_kept, width):
+            cand[i, k] = np.inf
+
+
+@jit(cache=True)
+def _gauss_cols_fused(src, w, out):
+    """:func:`_gauss_cols` (the same sums in the same order: ``i₀ w₀``, then the pairs from the
+    farthest in), for a half-width ``r`` ≤ 3 in one pass per row that keeps each sum in a
+    register (the shifted lines as views, so that the loop vectorises; 0.41 → 0.20 ms on a
+    200 × 1000 image for the detector's r = 3); wider kernels by :func:`_gauss_cols`."""
+    r = w.shape[0] // 2
+    if r > 3:
+        _gauss_cols(src, w, out)
+        return
+    n_rows, n_cols = src.shape
+    line = np.empty(n_cols + 2 * r)
+    w0 = w[r]
+    for i in range(n_rows):
+        for k in range(n_cols):
+            line[k + r] = np.float64(src[i, k])
+        for k in range(1, r + 1):
+            line[r - k] = line[r + k - 1]
+            line[r + n_cols - 1 + k] = line[r + n_cols - k]
+        mid = line[r:r + n_cols]
+        o = out[i]
+        if r == 3:
+            wa, wb, wc = w[0], w[1], w[2]
+            la, ra = line[0:n_cols], line[6:6 + n_cols]
+            lb, rb = line[1:1 + n_cols], line[5:5 + n_cols]
+            lc, rc = line[2:2 + n_cols], line[4:4 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                acc += (lb[k] + rb[k]) * wb
+                acc += (lc[k] + rc[k]) * wc
+                o[k] = np.float32(acc)
+        elif r == 2:
+            wa, wb = w[0], w[1]
+            la, ra = line[0:n_cols], line[4:4 + n_cols]
+            lb, rb = line[1:1 + n_cols], line[3:3 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                acc += (lb[k] + rb[k]) * wb
+                o[k] = np.float32(acc)
+        elif r == 1:
+            wa = w[0]
+            la, ra = line[0:n_cols], line[2:2 + n_cols]
+            for k in range(n_cols):
+                acc = mid[k] * w0
+                acc += (la[k] + ra[k]) * wa
+                o[k] = np.float32(acc)
+        else:
+            for k in range(n_cols):
+                o[k] = np.float32(mid[k] * w0)
+
+
+@jit(cache=True)
+def _extended_line(src, i, size, line):
+    """Row ``i`` of ``src`` in float64, reflect-extended for a running sum of ``size``:
+    ``line[j] = src[i, k]`` with ``k`` the reflection of ``j − size // 2 − 1`` (j < C + size)."""
+    n_cols = src.shape[1]
+    off = size // 2 + 1
+    for j in range(off):
+        line[j] = np.float64(src[i, _reflect(j - off, n_cols)])
+    row = src[i]
+    mid = line[off:off + n_cols]
+    for k in range(n_cols):
+        mid[k] = np.float64(row[k])
+    for j in range(off + n_cols, n_cols + size):
+        line[j] = np.float64(src[i, _reflect(j - off, n_cols)])
+
+
+@jit(cache=True)
+def _box_cols_lines(src, size, out):
+    """:func:`_box_cols` (the same running sums, ``S₀`` from the first ``size`` values in order,
+    then ``Sₖ = Sₖ₋₁ + (i_{k+size−1−s₁} − i_{k−1−s₁})``, each divided by ``size``), four rows at a
+    time from reflect-extended float64 copies of them (:func:`_extended_line`): each sum's
+    values read in order from its own line, the four running sums side by side (0.5 → 0.2 ms
+    on a 200 × 1000 image: the strided reads of eight rows a column at a time were the cost)."""
+    n_rows, n_cols = src.shape
+    fs = np.float64(size)
+    lines = np.empty((4, n_cols + size))
+    sums = np.empty((4, n_cols))
+    i = 0
+    while i < n_rows:
+        m = min(4, n_rows - i)
+        for q in range(m):
+            _extended_line(src, i + q, size, lines[q])
+        if m == 4:
+            l0, l1, l2, l3 = lines[0], lines[1], lines[2], lines[3]
+            s0, s1, s2, s3 = sums[0], sums[1], sums[2], sums[3]
+            a0 = a1 = a2 = a3 = 0.0
+            for j in range(1, size + 1):
+                a0 += l0[j]
+                a1 += l1[j]
+                a2 += l2[j]
+                a3 += l3[j]
+            s0[0], s1[0], s2[0], s3[0] = a0, a1, a2, a3
+            for k in range(1, n_cols):
+                a0 += l0[k + size] - l0[k]
+                s0[k] = a0
+                a1 += l1[k + size] - l1[k]
+                s1[k] = a1
+                a2 += l2[k + size] - l2[k]
+                s2[k] = a2
+                a3 += l3[k + size] - l3[k]
+                s3[k] = a3
+        else:
+            for q in range(m):
+                lq, sq = lines[q], sums[q]
+                a = 0.0
+                for j in range(1, size + 1):
+                    a += lq[j]
+                sq[0] = a
+                for k in range(1, n_cols):
+                    a += lq[k + size] - lq[k]
+                    sq[k] = a
+        for q in range(m):
+            o, sq = out[i + q], sums[q]
+            for k in range(n_cols):
+                o[k] = np.float32(sq[k] / fs)
+        i += m

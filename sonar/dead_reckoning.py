@@ -100,14 +100,16 @@ class AnchoredDeadReckoning:
             self._dr = np.array((dn + step * math.cos(mid), de + step * math.sin(mid)))
         t_prev = self._last[0] if self._last is not None else t
         self._last = (t, speed, yaw)
-        keep = []
-        for tf, p, sig in sorted(self._pending, key=lambda f: f[0]):
-            if tf > t:
-                keep.append((tf, p, sig))
-                continue
-            a = 0.0 if t <= t_prev else min(max((tf - t_prev) / (t - t_prev), 0.0), 1.0)
-            self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, dr0 + a * (self._dr - dr0), p, sig)
-        self._pending = keep
+        if self._pending:  # (most pings: no fix waiting)
+            keep = []
+            for tf, p, sig in sorted(self._pending, key=lambda f: f[0]):
+                if tf > t:
+                    keep.append((tf, p, sig))
+                    continue
+                a = 0.0 if t <= t_prev else min(max((tf - t_prev) / (t - t_prev), 0.0), 1.0)
+                self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, dr0 + a * (self._dr - dr0),
+                             p, sig)
+            self._pending = keep
         self._predict(t)
         return self._dr + self._x[:2], self.sigma()
 

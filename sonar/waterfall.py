@@ -189,21 +189,26 @@ def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, 
 
 def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
     """Port and starboard samples as (P, N) float32 arrays (sample 0 nearest)."""
+    both = stack_sides(pings)
+    return both[0], both[1]
+
+
+def stack_sides(pings: Sequence[SonarPing]) -> np.ndarray:
+    """Port (``[0]``) and starboard (``[1]``) samples as one (2, P, N) float32 array (sample 0
+    nearest; non-finite samples 0)."""
     if not pings:
         raise ValueError("no pings")
     n = pings[0].n_samples
     bad = [i for i, p in enumerate(pings) if p.n_samples != n]
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
-    out = []
-    for side in ([p.port for p in pings], [p.starboard for p in pings]):
-        # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
-        a = np.concatenate(side).astype(np.float32, copy=False).reshape(len(pings), n)  # (a new array already)
-        non_finite = ~np.isfinite(a)
-        if non_finite.any():
-            a[non_finite] = 0.0
-        out.append(a)
-    return out[0], out[1]
+    # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
+    a = np.concatenate([p.port for p in pings] + [p.starboard for p in pings])
+    a = a.astype(np.float32, copy=False).reshape(2, len(pings), n)  # (a new array already)
+    non_finite = ~np.isfinite(a)
+    if non_finite.any():
+        a[non_finite] = 0.0
+    return a
 
 
 def row_percentile(a: np.ndarray, q: float) -> np.ndarray:
@@ -231,8 +236,9 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
 
     Parameters
     ----------
-    samples : numpy.ndarray, shape (P, N)
-        One side's intensities, sample 0 nearest the vehicle.
+    samples : numpy.ndarray, shape (P, N) or (K, P, N)
+        One side's intensities, sample 0 nearest the vehicle; or K sides' (each its own
+        smoothing over pings: the pings' steps, which are row by row, done for all at once).
     sample_spacing_m : float
         Slant spacing (m).
     fraction : float
@@ -244,9 +250,14 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
 
     Returns
     -------
-    numpy.ndarray, shape (P,)
+    numpy.ndarray, shape (P,) or (K, P)
         Slant range (m) of the first return; NaN when a ping has no return.
     """
+    if samples.ndim == 3:
+        k, p, n = samples.shape
+        rng_m = detect_first_return(samples.reshape(k * p, n), sample_spacing_m, fraction=fraction,
+                                    blanking_m=blanking_m, smooth_pings=1).reshape(k, p)
+        return np.stack([_smooth_over_pings(r, smooth_pings) for r in rng_m])
     if samples.ndim == 2 and samples.shape[1] >= 5:
         from adaptnav.sonar import _kernels
 
@@ -271,7 +282,12 @@ def detect_first_return(samples: np.ndarray, sample_spacing_m: float, *,
     shift = np.where(raw_above.any(axis=1), offs[np.argmax(raw_above, axis=1)], 0)
     idx = (idx + shift).astype(float)
     idx[~above.any(axis=1) | (level <= 0)] = np.nan
-    rng_m = (idx + 0.5) * sample_spacing_m
+    return _smooth_over_pings((idx + 0.5) * sample_spacing_m, smooth_pings)
+
+
+def _smooth_over_pings(rng_m: np.ndarray, smooth_pings: int) -> np.ndarray:
+    """:func:`detect_first_return`'s median over ``smooth_pings`` pings of one side's ranges
+    (NaN kept; filled with the side's median for the filter)."""
     if smooth_pings > 1 and rng_m.size >= smooth_pings:
         finite = np.isfinite(rng_m)
         filled = rng_m if finite.all() else np.where(finite, rng_m, np.nanmedian(rng_m))
@@ -345,8 +361,9 @@ def slant_to_ground_numpy(samples: np.ndarray, sample_spacing_m: float, altitude
 
 
 def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
-               cfg: WaterfallConfig) -> np.ndarray:
-    """Altitude per ping and side (P, 2) following ``cfg.bottom``."""
+               cfg: WaterfallConfig, sides: np.ndarray | None = None) -> np.ndarray:
+    """Altitude per ping and side (P, 2) following ``cfg.bottom``; ``sides``, when given, is
+    ``port`` and ``stbd`` stacked (:func:`stack_sides`: both sides' first returns at once)."""
     dr = pings[0].sample_spacing_m
     recorded = np.array([p.altitude_m for p in pings], dtype=float)
     recorded[~(recorded > 0)] = np.nan
@@ -354,8 +371,10 @@ def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
         return np.stack([recorded, recorded], axis=1)
     if cfg.bottom not in ("auto", "detect"):
         raise ValueError(f"bottom must be 'auto', 'altitude' or 'detect', not {cfg.bottom!r}")
-    det = np.stack([detect_first_return(s, dr, fraction=cfg.bottom_fraction,
-                                        blanking_m=cfg.blanking_m) for s in (port, stbd)], axis=1)
+    if sides is None:
+        sides = np.stack([port, stbd])
+    det = np.ascontiguousarray(detect_first_return(sides, dr, fraction=cfg.bottom_fraction,
+                                                   blanking_m=cfg.blanking_m).T)
     if cfg.bottom == "detect":
         return det
     rec = np.stack([recorded, recorded], axis=1)
@@ -480,12 +499,16 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     if data.ndim == 2 and image.ndim == 2 and image.dtype.kind == "f" and data.shape == image.shape \
             and data.shape[0] and (data == data[:1]).all():
         keep = np.flatnonzero(data[0])
-        s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
-        s.sort(axis=1)
+        if keep.size and keep[-1] - keep[0] + 1 == keep.size:  # one run of columns (a waterfall's): a
+            # slice copied (0.03 ms for 200 x 1000, the column gather 0.2 ms)
+            cols = image[:, keep[0]:keep[-1] + 1]
+            s = cols.T.copy() if axis == 0 else cols.copy()
+        else:
+            s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
         m = s.shape[1]
         out = np.full(image.shape[1 - axis], np.nan, dtype=s.dtype)
         if m:
-            med = (s[:, (m - 1) // 2] + s[:, m // 2]) / s.dtype.type(2)
+            med = row_medians(s)
             if axis == 0:
                 out[keep] = med
             else:
@@ -500,6 +523,46 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         med = (a + b) / s.dtype.type(2)
     return np.where(n > 0, med, np.nan)
+
+
+def row_medians(s: np.ndarray) -> np.ndarray:
+    """The median of every row of a 2-D array (``s`` may be reordered; NaN sorted last): the mean
+    of the sorted row's values of rank ``(m − 1) // 2`` and ``m // 2`` in the array's dtype,
+    as sorting the rows gives it (``numpy.median`` of each row without NaN).
+
+    Float32 rows of at least 512 values (a waterfall's rows: 200 of ~1000 in 2.1 ms sorted,
+    numpy's sort being 4 times slower per value there than on rows of 200) are bracketed
+    instead: every 4th value of each row sorted, the values ±1.25 √n ranks around its middle
+    taken as a bracket, the row's values inside it gathered
+    (:func:`adaptnav.sonar._kernels.bracket_rows`: ~160 of them) and sorted; the middle ranks
+    are those candidates' when the bracket holds them (the counts tell), else the row is sorted
+    whole (0.8 ms). The same numbers: the sorted row's values of those ranks, either way.
+    """
+    r, m = s.shape
+    lo, hi = (m - 1) // 2, m // 2
+    if m >= 512 and s.dtype == np.float32 and r:
+        from adaptnav.sonar import _kernels
+
+        s = np.ascontiguousarray(s)
+        sample = np.sort(s[:, ::4], axis=1)
+        n_sample = sample.shape[1]
+        d = int(1.25 * math.sqrt(n_sample)) + 1
+        a = np.ascontiguousarray(sample[:, max((n_sample - 1) // 2 - d, 0)])
+        b = np.ascontiguousarray(sample[:, min(n_sample // 2 + d, n_sample - 1)])
+        below, count = np.empty(r, np.int64), np.empty(r, np.int64)
+        cand = np.empty((r, 256), np.float32)
+        _kernels.bracket_rows(s, a, b, below, count, cand)
+        cand.sort(axis=1)
+        ok = (below <= lo) & (below + count > hi) & (count <= cand.shape[1])
+        rows = np.arange(r)
+        out = (cand[rows, np.where(ok, lo - below, 0)] + cand[rows, np.where(ok, hi - below, 0)]) / np.float32(2)
+        if not ok.all():
+            bad = np.flatnonzero(~ok)
+            whole = np.sort(s[bad], axis=1)
+            out[bad] = (whole[:, lo] + whole[:, hi]) / np.float32(2)
+        return out
+    s.sort(axis=1)
+    return (s[:, lo] + s[:, hi]) / s.dtype.type(2)
 
 
 def normalise_gain(image: np.ndarray) -> np.ndarray:
@@ -530,11 +593,12 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     Waterfall
     """
     cfg = config
-    port, stbd = stack_pings(pings)
+    sides = stack_sides(pings)
+    port, stbd = sides[0], sides[1]
     dr = pings[0].sample_spacing_m
     res = float(cfg.ground_res_m or dr)
     n_side = int(math.ceil(pings[0].slant_range_m / res))
-    alt = _altitudes(pings, port, stbd, cfg)
+    alt = _altitudes(pings, port, stbd, cfg, sides)
     if cfg.line_removal:
         port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
     image = np.empty((len(pings), 2 * n_side), np.float32)

@@ -60,7 +60,7 @@ def _exercise_sonar_kernels() -> None:
     from adaptnav.sonar.objects import (ObjectDetectorConfig, _deep_shadow_rows, _detect_near, _detect_shadowed,
                                         _Runs, local_level)
     from adaptnav.sonar.ping import SonarPing
-    from adaptnav.sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall
+    from adaptnav.sonar.waterfall import Waterfall, WaterfallConfig, build_waterfall, row_medians
 
     rng = np.random.default_rng(0)
     rows, w = 64, 128
@@ -85,6 +85,8 @@ def _exercise_sonar_kernels() -> None:
     pings = [SonarPing(t_s=0.1 * i, port=row[:w], starboard=row[w:], slant_range_m=12.8, altitude_m=3.0 + 0.01 * i)
              for i, row in enumerate(image)]
     build_waterfall(pings, WaterfallConfig(ground_res_m=0.1, resample_along=False, line_removal=True))
+    # a real block's rows are ~1000 columns: their medians by selection (longer rows than here)
+    row_medians(rng.gamma(2.0, 0.5, (8, 600)).astype(np.float32))
 
 
 def run(args):

@@ -74,3 +74,41 @@ def test_deep_shadow_rows_run_by_run_are_the_whole_image_scan():
             runs = _Runs(rng.integers(1, 9, n), rng.integers(0, side.shape[0], n), near, far)
             for level in (0.3, 0.45, 0.1):
                 assert np.array_equal(_deep_shadow_rows(side, runs, level), _deep_shadow_rows_scan(side, runs, level))
+
+
+def test_fused_gaussian_along_columns_is_scipys():
+    """sonar._kernels._gauss_cols_fused (one pass for half-widths 0-3, the general pass beyond)
+    against scipy.ndimage.gaussian_filter1d along the rows' columns, bit for bit."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from adaptnav.sonar import _kernels
+    from adaptnav.sonar.objects import _gaussian_weights
+
+    rng = np.random.default_rng(23)
+    for sigma in (0.1, 0.2, 0.5, 0.7, 1.0):  # half-widths 0, 1, 2, 3, 4
+        w = _gaussian_weights(sigma)
+        for shape in ((1, 9), (7, 4), (30, 257)):
+            src = (rng.gamma(1.0, 1.0, shape) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
+            out = np.empty(shape, np.float32)
+            _kernels._gauss_cols_fused(src, w, out)
+            ref = gaussian_filter1d(src, sigma, axis=1, mode="reflect")
+            np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))
+
+
+def test_box_along_columns_by_lines_is_scipys():
+    """sonar._kernels._box_cols_lines (four rows' running sums side by side, the rest one by one)
+    against scipy.ndimage.uniform_filter1d along the rows' columns, bit for bit."""
+    from scipy.ndimage import uniform_filter1d
+
+    from adaptnav.sonar import _kernels
+
+    rng = np.random.default_rng(29)
+    for shape in ((1, 9), (4, 60), (7, 61), (30, 257)):
+        for size in (2, 3, 4, 7, min(60, shape[1])):
+            if size > shape[1]:
+                continue
+            src = (rng.gamma(1.0, 1.0, shape) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
+            out = np.empty(shape, np.float32)
+            _kernels._box_cols_lines(src, size, out)
+            ref = uniform_filter1d(src, size, axis=1, mode="reflect")
+            np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))

@@ -236,3 +236,30 @@ def test_first_return_filters_are_scipys():
         out = np.empty(shape, np.float32)
         _kernels.uniform_filter_rows(samples, 5, out)
         np.testing.assert_array_equal(out.view(np.uint32), uniform_filter1d(samples, 5, axis=1).view(np.uint32))
+
+
+def test_row_medians_are_numpys_median():
+    """The bracketed selection (sonar._kernels.bracket_rows) against the sorted rows' middle values,
+    bit for bit: speckle-like rows, ties, NaN, rows whose bracket misses the middle (sorted whole)."""
+    from adaptnav.sonar.waterfall import row_medians
+
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        r, m = int(rng.integers(1, 60)), int(rng.integers(512, 1400))
+        s = rng.gamma(float(rng.uniform(0.3, 3.0)), 1.0, (r, m)).astype(np.float32)
+        if trial % 4 == 1:
+            s = np.round(s, 1)  # ties (a bracket of equal values)
+        if trial % 4 == 2:
+            s[rng.random((r, m)) < 0.3] = np.nan  # sorted last, as numpy sorts
+        if trial % 4 == 3:
+            s[: r // 2, : m // 2 + 3] = 2.0  # more than half one value: the candidates overflow
+            s[r // 2:, ::4] = 0.0  # the sample all at the bottom: the bracket misses the middle
+        t = np.sort(s, axis=1)  # the reference: the two middle values of the sorted row, their mean
+        ref = (t[:, (m - 1) // 2] + t[:, m // 2]) / np.float32(2)
+        if trial % 4 != 2:
+            np.testing.assert_array_equal(ref, np.median(s, axis=1))  # (which is numpy.median's without NaN)
+        got = row_medians(s.copy())
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got.view(np.uint32), ref.view(np.uint32))
+    small = rng.gamma(1.0, 1.0, (5, 200)).astype(np.float32)  # (short rows: sorted)
+    np.testing.assert_array_equal(row_medians(small.copy()), np.median(small, axis=1))
