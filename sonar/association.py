@@ -537,19 +537,20 @@ class LegAssociator:
             rel_known, rel_D = rel[1][:, None, None], rel[0] + D_old
         # every new sighting (rows) against every old one (columns) at once
         wide_m2 = c.clutter_scale * self._gate
-        other_leg = ~(t_old[None] >= np.array([b.t_s - c.min_gap_s for b in batch])[:, None])
+        other_leg = ~(t_old[None] >= np.array([t - c.min_gap_s for t in t_batch])[:, None])
         d_all = P_old[None] - np.array([b.pos_n_m for b in batch])[:, None]
-        S_all = C_old[None] + np.array([b.nav_cov + b.det_cov for b in batch])[:, None]
+        D_new = np.array([b.det_cov for b in batch])
+        S_all = C_old[None] + (np.array([b.nav_cov for b in batch]) + D_new)[:, None]
         if rel is not None:
-            S_all = np.where(rel_known[None], rel_D[None] + np.array([b.det_cov for b in batch])[:, None], S_all)
+            S_all = np.where(rel_known[None], rel_D[None] + D_new[:, None], S_all)
         # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
         need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
         out = []
         cl: dict[str, list] = {k: [] for k in keys}
         for j in np.flatnonzero(need.any(axis=1)).tolist():  # (the others have none in the wide gate)
-            b, S = batch[j], S_all[j]
+            b, S, near = batch[j], S_all[j], need[j]
             m2 = np.full(len(old), np.inf)
-            m2[need[j]] = _m2_of(d_all[j][need[j]], S[need[j]], len(old))
+            m2[near] = _m2_of(d_all[j][near], S[near], len(old))
             wide = np.flatnonzero(m2 <= wide_m2)
             agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
             if self.trace is not None:
