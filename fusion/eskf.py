@@ -410,7 +410,8 @@ class Estimator:
                 return None
             return (ns.t_s, tuple(ns.pos_n_m[:2].tolist()), tuple(ns.vel_n_m_s[:2].tolist()), ns.euler_rad()[2],
                     ns.cov[POS_NE, POS_NE].tolist(), ns.cov[_VEL_NE, _VEL_NE].tolist())
-        cov = self._cov_now()
+        # _cov_now's numbers, read in place when no step is pending (no copy)
+        cov = self._P if self._acc[ACC_T] <= 0.0 else kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
         if self.dvl_calibration is not None:  # _add_considered's terms of these blocks (the same additions)
             a00, a01, a10, a11 = self.dvl_calibration.position_cov_ne_values()
@@ -419,8 +420,13 @@ class Estimator:
         # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats)
         if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) or not all(map(math.isfinite, xs)):
             return None
-        n, e = X_POS_NE.start, _X_VEL_NE.start
-        return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), quat_to_euler(self._x[X_Q])[2],
+        n, e, q = X_POS_NE.start, _X_VEL_NE.start, X_Q.start
+        # quat_to_euler's yaw of the same floats (the same arithmetic, without its roll and pitch)
+        w, x, y, z = xs[q:q + 4]
+        yaw = math.atan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
+        if yaw >= math.pi:
+            yaw -= 2.0 * math.pi
+        return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), yaw,
                 [[c00, c01], [c10, c11]], cov[_VEL_NE, _VEL_NE].tolist())
 
     def _add_considered(self, cov: np.ndarray) -> None:

@@ -99,9 +99,13 @@ class SideScanEstimator(Estimator):
         if kind == "sonar_objects":
             return self._objects(sample) if self.config.loop_closure.enabled else []
         out = Estimator.process(self, sample)  # (super() resolved per sample costs more)
-        if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf \
-                and self._clock[0] - self._t_ping < SONAR_ACTIVE_S and self.clone_position():
-            self._keep_clone_jump()
+        if (kind == "imu_batch" or kind == "imu") and self._t_ping > -math.inf:
+            t = float(self._clock[0])
+            clones = self._clones.t_s
+            # (a clone at most every clone period: clone_position() would return False at once)
+            if t - self._t_ping < SONAR_ACTIVE_S and not (clones and t - clones[-1] < self._clones.period_s) \
+                    and self.clone_position():
+                self._keep_clone_jump()
         return out
 
     def shift_time(self, delta_s: float) -> None:
@@ -126,16 +130,25 @@ class SideScanEstimator(Estimator):
         t_s, (p0, p1), vel, yaw, ((c00, c01), (c10, c11)), ((v00, v01), (v10, v11)) = ns
         dt = t - t_s
         v0, v1 = vel
-        pos = (p0 + v0 * dt, p1 + v1 * dt)
-        self._jump = self._jump_at(t, pos, vel)
-        self._last_vel = (t, pos, vel)
+        pos0, pos1 = p0 + v0 * dt, p1 + v1 * dt
+        # the accumulated jumps here (_jump_at, inlined: the same arithmetic, a call less per ping)
+        j0, j1 = self._jump
+        last = self._last_vel
+        if last is not None and t > last[0]:
+            t0, (q0, q1), (u0, u1) = last
+            d = t - t0
+            j0, j1 = j0 + (pos0 - (q0 + 0.5 * (u0 + v0) * d)), j1 + (pos1 - (q1 + 0.5 * (u1 + v1) * d))
+            self._jump = (j0, j1)
+        self._last_vel = (t, (pos0, pos1), vel)
         nav = self._nav
         if nav:
-            if t <= nav[-1][0]:
+            last = nav[-1]
+            if t <= last[0]:
                 return
-            yaw = nav[-1][3] + math.remainder(yaw - nav[-1][3], 2.0 * math.pi)
-        nav.append((t, *pos, yaw, c00, c01, c10, c11, *self._jump, v00, v01, v10, v11))
-        while nav and nav[0][0] < t - self.nav_keep_s:
+            yaw = last[3] + math.remainder(yaw - last[3], 2.0 * math.pi)
+        nav.append((t, pos0, pos1, yaw, c00, c01, c10, c11, j0, j1, v00, v01, v10, v11))
+        t_keep = t - self.nav_keep_s
+        while nav and nav[0][0] < t_keep:
             nav.popleft()
 
     def _jump_at(self, t: float, pos: tuple[float, float], vel: tuple[float, float]) -> tuple[float, float]:

@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from itertools import chain
 
 import numpy as np
 from scipy import special
@@ -295,6 +296,17 @@ def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
             "id": np.array([id(o) for o in sightings], dtype=np.int64)}
 
 
+def _median(values: list[float]) -> float:
+    """``float(np.median(values))`` of a non-empty list of floats, the same number: the middle
+    one, or the mean of the middle two as numpy takes it (their sum halved); numpy's own for
+    non-finite ones (a tenth of the candidates' search was numpy's median of a few times)."""
+    v = sorted(values)
+    n = len(v)
+    if not (math.isfinite(v[0]) and math.isfinite(v[-1])) or any(x != x for x in v):
+        return float(np.median(values))
+    return float(v[n // 2] if n % 2 else (v[n // 2 - 1] + v[n // 2]) / 2.0)
+
+
 def _m2_of(r: np.ndarray, R: np.ndarray, n_rows: int) -> np.ndarray:
     """:func:`_m2` of some of the ``n_rows`` rows it would have been given: the same numbers
     (numpy's einsum sums a lone row in another order than two or more: a lone one of several
@@ -509,32 +521,36 @@ class LegAssociator:
         key = tuple(id(o) for o in batch)
         if self._memo is not None and key in self._memo:
             return self._memo[key]
-        t_new = max(o.t_s for o in batch)
-        in_batch = {id(o) for o in batch}
+        t_batch = [o.t_s for o in batch]
+        t_new = max(t_batch)
         stored = self._stored_arrays()
-        old = np.flatnonzero((stored["t_s"] < t_new - c.min_gap_s) & ~np.isin(stored["id"], list(in_batch))).tolist()
-        if not old:
+        earlier = stored["t_s"] < t_new - c.min_gap_s
+        if min(t_batch) < t_new - c.min_gap_s:  # (else no sighting of the batch is that early)
+            earlier &= ~np.isin(stored["id"], [id(o) for o in batch])
+        k_old = np.flatnonzero(earlier)
+        if not k_old.size:
             return [], clutter
-        P_old, C_old, D_old, t_old = (stored[k][old] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
-        rel = self._relative(t_old, float(np.median([o.t_s for o in batch])))
+        old = k_old.tolist()
+        P_old, C_old, D_old, t_old = (stored[k][k_old] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
+        rel = self._relative(t_old, _median(t_batch))
         if rel is not None:  # the error difference's own covariance where the filter has it
             rel_known, rel_D = rel[1][:, None, None], rel[0] + D_old
         # every new sighting (rows) against every old one (columns) at once
         wide_m2 = c.clutter_scale * self._gate
-        other_leg = ~(t_old[None] >= np.array([b.t_s - c.min_gap_s for b in batch])[:, None])
+        other_leg = ~(t_old[None] >= np.array([t - c.min_gap_s for t in t_batch])[:, None])
         d_all = P_old[None] - np.array([b.pos_n_m for b in batch])[:, None]
-        S_all = C_old[None] + np.array([b.nav_cov + b.det_cov for b in batch])[:, None]
+        D_new = np.array([b.det_cov for b in batch])
+        S_all = C_old[None] + (np.array([b.nav_cov for b in batch]) + D_new)[:, None]
         if rel is not None:
-            S_all = np.where(rel_known[None], rel_D[None] + np.array([b.det_cov for b in batch])[:, None], S_all)
+            S_all = np.where(rel_known[None], rel_D[None] + D_new[:, None], S_all)
         # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
         need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
         out = []
         cl: dict[str, list] = {k: [] for k in keys}
-        for j, b in enumerate(batch):
-            S = S_all[j]
+        for j in np.flatnonzero(need.any(axis=1)).tolist():  # (the others have none in the wide gate)
+            b, S, near = batch[j], S_all[j], need[j]
             m2 = np.full(len(old), np.inf)
-            if need[j].any():
-                m2[need[j]] = _m2_of(d_all[j][need[j]], S[need[j]], len(old))
+            m2[near] = _m2_of(d_all[j][near], S[near], len(old))
             wide = np.flatnonzero(m2 <= wide_m2)
             agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
             if self.trace is not None:
@@ -911,7 +927,7 @@ class LegAssociator:
         if self._spans:
             self._spans = {k: v for k, v in self._spans.items() if any(k == id(r[2]) for r in self._recent)}
         if self._paired or self._tested or self._weak_used:  # (ids of sightings no longer kept could be reused)
-            alive = {id(o) for o in self._old + self._weak_old + self._pending + self._weak_pending}
+            alive = set(map(id, chain(self._old, self._weak_old, self._pending, self._weak_pending)))
             self._paired &= alive
             self._tested &= alive
             self._weak_used &= alive
@@ -969,31 +985,34 @@ class LegAssociator:
             return lc
         ii, jj = (np.array(v) for v in zip(*cand))
         diffs = p_old[ii] - p_new[jj]
-        D = np.array([old[i].det_cov for i in ii.tolist()]) + np.array([new[j].det_cov for j in jj.tolist()])
+        # (the detectors' covariances of the stored ones from their arrays: the same values)
+        D_old = np.concatenate([stored["det_cov"][k_old], weak["det_cov"][k_weak]])
+        D = D_old[ii] + np.array([o.det_cov for o in new])[jj]
         r, R = drift.residuals(diffs, t_old[ii], t_new[jj], D)
         m2 = _m2(r, R)
+        inside = np.flatnonzero(m2 <= self._inlier)
         # the object seen again, against a false weak sighting that happens to lie there: the
         # residual's density under the set's prediction over the false ones' density (a
         # prediction far from the set, or a drift known poorly, spreads over metres, where one
         # lies by chance; so does a residual at the edge of the gate). False weak sightings
         # gather where the seabed is rough (ripples, gravel): the density is the larger of the
-        # measured mean and the weak sightings' own around the pair's weak one
+        # measured mean and the weak sightings' own around the pair's weak one — needed only
+        # for the pairs inside the gate (of all pairs near the offset it was a quarter of this)
         rho = np.full(len(cand), c.weak_clutter_per_m2)
-        if self._weak_old:
+        if self._weak_old and inside.size:
             p_weak = weak["smooth_pos_n_m"]
             rad = c.weak_density_radius_m
             # the pair's weak sighting (the new one if weak), each counted once (it is in many pairs)
-            w_key = np.where(w_new[jj], len(old) + jj, ii)
+            i_in, j_in = ii[inside], jj[inside]
+            w_key = np.where(w_new[j_in], len(old) + j_in, i_in)
             _, first, at = np.unique(w_key, return_index=True, return_inverse=True)
-            p_w = np.where(w_new[jj[first]][:, None], p_new[jj[first]], p_old[ii[first]])
+            p_w = np.where(w_new[j_in[first]][:, None], p_new[j_in[first]], p_old[i_in[first]])
             n = np.count_nonzero(np.sum((p_weak[None] - p_w[:, None]) ** 2, axis=2) <= rad * rad, axis=1) - 1
-            rho = np.maximum(rho, (n / (math.pi * rad * rad))[at.reshape(-1)])
+            rho[inside] = np.maximum(rho[inside], (n / (math.pi * rad * rad))[at.reshape(-1)])
         lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
-        inside = np.flatnonzero(m2 <= self._inlier)
         # posterior odds: the prior odds that the other sighting's object is there to be seen
         # (an ordinary sighting is an object nine times in ten, a weak one once in 25)
-        prior = np.array([c.weak_weak_prior_odds if (old[i].weak and new[j].weak) else c.weak_prior_odds
-                          for i, j in cand])
+        prior = np.where(w_old[ii] & w_new[jj], c.weak_weak_prior_odds, c.weak_prior_odds)
         likely = [k for k in inside if prior[k] * lr[k] >= c.weak_posterior_odds]
         fit = [k for k in likely if self._attributes_agree(old[cand[k][0]], new[cand[k][1]])]
         # the only candidate of both its sightings (two objects near one place: either could be it)

@@ -174,7 +174,10 @@ class CloneBank:
         # the rows of dropped clones are dropped here only (snapshots never look them up
         # again); the live rows keep their entries for dropped clones (bounded, never read):
         # dropping those too rebuilt every entry per clone, 180² of them an hour in
-        self._row_stack = {cid: row for cid, row in self._row_stack.items() if cid not in gone}
+        rows = dict(self._row_stack)  # (a new dict: snapshots share the old one)
+        for cid in gone:
+            rows.pop(cid, None)
+        self._row_stack = rows
         self._diag = self._diag[k0:]
         self._rel = {}
 

@@ -162,3 +162,22 @@ def test_near_pairs_in_a_box_are_every_pair_the_norm_passes():
     got = _near_pairs(p_old, p_new, offset, 10.0, mask)
     assert np.array_equal(got, want)
     assert want[200:, :5].any() and want.sum() > 100
+
+
+def test_median_of_a_batchs_times_is_numpys():
+    """:func:`_median` (the batch's median time the gate's clones are asked at) gives
+    ``float(np.median(...))`` bit for bit: odd and even counts, ties, numpy floats, the mean
+    of two middle values that do not halve exactly, and non-finite values (numpy's answer)."""
+    from adaptnav.sonar.association import _median
+
+    rng = np.random.default_rng(5)
+    cases = [[1.0], [2.0, 1.0], [0.1, 0.2], [1e308, 1.7e308], [3.0, 3.0, 1.0, 3.0],
+             [1.0, float("nan"), 2.0], [1.0, float("inf")], [-float("inf"), 0.0, 1.0]]
+    for n in range(1, 40):
+        t = rng.uniform(0.0, 3600.0, n)
+        cases += [t.tolist(), list(t), np.round(t, 1).tolist(), (t * 0.1 + 1e-9).tolist()]
+    for v in cases:
+        with np.errstate(over="ignore"):  # (numpy's sum of the two largest overflows to inf: so does ours)
+            got, want = _median(v), float(np.median(v))
+        assert type(got) is float
+        assert got == want or (np.isnan(got) and np.isnan(want)), (v, got, want)
