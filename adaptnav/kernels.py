@@ -395,7 +395,7 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
         warnings.simplefilter("ignore")
         cc.compile()
     arg_specs[_MODULE_DIGEST] = [_file_digest(path)]
-    from adaptnav.service.runtime.persistence import atomic_write_bytes  # (the build is the service's step)
+    from adaptnav.files import atomic_write_bytes
 
     # readable by whoever may load the module (a service user, the build run as root)
     atomic_write_bytes(specs_path, json.dumps(arg_specs, indent=1, sort_keys=True).encode(),
