@@ -54,6 +54,18 @@ def _gauss_rows(src, w, out):
 
 
 @jit(cache=True)
+def _mirrored_line(src, i, r, line):
+    """Row ``i`` of ``src`` in float64 with ``r`` values mirrored beyond each end (scipy's
+    ``reflect``: ``d c b a | a b c d | d c b a``) into ``line`` (length C + 2r)."""
+    n_cols = src.shape[1]
+    for k in range(n_cols):
+        line[k + r] = np.float64(src[i, k])
+    for k in range(1, r + 1):
+        line[r - k] = line[r + k - 1]
+        line[r + n_cols - 1 + k] = line[r + n_cols - k]
+
+
+@jit(cache=True)
 def _gauss_cols(src, w, out):
     """``NI_Correlate1D`` (symmetric ``w``, odd length) along axis 1 of ``src`` into ``out``
     (float32): a row at a time, every element's sum in scipy's order."""
@@ -62,11 +74,7 @@ def _gauss_cols(src, w, out):
     line = np.empty(n_cols + 2 * r)
     acc = np.empty(n_cols)
     for i in range(n_rows):
-        for k in range(n_cols):
-            line[k + r] = np.float64(src[i, k])
-        for k in range(1, r + 1):
-            line[r - k] = line[r + k - 1]
-            line[r + n_cols - 1 + k] = line[r + n_cols - k]
+        _mirrored_line(src, i, r, line)
         w0 = w[r]
         # the shifted lines as views indexed by the loop variable alone: with ``k + r − j``
         # numba could not rule out a negative index, and its wrap-around test kept the loop
@@ -756,11 +764,7 @@ def _gauss_cols_fused(src, w, out):
     line = np.empty(n_cols + 2 * r)
     w0 = w[r]
     for i in range(n_rows):
-        for k in range(n_cols):
-            line[k + r] = np.float64(src[i, k])
-        for k in range(1, r + 1):
-            line[r - k] = line[r + k - 1]
-            line[r + n_cols - 1 + k] = line[r + n_cols - k]
+        _mirrored_line(src, i, r, line)
         mid = line[r:r + n_cols]
         o = out[i]
         if r == 3:
