@@ -115,45 +115,10 @@ def _box_rows(src, size, out):
 
 
 @jit(cache=True)
-def _box_cols(src, size, out):
-    """``NI_UniformFilter1D`` of ``size`` along axis 1 of ``src`` into ``out`` (float32): the
-    running sums of a block of rows side by side, a column at a time, kept; then each row's
-    divided (a loop that vectorises: the division was this pass's bound, 0.21 -> 0.18 ms on a
-    200 x 1000 image). Eight rows: more, read and written a column at a time, fell into the same
-    cache sets when a row is 2 kB (512 float32 samples: 32 rows took 0.6 ms, 8 take 0.09)."""
-    n_rows, n_cols = src.shape
-    s1 = size // 2
-    fs = np.float64(size)
-    block = 8
-    acc = np.empty(block)
-    sums = np.empty((block, n_cols + 8))  # (rows not a power of two apart)
-    for i0 in range(0, n_rows, block):
-        m = min(block, n_rows - i0)
-        for q in range(m):
-            acc[q] = 0.0
-        for k in range(-s1, size - s1):
-            a = _reflect(k, n_cols)
-            for q in range(m):
-                acc[q] += np.float64(src[i0 + q, a])
-        for q in range(m):
-            sums[q, 0] = acc[q]
-        for k in range(1, n_cols):
-            a = _reflect(k + size - 1 - s1, n_cols)
-            b = _reflect(k - 1 - s1, n_cols)
-            for q in range(m):
-                acc[q] += np.float64(src[i0 + q, a]) - np.float64(src[i0 + q, b])
-                sums[q, k] = acc[q]
-        for q in range(m):
-            row = sums[q]
-            for k in range(n_cols):
-                out[i0 + q, k] = np.float32(row[k] / fs)
-
-
-@jit(cache=True)
 def uniform_filter_rows(src, size, out):
     """``scipy.ndimage.uniform_filter1d(src, size, axis=1)`` (mode ``reflect``) of a float32
-    (R, C) image into ``out`` float32 (:func:`_box_cols_lines`; ``size`` ≤ C)."""
-    _box_cols_lines(src, size, out)
+    (R, C) image into ``out`` float32 (:func:`_box_cols`; ``size`` ≤ C)."""
+    _box_cols(src, size, out)
 
 
 @jit(cache=True, error_model="numpy")
@@ -211,10 +176,10 @@ def local_level(image, w_rows, w_cols, box_rows, box_cols, min_weight, min_count
             x[i, k] = v if data[i, k] else zero  # num's input: the image where there is data
     num = wgt
     _box_rows(x, box_rows, tmp)
-    _box_cols_lines(tmp, box_cols, num)
+    _box_cols(tmp, box_cols, num)
     den = x
     _box_rows(msk[:s_rows], box_rows, tmp[:s_rows])
-    _box_cols_lines(tmp[:m_rows], box_cols, den[:m_rows])
+    _box_cols(tmp[:m_rows], box_cols, den[:m_rows])
     for i in range(n_rows):
         den_row = den[0] if same_rows else den[i]
         for k in range(n_cols):
@@ -816,12 +781,13 @@ def _extended_line(src, i, size, line):
 
 
 @jit(cache=True)
-def _box_cols_lines(src, size, out):
-    """:func:`_box_cols` (the same running sums, ``S₀`` from the first ``size`` values in order,
-    then ``Sₖ = Sₖ₋₁ + (i_{k+size−1−s₁} − i_{k−1−s₁})``, each divided by ``size``), four rows at a
-    time from reflect-extended float64 copies of them (:func:`_extended_line`): each sum's
-    values read in order from its own line, the four running sums side by side (0.5 → 0.2 ms
-    on a 200 × 1000 image: the strided reads of eight rows a column at a time were the cost)."""
+def _box_cols(src, size, out):
+    """``NI_UniformFilter1D`` of ``size`` along axis 1 of ``src`` into ``out`` (float32): scipy's
+    running sums (``S₀`` from the first ``size`` values in order, then ``Sₖ = Sₖ₋₁ +
+    (i_{k+size−1−s₁} − i_{k−1−s₁})``, each divided by ``size``), four rows at a time from
+    reflect-extended float64 copies of them (:func:`_extended_line`): each sum's values read in
+    order from its own line, the four running sums side by side (0.5 → 0.2 ms on a 200 × 1000
+    image against eight rows' sums kept a column at a time: their strided reads were the cost)."""
     n_rows, n_cols = src.shape
     fs = np.float64(size)
     lines = np.empty((4, n_cols + size))

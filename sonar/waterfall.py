@@ -187,12 +187,6 @@ def clean_pings(pings: Sequence[SonarPing]) -> tuple[list[SonarPing], dict[str, 
     return out, dict(dropped)
 
 
-def stack_pings(pings: Sequence[SonarPing]) -> tuple[np.ndarray, np.ndarray]:
-    """Port and starboard samples as (P, N) float32 arrays (sample 0 nearest)."""
-    both = stack_sides(pings)
-    return both[0], both[1]
-
-
 def stack_sides(pings: Sequence[SonarPing]) -> np.ndarray:
     """Port (``[0]``) and starboard (``[1]``) samples as one (2, P, N) float32 array (sample 0
     nearest; non-finite samples 0)."""
@@ -360,10 +354,9 @@ def slant_to_ground_numpy(samples: np.ndarray, sample_spacing_m: float, altitude
     return out.astype(np.float32)
 
 
-def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
-               cfg: WaterfallConfig, sides: np.ndarray | None = None) -> np.ndarray:
-    """Altitude per ping and side (P, 2) following ``cfg.bottom``; ``sides``, when given, is
-    ``port`` and ``stbd`` stacked (:func:`stack_sides`: both sides' first returns at once)."""
+def _altitudes(pings: Sequence[SonarPing], sides: np.ndarray, cfg: WaterfallConfig) -> np.ndarray:
+    """Altitude per ping and side (P, 2) following ``cfg.bottom``; ``sides``: port and
+    starboard as one (2, P, N) array (:func:`stack_sides`: both sides' first returns at once)."""
     dr = pings[0].sample_spacing_m
     recorded = np.array([p.altitude_m for p in pings], dtype=float)
     recorded[~(recorded > 0)] = np.nan
@@ -371,8 +364,6 @@ def _altitudes(pings: Sequence[SonarPing], port: np.ndarray, stbd: np.ndarray,
         return np.stack([recorded, recorded], axis=1)
     if cfg.bottom not in ("auto", "detect"):
         raise ValueError(f"bottom must be 'auto', 'altitude' or 'detect', not {cfg.bottom!r}")
-    if sides is None:
-        sides = np.stack([port, stbd])
     det = np.ascontiguousarray(detect_first_return(sides, dr, fraction=cfg.bottom_fraction,
                                                    blanking_m=cfg.blanking_m).T)
     if cfg.bottom == "detect":
@@ -598,7 +589,7 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
     dr = pings[0].sample_spacing_m
     res = float(cfg.ground_res_m or dr)
     n_side = int(math.ceil(pings[0].slant_range_m / res))
-    alt = _altitudes(pings, port, stbd, cfg, sides)
+    alt = _altitudes(pings, sides, cfg)
     if cfg.line_removal:
         port, stbd = remove_lines(port, stbd, dr, alt, cfg.blanking_m)
     image = np.empty((len(pings), 2 * n_side), np.float32)

@@ -96,7 +96,7 @@ def test_fused_gaussian_along_columns_is_scipys():
 
 
 def test_box_along_columns_by_lines_is_scipys():
-    """sonar._kernels._box_cols_lines (four rows' running sums side by side, the rest one by one)
+    """sonar._kernels._box_cols (four rows' running sums side by side, the rest one by one)
     against scipy.ndimage.uniform_filter1d along the rows' columns, bit for bit."""
     from scipy.ndimage import uniform_filter1d
 
@@ -109,6 +109,6 @@ def test_box_along_columns_by_lines_is_scipys():
                 continue
             src = (rng.gamma(1.0, 1.0, shape) * rng.choice([1e-3, 1.0, 1e3])).astype(np.float32)
             out = np.empty(shape, np.float32)
-            _kernels._box_cols_lines(src, size, out)
+            _kernels._box_cols(src, size, out)
             ref = uniform_filter1d(src, size, axis=1, mode="reflect")
             np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))

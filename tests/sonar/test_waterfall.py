@@ -174,9 +174,8 @@ def test_auto_bottom_takes_a_late_echo_over_the_altimeter_only_when_both_sides_s
     from adaptnav.sonar.waterfall import _altitudes
 
     pings = _pings_with_returns(port_m, stbd_m, altimeter_m=6.0)
-    port = np.stack([p.port for p in pings])
-    stbd = np.stack([p.starboard for p in pings])
-    alt = _altitudes(pings, port, stbd, WaterfallConfig(bottom="auto"))
+    sides = np.stack([[p.port for p in pings], [p.starboard for p in pings]])
+    alt = _altitudes(pings, sides, WaterfallConfig(bottom="auto"))
     assert np.allclose(alt[:, 0], expect_port_m, atol=0.15), alt[:, 0]
     assert np.allclose(alt[:, 1], expect_stbd_m, atol=0.15), alt[:, 1]
 
