@@ -713,16 +713,15 @@ class Estimator:
         :meth:`process` first if nobody did, so the filter is the same either way.
 
         That is the check of the state kept as the last good one (:meth:`_keep_good`, once
-        per data second): a Cholesky of its covariance, 4.5 µs in a hot loop and some
-        50 µs on a live sample (caches cold) that was on the way to the nav state."""
+        per data second): a Cholesky of its covariance (compiled,
+        :func:`~adaptnav.fusion.kalman.core_positive_definite`), some 50 µs with numpy's on a
+        live sample (caches cold) that was on the way to the nav state."""
         candidate = self._good_candidate
         if candidate is None:
             return
         self._good_candidate = None
         snap, t_imu_last, t_s = candidate
-        try:
-            np.linalg.cholesky(snap.core[kalman.CORE_P].reshape(N_ERR, N_ERR))
-        except np.linalg.LinAlgError:
+        if not kalman.core_positive_definite(snap.core):
             return  # not positive definite: not a state to come back to (the next sample tries again)
         self._good = (snap, t_imu_last)
         self._good_t = t_s

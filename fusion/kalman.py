@@ -199,6 +199,32 @@ def core_ok(core, max_speed_m_s):
 
 
 @jit(cache=True)
+def core_positive_definite(core):
+    """The covariance of the core array positive definite: its Cholesky factorisation (of the
+    lower triangle, as LAPACK's ``potrf``, which ``np.linalg.cholesky`` calls) finds every
+    pivot positive (a NaN fails). The check of the state the estimator keeps as the last good
+    one, once per data second: ``np.linalg.cholesky`` there cost ~40 µs in a replay (its
+    error-state set-up and LAPACK's code cold), 3 % of the replaying process. The verdict can
+    differ from LAPACK's only on a pivot within rounding of zero (the sums' order differs)."""
+    P = core[N_X:_CORE_ACC].reshape((N_ERR, N_ERR))
+    L = np.zeros((N_ERR, N_ERR))
+    for j in range(N_ERR):
+        d = P[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return False
+        ljj = math.sqrt(d)
+        L[j, j] = ljj
+        for i in range(j + 1, N_ERR):
+            s = P[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / ljj
+    return True
+
+
+@jit(cache=True)
 def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
     """Propagate the core array over IMU samples ``t_s`` (N,), ``f_b`` (N, 3), ``w_b`` (N, 3).
 

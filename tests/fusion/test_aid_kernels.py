@@ -186,3 +186,52 @@ def test_the_dvl_track_covariance_values_follow_the_array():
         k = H @ cal.theta[:2] - np.array([cal._applied_n, cal._applied_e])
         want = H @ cal.P[:2, :2] @ H.T + np.outer(k, k)  # of this step's track and P
         np.testing.assert_allclose(np.reshape(values, (2, 2)), want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+
+def test_the_compiled_positive_definite_check_is_lapacks_verdict():
+    """The last-good-state check (Estimator.settle): the compiled Cholesky's verdict is
+    np.linalg.cholesky's, on positive definite covariances, ones made indefinite or singular
+    (a pivot well below zero, every variance positive but a correlation beyond 1), asymmetric ones (both read the lower triangle);
+    a NaN or an infinity in the lower triangle fails it."""
+    from adaptnav.fusion import kalman
+
+    rng = np.random.default_rng(5)
+    n = kalman.N_ERR
+    core = np.zeros(kalman.CORE_SIZE)
+    P = core[kalman.CORE_P].reshape(n, n)  # a view: written in place below
+
+    def lapack(A):
+        try:
+            np.linalg.cholesky(A)
+        except np.linalg.LinAlgError:
+            return False
+        return True
+
+    verdicts = []
+    for k in range(300):
+        A = rng.normal(size=(n, n)) * np.exp(rng.uniform(-6, 3, size=n))
+        M = A @ A.T + np.diag(np.exp(rng.uniform(-12, 2, size=n)))
+        case = k % 6
+        if case == 1:  # indefinite: one direction's variance well below zero
+            v = rng.normal(size=n)
+            v /= np.linalg.norm(v)
+            M -= (np.linalg.eigvalsh(M).max() * 2.0) * np.outer(v, v)
+        elif case == 2:  # every variance positive, a correlation beyond 1: row i = -2 × row j, variance 2 × j's
+            i, j = rng.choice(n, size=2, replace=False)
+            M[i, :], M[:, i] = -2.0 * M[j, :], -2.0 * M[:, j]
+            M[i, i] = 2.0 * M[j, j]
+        elif case == 3:  # asymmetric upper triangle (what neither reads)
+            M = M + np.triu(rng.normal(size=(n, n)) * 1e3, 1)
+        elif case == 4:
+            i, j = rng.integers(n), rng.integers(n)
+            M[i, j] = rng.choice([np.nan, np.inf, -np.inf])
+        elif case == 5:  # a negative variance
+            i = rng.integers(n)
+            M[i, i] = -abs(M[i, i])
+        P[:, :] = M
+        # a non-finite number where the factorisation reads it fails (OpenBLAS's potrf lets a
+        # NaN through: no error, a factor of NaNs); elsewhere LAPACK's verdict
+        expected = False if case == 4 and i >= j else lapack(P.copy())
+        assert kalman.core_positive_definite(core) == expected, (k, case)
+        verdicts.append(expected)
+    assert sum(verdicts) > 50 and len(verdicts) - sum(verdicts) > 50  # both verdicts tested
