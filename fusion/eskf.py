@@ -76,7 +76,7 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
     quat_to_euler, rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import SENSORS, DepthSample, DvlSample, HeadingSample, InertialVelocitySample, is_finite
+from .samples import SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, InertialVelocitySample, is_finite
 from .state import (ACC_F, ACC_OMEGA, ACC_T, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW,
                     VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -153,8 +153,8 @@ _DVL_MEASURES_DRIFT_S = 2.0
 
 
 class _Snapshot:
-    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "vel_inertial_n",
-                 "pos_inertial_n", "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
+    __slots__ = ("core", "rpm", "next_lv_t", "mode", "reset_counter", "lv_r_hat", "fix_evidence", "inertial_n",
+                 "motion_params", "t_release", "reject_since", "t_reset", "yaw_fix_rad", "clones", "pos_unknown",
                  "anchor_ne", "yaw_frame", "attitude_driven", "t_motion_aid", "vertical_run", "t_dvl_fused", "t_fix_fused")
 
 
@@ -246,6 +246,7 @@ class Estimator:
                                               (HeadingSample, "heading", self._fast_heading),
                                               (DvlSample, "dvl", self._fast_dvl))
                       if getattr(config, kind).enabled and kind not in self._arm}
+        self._fast[ImuBatch] = self._fast_imu
         self._fast_y3 = np.zeros(3)  # the DVL's innovation (:meth:`_fast_dvl`)
         self._h_depth = aid_depth.jacobian(None)
         self._h_heading = np.zeros((1, N_ERR))
@@ -315,10 +316,9 @@ class Estimator:
         # aiding corrections — what the IMU alone says about velocity *changes* (the
         # calibrator's surge-noise evidence; the corrected velocity is pulled towards the
         # very motion model being calibrated)
-        # (lists of three floats, north east down: per IMU batch, float arithmetic is numpy's
-        # elementwise arithmetic at a fraction of the cost)
-        self._vel_inertial_n = [0.0, 0.0, 0.0]
-        self._pos_inertial_n = [0.0, 0.0, 0.0]  # its integral (m): exact step means for the calibrator
+        # (north, east, down: its integral (m), exact step means for the calibrator, then the
+        # velocity (m/s); advanced in the propagation's kernel, kalman.ins_run)
+        self._inertial_n = np.zeros(6)
         self.late_fused = 0  # measurements fused at their own (past) time of validity
         # guard (:meth:`process`): last good state (snapshot, IMU time) and its time
         self._good: tuple[_Snapshot, float] | None = None
@@ -507,8 +507,8 @@ class Estimator:
         c = self._x[X_CUR]
         cal = self.dvl_calibration
         dvl_cal = (float(cal.theta[0]), float(cal.theta[1])) if cal is not None else (0.0, 0.0)
-        return InertialVelocitySample(float(self._clock[0]), tuple(self._vel_inertial_n),
-                                      tuple(self._pos_inertial_n), float(yaw),
+        pos_n, vel_n = self._inertial_n[0:3].tolist(), self._inertial_n[3:6].tolist()
+        return InertialVelocitySample(float(self._clock[0]), tuple(vel_n), tuple(pos_n), float(yaw),
                                       int(self._reset_counter), (float(c[0]), float(c[1]), 0.0), dvl_cal)
 
     def clone_position(self) -> bool:
@@ -1036,8 +1036,7 @@ class Estimator:
         s.reset_counter = self._reset_counter
         s.lv_r_hat = self._surge.r_hat_m2_s2
         s.fix_evidence = self._fix_evidence
-        s.vel_inertial_n = self._vel_inertial_n.copy()
-        s.pos_inertial_n = self._pos_inertial_n.copy()
+        s.inertial_n = self._inertial_n.copy()
         s.motion_params = self.motion_params
         s.t_release = self._t_release
         s.reject_since = dict(self._reject_since)
@@ -1064,8 +1063,7 @@ class Estimator:
         self._reset_counter = s.reset_counter
         self._surge.r_hat_m2_s2 = s.lv_r_hat
         self._fix_evidence = s.fix_evidence
-        self._vel_inertial_n = s.vel_inertial_n.copy()
-        self._pos_inertial_n = s.pos_inertial_n.copy()
+        self._inertial_n[:] = s.inertial_n
         self.motion_params = s.motion_params
         self._t_release = s.t_release
         self._reject_since = dict(s.reject_since)
@@ -1336,7 +1334,6 @@ class Estimator:
     def _stationary(self, t, f, w) -> list[AidStatus]:
         """Accumulate IMU windows; a window at rest (IMU quiet, thrusters idle, depth
         steady) gives one zero-velocity update at its end."""
-        c = self.config.stationary
         st = self._st
         if t.size == 0 or self._mode != "ins":
             return []
@@ -1344,8 +1341,15 @@ class Estimator:
             st[0] = float(t[0])
         sd.accumulate_rest_window(st, f, w)
         t_end = float(t[-1])
-        if t_end - st[0] < c.window_s:
+        if t_end - st[0] < self.config.stationary.window_s:
             return []
+        return self._rest_window_end(t_end)
+
+    def _rest_window_end(self, t_end: float) -> list[AidStatus]:
+        """The stationary-detection window ends at ``t_end``: a zero-velocity update when the
+        vehicle was at rest over it; the next window starts."""
+        c = self.config.stationary
+        st = self._st
         n = st[1]
         with np.errstate(over="ignore", invalid="ignore"):  # a window with absurd samples: NaN, not quiet
             var = st[5:8] / n - (st[2:5] / n) ** 2
@@ -1384,45 +1388,68 @@ class Estimator:
 
     def _imu_clean(self, t, f, w) -> list[AidStatus]:
         """Propagate clean samples, stopping at every learned-velocity fusion time."""
+        return self._imu_pieces(t, f, w, 0)[0]
+
+    def _imu_pieces(self, t, f, w, stop: int, lv_due: bool = False) -> tuple[list[AidStatus], bool]:
+        """The run of clean samples from ``stop`` propagated a piece at a time
+        (:func:`~adaptnav.fusion.kalman.ins_run`), the learned velocity fused at each of its
+        epochs; ``lv_due``: the piece before (:meth:`_fast_imu`'s) reached one. Returns the
+        statuses and whether the state guard must be asked again (the last piece's is False
+        when it fused nothing: its guard said the state is sound)."""
         out: list[AidStatus] = []
-        start = 0
         n = t.size
-        x, step_s = self._x, self.config.covariance_step_s
-        t_last = float(t[-1])
-        while start < n:
-            stop = n
-            lv_due = False
-            if self._next_lv_t <= t_last:
-                stop = int(np.searchsorted(t, self._next_lv_t, side="right"))
-                stop = max(stop, start + 1)
-                lv_due = True
-            t0, x0 = float(self._clock[0]), x[_X_POS_VEL].tolist()  # position, velocity before
-            # (each covariance step also goes into the clones' map while they exist; the whole
-            # run unsliced, the commonest case)
-            if start == 0 and stop == n:
-                kalman.propagate_core(t, f, w, self._core, self._qdiag, step_s)
-            else:
-                kalman.propagate_core(t[start:stop], f[start:stop], w[start:stop], self._core,
-                                      self._qdiag, step_s)
-            # free-inertial = corrected + an offset constant between updates: its integral is
-            # the strapdown's position change plus offset × Δt (per axis, written out)
-            dt = float(self._clock[0]) - t0
-            p0, p1, p2, v0, v1, v2 = x[_X_POS_VEL].tolist()
-            q0, q1, q2, u0, u1, u2 = x0
-            p, v = self._pos_inertial_n, self._vel_inertial_n
-            p[0] += (p0 - q0) + (v[0] - u0) * dt
-            p[1] += (p1 - q1) + (v[1] - u1) * dt
-            p[2] += (p2 - q2) + (v[2] - u2) * dt
-            v[0] += v0 - u0
-            v[1] += v1 - u1
-            v[2] += v2 - u2
-            start = stop
-            if lv_due and self._clock[0] >= self._next_lv_t:
+        fused_any = False
+        ok = True
+        while True:
+            if lv_due:
                 status = self._learned_velocity()
                 if status is not None:
                     out.append(status)
                 self._advance_lv_epoch(self._clock[0])
-        return [] if self._replaying else out
+                fused_any = True
+            if stop >= n:
+                break
+            stop, lv_due, _, ok = kalman.ins_run(t, f, w, stop, self._core, self._qdiag, self.config.covariance_step_s,
+                                                 self._next_lv_t, self._inertial_n, 0.0, self._st, -1.0,
+                                                 _MAX_SPEED_M_S)
+        return ([] if self._replaying else out), fused_any or not ok
+
+    def _fast_imu(self, batch) -> tuple[list[AidStatus], bool] | None:
+        """An IMU run in INS mode whose samples are clean (finite, after the state time, no
+        gap): :meth:`_imu`'s steps — the propagation to the learned velocity's epochs, the
+        free-inertial bookkeeping, the stationary window, the state guard — with the check,
+        the first piece and the window in one compiled call
+        (:func:`~adaptnav.fusion.kalman.ins_run`). Not clean, or the attitude drives the
+        strapdown: the general path (nothing changed)."""
+        if self._attitude_driven:
+            return None
+        t = np.asarray(batch.t_s, dtype=float)
+        f = np.asarray(batch.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
+        w = np.asarray(batch.omega_b_rad_s, dtype=float).reshape(-1, 3)
+        if t.size == 0:
+            return None
+        gap_s = self.config.imu_gap_s
+        if self.keep_history and self.config.max_delay_s > 0:
+            # recorded for re-fusion with the state before it: checked first, then recorded
+            if not sd.imu_clean(t, f, w, self._clock[0], gap_s):
+                return None
+            self._record("imu", (t, f, w))
+            gap_s = 0.0
+        rest_window_s = self.config.stationary.window_s if self.config.stationary.enabled else -1.0
+        stop, lv_due, window_done, ok = kalman.ins_run(t, f, w, 0, self._core, self._qdiag,
+                                                       self.config.covariance_step_s, self._next_lv_t,
+                                                       self._inertial_n, gap_s, self._st, rest_window_s,
+                                                       _MAX_SPEED_M_S)
+        if stop < 0:
+            return None
+        self._imu_source = batch.source
+        out, ask = self._imu_pieces(t, f, w, stop, lv_due) if (lv_due or stop < t.size) else ([], not ok)
+        if window_done:
+            rest = self._rest_window_end(float(t[-1]))
+            if rest:
+                out += rest
+                ask = True
+        return out, (self._state_ok() if ask else True)
 
     def _advance_lv_epoch(self, t_s: float) -> None:
         """Move the next learned-velocity epoch past ``t_s`` in one step (a loop of
