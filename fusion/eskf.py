@@ -76,7 +76,8 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
     quat_to_euler, rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
-from .samples import SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, InertialVelocitySample, is_finite
+from .samples import (SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, ImuSample, InertialVelocitySample,
+                      is_finite)
 from .state import (ACC_F, ACC_OMEGA, ACC_T, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW,
                     VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -246,7 +247,7 @@ class Estimator:
                                               (HeadingSample, "heading", self._fast_heading),
                                               (DvlSample, "dvl", self._fast_dvl))
                       if getattr(config, kind).enabled and kind not in self._arm}
-        self._fast[ImuBatch] = self._fast_imu
+        self._fast[ImuBatch] = self._fast[ImuSample] = self._fast_imu
         self._fast_y3 = np.zeros(3)  # the DVL's innovation (:meth:`_fast_dvl`)
         self._h_depth = aid_depth.jacobian(None)
         self._h_heading = np.zeros((1, N_ERR))
@@ -1415,17 +1416,23 @@ class Estimator:
         return ([] if self._replaying else out), fused_any or not ok
 
     def _fast_imu(self, batch) -> tuple[list[AidStatus], bool] | None:
-        """An IMU run in INS mode whose samples are clean (finite, after the state time, no
-        gap): :meth:`_imu`'s steps — the propagation to the learned velocity's epochs, the
+        """An IMU run (an :class:`ImuBatch`, or one :class:`ImuSample`: live, the epoch's own
+        sample) in INS mode whose samples are clean (finite, after the state time, no gap):
+        :meth:`_imu`'s steps — the propagation to the learned velocity's epochs, the
         free-inertial bookkeeping, the stationary window, the state guard — with the check,
         the first piece and the window in one compiled call
         (:func:`~adaptnav.fusion.kalman.ins_run`). Not clean, or the attitude drives the
         strapdown: the general path (nothing changed)."""
         if self._attitude_driven:
             return None
-        t = np.asarray(batch.t_s, dtype=float)
-        f = np.asarray(batch.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
-        w = np.asarray(batch.omega_b_rad_s, dtype=float).reshape(-1, 3)
+        if batch.KIND == "imu":  # (as _process makes them)
+            t = np.array([batch.t_s], dtype=float)
+            f = np.array([batch.specific_force_b_m_s2], dtype=float)
+            w = np.array([batch.omega_b_rad_s], dtype=float)
+        else:
+            t = np.asarray(batch.t_s, dtype=float)
+            f = np.asarray(batch.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
+            w = np.asarray(batch.omega_b_rad_s, dtype=float).reshape(-1, 3)
         if t.size == 0:
             return None
         gap_s = self.config.imu_gap_s

@@ -231,10 +231,16 @@ def propagate_core(t_s, f_b, w_b, core, qdiag, cov_step_s):
     The caller guarantees ``t_s`` strictly increasing, after the state time, finite and
     without gaps (checked vectorised before). The covariance is stepped every
     ``cov_step_s``; each step also goes into the clones' map (:func:`flush_core`)."""
+    _propagate_span(t_s, f_b, w_b, 0, t_s.shape[0], core, qdiag, cov_step_s)
+
+
+@jit(cache=True)
+def _propagate_span(t_s, f_b, w_b, start, stop, core, qdiag, cov_step_s):
+    """:func:`propagate_core` over the samples ``start`` to ``stop`` (excluded)."""
     x, P, acc, clock = core_views(core)
     R0 = np.empty((3, 3))
     R1 = np.empty((3, 3))
-    for k in range(t_s.shape[0]):
+    for k in range(start, stop):
         dt = t_s[k] - clock[0]
         strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
         clock[0] = t_s[k]
@@ -285,14 +291,7 @@ def ins_run(t_s, f_b, w_b, start, core, qdiag, cov_step_s, next_lv_t, inertial_n
         lv_due = True
     t0 = clock[0]
     q0, q1, q2, u0, u1, u2 = x[0], x[1], x[2], x[3], x[4], x[5]
-    R0 = np.empty((3, 3))
-    R1 = np.empty((3, 3))
-    for k in range(start, stop):
-        dt = t_s[k] - clock[0]
-        strapdown_step(x, f_b[k], w_b[k], dt, acc, R0, R1)
-        clock[0] = t_s[k]
-        if clock[0] - clock[1] >= cov_step_s - 1e-9:
-            flush_core(core, qdiag)
+    _propagate_span(t_s, f_b, w_b, start, stop, core, qdiag, cov_step_s)
     dt = clock[0] - t0
     inertial_n[0] = inertial_n[0] + ((x[0] - q0) + (inertial_n[3] - u0) * dt)
     inertial_n[1] = inertial_n[1] + ((x[1] - q1) + (inertial_n[4] - u1) * dt)

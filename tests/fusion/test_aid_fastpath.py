@@ -87,8 +87,8 @@ def test_an_aid_off_or_at_a_lever_arm_takes_the_general_path(kind):
     cfg = FilterConfig()
     off = Estimator(dataclasses.replace(cfg, **{kind: dataclasses.replace(getattr(cfg, kind), enabled=False)}),
                     MotionParams(), RpmSpeedTable(), ORIGIN)
-    assert {t.KIND for t in off._fast} == {"imu_batch", "depth", "heading", "dvl"} - {kind}
+    assert {t.KIND for t in off._fast} == {"imu", "imu_batch", "depth", "heading", "dvl"} - {kind}
     if kind == "depth":
         armed = Estimator(dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, lever_arm_b_m=(0.3, 0.0, 0.1))),
                           MotionParams(), RpmSpeedTable(), ORIGIN)
-        assert {t.KIND for t in armed._fast} == {"imu_batch", "heading", "dvl"}
+        assert {t.KIND for t in armed._fast} == {"imu", "imu_batch", "heading", "dvl"}

@@ -11,7 +11,7 @@ from adaptnav.fusion import eskf
 from adaptnav.fusion.config import FilterConfig
 from adaptnav.fusion.eskf import Estimator
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
-from adaptnav.fusion.samples import ImuBatch
+from adaptnav.fusion.samples import ImuBatch, ImuSample
 
 from .mission import ORIGIN, make_mission, run
 from .test_aid_fastpath import assert_same_filter
@@ -28,17 +28,33 @@ def _mission():
     return m
 
 
+class _Singles:
+    """Feeds the estimator each IMU sample of a batch as an ImuSample (live, the daemon's
+    epoch sample)."""
+
+    def __init__(self, est):
+        self.est = est
+
+    def process(self, sample):
+        if sample.KIND != "imu_batch":
+            return self.est.process(sample)
+        out = []
+        for t, f, w in zip(sample.t_s.tolist(), sample.specific_force_b_m_s2.tolist(), sample.omega_b_rad_s.tolist()):
+            out += self.est.process(ImuSample(t, tuple(f), tuple(w)))
+        return out
+
+
 def _run(m, fast: bool, max_batch, keep_history: bool):
     est = Estimator(FilterConfig(), MotionParams(), RpmSpeedTable(), ORIGIN)
     est.keep_history = keep_history  # False (a replay): the kernel checks the run itself
     if not fast:
-        del est._fast[ImuBatch]
-    _, statuses = run(est, m, max_batch=max_batch)
+        del est._fast[ImuBatch], est._fast[ImuSample]
+    _, statuses = run(_Singles(est) if max_batch == 1 else est, m, max_batch=max_batch)
     return est, statuses
 
 
 @pytest.mark.parametrize("keep_history", [True, False])
-@pytest.mark.parametrize("max_batch", [None, 7])
+@pytest.mark.parametrize("max_batch", [None, 7, 1])  # 1: single ImuSamples
 def test_the_compiled_imu_path_gives_the_general_paths_numbers(monkeypatch, max_batch, keep_history):
     m = _mission()
     slow, slow_statuses = _run(m, False, max_batch, keep_history)
