@@ -258,6 +258,8 @@ class Estimator:
         self._rehearsal_t = np.zeros(1)
         self._rehearsal_f = np.zeros((1, 3))
         self._rehearsal_w = np.zeros((1, 3))
+        self._rehearsal_inertial = np.zeros(6)
+        self._rehearsal_rest = np.zeros(9)
         # input history for late measurements: entries (kind, payload, the state before it or
         # None: see _record) and their state times
         self._hist_t: list[float] = []
@@ -371,9 +373,9 @@ class Estimator:
 
     def rehearse_epoch(self, dt_s: float) -> NavState | None:
         """Rehearse an output epoch's IMU sample ``dt_s`` after the state time; nothing of the
-        filter changes. The compiled steps that sample takes (the sample check, the propagation,
-        the state guard) run on a scratch copy of the core with the latest specific force and
-        rate; the published state (:meth:`nav_state`, which only reads) is computed of the
+        filter changes. The compiled call that sample takes (:func:`~adaptnav.fusion.kalman.ins_run`:
+        the sample check, the propagation, the state guard) runs on scratch copies of the core,
+        the free-inertial integral and the rest window, with the latest specific force and rate; the published state (:meth:`nav_state`, which only reads) is computed of the
         filter itself and returned. None outside INS mode or for a ``dt_s`` not in (0, 1] s.
 
         Why: live, the epoch's sample comes after the daemon slept an IMU period, and finds
@@ -389,9 +391,13 @@ class Estimator:
         f, w = self._rehearsal_f, self._rehearsal_w
         f[0] = self._acc[ACC_F]
         w[0] = self._acc[ACC_OMEGA]
-        if sd.imu_clean(t, f, w, float(self._clock[0]), self.config.imu_gap_s):
-            kalman.propagate_core(t, f, w, scratch, self._qdiag, self.config.covariance_step_s)
-            kalman.core_ok(scratch, _MAX_SPEED_M_S)
+        # the epoch sample's own compiled call (Estimator._fast_imu's), on scratch copies of
+        # everything it writes; no learned-velocity epoch (∞)
+        self._rehearsal_inertial[:] = self._inertial_n
+        self._rehearsal_rest[:] = self._st
+        kalman.ins_run(t, f, w, 0, scratch, self._qdiag, self.config.covariance_step_s, math.inf,
+                       self._rehearsal_inertial, self.config.imu_gap_s, self._rehearsal_rest,
+                       self.config.stationary.window_s if self.config.stationary.enabled else -1.0, _MAX_SPEED_M_S)
         return self.nav_state()
 
     def horizontal_nav(self) -> tuple | None:
