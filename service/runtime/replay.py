@@ -202,6 +202,13 @@ def _progress_bar(total_s: float | None, label: str, enabled: bool):
     return bar, progress
 
 
+# the collector's young-generation threshold (net new container objects) during a run: at
+# CPython's 700 a calibrated hour took ~220 collections (~0.12 s of the replaying process,
+# issue 17), each scanning what is alive for a while — the deferred sinks' queued states, the
+# calibrator's batches —, all of it freed by reference counts; ~5 at this threshold
+_REPLAY_GC_YOUNG_OBJECTS = 20_000
+
+
 def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
            realtime: float | None = None, progress: bool = True, title: str = "",
            plots: bool = True, calibrator_location: str = "process",
@@ -310,11 +317,15 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
     # left out of the garbage collector's full passes during the run: they rescanned all of
     # it a few times per replay for nothing (it is freed, if at all, by reference counts)
     gc.freeze()
+    thresholds = gc.get_threshold()
+    if 0 < thresholds[0] < _REPLAY_GC_YOUNG_OBJECTS:  # (0: the collector is off, left so)
+        gc.set_threshold(_REPLAY_GC_YOUNG_OBJECTS, *thresholds[1:])
     try:
         summary = run(items, estimator, sinks, clock, calibrator,
                       output_rate_hz=cfg.outputs.nav_rate_hz, health=health, progress=prog,
                       release_gate=default_release_gate(cfg.calibrator.online), door=door)
     finally:
+        gc.set_threshold(*thresholds)
         gc.unfreeze()
         if bar is not None:
             bar.close()
