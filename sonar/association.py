@@ -296,6 +296,18 @@ def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
             "id": np.array([id(o) for o in sightings], dtype=np.int64)}
 
 
+def _kept_from(sightings: list[ObjectSighting], arrays: dict[str, np.ndarray],
+               t_from_s: float) -> tuple[list[ObjectSighting], dict[str, np.ndarray]]:
+    """The stored ``sightings`` from ``t_from_s`` on, and their ``arrays``
+    (:func:`_sighting_arrays`). Nearly always the newest ones: slices then (the copies of
+    every array each batch were a twentieth of the association), else picked one by one."""
+    keep = np.flatnonzero(arrays["t_s"] >= t_from_s)
+    if keep.size and keep[0] + keep.size == len(sightings):
+        first = int(keep[0])
+        return sightings[first:], {k: v[first:] for k, v in arrays.items()}
+    return [sightings[k] for k in keep.tolist()], {k: v[keep] for k, v in arrays.items()}
+
+
 def _median(values: list[float]) -> float:
     """``float(np.median(values))`` of a non-empty list of floats, the same number: the middle
     one, or the mean of the middle two as numpy takes it (their sum halved); numpy's own for
@@ -513,7 +525,6 @@ class LegAssociator:
             (:meth:`associate`).
         """
         c = self.config
-        keys = ("j", "t_old_s", "t_new_s", "det_cov", "area_m2")
         clutter = {"j": np.zeros(0, int), "t_old_s": np.zeros(0), "t_new_s": np.zeros(0),
                    "det_cov": np.zeros((0, 2, 2)), "area_m2": np.zeros(0)}
         if not self._old or not batch:
@@ -545,30 +556,38 @@ class LegAssociator:
             S_all = np.where(rel_known[None], rel_D[None] + D_new[:, None], S_all)
         # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
         need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
+        rows = np.flatnonzero(need.any(axis=1)).tolist()  # (the others have none in the wide gate)
+        # m² of every pair needed in one call (an inverse each, as many calls as new sightings
+        # were a fifth of the candidates): _m2 sums each row alike whenever it is given two
+        # or more, as it was given each new sighting's (a lone one as two, _m2_of); with one
+        # old sighting each new one's was a lone row (summed otherwise), kept so
+        m2_all = np.full(need.shape, np.inf)
+        if len(old) > 1:
+            m2_all[need] = _m2_of(d_all[need], S_all[need], 2)
+        else:
+            for j in rows:
+                m2_all[j, need[j]] = _m2(d_all[j][need[j]], S_all[j][need[j]])
         out = []
-        cl: dict[str, list] = {k: [] for k in keys}
-        for j in np.flatnonzero(need.any(axis=1)).tolist():  # (the others have none in the wide gate)
-            b, S, near = batch[j], S_all[j], need[j]
-            m2 = np.full(len(old), np.inf)
-            m2[near] = _m2_of(d_all[j][near], S[near], len(old))
+        cl_j: list[int] = []  # (batch index, old index) of the clutter, new sighting by new sighting
+        cl_k: list[int] = []
+        for j in rows:
+            b, m2 = batch[j], m2_all[j]
             wide = np.flatnonzero(m2 <= wide_m2)
-            agree = [k for k in wide[np.argsort(m2[wide])] if self._attributes_agree(self._old[old[k]], b)]
+            agree = [k for k in wide[np.argsort(m2[wide])].tolist() if self._attributes_agree(self._old[old[k]], b)]
             if self.trace is not None:
                 ok = set(agree)
                 for k in wide:
                     self._note(self._old[old[k]], b, "candidate" if k in ok and m2[k] <= self._gate
                                else "attributes" if k not in ok else "wide gate")
-            if agree:
-                ag = np.array(agree)
-                cl["j"].append(np.full(ag.size, j))
-                cl["t_old_s"].append(t_old[ag])
-                cl["t_new_s"].append(np.full(ag.size, b.t_s))
-                cl["det_cov"].append(D_old[ag] + b.det_cov[None])
-                cl["area_m2"].append(math.pi * c.clutter_scale * self._gate * np.sqrt(np.linalg.det(S[ag])))
+            cl_j += [j] * len(agree)
+            cl_k += agree
             for k in [k for k in agree if m2[k] <= self._gate][: c.max_candidates_per_object]:
-                out.append((old[k], j, float(m2[k]), S[k]))
-        if cl["j"]:
-            clutter = {k: np.concatenate(v) for k, v in cl.items()}
+                out.append((old[k], j, float(m2[k]), S_all[j, k]))
+        if cl_j:  # (the same numbers as row by row: elementwise, and a determinant each)
+            j_cl, k_cl = np.array(cl_j), np.array(cl_k)
+            clutter = {"j": j_cl, "t_old_s": t_old[k_cl], "t_new_s": np.array(t_batch, float)[j_cl],
+                       "det_cov": D_old[k_cl] + D_new[j_cl],
+                       "area_m2": math.pi * c.clutter_scale * self._gate * np.sqrt(np.linalg.det(S_all[j_cl, k_cl]))}
         if self._memo is not None:
             self._memo[key] = (out, clutter)
         return out, clutter
@@ -600,19 +619,13 @@ class LegAssociator:
         each at most ``max_sightings`` (the newest), and their arrays with them (rebuilding
         them for the whole store every batch grew with the mission)."""
         n = self.config.max_sightings
-        arrays = self._stored_arrays()
-        keep = np.flatnonzero(arrays["t_s"] >= t_from_s)
-        old = self._old
-        # (the kept ones are nearly always the newest: a slice)
-        kept = old[keep[0]:] if keep.size and keep[0] + keep.size == len(old) else [old[k] for k in keep.tolist()]
-        self._old = (kept + list(batch))[-n:]
+        old, arrays = _kept_from(self._old, self._stored_arrays(), t_from_s)
+        self._old = (old + list(batch))[-n:]
         new = _sighting_arrays(batch)
-        self._stored = (self._old, {k: np.concatenate([v[keep], new[k]])[-n:] for k, v in arrays.items()})
-        arrays = self._weak_arrays()
-        keep = np.flatnonzero(arrays["t_s"] >= t_from_s)
-        old = self._weak_old
-        self._weak_old = [old[k] for k in keep.tolist()][-n:]
-        self._weak_stored = (self._weak_old, {k: v[keep][-n:] for k, v in arrays.items()})
+        self._stored = (self._old, {k: np.concatenate([v, new[k]])[-n:] for k, v in arrays.items()})
+        old, arrays = _kept_from(self._weak_old, self._weak_arrays(), t_from_s)
+        self._weak_old = old[-n:]
+        self._weak_stored = (self._weak_old, {k: v[-n:] for k, v in arrays.items()})
 
     def _note(self, a: ObjectSighting, b: ObjectSighting, stage: str) -> None:
         key = (id(a), id(b))
