@@ -424,8 +424,10 @@ class Estimator:
             a00, a01, a10, a11 = self.dvl_calibration.position_cov_ne_values()
             c00, c01, c10, c11 = c00 + a00, c01 + a01, c10 + a10, c11 + a11
         xs = self._x.tolist()
-        # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats)
-        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) or not all(map(math.isfinite, xs)):
+        # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats: a finite sum has no
+        # inf or NaN in it, a third of the test per ping; else, an overflow perhaps, each one)
+        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) \
+                or not (math.isfinite(sum(xs)) or all(map(math.isfinite, xs))):
             return None
         n, e, q = X_POS_NE.start, _X_VEL_NE.start, X_Q.start
         # quat_to_euler's yaw of the same floats (the same arithmetic, without its roll and pitch)
