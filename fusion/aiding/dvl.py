@@ -219,7 +219,7 @@ class DvlCalibration:
         self._covered_s = 0.0
         self._last_t: float | None = None
         self._last_vel_ne: tuple[float, float] | None = None  # the last sample's N/E velocity (m/s)
-        self._cov_ne_memo: tuple | None = None  # (track N, track E, P, position_cov_ne)
+        self._cov_ne_memo: tuple | None = None  # (track N, track E, P, position_cov_ne's floats, its array)
 
     def report(self) -> dict:
         """Estimate and 1-σ: scale (–), yaw misalignment (deg), fix pairs and straight-leg
@@ -249,7 +249,12 @@ class DvlCalibration:
         """
         if self._fix is None:
             return np.zeros((2, 2)) if copy else _ZERO22
-        cov = self._cov_ne_memo_now()[3]
+        memo = self._cov_ne_memo_now()
+        cov = memo[4]
+        if cov is None:  # the array made when asked for (the published states and pings want the floats)
+            cov = np.array(memo[3]).reshape(2, 2)
+            cov.setflags(write=False)
+            self._cov_ne_memo = memo[:4] + (cov,)
         return cov.copy() if copy else cov
 
     def position_cov_ne_values(self) -> tuple[float, float, float, float]:
@@ -259,11 +264,11 @@ class DvlCalibration:
         replay)."""
         if self._fix is None:
             return _ZERO4
-        return self._cov_ne_memo_now()[4]
+        return self._cov_ne_memo_now()[3]
 
     def _cov_ne_memo_now(self) -> tuple:
         """The memo of :meth:`position_cov_ne` for the current track and ``P``: ``(d0, d1, P,
-        cov (2, 2) read-only, cov as four floats)``."""
+        cov as four floats, cov (2, 2) read-only or None until asked for)``."""
         d0, d1 = self._track_n, self._track_e
         # asked with every published state and side-scan ping, changed by DVL samples and fixes
         # only: kept with what it was computed from (P is replaced, never changed in place; the
@@ -282,9 +287,7 @@ class DvlCalibration:
             a10, a11 = -d1 * p00 + d0 * p10, -d1 * p01 + d0 * p11
             values = (-a00 * d0 - a01 * d1 + k0 * k0, -a00 * d1 + a01 * d0 + k0 * k1,
                       -a10 * d0 - a11 * d1 + k1 * k0, -a10 * d1 + a11 * d0 + k1 * k1)
-            cov = np.array(values).reshape(2, 2)
-            cov.setflags(write=False)
-            memo = self._cov_ne_memo = (d0, d1, P, cov, values)
+            memo = self._cov_ne_memo = (d0, d1, P, values, None)
         return memo
 
     def correct(self, vel_d_m_s) -> tuple[float, float, float]:
