@@ -111,9 +111,6 @@ _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 # north, east of the velocity: in the nominal state, in the error state
 _X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)
-# position then velocity, read together as six floats (the free-inertial integral, _imu_clean)
-assert X_POS.stop == X_VEL.start and X_POS.stop - X_POS.start == 3
-_X_POS_VEL = slice(X_POS.start, X_VEL.stop)
 _VEL_NE = slice(VEL.start, VEL.start + 2)
 
 
@@ -375,7 +372,8 @@ class Estimator:
         """Rehearse an output epoch's IMU sample ``dt_s`` after the state time; nothing of the
         filter changes. The compiled call that sample takes (:func:`~adaptnav.fusion.kalman.ins_run`:
         the sample check, the propagation, the state guard) runs on scratch copies of the core,
-        the free-inertial integral and the rest window, with the latest specific force and rate; the published state (:meth:`nav_state`, which only reads) is computed of the
+        the free-inertial integral and the rest window, with the latest specific force and
+        rate; the published state (:meth:`nav_state`, which only reads) is computed of the
         filter itself and returned. None outside INS mode or for a ``dt_s`` not in (0, 1] s.
 
         Why: live, the epoch's sample comes after the daemon slept an IMU period, and finds
@@ -1393,18 +1391,14 @@ class Estimator:
         if t.size == 0:
             return []
         self._record("imu", (t, f, w))
-        return self._imu_clean(t, f, w)
-
-    def _imu_clean(self, t, f, w) -> list[AidStatus]:
-        """Propagate clean samples, stopping at every learned-velocity fusion time."""
         return self._imu_pieces(t, f, w, 0)[0]
 
     def _imu_pieces(self, t, f, w, stop: int, lv_due: bool = False) -> tuple[list[AidStatus], bool]:
-        """The run of clean samples from ``stop`` propagated a piece at a time
-        (:func:`~adaptnav.fusion.kalman.ins_run`), the learned velocity fused at each of its
+        """Propagate a run of clean samples from ``stop`` a piece at a time
+        (:func:`~adaptnav.fusion.kalman.ins_run`), fusing the learned velocity at each of its
         epochs; ``lv_due``: the piece before (:meth:`_fast_imu`'s) reached one. Returns the
-        statuses and whether the state guard must be asked again (the last piece's is False
-        when it fused nothing: its guard said the state is sound)."""
+        statuses and whether the state guard must run again: True when something was fused
+        or the last piece's own guard failed."""
         out: list[AidStatus] = []
         n = t.size
         fused_any = False

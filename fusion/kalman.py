@@ -251,7 +251,7 @@ def _propagate_span(t_s, f_b, w_b, start, stop, core, qdiag, cov_step_s):
 @jit(cache=True)
 def ins_run(t_s, f_b, w_b, start, core, qdiag, cov_step_s, next_lv_t, inertial_n, gap_s, rest, rest_window_s,
             max_speed_m_s):
-    """One piece of an IMU run in INS mode (:meth:`adaptnav.fusion.eskf.Estimator._imu_clean`):
+    """One piece of an IMU run in INS mode (:meth:`adaptnav.fusion.eskf.Estimator._imu_pieces`):
     from sample ``start`` to the end of the run, or through the last sample at or before the
     next learned-velocity epoch ``next_lv_t`` (at least one sample), propagated as
     :func:`propagate_core` does; the free-inertial position and velocity ``inertial_n``
@@ -290,15 +290,16 @@ def ins_run(t_s, f_b, w_b, start, core, qdiag, cov_step_s, next_lv_t, inertial_n
             stop = start + 1
         lv_due = True
     t0 = clock[0]
-    q0, q1, q2, u0, u1, u2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    q0, q1, q2 = x[_X_POS], x[_X_POS + 1], x[_X_POS + 2]
+    u0, u1, u2 = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]
     _propagate_span(t_s, f_b, w_b, start, stop, core, qdiag, cov_step_s)
     dt = clock[0] - t0
-    inertial_n[0] = inertial_n[0] + ((x[0] - q0) + (inertial_n[3] - u0) * dt)
-    inertial_n[1] = inertial_n[1] + ((x[1] - q1) + (inertial_n[4] - u1) * dt)
-    inertial_n[2] = inertial_n[2] + ((x[2] - q2) + (inertial_n[5] - u2) * dt)
-    inertial_n[3] = inertial_n[3] + (x[3] - u0)
-    inertial_n[4] = inertial_n[4] + (x[4] - u1)
-    inertial_n[5] = inertial_n[5] + (x[5] - u2)
+    inertial_n[0] = inertial_n[0] + ((x[_X_POS] - q0) + (inertial_n[3] - u0) * dt)
+    inertial_n[1] = inertial_n[1] + ((x[_X_POS + 1] - q1) + (inertial_n[4] - u1) * dt)
+    inertial_n[2] = inertial_n[2] + ((x[_X_POS + 2] - q2) + (inertial_n[5] - u2) * dt)
+    inertial_n[3] = inertial_n[3] + (x[_X_VEL] - u0)
+    inertial_n[4] = inertial_n[4] + (x[_X_VEL + 1] - u1)
+    inertial_n[5] = inertial_n[5] + (x[_X_VEL + 2] - u2)
     lv_due = lv_due and clock[0] >= next_lv_t
     ok = True
     if stop >= n and not lv_due:
