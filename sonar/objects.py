@@ -1029,6 +1029,7 @@ class ObjectFrontEnd:
         # the navigation's jumps so far (position minus its integrated velocity) and the last
         # (t, position, velocity) it was measured from
         self._jump = np.zeros(2)
+        self._jump_nm = (0.0, 0.0)  # the same as Python floats, kept with every ping
         self._last_vel: tuple[float, np.ndarray, np.ndarray] | None = None
         self._next_emit = 0  # global index of the next block's first ping
         self.blocks = 0
@@ -1066,7 +1067,7 @@ class ObjectFrontEnd:
         """
         p = np.asarray(pos_n_m, float).reshape(-1)[:2]
         cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
-        pn, pe = float(p[0]), float(p[1])
+        pn, pe = p.tolist()
         if not (math.isfinite(ping.t_s) and math.isfinite(pn) and math.isfinite(pe) and all(map(math.isfinite, cov))
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
@@ -1074,26 +1075,29 @@ class ObjectFrontEnd:
         if self._pings and ping.t_s <= self._pings[-1].t_s:
             self.rejected["out of order"] = self.rejected.get("out of order", 0) + 1
             return []
-        if not ping.has_geometry:
-            self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1
-            return []
-        if self._geometry is None:
-            self._geometry = (ping.n_samples, ping.slant_range_m)
-        elif (ping.n_samples, ping.slant_range_m) != self._geometry:
-            # the sonar's range or sample count changed (the operator, auto-range): every
-            # later ping was refused; now on the stream's first geometry, one image width
-            ping = ping.resampled(*self._geometry)
-            self.resampled += 1
+        geometry = (ping.n_samples, ping.slant_range_m)
+        if geometry != self._geometry:  # (the stream's geometry passed the test below)
+            if not ping.has_geometry:
+                self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1
+                return []
+            if self._geometry is None:
+                self._geometry = geometry
+            else:
+                # the sonar's range or sample count changed (the operator, auto-range): every
+                # later ping was refused; now on the stream's first geometry, one image width
+                ping = ping.resampled(*self._geometry)
+                self.resampled += 1
         if vel_n_m_s is not None:
             v = np.asarray(vel_n_m_s, float).reshape(-1)[:2]
             if np.all(np.isfinite(v)):
                 if self._last_vel is not None:
                     t0, p0, v0 = self._last_vel
                     self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
+                    self._jump_nm = tuple(self._jump.tolist())
                 self._last_vel = (float(ping.t_s), p.copy(), v.copy())
         self._pings.append(ping)
         vc = _NAN4 if vel_cov is None else np.asarray(vel_cov, float).reshape(4).tolist()
-        self._nav.append((pn, pe, float(yaw_rad), *cov, *self._jump.tolist(), *vc))
+        self._nav.append((pn, pe, float(yaw_rad), *cov, *self._jump_nm, *vc))
         self._n += 1
         c = self.config
         if self._n < self._next_emit + c.block_pings + c.context_pings:
