@@ -57,6 +57,7 @@ SIFT/ORB keypoints (:mod:`adaptnav.sonar.landmarks`) remain for texture-rich sea
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, NamedTuple
@@ -321,8 +322,10 @@ class ObjectSighting:
         return R @ np.diag([s_al ** 2, s_ac ** 2]) @ R.T
 
 
+@functools.lru_cache(maxsize=8)
 def _gaussian_weights(sigma: float, truncate: float = 4.0) -> np.ndarray:
-    """The weights of ``scipy.ndimage.gaussian_filter1d`` (order 0, its default radius)."""
+    """The weights of ``scipy.ndimage.gaussian_filter1d`` (order 0, its default radius); made once
+    per σ (four times per block before) and shared: not to be written."""
     radius = int(truncate * float(sigma) + 0.5)
     x = np.arange(-radius, radius + 1)
     phi = np.exp(-0.5 / (sigma * sigma) * x ** 2)
@@ -511,7 +514,7 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
             t_s=float(np.interp(rc, rows, wf.t_s)), side=side, ground_range_m=0.5 * (g_lead + g_far),
             height_m=math.nan, shadow_length_m=0.0, length_along_m=abs(length),
             width_across_m=max(g_far - g_lead, res), contrast=contrast,
-            altitude_m=H, row=rc, heading_rad=float(np.interp(rc, rows, np.unwrap(wf.heading_rad)))))
+            altitude_m=H, row=rc, heading_rad=float(np.interp(rc, rows, wf.heading_unwrapped_rad))))
     return out
 
 
@@ -586,7 +589,7 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
     else:
         length = np.full(kept.size, math.nan)
     t_s = np.interp(rc[kept], rows, wf.t_s)
-    heading = np.interp(rc[kept], rows, np.unwrap(wf.heading_rad))
+    heading = np.interp(rc[kept], rows, wf.heading_unwrapped_rad)
     for q, i in enumerate(kept.tolist()):
         gt, gl = float(g_top[i]), float(g_lead[i])
         out.append(ObjectSighting(
@@ -645,7 +648,6 @@ def _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, a
     """:func:`_detect_shadowed`'s candidates ``todo`` measured and tested one by one in Python
     (the reference of the compiled measurements and the vectorised tests)."""
     out = []
-    heading_u = None  # np.unwrap(wf.heading_rad), once the first sighting needs it
     for k in todo:
         mine = slice(*np.searchsorted(runs.label, [k, k + 1]))
         comp_rows, near, far = runs.row[mine], runs.near[mine], runs.far[mine]  # image rows
@@ -681,14 +683,12 @@ def _shadowed_loop(lev, lab, runs, deep, hl, hl_label, todo, side, res, along, a
         if contrast < (config.short_min_contrast if short else
                        config.compact_min_contrast if compact else config.min_contrast):
             continue
-        if heading_u is None:
-            heading_u = np.unwrap(wf.heading_rad)
         out.append(ObjectSighting(
             t_s=float(np.interp(rc, rows, wf.t_s)), side=side,
             ground_range_m=g_lead + config.top_weight * (g_top - g_lead), height_m=height, shadow_length_m=L,
             length_along_m=abs(length), width_across_m=max(g_top - g_lead, res),
             contrast=contrast, altitude_m=H, row=rc,
-            heading_rad=float(np.interp(rc, rows, heading_u)), weak=weak))
+            heading_rad=float(np.interp(rc, rows, wf.heading_unwrapped_rad)), weak=weak))
     return out
 
 

@@ -21,6 +21,7 @@ Image layout: ``image[row, col]``, ``2 W`` columns; column ``c`` is at across-tr
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -108,6 +109,12 @@ class Waterfall:
     heading_rad: np.ndarray
     ping_index: np.ndarray
     altitude_m: np.ndarray
+
+    @functools.cached_property
+    def heading_unwrapped_rad(self) -> np.ndarray:
+        """``numpy.unwrap(heading_rad)``, computed once per waterfall (the object detector
+        interpolates it for every sighting of both sides and both images)."""
+        return np.unwrap(self.heading_rad)
 
     @property
     def n_side(self) -> int:
