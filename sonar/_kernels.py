@@ -558,10 +558,12 @@ def shadow_candidates(lev, run_label, run_row, run_near, run_far, n_px, shadow_s
                       min_highlight_rows, min_height_m, hl_run, hl_lead, hl_level, todo, counts):
     """The tests of :func:`adaptnav.sonar.objects._detect_shadowed` before its candidates are
     measured, for every component at once — :func:`adaptnav.sonar.objects._shadow_candidates`,
-    :func:`~adaptnav.sonar.objects._highlights`, the contrast bound and
-    :func:`~adaptnav.sonar.objects._may_be_high` (their numpy versions are the reference):
-    the highlight rows into ``hl_run``, ``hl_lead``, ``hl_level`` (≥ the runs), the labels to
-    measure into ``todo`` (≥ the labels); ``counts`` ← (highlight rows, labels to measure).
+    :func:`~adaptnav.sonar.objects._may_be_high`, :func:`~adaptnav.sonar.objects._highlights`
+    and the contrast bound, in that order (:func:`adaptnav.sonar.objects._candidates_numpy` is
+    the reference): the highlight rows of the components that pass the size and height tests
+    into ``hl_run``, ``hl_lead``, ``hl_level`` (≥ the runs), the labels to measure into ``todo``
+    (≥ the labels); ``counts`` ← (highlight rows, labels to measure). The height bound, cheap,
+    comes before the highlight windows are scanned: three in four components that reach it fail it.
 
     ``h_max_m``: the highest finite altitude (NaN: none, every component may be high); the
     thresholds compared as numpy compares them (a float32 image with a Python float: in float32)."""
@@ -596,6 +598,17 @@ def shadow_candidates(lev, run_label, run_row, run_near, run_far, n_px, shadow_s
         short = med * res_m < short_range_m
         if not (longest >= (short_cols if short else min_cols) and med >= min_col0):
             continue
+        # the height's upper bound (from the highest altitude, the deepest shadow, the nearest column)
+        if not np.isnan(h_max_m):
+            d_max, near_min, far_max = deep[a], run_near[a], run_far[a]
+            for j in range(a + 1, b):
+                d_max = max(d_max, deep[j])
+                near_min = min(near_min, run_near[j])
+                far_max = max(far_max, run_far[j])
+            L = d_max * res_m
+            ub = h_max_m * L / ((near_min + 0.5) * res_m + L)
+            if not (far_max >= n_cols - 1 or not (ub < min_height_m * (1.0 - 1e-9))):
+                continue
         # its rows with a highlight in the hw columns before the shadow
         first_hl = n_hl
         top = -np.inf
@@ -633,17 +646,6 @@ def shadow_candidates(lev, run_label, run_row, run_near, run_far, n_px, shadow_s
         mean = shadow_sum[q] / max(n_px[q], 1)
         if not (top / max(mean, 1e-3) >= least * (1 - 1e-6)):
             continue
-        # the height's upper bound (from the highest altitude, the deepest shadow, the nearest column)
-        if not np.isnan(h_max_m):
-            d_max, near_min, far_max = deep[a], run_near[a], run_far[a]
-            for j in range(a + 1, b):
-                d_max = max(d_max, deep[j])
-                near_min = min(near_min, run_near[j])
-                far_max = max(far_max, run_far[j])
-            L = d_max * res_m
-            ub = h_max_m * L / ((near_min + 0.5) * res_m + L)
-            if not (far_max >= n_cols - 1 or not (ub < min_height_m * (1.0 - 1e-9))):
-                continue
         todo[n_todo] = q
         n_todo += 1
     counts[0] = n_hl

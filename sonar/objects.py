@@ -605,10 +605,12 @@ def _detect_shadowed(lev, side, res, along, along_res, rows, wf, alt_per_ping, c
 def _candidates_numpy(lev, runs, n, n_px, shadow_sum, deep, alt_per_ping, res, config, min_cols, short_cols,
                       min_col0, hw, least):
     """The components worth measuring (:func:`_detect_shadowed`) in numpy (the reference of
-    :func:`adaptnav.sonar._kernels.shadow_candidates`): the highlight rows, their labels, the
-    labels to measure."""
+    :func:`adaptnav.sonar._kernels.shadow_candidates`): the highlight rows of the components that
+    pass the size and height tests, their labels, the labels to measure."""
     cand = _shadow_candidates(n_px, n, runs, config, res, min_cols, short_cols, min_col0)
-    hl = _highlights(lev, runs, cand, hw, config.highlight_level)
+    labels = np.unique(runs.label[cand])
+    high = labels[_may_be_high(labels, runs, deep, lev.shape[1], alt_per_ping, res, config.min_height_m)]
+    hl = _highlights(lev, runs, cand[np.isin(runs.label[cand], high)], hw, config.highlight_level)
     hl_label = runs.label[hl.run]
     # an upper bound of each component's contrast, all at once (its brightest highlight over the
     # mean of the whole shadow, which the measurements divide by): most components are speckle,
@@ -618,7 +620,6 @@ def _candidates_numpy(lev, runs, n, n_px, shadow_sum, deep, alt_per_ping, res, c
     bound = top / np.maximum(shadow_sum / np.maximum(n_px, 1), 1e-3)
     rows_ok = np.bincount(hl_label, minlength=n + 1) >= max(config.min_highlight_rows, 1)
     todo = np.flatnonzero(rows_ok & (bound >= least * (1 - 1e-6)))
-    todo = todo[_may_be_high(todo, runs, deep, lev.shape[1], alt_per_ping, res, config.min_height_m)]
     return hl, hl_label, todo
 
 
