@@ -833,3 +833,51 @@ def _box_cols(src, size, out):
             for k in range(n_cols):
                 o[k] = np.float32(sq[k] / fs)
         i += m
+
+
+@jit(cache=True)
+def first_return_rows(smoothed, raw, level, threshold, n_blank, spacing_m, out):
+    """:func:`adaptnav.sonar.waterfall.detect_first_return`'s pick per ping (row), given each row's
+    ``level`` and ``threshold`` (float32): the first sample from ``n_blank`` on whose ``smoothed``
+    value exceeds the threshold, moved to the first of the ``raw`` samples two before to two after
+    it (clipped to the row) that exceeds it too; ``out[i]`` ← its slant range ``(k + ½) spacing_m``,
+    NaN when there is none or the level is ≤ 0. ``smoothed``, ``raw`` (P, N) float32; the
+    comparisons in float32, as numpy's of a float32 array (one pass per row instead of a
+    dozen numpy steps over the whole block)."""
+    n_rows, n = smoothed.shape
+    for i in range(n_rows):
+        t = threshold[i]
+        k = -1
+        for j in range(n_blank, n):
+            if smoothed[i, j] > t:
+                k = j
+                break
+        if k < 0 or level[i] <= 0:
+            out[i] = np.nan
+            continue
+        shift = 0
+        for o in range(-2, 3):
+            if raw[i, min(max(k + o, 0), n - 1)] > t:
+                shift = o
+                break
+        out[i] = (np.float64(k + shift) + 0.5) * spacing_m
+
+
+@jit(cache=True)
+def median_filter_nearest(x, size, out):
+    """``scipy.ndimage.median_filter(x, size, mode="nearest")`` of a 1-D float64 ``x`` into ``out``:
+    per sample the value of rank ``size // 2`` of its window (the ends repeated), each window
+    sorted by insertion with NaN last, as numpy sorts (:func:`adaptnav.sonar.waterfall.median_filter_nearest`)."""
+    n = x.shape[0]
+    before = size // 2
+    win = np.empty(size)
+    for i in range(n):
+        for t in range(size):
+            v = x[min(max(i - before + t, 0), n - 1)]
+            q = t
+            while q > 0 and (win[q - 1] > v or (win[q - 1] != win[q - 1] and v == v)):
+                win[q] = win[q - 1]
+                q -= 1
+            win[q] = v
+        out[i] = win[before]
+
