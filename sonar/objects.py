@@ -467,8 +467,11 @@ def _near_any(o: ObjectSighting, others: list[ObjectSighting], merge_m: float, a
                for k in others)
 
 
-def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, config) -> list[ObjectSighting]:
-    """Objects near the nadir by their highlight (see ``ObjectDetectorConfig.near_range_m``)."""
+def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, config,
+                 pretest: bool = True) -> list[ObjectSighting]:
+    """Objects near the nadir by their highlight (see ``ObjectDetectorConfig.near_range_m``);
+    ``pretest`` False takes every large blob through the per-blob tests (the reference of the
+    tests made for all blobs at once)."""
     ncol = min(int(config.near_range_m / res), lev.shape[1])
     if ncol <= 0:
         return []
@@ -483,16 +486,21 @@ def _detect_near(lev, side, res, along, along_res, rows, wf, alt_per_ping, confi
     # the tests below that need no pixel gathered, for all blobs at once (most are speckle, and
     # nine in ten large ones fail them): the size, the rows (one run per row), the nearest column
     # exactly; the mean level on the float64 sum, with a margin for the float32 mean tested below
-    maybe = ((n_px[1:] >= config.near_min_px) & (stop - first >= config.near_min_rows) & (col0 < ncol)
-             & (col0 >= int(config.min_ground_range_m / res))
-             & (level_sum[1:] >= n_px[1:] * (config.near_mean_level * (1.0 - 1e-4))))
+    maybe = n_px[1:] >= config.near_min_px
+    if pretest:
+        maybe &= ((stop - first >= config.near_min_rows) & (col0 < ncol) & (col0 >= int(config.min_ground_range_m / res))
+                  & (level_sum[1:] >= n_px[1:] * (config.near_mean_level * (1.0 - 1e-4))))
     col0 = col0.tolist()
     out = []
     for k in (np.flatnonzero(maybe) + 1).tolist():
         sl = (slice(row0[k - 1], row1[k - 1]), slice(col0[k - 1], col1[k - 1]))
         comp = lab[sl] == k
         rr = np.flatnonzero(comp.any(axis=1))
+        if rr.size < config.near_min_rows:
+            continue
         c0 = sl[1].start
+        if c0 >= ncol or c0 < int(config.min_ground_range_m / res):
+            continue
         vals = sub[sl][comp]
         if float(vals.mean()) < config.near_mean_level:
             continue

@@ -104,6 +104,15 @@ def _image(rng, rows=200, cols=500):
     return img
 
 
+def assert_same_sightings(got, ref):
+    """The same sightings, field for field: equal values of one type (NaN equal to NaN)."""
+    assert len(got) == len(ref)
+    for g, r in zip(got, ref):
+        for key, v in vars(r).items():
+            u = getattr(g, key)
+            assert type(u) is type(v) and (u == v or (u != u and v != v)), (key, u, v)
+
+
 def test_compiled_candidate_measurements_give_the_python_loops_sightings():
     """_detect_shadowed with its candidates measured by the kernel and tested in numpy gives the
     sightings, field for field, of the per-candidate Python loop it replaced."""
@@ -135,11 +144,7 @@ def test_compiled_candidate_measurements_give_the_python_loops_sightings():
             a = wf.altitude_m[:, 1 if side == "starboard" else 0]
             args = (sub, side, res, along, along_res, np.arange(rows, dtype=float), wf, a, config)
             got, ref = _detect_shadowed(*args), _detect_shadowed(*args, compiled=False)
-            assert len(got) == len(ref)
-            for g, r in zip(got, ref):
-                for key, v in vars(r).items():
-                    u = getattr(g, key)
-                    assert type(u) is type(v) and (u == v or (u != u and v != v)), (key, u, v)
+            assert_same_sightings(got, ref)
             n_found += len(ref)
     assert n_found > 100, n_found
 

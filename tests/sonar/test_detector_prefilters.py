@@ -7,58 +7,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from adaptnav.sonar.objects import ObjectDetectorConfig, ObjectSighting, _components, _detect_near, local_level
+from adaptnav.sonar.objects import ObjectDetectorConfig, _components, _detect_near, local_level
 from adaptnav.sonar.waterfall import Waterfall
 
-
-def _detect_near_per_blob(lev, side, res, along, along_res, rows, wf, alt_per_ping, config):
-    """The near-nadir detection testing every large blob one by one (as it was before the
-    all-at-once pre-tests): the reference."""
-    ncol = min(int(config.near_range_m / res), lev.shape[1])
-    if ncol <= 0:
-        return []
-    sub = lev[:, :ncol + int(2.0 / res)]
-    lab, n, runs, n_px, _ = _components(sub > config.near_highlight_level, sub)
-    big = n_px >= config.near_min_px
-    first = np.flatnonzero(np.r_[True, runs.label[1:] != runs.label[:-1]])
-    row0, row1 = runs.row[first].tolist(), (runs.row[np.r_[first[1:], runs.label.size] - 1] + 1).tolist()
-    col0 = np.minimum.reduceat(runs.near, first).tolist() if first.size else []
-    col1 = np.maximum.reduceat(runs.far, first).tolist() if first.size else []
-    out = []
-    for k in range(1, n + 1):
-        if not big[k]:
-            continue
-        sl = (slice(row0[k - 1], row1[k - 1]), slice(col0[k - 1], col1[k - 1]))
-        comp = lab[sl] == k
-        rr = np.flatnonzero(comp.any(axis=1))
-        if rr.size < config.near_min_rows:
-            continue
-        c0 = sl[1].start
-        if c0 >= ncol or c0 < int(config.min_ground_range_m / res):
-            continue
-        vals = sub[sl][comp]
-        if float(vals.mean()) < config.near_mean_level:
-            continue
-        far = np.array([sl[1].start + np.flatnonzero(row).max() + 1 for row in comp if row.any()])
-        behind = [lev[r0, f:f + max(int(0.4 / res), 2)] for r0, f in zip(rr + sl[0].start, far)]
-        bmean = float(np.mean(np.concatenate(behind))) if behind else 1.0
-        if bmean > config.near_shadow_level:
-            continue
-        rc = float(sl[0].start + rr.mean())
-        ping = float(np.interp(rc, rows, wf.ping_index))
-        H = float(np.interp(ping, np.arange(alt_per_ping.size), alt_per_ping))
-        length = (float(np.interp(sl[0].stop - 0.5, rows, along) - np.interp(sl[0].start - 0.5, rows, along))
-                  if math.isfinite(along_res) else math.nan)
-        g_lead, g_far = (c0 + 0.5) * res, (float(np.median(far)) + 0.5) * res
-        contrast = float(vals.mean()) / max(bmean, 1e-3)
-        if contrast < config.near_min_contrast or not abs(length) >= config.near_min_along_m:
-            continue
-        out.append(ObjectSighting(
-            t_s=float(np.interp(rc, rows, wf.t_s)), side=side, ground_range_m=0.5 * (g_lead + g_far),
-            height_m=math.nan, shadow_length_m=0.0, length_along_m=abs(length),
-            width_across_m=max(g_far - g_lead, res), contrast=contrast,
-            altitude_m=H, row=rc, heading_rad=float(np.interp(rc, rows, np.unwrap(wf.heading_rad)))))
-    return out
+from .test_detector_kernels import assert_same_sightings
 
 
 def _near_image(rng, rows=160, cols=300):
@@ -104,12 +56,8 @@ def test_near_blobs_pretested_at_once_give_the_per_blob_sightings():
                     config = replace(config, near_mean_level=blob_means[len(blob_means) // 2])
             a = wf.altitude_m[:, 1 if side == "starboard" else 0]
             args = (sub, side, res, along, along_res, np.arange(rows, dtype=float), wf, a, config)
-            got, ref = _detect_near(*args), _detect_near_per_blob(*args)
-            assert len(got) == len(ref)
-            for g, r in zip(got, ref):
-                for key, v in vars(r).items():
-                    u = getattr(g, key)
-                    assert type(u) is type(v) and (u == v or (u != u and v != v)), (key, u, v)
+            got, ref = _detect_near(*args), _detect_near(*args, pretest=False)
+            assert_same_sightings(got, ref)
             n_found += len(ref)
             n_cases += 1
     assert n_found > 40, n_found
