@@ -342,6 +342,26 @@ def _surely_beyond(r: np.ndarray, R: np.ndarray, m2_max: float) -> np.ndarray:
     return (r00 > 0.0) & (det > 1e-6 * tr * tr) & (np.abs(r01 - r10) <= 1e-9 * tr) & (q > 2.0 * m2_max * det)
 
 
+def _plain_traces(M: np.ndarray) -> np.ndarray:
+    """Traces of the 2×2 covariances ``M`` (..., 2, 2), NaN where one is not plainly a
+    covariance: symmetric to 1e-9 of its trace, positive definite, conditioned better than 1e6
+    (:func:`_surely_beyond`'s conditions). What :func:`_beyond_by_traces` bounds sums of."""
+    m00, m01, m10, m11 = M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
+    tr = m00 + m11
+    plain = (m00 > 0.0) & (m00 * m11 - m01 * m10 > 1e-6 * tr * tr) & (np.abs(m01 - m10) <= 1e-9 * tr)
+    return np.where(plain, tr, np.nan)
+
+
+def _beyond_by_traces(d2: np.ndarray, tr_old: np.ndarray, tr_new: np.ndarray, m2_max: float) -> np.ndarray:
+    """Where pairs (rows: new sightings, columns: old ones) with squared distances ``d2`` lie
+    beyond ``m2_max`` in every covariance that is the sum of two plain ones (:func:`_plain_traces`)
+    with traces ``tr_old`` (per column) and ``tr_new`` (per row): ``m² ≥ |d|² / λ_max ≥ |d|² /
+    trace``, over four times ``m2_max`` — the sum is conditioned better than 1e6 like its parts,
+    so the closed form (:func:`_surely_beyond`) or the inverse (:func:`_m2`) puts it beyond
+    ``m2_max`` too, whatever the rounding. False where a trace is NaN."""
+    return d2 > 4.0 * m2_max * (tr_old[None] + tr_new[:, None])
+
+
 def _block_diag(*blocks: np.ndarray) -> np.ndarray:
     out = np.zeros((2 * len(blocks), 2 * len(blocks)))
     for i, b in enumerate(blocks):
@@ -484,7 +504,6 @@ class LegAssociator:
         # recent accepted closures as hypotheses for the next sightings (:meth:`extend`):
         # (t_a, t_b, offset on the jump-free tracks, its covariance)
         self._recent: list[tuple[float, float, np.ndarray, np.ndarray]] = []
-        self.candidates_seen = 0
         self.batches = 0
         # optional diagnostics (the landmark experiment's error budget): (id(old), id(new)) →
         # furthest stage the pair reached, see :data:`STAGES`; None: not kept
@@ -549,24 +568,42 @@ class LegAssociator:
         # every new sighting (rows) against every old one (columns) at once
         wide_m2 = c.clutter_scale * self._gate
         other_leg = ~(t_old[None] >= np.array([t - c.min_gap_s for t in t_batch])[:, None])
-        d_all = P_old[None] - np.array([b.pos_n_m for b in batch])[:, None]
+        p_new = np.array([b.pos_n_m for b in batch])
         D_new = np.array([b.det_cov for b in batch])
-        S_all = C_old[None] + (np.array([b.nav_cov for b in batch]) + D_new)[:, None]
+        nav_D_new = np.array([b.nav_cov for b in batch]) + D_new
+        # a pair's covariance is the old sighting's part (navigation + detector, or the error
+        # difference's + detector) plus the new one's (navigation + detector, or detector):
+        # only the pairs their traces do not place beyond the wide gate (of ~1500 a batch, ~5)
+        # get their 2×2 covariances, the closed form and m² (every pair's were a third of
+        # the candidates)
+        d_n, d_e = P_old[None, :, 0] - p_new[:, None, 0], P_old[None, :, 1] - p_new[:, None, 1]
+        tr_new = _plain_traces(nav_D_new)
+        cov_old = C_old
         if rel is not None:
-            S_all = np.where(rel_known[None], rel_D[None] + D_new[:, None], S_all)
-        # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
-        need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
-        rows = np.flatnonzero(need.any(axis=1)).tolist()  # (the others have none in the wide gate)
+            cov_old = np.where(rel_known, rel_D, C_old)
+            tr_new = np.maximum(tr_new, _plain_traces(D_new))  # (NaN where either is not plain)
+        jj, kk = np.nonzero(other_leg & ~_beyond_by_traces(d_n * d_n + d_e * d_e, _plain_traces(cov_old), tr_new,
+                                                           wide_m2))
+        d = np.stack([d_n[jj, kk], d_e[jj, kk]], axis=-1)
+        S = C_old[kk] + nav_D_new[jj]
+        if rel is not None:
+            S = np.where(rel_known[kk], rel_D[kk] + D_new[jj], S)
+        # m² (an inverse each) only where it may be in the wide gate
+        need = ~_surely_beyond(d, S, wide_m2)
+        jj, kk, d, S = jj[need], kk[need], d[need], S[need]
+        S_all = np.full(other_leg.shape + (2, 2), np.nan)  # (read only where m² is finite)
+        S_all[jj, kk] = S
+        rows = np.unique(jj).tolist()  # (the others have none in the wide gate)
         # m² of every pair needed in one call (an inverse each, as many calls as new sightings
         # were a fifth of the candidates): _m2 sums each row alike whenever it is given two
         # or more, as it was given each new sighting's (a lone one as two, _m2_of); with one
         # old sighting each new one's was a lone row (summed otherwise), kept so
-        m2_all = np.full(need.shape, np.inf)
+        m2_all = np.full(other_leg.shape, np.inf)
         if len(old) > 1:
-            m2_all[need] = _m2_of(d_all[need], S_all[need], 2)
+            m2_all[jj, kk] = _m2_of(d, S, 2)
         else:
-            for j in rows:
-                m2_all[j, need[j]] = _m2(d_all[j][need[j]], S_all[j][need[j]])
+            for p, j in enumerate(jj.tolist()):
+                m2_all[j, 0] = _m2(d[p:p + 1], S[p:p + 1])[0]
         out = []
         cl_j: list[int] = []  # (batch index, old index) of the clutter, new sighting by new sighting
         cl_k: list[int] = []
@@ -721,12 +758,18 @@ class LegAssociator:
         allows for that hypothesis (:meth:`_chance_inliers`, :meth:`_min_objects`).
         """
         c = self.config
+        # a set pairs each old and each new sighting once: too few of them found none, whatever
+        # their candidates (not searched: a third of the batches; a trace takes every search
+        # the whole way, noting how far each pair got)
+        if self.trace is None and len(batch) < c.min_objects:
+            return None
         cand, clutter = self.candidates(batch)
-        self.candidates_seen += len(cand)
         if len(cand) < c.min_objects:
             self._note_all(cand, batch, range(len(cand)), "too few candidates")
             return None
         self._note_all(cand, batch, range(len(cand)), "not in the set")
+        if self.trace is None and min(len({i for i, *_ in cand}), len({j for _, j, *_ in cand})) < c.min_objects:
+            return None
         # on the jump-free tracks: a fix or a fused closure between two sightings of one leg
         # moves the filter's position, not the seabed
         diffs, t_a, t_b, D, Va, Vb = self._arrays(cand, batch)
