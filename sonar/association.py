@@ -288,11 +288,18 @@ def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
     """:meth:`LegAssociator._stored_arrays` of ``sightings``."""
+    pos = np.array([o.pos_n_m for o in sightings]).reshape(-1, 2)
+    jumps = [o.jump_n_m for o in sightings]
+    det_cov = np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2)
+    # (elementwise, the same numbers as each sighting's own sums: a numpy call each was a
+    # third of the store)
+    smooth = pos - np.array(jumps).reshape(-1, 2) if all(j is not None for j in jumps) else \
+        np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2)
     return {"t_s": np.array([o.t_s for o in sightings]).reshape(-1),
-            "pos_n_m": np.array([o.pos_n_m for o in sightings]).reshape(-1, 2),
-            "smooth_pos_n_m": np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2),
-            "cov": np.array([o.nav_cov + o.det_cov for o in sightings]).reshape(-1, 2, 2),
-            "det_cov": np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2),
+            "pos_n_m": pos,
+            "smooth_pos_n_m": smooth,
+            "cov": np.array([o.nav_cov for o in sightings]).reshape(-1, 2, 2) + det_cov,
+            "det_cov": det_cov,
             "id": np.array([id(o) for o in sightings], dtype=np.int64)}
 
 
@@ -1022,24 +1029,26 @@ class LegAssociator:
         k_weak = [k for k in np.flatnonzero(np.abs(weak["t_s"] - ta) <= reach).tolist()
                   if id(self._weak_old[k]) not in in_set]
         old = [self._old[k] for k in k_old] + [self._weak_old[k] for k in k_weak]
-        new = [o for o in self._pending + self._weak_pending
-               if abs(o.t_s - tb) <= reach and id(o) not in in_set]
+        new = [o for o in self._pending if abs(o.t_s - tb) <= reach and id(o) not in in_set]
+        n_new_ordinary = len(new)
+        new += [o for o in self._weak_pending if abs(o.t_s - tb) <= reach and id(o) not in in_set]
         if not old or not new:
             return lc
         # pairs with a weak sighting, of two legs, near the set's offset (within 10 m: the
         # inlier gates are a metre or two)
         p_old = np.concatenate([stored["smooth_pos_n_m"][k_old], weak["smooth_pos_n_m"][k_weak]])
         p_new = np.array([o.smooth_pos_n_m for o in new])
-        w_old = np.array([o.weak for o in old])
-        w_new = np.array([o.weak for o in new])
+        # (which are weak by their lists: the ordinary ones first, the weak ones kept apart)
+        w_old = np.arange(len(old)) >= len(k_old)
+        w_new = np.arange(len(new)) >= n_new_ordinary
         t_old = np.concatenate([stored["t_s"][k_old], weak["t_s"][k_weak]])
         t_new = np.array([o.t_s for o in new])
         near = _near_pairs(p_old, p_new, drift.predict([ta], [tb])[0], 10.0,
                            (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s))
-        cand = list(zip(*(v.tolist() for v in np.nonzero(near))))
-        if not cand:
+        ii, jj = np.nonzero(near)
+        if not ii.size:
             return lc
-        ii, jj = (np.array(v) for v in zip(*cand))
+        cand = list(zip(ii.tolist(), jj.tolist()))
         diffs = p_old[ii] - p_new[jj]
         # (the detectors' covariances of the stored ones from their arrays: the same values)
         D_old = np.concatenate([stored["det_cov"][k_old], weak["det_cov"][k_weak]])
@@ -1053,23 +1062,24 @@ class LegAssociator:
         # lies by chance; so does a residual at the edge of the gate). False weak sightings
         # gather where the seabed is rough (ripples, gravel): the density is the larger of the
         # measured mean and the weak sightings' own around the pair's weak one — needed only
-        # for the pairs inside the gate (of all pairs near the offset it was a quarter of this)
-        rho = np.full(len(cand), c.weak_clutter_per_m2)
+        # for the pairs inside the gate (of all pairs near the offset it was a quarter of this),
+        # as is all that follows (each pair's numbers its own)
+        i_in, j_in = ii[inside], jj[inside]
+        rho = np.full(inside.size, c.weak_clutter_per_m2)
         if self._weak_old and inside.size:
             p_weak = weak["smooth_pos_n_m"]
             rad = c.weak_density_radius_m
             # the pair's weak sighting (the new one if weak), each counted once (it is in many pairs)
-            i_in, j_in = ii[inside], jj[inside]
             w_key = np.where(w_new[j_in], len(old) + j_in, i_in)
             _, first, at = np.unique(w_key, return_index=True, return_inverse=True)
             p_w = np.where(w_new[j_in[first]][:, None], p_new[j_in[first]], p_old[i_in[first]])
             n = np.count_nonzero(np.sum((p_weak[None] - p_w[:, None]) ** 2, axis=2) <= rad * rad, axis=1) - 1
-            rho[inside] = np.maximum(rho[inside], (n / (math.pi * rad * rad))[at.reshape(-1)])
-        lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
+            rho = np.maximum(rho, (n / (math.pi * rad * rad))[at.reshape(-1)])
+        lr = np.exp(-0.5 * m2[inside]) / (2.0 * math.pi * np.sqrt(np.linalg.det(R[inside])) * rho)
         # posterior odds: the prior odds that the other sighting's object is there to be seen
         # (an ordinary sighting is an object nine times in ten, a weak one once in 25)
-        prior = np.where(w_old[ii] & w_new[jj], c.weak_weak_prior_odds, c.weak_prior_odds)
-        likely = [k for k in inside if prior[k] * lr[k] >= c.weak_posterior_odds]
+        prior = np.where(w_old[i_in] & w_new[j_in], c.weak_weak_prior_odds, c.weak_prior_odds)
+        likely = inside[prior * lr >= c.weak_posterior_odds].tolist()
         fit = [k for k in likely if self._attributes_agree(old[cand[k][0]], new[cand[k][1]])]
         # the only candidate of both its sightings (two objects near one place: either could be it)
         n_old = np.bincount([cand[k][0] for k in fit], minlength=len(old))

@@ -80,7 +80,9 @@ def _survey(seed):
                 nav = odd[rng.integers(len(odd))] if rng.random() < 0.05 else None
                 batch.append(_sighting(rng, t, objs[o] + err + 0.002 * (t - t0), nav_cov=nav))
             if rng.random() < 0.5:
-                batch.append(_sighting(rng, t + 0.5, objs[o] + rng.normal(0.0, 4.0, 2), weak=True))
+                on_object = rng.random() < 0.5  # (else speckle)
+                pos = objs[o] + err + rng.normal(0.0, 0.3, 2) if on_object else objs[o] + rng.normal(0.0, 4.0, 2)
+                batch.append(_sighting(rng, t + 0.5, pos, weak=True))
             if len(batch) >= rng.integers(1, 8):
                 batches.append(batch)
                 batch = []
@@ -137,3 +139,38 @@ def test_the_shortcuts_change_no_closure_nor_candidate(seed, relative, monkeypat
         assert all(np.array_equal(clutter[k], clutter_w[k], equal_nan=k != "j") for k in clutter)
     assert closures >= 2
     assert sum(len(c[0]) for c in fast_candidates) > 20
+
+
+def test_the_stored_arrays_are_each_sightings_own_numbers():
+    """:func:`_sighting_arrays` sums and differences whole arrays: each sighting's own
+    ``nav_cov + det_cov`` and ``smooth_pos_n_m``, bit for bit, with and without jumps."""
+    from dataclasses import replace
+
+    from adaptnav.sonar.association import _sighting_arrays
+
+    rng = np.random.default_rng(2)
+    sightings = [_sighting(rng, t, rng.uniform(-1e3, 1e3, 2)) for t in rng.uniform(0.0, 3600.0, 50)]
+    sightings = [replace(o, nav_cov=o.nav_cov * rng.uniform(0.1, 10.0, (2, 2)), jump_n_m=o.jump_n_m * 1e3)
+                 for o in sightings]
+    for group in (sightings, [replace(o, jump_n_m=None) if k % 3 == 0 else o for k, o in enumerate(sightings)],
+                  sightings[:1], []):
+        arrays = _sighting_arrays(group)
+        assert arrays["cov"].shape == (len(group), 2, 2) and arrays["smooth_pos_n_m"].shape == (len(group), 2)
+        for k, o in enumerate(group):
+            assert np.array_equal(arrays["cov"][k], o.nav_cov + o.det_cov)
+            assert np.array_equal(arrays["smooth_pos_n_m"][k], o.smooth_pos_n_m)
+            assert np.array_equal(arrays["pos_n_m"][k], o.pos_n_m) and arrays["t_s"][k] == o.t_s
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_weak_sightings_are_kept_apart(seed):
+    """The associator's lists of ordinary sightings hold no weak one and its weak lists only
+    weak ones (:meth:`LegAssociator._with_weak` tells them apart by their lists)."""
+    fast = LegAssociator(relative_covs=_relative_covs)
+    weak_seen = 0
+    for batch in _survey(seed):
+        fast.add(batch)
+        assert not any(o.weak for o in fast._old + fast._pending)
+        assert all(o.weak for o in fast._weak_old + fast._weak_pending)
+        weak_seen += len(fast._weak_pending)
+    assert weak_seen > 0 and fast.weak_pairs > 0
