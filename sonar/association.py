@@ -288,11 +288,18 @@ def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
     """:meth:`LegAssociator._stored_arrays` of ``sightings``."""
+    pos = np.array([o.pos_n_m for o in sightings]).reshape(-1, 2)
+    jumps = [o.jump_n_m for o in sightings]
+    det_cov = np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2)
+    # (elementwise, the same numbers as each sighting's own sums: a numpy call each was a
+    # third of the store)
+    smooth = pos - np.array(jumps).reshape(-1, 2) if all(j is not None for j in jumps) else \
+        np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2)
     return {"t_s": np.array([o.t_s for o in sightings]).reshape(-1),
-            "pos_n_m": np.array([o.pos_n_m for o in sightings]).reshape(-1, 2),
-            "smooth_pos_n_m": np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2),
-            "cov": np.array([o.nav_cov + o.det_cov for o in sightings]).reshape(-1, 2, 2),
-            "det_cov": np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2),
+            "pos_n_m": pos,
+            "smooth_pos_n_m": smooth,
+            "cov": np.array([o.nav_cov for o in sightings]).reshape(-1, 2, 2) + det_cov,
+            "det_cov": det_cov,
             "id": np.array([id(o) for o in sightings], dtype=np.int64)}
 
 
@@ -340,6 +347,26 @@ def _surely_beyond(r: np.ndarray, R: np.ndarray, m2_max: float) -> np.ndarray:
     det = r00 * r11 - r01 * r10
     q = r11 * x * x - (r01 + r10) * x * y + r00 * y * y
     return (r00 > 0.0) & (det > 1e-6 * tr * tr) & (np.abs(r01 - r10) <= 1e-9 * tr) & (q > 2.0 * m2_max * det)
+
+
+def _plain_traces(M: np.ndarray) -> np.ndarray:
+    """Traces of the 2×2 covariances ``M`` (..., 2, 2), NaN where one is not plainly a
+    covariance: symmetric to 1e-9 of its trace, positive definite, conditioned better than 1e6
+    (:func:`_surely_beyond`'s conditions). What :func:`_beyond_by_traces` bounds sums of."""
+    m00, m01, m10, m11 = M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
+    tr = m00 + m11
+    plain = (m00 > 0.0) & (m00 * m11 - m01 * m10 > 1e-6 * tr * tr) & (np.abs(m01 - m10) <= 1e-9 * tr)
+    return np.where(plain, tr, np.nan)
+
+
+def _beyond_by_traces(d2: np.ndarray, tr_old: np.ndarray, tr_new: np.ndarray, m2_max: float) -> np.ndarray:
+    """Where pairs (rows: new sightings, columns: old ones) with squared distances ``d2`` lie
+    beyond ``m2_max`` in every covariance that is the sum of two plain ones (:func:`_plain_traces`)
+    with traces ``tr_old`` (per column) and ``tr_new`` (per row): ``m² ≥ |d|² / λ_max ≥ |d|² /
+    trace``, over four times ``m2_max`` — the sum is conditioned better than 1e6 like its parts,
+    so the closed form (:func:`_surely_beyond`) or the inverse (:func:`_m2`) puts it beyond
+    ``m2_max`` too, whatever the rounding. False where a trace is NaN."""
+    return d2 > 4.0 * m2_max * (tr_old[None] + tr_new[:, None])
 
 
 def _block_diag(*blocks: np.ndarray) -> np.ndarray:
@@ -484,7 +511,6 @@ class LegAssociator:
         # recent accepted closures as hypotheses for the next sightings (:meth:`extend`):
         # (t_a, t_b, offset on the jump-free tracks, its covariance)
         self._recent: list[tuple[float, float, np.ndarray, np.ndarray]] = []
-        self.candidates_seen = 0
         self.batches = 0
         # optional diagnostics (the landmark experiment's error budget): (id(old), id(new)) →
         # furthest stage the pair reached, see :data:`STAGES`; None: not kept
@@ -549,24 +575,42 @@ class LegAssociator:
         # every new sighting (rows) against every old one (columns) at once
         wide_m2 = c.clutter_scale * self._gate
         other_leg = ~(t_old[None] >= np.array([t - c.min_gap_s for t in t_batch])[:, None])
-        d_all = P_old[None] - np.array([b.pos_n_m for b in batch])[:, None]
+        p_new = np.array([b.pos_n_m for b in batch])
         D_new = np.array([b.det_cov for b in batch])
-        S_all = C_old[None] + (np.array([b.nav_cov for b in batch]) + D_new)[:, None]
+        nav_D_new = np.array([b.nav_cov for b in batch]) + D_new
+        # a pair's covariance is the old sighting's part (navigation + detector, or the error
+        # difference's + detector) plus the new one's (navigation + detector, or detector):
+        # only the pairs their traces do not place beyond the wide gate (of ~1500 a batch, ~5)
+        # get their 2×2 covariances, the closed form and m² (every pair's were a third of
+        # the candidates)
+        d_n, d_e = P_old[None, :, 0] - p_new[:, None, 0], P_old[None, :, 1] - p_new[:, None, 1]
+        tr_new = _plain_traces(nav_D_new)
+        cov_old = C_old
         if rel is not None:
-            S_all = np.where(rel_known[None], rel_D[None] + D_new[:, None], S_all)
-        # m² (an inverse each: a quarter of the candidates) only where it may be in the wide gate
-        need = other_leg & ~_surely_beyond(d_all, S_all, wide_m2)
-        rows = np.flatnonzero(need.any(axis=1)).tolist()  # (the others have none in the wide gate)
+            cov_old = np.where(rel_known, rel_D, C_old)
+            tr_new = np.maximum(tr_new, _plain_traces(D_new))  # (NaN where either is not plain)
+        jj, kk = np.nonzero(other_leg & ~_beyond_by_traces(d_n * d_n + d_e * d_e, _plain_traces(cov_old), tr_new,
+                                                           wide_m2))
+        d = np.stack([d_n[jj, kk], d_e[jj, kk]], axis=-1)
+        S = C_old[kk] + nav_D_new[jj]
+        if rel is not None:
+            S = np.where(rel_known[kk], rel_D[kk] + D_new[jj], S)
+        # m² (an inverse each) only where it may be in the wide gate
+        need = ~_surely_beyond(d, S, wide_m2)
+        jj, kk, d, S = jj[need], kk[need], d[need], S[need]
+        S_all = np.full(other_leg.shape + (2, 2), np.nan)  # (read only where m² is finite)
+        S_all[jj, kk] = S
+        rows = np.unique(jj).tolist()  # (the others have none in the wide gate)
         # m² of every pair needed in one call (an inverse each, as many calls as new sightings
         # were a fifth of the candidates): _m2 sums each row alike whenever it is given two
         # or more, as it was given each new sighting's (a lone one as two, _m2_of); with one
         # old sighting each new one's was a lone row (summed otherwise), kept so
-        m2_all = np.full(need.shape, np.inf)
+        m2_all = np.full(other_leg.shape, np.inf)
         if len(old) > 1:
-            m2_all[need] = _m2_of(d_all[need], S_all[need], 2)
+            m2_all[jj, kk] = _m2_of(d, S, 2)
         else:
-            for j in rows:
-                m2_all[j, need[j]] = _m2(d_all[j][need[j]], S_all[j][need[j]])
+            for p, j in enumerate(jj.tolist()):
+                m2_all[j, 0] = _m2(d[p:p + 1], S[p:p + 1])[0]
         out = []
         cl_j: list[int] = []  # (batch index, old index) of the clutter, new sighting by new sighting
         cl_k: list[int] = []
@@ -721,12 +765,18 @@ class LegAssociator:
         allows for that hypothesis (:meth:`_chance_inliers`, :meth:`_min_objects`).
         """
         c = self.config
+        # a set pairs each old and each new sighting once: too few of them found none, whatever
+        # their candidates (not searched: a third of the batches; a trace takes every search
+        # the whole way, noting how far each pair got)
+        if self.trace is None and len(batch) < c.min_objects:
+            return None
         cand, clutter = self.candidates(batch)
-        self.candidates_seen += len(cand)
         if len(cand) < c.min_objects:
             self._note_all(cand, batch, range(len(cand)), "too few candidates")
             return None
         self._note_all(cand, batch, range(len(cand)), "not in the set")
+        if self.trace is None and min(len({i for i, *_ in cand}), len({j for _, j, *_ in cand})) < c.min_objects:
+            return None
         # on the jump-free tracks: a fix or a fused closure between two sightings of one leg
         # moves the filter's position, not the seabed
         diffs, t_a, t_b, D, Va, Vb = self._arrays(cand, batch)
@@ -979,24 +1029,26 @@ class LegAssociator:
         k_weak = [k for k in np.flatnonzero(np.abs(weak["t_s"] - ta) <= reach).tolist()
                   if id(self._weak_old[k]) not in in_set]
         old = [self._old[k] for k in k_old] + [self._weak_old[k] for k in k_weak]
-        new = [o for o in self._pending + self._weak_pending
-               if abs(o.t_s - tb) <= reach and id(o) not in in_set]
+        new = [o for o in self._pending if abs(o.t_s - tb) <= reach and id(o) not in in_set]
+        n_new_ordinary = len(new)
+        new += [o for o in self._weak_pending if abs(o.t_s - tb) <= reach and id(o) not in in_set]
         if not old or not new:
             return lc
         # pairs with a weak sighting, of two legs, near the set's offset (within 10 m: the
         # inlier gates are a metre or two)
         p_old = np.concatenate([stored["smooth_pos_n_m"][k_old], weak["smooth_pos_n_m"][k_weak]])
         p_new = np.array([o.smooth_pos_n_m for o in new])
-        w_old = np.array([o.weak for o in old])
-        w_new = np.array([o.weak for o in new])
+        # (which are weak by their lists: the ordinary ones first, the weak ones kept apart)
+        w_old = np.arange(len(old)) >= len(k_old)
+        w_new = np.arange(len(new)) >= n_new_ordinary
         t_old = np.concatenate([stored["t_s"][k_old], weak["t_s"][k_weak]])
         t_new = np.array([o.t_s for o in new])
         near = _near_pairs(p_old, p_new, drift.predict([ta], [tb])[0], 10.0,
                            (w_old[:, None] | w_new[None]) & (t_new[None] - t_old[:, None] >= c.min_gap_s))
-        cand = list(zip(*(v.tolist() for v in np.nonzero(near))))
-        if not cand:
+        ii, jj = np.nonzero(near)
+        if not ii.size:
             return lc
-        ii, jj = (np.array(v) for v in zip(*cand))
+        cand = list(zip(ii.tolist(), jj.tolist()))
         diffs = p_old[ii] - p_new[jj]
         # (the detectors' covariances of the stored ones from their arrays: the same values)
         D_old = np.concatenate([stored["det_cov"][k_old], weak["det_cov"][k_weak]])
@@ -1010,23 +1062,24 @@ class LegAssociator:
         # lies by chance; so does a residual at the edge of the gate). False weak sightings
         # gather where the seabed is rough (ripples, gravel): the density is the larger of the
         # measured mean and the weak sightings' own around the pair's weak one — needed only
-        # for the pairs inside the gate (of all pairs near the offset it was a quarter of this)
-        rho = np.full(len(cand), c.weak_clutter_per_m2)
+        # for the pairs inside the gate (of all pairs near the offset it was a quarter of this),
+        # as is all that follows (each pair's numbers its own)
+        i_in, j_in = ii[inside], jj[inside]
+        rho = np.full(inside.size, c.weak_clutter_per_m2)
         if self._weak_old and inside.size:
             p_weak = weak["smooth_pos_n_m"]
             rad = c.weak_density_radius_m
             # the pair's weak sighting (the new one if weak), each counted once (it is in many pairs)
-            i_in, j_in = ii[inside], jj[inside]
             w_key = np.where(w_new[j_in], len(old) + j_in, i_in)
             _, first, at = np.unique(w_key, return_index=True, return_inverse=True)
             p_w = np.where(w_new[j_in[first]][:, None], p_new[j_in[first]], p_old[i_in[first]])
             n = np.count_nonzero(np.sum((p_weak[None] - p_w[:, None]) ** 2, axis=2) <= rad * rad, axis=1) - 1
-            rho[inside] = np.maximum(rho[inside], (n / (math.pi * rad * rad))[at.reshape(-1)])
-        lr = np.exp(-0.5 * m2) / (2.0 * math.pi * np.sqrt(np.linalg.det(R)) * rho)
+            rho = np.maximum(rho, (n / (math.pi * rad * rad))[at.reshape(-1)])
+        lr = np.exp(-0.5 * m2[inside]) / (2.0 * math.pi * np.sqrt(np.linalg.det(R[inside])) * rho)
         # posterior odds: the prior odds that the other sighting's object is there to be seen
         # (an ordinary sighting is an object nine times in ten, a weak one once in 25)
-        prior = np.where(w_old[ii] & w_new[jj], c.weak_weak_prior_odds, c.weak_prior_odds)
-        likely = [k for k in inside if prior[k] * lr[k] >= c.weak_posterior_odds]
+        prior = np.where(w_old[i_in] & w_new[j_in], c.weak_weak_prior_odds, c.weak_prior_odds)
+        likely = inside[prior * lr >= c.weak_posterior_odds].tolist()
         fit = [k for k in likely if self._attributes_agree(old[cand[k][0]], new[cand[k][1]])]
         # the only candidate of both its sightings (two objects near one place: either could be it)
         n_old = np.bincount([cand[k][0] for k in fit], minlength=len(old))
