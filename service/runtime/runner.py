@@ -143,6 +143,11 @@ class _Loop:
         self._next_inertial_t = -math.inf
         self.imu_period_s = math.nan
         self._last_imu_t = math.nan
+        # what the epoch tests of every item read, kept as numbers (not recomputed per item):
+        # the next epoch's time (s; -inf before one is known: the first item sets it) and
+        # half_window_s() (the half IMU period, EPOCH_ROUNDING_S before it is known)
+        self._epoch_s = -math.inf
+        self._half_window_s = EPOCH_ROUNDING_S
         self.data_t = -math.inf  # the release rule's data time: latest time of an admitted item
         self._gaps_seen = 0  # the door's data gaps already logged
         self._quiet_until = (_QUIET_UNTIL if hasattr(calibrator, "quiet_until_s")
@@ -151,6 +156,10 @@ class _Loop:
     # -- output epochs -------------------------------------------------------------------
     def epoch(self, k: int) -> float:
         return k / self.rate
+
+    def _set_next_epoch(self, k: int | None) -> None:
+        self.next_k = k
+        self._epoch_s = -math.inf if k is None else self.epoch(k)
 
     def emit(self) -> None:
         est = self.estimator
@@ -176,26 +185,27 @@ class _Loop:
                     f(inertial)
 
     def half_window_s(self) -> float:
-        """Half the IMU period (s): how far from an epoch its nearest IMU sample may lie."""
-        p = self.imu_period_s
-        return 0.5 * p if p > 0.0 else EPOCH_ROUNDING_S  # False for NaN
+        """Half the IMU period (s): how far from an epoch its nearest IMU sample may lie
+        (EPOCH_ROUNDING_S before the period is known)."""
+        return self._half_window_s
 
     def due_s(self) -> float:
         """Time from which an IMU sample completes the next epoch (it is the nearest one)."""
-        return self.epoch(self.next_k) - self.half_window_s()
+        return self._epoch_s - self._half_window_s
 
     def flush_epochs_before(self, t_s: float) -> None:
         """Emit every epoch not yet emitted whose nearest IMU sample lies before ``t_s``
         (more than half an IMU period before it; the state is the same for all)."""
         if self.next_k is None:
-            self.next_k = math.ceil(t_s * self.rate - 1e-9)
-        half = self.half_window_s()
-        if self.epoch(self.next_k) + half < t_s:
+            self._set_next_epoch(math.ceil(t_s * self.rate - 1e-9))
+        half = self._half_window_s
+        if self._epoch_s + half < t_s:
             self.emit()
             # skip the epochs of a gap in one step: the state did not change in between
-            self.next_k = max(self.next_k + 1, math.ceil((t_s - half) * self.rate - 1e-9))
-            while self.epoch(self.next_k) + half < t_s:
-                self.next_k += 1
+            k = max(self.next_k + 1, math.ceil((t_s - half) * self.rate - 1e-9))
+            while self.epoch(k) + half < t_s:
+                k += 1
+            self._set_next_epoch(k)
 
     def emit_if_at_epoch(self, t_s: float) -> None:
         """Emit now when the IMU sample just processed (at ``t_s``) is the one nearest the
@@ -203,17 +213,18 @@ class _Loop:
         k = self.next_k
         if k is None:
             return
-        half = self.half_window_s()
-        if not t_s >= k / self.rate - half:  # due_s(), written out: every live IMU sample asks
+        half = self._half_window_s
+        if not t_s >= self._epoch_s - half:  # due_s(), written out: every live IMU sample asks
             return
         self.emit()
-        self.next_k = max(k + 1, math.floor((t_s + half) * self.rate + 1e-9) + 1)
+        self._set_next_epoch(max(k + 1, math.floor((t_s + half) * self.rate + 1e-9) + 1))
 
     def imu_time(self, t_s: float) -> None:
         """Track the IMU period (the half window of :meth:`due_s`)."""
         dt = t_s - self._last_imu_t
         if 0.0 < dt < 1.0:
             self.imu_period_s = dt
+            self._half_window_s = 0.5 * dt
         self._last_imu_t = t_s
 
     # -- the door ---------------------------------------------------------------------------
@@ -255,7 +266,7 @@ class _Loop:
             shift = getattr(obj, "shift_time", None)
             if shift is not None:
                 shift(jump_s)
-        self.next_k = None
+        self._set_next_epoch(None)
         self.last_emitted_t = -math.inf
         self._next_inertial_t = -math.inf
         self.data_t += jump_s
@@ -293,9 +304,11 @@ class _Loop:
         n = len(ts)
         start = 0
         while start < n:
-            if math.isfinite(ts[start]):
+            t_first = ts[start]
+            if math.isfinite(t_first):
                 # emit epochs the first remaining sample is past
-                self.flush_epochs_before(ts[start])
+                if self._epoch_s + self._half_window_s < t_first:  # flush's own test: no call per batch
+                    self.flush_epochs_before(t_first)
                 # the piece ends with the sample that completes the next epoch (bisect_left on
                 # the floats: searchsorted's probes and comparisons, without its call)
                 stop = bisect.bisect_left(ts, self.due_s()) + 1
@@ -320,7 +333,9 @@ class _Loop:
     def sample(self, sample: Any) -> None:
         kind = sample.KIND
         t_s = sample.t_s
-        if math.isfinite(t_s):  # a NaN time goes to the estimator, which rejects it
+        # flush_epochs_before's own test first: no call for the item that finds no epoch due
+        # (true before the first epoch is known; a NaN time goes to the estimator, which rejects it)
+        if self._epoch_s + self._half_window_s < t_s and math.isfinite(t_s):
             self.flush_epochs_before(t_s)
         try:
             if kind != "truth":
