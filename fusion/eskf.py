@@ -146,6 +146,25 @@ def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurem
     return meas._replace(H=H, h=h)
 
 
+def _rest_window_quiet(window: list, max_acc_std_m_s2: float, max_gyro_rad_s: float) -> bool:
+    """The stationary-detection window (``Estimator._st`` as floats: t0, n, Σf (3), Σf² (3), max
+    |ω|) was quiet: 3 samples or more, every axis's specific-force σ ``√max(Σf²/n − (Σf/n)², 0)``
+    (m/s²) within ``max_acc_std_m_s2`` and the largest rate within ``max_gyro_rad_s``.
+
+    Python floats, the arithmetic numpy did on the (3,) slices under ``np.errstate`` (~50 µs a
+    window with the context manager and the small arrays; a window every data second): an
+    overflow is inf and inf − inf NaN here too, and a NaN axis (absurd samples) is not quiet,
+    as the NaN its maximum was."""
+    _, n, f0, f1, f2, ff0, ff1, ff2, gyro_max = window
+    if not (n >= 3 and gyro_max <= max_gyro_rad_s):
+        return False
+    m0, m1, m2 = f0 / n, f1 / n, f2 / n
+    for var in (ff0 / n - m0 * m0, ff1 / n - m1 * m1, ff2 / n - m2 * m2):
+        if not math.sqrt(max(var, 0.0)) <= max_acc_std_m_s2:  # (max(NaN, 0.0) is NaN)
+            return False
+    return True
+
+
 # a DVL fused this recently (or during the vertical run) measured the run's horizontal drift
 _DVL_MEASURES_DRIFT_S = 2.0
 
@@ -1357,10 +1376,7 @@ class Estimator:
         vehicle was at rest over it; the next window starts."""
         c = self.config.stationary
         st = self._st
-        n = st[1]
-        with np.errstate(over="ignore", invalid="ignore"):  # a window with absurd samples: NaN, not quiet
-            var = st[5:8] / n - (st[2:5] / n) ** 2
-        quiet = n >= 3 and float(np.sqrt(max(var.max(), 0.0))) <= c.max_acc_std_m_s2 and st[8] <= c.max_gyro_rad_s
+        quiet = _rest_window_quiet(st.tolist(), c.max_acc_std_m_s2, c.max_gyro_rad_s)
         st[:] = [math.nan, 0.0] + [0.0] * 7
         dw = self._depth_win
         depth_steady = len(dw) < 4 or (dw[2] - dw[0] > 0 and abs(dw[3] - dw[1]) <= c.max_depth_rate_m_s * max(dw[2] - dw[0], c.window_s))
