@@ -122,6 +122,13 @@ def _finite(sample) -> bool:
     return is_finite(sample)
 
 
+def _all_finite(values: list) -> bool:
+    """Every one of the floats finite (the state's 19 with every published state and ping): a
+    finite sum has no inf or NaN in it, a third of the test per element; else (an overflow
+    perhaps) each one."""
+    return math.isfinite(sum(values)) or all(map(math.isfinite, values))
+
+
 def _sigma_h_m(P: np.ndarray) -> float:
     """Horizontal position σ (m) of a covariance (18×18): the larger of north and east."""
     n, e = POS_NE.start, POS_NE.start + 1
@@ -367,7 +374,7 @@ class Estimator:
         self._add_considered(cov)
         sigma_h = _sigma_h_m(cov)
         reasons = self.invalid_reasons(sigma_h)
-        if self._mode == "ins" and not reasons and not all(map(math.isfinite, x.tolist())):
+        if self._mode == "ins" and not reasons and not _all_finite(x.tolist()):
             reasons = ["non_finite"]
         valid = self._mode == "ins" and not reasons
         x = x.copy()  # one copy; the state's vectors are views of it
@@ -441,10 +448,8 @@ class Estimator:
             a00, a01, a10, a11 = self.dvl_calibration.position_cov_ne_values()
             c00, c01, c10, c11 = c00 + a00, c01 + a01, c10 + a10, c11 + a11
         xs = self._x.tolist()
-        # (_sigma_h_m of these numbers; np.isfinite(x).all() on the floats: a finite sum has no
-        # inf or NaN in it, a third of the test per ping; else, an overflow perhaps, each one)
-        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) \
-                or not (math.isfinite(sum(xs)) or all(map(math.isfinite, xs))):
+        # (_sigma_h_m of these numbers)
+        if self.invalid_reasons(math.sqrt(max(c00, c11, 0.0))) or not _all_finite(xs):
             return None
         n, e, q = X_POS_NE.start, _X_VEL_NE.start, X_Q.start
         # quat_to_euler's yaw of the same floats (the same arithmetic, without its roll and pitch)
