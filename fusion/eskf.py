@@ -1196,7 +1196,7 @@ class Estimator:
         finally:
             self._replaying = False
         for st in out:
-            self._monitor(st)
+            self._monitor(st.source, st.test_ratio, len(st.innovation), st.reason)
         self.late_fused += 1
         return out
 
@@ -1968,13 +1968,15 @@ class Estimator:
         else:
             self.rejected["non_finite"] += 1
             reason = "non_finite"
-        status = AidStatus(float(t_s), source, z, y, s_diag, float(nis) / self._gate[m], bool(fused), reason)
+        test_ratio = float(nis) / self._gate[m]
+        status = AidStatus(float(t_s), source, z, y, s_diag, test_ratio, bool(fused), reason)
         if not self._replaying:
-            self._monitor(status)
+            self._monitor(source, test_ratio, m, reason)
         return status
 
-    def _monitor(self, status: AidStatus) -> None:
-        """Feed an attempt's NIS to the integrity monitor (INS mode; fused or gated)."""
-        if self._mode == "ins" and status.reason in ("", "gate"):
-            m = len(status.innovation)
-            self._nis.add(status.source, status.test_ratio * self._gate[m], m)
+    def _monitor(self, source: str, test_ratio: float, m: int, reason: str) -> None:
+        """Feed an attempt's NIS (its status's ``test_ratio`` × the gate of its ``m`` rows) to the
+        integrity monitor (INS mode; fused or gated). The status's fields as arguments: the
+        attempt has them at hand (~93k attempts per data hour)."""
+        if self._mode == "ins" and reason in ("", "gate"):
+            self._nis.add(source, test_ratio * self._gate[m], m)
