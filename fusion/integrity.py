@@ -55,12 +55,14 @@ class NisMonitor:
         if s is None or s.dof != dof:
             s = self._source[source] = _SourceWindow(dof, self.bound(dof), self.cap(dof))
         q = s.nis
-        nis = min(nis, s.cap)
+        if s.cap < nis:  # (min(nis, cap) without the builtin's call)
+            nis = s.cap
         q.append(nis)
         total = s.total = s.total + nis
-        if len(q) > self.window:
+        window = self.window
+        if len(q) > window:
             total = s.total = total - q.popleft()
-        if len(q) >= self.window and total > s.bound:
+        if len(q) >= window and total > s.bound:
             self._failing.add(source)
         else:
             self._failing.discard(source)

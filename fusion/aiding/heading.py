@@ -8,16 +8,21 @@ from __future__ import annotations
 import numpy as np
 
 from .. import kalman
-from ..state import ATT, N_ERR
+from ..state import ATT, N_ERR, X_Q
 from ..config import HeadingConfig
-from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian, euler_of
+from .common import AidContext, AidSource, Measurement, dcm, euler_jacobian
 
 _ANGULAR = np.ones(1, bool)
 _ANGULAR.setflags(write=False)
 
 
 def predict(x) -> np.ndarray:
-    return euler_of(dcm(x))[2:3]
+    """``[ψ]``: the yaw of :func:`~.common.euler_of` (``arctan2(R₁₀, R₀₀)`` of :func:`~.common.dcm`'s
+    elements, the same floats and the same numpy function) without building ``R_nb`` and the
+    roll and pitch nobody reads here (7 → 1 µs; the free-inertial velocity asks every data
+    second)."""
+    w, a, b, c = x[X_Q].tolist()
+    return np.array([np.arctan2(2 * (a * b + w * c), 1 - 2 * (b * b + c * c))])
 
 
 def jacobian(x) -> np.ndarray:
