@@ -212,7 +212,8 @@ def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
     Per call (the live filter makes four per IMU sample, on its latency path): the test is
     one expression per argument, written out for the kernel's types (a loop over the specs
     took ~145 bytecodes a call, a quarter of the interpreter's work on a live IMU sample),
-    with concrete-type ``isinstance`` tests, not the ``numbers`` ABCs (~0.3 µs each)."""
+    with concrete-type ``isinstance`` tests, not the ``numbers`` ABCs (~0.3 µs each), and an
+    array's dtype compared whole (byte order included)."""
     import numpy as np
 
     scalar_types = {"float": (float, int, np.floating, np.integer),   # bool is an int
@@ -223,7 +224,11 @@ def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
         if kind == "array":
             # flags.carray: C-contiguous, aligned and writeable; flags.behaved: the last two
             flag = "carray" if contiguous else "behaved"
-            tests.append(f"type(a{i}) is ndarray and a{i}.dtype.char == {str(dtype)!r} "
+            # dtype equality, not its character: a big-endian array has the same character
+            # ('>f8' is 'd') and the compiled function would read and write its bytes as
+            # native ones; not identity either (an unpickled array's dtype is an equal copy)
+            env[f"dtype{i}"] = np.dtype(dtype)
+            tests.append(f"type(a{i}) is ndarray and a{i}.dtype == dtype{i} "
                          f"and a{i}.ndim == {int(ndim)} and a{i}.flags.{flag}")
         else:  # a kind without scalar types never matches: the fallback takes it
             env[f"types{i}"] = scalar_types.get(kind, ())

@@ -1,6 +1,7 @@
 """Kernels compiled ahead of time (adaptnav.kernels) behave as the just-in-time ones."""
 from __future__ import annotations
 
+import pickle
 import subprocess
 import sys
 
@@ -106,8 +107,8 @@ def test_a_replay_with_every_aid_runs_no_kernel_just_in_time(tmp_path):
 def test_the_guard_takes_the_compiled_function_only_for_the_types_it_was_built_for():
     """adaptnav.kernels._guarded, the test in front of every compiled kernel: contiguous
     writeable float64 arrays of the built dimensions and scalars of the built kinds go to
-    the compiled function; anything else (dtype, ndim, order, read-only, a scalar of
-    another kind, another number of arguments) to the just-in-time fallback."""
+    the compiled function; anything else (dtype, byte order, ndim, order, read-only, a scalar
+    of another kind, another number of arguments) to the just-in-time fallback."""
     specs = [("array", "d", 2, True), ("array", "d", 1, False), ("float", None, None, None),
              ("int", None, None, None), ("bool", None, None, None)]
     call = kernels._guarded(lambda *a: "compiled", specs, lambda *a: "fallback")
@@ -116,7 +117,11 @@ def test_the_guard_takes_the_compiled_function_only_for_the_types_it_was_built_f
     assert call(m, v[::2], np.float64(0.5), np.int64(2), np.bool_(False)) == "compiled"  # v: any order
     readonly = np.zeros(4)
     readonly.flags.writeable = False
+    unpickled = pickle.loads(pickle.dumps(m))  # an equal dtype, another object (the child's batches)
+    assert unpickled.dtype is not m.dtype and call(unpickled, v, 0.5, 2, True) == "compiled"
     for args in ((m.astype(np.float32), v, 0.5, 2, True), (v, v, 0.5, 2, True), (m.T, v, 0.5, 2, True),
+                 (m.astype(">f8"), v, 0.5, 2, True), (m, v.astype(">f8"), 0.5, 2, True),  # same char 'd'
+                 (m.astype(np.int64), v, 0.5, 2, True),
                  (m, readonly, 0.5, 2, True), (m, v, "0.5", 2, True), (m, v, 0.5, 2.0, True),
                  (m, v, 0.5, 2, None), (m, v, 0.5, 2), (list(m), v, 0.5, 2, True)):
         assert call(*args) == "fallback"
@@ -262,3 +267,20 @@ def test_the_specs_are_as_readable_as_the_compiled_module():
     so = kernels.loaded_aot_path()
     specs = so.with_name(so.name.split(".")[0] + ".json")
     assert specs.stat().st_mode & 0o444 == so.stat().st_mode & 0o444
+
+
+def test_a_big_endian_array_is_not_read_as_a_native_one():
+    """The compiled median window written into a big-endian buffer: the guard let it through
+    (same dtype character) and the kernel wrote native bytes into it (1.5 read back as
+    3e-319). Now it goes to the just-in-time version, which refuses that byte order or
+    computes right — never a wrong number."""
+    native = np.zeros(2 + 2 * 10)
+    big = np.zeros(2 + 2 * 10, dtype=">f8")
+    assert kalman.median_window_push(native, 1.5) == (1, 1.5)
+    try:
+        out = kalman.median_window_push(big, 1.5)
+    except Exception as e:  # noqa: BLE001 — numba's typing error for a non-native byte order
+        assert "byte order" in str(e).lower() or "non-native" in str(e).lower() or "dtype" in str(e).lower(), e
+    else:
+        assert out == (1, 1.5)
+        np.testing.assert_array_equal(big.astype(float), native)
