@@ -294,13 +294,10 @@ class TrajectoryCsvSink(Sink):
         if sample.KIND == "truth":
             self._last_truth = sample
             pending = self._pending
-            # (_truth_matches, inline: a call per truth sample)
+            # a truth sample matches a state within truth_max_age_s of it
             if pending is not None and abs(pending[0] - sample.t_s) <= self.truth_max_age_s:
                 self._pending = None
                 self._write(pending[1], sample)
-
-    def _truth_matches(self, t_s: float, truth: Any) -> bool:
-        return truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s
 
     def _write(self, row: str, truth: Any) -> None:
         # the fields are numbers, never quoted: what csv.writer would write, joined directly
@@ -395,8 +392,7 @@ class AidStatusCsvSink(Sink):
         formats, rows = self._line_formats, self._rows
         for s in statuses:
             obs, nu, var = s.observation, s.innovation, s.innovation_variance
-            # (fused as it is: a truthy value other than True only adds a key, of the same format)
-            key = (s.source, s.fused, s.reason, len(obs), len(nu), len(var))
+            key = (s.source, bool(s.fused), s.reason, len(obs), len(nu), len(var))
             line = formats.get(key)
             if line is None:
                 line = formats[key] = self._line_format(*key)
