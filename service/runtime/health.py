@@ -19,12 +19,16 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 
-@dataclass
+@dataclass(slots=True)
 class _SensorStats:
     count: int = 0
     first_t_s: float = math.nan
     last_t_s: float = math.nan
     buckets: deque = field(default_factory=deque)  # (int second, count)
+    # the latest bucket (buckets[-1]) and the second it ends at, for Health.on_sample's fast path
+    # (-inf: no bucket)
+    last_bucket: list | None = None
+    last_bucket_end_s: float = -math.inf
 
     def add(self, t_s: float, n: int, keep_s: int) -> None:
         self.count += n
@@ -36,10 +40,16 @@ class _SensorStats:
         if self.buckets and self.buckets[-1][0] == sec:
             self.buckets[-1][1] += n
         elif not self.buckets or sec > self.buckets[-1][0]:
-            self.buckets.append([sec, n])
+            self.last_bucket = [sec, n]
+            self.last_bucket_end_s = sec + 1
+            self.buckets.append(self.last_bucket)
             while self.buckets and self.buckets[0][0] < sec - keep_s:
                 self.buckets.popleft()
         # a late sample (older bucket) only counts in the totals: rates are approximate
+
+    def clear_buckets(self) -> None:
+        self.buckets.clear()
+        self.last_bucket, self.last_bucket_end_s = None, -math.inf
 
     def rate_hz(self, now_s: float, window_s: int) -> float:
         if self.count == 0 or not math.isfinite(now_s) or math.isnan(self.first_t_s):
@@ -89,12 +99,11 @@ class Health:
         stats = self._sensors.get(kind)
         if stats is None:
             stats = self._sensors[kind] = _SensorStats()
-        # fast path (the common case): in order, same 1-s bucket as the last sample
-        b = stats.buckets
-        if b and t_s >= stats.last_t_s and t_s < b[-1][0] + 1:
+        # fast path (the common case): in order, same 1-s bucket as the last sample (NaN: not)
+        if stats.last_t_s <= t_s < stats.last_bucket_end_s:
             stats.count += n
             stats.last_t_s = t_s
-            b[-1][1] += n
+            stats.last_bucket[1] += n
         elif math.isfinite(t_s):
             stats.add(t_s, n, self.rate_window_s + 1)
         else:
@@ -109,7 +118,7 @@ class Health:
         for s in self._sensors.values():
             s.first_t_s += delta_s
             s.last_t_s += delta_s
-            s.buckets.clear()
+            s.clear_buckets()
         self.t_s += delta_s
 
     def on_rejected(self, reason: str, n: int = 1) -> None:

@@ -65,8 +65,15 @@ def _vec(values: Any) -> str:
 
 # trajectory.csv's numeric columns t_s … k_speed, and its truth columns (comma-separated)
 _NAV_FORMAT = ",".join(["%.10g"] * 16)
-_TRUTH_FORMAT = "," + ",".join(["%.10g"] * 6) + "\n"
+# (the truth's position, then its current and k_v: the same from one sample to the next in a simulation)
+_TRUTH_POS_FORMAT = ",%.10g,%.10g,%.10g"
+_TRUTH_TAIL_FORMAT = ",%.10g,%.10g,%.10g\n"
 _NO_TRUTH = "," * 6 + "\n"
+# rows a CSV sink joins into one write
+_ROWS_PER_WRITE = 256
+_F64 = np.dtype(np.float64)
+# the estimator's sea current: north, east
+_NE_SHAPE = (2,)
 # characters that make csv.writer quote a field
 _CSV_SPECIAL = frozenset(',"\r\n')
 
@@ -269,6 +276,17 @@ class TrajectoryCsvSink(Sink):
         self._last_truth = None
         self._pending: tuple[float, str] | None = None  # (t_s, row) waiting for its truth sample
         self._pos = _state_slices().POS
+        # the position's variances by index into the covariance (cov.item: Python floats, no arrays)
+        self._pos_ix = tuple(range(_state_slices().N_ERR))[self._pos]
+        # without a UNIX time, the whole row up to its truth is one format per validity:
+        # the numbers, valid, an empty t_unix_s and the latitude and longitude (see _row)
+        self._geo_formats = ((_NAV_FORMAT + ",0,,%.9f,%.9f", _NAV_FORMAT + ",1,,%.9f,%.9f")
+                             if unix_of is None and origin is not None else None)
+        # rows joined and written in blocks (a file write per row cost more than the join)
+        self._rows: list[str] = []
+        # a truth sample's current and k_v are the same from one to the next (a simulation's
+        # run): their text is kept (key, text)
+        self._truth_tail: tuple[tuple, str] = ((), "")
         # a log's UNIX time of a state is what the source has learnt of its clock by then
         self.deferrable = unix_of is None
 
@@ -276,40 +294,68 @@ class TrajectoryCsvSink(Sink):
         if sample.KIND == "truth":
             self._last_truth = sample
             pending = self._pending
-            if pending is not None and self._truth_matches(pending[0], sample):
-                self._write(pending[1], sample)
+            # a truth sample matches a state within truth_max_age_s of it
+            if pending is not None and abs(pending[0] - sample.t_s) <= self.truth_max_age_s:
                 self._pending = None
-
-    def _truth_matches(self, t_s: float, truth: Any) -> bool:
-        return truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s
+                self._write(pending[1], sample)
 
     def _write(self, row: str, truth: Any) -> None:
         # the fields are numbers, never quoted: what csv.writer would write, joined directly
+        rows = self._rows
         if not self.truth:
-            self._file.write(row + "\n")
+            rows.append(row + "\n")
         elif truth is not None:
-            self._file.write(row + _TRUTH_FORMAT % (*truth.pos_n_m, truth.current_n_m_s[0], truth.current_n_m_s[1],
-                                                    truth.k_v))
+            cur, k_v = truth.current_n_m_s, truth.k_v
+            key, tail = self._truth_tail
+            c_n, c_e = cur[0], cur[1]
+            # equal numbers have equal text, but for the sign of zero: zeros are formatted
+            if not (key and c_n == key[0] and c_e == key[1] and k_v == key[2] and c_n and c_e and k_v):
+                tail = _TRUTH_TAIL_FORMAT % (c_n, c_e, k_v)
+                self._truth_tail = ((c_n, c_e, k_v), tail)
+            rows.append(row + _TRUTH_POS_FORMAT % tuple(truth.pos_n_m) + tail)
         else:
-            self._file.write(row + _NO_TRUTH)
+            rows.append(row + _NO_TRUTH)
+        if len(rows) >= _ROWS_PER_WRITE:
+            self._file.write("".join(rows))
+            rows.clear()
+
+    def _row(self, state: Any) -> tuple[float, str]:
+        """The state's time and row up to its truth columns."""
+        # Python floats (tolist) format as their numpy scalars do, several times faster
+        pos, vel, cov = state.pos_n_m, state.vel_n_m_s, state.cov
+        p = pos.tolist() if type(pos) is np.ndarray and pos.dtype is _F64 else np.asarray(pos, dtype=float).tolist()
+        v = vel.tolist() if type(vel) is np.ndarray and vel.dtype is _F64 else np.asarray(vel, dtype=float).tolist()
+        roll, pitch, yaw = quat_to_euler(state.q_nb)
+        i, j, k = self._pos_ix
+        if type(cov) is np.ndarray and cov.dtype is _F64:
+            var_n, var_e, var_d = cov.item(i, i), cov.item(j, j), cov.item(k, k)
+        else:
+            var_n, var_e, var_d = np.asarray(cov, dtype=float).diagonal()[self._pos].tolist()
+        c = state.current_n_m_s
+        cn, ce = c.tolist() if type(c) is np.ndarray and c.dtype is _F64 and c.shape == _NE_SHAPE else _current_xy(state)
+        t_s = state.t_s
+        if type(t_s) is not float:
+            t_s = float(t_s)
+        # sqrt(max(var, 0.0)) as it was: -0.0 and NaN kept, a negative variance 0
+        nums = (t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
+                math.sqrt(var_n) if not var_n < 0.0 else 0.0, math.sqrt(var_e) if not var_e < 0.0 else 0.0,
+                math.sqrt(var_d) if not var_d < 0.0 else 0.0, cn, ce, state.k_speed)
+        formats = self._geo_formats
+        if formats is not None:
+            lat, lon = self.origin.to_geodetic_ne(p[0], p[1])
+            if math.isfinite(lat) and math.isfinite(lon):
+                return t_s, formats[1 if state.valid else 0] % (*nums, math.degrees(lat), math.degrees(lon))
+        return t_s, (_NAV_FORMAT % nums + (",1," if state.valid else ",0,")
+                     + geo_time_text(t_s, p[0], p[1], self.unix_of, self.origin))
 
     def on_nav(self, state: Any) -> None:
         if self._pending is not None:  # its truth did not come before the next state: none
             self._write(self._pending[1], None)
             self._pending = None
-        # Python floats (tolist) format as their numpy scalars do, several times faster
-        p = np.asarray(state.pos_n_m, dtype=float).tolist()
-        v = np.asarray(state.vel_n_m_s, dtype=float).tolist()
-        roll, pitch, yaw = quat_to_euler(state.q_nb)
-        var_n, var_e, var_d = np.asarray(state.cov).diagonal()[self._pos].tolist()
-        cn, ce = _current_xy(state)
-        t_s = float(state.t_s)
-        row = (_NAV_FORMAT % (t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
-                              math.sqrt(max(var_n, 0.0)), math.sqrt(max(var_e, 0.0)), math.sqrt(max(var_d, 0.0)),
-                              cn, ce, state.k_speed)
-               + (",1," if state.valid else ",0,") + geo_time_text(t_s, p[0], p[1], self.unix_of, self.origin))
-        if not self.truth or self._truth_matches(t_s, self._last_truth):
-            self._write(row, self._last_truth)
+        t_s, row = self._row(state)
+        truth = self._last_truth
+        if not self.truth or (truth is not None and abs(t_s - truth.t_s) <= self.truth_max_age_s):
+            self._write(row, truth)
         else:
             # the runner emits the state of epoch t_k as soon as the IMU reaches t_k, before
             # the truth sample of t_k arrives: hold the row for it
@@ -319,6 +365,8 @@ class TrajectoryCsvSink(Sink):
         if self._pending is not None:
             self._write(self._pending[1], None)
             self._pending = None
+        self._file.write("".join(self._rows))
+        self._rows.clear()
         self._file.close()
 
 
@@ -337,19 +385,27 @@ class AidStatusCsvSink(Sink):
         self._writer.writerow(self.COLUMNS)
         # (source, fused, reason, vector lengths) → the row's format: a handful of them per run
         self._line_formats: dict[tuple, str] = {}
+        # rows joined and written in blocks (see TrajectoryCsvSink)
+        self._rows: list[str] = []
 
     def on_aid(self, statuses: list) -> None:
+        formats, rows = self._line_formats, self._rows
         for s in statuses:
             obs, nu, var = s.observation, s.innovation, s.innovation_variance
             key = (s.source, bool(s.fused), s.reason, len(obs), len(nu), len(var))
-            line = self._line_formats.get(key)
+            line = formats.get(key)
             if line is None:
-                line = self._line_formats[key] = self._line_format(*key)
+                line = formats[key] = self._line_format(*key)
             if line:
-                self._file.write(line % (s.t_s, s.test_ratio, *obs, *nu, *var))
+                rows.append(line % (s.t_s, s.test_ratio, *obs, *nu, *var))
             else:
+                self._file.write("".join(rows))
+                rows.clear()
                 self._writer.writerow(["%.10g" % s.t_s, s.source, "1" if s.fused else "0", s.reason or "",
                                        "%.10g" % s.test_ratio, _vec(obs), _vec(nu), _vec(var)])
+        if len(rows) >= _ROWS_PER_WRITE:
+            self._file.write("".join(rows))
+            rows.clear()
 
     @staticmethod
     def _line_format(source: str, fused: bool, reason: str | None, n_obs: int, n_nu: int, n_var: int) -> str:
@@ -363,6 +419,8 @@ class AidStatusCsvSink(Sink):
                          "%.10g", *vec]) + "\n"
 
     def close(self) -> None:
+        self._file.write("".join(self._rows))
+        self._rows.clear()
         self._file.close()
 
 
@@ -471,7 +529,8 @@ class SeriesRecorder(Sink):
             setattr(self, name, new)
 
     def on_nav(self, state: Any) -> None:
-        i = len(self.nav_t)
+        nav_t = self.nav_t
+        i = len(nav_t)
         if i == len(self._nav_pos):
             self._grow()
         self._nav_pos[i] = state.pos_n_m
@@ -480,8 +539,10 @@ class SeriesRecorder(Sink):
         cov = np.asarray(state.cov)
         b = self._pva_block
         self._nav_cov_pva[i] = cov[b, b] if b is not None else cov[self._pva_ix]
-        self._nav_current[i] = _current_xy(state)
-        self.nav_t.append(float(state.t_s))
+        c = state.current_n_m_s
+        # the estimator's current is a float vector of two: its row as it is (no Python floats between)
+        self._nav_current[i] = c if type(c) is np.ndarray and c.shape == _NE_SHAPE else _current_xy(state)
+        nav_t.append(float(state.t_s))
         self.nav_k_speed.append(float(state.k_speed))
 
     def on_sample(self, sample: Any) -> None:
@@ -491,16 +552,18 @@ class SeriesRecorder(Sink):
                                     *sample.q_nb))
 
     def on_aid(self, statuses: list) -> None:
+        keep_rows = self._keep_aid_rows
         for s in statuses:
-            if s.fused:
-                self.fused_counts[s.source] += 1
-                if s.source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
+            source, fused = s.source, s.fused
+            if fused:
+                self.fused_counts[source] += 1
+                if source in self.FIX_SOURCES and (self.last_fix_t_s is None or s.t_s > self.last_fix_t_s):
                     self.last_fix_t_s = float(s.t_s)
             else:
-                self.rejected_reasons[(s.source, s.reason or "unspecified")] += 1
-            if s.source == "dvl":
-                self.dvl_lock.append((float(s.t_s), bool(s.fused or s.reason == "gate")))
-            if not self._keep_aid_rows:
+                self.rejected_reasons[(source, s.reason or "unspecified")] += 1
+            if source == "dvl":
+                self.dvl_lock.append((float(s.t_s), bool(fused or s.reason == "gate")))
+            if not keep_rows:
                 continue
             # AidStatus carries the diagonal of S (fusion/status.py): ν_i/√S_ii per component
             nu, var = s.innovation, s.innovation_variance
