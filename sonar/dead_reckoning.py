@@ -101,9 +101,14 @@ class AnchoredDeadReckoning:
 
         Pings with a non-finite or non-increasing time do not move the estimate.
         """
+        pn, pe, sigma = self.push_floats(ping)
+        return np.array((pn, pe)), sigma
+
+    def push_floats(self, ping: SonarPing) -> tuple[float, float, float]:
+        """:meth:`push` with the position as two Python floats: (north, east, σ), m."""
         t = float(ping.t_s)
         if not math.isfinite(t) or (self._last is not None and not t > self._last[0]):
-            return self._position(), self.sigma()
+            return (*self._position(), self.sigma())
         speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else (self._last[1] if self._last else 0.0)
         yaw = ping.heading_rad if math.isfinite(ping.heading_rad) else (self._last[2] if self._last else 0.0)
         dr0 = self._dr
@@ -126,11 +131,11 @@ class AnchoredDeadReckoning:
                 self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, d0 + a * (d1 - d0), p, sig)
             self._pending = keep
         self._predict(t)
-        return self._position(), self.sigma()
+        return (*self._position(), self.sigma())
 
-    def _position(self) -> np.ndarray:
+    def _position(self) -> tuple[float, float]:
         """(north, east) now (m): the dead reckoning plus the estimated offset."""
-        return np.array((self._dr[0] + self._x[0], self._dr[1] + self._x[1]))
+        return self._dr[0] + self._x[0], self._dr[1] + self._x[1]
 
     def sigma(self) -> float:
         """σ per axis of the current position (m); NaN before the first fix."""
