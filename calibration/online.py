@@ -499,21 +499,26 @@ class OnlineCalibrator:
             t = np.asarray(sample.t_s, dtype=float)
             wz = np.asarray(sample.omega_b_rad_s, dtype=float)[:, 2]
             # any NaN/inf makes a sum non-finite: one cheap test for the usual all-finite
-            # batch (a few samples, ~14 per second), the element-wise mask otherwise
-            if not (t.size and math.isfinite(float(np.add.reduce(t)) + float(np.add.reduce(wz)))):
+            # batch (a few samples, ~14 per second), the element-wise mask otherwise; the yaw
+            # rates' sum is the one their bin adds (ndarray.sum is np.add.reduce)
+            wz_sum = float(np.add.reduce(wz)) if t.size else math.nan
+            if not (t.size and math.isfinite(float(np.add.reduce(t)) + wz_sum)):
                 ok = np.isfinite(t) & np.isfinite(wz)
                 if not np.all(ok):
                     self._reject("non-finite imu")
                 t, wz = t[ok], wz[ok]
                 if t.size == 0:
                     return
+                wz_sum = float(np.add.reduce(wz))
             if self._t0 is None:
                 self._last_yaw_rate = float(wz[-1])
             elif (k0 := math.floor((t[0] - self._t0) / self.config.step_s)) == \
                     math.floor((t[-1] - self._t0) / self.config.step_s) and k0 >= max(self._closed, 0):
                 # the usual batch (a few samples between two other samples): one bin
-                b = self._bins.setdefault(k0, _Bin())
-                b.yaw_rate_sum += float(wz.sum())
+                b = self._bins.get(k0)
+                if b is None:  # (not setdefault: its default was built for every batch)
+                    b = self._bins[k0] = _Bin()
+                b.yaw_rate_sum += wz_sum
                 b.yaw_rate_n += int(wz.size)
                 self._last_yaw_rate = float(wz[-1])
             else:  # vectorised binning: replay feeds thousands of IMU samples per batch
@@ -651,9 +656,12 @@ class OnlineCalibrator:
         yaw = self._last_heading[1] if self._last_heading is not None else 0.0
         body = self.dvl_water.body(vel, bool(getattr(sample, "water_track", False)), yaw, self._last_yaw_rate,
                                    self._filter_current)
-        from adaptnav.calibration.dvl_teacher import DvlBin
+        b = self._dvl_bins.get(k)
+        if b is None:
+            from adaptnav.calibration.dvl_teacher import DvlBin
 
-        self._dvl_bins.setdefault(k, DvlBin()).add(body)
+            b = self._dvl_bins[k] = DvlBin()
+        b.add(body)
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):
@@ -667,7 +675,9 @@ class OnlineCalibrator:
         k = math.floor((t - self._t0) / self.config.step_s)
         if k < max(self._closed, 0):
             return self._reject(f"late {what}")
-        b = self._bins.setdefault(k, _Bin())
+        b = self._bins.get(k)
+        if b is None:
+            b = self._bins[k] = _Bin()
         if what == "speed":
             b.speed_sum += value
             b.speed_n += 1
