@@ -469,6 +469,7 @@ class OnlineCalibrator:
         self._lm_poses: deque = deque(maxlen=config.landmark_memory_steps + 1)
         self._lm_obs: dict[int, list] = {}
         self._lag_s = 0.0  # poses stay open this long (data s) for late sightings
+        self._next_close_t = -math.inf  # data time at which the next pose closes (_advance)
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
         # the DVL teacher: water-relative body velocity per step (calibration.dvl_teacher)
@@ -754,12 +755,36 @@ class OnlineCalibrator:
     def _advance(self, t):
         if t < self._last_t:
             self._reject("out-of-order timestamp")
-        self._last_t = max(self._last_t, t)
-        if self._t0 is None:
-            return
-        newest = math.floor((self._last_t - self._lag_s - self._t0) / self.config.step_s - 0.5)
+        elif t > self._last_t:
+            self._last_t = t
+        if self._t0 is None or self._last_t < self._next_close_t:
+            return  # no pose closes before then (_close_time): most samples
+        newest = self._newest_closed(self._last_t)
         while self._closed < newest:
             self._close_pose(self._closed + 1)
+        self._next_close_t = self._close_time(self._closed + 1)
+
+    def _newest_closed(self, t_s: float) -> int:
+        """The newest pose that is closed at data time ``t_s``."""
+        return math.floor((t_s - self._lag_s - self._t0) / self.config.step_s - 0.5)
+
+    def _close_time(self, k: int) -> float:
+        """The earliest data time at which pose ``k`` is closed (:meth:`_newest_closed` ≥ k): each
+        step of that is monotone in the time, so every earlier time leaves it open and
+        :meth:`_advance` need not compute it (−inf, when not found within 64 ulps of its
+        estimate: computed at every sample)."""
+        t = self._t0 + self._lag_s + (k + 0.5) * self.config.step_s  # within a few ulps of it
+        if not math.isfinite(t):
+            return -math.inf
+        for _ in range(64):
+            if self._newest_closed(t) < k:
+                t = math.nextafter(t, math.inf)
+                continue
+            earlier = math.nextafter(t, -math.inf)
+            if self._newest_closed(earlier) < k:
+                return t
+            t = earlier
+        return -math.inf
 
     def _controls(self, k):
         b = self._bins.pop(k, None)
