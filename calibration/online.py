@@ -697,7 +697,19 @@ class OnlineCalibrator:
             dyaw = (yaw - self._last_heading[1] + math.pi) % (2 * math.pi) - math.pi
             self._heading_rate = dyaw / (t - self._last_heading[0])
         self._last_heading = (t, yaw)
-        self._add_obs(t, HeadingObservation(yaw, math.radians(self.config.heading_sigma_deg)))
+        at = self._pose_lag(t)
+        if at is None:
+            return
+        k, lag = at
+        best = self._heading_at.get(k)
+        if best is not None and abs(best[0]) <= abs(lag):
+            return  # one heading per pose: the nearest (headings at 1 Hz are not independent)
+        # brought to the pose time with the latest yaw rate
+        ob = HeadingObservation(yaw - self._last_yaw_rate * lag, math.radians(self.config.heading_sigma_deg))
+        if best is not None:
+            self._obs[k].remove(best[1])
+        self._heading_at[k] = (lag, ob)
+        self._obs.setdefault(k, []).append(ob)
 
     def _fix(self, t, sample):
         vals = (sample.lat_rad, sample.lon_rad, sample.sigma_h_m)
@@ -713,25 +725,27 @@ class OnlineCalibrator:
         self._add_obs(t, fix)
         self.sonar_nav.fix(t, fix.pos_n_m, fix.sigma_m)  # ties the sonar's ping positions
 
-    def _add_obs(self, t, ob):
+    def _pose_lag(self, t) -> tuple[int, float] | None:
+        """The pose ``k`` nearest ``t`` and ``t − t_k``; None before the grid exists, or (counted)
+        when that pose is closed."""
         if self._t0 is None:
-            return
+            return None
         k = round((t - self._t0) / self.config.step_s)
         if k <= self._closed:
-            return self._reject("late observation")
+            self._reject("late observation")
+            return None
+        return k, t - (self._t0 + k * self.config.step_s)
+
+    def _add_obs(self, t, ob):
+        """An observation (not a heading: :meth:`_heading`) at the pose nearest ``t``."""
+        at = self._pose_lag(t)
+        if at is None:
+            return
         # bring the observation to the pose time t_k with the latest controls (a fix taken
         # 2 s off the grid at 1.5 m/s is 3 m off — more than a USBL σ)
-        lag = t - (self._t0 + k * self.config.step_s)
+        k, lag = at
         yaw = self._last_heading[1] if self._last_heading is not None else None
-        if isinstance(ob, HeadingObservation):
-            ob = HeadingObservation(ob.yaw_rad - self._last_yaw_rate * lag, ob.sigma_rad)
-            best = self._heading_at.get(k)
-            if best is not None and abs(best[0]) <= abs(lag):
-                return  # one heading per pose: the nearest (headings at 1 Hz are not independent)
-            if best is not None:
-                self._obs[k].remove(best[1])
-            self._heading_at[k] = (lag, ob)
-        elif isinstance(ob, PositionFix) and lag != 0.0 and yaw is not None:
+        if isinstance(ob, PositionFix) and lag != 0.0 and yaw is not None:
             d = self._last_speed * lag
             ob = PositionFix((ob.pos_n_m[0] - d * math.cos(yaw), ob.pos_n_m[1] - d * math.sin(yaw)),
                              math.hypot(ob.sigma_m, self.config.lag_speed_sigma * abs(d)))
