@@ -56,6 +56,9 @@ class AnchoredDeadReckoning:
         self._F = np.eye(4)
         self._F_T = self._F.T  # (a view: F's dt entries set in place show through)
         self._FP = np.empty((4, 4))
+        # the predicted P is written into whichever of these two P is not (a new array per ping
+        # cost 0.4 of its 1.7 µs matmul)
+        self._P_out = (np.empty((4, 4)), np.empty((4, 4)))
         self._pending: list[tuple[float, np.ndarray, float]] = []
         self.fixes_used = 0
 
@@ -70,7 +73,8 @@ class AnchoredDeadReckoning:
             F = self._F
             F[0, 2] = F[1, 3] = dt
             np.matmul(F, self._P, out=self._FP)
-            P = np.matmul(self._FP, self._F_T)
+            P = self._P_out[0] if self._P is not self._P_out[0] else self._P_out[1]
+            np.matmul(self._FP, self._F_T, out=P)
             q_o, q_d = self.q_offset * dt, self.q_drift * dt
             P[0, 0] += q_o
             P[1, 1] += q_o
