@@ -695,12 +695,8 @@ class OnlineCalibrator:
             self._last_yaw_rate = value
 
     def _heading(self, t, yaw):
-        if not math.isfinite(yaw):
-            return self._reject("non-finite heading")
-        if self._last_heading is not None and t > self._last_heading[0]:
-            dyaw = (yaw - self._last_heading[1] + math.pi) % (2 * math.pi) - math.pi
-            self._heading_rate = dyaw / (t - self._last_heading[0])
-        self._last_heading = (t, yaw)
+        if not self._take_heading(t, yaw):
+            return
         at = self._pose_lag(t)
         if at is None:
             return
@@ -728,6 +724,18 @@ class OnlineCalibrator:
             self._start(t, fix)
         self._add_obs(t, fix)
         self.sonar_nav.fix(t, fix.pos_n_m, fix.sigma_m)  # ties the sonar's ping positions
+
+    def _take_heading(self, t, yaw) -> bool:
+        """The heading rate and the latest heading from a heading sample; False (counted) when
+        the heading is not finite."""
+        if not math.isfinite(yaw):
+            self._reject("non-finite heading")
+            return False
+        if self._last_heading is not None and t > self._last_heading[0]:
+            dyaw = (yaw - self._last_heading[1] + math.pi) % (2 * math.pi) - math.pi
+            self._heading_rate = dyaw / (t - self._last_heading[0])
+        self._last_heading = (t, yaw)
+        return True
 
     def _pose_lag(self, t) -> tuple[int, float] | None:
         """The pose ``k`` nearest ``t`` and ``t − t_k``; None before the grid exists, or (counted)

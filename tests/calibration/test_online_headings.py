@@ -16,13 +16,8 @@ class _GenericPath(OnlineCalibrator):
     """The reference: the heading observation made, then brought to the pose by _add_obs."""
 
     def _heading(self, t, yaw):
-        if not math.isfinite(yaw):
-            return self._reject("non-finite heading")
-        if self._last_heading is not None and t > self._last_heading[0]:
-            dyaw = (yaw - self._last_heading[1] + math.pi) % (2 * math.pi) - math.pi
-            self._heading_rate = dyaw / (t - self._last_heading[0])
-        self._last_heading = (t, yaw)
-        self._add_obs(t, HeadingObservation(yaw, math.radians(self.config.heading_sigma_deg)))
+        if self._take_heading(t, yaw):
+            self._add_obs(t, HeadingObservation(yaw, math.radians(self.config.heading_sigma_deg)))
 
     def _add_obs(self, t, ob):
         if not isinstance(ob, HeadingObservation):
