@@ -69,9 +69,6 @@ class ObjectBatch:
     links: list = field(default_factory=list)
 
 
-_EYE2 = np.eye(2)  # read only: np.eye per ping cost as much as the rest of CalibratorSonar.push
-
-
 class CalibratorSonar:
     """Pings → :class:`ObjectBatch` in the calibrator (the object front end and its ping
     dead reckoning, which sets the image's along-track spacing and is tied to the fixes)."""
@@ -88,9 +85,12 @@ class CalibratorSonar:
     def push(self, ping) -> ObjectBatch | None:
         """Take one ping; an :class:`ObjectBatch` when a block completes (None otherwise,
         also for a block without objects)."""
-        pos, sigma = self.dead_reckoning.push(ping)
+        pn, pe, sigma = self.dead_reckoning.push_floats(ping)
         s = sigma if math.isfinite(sigma) else 1e3
-        sightings = self.front_end.push(ping, pos, _EYE2 * (s * s), float(ping.heading_rad))
+        var = s * s
+        # (Python floats: the isotropic covariance's entries as ObjectFrontEnd.push takes them
+        # from an array)
+        sightings = self.front_end.push_floats(ping, pn, pe, (var, 0.0, 0.0, var), float(ping.heading_rad))
         return ObjectBatch(float(ping.t_s), tuple(sightings)) if sightings else None
 
     def finish(self) -> ObjectBatch | None:

@@ -56,6 +56,9 @@ class AnchoredDeadReckoning:
         self._F = np.eye(4)
         self._F_T = self._F.T  # (a view: F's dt entries set in place show through)
         self._FP = np.empty((4, 4))
+        # the predicted P is written into whichever of these two P is not (a new array per ping
+        # cost 0.4 of its 1.7 µs matmul)
+        self._P_out = (np.empty((4, 4)), np.empty((4, 4)))
         self._pending: list[tuple[float, np.ndarray, float]] = []
         self.fixes_used = 0
 
@@ -70,7 +73,8 @@ class AnchoredDeadReckoning:
             F = self._F
             F[0, 2] = F[1, 3] = dt
             np.matmul(F, self._P, out=self._FP)
-            P = np.matmul(self._FP, self._F_T)
+            P = self._P_out[0] if self._P is not self._P_out[0] else self._P_out[1]
+            np.matmul(self._FP, self._F_T, out=P)
             q_o, q_d = self.q_offset * dt, self.q_drift * dt
             P[0, 0] += q_o
             P[1, 1] += q_o
@@ -101,9 +105,14 @@ class AnchoredDeadReckoning:
 
         Pings with a non-finite or non-increasing time do not move the estimate.
         """
+        pn, pe, sigma = self.push_floats(ping)
+        return np.array((pn, pe)), sigma
+
+    def push_floats(self, ping: SonarPing) -> tuple[float, float, float]:
+        """:meth:`push` with the position as two Python floats: (north, east, σ), m."""
         t = float(ping.t_s)
         if not math.isfinite(t) or (self._last is not None and not t > self._last[0]):
-            return self._position(), self.sigma()
+            return (*self._position(), self.sigma())
         speed = ping.speed_m_s if math.isfinite(ping.speed_m_s) else (self._last[1] if self._last else 0.0)
         yaw = ping.heading_rad if math.isfinite(ping.heading_rad) else (self._last[2] if self._last else 0.0)
         dr0 = self._dr
@@ -126,11 +135,11 @@ class AnchoredDeadReckoning:
                 self._update(max(tf, self._t_kf) if math.isfinite(self._t_kf) else tf, d0 + a * (d1 - d0), p, sig)
             self._pending = keep
         self._predict(t)
-        return self._position(), self.sigma()
+        return (*self._position(), self.sigma())
 
-    def _position(self) -> np.ndarray:
+    def _position(self) -> tuple[float, float]:
         """(north, east) now (m): the dead reckoning plus the estimated offset."""
-        return np.array((self._dr[0] + self._x[0], self._dr[1] + self._x[1]))
+        return self._dr[0] + self._x[0], self._dr[1] + self._x[1]
 
     def sigma(self) -> float:
         """σ per axis of the current position (m); NaN before the first fix."""

@@ -58,6 +58,7 @@ SIFT/ORB keypoints (:mod:`adaptnav.sonar.landmarks`) remain for texture-rich sea
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, NamedTuple
@@ -1010,6 +1011,7 @@ class ObjectFrontEndConfig:
 
 
 _NAN4 = (math.nan,) * 4  # a velocity covariance not given
+_NAV_COLS = 13  # per ping: pos n, pos e, yaw, cov 4, jump n, jump e, vel cov 4 (ObjectFrontEnd._nav)
 
 
 class ObjectFrontEnd:
@@ -1075,9 +1077,16 @@ class ObjectFrontEnd:
             Its covariance (m²/s²): how fast the jump-free track may drift
             (:attr:`ObjectSighting.vel_cov`).
         """
-        p = np.asarray(pos_n_m, float).reshape(-1)[:2]
+        pn, pe = np.asarray(pos_n_m, float).reshape(-1)[:2].tolist()
         cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
-        pn, pe = p.tolist()
+        return self.push_floats(ping, pn, pe, cov, yaw_rad, vel_n_m_s, vel_cov)
+
+    def push_floats(self, ping, pn: float, pe: float, cov, yaw_rad: float, vel_n_m_s=None,
+                    vel_cov=None) -> list[ObjectSighting]:
+        """:meth:`push` given the position as Python floats ``pn``, ``pe`` (m) and the covariance
+        as four Python floats ``cov`` (row by row, m²): what :meth:`push` converts its arrays to
+        (the calibrator's pings come with floats; building and converting the arrays was a
+        third of this per-ping cost)."""
         if not (math.isfinite(ping.t_s) and math.isfinite(pn) and math.isfinite(pe) and all(map(math.isfinite, cov))
                 and math.isfinite(yaw_rad)):
             self.rejected["non-finite"] = self.rejected.get("non-finite", 0) + 1
@@ -1100,11 +1109,12 @@ class ObjectFrontEnd:
         if vel_n_m_s is not None:
             v = np.asarray(vel_n_m_s, float).reshape(-1)[:2]
             if np.all(np.isfinite(v)):
+                p = np.array((pn, pe))
                 if self._last_vel is not None:
                     t0, p0, v0 = self._last_vel
                     self._jump += p - (p0 + 0.5 * (v0 + v) * (ping.t_s - t0))  # trapezoid
                     self._jump_nm = tuple(self._jump.tolist())
-                self._last_vel = (float(ping.t_s), p.copy(), v.copy())
+                self._last_vel = (float(ping.t_s), p, v.copy())  # (p: a new array)
         self._pings.append(ping)
         vc = _NAN4 if vel_cov is None else np.asarray(vel_cov, float).reshape(4).tolist()
         self._nav.append((pn, pe, float(yaw_rad), *cov, *self._jump_nm, *vc))
@@ -1142,7 +1152,8 @@ class ObjectFrontEnd:
         c = self.config
         first = self._n - len(self._pings)  # global index of the buffer's first ping
         pings = list(self._pings)
-        nav = np.array(self._nav)
+        # (one float per value in order: np.array of the rows' tuples took 4 times as long)
+        nav = np.fromiter(itertools.chain.from_iterable(self._nav), float, len(self._nav) * _NAV_COLS).reshape(-1, _NAV_COLS)
         # line_removal: a ping with the horizontal-line noise (an additive offset, 2 % of the
         # simulator's pings) came out of the gain normalisation as a flat row, its objects lost
         wcfg = WaterfallConfig(ground_res_m=c.ground_res_m, resample_along=False, line_removal=True)
