@@ -77,7 +77,7 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import (SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, ImuSample, InertialVelocitySample,
-                      is_finite)
+                      RpmSample, is_finite)
 from .state import (ACC_F, ACC_OMEGA, ACC_T, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW,
                     VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -122,6 +122,18 @@ def _finite(sample) -> bool:
     return is_finite(sample)
 
 
+def _rpm_finite(sample) -> bool:
+    """:func:`_finite` of an RPM sample (with the IMU's and depth's, the commonest input): an
+    :class:`RpmSample` of three Python floats tested directly (its fields, as
+    :func:`~adaptnav.fusion.samples.is_finite` tests them: ~100 bytecodes of its field loop);
+    any other class or field type as before."""
+    if type(sample) is RpmSample:
+        t, r, y = sample.t_s, sample.rpm, sample.sway_rpm
+        if type(t) is float and type(r) is float and type(y) is float:
+            return math.isfinite(t) and math.isfinite(r) and math.isfinite(y)
+    return _finite(sample)
+
+
 def _all_finite(values: list) -> bool:
     """Every one of the floats finite (the state's 19 with every published state and ping): a
     finite sum has no inf or NaN in it, a third of the test per element; else (an overflow
@@ -129,10 +141,17 @@ def _all_finite(values: list) -> bool:
     return math.isfinite(sum(values)) or all(map(math.isfinite, values))
 
 
+# the horizontal position's entries of a covariance (18×18) as index pairs: north-north,
+# north-east, east-north, east-east
+_NN = (POS_NE.start, POS_NE.start)
+_NE = (POS_NE.start, POS_NE.start + 1)
+_EN = (POS_NE.start + 1, POS_NE.start)
+_EE = (POS_NE.start + 1, POS_NE.start + 1)
+
+
 def _sigma_h_m(P: np.ndarray) -> float:
     """Horizontal position σ (m) of a covariance (18×18): the larger of north and east."""
-    n, e = POS_NE.start, POS_NE.start + 1
-    return math.sqrt(max(float(P[n, n]), float(P[e, e]), 0.0))
+    return math.sqrt(max(float(P[_NN]), float(P[_EE]), 0.0))
 
 
 def _at_lever(meas: Measurement, x: np.ndarray, arm_b_m: np.ndarray) -> Measurement:
@@ -276,6 +295,8 @@ class Estimator:
         self._h_heading = np.zeros((1, N_ERR))
         self._h_heading[0, ATT.start + 2] = 1.0
         self._fast_out = np.zeros(3)
+        # the stationary window's length for the IMU path's kernel (-1: no rest detection)
+        self._rest_window_s = config.stationary.window_s if config.stationary.enabled else -1.0
         # rehearse_epoch's scratch: a core to propagate, one IMU sample (no allocation per call)
         self._rehearsal_core = np.zeros(kalman.CORE_SIZE)
         self._rehearsal_t = np.zeros(1)
@@ -292,7 +313,7 @@ class Estimator:
         # filter's time (a source in time order: a simulation), so no history is kept — the
         # inputs and snapshots of the state before them, a twentieth of a replay's process for
         # nothing. A late sample all the same is rejected as too late (nothing to re-fuse it in).
-        self.keep_history = True
+        self.keep_history = True  # (a property: sets _history_on)
         self._replaying = False
         self._restored = False  # slow states restored: an alignment keeps them
         self._speed_cache: dict[float, float] = {}
@@ -355,6 +376,16 @@ class Estimator:
 
     # ------------------------------------------------------------------ public API
     @property
+    def keep_history(self) -> bool:
+        return self._keep_history
+
+    @keep_history.setter
+    def keep_history(self, keep: bool) -> None:
+        self._keep_history = keep
+        # what _record tests with every input besides the mode (the config's bound is fixed)
+        self._history_on = bool(keep) and self.config.max_delay_s > 0
+
+    @property
     def initialized(self) -> bool:
         return self._mode != "none"
 
@@ -370,13 +401,12 @@ class Estimator:
     def nav_state(self) -> NavState:
         """The current state; the covariance includes the not yet flushed propagation."""
         x = self._x
-        cov = self._cov_now() if self._mode == "ins" else self._P.copy()
+        ins = self._mode == "ins"
+        cov = self._cov_now() if ins else self._P.copy()
         self._add_considered(cov)
-        sigma_h = _sigma_h_m(cov)
-        reasons = self.invalid_reasons(sigma_h)
-        if self._mode == "ins" and not reasons and not _all_finite(x.tolist()):
+        reasons = self.invalid_reasons(_sigma_h_m(cov))
+        if ins and not reasons and not _all_finite(x.tolist()):
             reasons = ["non_finite"]
-        valid = self._mode == "ins" and not reasons
         x = x.copy()  # one copy; the state's vectors are views of it
         pos, vel = x[X_POS], x[X_VEL]
         if self._out_arm is not None:
@@ -388,11 +418,9 @@ class Estimator:
             J = np.eye(N_ERR)
             J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
             cov = J @ cov @ J.T
-        return NavState(
-            t_s=float(self._clock[0]), pos_n_m=pos, vel_n_m_s=vel,
-            q_nb=x[X_Q], bias_acc_b_m_s2=x[X_BA], bias_gyro_b_rad_s=x[X_BG],
-            current_n_m_s=x[X_CUR], k_speed=float(x[X_KS]), cov=cov, valid=valid,
-            reset_counter=self._reset_counter, invalid_reasons=tuple(reasons))
+        # (positional: NavState's field order)
+        return NavState(float(self._clock[0]), pos, vel, x[X_Q], x[X_BA], x[X_BG], x[X_CUR], float(x[X_KS]), cov,
+                        ins and not reasons, self._reset_counter, tuple(reasons))
 
     def rehearse_epoch(self, dt_s: float) -> NavState | None:
         """Rehearse an output epoch's IMU sample ``dt_s`` after the state time; nothing of the
@@ -469,14 +497,16 @@ class Estimator:
         converted with, a depth scale ``(d σ_ρ/ρ)²`` (``depth.density_sigma_kg_m3``;
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
         depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
-        if self.dvl_calibration is not None:
-            # (four scalar additions: a third of the 2 × 2 slice's in-place add, every epoch)
-            a00, a01, a10, a11 = self.dvl_calibration.position_cov_ne_values()
-            n, e = POS_NE.start, POS_NE.start + 1
-            cov[n, n] += a00
-            cov[n, e] += a01
-            cov[e, n] += a10
-            cov[e, e] += a11
+        cal = self.dvl_calibration
+        if cal is not None:
+            # four float additions on the block read as Python floats (the IEEE additions numpy's
+            # in-place ones of each entry made), written back: every epoch
+            a00, a01, a10, a11 = cal.position_cov_ne_values()
+            (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
+            cov[_NN] = c00 + a00
+            cov[_NE] = c01 + a01
+            cov[_EN] = c10 + a10
+            cov[_EE] = c11 + a11
         sigma_b = self._reference_yaw_sigma_rad
         if self._yaw_frame and sigma_b > 0.0:
             cov += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)
@@ -509,7 +539,6 @@ class Estimator:
             return ["ahrs_only"]
         if self._pos_unknown and not self.origin_is_start:
             return ["position_unknown"]
-        c = self.config.integrity
         if self._attitude_driven and \
                 self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
             return ["no_motion_measurement"]
@@ -518,11 +547,13 @@ class Estimator:
         out = []
         if not sigma_h_m <= self.config.valid_max_sigma_h_m:
             out.append("sigma_h")
-        if self._clock[0] - self._t_reset < c.after_reset_s:
+        if self._clock[0] - self._t_reset < self.config.integrity.after_reset_s:
             out.append("converging")
         if self._recovering:
             out.append("recovering")
-        out += [f"nis:{s}" for s in self._nis.failing()]
+        failing = self._nis.failing()
+        if failing:  # (rarely: no comprehension to run for none, every epoch)
+            out += [f"nis:{s}" for s in failing]
         return out
 
     def inertial_velocity(self) -> InertialVelocitySample | None:
@@ -714,7 +745,7 @@ class Estimator:
         kind = sample.KIND
         if kind in IGNORED_KINDS:
             return []
-        if kind == "rpm" and _finite(sample):
+        if kind == "rpm" and _rpm_finite(sample):
             # changes no number of the state (the guard's verdict is the previous sample's)
             self._record("sample", sample)
             self._take_rpm(sample)
@@ -928,7 +959,8 @@ class Estimator:
         t_s = sample.t_s
         if not (math.isfinite(t_s) and math.isfinite(value)) or t_s < self._clock[0] - self.config.on_time_tolerance_s:
             return False
-        self._record("sample", sample)
+        if self._history_on:  # (in INS mode: _record's other test)
+            self._record("sample", sample)
         return True
 
     def _fast_scalar(self, sample, z: float, h: float | None, H: np.ndarray, var: float,
@@ -1113,12 +1145,12 @@ class Estimator:
         elif self._clones.active:
             self._clones.clear()
 
-    def _record(self, kind: str, payload) -> None:
+    def _record(self, kind: str, payload, trim: bool = True) -> None:
         """Remember an input for late-measurement re-fusion, with the state before it when
         it is not an IMU run or the last snapshot is :data:`_HIST_SNAPSHOT_PERIOD_S` old: a
         late sample re-runs the inputs from the snapshot before its time (a copy of the
         state per IMU sample was a quarter of the live IMU path's work)."""
-        if self._mode != "ins" or self.config.max_delay_s <= 0 or not self.keep_history:
+        if self._mode != "ins" or not self._history_on:
             return
         t = float(self._clock[0])
         snap = None
@@ -1127,6 +1159,11 @@ class Estimator:
             self._t_hist_snap = t
         self._hist_t.append(t)
         self._hist.append((kind, payload, snap))
+        if trim:
+            self._trim_history(t)
+
+    def _trim_history(self, t: float) -> None:
+        """The history's inputs older than needed at state time ``t`` dropped."""
         # kept from 0.5 s beyond max_delay_s: more than a snapshot period, so a sample late by
         # up to max_delay_s finds a snapshot before its time; trimmed a second at a time (not
         # a bisect and a delete per input)
@@ -1456,22 +1493,26 @@ class Estimator:
             t = np.asarray(batch.t_s, dtype=float)
             f = np.asarray(batch.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
             w = np.asarray(batch.omega_b_rad_s, dtype=float).reshape(-1, 3)
-        if t.size == 0:
-            return None
-        gap_s = self.config.imu_gap_s
-        if self.keep_history and self.config.max_delay_s > 0:
-            # recorded for re-fusion with the state before it: checked first, then recorded
-            if not sd.imu_clean(t, f, w, self._clock[0], gap_s):
+            if t.size == 0:
                 return None
-            self._record("imu", (t, f, w))
-            gap_s = 0.0
-        rest_window_s = self.config.stationary.window_s if self.config.stationary.enabled else -1.0
+        history = self._history_on
+        if history:
+            # recorded for re-fusion with the state before it, untrimmed, before the kernel's
+            # check (imu_clean's, in the call that propagates: no call of its own); a run not
+            # clean is taken out again (and the snapshot time it set), as if never recorded
+            t_hist_snap = self._t_hist_snap
+            self._record("imu", (t, f, w), trim=False)
         stop, lv_due, window_done, ok = kalman.ins_run(t, f, w, 0, self._core, self._qdiag,
                                                        self.config.covariance_step_s, self._next_lv_t,
-                                                       self._inertial_n, gap_s, self._st, rest_window_s,
-                                                       _MAX_SPEED_M_S)
+                                                       self._inertial_n, self.config.imu_gap_s, self._st,
+                                                       self._rest_window_s, _MAX_SPEED_M_S)
         if stop < 0:
+            if history:
+                del self._hist_t[-1], self._hist[-1]
+                self._t_hist_snap = t_hist_snap
             return None
+        if history:
+            self._trim_history(self._hist_t[-1])
         self._imu_source = batch.source
         out, ask = self._imu_pieces(t, f, w, stop, lv_due) if (lv_due or stop < t.size) else ([], not ok)
         if window_done:

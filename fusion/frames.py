@@ -124,7 +124,10 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     """
     w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)  # tolist: C speed
     r20 = 2.0 * (x * z - w * y)
-    pitch = -math.asin(min(1.0, max(-1.0, r20)))
+    # min(1.0, max(-1.0, r20)) without the two builtins' calls: max keeps -1.0 unless r20 is
+    # greater (NaN → -1.0, as max gives it), min keeps 1.0 unless that is smaller
+    r20 = r20 if r20 > -1.0 else -1.0
+    pitch = -math.asin(r20 if r20 < 1.0 else 1.0)
     roll = math.atan2(2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
     yaw = math.atan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z))
     if yaw >= math.pi:  # [-π, π) as wrap_angle

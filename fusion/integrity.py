@@ -26,15 +26,17 @@ def chi2_quantile(p: float, dof: float) -> float:
 
 
 class _SourceWindow:
-    """One source's window: its NIS values, their sum, its dof, the window's bound and the
-    single-attempt cap for that dof (one object per source: one look-up per attempt)."""
+    """One source's window: its NIS values, their sum, its dof, the window's bound, the
+    single-attempt cap for that dof (one object per source: one look-up per attempt) and
+    whether it is failing (in :attr:`NisMonitor._failing`: the set changed only when that does)."""
 
-    __slots__ = ("nis", "total", "dof", "bound", "cap")
+    __slots__ = ("nis", "total", "dof", "bound", "cap", "failing")
 
     def __init__(self, dof: int, bound: float, cap: float):
         self.nis: deque = deque()
         self.total = 0.0
         self.dof, self.bound, self.cap = dof, bound, cap
+        self.failing = False
 
 
 class NisMonitor:
@@ -54,18 +56,24 @@ class NisMonitor:
         s = self._source.get(source)
         if s is None or s.dof != dof:
             s = self._source[source] = _SourceWindow(dof, self.bound(dof), self.cap(dof))
+            self._failing.discard(source)  # (a window of another dof: not failing until full)
         q = s.nis
         if s.cap < nis:  # (min(nis, cap) without the builtin's call)
             nis = s.cap
         q.append(nis)
-        total = s.total = s.total + nis
+        total = s.total + nis
         window = self.window
-        if len(q) > window:
-            total = s.total = total - q.popleft()
-        if len(q) >= window and total > s.bound:
-            self._failing.add(source)
-        else:
-            self._failing.discard(source)
+        n = len(q)  # (before the oldest goes: n > window is n >= window after)
+        if n > window:
+            total -= q.popleft()  # (the sum's same two roundings, one store)
+        s.total = total
+        failing = n >= window and total > s.bound
+        if failing is not s.failing:  # (bools) the set only when the verdict changes
+            s.failing = failing
+            if failing:
+                self._failing.add(source)
+            else:
+                self._failing.discard(source)
 
     def bound(self, dof: int) -> float:
         b = self._bound.get(dof)

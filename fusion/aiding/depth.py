@@ -89,6 +89,10 @@ def _measure(sample, ctx: AidContext) -> Measurement:
 AID = AidSource("depth", DepthConfig, _measure, without_imu=True)
 
 
+# σ̂ = med|Δ²z| / (0.6745 √6) (DepthNoise): the divisor, computed once (the same double)
+_MAD_TO_SIGMA = 0.6745 * math.sqrt(6.0)
+
+
 class DepthNoise:
     r"""The depth sensor's white noise, measured from its own signal, and the σ fused with.
 
@@ -174,7 +178,7 @@ class DepthNoise:
             self._n, self._median = median_window_push(self._window, abs(depth_m - 2.0 * z1 + self._z0))
         self._t0, self._z0, self._t1, self._z1 = t1, z1, t_s, depth_m
         if self._n >= self.MIN_COUNT:
-            self.measured_sigma_m = self._median / (0.6745 * math.sqrt(6.0))
+            self.measured_sigma_m = self._median / _MAD_TO_SIGMA
             if self.enabled:  # off: measured (reported), not used
                 noisier = self.measured_sigma_m > self.DEADBAND * self.floor_m
                 self.sigma_m = min(self.measured_sigma_m, self.bound_m) if noisier else self.floor_m

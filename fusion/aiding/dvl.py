@@ -573,6 +573,9 @@ def bottom_track(sample, x, omega_b_rad_s, config: DvlConfig, setup: DvlSetup) -
             cal.on_straight(sample.t_s, forward, lateral, heading, current_along)
         if cal.theta is not theta:  # a straight-leg segment updated (s, ψ): z with the new ones
             z = np.array(cal.correct(sample.vel_d_m_s), dtype=float)
+        # the published covariance's consider term of the new track, made here (the memo the
+        # next output epoch reads): live, the ~100 bytecodes of its miss leave the epoch's path
+        cal.position_cov_ne_values()
     else:
         z = np.array(sample.vel_d_m_s, dtype=float)
     return Measurement(z, H, R, h, NOT_ANGULAR[3])

@@ -247,14 +247,21 @@ class _Loop:
             ok, jump = door.check(item)
             if not ok:
                 return None
-        if jump:
-            self.clock_jump(jump)
+        if jump or len(door.gaps) != self._gaps_seen:
+            self._door_events(jump)
+        return item
+
+    def _door_events(self, jump_s: float) -> None:
+        """What the door reported besides its verdict: a clock jump (re-based), else a data gap
+        (logged once)."""
+        door = self.door
+        if jump_s:
+            self.clock_jump(jump_s)
         elif len(door.gaps) != self._gaps_seen:
             self._gaps_seen = len(door.gaps)
             kind, from_s, to_s = door.gaps[-1]
             log.warning("runner: no input for %.1f s of data (%s resumed at %.3f s): data missing, "
                         "navigation coasted through it", to_s - from_s, kind, to_s)
-        return item
 
     def clock_jump(self, jump_s: float) -> None:
         """A confirmed jump of the input's clock: re-base the estimator, the clock, health and
@@ -339,7 +346,10 @@ class _Loop:
             self.flush_epochs_before(t_s)
         try:
             if kind != "truth":
-                self.aid(self.estimator.process(sample))
+                statuses = self.estimator.process(sample)
+                if statuses:  # (aid(), without its call: most samples answer none or one)
+                    for f in self._on_aid:
+                        f(statuses)
                 self.summary.samples_used += 1
                 if kind == "imu":
                     self.summary.imu_samples += 1
@@ -353,8 +363,9 @@ class _Loop:
             for f in self._on_first_sample:
                 f(sample)
             self._on_first_sample = []
-        on_sample = self._on_sample.get(kind)
-        if on_sample is None:
+        try:
+            on_sample = self._on_sample[kind]
+        except KeyError:  # (the first sample of its kind)
             on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
         for f in on_sample:
             f(sample)
@@ -386,35 +397,65 @@ class _Loop:
 
     def item(self, item: Any) -> None:
         kind = getattr(item, "KIND", None)
-        is_batch = kind == "imu_batch" and isinstance(item, ImuBatch)
-        if is_batch and len(item) == 0:
+        if kind == "imu_batch" and isinstance(item, ImuBatch):
+            self._batch_item(item)
+            return
+        # a single sample (the live path's every item): admit's test written out, no call
+        door = self.door
+        if door is not None:
+            ok, jump = door.check(item)
+            if not ok:
+                return
+            if jump or len(door.gaps) != self._gaps_seen:
+                self._door_events(jump)
+        t_s = float(item.t_s)
+        finite = math.isfinite(t_s)
+        if finite:
+            self.clock.wait_until(t_s)
+        cal = self.calibrator
+        if cal is None:
+            self.sample(item)
+        else:
+            try:
+                self.sample(item)
+            finally:  # the one route of a release back (module docstring), after a failed item too
+                if kind != "truth":
+                    self.releases_due(t_s)
+        if finite:
+            self._reached(t_s, t_s)
+
+    def _batch_item(self, item: ImuBatch) -> None:
+        """:meth:`item` of an IMU batch."""
+        if len(item) == 0:
             return
         if self.door is not None:
-            item = self.admit(item, is_batch)
+            item = self.admit(item, True)
             if item is None:
                 return
-        t_s = float(item.t_s[0]) if is_batch else float(item.t_s)
-        t_last = float(item.t_s[-1]) if is_batch else t_s
+        t_s = float(item.t_s[0])
+        t_last = float(item.t_s[-1])
         if math.isfinite(t_s):
             self.clock.wait_until(t_s)
         cal = self.calibrator
         try:
-            if is_batch:
-                self.imu_batch(item)
-                if cal is not None:
-                    cal.observe(item)
-            else:
-                self.sample(item)
+            self.imu_batch(item)
+            if cal is not None:
+                cal.observe(item)
         finally:  # the one route of a release back (module docstring), after a failed item too
-            if cal is not None and kind != "truth":
+            if cal is not None:
                 self.releases_due(t_last)
-        s = self.summary
         if math.isfinite(t_last):
-            if not (s.first_t_s <= t_s):
-                s.first_t_s = t_s if math.isfinite(t_s) else t_last
-            if not (s.last_t_s >= t_last):
-                s.last_t_s = t_last
-        if self.progress is not None and math.isfinite(t_last):
+            self._reached(t_s, t_last)
+
+    def _reached(self, t_s: float, t_last: float) -> None:
+        """The summary's first and last data times and the progress, after an item from ``t_s``
+        to ``t_last`` (finite)."""
+        s = self.summary
+        if not (s.first_t_s <= t_s):
+            s.first_t_s = t_s if math.isfinite(t_s) else t_last
+        if not (s.last_t_s >= t_last):
+            s.last_t_s = t_last
+        if self.progress is not None:
             self.progress(t_last)
 
 
