@@ -228,25 +228,21 @@ class _Loop:
         self._last_imu_t = t_s
 
     # -- the door ---------------------------------------------------------------------------
-    def admit(self, item: Any, is_batch: bool) -> Any:
-        """The plausibility door (:mod:`adaptnav.fusion.plausibility`): ``None`` when the whole
-        item is refused (counted there), else the item with the refused IMU samples removed.
-        It runs before anything that follows data time (clock, epochs, health)."""
+    def admit_batch(self, item: ImuBatch) -> ImuBatch | None:
+        """The plausibility door (:mod:`adaptnav.fusion.plausibility`) for an IMU batch: ``None``
+        when the whole batch is refused (counted there), else the batch with the refused samples
+        removed. It runs before anything that follows data time (clock, epochs, health); a
+        single sample's door is in :meth:`item` itself."""
         door = self.door
-        if is_batch:
-            t = np.asarray(item.t_s, dtype=float)
-            f = np.asarray(item.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
-            w = np.asarray(item.omega_b_rad_s, dtype=float).reshape(-1, 3)
-            keep, jump = door.check_batch(t, f, w)
-            if keep is not None:
-                if not keep.any():
-                    return None
-                if not keep.all():
-                    item = ImuBatch(t[keep], f[keep], w[keep], item.source)
-        else:
-            ok, jump = door.check(item)
-            if not ok:
+        t = np.asarray(item.t_s, dtype=float)
+        f = np.asarray(item.specific_force_b_m_s2, dtype=float).reshape(-1, 3)
+        w = np.asarray(item.omega_b_rad_s, dtype=float).reshape(-1, 3)
+        keep, jump = door.check_batch(t, f, w)
+        if keep is not None:
+            if not keep.any():
                 return None
+            if not keep.all():
+                item = ImuBatch(t[keep], f[keep], w[keep], item.source)
         if jump or len(door.gaps) != self._gaps_seen:
             self._door_events(jump)
         return item
@@ -400,7 +396,7 @@ class _Loop:
         if kind == "imu_batch" and isinstance(item, ImuBatch):
             self._batch_item(item)
             return
-        # a single sample (the live path's every item): admit's test written out, no call
+        # a single sample (the live path's every item): its door here (a batch's: admit_batch)
         door = self.door
         if door is not None:
             ok, jump = door.check(item)
@@ -429,7 +425,7 @@ class _Loop:
         if len(item) == 0:
             return
         if self.door is not None:
-            item = self.admit(item, True)
+            item = self.admit_batch(item)
             if item is None:
                 return
         t_s = float(item.t_s[0])

@@ -1,5 +1,5 @@
 """The runner's item paths with the plausibility door (runner._Loop.item: a single sample's
-door test written out, a batch's through admit): what each item leads to — the estimator's
+door test in item(), a batch's through admit_batch): what each item leads to — the estimator's
 samples, the clock, the calibrator's polls and their data times, the sinks' aid statuses
 and samples, a clock jump's re-base, a data gap's warning, the summary's first and last
 times — on a stream with refused samples, a confirmed jump, a gap, truth, NaN stamps, an
