@@ -77,7 +77,7 @@ from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import (SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, ImuSample, InertialVelocitySample,
-                      RpmSample, is_finite)
+                      is_finite)
 from .state import (ACC_F, ACC_OMEGA, ACC_T, ATT, ATT_TILT, ATT_YAW, BA, BG, CUR, KS, N_ERR, POS, POS_D, POS_NE, SLOW,
                     VEL, X_BA, X_BG, X_CUR, X_DEPTH, X_KS, X_POS, X_POS_NE, X_Q, X_SLOW, X_VEL, NavState, initial_nominal)
 from .status import AidStatus, rejected
@@ -120,18 +120,6 @@ def _finite(sample) -> bool:
     if sample.KIND == "usbl" and not math.isfinite(sample.sigma_v_m):
         return all(math.isfinite(v) for v in (sample.t_s, sample.lat_rad, sample.lon_rad, sample.sigma_h_m))
     return is_finite(sample)
-
-
-def _rpm_finite(sample) -> bool:
-    """:func:`_finite` of an RPM sample (with the IMU's and depth's, the commonest input): an
-    :class:`RpmSample` of three Python floats tested directly (its fields, as
-    :func:`~adaptnav.fusion.samples.is_finite` tests them: ~100 bytecodes of its field loop);
-    any other class or field type as before."""
-    if type(sample) is RpmSample:
-        t, r, y = sample.t_s, sample.rpm, sample.sway_rpm
-        if type(t) is float and type(r) is float and type(y) is float:
-            return math.isfinite(t) and math.isfinite(r) and math.isfinite(y)
-    return _finite(sample)
 
 
 def _all_finite(values: list) -> bool:
@@ -745,7 +733,7 @@ class Estimator:
         kind = sample.KIND
         if kind in IGNORED_KINDS:
             return []
-        if kind == "rpm" and _rpm_finite(sample):
+        if kind == "rpm" and _finite(sample):
             # changes no number of the state (the guard's verdict is the previous sample's)
             self._record("sample", sample)
             self._take_rpm(sample)
