@@ -278,10 +278,6 @@ class TrajectoryCsvSink(Sink):
         self._pos = _state_slices().POS
         # the position's variances by index into the covariance (cov.item: Python floats, no arrays)
         self._pos_ix = tuple(range(_state_slices().N_ERR))[self._pos]
-        # without a UNIX time, the whole row up to its truth is one format per validity:
-        # the numbers, valid, an empty t_unix_s and the latitude and longitude (see _row)
-        self._geo_formats = ((_NAV_FORMAT + ",0,,%.9f,%.9f", _NAV_FORMAT + ",1,,%.9f,%.9f")
-                             if unix_of is None and origin is not None else None)
         # rows joined and written in blocks (a file write per row cost more than the join)
         self._rows: list[str] = []
         # a truth sample's current and k_v are the same from one to the next (a simulation's
@@ -340,11 +336,6 @@ class TrajectoryCsvSink(Sink):
         nums = (t_s, p[0], p[1], p[2], v[0], v[1], v[2], roll, pitch, yaw,
                 math.sqrt(var_n) if not var_n < 0.0 else 0.0, math.sqrt(var_e) if not var_e < 0.0 else 0.0,
                 math.sqrt(var_d) if not var_d < 0.0 else 0.0, cn, ce, state.k_speed)
-        formats = self._geo_formats
-        if formats is not None:
-            lat, lon = self.origin.to_geodetic_ne(p[0], p[1])
-            if math.isfinite(lat) and math.isfinite(lon):
-                return t_s, formats[1 if state.valid else 0] % (*nums, math.degrees(lat), math.degrees(lon))
         return t_s, (_NAV_FORMAT % nums + (",1," if state.valid else ",0,")
                      + geo_time_text(t_s, p[0], p[1], self.unix_of, self.origin))
 
