@@ -14,7 +14,9 @@ samples (the replay fast path).
 from __future__ import annotations
 
 import importlib.util
+import itertools
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any, Iterator
 
 import numpy as np
@@ -67,36 +69,49 @@ class SimResult:
         out.update({k: len(v) for k, v in self.samples.items()})
         return out
 
-    def _others_sorted(self) -> tuple[list[Any], np.ndarray]:
+    def _others_sorted(self) -> tuple[list[Any], np.ndarray, tuple[str, ...], np.ndarray]:
         """The non-IMU samples in replay order (time, then source priority, then kind name and
-        position in its list) and their times as an array."""
+        position in its list), their times as an array, their kinds (sorted) and each sample's
+        index into those."""
         others = [s for kind in sorted(self.samples) for s in self.samples[kind]]
-        t_s = np.array([s.t_s for s in others], dtype=float)
+        n = len(others)
+        t_s = np.fromiter(map(_T_S, others), dtype=float, count=n)
+        kind_of = list(map(_KIND, others))
+        kinds = tuple(sorted(set(kind_of)))
+        codes = np.fromiter(map({k: i for i, k in enumerate(kinds)}.__getitem__, kind_of), dtype=int, count=n)
         # the order of the key (t, source priority of the sample's KIND, list position) in one
         # stable sort (a Python key per sample cost ~0.1 s per data hour)
-        priority = np.array([SOURCE_PRIORITY.get(s.KIND, 50) for s in others], dtype=int)
-        keyed = np.lexsort((priority, t_s)).tolist()
-        return [others[i] for i in keyed], t_s[keyed]
+        priority = np.fromiter(map(SOURCE_PRIORITY.get, kind_of, itertools.repeat(50)), dtype=int, count=n)
+        keyed = np.lexsort((priority, t_s))
+        return [others[i] for i in keyed.tolist()], t_s[keyed], kinds, codes[keyed]
 
-    def iter_blocks(self) -> Iterator[Any]:
+    def iter_blocks(self, progress: "BlockProgress | None" = None) -> Iterator[Any]:
         """ImuBatch runs and other samples in replay order.
 
         Every IMU sample with ``t_s`` ≤ the next other sample's time comes first (IMU has
         the lowest source priority), so the stream equals :meth:`iter_samples` with IMU
-        runs grouped.
+        runs grouped. ``progress``, when given, follows how far the iteration got
+        (:class:`BlockProgress`: a source's counters without a count per item).
         """
-        t_imu = self.imu.t_s
-        others, t_others = self._others_sorted()
+        imu = self.imu
+        t_imu, f, w = imu.t_s, imu.specific_force_b_m_s2, imu.omega_b_rad_s
+        others, t_others, kinds, codes = self._others_sorted()
         # every sample's IMU run end in one call (was a searchsorted per sample)
-        stops = np.searchsorted(t_imu, t_others, side="right").tolist()
+        stops = np.searchsorted(t_imu, t_others, side="right")
+        if progress is None:
+            progress = BlockProgress()
+        progress.plan(kinds, codes, stops)
         start = 0
-        for s, stop in zip(others, stops):
+        for j, s, stop in zip(itertools.count(1), others, stops.tolist()):
             if stop > start:
-                yield self._batch(start, stop)
+                progress.imu = stop
+                yield _imu_run(t_imu[start:stop], f[start:stop], w[start:stop])
                 start = stop
+            progress.others = j
             yield s
         if start < len(t_imu):
-            yield self._batch(start, len(t_imu))
+            progress.imu = len(t_imu)
+            yield _imu_run(t_imu[start:], f[start:], w[start:])
 
     def iter_samples(self) -> Iterator[Any]:
         """All samples, IMU individually, in ``replay_order_key`` order."""
@@ -107,10 +122,62 @@ class SimResult:
                 yield item
 
     def _batch(self, a: int, b: int) -> ImuBatch:
-        return ImuBatch(self.imu.t_s[a:b], self.imu.specific_force_b_m_s2[a:b], self.imu.omega_b_rad_s[a:b])
+        return _imu_run(self.imu.t_s[a:b], self.imu.specific_force_b_m_s2[a:b], self.imu.omega_b_rad_s[a:b])
 
     def imu_samples(self) -> Iterator[ImuSample]:
         return self.imu.samples()
+
+
+_T_S = attrgetter("t_s")
+_KIND = attrgetter("KIND")
+_NEW = object.__new__
+_SETATTR = object.__setattr__
+
+
+def _imu_run(t_s: np.ndarray, f_b_m_s2: np.ndarray, w_b_rad_s: np.ndarray) -> ImuBatch:
+    """The :class:`ImuBatch` of rows of the simulated IMU's arrays, as its constructor makes it
+    (the same fields in its ``__dict__``) without ``__post_init__``'s shape test: slices of
+    one batch's arrays, which passed it, have matching lengths and (N, 3) rows. 36 000 runs per
+    data hour: 1.5 -> 0.7 us each."""
+    run = _NEW(ImuBatch)
+    _SETATTR(run, "__dict__", {"t_s": t_s, "specific_force_b_m_s2": f_b_m_s2, "omega_b_rad_s": w_b_rad_s,
+                               "source": ""})
+    return run
+
+
+class BlockProgress:
+    """How far an iteration of :meth:`SimResult.iter_blocks` got: ``others`` non-IMU samples
+    and ``imu`` IMU samples handed out (each set before its item goes), and the plan to count
+    them by kind with (:meth:`by_kind`)."""
+
+    __slots__ = ("others", "imu", "_kinds", "_codes", "_stops")
+
+    def __init__(self) -> None:
+        self.others = self.imu = 0
+        self._kinds: tuple[str, ...] = ()
+        self._codes = np.zeros(0, dtype=int)   # the others' kinds in replay order (index into _kinds)
+        self._stops = np.zeros(0, dtype=int)   # the IMU run end before each of them
+
+    def plan(self, kinds: tuple[str, ...], codes: np.ndarray, stops: np.ndarray) -> None:
+        self._kinds, self._codes, self._stops = kinds, codes, stops
+
+    def by_kind(self) -> dict[str, int]:
+        """Samples handed out by kind (``"imu"`` for the IMU's), the kinds in the order of
+        their first sample."""
+        j = self.others
+        codes = self._codes[:j]
+        counts = np.bincount(codes, minlength=len(self._kinds)).tolist()
+        # the position of each kind's first sample among the others (the IMU's first run comes
+        # just before the first other whose run end is past 0, or after them all)
+        kinds, first = np.unique(codes, return_index=True)
+        order = [(float(i), self._kinds[k]) for k, i in zip(kinds.tolist(), first.tolist())]
+        if self.imu:  # (the first run ends past 0)
+            ran = self._stops > 0
+            order.append((float(np.argmax(ran)) - 0.5 if ran.any() else len(ran) + 0.5, "imu"))
+        out = {}
+        for _, kind in sorted(order):
+            out[kind] = self.imu if kind == "imu" else counts[self._kinds.index(kind)]
+        return out
 
 
 def sonar_available() -> bool:

@@ -193,19 +193,32 @@ class SimSource:
     """A scenario simulated in memory as a source (``adaptnav.sim.simulate(scenario).iter_blocks()``).
 
     The simulator already yields :class:`ImuBatch` runs and other samples in replay order;
-    they pass through (counted). ``metadata`` holds the scenario.
+    they pass through, counted by how far each iteration got
+    (:class:`adaptnav.sim.simulator.BlockProgress`: no count per item). ``metadata`` holds the
+    scenario.
     """
 
     def __init__(self, scenario: Any, result: Any = None) -> None:
         self.scenario = scenario
         self.result = result if result is not None else simulate(scenario)
         self.metadata = {"scenario": scenario}
-        self.counters = SourceCounters()
         self.streams = None
+        self._progress: list[Any] = []  # one per iteration of a SimResult
+        self._counted = SourceCounters()  # the items of another result's iter_blocks, counted one by one
+
+    @property
+    def counters(self) -> SourceCounters:
+        """What the iterations so far handed out (every item is a message read)."""
+        c = SourceCounters(by_kind=Counter(self._counted.by_kind))
+        for progress in self._progress:
+            c.by_kind.update(progress.by_kind())
+        c.samples = c.messages_read = sum(c.by_kind.values())
+        return c
 
     @property
     def missing(self) -> list[str]:
-        return [k for k in NAV_STREAMS if k not in self.counters.by_kind]
+        by_kind = self.counters.by_kind
+        return [k for k in NAV_STREAMS if k not in by_kind]
 
     has_truth = True
     # every sample comes after the IMU samples up to its time and none before them (the
@@ -217,17 +230,21 @@ class SimSource:
                 "late_samples": 0}
 
     def __iter__(self) -> Iterator[Any]:
-        c = self.counters
-        for item in self.result.iter_blocks():
+        from adaptnav.sim.simulator import BlockProgress, SimResult
+
+        if not isinstance(self.result, SimResult):  # (a stand-in with an iter_blocks of its own)
+            return self._count(self.result.iter_blocks())
+        progress = BlockProgress()
+        self._progress.append(progress)
+        return self.result.iter_blocks(progress)
+
+    def _count(self, items: Iterable[Any]) -> Iterator[Any]:
+        by_kind = self._counted.by_kind
+        for item in items:
             if isinstance(item, ImuBatch):
-                n = len(item)
-                c.samples += n
-                c.messages_read += n
-                c.by_kind["imu"] += n
+                by_kind["imu"] += len(item)
             else:
-                c.samples += 1
-                c.messages_read += 1
-                c.by_kind[item.KIND] += 1
+                by_kind[item.KIND] += 1
             yield item
 
 
