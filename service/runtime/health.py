@@ -96,8 +96,9 @@ class Health:
     # -- feeding ---------------------------------------------------------------------
     def on_sample(self, kind: str, t_s: float, n: int = 1) -> None:
         """``n`` samples of ``kind`` seen, the last at data time ``t_s``."""
-        stats = self._sensors.get(kind)
-        if stats is None:
+        try:  # (a subscript, not a get call: every sample and IMU batch)
+            stats = self._sensors[kind]
+        except KeyError:
             stats = self._sensors[kind] = _SensorStats()
         # fast path (the common case): in order, same 1-s bucket as the last sample (NaN: not)
         if stats.last_t_s <= t_s < stats.last_bucket_end_s:

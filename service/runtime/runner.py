@@ -333,42 +333,6 @@ class _Loop:
         if self.health is not None and n:
             self.health.on_sample("imu", ts[-1], n)
 
-    def sample(self, sample: Any) -> None:
-        kind = sample.KIND
-        t_s = sample.t_s
-        # flush_epochs_before's own test first: no call for the item that finds no epoch due
-        # (true before the first epoch is known; a NaN time goes to the estimator, which rejects it)
-        if self._epoch_s + self._half_window_s < t_s and math.isfinite(t_s):
-            self.flush_epochs_before(t_s)
-        try:
-            if kind != "truth":
-                statuses = self.estimator.process(sample)
-                if statuses:  # (aid(), without its call: most samples answer none or one)
-                    for f in self._on_aid:
-                        f(statuses)
-                self.summary.samples_used += 1
-                if kind == "imu":
-                    self.summary.imu_samples += 1
-                    if math.isfinite(t_s):
-                        self.imu_time(t_s)
-                        self.emit_if_at_epoch(t_s)
-        finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
-            if self.health is not None:
-                self.health.on_sample(kind, t_s)
-        if self._on_first_sample:
-            for f in self._on_first_sample:
-                f(sample)
-            self._on_first_sample = []
-        try:
-            on_sample = self._on_sample[kind]
-        except KeyError:  # (the first sample of its kind)
-            on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
-        for f in on_sample:
-            f(sample)
-        cal = self.calibrator
-        if cal is not None and kind not in _CALIBRATOR_UNUSED:
-            cal.observe(sample)
-
     def releases_due(self, data_t_s: float) -> None:
         """The runner's data time reached ``data_t_s``: the calibrator's releases due by it.
         A calibrator's ``quiet_until_s`` (optional) is a data time below which its poll returns
@@ -409,14 +373,45 @@ class _Loop:
         if finite:
             self.clock.wait_until(t_s)
         cal = self.calibrator
-        if cal is None:
-            self.sample(item)
-        else:
+        try:
+            # the sample (was a method of its own: a call per item)
+            if kind is None:
+                kind = item.KIND  # (an item without one fails here, counted as before)
+            t_item_s = item.t_s  # as it is, for the epochs and health
+            # flush_epochs_before's own test first: no call for the item that finds no epoch due
+            # (true before the first epoch is known; a NaN time goes to the estimator, which rejects it)
+            if self._epoch_s + self._half_window_s < t_item_s and finite:
+                self.flush_epochs_before(t_item_s)
             try:
-                self.sample(item)
-            finally:  # the one route of a release back (module docstring), after a failed item too
                 if kind != "truth":
-                    self.releases_due(t_s)
+                    statuses = self.estimator.process(item)
+                    if statuses:  # (aid(), without its call: most samples answer none or one)
+                        for f in self._on_aid:
+                            f(statuses)
+                    self.summary.samples_used += 1
+                    if kind == "imu":
+                        self.summary.imu_samples += 1
+                        if finite:
+                            self.imu_time(t_item_s)
+                            self.emit_if_at_epoch(t_item_s)
+            finally:  # bookkeeping after the nav state is out (live: its latency), counted either way
+                if self.health is not None:
+                    self.health.on_sample(kind, t_item_s)
+            if self._on_first_sample:
+                for f in self._on_first_sample:
+                    f(item)
+                self._on_first_sample = []
+            try:
+                on_sample = self._on_sample[kind]
+            except KeyError:  # (the first sample of its kind)
+                on_sample = self._on_sample[kind] = sample_methods(self._on_sample_all, kind)
+            for f in on_sample:
+                f(item)
+            if cal is not None and kind not in _CALIBRATOR_UNUSED:
+                cal.observe(item)
+        finally:  # the one route of a release back (module docstring), after a failed item too
+            if cal is not None and kind != "truth":
+                self.releases_due(t_s)
         if finite:
             self._reached(t_s, t_s)
 
@@ -598,11 +593,12 @@ def run(source: Iterable[Any], estimator: Estimator, sinks: Sequence[Sink], cloc
                     progress=progress, door=door, release_gate=release_gate,
                     qsize=getattr(source, "qsize", None))
     try:
+        feed = runner.feed
         for item in source:
-            if _stop_requested(stop):
+            if stop is not None and _stop_requested(stop):  # (no call per item without one)
                 runner.summary.stopped = True
                 break
-            runner.feed(item)
+            feed(item)
         else:
             runner.finish(releases=not _stop_requested(stop))
     finally:
