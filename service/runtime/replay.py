@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import time
+from math import isfinite
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -472,8 +473,9 @@ class AidConsistency(Sink):
     def on_aid(self, statuses: list) -> None:
         by_source, limits_of = self._by_source, self._limits
         for s in statuses:
-            a = by_source.get(s.source)
-            if a is None:
+            try:  # (subscripts, not get calls: ~130k statuses per data hour)
+                a = by_source[s.source]
+            except KeyError:
                 a = by_source[s.source] = _AidTally()
             a.attempts += 1
             fused = s.fused
@@ -483,15 +485,17 @@ class AidConsistency(Sink):
                 reason = s.reason or "unspecified"
                 a.refused[reason] = a.refused.get(reason, 0) + 1
             m = len(s.innovation)
-            if not (fused or s.reason == "gate") or not m or not math.isfinite(s.test_ratio):
+            test_ratio = s.test_ratio
+            if not (fused or s.reason == "gate") or not m or not isfinite(test_ratio):
                 continue
-            limits = limits_of.get(m)
-            if limits is None:
-                limits = limits_of[m] = (float(self._gate_of_dof(m)), self._chi2(0.95, m))
-            nis = s.test_ratio * limits[0]
+            try:
+                gate, within = limits_of[m]
+            except KeyError:
+                gate, within = limits_of[m] = (float(self._gate_of_dof(m)), self._chi2(0.95, m))
+            nis = test_ratio * gate
             a.tested += 1
             a.nis_per_dof_sum += nis / m
-            a.within_95 += nis <= limits[1]
+            a.within_95 += nis <= within
 
     def report(self) -> dict:
         """``{source: {attempts, fused, refused, tested, nis_per_dof_mean, within_95}}``
