@@ -315,12 +315,18 @@ class _Loop:
                 # the piece ends with the sample that completes the next epoch (bisect_left on
                 # the floats: searchsorted's probes and comparisons, without its call)
                 stop = bisect.bisect_left(ts, self.due_s()) + 1
-                stop = min(max(stop, start + 1), n)
+                if stop <= start:  # (min(max(stop, start + 1), n) without the calls)
+                    stop = start + 1
+                if stop > n:
+                    stop = n
             else:  # not a batch of a well-behaved source: the estimator judges the rest
                 stop = n
             piece = batch if (start == 0 and stop >= n) else ImuBatch(
                 t[start:stop], batch.specific_force_b_m_s2[start:stop], batch.omega_b_rad_s[start:stop], batch.source)
-            self.aid(self.estimator.process(piece))
+            statuses = self.estimator.process(piece)
+            if statuses:  # (aid(), without its call)
+                for f in self._on_aid:
+                    f(statuses)
             t_last = ts[stop - 1]
             if math.isfinite(t_last):
                 if stop - start >= 2:
