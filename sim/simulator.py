@@ -100,7 +100,8 @@ class SimResult:
         stops = np.searchsorted(t_imu, t_others, side="right")
         if progress is None:
             progress = BlockProgress()
-        progress.plan(kinds, codes, stops)
+        ran = np.flatnonzero(stops > 0)
+        progress.plan(kinds, codes, int(ran[0]) if len(ran) else len(stops))
         start = 0
         for j, s, stop in zip(itertools.count(1), others, stops.tolist()):
             if stop > start:
@@ -150,30 +151,31 @@ class BlockProgress:
     and ``imu`` IMU samples handed out (each set before its item goes), and the plan to count
     them by kind with (:meth:`by_kind`)."""
 
-    __slots__ = ("others", "imu", "_kinds", "_codes", "_stops")
+    __slots__ = ("others", "imu", "_kinds", "_codes", "_first_run_before")
 
     def __init__(self) -> None:
         self.others = self.imu = 0
         self._kinds: tuple[str, ...] = ()
-        self._codes = np.zeros(0, dtype=int)   # the others' kinds in replay order (index into _kinds)
-        self._stops = np.zeros(0, dtype=int)   # the IMU run end before each of them
+        self._codes = np.zeros(0, dtype=np.int8)  # the others' kinds in replay order (index into _kinds)
+        self._first_run_before = 0  # the other sample the IMU's first run comes before (or their count)
 
-    def plan(self, kinds: tuple[str, ...], codes: np.ndarray, stops: np.ndarray) -> None:
-        self._kinds, self._codes, self._stops = kinds, codes, stops
+    def plan(self, kinds: tuple[str, ...], codes: np.ndarray, first_run_before: int) -> None:
+        # kept for as long as the source (a byte per sample where the kinds allow)
+        self._kinds = kinds
+        self._codes = codes.astype(np.int8) if len(kinds) <= 127 else codes
+        self._first_run_before = first_run_before
 
     def by_kind(self) -> dict[str, int]:
         """Samples handed out by kind (``"imu"`` for the IMU's), the kinds in the order of
         their first sample."""
-        j = self.others
-        codes = self._codes[:j]
+        codes = self._codes[:self.others]
         counts = np.bincount(codes, minlength=len(self._kinds)).tolist()
-        # the position of each kind's first sample among the others (the IMU's first run comes
-        # just before the first other whose run end is past 0, or after them all)
+        # the position of each kind's first sample among the others; the IMU's first run comes
+        # just before the other it precedes
         kinds, first = np.unique(codes, return_index=True)
         order = [(float(i), self._kinds[k]) for k, i in zip(kinds.tolist(), first.tolist())]
-        if self.imu:  # (the first run ends past 0)
-            ran = self._stops > 0
-            order.append((float(np.argmax(ran)) - 0.5 if ran.any() else len(ran) + 0.5, "imu"))
+        if self.imu:
+            order.append((self._first_run_before - 0.5, "imu"))
         out = {}
         for _, kind in sorted(order):
             out[kind] = self.imu if kind == "imu" else counts[self._kinds.index(kind)]
