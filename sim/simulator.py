@@ -122,9 +122,6 @@ class SimResult:
             else:
                 yield item
 
-    def _batch(self, a: int, b: int) -> ImuBatch:
-        return _imu_run(self.imu.t_s[a:b], self.imu.specific_force_b_m_s2[a:b], self.imu.omega_b_rad_s[a:b])
-
     def imu_samples(self) -> Iterator[ImuSample]:
         return self.imu.samples()
 
