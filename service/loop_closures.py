@@ -46,9 +46,10 @@ from typing import Any
 import numpy as np
 
 from adaptnav.fusion.eskf import Estimator
-from adaptnav.fusion.state import VEL
+from adaptnav.fusion.state import VEL, X_POS_NE, X_VEL
 
 VEL_NE = slice(VEL.start, VEL.start + 2)
+X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)  # north, east of the state's velocity
 
 # clones are kept (each costs a little per covariance step) while a ping came this recently (s)
 SONAR_ACTIVE_S = 30.0
@@ -186,10 +187,18 @@ class SideScanEstimator(Estimator):
         return (j0 + (pos[0] - (q0 + 0.5 * (u0 + vel[0]) * dt)), j1 + (pos[1] - (q1 + 0.5 * (u1 + vel[1]) * dt)))
 
     def _keep_clone_jump(self) -> None:
-        """The jumps at the clone just made (its time is the state's), as a ping would record them."""
-        ns = self.nav_state()
+        """The jumps at the clone just made (its time is the state's), as a ping would record them
+        from :meth:`nav_state`'s position and velocity: without an output point those are the
+        state's own (read from it: the whole state, its covariance and validity, was two thirds
+        of this per clone), else nav_state's at that point."""
+        if self._out_arm is None:
+            x = self._x
+            pos, vel = x[X_POS_NE].tolist(), x[X_VEL_NE].tolist()
+        else:
+            ns = self.nav_state()
+            pos, vel = ns.pos_n_m[:2].tolist(), ns.vel_n_m_s[:2].tolist()
         t = float(self._clones.t_s[-1])
-        self._clone_jump[t] = np.array(self._jump_at(t, ns.pos_n_m[:2].tolist(), ns.vel_n_m_s[:2].tolist()))
+        self._clone_jump[t] = np.array(self._jump_at(t, pos, vel))
         horizon = t - self._clones.horizon_s
         if next(iter(self._clone_jump)) < horizon:  # oldest first (insertion order)
             self._clone_jump = {k: v for k, v in self._clone_jump.items() if k >= horizon}

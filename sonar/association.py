@@ -990,11 +990,21 @@ class LegAssociator:
         if self._spans:
             self._spans = {k: v for k, v in self._spans.items() if any(k == id(r[2]) for r in self._recent)}
         if self._paired or self._tested or self._weak_used:  # (ids of sightings no longer kept could be reused)
-            alive = set(map(id, chain(self._old, self._weak_old, self._pending, self._weak_pending)))
+            alive = self._kept_ids(self._paired | self._tested | self._weak_used)
             self._paired &= alive
             self._tested &= alive
             self._weak_used &= alive
         return lc
+
+    def _kept_ids(self, ids: set[int]) -> set[int]:
+        """Those of ``ids`` that are the id of a kept sighting (stored, weak or not, or pending):
+        ``ids & set(map(id, chain(...)))`` over those lists. The stored ones' from their arrays'
+        ``id`` columns (a tenth of :meth:`add` was the set of every kept sighting's id, to keep
+        the dozen ids in the sets)."""
+        alive = ids.intersection(self._stored_arrays()["id"].tolist())
+        alive.update(ids.intersection(self._weak_arrays()["id"].tolist()))
+        alive.update(ids.intersection(map(id, chain(self._pending, self._weak_pending))))
+        return alive
 
     def _with_weak(self, lc: LoopClosure) -> LoopClosure:
         """``lc`` with the pairs that have a weak sighting and fit the drift of its set.
