@@ -305,9 +305,13 @@ class ObjectSighting:
 
     def offset_n_m(self, yaw_rad: float) -> np.ndarray:
         """(north, east) of the object relative to the vehicle at ``t_s`` (m)."""
+        return np.array(self._offset_floats(yaw_rad))
+
+    def _offset_floats(self, yaw_rad: float) -> tuple[float, float]:
+        """:meth:`offset_n_m` as two Python floats (the same products)."""
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        sign = 1.0 if self.side == "starboard" else -1.0
-        return sign * self.ground_range_m * np.array([-s, c])
+        k = (1.0 if self.side == "starboard" else -1.0) * self.ground_range_m
+        return k * -s, k * c
 
     def detector_covariance(self, yaw_rad: float, config: "ObjectDetectorConfig") -> np.ndarray:
         """2×2 (north, east) covariance of :meth:`offset_n_m` (m²).
@@ -320,7 +324,8 @@ class ObjectSighting:
         s_ac = config.sigma_across_m + config.size_fraction * self.width_across_m
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
         R = np.array([[c, -s], [s, c]])  # columns: forward, starboard in (n, e)
-        return R @ np.diag([s_al ** 2, s_ac ** 2]) @ R.T
+        # R diag(σ²) Rᵀ: np.dot is np.matmul's BLAS product, bit for bit, for ~1 µs less each
+        return np.dot(np.dot(R, np.array([[s_al ** 2, 0.0], [0.0, s_ac ** 2]])), R.T)
 
 
 @functools.lru_cache(maxsize=8)
@@ -434,9 +439,9 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
         if config.short_strong_contrast > config.short_min_contrast:
             # near the nadir, a shadowed object of low contrast is as often sediment: weak
             # (ObjectDetectorConfig.short_strong_contrast)
-            out = [replace(o, weak=True) if (not o.weak and o.shadow_length_m > 0
-                                             and o.contrast < config.short_strong_contrast
-                                             and o.ground_range_m < config.short_shadow_range_m) else o
+            out = [_replaced(o, weak=True) if (not o.weak and o.shadow_length_m > 0
+                                                and o.contrast < config.short_strong_contrast
+                                                and o.ground_range_m < config.short_shadow_range_m) else o
                    for o in out]
     return sorted(out, key=lambda o: o.t_s)
 
@@ -976,12 +981,25 @@ def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
         Covariance of its horizontal velocity (m²/s², :attr:`ObjectSighting.vel_cov`; not kept
         when not finite).
     """
-    p = np.asarray(pos_n_m, float)[:2] + obj.offset_n_m(yaw_rad)
+    pn, pe = np.asarray(pos_n_m, float)[:2].tolist()
+    on, oe = obj._offset_floats(yaw_rad)
     jump = None if jump_n_m is None else np.asarray(jump_n_m, float).reshape(2).copy()
     vc = None if vel_cov is None else np.asarray(vel_cov, float).reshape(2, 2).copy()
-    return replace(obj, pos_n_m=p, nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
-                   det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
-                   jump_n_m=jump, vel_cov=vc if vc is not None and np.isfinite(vc).all() else None)
+    return _replaced(obj, pos_n_m=np.array((pn + on, pe + oe)), nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
+                     det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
+                     jump_n_m=jump, vel_cov=vc if vc is not None and np.isfinite(vc).all() else None)
+
+
+def _replaced(obj: ObjectSighting, **changes) -> ObjectSighting:
+    """``dataclasses.replace(obj, **changes)`` of a sighting: its fields copied, ``changes`` set,
+    without the frozen ``__init__``'s per-field ``object.__setattr__`` (the sighting has no
+    ``__post_init__`` and no other attributes: the same object, fields in the same order;
+    ~2 instead of ~6 µs per placed sighting)."""
+    new = object.__new__(obj.__class__)
+    state = new.__dict__
+    state.update(obj.__dict__)
+    state.update(changes)
+    return new
 
 
 @dataclass(frozen=True)
@@ -1077,7 +1095,7 @@ class ObjectFrontEnd:
             Its covariance (m²/s²): how fast the jump-free track may drift
             (:attr:`ObjectSighting.vel_cov`).
         """
-        pn, pe = np.asarray(pos_n_m, float).reshape(-1)[:2].tolist()
+        pn, pe = np.asarray(pos_n_m, float)[:2].tolist()
         cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
         return self.push_floats(ping, pn, pe, cov, yaw_rad, vel_n_m_s, vel_cov)
 
