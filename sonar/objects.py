@@ -430,7 +430,7 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     w = waterfall.n_side
     rows = np.arange(n_rows, dtype=float)
     out: list[ObjectSighting] = []
-    for side, sub in (("starboard", lev[:, w:]), ("port", lev[:, w - 1::-1])):
+    for side, sub in (("starboard", lev[:, w:]), ("port", _port_outwards(lev, w))):
         alt = waterfall.altitude_m[:, 1 if side == "starboard" else 0]
         out += _detect_side(sub, side, res, along, along_res, rows, waterfall, alt, config)
     out = _merge(out, config.merge_m, along_res)
@@ -446,6 +446,18 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     return sorted(out, key=lambda o: o.t_s)
 
 
+def _port_outwards(lev: np.ndarray, w: int) -> np.ndarray:
+    """The port half of ``lev`` (its first ``w`` columns) with its columns outwards: the same values
+    as the view ``lev[:, w - 1::-1]``, for a float32 image a contiguous copy by OpenCV's flip (0.02
+    ms): the side's mask, labels and compiled scans then read memory forwards (the components of
+    a reversed view took ~1.4 times as long)."""
+    if lev.dtype == np.float32 and lev.ndim == 2 and w > 0 and lev.shape[0] > 0:
+        import cv2
+
+        return cv2.flip(lev[:, :w], 1)
+    return lev[:, w - 1::-1]
+
+
 def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=None) -> list[ObjectSighting]:
     """Weak sightings: shadowed objects nearer than ``fine_range_m`` on the unfiltered image, with
     a height, that are not one of the ``strong`` sightings."""
@@ -455,7 +467,7 @@ def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=No
     ncol = min(int(round((config.fine_range_m + config.background_m) / res)), w)
     lev = local_level(image[:, w - ncol:w + ncol], res, along_res, config, work)
     weak = []
-    for side, sub in (("starboard", lev[:, ncol:]), ("port", lev[:, ncol - 1::-1])):
+    for side, sub in (("starboard", lev[:, ncol:]), ("port", _port_outwards(lev, ncol))):
         alt = wf.altitude_m[:, 1 if side == "starboard" else 0]
         for o in _detect_shadowed(sub, side, res, along, along_res, rows, wf, alt, config, weak=True):
             if o.ground_range_m < config.fine_range_m and math.isfinite(o.height_m):
