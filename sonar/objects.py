@@ -1124,7 +1124,7 @@ class ObjectFrontEnd:
         if self._pings and ping.t_s <= self._pings[-1].t_s:
             self.rejected["out of order"] = self.rejected.get("out of order", 0) + 1
             return []
-        geometry = (ping.n_samples, ping.slant_range_m)
+        geometry = (ping.port.size, ping.slant_range_m)  # (n_samples without its property call)
         if geometry != self._geometry:  # (the stream's geometry passed the test below)
             if not ping.has_geometry:
                 self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1

@@ -200,7 +200,7 @@ def stack_sides(pings: Sequence[SonarPing]) -> np.ndarray:
     if not pings:
         raise ValueError("no pings")
     n = pings[0].n_samples
-    bad = [i for i, p in enumerate(pings) if p.n_samples != n]
+    bad = [i for i, p in enumerate(pings) if p.port.size != n]  # (n_samples without its property call)
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
     # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
