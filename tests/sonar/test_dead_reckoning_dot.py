@@ -39,23 +39,32 @@ def _ping(t_s, speed_m_s, yaw_rad):
                      speed_m_s=speed_m_s)
 
 
-def test_prediction_by_dot_is_the_matmul_one_bit_for_bit():
-    rng = np.random.default_rng(54)
-    nav, ref = AnchoredDeadReckoning(), _MatmulPrediction()
-    fix0 = (99.0, rng.normal(0.0, 50.0, 2), 2.0)  # a fix before the first ping
-    nav.fix(*fix0)
-    ref.fix(*fix0)
-    t, yaw = 100.0, 0.3
-    for k in range(4000):
-        t += float(rng.uniform(0.02, 0.4)) if k % 97 != 3 else 0.0  # some repeated times
-        yaw = math.remainder(yaw + float(rng.normal(0.0, 0.05)), 2.0 * math.pi)
-        speed = math.nan if k % 37 == 5 else float(rng.uniform(0.5, 2.0))
+def _events(n_pings: int, seed: int):
+    """("fix", (t, pos, σ)) and ("ping", (t, speed, yaw)): irregular intervals with repeated times,
+    speed gaps, turns, fixes late and early (one before the first ping), times out of order and NaN."""
+    rng = np.random.default_rng(seed)
+    steps = np.where(np.arange(n_pings) % 97 == 3, 0.0, rng.uniform(0.02, 0.4, n_pings))
+    t_s = 100.0 + np.cumsum(steps)
+    yaw_rad = np.remainder(0.3 + np.cumsum(rng.normal(0.0, 0.05, n_pings)) + math.pi, 2.0 * math.pi) - math.pi
+    speed_m_s = np.where(np.arange(n_pings) % 37 == 5, np.nan, rng.uniform(0.5, 2.0, n_pings))
+    events = [("fix", (99.0, rng.normal(0.0, 50.0, 2), 2.0))]
+    for k in range(n_pings):
         if k % 53 == 10:
-            fix = (t - float(rng.uniform(-0.5, 3.0)), rng.normal(0.0, 50.0, 2), float(rng.uniform(0.5, 5.0)))
-            nav.fix(*fix)
-            ref.fix(*fix)
-        t_ping = t - 1.0 if k % 401 == 7 else (math.nan if k % 503 == 9 else t)
-        got, want = nav.push_floats(_ping(t_ping, speed, yaw)), ref.push_floats(_ping(t_ping, speed, yaw))
+            events.append(("fix", (float(t_s[k]) - float(rng.uniform(-0.5, 3.0)), rng.normal(0.0, 50.0, 2),
+                                   float(rng.uniform(0.5, 5.0)))))
+        t_ping = t_s[k] - 1.0 if k % 401 == 7 else (math.nan if k % 503 == 9 else t_s[k])
+        events.append(("ping", (float(t_ping), float(speed_m_s[k]), float(yaw_rad[k]))))
+    return events
+
+
+def test_prediction_by_dot_is_the_matmul_one_bit_for_bit():
+    nav, ref = AnchoredDeadReckoning(), _MatmulPrediction()
+    for k, (kind, args) in enumerate(_events(4000, 54)):
+        if kind == "fix":
+            nav.fix(*args)
+            ref.fix(*args)
+            continue
+        got, want = nav.push_floats(_ping(*args)), ref.push_floats(_ping(*args))
         assert np.array(got).tobytes() == np.array(want).tobytes(), k
         assert nav._t_kf == ref._t_kf or (math.isnan(nav._t_kf) and math.isnan(ref._t_kf))
     assert nav.fixes_used == ref.fixes_used > 70
