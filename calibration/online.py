@@ -473,9 +473,10 @@ class OnlineCalibrator:
         # free-inertial samples (t, ∫v_n, ∫v_e, yaw, reset) over the window
         self._inertial_buf: deque = deque()
         # the DVL teacher: water-relative body velocity per step (calibration.dvl_teacher)
-        from adaptnav.calibration.dvl_teacher import DvlWaterVelocity
+        from adaptnav.calibration.dvl_teacher import DvlBin, DvlWaterVelocity
 
         self.dvl_water = DvlWaterVelocity(*dvl_mount) if dvl_mount is not None else DvlWaterVelocity()
+        self._dvl_bin = DvlBin  # (a new bin per step: the import statement there cost ~1 µs)
         self._dvl_bins: dict = {}
         self._dvl_rows: deque = deque(maxlen=config.window_steps)
         self._filter_current = (0.0, 0.0)  # the filter's current estimate (from its inertial samples)
@@ -502,9 +503,11 @@ class OnlineCalibrator:
             wz = np.asarray(sample.omega_b_rad_s, dtype=float)[:, 2]
             # any NaN/inf makes a sum non-finite: one cheap test for the usual all-finite
             # batch (a few samples, ~14 per second), the element-wise mask otherwise; the yaw
-            # rates' sum is the one their bin adds (ndarray.sum is np.add.reduce)
+            # rates' sum is the one their bin adds (ndarray.sum is np.add.reduce), the times'
+            # only tested (a Python sum of the list: 1 µs less than a reduction; an overflow
+            # to inf takes the mask, which finds every value finite)
             wz_sum = float(np.add.reduce(wz)) if t.size else math.nan
-            if not (t.size and math.isfinite(float(np.add.reduce(t)) + wz_sum)):
+            if not (t.size and math.isfinite(sum(t.tolist()) + wz_sum)):
                 ok = np.isfinite(t) & np.isfinite(wz)
                 if not np.all(ok):
                     self._reject("non-finite imu")
@@ -546,10 +549,14 @@ class OnlineCalibrator:
                 if sample.rpm != self._rpm_cache[0]:  # RPM repeats (integer PWM): one PCHIP call per value
                     self._rpm_cache = (sample.rpm, float(self.rpm_table.speed(sample.rpm)))
                 self._add(t, "speed", self._rpm_cache[1], finite=sample.rpm)
-            elif kind == "ImuSample":
-                self._add(t, "yaw_rate", float(sample.omega_b_rad_s[2]))
             elif kind in ("HeadingSample", "AttitudeSample"):
                 self._heading(t, float(sample.yaw_rad))
+            elif kind == "SonarPing":  # (the kinds by how often they come: a ping per RPM sample)
+                self._sonar(sample)
+            elif kind == "DvlSample":
+                self._dvl(t, sample)
+            elif kind == "ImuSample":
+                self._add(t, "yaw_rate", float(sample.omega_b_rad_s[2]))
             elif kind in ("UsblSample", "GnssSample"):
                 self._fix(t, sample)
             elif kind == "RangeSample":
@@ -559,10 +566,6 @@ class OnlineCalibrator:
                 ob = RangeObservation(np.asarray(sample.beacon_pos_n_m[:2], float)[None], np.array([sample.range_m]),
                                       float(sample.sigma_m))
                 self._add_obs(t, ob)
-            elif kind == "SonarPing":
-                self._sonar(sample)
-            elif kind == "DvlSample":
-                self._dvl(t, sample)
             elif hasattr(sample, "ground_range_m") and hasattr(sample, "side"):
                 tid = self._assoc.assign(sample)
                 ob = sighting_from_sonar(sample, tid, self.config.landmark_sigma_along_m,
@@ -659,14 +662,12 @@ class OnlineCalibrator:
         if k < max(self._closed, 0):
             return self._reject("late dvl")
         yaw = self._last_heading[1] if self._last_heading is not None else 0.0
-        body = self.dvl_water.body(vel, bool(getattr(sample, "water_track", False)), yaw, self._last_yaw_rate,
-                                   self._filter_current)
+        x, y, z = self.dvl_water.body_floats(vel, bool(getattr(sample, "water_track", False)), yaw,
+                                             self._last_yaw_rate, self._filter_current)
         b = self._dvl_bins.get(k)
         if b is None:
-            from adaptnav.calibration.dvl_teacher import DvlBin
-
-            b = self._dvl_bins[k] = DvlBin()
-        b.add(body)
+            b = self._dvl_bins[k] = self._dvl_bin()
+        b.add_floats(x, y, z)
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):

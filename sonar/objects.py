@@ -305,9 +305,13 @@ class ObjectSighting:
 
     def offset_n_m(self, yaw_rad: float) -> np.ndarray:
         """(north, east) of the object relative to the vehicle at ``t_s`` (m)."""
+        return np.array(self._offset_floats(yaw_rad))
+
+    def _offset_floats(self, yaw_rad: float) -> tuple[float, float]:
+        """:meth:`offset_n_m` as two Python floats (the same products)."""
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        sign = 1.0 if self.side == "starboard" else -1.0
-        return sign * self.ground_range_m * np.array([-s, c])
+        k = (1.0 if self.side == "starboard" else -1.0) * self.ground_range_m
+        return k * -s, k * c
 
     def detector_covariance(self, yaw_rad: float, config: "ObjectDetectorConfig") -> np.ndarray:
         """2×2 (north, east) covariance of :meth:`offset_n_m` (m²).
@@ -320,7 +324,8 @@ class ObjectSighting:
         s_ac = config.sigma_across_m + config.size_fraction * self.width_across_m
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
         R = np.array([[c, -s], [s, c]])  # columns: forward, starboard in (n, e)
-        return R @ np.diag([s_al ** 2, s_ac ** 2]) @ R.T
+        # R diag(σ²) Rᵀ: np.dot is np.matmul's BLAS product, bit for bit, for ~1 µs less each
+        return np.dot(np.dot(R, np.array([[s_al ** 2, 0.0], [0.0, s_ac ** 2]])), R.T)
 
 
 @functools.lru_cache(maxsize=8)
@@ -425,7 +430,7 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
     w = waterfall.n_side
     rows = np.arange(n_rows, dtype=float)
     out: list[ObjectSighting] = []
-    for side, sub in (("starboard", lev[:, w:]), ("port", lev[:, w - 1::-1])):
+    for side, sub in (("starboard", lev[:, w:]), ("port", _port_outwards(lev, w))):
         alt = waterfall.altitude_m[:, 1 if side == "starboard" else 0]
         out += _detect_side(sub, side, res, along, along_res, rows, waterfall, alt, config)
     out = _merge(out, config.merge_m, along_res)
@@ -434,11 +439,23 @@ def detect_objects(waterfall: Waterfall, along_m: np.ndarray | None = None,
         if config.short_strong_contrast > config.short_min_contrast:
             # near the nadir, a shadowed object of low contrast is as often sediment: weak
             # (ObjectDetectorConfig.short_strong_contrast)
-            out = [replace(o, weak=True) if (not o.weak and o.shadow_length_m > 0
-                                             and o.contrast < config.short_strong_contrast
-                                             and o.ground_range_m < config.short_shadow_range_m) else o
+            out = [_replaced(o, weak=True) if (not o.weak and o.shadow_length_m > 0
+                                                and o.contrast < config.short_strong_contrast
+                                                and o.ground_range_m < config.short_shadow_range_m) else o
                    for o in out]
     return sorted(out, key=lambda o: o.t_s)
+
+
+def _port_outwards(lev: np.ndarray, w: int) -> np.ndarray:
+    """The port half of ``lev`` (its first ``w`` columns) with its columns outwards: the same values
+    as the view ``lev[:, w - 1::-1]``, for a float32 image a contiguous copy by OpenCV's flip (0.02
+    ms): the side's mask, labels and compiled scans then read memory forwards (the components of
+    a reversed view took ~1.4 times as long)."""
+    if lev.dtype == np.float32 and lev.ndim == 2 and w > 0 and lev.shape[0] > 0:
+        import cv2
+
+        return cv2.flip(lev[:, :w], 1)
+    return lev[:, w - 1::-1]
 
 
 def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=None) -> list[ObjectSighting]:
@@ -450,7 +467,7 @@ def _detect_fine(image, strong, res, along, along_res, rows, wf, config, work=No
     ncol = min(int(round((config.fine_range_m + config.background_m) / res)), w)
     lev = local_level(image[:, w - ncol:w + ncol], res, along_res, config, work)
     weak = []
-    for side, sub in (("starboard", lev[:, ncol:]), ("port", lev[:, ncol - 1::-1])):
+    for side, sub in (("starboard", lev[:, ncol:]), ("port", _port_outwards(lev, ncol))):
         alt = wf.altitude_m[:, 1 if side == "starboard" else 0]
         for o in _detect_shadowed(sub, side, res, along, along_res, rows, wf, alt, config, weak=True):
             if o.ground_range_m < config.fine_range_m and math.isfinite(o.height_m):
@@ -976,12 +993,25 @@ def with_navigation(obj: ObjectSighting, pos_n_m, nav_cov, yaw_rad: float,
         Covariance of its horizontal velocity (m²/s², :attr:`ObjectSighting.vel_cov`; not kept
         when not finite).
     """
-    p = np.asarray(pos_n_m, float)[:2] + obj.offset_n_m(yaw_rad)
+    pn, pe = np.asarray(pos_n_m, float)[:2].tolist()
+    on, oe = obj._offset_floats(yaw_rad)
     jump = None if jump_n_m is None else np.asarray(jump_n_m, float).reshape(2).copy()
     vc = None if vel_cov is None else np.asarray(vel_cov, float).reshape(2, 2).copy()
-    return replace(obj, pos_n_m=p, nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
-                   det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
-                   jump_n_m=jump, vel_cov=vc if vc is not None and np.isfinite(vc).all() else None)
+    return _replaced(obj, pos_n_m=np.array((pn + on, pe + oe)), nav_cov=np.asarray(nav_cov, float).reshape(2, 2).copy(),
+                     det_cov=obj.detector_covariance(yaw_rad, config), heading_rad=float(yaw_rad),
+                     jump_n_m=jump, vel_cov=vc if vc is not None and np.isfinite(vc).all() else None)
+
+
+def _replaced(obj: ObjectSighting, **changes) -> ObjectSighting:
+    """``dataclasses.replace(obj, **changes)`` of a sighting: its fields copied, ``changes`` set,
+    without the frozen ``__init__``'s per-field ``object.__setattr__`` (the sighting has no
+    ``__post_init__`` and no other attributes: the same object, fields in the same order;
+    ~2 instead of ~6 µs per placed sighting)."""
+    new = object.__new__(obj.__class__)
+    state = new.__dict__
+    state.update(obj.__dict__)
+    state.update(changes)
+    return new
 
 
 @dataclass(frozen=True)
@@ -1077,7 +1107,7 @@ class ObjectFrontEnd:
             Its covariance (m²/s²): how fast the jump-free track may drift
             (:attr:`ObjectSighting.vel_cov`).
         """
-        pn, pe = np.asarray(pos_n_m, float).reshape(-1)[:2].tolist()
+        pn, pe = np.asarray(pos_n_m, float)[:2].tolist()
         cov = np.asarray(nav_cov, float).reshape(4).tolist()  # (Python floats: tested and kept per ping)
         return self.push_floats(ping, pn, pe, cov, yaw_rad, vel_n_m_s, vel_cov)
 
@@ -1094,7 +1124,7 @@ class ObjectFrontEnd:
         if self._pings and ping.t_s <= self._pings[-1].t_s:
             self.rejected["out of order"] = self.rejected.get("out of order", 0) + 1
             return []
-        geometry = (ping.n_samples, ping.slant_range_m)
+        geometry = (ping.port.size, ping.slant_range_m)  # (n_samples without its property call)
         if geometry != self._geometry:  # (the stream's geometry passed the test below)
             if not ping.has_geometry:
                 self.rejected["bad geometry"] = self.rejected.get("bad geometry", 0) + 1

@@ -200,7 +200,7 @@ def stack_sides(pings: Sequence[SonarPing]) -> np.ndarray:
     if not pings:
         raise ValueError("no pings")
     n = pings[0].n_samples
-    bad = [i for i, p in enumerate(pings) if p.n_samples != n]
+    bad = [i for i, p in enumerate(pings) if p.port.size != n]  # (n_samples without its property call)
     if bad:
         raise ValueError(f"pings {bad[:5]}... have a sample count different from {n}")
     # (one concatenation: np.stack and nan_to_num took 4 times as long for 200 pings)
@@ -501,7 +501,12 @@ def masked_median(image: np.ndarray, data: np.ndarray, axis: int, same_rows: boo
         if keep.size and keep[-1] - keep[0] + 1 == keep.size:  # one run of columns (a waterfall's): a
             # slice copied (0.03 ms for 200 x 1000, the column gather 0.2 ms)
             cols = image[:, keep[0]:keep[-1] + 1]
-            s = cols.T.copy() if axis == 0 else cols.copy()
+            if axis == 1:
+                s = cols.copy()
+            elif cols.dtype == np.float32:  # OpenCV's blocked transpose (0.04 vs 0.10 ms for 200 x 1000)
+                s = cv2.transpose(cols)
+            else:
+                s = cols.T.copy()
         else:
             s = image.T[keep] if axis == 0 else image[:, keep]  # (new arrays, the median's axis along rows)
         m = s.shape[1]
@@ -569,9 +574,10 @@ def _same_rows(data: np.ndarray) -> bool:
     return bool((data == data[:1]).all())
 
 
-def normalise_gain(image: np.ndarray) -> np.ndarray:
-    """Divide columns then rows by their median over data pixels (>0); float32."""
-    img = image.astype(np.float32, copy=True)
+def normalise_gain(image: np.ndarray, copy: bool = True) -> np.ndarray:
+    """Divide columns then rows by their median over data pixels (>0); float32. ``copy`` False:
+    a float32 ``image`` is normalised in place (:func:`build_waterfall`'s own: 0.02–0.08 ms less)."""
+    img = image.astype(np.float32, copy=copy)
     data = img > 0
     # the mask tested once for both medians; a waterfall's data columns (one run, the same on
     # every row) are zeroed outside by slices, not by a mask over the image
@@ -639,7 +645,7 @@ def build_waterfall(pings: Sequence[SonarPing], config: WaterfallConfig = Waterf
         along_res = float(dist[-1] / (len(pings) - 1))
 
     if cfg.gain_normalise:
-        image = normalise_gain(image)
+        image = normalise_gain(image, copy=False)  # (the image is this function's own)
     if cfg.median_ksize and cfg.median_ksize > 1:
         image = median_filtered(image, cfg.median_ksize)
     return Waterfall(image.astype(np.float32, copy=False), res, along_res, t, dist, heading, ping_index, alt)
