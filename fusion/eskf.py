@@ -941,8 +941,8 @@ class Estimator:
         aid_dvl.bottom_track_into(sample, self._core, self._work, self._dvl_consts, config, setup)
         meas, y, sdiag = self._dvl_meas, self._fast_out, self._sdiag
         try:
-            nis, fused, ok = kalman.fuse_vector_core(self._core, self._qdiag, meas.z, meas.h, meas.H, meas.R,
-                                                     self._gate[3], self._dx, y, sdiag, True, _MAX_SPEED_M_S)
+            nis, fused, ok = kalman.fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
+                                                     self._gate[3], True, _MAX_SPEED_M_S)
             status = self._attempt(sample.t_s, "dvl", tuple(meas.z.tolist()), tuple(y.tolist()),
                                    tuple(sdiag.tolist()), nis, fused)
             out = self._after_fuse(sample, aid, config, setup, meas, status)

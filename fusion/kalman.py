@@ -543,18 +543,22 @@ def _fuse_scalar(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_s
 
 
 @jit(cache=True)
-def fuse_vector_core(core, qdiag, z, h, H, R, gate, dx, y_out, s_diag_out, flush, max_speed_m_s):
-    """A measurement of a few rows without angular components (the DVL's three) on the core
-    array in one call: ``y = z − h`` (``h`` = h(x̂)) into ``y_out``, :func:`fuse_core` with
-    ``H`` (m × 18) and ``R`` (m × m), then the guard :func:`core_ok`.
+def fuse_vector_core(core, work, z, h, H, R, gate, flush, max_speed_m_s):
+    """A measurement of a few rows (at most 3) without angular components (the DVL's three) on
+    the core array in one call: ``y = z − h`` (``h`` = h(x̂)) into ``work``'s :data:`WORK_OUT`,
+    :func:`fuse_core` with ``H`` (m × 18) and ``R`` (m × m), diag S into :data:`WORK_SDIAG`,
+    the process noise and the correction ``work``'s, then the guard :func:`core_ok`.
 
     Why: the vector sibling of :func:`fuse_scalar_core` for the DVL (a sample every 0.2 s),
     whose general path paid the innovation, the guard and their numpy glue in Python; the
     elementwise subtraction rounds as numpy's. Returns ``(nis, fused, ok)``.
     """
-    for i in range(y_out.shape[0]):
+    m = z.shape[0]
+    y_out = work[WORK_OUT:WORK_OUT + m]
+    for i in range(m):
         y_out[i] = z[i] - h[i]
-    nis, fused = fuse_core(core, qdiag, y_out, H, R, gate, dx, s_diag_out, flush)
+    nis, fused = fuse_core(core, work[WORK_QDIAG:WORK_QDIAG + N_ERR], y_out, H, R, gate, work[WORK_DX:WORK_DX + N_ERR],
+                           work[WORK_SDIAG:WORK_SDIAG + m], flush)
     return nis, fused, core_ok(core, max_speed_m_s)
 
 

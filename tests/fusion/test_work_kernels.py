@@ -1,5 +1,5 @@
 """The kernels that take the estimator's scratch array whole (kalman.WORK_*: fuse_scalar_core,
-fuse_heading_core, dvl_bottom_track_core) against the calls of separate arrays they stand for,
+fuse_heading_core, fuse_vector_core, dvl_bottom_track_core) against the calls of separate arrays they stand for,
 bit for bit, on seeded random states and edge inputs (NaN, inf, gated, an unnormalised
 quaternion); and the estimator's arrays that are views of that scratch stay its views."""
 import math
@@ -87,6 +87,36 @@ def test_the_scalar_kernels_on_the_scratch_are_the_separate_arrays_kernel(headin
         assert work[out_at:out_at + 3].tobytes() == ref_out.tobytes()
         assert work[row_at:row_at + N_ERR].tobytes() == ref_H.tobytes()
         assert work[qd:qd + N_ERR].tobytes() == ref_q.tobytes()
+    assert fused_seen == {False, True}
+
+
+@pytest.mark.parametrize("m", [1, 2, 3])
+def test_the_vector_kernel_on_the_scratch_is_fuse_core(m):
+    """fuse_vector_core (the DVL's update) against fuse_core on separate arrays and core_ok."""
+    rng = np.random.default_rng(43 + m)
+    qd, dx_at = kalman.WORK_QDIAG, kalman.WORK_DX
+    fused_seen = set()
+    for k in range(400):
+        core, work = _core(rng, k), _work(rng)
+        H = rng.normal(size=(m, N_ERR))
+        A = rng.normal(size=(m, m)) * 0.1
+        R = A @ A.T + np.eye(m) * 0.01
+        z, h = rng.normal(size=m) * (1.0 if k % 5 else 100.0), rng.normal(size=m)
+        if k % 97 == 0:
+            z[k % m] = (math.nan, math.inf, -math.inf)[k % 3]
+        flush = bool(k % 2)
+        ref_core, ref_q = core.copy(), work[qd:qd + N_ERR].copy()
+        ref_dx, ref_s = np.zeros(N_ERR), np.zeros(m)
+        ref_y = z - h
+        nis, fused = kalman.fuse_core(ref_core, ref_q, ref_y, H, R, 11.3, ref_dx, ref_s, flush)
+        want = (nis, fused, kalman.core_ok(ref_core, 1000.0))
+        got = kalman.fuse_vector_core(core, work, z, h, H, R, 11.3, flush, 1000.0)
+        fused_seen.add(bool(got[1]))
+        assert repr(got) == repr(want)  # (a NaN nis)
+        assert core.tobytes() == ref_core.tobytes()
+        assert work[kalman.WORK_OUT:kalman.WORK_OUT + m].tobytes() == ref_y.tobytes()
+        assert work[kalman.WORK_SDIAG:kalman.WORK_SDIAG + m].tobytes() == ref_s.tobytes()
+        assert work[dx_at:dx_at + N_ERR].tobytes() == ref_dx.tobytes()
     assert fused_seen == {False, True}
 
 
