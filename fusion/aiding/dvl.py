@@ -65,8 +65,8 @@ import numpy as np
 
 from ..frames import euler_to_quat, quat_to_dcm
 from ..config import DvlConfig
-from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
-from ..kalman import (WORK_DVL_H, WORK_DVL_R, WORK_DVL_SMALL_H, WORK_DVL_Z, dvl_bottom_track,
+from ..state import ACC_OMEGA, ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
+from ..kalman import (CORE_ACC, CORE_SIZE, CORE_X, WORK_DVL_H, WORK_DVL_R, WORK_DVL_SMALL_H, WORK_DVL_Z, WORK_SIZE,
                       dvl_bottom_track_core)
 from .common import NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
 
@@ -542,28 +542,19 @@ def bottom_track(sample, x, omega_b_rad_s, config: DvlConfig, setup: DvlSetup) -
     :meth:`DvlCalibration.on_straight`) and the measurement of :func:`measure`, corrected
     (:meth:`DvlCalibration.correct`), with the lever arm's doubt (:func:`lever_arm_doubt`).
 
-    The numbers come from one compiled call (:func:`adaptnav.fusion.kalman.dvl_bottom_track`:
+    The numbers come from one compiled call (:func:`adaptnav.fusion.kalman.dvl_bottom_track_core`:
     the same sums, without BLAS's fused multiply-adds, so the last bits may differ from
     :func:`measure`'s): the numpy glue it replaces was ~40 µs per sample, 2/3 of the DVL's
-    cost in a replay (a sample every 0.2 s). Both estimator paths measure with this."""
-    lever_b, R_db, cal, block = setup
-    v0, v1, v2, sigma_m_s, theta, s_err, psi = _model_inputs(sample, config, cal)
-    if block is None:
-        block = lever_block_of(lever_b, R_db)
-    if not R_db.flags.c_contiguous:  # (the compiled kernel takes C arrays; rotation_db's is one)
-        R_db = np.ascontiguousarray(R_db)
-    if type(omega_b_rad_s) is not np.ndarray:
-        omega_b_rad_s = np.asarray(omega_b_rad_s, dtype=float)
-    H, h, R, z, aux = np.empty((3, N_ERR)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty(6)
-    dvl_bottom_track(x, omega_b_rad_s, lever_b, R_db, block, float(v0), float(v1), float(v2), s_err, psi,
-                     float(sigma_m_s), float(config.lever_arm_sigma_m), H, h, R, z, aux)
-    if cal is not None:
-        z_now = _calibrate(sample, cal, theta, aux.tolist())
-        if z_now is not None:
-            z = np.array(z_now, dtype=float)
-    else:
-        z = np.array(sample.vel_d_m_s, dtype=float)
-    return Measurement(z, H, R, h, NOT_ANGULAR[3])
+    cost in a replay (a sample every 0.2 s). The estimator's general path measures with this,
+    its compiled one with :func:`bottom_track_into` (into its own arrays; the same kernel, also
+    here: the kernel a replay's warm-up sees, so the rare general path never compiles one just
+    in time), on a core array of ``x`` and ``ω̂_b`` and a scratch of this call's own."""
+    core = np.zeros(CORE_SIZE)
+    core[CORE_X] = x
+    core[CORE_ACC][ACC_OMEGA] = omega_b_rad_s
+    work = np.zeros(WORK_SIZE)
+    bottom_track_into(sample, core, work, packed_setup(setup), config, setup)
+    return work_measurement(work)
 
 
 def _model_inputs(sample, config: DvlConfig, cal: DvlCalibration | None) -> tuple:

@@ -162,9 +162,10 @@ def _straight_run(rng, n: int):
 
 @pytest.mark.parametrize("calibrated", [False, True])
 def test_the_dvl_model_into_the_scratch_is_bottom_track(calibrated):
-    """bottom_track_into (the estimator's compiled DVL path) against bottom_track (its general
-    path) on a straight-leg run: the same model and the same calibration, sample by sample —
-    also where a closed segment changes (s, ψ) and the velocity is corrected anew."""
+    """bottom_track_into (the estimator's compiled DVL path, into its arrays) against bottom_track
+    (its general path, arrays of its own) on a straight-leg run: the same model and the same
+    calibration, sample by sample, the velocity corrected with the estimate after the sample —
+    anew where a closed segment changed (s, ψ)."""
     config = DvlConfig(enabled=True, lever_arm_b_m=(0.51, 0.12, 0.33), rotation_bd_rpy_rad=(0.01, 0.02, 0.7),
                        lever_arm_sigma_m=0.3, scale_sigma=0.005 if calibrated else 0.0,
                        misalignment_sigma_rad=0.01 if calibrated else 0.0)
@@ -186,7 +187,14 @@ def test_the_dvl_model_into_the_scratch_is_bottom_track(calibrated):
         want = dvl.bottom_track(sample, x, omega, config, ref_setup)
         for a, b in zip(meas, want):
             assert a.shape == b.shape and a.tobytes() == b.tobytes()
-        if cal is not None:
+        if cal is None:  # the head's velocity as it came
+            assert meas.z.tobytes() == np.array(sample.vel_d_m_s, dtype=float).tobytes()
+        else:
+            # corrected with the estimate after this sample: anew (the Python correction) when a
+            # segment changed it, else the kernel's with the one before (the same to the last bits)
+            np.testing.assert_allclose(meas.z, cal.correct(sample.vel_d_m_s), rtol=1e-15, atol=1e-15)
+            if cal.theta is not theta:
+                assert meas.z.tobytes() == np.array(cal.correct(sample.vel_d_m_s)).tobytes()
             changed += cal.theta is not theta
             assert cal.theta.tobytes() == ref_cal.theta.tobytes() and cal.P.tobytes() == ref_cal.P.tobytes()
             assert cal.position_cov_ne_values() == ref_cal.position_cov_ne_values()
