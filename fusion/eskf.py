@@ -251,7 +251,12 @@ class Estimator:
         self.dvl_calibration: aid_dvl.DvlCalibration | None = self._aid_cfg["dvl"][1].calibration
         # what comes before the start (heading, fix, depth, levelling window) and the start
         self._alignment = Alignment(config, origin, self._aid_cfg["dvl"][1].R_db)
-        self._qdiag = self._process_noise()  # (set again at the start, with what the alignment saw)
+        # the scratch of the compiled calls beside the core (kalman.WORK_*): the process noise, the
+        # latest update's correction and outputs, the depth's and heading's rows, the DVL's model;
+        # the arrays below are views of it (the kernels of the commonest samples take it whole)
+        self._work = np.zeros(kalman.WORK_SIZE)
+        self._qdiag = self._work[kalman.WORK_QDIAG:kalman.WORK_QDIAG + N_ERR]
+        self._qdiag[:] = self._process_noise()  # (set again at the start, with what the alignment saw)
         # reference points: lever arms are given from the vehicle reference point; the filter
         # navigates the IMU, so each becomes an arm from the IMU (None: at the IMU)
         l_imu = np.asarray(config.imu.lever_arm_b_m, dtype=float)
@@ -267,8 +272,8 @@ class Estimator:
         self._reference_yaw_sigma_rad = config.attitude.reference_yaw_sigma_rad
         self._density_sigma_kg_m3 = (config.depth.density_sigma_kg_m3, config.depth.water_density_kg_m3)
         self._t_dvl_lock = -math.inf  # latest bottom-track sample with lock (k_speed random walk)
-        self._dx = np.zeros(N_ERR)
-        self._sdiag = np.zeros(3)
+        self._dx = self._work[kalman.WORK_DX:kalman.WORK_DX + N_ERR]
+        self._sdiag = self._work[kalman.WORK_SDIAG:kalman.WORK_SDIAG + 3]
         # the compiled path of the commonest aids (:meth:`_fast_scalar`, :meth:`_fast_dvl`): per
         # sample type, where its aid is enabled and measured at the IMU (a lever arm: the general
         # path; the DVL's arm is in its own model); the depth's Jacobian row is constant, the
@@ -278,11 +283,14 @@ class Estimator:
                                               (DvlSample, "dvl", self._fast_dvl))
                       if getattr(config, kind).enabled and kind not in self._arm}
         self._fast[ImuBatch] = self._fast[ImuSample] = self._fast_imu
-        self._fast_y3 = np.zeros(3)  # the DVL's innovation (:meth:`_fast_dvl`)
-        self._h_depth = aid_depth.jacobian(None)
-        self._h_heading = np.zeros((1, N_ERR))
-        self._h_heading[0, ATT.start + 2] = 1.0
-        self._fast_out = np.zeros(3)
+        # a scalar's (y, S, nis), the DVL's innovation (:meth:`_fast_scalar`, :meth:`_fast_dvl`)
+        self._fast_out = self._work[kalman.WORK_OUT:kalman.WORK_OUT + 3]
+        self._work[kalman.WORK_H_DEPTH:kalman.WORK_H_DEPTH + N_ERR] = aid_depth.jacobian(None)[0]
+        self._work[kalman.WORK_H_HEADING + ATT.start + 2] = 1.0
+        # the DVL's model in the scratch as a Measurement of views (:meth:`_fast_dvl`: what a
+        # velocity reset after a long rejection reads) and its installation packed for its kernel
+        self._dvl_meas = aid_dvl.work_measurement(self._work)
+        self._dvl_consts = aid_dvl.packed_setup(self._aid_cfg["dvl"][1])
         # the stationary window's length for the IMU path's kernel (-1: no rest detection)
         self._rest_window_s = config.stationary.window_s if config.stationary.enabled else -1.0
         # rehearse_epoch's scratch: a core to propagate, one IMU sample (no allocation per call)
@@ -895,7 +903,7 @@ class Estimator:
         d = aid_depth.depth_m(pressure_pa, c.water_density_kg_m3, c.atmospheric_pressure_pa)
         var = self.depth_noise.variance_m2(t_s, d)
         self._keep_depth(t_s, d)
-        return self._fast_scalar(sample, d, float(self._x[X_DEPTH]), self._h_depth, var, False)
+        return self._fast_scalar(sample, d, float(self._x[X_DEPTH]), kalman.WORK_H_DEPTH, var, False)
 
     def _fast_heading(self, sample) -> tuple[list[AidStatus], bool] | None:
         """A heading on time in INS mode (:meth:`_fast_scalar`): what :meth:`_aid` does with it."""
@@ -903,7 +911,8 @@ class Estimator:
         if not self._fast_taken(sample, yaw_rad):
             return None
         # h(x̂) and the row's attitude part (heading.yaw_row's) computed in the kernel
-        done = self._fast_scalar(sample, float(yaw_rad), None, self._h_heading, self.config.heading.sigma_rad**2, True)
+        done = self._fast_scalar(sample, float(yaw_rad), None, kalman.WORK_H_HEADING,
+                                 self.config.heading.sigma_rad**2, True)
         if done[0] and done[0][0].fused and "heading" in self._reject_since:
             self._rejected_too_long(done[0][0], self.config.reset.attitude_after_s)  # the rejection run ends
         return done  # (not fused: _aid has kept its count)
@@ -911,6 +920,7 @@ class Estimator:
     def _fast_dvl(self, sample) -> tuple[list[AidStatus], bool] | None:
         """A bottom-track DVL sample with lock on time in INS mode: :meth:`_aid`'s steps with the
         aid's own model (:func:`~adaptnav.fusion.aiding.dvl._measure`, calibration included),
+        (:func:`~adaptnav.fusion.aiding.dvl.bottom_track_into`: into the scratch ``_work``),
         then the innovation, update, injection and state guard in one compiled call
         (:func:`~adaptnav.fusion.kalman.fuse_vector_core`) and :meth:`_after_fuse`. Unlike the
         scalar aids a sample not fused is not handed back (measuring it again would count it
@@ -926,12 +936,13 @@ class Estimator:
         aid = AIDS["dvl"]
         config, setup = self._aid_cfg["dvl"]
         self._dvl_lock(sample.t_s)
-        # the aid's model (dvl._measure's bottom track) without its context and checks, done above
-        meas = aid_dvl.bottom_track(sample, self._x, self._acc[ACC_OMEGA], config, setup)
-        y, sdiag = self._fast_y3, self._sdiag[:3]
+        # the aid's model (dvl._measure's bottom track) without its context and checks, done above,
+        # into the scratch, where self._dvl_meas's arrays are
+        aid_dvl.bottom_track_into(sample, self._core, self._work, self._dvl_consts, config, setup)
+        meas, y, sdiag = self._dvl_meas, self._fast_out, self._sdiag
         try:
-            nis, fused, ok = kalman.fuse_vector_core(self._core, self._qdiag, meas.z, meas.h, meas.H, meas.R,
-                                                     self._gate[3], self._dx, y, sdiag, True, _MAX_SPEED_M_S)
+            nis, fused, ok = kalman.fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
+                                                     self._gate[3], True, _MAX_SPEED_M_S)
             status = self._attempt(sample.t_s, "dvl", tuple(meas.z.tolist()), tuple(y.tolist()),
                                    tuple(sdiag.tolist()), nis, fused)
             out = self._after_fuse(sample, aid, config, setup, meas, status)
@@ -951,30 +962,29 @@ class Estimator:
             self._record("sample", sample)
         return True
 
-    def _fast_scalar(self, sample, z: float, h: float | None, H: np.ndarray, var: float,
+    def _fast_scalar(self, sample, z: float, h: float | None, row: int, var: float,
                      angular: bool) -> tuple[list[AidStatus], bool]:
         """Update, injection and the state guard of a scalar aid in one compiled call
         (:func:`~adaptnav.fusion.kalman.fuse_scalar_core`; ~20 µs of Python per sample before,
         the commonest samples after the IMU's), with the measurement ``z``, ``h`` = h(x̂), the
-        row ``H`` and variance ``var`` of the aid's own model; ``h`` None: a heading, whose ``h``
-        and the attitude part of ``H`` the kernel computes from the state
+        row ``H`` (at ``row`` in the scratch ``_work``) and variance ``var`` of the aid's own
+        model; ``h`` None: a heading, whose ``h`` and the attitude part of ``H`` the kernel
+        computes from the state
         (:func:`~adaptnav.fusion.kalman.fuse_heading_core`). Returns ``([status], state ok)``.
         Not fused (gated, or a number not finite): :meth:`_aid` answers the sample instead —
         the flush is done (a no-op again), the gate gives the same verdict on the same numbers,
         and the reset after a long rejection and the non-finite count stay in one place."""
-        out = self._fast_out
         if h is None:
-            fused, ok = kalman.fuse_heading_core(self._core, self._qdiag, z, H, var, self._gate[1], self._dx, out,
-                                                 True, _MAX_SPEED_M_S)
+            fused, ok = kalman.fuse_heading_core(self._core, self._work, z, var, self._gate[1], True, _MAX_SPEED_M_S)
         else:
-            fused, ok = kalman.fuse_scalar_core(self._core, self._qdiag, z, h, H, var, angular, self._gate[1],
-                                                self._dx, out, True, _MAX_SPEED_M_S)
+            fused, ok = kalman.fuse_scalar_core(self._core, self._work, z, h, row, var, angular, self._gate[1], True,
+                                                _MAX_SPEED_M_S)
         if not fused:
             try:
                 return self._aid(sample), self._state_ok()
             except np.linalg.LinAlgError:
                 return [], self._state_ok()
-        y, s, nis = out.tolist()
+        y, s, nis = self._fast_out.tolist()
         return [self._attempt(sample.t_s, sample.KIND, (z,), (y,), (s,), nis, True)], ok
 
     def _position_variance_ne(self) -> tuple[float, float]:
@@ -1254,7 +1264,7 @@ class Estimator:
 
     def _begin_ins(self, start: Start) -> None:
         self.imu_model = start.imu_model
-        self._qdiag = self._process_noise()
+        self._qdiag[:] = self._process_noise()
         self._acc[:] = 0.0
         sd.set_earth(self._acc, start.earth_lat_rad)
         self._start(start, "ins")

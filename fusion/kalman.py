@@ -478,20 +478,47 @@ def fuse_core(core, qdiag, y, H, R, gate, dx, s_diag_out, flush):
     return nis, fused
 
 
+# The estimator's scratch beside the core, one array (``Estimator._work``): the process noise,
+# the latest update's correction and outputs, the depth's and the heading's rows, the DVL's
+# bottom-track model. The compiled calls of the commonest aid samples take it whole instead of
+# three to eight arrays of their own: every array argument is a type, dtype, shape and flags test
+# in the kernel's guard (adaptnav.kernels) and an unboxing in the compiled function's wrapper,
+# ~0.4 µs each per call; views of it are the estimator's ``_qdiag``, ``_dx``, ... (one memory).
+WORK_QDIAG = 0                                # qdiag (N_ERR)
+WORK_DX = WORK_QDIAG + N_ERR                  # the error-state correction of the latest update (N_ERR)
+WORK_OUT = WORK_DX + N_ERR                    # a scalar update's (y, S, nis); the DVL's innovation (3)
+WORK_SDIAG = WORK_OUT + 3                     # diag S of a vector update (3)
+WORK_H_DEPTH = WORK_SDIAG + 3                 # the depth's Jacobian row (N_ERR, constant)
+WORK_H_HEADING = WORK_H_DEPTH + N_ERR         # the heading's row (N_ERR; its attitude part per sample)
+WORK_DVL_H = WORK_H_HEADING + N_ERR           # the DVL's bottom-track model: H (3 × N_ERR), ...
+WORK_DVL_SMALL_H = WORK_DVL_H + 3 * N_ERR     # ... h (3), ...
+WORK_DVL_R = WORK_DVL_SMALL_H + 3             # ... R (3 × 3, row-major), ...
+WORK_DVL_Z = WORK_DVL_R + 9                   # ... z (3) and ...
+WORK_DVL_AUX = WORK_DVL_Z + 3                 # ... what the calibration takes (6): dvl_bottom_track's
+WORK_SIZE = WORK_DVL_AUX + 6
+# the DVL's installation for :func:`dvl_bottom_track_core`, one array: lever arm (3), R_db and
+# R_db [l]× (3 × 3 each, row-major)
+DVL_CONST_SIZE = 21
+
+
 @jit(cache=True)
-def fuse_scalar_core(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_speed_m_s):
+def fuse_scalar_core(core, work, z, h, row, var, angular, gate, flush, max_speed_m_s):
     """One scalar measurement on the core array, the estimator's whole per-sample numeric path
     in one call: the innovation ``y = z − h`` (``h`` = h(x̂), wrapped to [−π, π) as
     :func:`~adaptnav.fusion.frames.wrap_angle` does when ``angular``), :func:`fuse_core` with
-    the row ``H`` (1 × 18) and variance ``var``, then the guard :func:`core_ok`.
+    the row ``H`` (1 × 18) at ``work[row:row + 18]`` and
+    variance ``var``, then the guard :func:`core_ok`; the process noise and the correction are
+    ``work``'s (:data:`WORK_QDIAG`, :data:`WORK_DX`).
 
     Why: depth and heading (a sample each every 0.1 s) paid ~20 µs of Python per sample
     around ~1 µs of arithmetic, mostly numpy glue and three guarded kernel calls; the depth's
     model stays its aid module's, the heading has its own kernel (:func:`fuse_heading_core`,
-    its model computed inside). ``out`` ← ``(y, S, nis)``; returns
+    its model computed inside). ``work[WORK_OUT:WORK_OUT + 3]`` ← ``(y, S, nis)``; returns
     ``(fused, ok)``, ``ok`` as :func:`core_ok`.
     """
-    return _fuse_scalar(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_speed_m_s)
+    H = work[row:row + N_ERR].reshape((1, N_ERR))
+    return _fuse_scalar(core, work[WORK_QDIAG:WORK_QDIAG + N_ERR], z, h, H, var, angular, gate,
+                        work[WORK_DX:WORK_DX + N_ERR], work[WORK_OUT:WORK_OUT + 3], flush, max_speed_m_s)
 
 
 @jit(cache=True)
@@ -516,18 +543,22 @@ def _fuse_scalar(core, qdiag, z, h, H, var, angular, gate, dx, out, flush, max_s
 
 
 @jit(cache=True)
-def fuse_vector_core(core, qdiag, z, h, H, R, gate, dx, y_out, s_diag_out, flush, max_speed_m_s):
-    """A measurement of a few rows without angular components (the DVL's three) on the core
-    array in one call: ``y = z − h`` (``h`` = h(x̂)) into ``y_out``, :func:`fuse_core` with
-    ``H`` (m × 18) and ``R`` (m × m), then the guard :func:`core_ok`.
+def fuse_vector_core(core, work, z, h, H, R, gate, flush, max_speed_m_s):
+    """A measurement of a few rows (at most 3) without angular components (the DVL's three) on
+    the core array in one call: ``y = z − h`` (``h`` = h(x̂)) into ``work``'s :data:`WORK_OUT`,
+    :func:`fuse_core` with ``H`` (m × 18) and ``R`` (m × m), diag S into :data:`WORK_SDIAG`,
+    the process noise and the correction ``work``'s, then the guard :func:`core_ok`.
 
     Why: the vector sibling of :func:`fuse_scalar_core` for the DVL (a sample every 0.2 s),
     whose general path paid the innovation, the guard and their numpy glue in Python; the
     elementwise subtraction rounds as numpy's. Returns ``(nis, fused, ok)``.
     """
-    for i in range(y_out.shape[0]):
+    m = z.shape[0]
+    y_out = work[WORK_OUT:WORK_OUT + m]
+    for i in range(m):
         y_out[i] = z[i] - h[i]
-    nis, fused = fuse_core(core, qdiag, y_out, H, R, gate, dx, s_diag_out, flush)
+    nis, fused = fuse_core(core, work[WORK_QDIAG:WORK_QDIAG + N_ERR], y_out, H, R, gate, work[WORK_DX:WORK_DX + N_ERR],
+                           work[WORK_SDIAG:WORK_SDIAG + m], flush)
     return nis, fused, core_ok(core, max_speed_m_s)
 
 
@@ -550,6 +581,33 @@ def dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel
     Why: the same sums as the numpy model (written in its order, without BLAS's fused
     multiply-adds: they differ in the last bits) for ~40 µs less numpy glue per DVL sample
     (a sample every 0.2 s; 62 → see the estimator's ``_fast_dvl``)."""
+    _dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
+                      misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out)
+
+
+@jit(cache=True)
+def dvl_bottom_track_core(core, consts, work, vel_d0, vel_d1, vel_d2, scale_error, misalignment_rad, sigma_m_s,
+                          lever_arm_sigma_m):
+    """:func:`dvl_bottom_track` of the core's state (``x``, and ``ω̂_b`` from its accumulators)
+    with the installation packed in ``consts`` (:data:`DVL_CONST_SIZE`: lever arm, ``R_db``,
+    ``R_db [l]×``), the model written into ``work``'s ``WORK_DVL_*`` slots; returns the six
+    numbers of ``aux`` (the calibration's). Why: the estimator's compiled DVL path
+    (:meth:`adaptnav.fusion.eskf.Estimator._fast_dvl`) passes three arrays instead of ten, and
+    allocates none (~4 µs of guards, unboxing and arrays per DVL sample)."""
+    aux = work[WORK_DVL_AUX:WORK_DVL_AUX + 6]
+    _dvl_bottom_track(core[0:N_X], core[_CORE_OMEGA:_CORE_OMEGA + 3], consts[0:3], consts[3:12].reshape((3, 3)),
+                      consts[12:21].reshape((3, 3)), vel_d0, vel_d1, vel_d2, scale_error, misalignment_rad,
+                      sigma_m_s, lever_arm_sigma_m, work[WORK_DVL_H:WORK_DVL_H + 3 * N_ERR].reshape((3, N_ERR)),
+                      work[WORK_DVL_SMALL_H:WORK_DVL_SMALL_H + 3], work[WORK_DVL_R:WORK_DVL_R + 9].reshape((3, 3)),
+                      work[WORK_DVL_Z:WORK_DVL_Z + 3], aux)
+    return aux[0], aux[1], aux[2], aux[3], aux[4], aux[5]
+
+
+@jit(cache=True)
+def _dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
+                      misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out):
+    """:func:`dvl_bottom_track`'s body, also :func:`dvl_bottom_track_core`'s (views of the
+    estimator's arrays there); only called from compiled code."""
     R = np.empty((3, 3))
     _dcm(x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3], R)
     v0, v1, v2 = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]
@@ -675,16 +733,19 @@ def heading_row(x):
 
 
 @jit(cache=True)
-def fuse_heading_core(core, qdiag, z, H, var, gate, dx, out, flush, max_speed_m_s):
+def fuse_heading_core(core, work, z, var, gate, flush, max_speed_m_s):
     """:func:`fuse_scalar_core` of a heading ``z`` (rad) with its model computed here from the
     core's state (:func:`heading_row`): ``h`` = ψ and the attitude part of the row ``H``
-    (1 × 18, written; its other entries the caller's). Why: the yaw row in Python was ~2.5 µs
-    of a heading's ~20 in a replay (a heading every 0.1 s). Returns ``(fused, ok)``."""
+    (``work``'s :data:`WORK_H_HEADING`, written; its other entries the caller's). Why: the yaw
+    row in Python was ~2.5 µs of a heading's ~20 in a replay (a heading every 0.1 s). Returns
+    ``(fused, ok)``."""
+    H = work[WORK_H_HEADING:WORK_H_HEADING + N_ERR].reshape((1, N_ERR))
     yaw, h_x, h_y = heading_row(core[0:N_X])
     H[0, _E_ATT] = h_x
     H[0, _E_ATT + 1] = h_y
     H[0, _E_ATT + 2] = 1.0
-    return _fuse_scalar(core, qdiag, z, yaw, H, var, True, gate, dx, out, flush, max_speed_m_s)
+    return _fuse_scalar(core, work[WORK_QDIAG:WORK_QDIAG + N_ERR], z, yaw, H, var, True, gate,
+                        work[WORK_DX:WORK_DX + N_ERR], work[WORK_OUT:WORK_OUT + 3], flush, max_speed_m_s)
 
 
 from .state import ACC_OMEGA, CUR, KS, X_KS  # noqa: E402  (the learned velocity's kernel)

@@ -65,8 +65,9 @@ import numpy as np
 
 from ..frames import euler_to_quat, quat_to_dcm
 from ..config import DvlConfig
-from ..state import ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
-from ..kalman import dvl_bottom_track
+from ..state import ACC_OMEGA, ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
+from ..kalman import (CORE_ACC, CORE_SIZE, CORE_X, WORK_DVL_H, WORK_DVL_R, WORK_DVL_SMALL_H, WORK_DVL_Z, WORK_SIZE,
+                      dvl_bottom_track_core)
 from .common import NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
 
 
@@ -541,44 +542,85 @@ def bottom_track(sample, x, omega_b_rad_s, config: DvlConfig, setup: DvlSetup) -
     :meth:`DvlCalibration.on_straight`) and the measurement of :func:`measure`, corrected
     (:meth:`DvlCalibration.correct`), with the lever arm's doubt (:func:`lever_arm_doubt`).
 
-    The numbers come from one compiled call (:func:`adaptnav.fusion.kalman.dvl_bottom_track`:
+    The numbers come from one compiled call (:func:`adaptnav.fusion.kalman.dvl_bottom_track_core`:
     the same sums, without BLAS's fused multiply-adds, so the last bits may differ from
     :func:`measure`'s): the numpy glue it replaces was ~40 µs per sample, 2/3 of the DVL's
-    cost in a replay (a sample every 0.2 s). Both estimator paths measure with this."""
-    lever_b, R_db, cal, block = setup
+    cost in a replay (a sample every 0.2 s). The estimator's general path measures with this,
+    its compiled one with :func:`bottom_track_into` (into its own arrays; the same kernel, also
+    here: the kernel a replay's warm-up sees, so the rare general path never compiles one just
+    in time), on a core array of ``x`` and ``ω̂_b`` and a scratch of this call's own."""
+    core = np.zeros(CORE_SIZE)
+    core[CORE_X] = x
+    core[CORE_ACC][ACC_OMEGA] = omega_b_rad_s
+    work = np.zeros(WORK_SIZE)
+    bottom_track_into(sample, core, work, packed_setup(setup), config, setup)
+    return work_measurement(work)
+
+
+def _model_inputs(sample, config: DvlConfig, cal: DvlCalibration | None) -> tuple:
+    """What the bottom-track kernels take besides the state: the head's velocity, the σ (the
+    sensor's when it says it is worse than configured; NaN: not said), and the calibration's
+    estimate (None without one) with its scale and misalignment (0 without)."""
     sigma_m_s = config.sigma_m_s
-    if sample.sigma_m_s > sigma_m_s:  # the sensor says it is worse than configured (NaN: not said)
+    if sample.sigma_m_s > sigma_m_s:
         sigma_m_s = sample.sigma_m_s
-    if block is None:
-        block = lever_block_of(lever_b, R_db)
-    if not R_db.flags.c_contiguous:  # (the compiled kernel takes C arrays; rotation_db's is one)
-        R_db = np.ascontiguousarray(R_db)
-    if type(omega_b_rad_s) is not np.ndarray:
-        omega_b_rad_s = np.asarray(omega_b_rad_s, dtype=float)
     v0, v1, v2 = sample.vel_d_m_s
     theta = None
     s_err = psi = 0.0
     if cal is not None:
         theta = cal.theta
         s_err, psi = theta.tolist()[:2]
-    H, h, R, z, aux = np.empty((3, N_ERR)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty(6)
-    dvl_bottom_track(x, omega_b_rad_s, lever_b, R_db, block, float(v0), float(v1), float(v2), s_err, psi,
-                     float(sigma_m_s), float(config.lever_arm_sigma_m), H, h, R, z, aux)
-    if cal is not None:
-        vn, ve, forward, lateral, heading, current_along = aux.tolist()
-        cal.on_dvl(sample.t_s, (vn, ve))
-        if cal.straight_legs is not None:
-            # the lever arm's ω × l is left in: a segment's mean yaw rate is ≤ 5°/min
-            # (StraightLegs), 0.7 mm/s at 0.5 m
-            cal.on_straight(sample.t_s, forward, lateral, heading, current_along)
-        if cal.theta is not theta:  # a straight-leg segment updated (s, ψ): z with the new ones
-            z = np.array(cal.correct(sample.vel_d_m_s), dtype=float)
-        # the published covariance's consider term of the new track, made here (the memo the
-        # next output epoch reads): live, the ~100 bytecodes of its miss leave the epoch's path
-        cal.position_cov_ne_values()
-    else:
-        z = np.array(sample.vel_d_m_s, dtype=float)
-    return Measurement(z, H, R, h, NOT_ANGULAR[3])
+    return v0, v1, v2, sigma_m_s, theta, s_err, psi
+
+
+def _calibrate(sample, cal: DvlCalibration, theta: np.ndarray, aux) -> tuple | None:
+    """The calibration fed with a bottom-track sample (``aux``: the kernel's six numbers); the
+    velocity corrected anew when a straight-leg segment updated ``(s, ψ)`` (``theta`` the
+    estimate the model was corrected with), else None."""
+    vn, ve, forward, lateral, heading, current_along = aux
+    cal.on_dvl(sample.t_s, (vn, ve))
+    if cal.straight_legs is not None:
+        # the lever arm's ω × l is left in: a segment's mean yaw rate is ≤ 5°/min
+        # (StraightLegs), 0.7 mm/s at 0.5 m
+        cal.on_straight(sample.t_s, forward, lateral, heading, current_along)
+    z = cal.correct(sample.vel_d_m_s) if cal.theta is not theta else None  # a segment updated (s, ψ)
+    # the published covariance's consider term of the new track, made here (the memo the
+    # next output epoch reads): live, the ~100 bytecodes of its miss leave the epoch's path
+    cal.position_cov_ne_values()
+    return z
+
+
+def bottom_track_into(sample, core: np.ndarray, work: np.ndarray, consts: np.ndarray, config: DvlConfig,
+                      setup: DvlSetup) -> None:
+    """:func:`bottom_track` of the state in the estimator's ``core`` array, its model written into
+    the estimator's scratch ``work`` (``kalman.WORK_DVL_*``: :func:`work_measurement`'s views),
+    with the installation ``consts`` (:func:`packed_setup` of ``setup``): the same numbers and
+    the same calls of the calibration, by one compiled call of three arrays
+    (:func:`adaptnav.fusion.kalman.dvl_bottom_track_core`) and no new array (the estimator's
+    compiled DVL path, :meth:`adaptnav.fusion.eskf.Estimator._fast_dvl`)."""
+    cal = setup.calibration
+    v0, v1, v2, sigma_m_s, theta, s_err, psi = _model_inputs(sample, config, cal)
+    aux = dvl_bottom_track_core(core, consts, work, float(v0), float(v1), float(v2), s_err, psi,
+                                float(sigma_m_s), float(config.lever_arm_sigma_m))
+    z = sample.vel_d_m_s if cal is None else _calibrate(sample, cal, theta, aux)
+    if z is not None:  # (as bottom_track's np.array of it)
+        work[WORK_DVL_Z:WORK_DVL_Z + 3] = z
+
+
+def work_measurement(work: np.ndarray) -> Measurement:
+    """The :class:`Measurement` whose arrays are views of the estimator's scratch ``work``,
+    where :func:`bottom_track_into` writes the model."""
+    return Measurement(work[WORK_DVL_Z:WORK_DVL_Z + 3], work[WORK_DVL_H:WORK_DVL_H + 3 * N_ERR].reshape(3, N_ERR),
+                       work[WORK_DVL_R:WORK_DVL_R + 9].reshape(3, 3), work[WORK_DVL_SMALL_H:WORK_DVL_SMALL_H + 3],
+                       NOT_ANGULAR[3])
+
+
+def packed_setup(setup: DvlSetup) -> np.ndarray:
+    """``setup``'s lever arm, ``R_db`` and ``R_db [l]×`` in one array (``kalman.DVL_CONST_SIZE``),
+    as :func:`bottom_track_into` hands them to its kernel."""
+    block = lever_block_of(setup.lever_b, setup.R_db) if setup.lever_block is None else setup.lever_block
+    return np.concatenate([np.asarray(setup.lever_b, dtype=float).ravel(), np.asarray(setup.R_db, dtype=float).ravel(),
+                           np.asarray(block, dtype=float).ravel()])
 
 
 def lever_arm_doubt(omega_b_rad_s, lever_arm_sigma_m: float, R_db: np.ndarray) -> np.ndarray:
