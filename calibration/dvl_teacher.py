@@ -80,19 +80,14 @@ class DvlWaterVelocity:
     def __init__(self, lever_arm_b_m=(0.0, 0.0, 0.0), rotation_bd_rpy_rad=(0.0, 0.0, 0.0)):
         self.lever_b = np.asarray(lever_arm_b_m, dtype=float)
         self.R_bd = quat_to_dcm(euler_to_quat(*rotation_bd_rpy_rad))
-        # per DVL sample (:meth:`body_floats`): the lever arm as Python floats, and whether the
+        # per DVL sample (:meth:`body`): the lever arm as Python floats, and whether the
         # head is mounted unrotated (R_bd v is then v itself)
         self._lever_xy = (float(self.lever_b[0]), float(self.lever_b[1]))
         self._unrotated = bool(np.array_equal(self.R_bd, np.eye(3)))
 
     def body(self, vel_d_m_s, water_track: bool, yaw_rad: float, yaw_rate_rad_s: float,
-             current_ne_m_s) -> np.ndarray:
-        """(3,) surge, sway, heave relative to the water, m/s."""
-        return np.array(self.body_floats(vel_d_m_s, water_track, yaw_rad, yaw_rate_rad_s, current_ne_m_s))
-
-    def body_floats(self, vel_d_m_s, water_track: bool, yaw_rad: float, yaw_rate_rad_s: float,
-                    current_ne_m_s) -> tuple[float, float, float]:
-        """:meth:`body` as three Python floats: the same steps on scalars (an array's item
+             current_ne_m_s) -> tuple[float, float, float]:
+        """Surge, sway, heave relative to the water (m/s), as three Python floats (an array's item
         arithmetic and the 3 × 3 product cost ~3 µs of the calibrator's ~5 per DVL sample).
         An unrotated head's finite velocity is taken as it is: ``R_bd v`` with ``R_bd = I`` is
         ``v``, but for the sign of a zero component (a sum of them in a bin is the same)."""
@@ -126,12 +121,8 @@ class DvlBin:
         """(3,) the sum of the velocities added, m/s."""
         return np.array(self._sum)
 
-    def add(self, vel_b_m_s) -> None:
-        x, y, z = vel_b_m_s
-        self.add_floats(float(x), float(y), float(z))
-
-    def add_floats(self, x: float, y: float, z: float) -> None:
-        """:meth:`add` of the velocity ``(x, y, z)`` given as Python floats (m/s)."""
+    def add(self, x: float, y: float, z: float) -> None:
+        """One water-relative body velocity ``(x, y, z)`` (m/s, Python floats: :meth:`DvlWaterVelocity.body`'s)."""
         sx, sy, sz = self._sum
         self._sum = (sx + x, sy + y, sz + z)
         self.n += 1

@@ -662,12 +662,12 @@ class OnlineCalibrator:
         if k < max(self._closed, 0):
             return self._reject("late dvl")
         yaw = self._last_heading[1] if self._last_heading is not None else 0.0
-        x, y, z = self.dvl_water.body_floats(vel, bool(getattr(sample, "water_track", False)), yaw,
-                                             self._last_yaw_rate, self._filter_current)
+        x, y, z = self.dvl_water.body(vel, bool(getattr(sample, "water_track", False)), yaw,
+                                      self._last_yaw_rate, self._filter_current)
         b = self._dvl_bins.get(k)
         if b is None:
             b = self._dvl_bins[k] = self._dvl_bin()
-        b.add_floats(x, y, z)
+        b.add(x, y, z)
 
     def _add(self, t, what, value, finite=0.0):
         if not (math.isfinite(value) and math.isfinite(finite)):

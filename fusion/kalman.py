@@ -494,7 +494,7 @@ WORK_DVL_H = WORK_H_HEADING + N_ERR           # the DVL's bottom-track model: H 
 WORK_DVL_SMALL_H = WORK_DVL_H + 3 * N_ERR     # ... h (3), ...
 WORK_DVL_R = WORK_DVL_SMALL_H + 3             # ... R (3 × 3, row-major), ...
 WORK_DVL_Z = WORK_DVL_R + 9                   # ... z (3) and ...
-WORK_DVL_AUX = WORK_DVL_Z + 3                 # ... what the calibration takes (6): dvl_bottom_track's
+WORK_DVL_AUX = WORK_DVL_Z + 3                 # ... what the calibration takes (6): _dvl_bottom_track's
 WORK_SIZE = WORK_DVL_AUX + 6
 # the DVL's installation for :func:`dvl_bottom_track_core`, one array: lever arm (3), R_db and
 # R_db [l]× (3 × 3 each, row-major)
@@ -566,29 +566,9 @@ _X_CUR = X_CUR.start  # the current (north, east) in the nominal state
 
 
 @jit(cache=True)
-def dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
-                     misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out):
-    """The DVL's bottom-track model (:func:`adaptnav.fusion.aiding.dvl.bottom_track`) in one call:
-    ``H`` (3 × 18, every entry written), ``h`` = h(x̂) and ``R`` of
-    :func:`~adaptnav.fusion.aiding.dvl.measure` (``R_nb`` from ``x``'s quaternion as
-    :func:`~adaptnav.fusion.aiding.common.dcm`; ``lever_block`` = ``R_db [l]×``) plus the
-    lever arm's doubt (:func:`~adaptnav.fusion.aiding.dvl.lever_arm_doubt`, when
-    ``lever_arm_sigma_m`` > 0); ``z`` the head velocity corrected with ``(s, ψ)``
-    (:func:`~adaptnav.fusion.aiding.dvl.correct_velocity`); ``aux_out`` ← what the calibration
-    takes: the uncorrected velocity rotated to n (north, east), and in the heading-aligned
-    level frame its forward and lateral parts, the heading and the current along it.
-
-    Why: the same sums as the numpy model (written in its order, without BLAS's fused
-    multiply-adds: they differ in the last bits) for ~40 µs less numpy glue per DVL sample
-    (a sample every 0.2 s; 62 → see the estimator's ``_fast_dvl``)."""
-    _dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
-                      misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out)
-
-
-@jit(cache=True)
 def dvl_bottom_track_core(core, consts, work, vel_d0, vel_d1, vel_d2, scale_error, misalignment_rad, sigma_m_s,
                           lever_arm_sigma_m):
-    """:func:`dvl_bottom_track` of the core's state (``x``, and ``ω̂_b`` from its accumulators)
+    """:func:`_dvl_bottom_track` of the core's state (``x``, and ``ω̂_b`` from its accumulators)
     with the installation packed in ``consts`` (:data:`DVL_CONST_SIZE`: lever arm, ``R_db``,
     ``R_db [l]×``), the model written into ``work``'s ``WORK_DVL_*`` slots; returns the six
     numbers of ``aux`` (the calibration's). Why: the estimator's compiled DVL path
@@ -606,8 +586,20 @@ def dvl_bottom_track_core(core, consts, work, vel_d0, vel_d1, vel_d2, scale_erro
 @jit(cache=True)
 def _dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, vel_d2, scale_error,
                       misalignment_rad, sigma_m_s, lever_arm_sigma_m, H_out, h_out, R_out, z_out, aux_out):
-    """:func:`dvl_bottom_track`'s body, also :func:`dvl_bottom_track_core`'s (views of the
-    estimator's arrays there); only called from compiled code."""
+    """The DVL's bottom-track model (:func:`adaptnav.fusion.aiding.dvl.bottom_track`), the body of
+    :func:`dvl_bottom_track_core` (only called from compiled code): ``H`` (3 × 18, every entry
+    written), ``h`` = h(x̂) and ``R`` of
+    :func:`~adaptnav.fusion.aiding.dvl.measure` (``R_nb`` from ``x``'s quaternion as
+    :func:`~adaptnav.fusion.aiding.common.dcm`; ``lever_block`` = ``R_db [l]×``) plus the
+    lever arm's doubt (:func:`~adaptnav.fusion.aiding.dvl.lever_arm_doubt`, when
+    ``lever_arm_sigma_m`` > 0); ``z`` the head velocity corrected with ``(s, ψ)``
+    (:func:`~adaptnav.fusion.aiding.dvl.correct_velocity`); ``aux_out`` ← what the calibration
+    takes: the uncorrected velocity rotated to n (north, east), and in the heading-aligned
+    level frame its forward and lateral parts, the heading and the current along it.
+
+    Why: the same sums as the numpy model (written in its order, without BLAS's fused
+    multiply-adds: they differ in the last bits) for ~40 µs less numpy glue per DVL sample
+    (a sample every 0.2 s; 62 → see the estimator's ``_fast_dvl``)."""
     R = np.empty((3, 3))
     _dcm(x[_X_Q], x[_X_Q + 1], x[_X_Q + 2], x[_X_Q + 3], R)
     v0, v1, v2 = x[_X_VEL], x[_X_VEL + 1], x[_X_VEL + 2]

@@ -94,8 +94,8 @@ def test_dvl_samples_are_corrected_by_the_filters_scale_and_misalignment():
     for j in range(4):  # inside the step still open (bin 0 closes at t0 + 2.5 s)
         vel = (1.0 + 0.1 * j, -0.05 * j, 0.01)
         cal.observe(DvlSample(100.2 + 0.5 * j, vel))
-        want.add(cal.dvl_water.body(correct_velocity(vel, 0.013, -0.021), False, 0.2, cal._last_yaw_rate,
-                                    cal._filter_current))
+        want.add(*cal.dvl_water.body(correct_velocity(vel, 0.013, -0.021), False, 0.2, cal._last_yaw_rate,
+                                     cal._filter_current))
     cal.observe(DvlSample(102.3, (math.inf, 0.0, 0.0)))
     assert cal.rejected.get("non-finite dvl") == 1
     assert cal._dvl_bins[0].n == want.n == 4

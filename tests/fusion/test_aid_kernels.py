@@ -58,16 +58,18 @@ def test_the_compiled_bottom_track_is_the_numpy_model(calibrated, lever_arm_sigm
 def test_the_compiled_bottom_track_feeds_the_calibration_what_numpy_computes():
     """The uncorrected velocity in n and its heading-aligned parts, as the numpy model had them."""
     from adaptnav.fusion import kalman
+    from adaptnav.fusion.state import ACC_OMEGA
 
     rng = np.random.default_rng(5)
     R_db = np.ascontiguousarray(dvl.rotation_db((0.01, -0.02, 0.3)))
     lever = np.array([0.4, -0.1, 0.2])
-    block = dvl.lever_block_of(lever, R_db)
+    consts = dvl.packed_setup(dvl.DvlSetup(lever, R_db, None).with_lever(lever))
     for x in _states(rng):
         vel_d = rng.normal(size=3)
-        H, h, R, z, aux = np.empty((3, 18)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty(6)
-        kalman.dvl_bottom_track(x, rng.normal(size=3), lever, R_db, block, *vel_d.tolist(), 0.003, -0.004, 0.03,
-                                0.5, H, h, R, z, aux)
+        core, work = np.zeros(kalman.CORE_SIZE), np.zeros(kalman.WORK_SIZE)
+        core[kalman.CORE_X] = x
+        core[kalman.CORE_ACC][ACC_OMEGA] = rng.normal(size=3)
+        aux = kalman.dvl_bottom_track_core(core, consts, work, *vel_d.tolist(), 0.003, -0.004, 0.03, 0.5)
         R_nb = dcm(x)
         v_n = R_nb @ (R_db.T @ vel_d)
         c0, s0 = R_nb[0, 0], R_nb[1, 0]
@@ -76,6 +78,7 @@ def test_the_compiled_bottom_track_feeds_the_calibration_what_numpy_computes():
         want = [v_n[0], v_n[1], ch * v_n[0] + sh * v_n[1], -sh * v_n[0] + ch * v_n[1], math.atan2(s0, c0),
                 ch * cn + sh * ce]
         np.testing.assert_allclose(aux, want, **TIGHT)
+        z = work[kalman.WORK_DVL_Z:kalman.WORK_DVL_Z + 3]
         np.testing.assert_allclose(z, dvl.correct_velocity(vel_d, 0.003, -0.004), **TIGHT)
 
 
