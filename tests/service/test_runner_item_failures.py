@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import types
 
-from adaptnav.fusion.samples import DepthSample, HeadingSample, RpmSample, TruthSample
+from adaptnav.fusion.samples import DepthSample, HeadingSample, RpmSample
 from adaptnav.service.runtime.clock import LogClock
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.runner import Runner

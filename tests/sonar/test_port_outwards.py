@@ -2,7 +2,6 @@
 reversed view it replaced: the same values, and the detector's sightings the same."""
 from __future__ import annotations
 
-import math
 import pickle
 
 import numpy as np
