@@ -31,7 +31,6 @@ import json
 import logging
 import math
 import time
-from math import isfinite
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -486,7 +485,7 @@ class AidConsistency(Sink):
                 a.refused[reason] = a.refused.get(reason, 0) + 1
             m = len(s.innovation)
             test_ratio = s.test_ratio
-            if not (fused or s.reason == "gate") or not m or not isfinite(test_ratio):
+            if not (fused or s.reason == "gate") or not m or not math.isfinite(test_ratio):
                 continue
             try:
                 gate, within = limits_of[m]
