@@ -315,6 +315,15 @@ def _kept_from(sightings: list[ObjectSighting], arrays: dict[str, np.ndarray],
     return [sightings[k] for k in keep.tolist()], {k: v[keep] for k, v in arrays.items()}
 
 
+def _leading_or(k: np.ndarray) -> slice | np.ndarray:
+    """What picks the rows ``k`` (increasing indices, as ``np.flatnonzero`` gives them) of the
+    stored arrays: ``slice(0, n)`` when they are the first ``n`` rows (the earlier sightings of
+    a batch nearly always are: the store is in time order), whose views hold the numbers the
+    indices' copies would (the copies of four arrays were a twentieth of the candidates);
+    else ``k``."""
+    return slice(0, k.size) if k.size and k[-1] == k.size - 1 else k
+
+
 def _median(values: list[float]) -> float:
     """``float(np.median(values))`` of a non-empty list of floats, the same number: the middle
     one, or the mean of the middle two as numpy takes it (their sum halved); numpy's own for
@@ -431,12 +440,18 @@ class Drift:
     def residual_cov(self, t_a, t_b, det_cov) -> np.ndarray:
         """Covariances (n, 2, 2) of pairs' offsets about :meth:`predict`: the detectors' plus
         the prediction's."""
-        J = self.design(t_a, t_b)
+        return self._cov_about(self.design(t_a, t_b), det_cov)
+
+    def _cov_about(self, J: np.ndarray, det_cov) -> np.ndarray:
+        """:meth:`residual_cov` of the design matrix ``J`` (:meth:`design`)."""
         return np.asarray(det_cov) + np.einsum("kij,jl,kml->kim", J, self.cov, J)
 
     def residuals(self, diffs, t_a, t_b, det_cov) -> tuple[np.ndarray, np.ndarray]:
-        """Pairs' offsets ``diffs`` (n, 2) less the prediction, and their covariances."""
-        return np.asarray(diffs) - self.predict(t_a, t_b), self.residual_cov(t_a, t_b, det_cov)
+        """Pairs' offsets ``diffs`` (n, 2) less the prediction, and their covariances: those of
+        :meth:`predict` and :meth:`residual_cov` from one design matrix (building it was a tenth
+        of the association, and each of them built it again)."""
+        J = self.design(t_a, t_b)
+        return np.asarray(diffs) - J @ self.theta, self._cov_about(J, det_cov)
 
     def at(self, t_a_s: float, t_b_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The offset at one pair of times and its covariance (2, 2)."""
@@ -568,7 +583,8 @@ class LegAssociator:
         if not k_old.size:
             return [], clutter
         old = k_old.tolist()
-        P_old, C_old, D_old, t_old = (stored[k][k_old] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
+        pick = _leading_or(k_old)
+        P_old, C_old, D_old, t_old = (stored[k][pick] for k in ("pos_n_m", "cov", "det_cov", "t_s"))
         rel = self._relative(t_old, _median(t_batch))
         if rel is not None:  # the error difference's own covariance where the filter has it
             rel_known, rel_D = rel[1][:, None, None], rel[0] + D_old
@@ -591,7 +607,7 @@ class LegAssociator:
             tr_new = np.maximum(tr_new, _plain_traces(D_new))  # (NaN where either is not plain)
         jj, kk = np.nonzero(other_leg & ~_beyond_by_traces(d_n * d_n + d_e * d_e, _plain_traces(cov_old), tr_new,
                                                            wide_m2))
-        d = np.stack([d_n[jj, kk], d_e[jj, kk]], axis=-1)
+        d = P_old[kk] - p_new[jj]  # (d_n, d_e there: the same subtractions)
         S = C_old[kk] + nav_D_new[jj]
         if rel is not None:
             S = np.where(rel_known[kk], rel_D[kk] + D_new[jj], S)
@@ -600,7 +616,7 @@ class LegAssociator:
         jj, kk, d, S = jj[need], kk[need], d[need], S[need]
         S_all = np.full(other_leg.shape + (2, 2), np.nan)  # (read only where m² is finite)
         S_all[jj, kk] = S
-        rows = np.unique(jj).tolist()  # (the others have none in the wide gate)
+        rows = list(dict.fromkeys(jj.tolist()))  # (the others have none in the wide gate; jj is in order)
         # m² of every pair needed in one call (an inverse each, as many calls as new sightings
         # were a fifth of the candidates): _m2 sums each row alike whenever it is given two
         # or more, as it was given each new sighting's (a lone one as two, _m2_of); with one
@@ -933,8 +949,8 @@ class LegAssociator:
         D = np.linalg.inv(W)
         while len(sel) >= n_min:
             drift, cost = prior.fit(diffs, W, t_a, t_b, sel)
-            r = diffs[sel] - drift.predict(t_a[sel], t_b[sel])
             J = drift.design(t_a[sel], t_b[sel])
+            r = diffs[sel] - J @ drift.theta  # (drift.predict's numbers from the same J)
             C = D[sel] - np.einsum("kij,jl,kml->kim", J, drift.cov, J)
             # (a pair that alone sets some of the drift has C ≈ 0 there: it cannot be tested)
             m2 = np.einsum("ki,kij,kj->k", r, np.linalg.pinv(C, hermitian=True, rcond=1e-9), r)
