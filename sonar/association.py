@@ -289,18 +289,25 @@ def _m2(r: np.ndarray, R: np.ndarray) -> np.ndarray:
 def _sighting_arrays(sightings: list[ObjectSighting]) -> dict[str, np.ndarray]:
     """:meth:`LegAssociator._stored_arrays` of ``sightings``."""
     pos = np.array([o.pos_n_m for o in sightings]).reshape(-1, 2)
-    jumps = [o.jump_n_m for o in sightings]
     det_cov = np.array([o.det_cov for o in sightings]).reshape(-1, 2, 2)
-    # (elementwise, the same numbers as each sighting's own sums: a numpy call each was a
-    # third of the store)
-    smooth = pos - np.array(jumps).reshape(-1, 2) if all(j is not None for j in jumps) else \
-        np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2)
     return {"t_s": np.array([o.t_s for o in sightings]).reshape(-1),
             "pos_n_m": pos,
-            "smooth_pos_n_m": smooth,
+            "smooth_pos_n_m": _smooth_positions(sightings, pos),
             "cov": np.array([o.nav_cov for o in sightings]).reshape(-1, 2, 2) + det_cov,
             "det_cov": det_cov,
             "id": np.array([id(o) for o in sightings], dtype=np.int64)}
+
+
+def _smooth_positions(sightings: list[ObjectSighting], pos: np.ndarray | None = None) -> np.ndarray:
+    """The sightings' ``smooth_pos_n_m`` (n, 2) (``pos``: their ``pos_n_m`` as an array, if made
+    already). Elementwise, the same numbers as each sighting's own difference: a numpy call
+    each was a third of the store, and of :meth:`LegAssociator._with_weak`'s new sightings."""
+    jumps = [o.jump_n_m for o in sightings]
+    if not all(j is not None for j in jumps):
+        return np.array([o.smooth_pos_n_m for o in sightings]).reshape(-1, 2)
+    if pos is None:
+        pos = np.array([o.pos_n_m for o in sightings]).reshape(-1, 2)
+    return pos - np.array(jumps).reshape(-1, 2)
 
 
 def _kept_from(sightings: list[ObjectSighting], arrays: dict[str, np.ndarray],
@@ -1063,7 +1070,7 @@ class LegAssociator:
         # pairs with a weak sighting, of two legs, near the set's offset (within 10 m: the
         # inlier gates are a metre or two)
         p_old = np.concatenate([stored["smooth_pos_n_m"][k_old], weak["smooth_pos_n_m"][k_weak]])
-        p_new = np.array([o.smooth_pos_n_m for o in new])
+        p_new = _smooth_positions(new)
         # (which are weak by their lists: the ordinary ones first, the weak ones kept apart)
         w_old = np.arange(len(old)) >= len(k_old)
         w_new = np.arange(len(new)) >= n_new_ordinary

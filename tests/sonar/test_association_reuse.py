@@ -80,3 +80,26 @@ def test_candidates_and_closures_are_those_of_copied_rows(seed, relative, monkey
             assert all(np.array_equal(S, S_w, equal_nan=True) for (*_, S), (*_, S_w) in zip(out, out_w))
             assert all(np.array_equal(clutter[k], clutter_w[k], equal_nan=k != "j") for k in clutter)
         assert closures >= 2
+
+
+def test_smooth_positions_are_each_sightings_own():
+    """:func:`_smooth_positions` (one subtraction of the stacked arrays) against each sighting's
+    ``smooth_pos_n_m``, bit for bit: with jumps, some without, single, empty, NaN and inf."""
+    from dataclasses import replace
+
+    from adaptnav.sonar.association import _smooth_positions
+    from tests.sonar.test_association_shortcuts import _sighting
+
+    rng = np.random.default_rng(5)
+    sightings = [_sighting(rng, t, rng.uniform(-1e4, 1e4, 2)) for t in rng.uniform(0.0, 3600.0, 30)]
+    sightings = [replace(o, jump_n_m=o.jump_n_m * 1e3) for o in sightings]
+    sightings[3] = replace(sightings[3], pos_n_m=np.array([np.nan, 1.0]))
+    sightings[4] = replace(sightings[4], jump_n_m=np.array([np.inf, -2.0]))
+    for group in (sightings, [replace(o, jump_n_m=None) if k % 4 == 0 else o for k, o in enumerate(sightings)],
+                  sightings[5:6], [replace(sightings[6], jump_n_m=None)], []):
+        got = _smooth_positions(group)
+        assert got.shape == (len(group), 2)
+        for k, o in enumerate(group):
+            assert np.array_equal(got[k], o.smooth_pos_n_m, equal_nan=True)
+        assert np.array_equal(_smooth_positions(group, np.array([o.pos_n_m for o in group]).reshape(-1, 2)), got,
+                              equal_nan=True)
