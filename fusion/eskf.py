@@ -390,7 +390,7 @@ class Estimator:
         (:func:`~adaptnav.fusion.kalman.propagated_covariance`), or, with none pending (the
         commonest case when asked: the IMU sample before flushed it), the copy that kernel
         returns then, without the call."""
-        if not self._acc[ACC_T] <= 0.0:
+        if not self._acc.item(ACC_T) <= 0.0:
             return kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         return self._P.copy()
 
@@ -399,8 +399,7 @@ class Estimator:
         x = self._x
         ins = self._mode == "ins"
         cov = self._cov_now() if ins else self._P.copy()
-        self._add_considered(cov)
-        reasons = self.invalid_reasons(_sigma_h_m(cov))
+        reasons = self.invalid_reasons(self._add_considered(cov))
         if ins and not reasons and not _all_finite(x.tolist()):
             reasons = ["non_finite"]
         x = x.copy()  # one copy; the state's vectors are views of it
@@ -415,7 +414,7 @@ class Estimator:
             J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
             cov = J @ cov @ J.T
         # (positional: NavState's field order)
-        return NavState(float(self._clock[0]), pos, vel, x[X_Q], x[X_BA], x[X_BG], x[X_CUR], float(x[X_KS]), cov,
+        return NavState(self._clock.item(0), pos, vel, x[X_Q], x[X_BA], x[X_BG], x[X_CUR], x.item(X_KS), cov,
                         ins and not reasons, self._reset_counter, tuple(reasons))
 
     def rehearse_epoch(self, dt_s: float) -> NavState | None:
@@ -484,7 +483,7 @@ class Estimator:
         return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), yaw,
                 [[c00, c01], [c10, c11]], cov[_VEL_NE, _VEL_NE].tolist())
 
-    def _add_considered(self, cov: np.ndarray) -> None:
+    def _add_considered(self, cov: np.ndarray) -> float:
         """The published covariance (in place) gains what the filter treats as known but is
         not (*consider* parameters): the DVL's scale and misalignment on its track since the
         last fix (:meth:`DvlCalibration.position_cov_ne`), the autopilot's heading frame while
@@ -492,23 +491,30 @@ class Estimator:
         ``attitude.reference_yaw_sigma_rad``), and the water density the depth is
         converted with, a depth scale ``(d σ_ρ/ρ)²`` (``depth.density_sigma_kg_m3``;
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
-        depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
+        depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone).
+
+        Returns :func:`_sigma_h_m` of the result (what :meth:`nav_state` tests), of the
+        block's floats at hand when the DVL's terms were the last to touch it."""
         cal = self.dvl_calibration
+        sigma_h = None
         if cal is not None:
             # four float additions on the block read as Python floats (the IEEE additions numpy's
             # in-place ones of each entry made), written back: every epoch
             a00, a01, a10, a11 = cal.position_cov_ne_values()
-            (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
-            cov[_NN] = c00 + a00
-            cov[_NE] = c01 + a01
-            cov[_EN] = c10 + a10
-            cov[_EE] = c11 + a11
+            c00, c11 = cov.item(_NN) + a00, cov.item(_EE) + a11
+            cov[_NN] = c00
+            cov[_NE] = cov.item(_NE) + a01
+            cov[_EN] = cov.item(_EN) + a10
+            cov[_EE] = c11
+            sigma_h = math.sqrt(max(c00, c11, 0.0))  # (_sigma_h_m of the entries just written)
         sigma_b = self._reference_yaw_sigma_rad
         if self._yaw_frame and sigma_b > 0.0:
             cov += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)
+            sigma_h = None  # (the block changed)
         sigma_rho, rho = self._density_sigma_kg_m3
-        if sigma_rho > 0.0:
+        if sigma_rho > 0.0:  # (POS_D only: not the horizontal block)
             cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * sigma_rho / rho) ** 2
+        return _sigma_h_m(cov) if sigma_h is None else sigma_h
 
     def integrity_report(self) -> dict:
         """The integrity monitor's window per aid (:meth:`adaptnav.fusion.integrity.NisMonitor.report`):
@@ -529,21 +535,23 @@ class Estimator:
         again), ``nis:<source>`` (that aid's recent innovations say the covariance is too
         small).
         """
-        if self._mode == "none":
+        mode = self._mode
+        if mode == "none":
             return ["not_initialized"]
-        if self._mode == "ahrs":
+        if mode == "ahrs":
             return ["ahrs_only"]
         if self._pos_unknown and not self.origin_is_start:
             return ["position_unknown"]
-        if self._attitude_driven and \
-                self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
+        t_s = self._clock.item(0)  # (a Python float: the same differences, without numpy's scalars)
+        config = self.config
+        if self._attitude_driven and t_s - self._t_motion_aid > config.attitude_driven.motion_aid_max_age_s:
             return ["no_motion_measurement"]
         if sigma_h_m is None:
             sigma_h_m = _sigma_h_m(self._cov_now())
         out = []
-        if not sigma_h_m <= self.config.valid_max_sigma_h_m:
+        if not sigma_h_m <= config.valid_max_sigma_h_m:
             out.append("sigma_h")
-        if self._clock[0] - self._t_reset < self.config.integrity.after_reset_s:
+        if t_s - self._t_reset < config.integrity.after_reset_s:
             out.append("converging")
         if self._recovering:
             out.append("recovering")
