@@ -769,7 +769,7 @@ class Estimator:
         if self._mode != "none":
             if not ok:
                 self._recover()
-            if self._clock[0] >= self._good_t + 1.0:
+            if self._clock.item(0) >= self._good_t + 1.0:  # (a Python float's comparison)
                 self._keep_good()
         return out
 
@@ -911,7 +911,7 @@ class Estimator:
         d = aid_depth.depth_m(pressure_pa, c.water_density_kg_m3, c.atmospheric_pressure_pa)
         var = self.depth_noise.variance_m2(t_s, d)
         self._keep_depth(t_s, d)
-        return self._fast_scalar(sample, d, float(self._x[X_DEPTH]), kalman.WORK_H_DEPTH, var, False)
+        return self._fast_scalar(sample, d, self._x.item(X_DEPTH), kalman.WORK_H_DEPTH, var, False)
 
     def _fast_heading(self, sample) -> tuple[list[AidStatus], bool] | None:
         """A heading on time in INS mode (:meth:`_fast_scalar`): what :meth:`_aid` does with it."""
@@ -964,7 +964,8 @@ class Estimator:
         :meth:`_process` does, and it takes the compiled path; else :meth:`_process` answers it
         (a rejection, or a late sample fused at its own time)."""
         t_s = sample.t_s
-        if not (math.isfinite(t_s) and math.isfinite(value)) or t_s < self._clock[0] - self.config.on_time_tolerance_s:
+        if not (math.isfinite(t_s) and math.isfinite(value)) or \
+                t_s < self._clock.item(0) - self.config.on_time_tolerance_s:
             return False
         if self._history_on:  # (in INS mode: _record's other test)
             self._record("sample", sample)
@@ -1019,7 +1020,12 @@ class Estimator:
         position covariance (``learned_velocity.vertical_drift_sigma_per_m``; an inflation of
         the north/east variances, as a position reset's — the estimate moves only when a fix
         comes, and then as far as the drift may have taken it)."""
-        self._depth_win = (self._depth_win[:2] if self._depth_win else [t_s, depth_m]) + [t_s, depth_m]
+        win = self._depth_win
+        if win:  # (always four entries then; the list is this window's own: written in place)
+            win[2] = t_s
+            win[3] = depth_m
+        else:
+            self._depth_win = [t_s, depth_m, t_s, depth_m]
         k = self.config.learned_velocity.vertical_drift_sigma_per_m
         if k <= 0.0:  # off (the default: an AUV's dives are its motion model's)
             return
