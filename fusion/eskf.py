@@ -109,6 +109,19 @@ _HIST_SNAPSHOT_PERIOD_S = 0.25
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 
+def _unguarded(kernel):
+    """The compiled function of a kernel the ahead-of-time build holds, without the argument
+    guard :func:`adaptnav.kernels.jit` puts before it (a test per argument and a call through
+    it: ~1.5 µs of a 10-argument call, for each of ~90k aid samples per data hour); else the
+    kernel as it is (just in time, a kernel the build did not see, a stand-in). Only for calls
+    whose arrays are the estimator's own, allocated once as C-contiguous float64 (the core, the
+    scratch ``_work`` and its views) and whose other arguments are numbers of the kernel's
+    types: what the guard would find every time."""
+    compiled = getattr(kernel, "__wrapped__", None)
+    # (a guard has both; a numba dispatcher's __wrapped__ is its Python function)
+    return compiled if compiled is not None and getattr(kernel, "_kernel", None) is not None else kernel
+
+
 # north, east of the velocity: in the nominal state, in the error state
 _X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)
 _VEL_NE = slice(VEL.start, VEL.start + 2)
@@ -290,6 +303,11 @@ class Estimator:
         # the DVL's model in the scratch as a Measurement of views (:meth:`_fast_dvl`: what a
         # velocity reset after a long rejection reads) and its installation packed for its kernel
         self._dvl_meas = aid_dvl.work_measurement(self._work)
+        # the fast paths' compiled updates of the core and this scratch (_fast_scalar, _fast_dvl),
+        # without the guard (looked up when the estimator is made)
+        self._fuse_scalar_core = _unguarded(kalman.fuse_scalar_core)
+        self._fuse_heading_core = _unguarded(kalman.fuse_heading_core)
+        self._fuse_vector_core = _unguarded(kalman.fuse_vector_core)
         self._dvl_consts = aid_dvl.packed_setup(self._aid_cfg["dvl"][1])
         # the stationary window's length for the IMU path's kernel (-1: no rest detection)
         self._rest_window_s = config.stationary.window_s if config.stationary.enabled else -1.0
@@ -949,8 +967,8 @@ class Estimator:
         aid_dvl.bottom_track_into(sample, self._core, self._work, self._dvl_consts, config, setup)
         meas, y, sdiag = self._dvl_meas, self._fast_out, self._sdiag
         try:
-            nis, fused, ok = kalman.fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
-                                                     self._gate[3], True, _MAX_SPEED_M_S)
+            nis, fused, ok = self._fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
+                                                         self._gate[3], True, _MAX_SPEED_M_S)
             status = self._attempt(sample.t_s, "dvl", tuple(meas.z.tolist()), tuple(y.tolist()),
                                    tuple(sdiag.tolist()), nis, fused)
             out = self._after_fuse(sample, aid, config, setup, meas, status)
@@ -984,10 +1002,10 @@ class Estimator:
         the flush is done (a no-op again), the gate gives the same verdict on the same numbers,
         and the reset after a long rejection and the non-finite count stay in one place."""
         if h is None:
-            fused, ok = kalman.fuse_heading_core(self._core, self._work, z, var, self._gate[1], True, _MAX_SPEED_M_S)
+            fused, ok = self._fuse_heading_core(self._core, self._work, z, var, self._gate[1], True, _MAX_SPEED_M_S)
         else:
-            fused, ok = kalman.fuse_scalar_core(self._core, self._work, z, h, row, var, angular, self._gate[1], True,
-                                                _MAX_SPEED_M_S)
+            fused, ok = self._fuse_scalar_core(self._core, self._work, z, h, row, var, angular, self._gate[1], True,
+                                               _MAX_SPEED_M_S)
         if not fused:
             try:
                 return self._aid(sample), self._state_ok()
