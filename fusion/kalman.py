@@ -680,6 +680,8 @@ def median_window_push(window, value):
     if n == W:
         head = int(window[1])
         old = ring[head]
+        ring[head] = value
+        window[1] = float((head + 1) % W)
         lo, hi = 0, n  # bisect_left
         while lo < hi:
             mid = (lo + hi) // 2
@@ -687,25 +689,45 @@ def median_window_push(window, value):
                 lo = mid + 1
             else:
                 hi = mid
-        for i in range(lo, n - 1):
-            srt[i] = srt[i + 1]
-        n -= 1
-        ring[head] = value
-        window[1] = float((head + 1) % W)
+        # the new value's place among the others (bisect_right: before the oldest's place when
+        # smaller, after it else), and only the values between the two places move, by one (the
+        # removal's and the insertion's shifts were each up to W moves: the same sorted values)
+        if value < old:
+            at, hi = 0, lo
+            while at < hi:
+                mid = (at + hi) // 2
+                if value < srt[mid]:
+                    hi = mid
+                else:
+                    at = mid + 1
+            for i in range(lo, at, -1):
+                srt[i] = srt[i - 1]
+            srt[at] = value
+        else:
+            at, hi = lo + 1, n
+            while at < hi:
+                mid = (at + hi) // 2
+                if value < srt[mid]:
+                    hi = mid
+                else:
+                    at = mid + 1
+            for i in range(lo, at - 1):
+                srt[i] = srt[i + 1]
+            srt[at - 1] = value
     else:
         ring[(int(window[1]) + n) % W] = value
-    lo, hi = 0, n  # bisect_right (insort)
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if value < srt[mid]:
-            hi = mid
-        else:
-            lo = mid + 1
-    for i in range(n, lo, -1):
-        srt[i] = srt[i - 1]
-    srt[lo] = value
-    n += 1
-    window[0] = float(n)
+        lo, hi = 0, n  # bisect_right (insort)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if value < srt[mid]:
+                hi = mid
+            else:
+                lo = mid + 1
+        for i in range(n, lo, -1):
+            srt[i] = srt[i - 1]
+        srt[lo] = value
+        n += 1
+        window[0] = float(n)
     med = srt[n // 2] if n % 2 else (srt[n // 2 - 1] + srt[n // 2]) / 2.0
     return n, med
 
