@@ -109,6 +109,19 @@ _HIST_SNAPSHOT_PERIOD_S = 0.25
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
 
 
+def _unguarded(kernel):
+    """The compiled function of a kernel the ahead-of-time build holds, without the argument
+    guard :func:`adaptnav.kernels.jit` puts before it (a test per argument and a call through
+    it: ~1.5 µs of a 10-argument call, for each of ~90k aid samples per data hour); else the
+    kernel as it is (just in time, a kernel the build did not see, a stand-in). Only for calls
+    whose arrays are the estimator's own, allocated once as C-contiguous float64 (the core, the
+    scratch ``_work`` and its views) and whose other arguments are numbers of the kernel's
+    types: what the guard would find every time."""
+    compiled = getattr(kernel, "__wrapped__", None)
+    # (a guard has both; a numba dispatcher's __wrapped__ is its Python function)
+    return compiled if compiled is not None and getattr(kernel, "_kernel", None) is not None else kernel
+
+
 # north, east of the velocity: in the nominal state, in the error state
 _X_VEL_NE = slice(X_VEL.start, X_VEL.start + 2)
 _VEL_NE = slice(VEL.start, VEL.start + 2)
@@ -290,6 +303,11 @@ class Estimator:
         # the DVL's model in the scratch as a Measurement of views (:meth:`_fast_dvl`: what a
         # velocity reset after a long rejection reads) and its installation packed for its kernel
         self._dvl_meas = aid_dvl.work_measurement(self._work)
+        # the fast paths' compiled updates of the core and this scratch (_fast_scalar, _fast_dvl),
+        # without the guard (looked up when the estimator is made)
+        self._fuse_scalar_core = _unguarded(kalman.fuse_scalar_core)
+        self._fuse_heading_core = _unguarded(kalman.fuse_heading_core)
+        self._fuse_vector_core = _unguarded(kalman.fuse_vector_core)
         self._dvl_consts = aid_dvl.packed_setup(self._aid_cfg["dvl"][1])
         # the stationary window's length for the IMU path's kernel (-1: no rest detection)
         self._rest_window_s = config.stationary.window_s if config.stationary.enabled else -1.0
@@ -390,7 +408,7 @@ class Estimator:
         (:func:`~adaptnav.fusion.kalman.propagated_covariance`), or, with none pending (the
         commonest case when asked: the IMU sample before flushed it), the copy that kernel
         returns then, without the call."""
-        if not self._acc[ACC_T] <= 0.0:
+        if not self._acc.item(ACC_T) <= 0.0:
             return kalman.propagated_covariance(self._P, self._acc, self._qdiag)
         return self._P.copy()
 
@@ -399,8 +417,7 @@ class Estimator:
         x = self._x
         ins = self._mode == "ins"
         cov = self._cov_now() if ins else self._P.copy()
-        self._add_considered(cov)
-        reasons = self.invalid_reasons(_sigma_h_m(cov))
+        reasons = self.invalid_reasons(self._add_considered(cov))
         if ins and not reasons and not _all_finite(x.tolist()):
             reasons = ["non_finite"]
         x = x.copy()  # one copy; the state's vectors are views of it
@@ -415,7 +432,7 @@ class Estimator:
             J[POS, ATT] = -np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
             cov = J @ cov @ J.T
         # (positional: NavState's field order)
-        return NavState(float(self._clock[0]), pos, vel, x[X_Q], x[X_BA], x[X_BG], x[X_CUR], float(x[X_KS]), cov,
+        return NavState(self._clock.item(0), pos, vel, x[X_Q], x[X_BA], x[X_BG], x[X_CUR], x.item(X_KS), cov,
                         ins and not reasons, self._reset_counter, tuple(reasons))
 
     def rehearse_epoch(self, dt_s: float) -> NavState | None:
@@ -484,7 +501,7 @@ class Estimator:
         return (float(self._clock[0]), (xs[n], xs[n + 1]), (xs[e], xs[e + 1]), yaw,
                 [[c00, c01], [c10, c11]], cov[_VEL_NE, _VEL_NE].tolist())
 
-    def _add_considered(self, cov: np.ndarray) -> None:
+    def _add_considered(self, cov: np.ndarray) -> float:
         """The published covariance (in place) gains what the filter treats as known but is
         not (*consider* parameters): the DVL's scale and misalignment on its track since the
         last fix (:meth:`DvlCalibration.position_cov_ne`), the autopilot's heading frame while
@@ -492,23 +509,30 @@ class Estimator:
         ``attitude.reference_yaw_sigma_rad``), and the water density the depth is
         converted with, a depth scale ``(d σ_ρ/ρ)²`` (``depth.density_sigma_kg_m3``;
         unobservable at constant depth: dvl_outage, 1025 → 1008 kg/m³ at minute 20, left the
-        depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone)."""
+        depth 0.34 m off at a published σ of 0.01 m, NEES 1700 from that term alone).
+
+        Returns :func:`_sigma_h_m` of the result (what :meth:`nav_state` tests), of the
+        block's floats at hand when the DVL's terms were the last to touch it."""
         cal = self.dvl_calibration
+        sigma_h = None
         if cal is not None:
             # four float additions on the block read as Python floats (the IEEE additions numpy's
             # in-place ones of each entry made), written back: every epoch
             a00, a01, a10, a11 = cal.position_cov_ne_values()
-            (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
-            cov[_NN] = c00 + a00
-            cov[_NE] = c01 + a01
-            cov[_EN] = c10 + a10
-            cov[_EE] = c11 + a11
+            c00, c11 = cov.item(_NN) + a00, cov.item(_EE) + a11
+            cov[_NN] = c00
+            cov[_NE] = cov.item(_NE) + a01
+            cov[_EN] = cov.item(_EN) + a10
+            cov[_EE] = c11
+            sigma_h = math.sqrt(max(c00, c11, 0.0))  # (_sigma_h_m of the entries just written)
         sigma_b = self._reference_yaw_sigma_rad
         if self._yaw_frame and sigma_b > 0.0:
             cov += aid_attitude.reference_yaw_covariance(self._x, self._anchor_ne, sigma_b)
+            sigma_h = None  # (the block changed)
         sigma_rho, rho = self._density_sigma_kg_m3
-        if sigma_rho > 0.0:
+        if sigma_rho > 0.0:  # (POS_D only: not the horizontal block)
             cov[POS_D, POS_D] += (float(self._x[X_DEPTH]) * sigma_rho / rho) ** 2
+        return _sigma_h_m(cov) if sigma_h is None else sigma_h
 
     def integrity_report(self) -> dict:
         """The integrity monitor's window per aid (:meth:`adaptnav.fusion.integrity.NisMonitor.report`):
@@ -529,21 +553,23 @@ class Estimator:
         again), ``nis:<source>`` (that aid's recent innovations say the covariance is too
         small).
         """
-        if self._mode == "none":
+        mode = self._mode
+        if mode == "none":
             return ["not_initialized"]
-        if self._mode == "ahrs":
+        if mode == "ahrs":
             return ["ahrs_only"]
         if self._pos_unknown and not self.origin_is_start:
             return ["position_unknown"]
-        if self._attitude_driven and \
-                self._clock[0] - self._t_motion_aid > self.config.attitude_driven.motion_aid_max_age_s:
+        t_s = self._clock.item(0)  # (a Python float: the same differences, without numpy's scalars)
+        config = self.config
+        if self._attitude_driven and t_s - self._t_motion_aid > config.attitude_driven.motion_aid_max_age_s:
             return ["no_motion_measurement"]
         if sigma_h_m is None:
             sigma_h_m = _sigma_h_m(self._cov_now())
         out = []
-        if not sigma_h_m <= self.config.valid_max_sigma_h_m:
+        if not sigma_h_m <= config.valid_max_sigma_h_m:
             out.append("sigma_h")
-        if self._clock[0] - self._t_reset < self.config.integrity.after_reset_s:
+        if t_s - self._t_reset < config.integrity.after_reset_s:
             out.append("converging")
         if self._recovering:
             out.append("recovering")
@@ -761,7 +787,7 @@ class Estimator:
         if self._mode != "none":
             if not ok:
                 self._recover()
-            if self._clock[0] >= self._good_t + 1.0:
+            if self._clock.item(0) >= self._good_t + 1.0:  # (a Python float's comparison)
                 self._keep_good()
         return out
 
@@ -903,7 +929,7 @@ class Estimator:
         d = aid_depth.depth_m(pressure_pa, c.water_density_kg_m3, c.atmospheric_pressure_pa)
         var = self.depth_noise.variance_m2(t_s, d)
         self._keep_depth(t_s, d)
-        return self._fast_scalar(sample, d, float(self._x[X_DEPTH]), kalman.WORK_H_DEPTH, var, False)
+        return self._fast_scalar(sample, d, self._x.item(X_DEPTH), kalman.WORK_H_DEPTH, var, False)
 
     def _fast_heading(self, sample) -> tuple[list[AidStatus], bool] | None:
         """A heading on time in INS mode (:meth:`_fast_scalar`): what :meth:`_aid` does with it."""
@@ -941,8 +967,8 @@ class Estimator:
         aid_dvl.bottom_track_into(sample, self._core, self._work, self._dvl_consts, config, setup)
         meas, y, sdiag = self._dvl_meas, self._fast_out, self._sdiag
         try:
-            nis, fused, ok = kalman.fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
-                                                     self._gate[3], True, _MAX_SPEED_M_S)
+            nis, fused, ok = self._fuse_vector_core(self._core, self._work, meas.z, meas.h, meas.H, meas.R,
+                                                         self._gate[3], True, _MAX_SPEED_M_S)
             status = self._attempt(sample.t_s, "dvl", tuple(meas.z.tolist()), tuple(y.tolist()),
                                    tuple(sdiag.tolist()), nis, fused)
             out = self._after_fuse(sample, aid, config, setup, meas, status)
@@ -956,7 +982,8 @@ class Estimator:
         :meth:`_process` does, and it takes the compiled path; else :meth:`_process` answers it
         (a rejection, or a late sample fused at its own time)."""
         t_s = sample.t_s
-        if not (math.isfinite(t_s) and math.isfinite(value)) or t_s < self._clock[0] - self.config.on_time_tolerance_s:
+        if not (math.isfinite(t_s) and math.isfinite(value)) or \
+                t_s < self._clock.item(0) - self.config.on_time_tolerance_s:
             return False
         if self._history_on:  # (in INS mode: _record's other test)
             self._record("sample", sample)
@@ -975,10 +1002,10 @@ class Estimator:
         the flush is done (a no-op again), the gate gives the same verdict on the same numbers,
         and the reset after a long rejection and the non-finite count stay in one place."""
         if h is None:
-            fused, ok = kalman.fuse_heading_core(self._core, self._work, z, var, self._gate[1], True, _MAX_SPEED_M_S)
+            fused, ok = self._fuse_heading_core(self._core, self._work, z, var, self._gate[1], True, _MAX_SPEED_M_S)
         else:
-            fused, ok = kalman.fuse_scalar_core(self._core, self._work, z, h, row, var, angular, self._gate[1], True,
-                                                _MAX_SPEED_M_S)
+            fused, ok = self._fuse_scalar_core(self._core, self._work, z, h, row, var, angular, self._gate[1], True,
+                                               _MAX_SPEED_M_S)
         if not fused:
             try:
                 return self._aid(sample), self._state_ok()
@@ -1011,7 +1038,12 @@ class Estimator:
         position covariance (``learned_velocity.vertical_drift_sigma_per_m``; an inflation of
         the north/east variances, as a position reset's — the estimate moves only when a fix
         comes, and then as far as the drift may have taken it)."""
-        self._depth_win = (self._depth_win[:2] if self._depth_win else [t_s, depth_m]) + [t_s, depth_m]
+        win = self._depth_win
+        if win:  # (always four entries then; the list is this window's own: written in place)
+            win[2] = t_s
+            win[3] = depth_m
+        else:
+            self._depth_win = [t_s, depth_m, t_s, depth_m]
         k = self.config.learned_velocity.vertical_drift_sigma_per_m
         if k <= 0.0:  # off (the default: an AUV's dives are its motion model's)
             return

@@ -664,6 +664,18 @@ def _dvl_bottom_track(x, omega_b, lever_b, R_db, lever_block, vel_d0, vel_d1, ve
 
 
 @jit(cache=True)
+def _bisect_right(srt, value, lo, hi):
+    """``bisect.bisect_right`` of ``value`` in the sorted ``srt[lo:hi]`` (median_window_push's)."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if value < srt[mid]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@jit(cache=True)
 def median_window_push(window, value):
     """Push ``value`` into a sliding window kept with its values sorted, and return the
     window's count and median (numpy.median's value: the middle one, or the mean of the two
@@ -680,6 +692,8 @@ def median_window_push(window, value):
     if n == W:
         head = int(window[1])
         old = ring[head]
+        ring[head] = value
+        window[1] = float((head + 1) % W)
         lo, hi = 0, n  # bisect_left
         while lo < hi:
             mid = (lo + hi) // 2
@@ -687,25 +701,27 @@ def median_window_push(window, value):
                 lo = mid + 1
             else:
                 hi = mid
-        for i in range(lo, n - 1):
-            srt[i] = srt[i + 1]
-        n -= 1
-        ring[head] = value
-        window[1] = float((head + 1) % W)
+        # the new value's place among the others (before the oldest's place when smaller, after
+        # it else), and only the values between the two places move, by one (the removal's and
+        # the insertion's shifts were each up to W moves: the same sorted values)
+        if value < old:
+            at = _bisect_right(srt, value, 0, lo)
+            for i in range(lo, at, -1):
+                srt[i] = srt[i - 1]
+            srt[at] = value
+        else:
+            at = _bisect_right(srt, value, lo + 1, n) - 1
+            for i in range(lo, at):
+                srt[i] = srt[i + 1]
+            srt[at] = value
     else:
         ring[(int(window[1]) + n) % W] = value
-    lo, hi = 0, n  # bisect_right (insort)
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if value < srt[mid]:
-            hi = mid
-        else:
-            lo = mid + 1
-    for i in range(n, lo, -1):
-        srt[i] = srt[i - 1]
-    srt[lo] = value
-    n += 1
-    window[0] = float(n)
+        at = _bisect_right(srt, value, 0, n)  # (insort)
+        for i in range(n, at, -1):
+            srt[i] = srt[i - 1]
+        srt[at] = value
+        n += 1
+        window[0] = float(n)
     med = srt[n // 2] if n % 2 else (srt[n // 2 - 1] + srt[n // 2]) / 2.0
     return n, med
 
