@@ -12,7 +12,10 @@ Here (:class:`LaggedCalibrator`), the runner, after an item that brings its data
 ``t``, calls ``poll(t)`` (the same route as the live calibrator's): it waits until the
 calibrator (child process or in-process) has reported that it processed every sample up
 to ``t − L`` (a progress message on the return pipe), so every release due by ``t`` is
-known, and returns those. The output does not depend on wall-clock timing: same data and
+known, and returns those. Side products (due ``L_p`` after their τ) come only from the
+side-scan ping that completes a detector block, whose count the child reports: the runner
+waits for them only once its data time is ``L_p`` past that ping's (the child's EM windows
+in between cost it no wait). The output does not depend on wall-clock timing: same data and
 seed ⇒ the same trajectory and parameter history, whether the calibrator runs in a child
 process (``location="process"``, the second core) or in-process (``"inline"``), at any
 machine load. ``L`` is how far the runner may run ahead of the calibrator: it should exceed
