@@ -12,7 +12,10 @@ Here (:class:`LaggedCalibrator`), the runner, after an item that brings its data
 ``t``, calls ``poll(t)`` (the same route as the live calibrator's): it waits until the
 calibrator (child process or in-process) has reported that it processed every sample up
 to ``t − L`` (a progress message on the return pipe), so every release due by ``t`` is
-known, and returns those. The output does not depend on wall-clock timing: same data and
+known, and returns those. Side products (due ``L_p`` after their τ) come only from the
+side-scan ping that completes a detector block, whose count the child reports: the runner
+waits for them only once its data time is ``L_p`` past that ping's (the child's EM windows
+in between cost it no wait). The output does not depend on wall-clock timing: same data and
 seed ⇒ the same trajectory and parameter history, whether the calibrator runs in a child
 process (``location="process"``, the second core) or in-process (``"inline"``), at any
 machine load. ``L`` is how far the runner may run ahead of the calibrator: it should exceed
@@ -47,7 +50,7 @@ from adaptnav.service.transport.release import release_from_dict, release_to_dic
 _STOP = "__stop__"
 _SHIFT = "__shift__"
 _FINISH = "__finish__"  # the data ended: the calibrator hands over what it holds for completion
-PROGRESS_EVERY = 32     # samples between the child's progress messages inside a batch
+PROGRESS_EVERY = 32     # samples between the child's progress messages inside a batch the runner waits for
 # LaggedCalibrator.quiet_until_s keeps this far below the child's progress + lag (data s, and
 # relative): thousands of times the rounding of ``t − lag`` at any data time (UNIX times too)
 _QUIET_MARGIN_S = 1e-6
@@ -140,13 +143,19 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
         calibrator = make_calibrator(cfg, params0, seed)
         clock = DataClock()
         pings = 0  # side-scan pings observed
+        block_ping = -1  # the count of the ping that completes the next block, as last reported
         to_block = getattr(calibrator, "pings_to_block", lambda: None)
 
         def progress(done: int, tau: float) -> tuple:
             # with the pings seen and how many more complete the detector's next block, so
-            # that the runner sends the one that does at once (ProcessBackend.send)
+            # that the runner sends the one that does at once (ProcessBackend.send) and knows
+            # that no side product comes before it (ProcessBackend.sync)
+            nonlocal block_ping
             k = to_block()
-            return ("progress", done if k is None else (done, pings + k), tau)
+            if k is None:
+                return ("progress", done, tau)
+            block_ping = pings + k
+            return ("progress", (done, block_ping), tau)
 
         # the modules forked from the server (numpy, scipy, numba, OpenCV: ~10⁵ objects)
         # stay out of the garbage collector's full passes: they were rescanned at every
@@ -170,16 +179,19 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                 clock.tau += msg[1]
                 out_q.send(("shifted", None, msg[1]))
                 continue
-            seq, n, items, imu, n_echo = msg
+            seq, n, items, imu, n_echo, every = msg
             packed = (items, imu, _read_echoes(conn_in, n_echo) if n_echo else None)
             tau = clock.tau
-            # progress also every PROGRESS_EVERY samples inside the batch: the runner waits
-            # for a τ just past its data time − L_p, which the first samples of a batch it
-            # sent only then already give (with one message per batch it waited for the whole
-            # batch, ~L_p of data with side-scan: the two processes ran in lock-step)
+            # progress also every ``every`` samples inside a batch the runner sent because it
+            # waits: for a τ just past its data time − L_p, which the first samples of the batch
+            # already give (with one message per batch it waited for the whole batch, ~L_p of
+            # data with side-scan: the two processes ran in lock-step); not inside the others
+            # (most: full batches, block pings), whose progress it reads only later
             for i, sample in enumerate(unpack_batch(packed), start=1):
+                at_block = False
                 if sample.KIND == "sonar":
                     pings += 1
+                    at_block = pings == block_ping
                 calibrator.observe(sample)
                 t = sample.t_s  # DataClock.advance inlined (once per sample)
                 if type(t) is not float:
@@ -188,7 +200,8 @@ def _lagged_child_main(cfg: Any, params0: MotionParams, seed: int, conn_in: Any,
                     tau = t
                 for rel in calibrator.poll():
                     out_q.send(child_message(rel, tau))
-                if i % PROGRESS_EVERY == 0 and i < n:
+                # and after the ping that completed a block: the runner waits for that one
+                if (at_block or (every and i % every == 0)) and i < n:
                     out_q.send(progress(seq + i, tau))
             clock.tau = tau
             out_q.send(progress(seq + n, clock.tau))
@@ -348,6 +361,11 @@ class ProcessBackend:
         self._pings_out = 0     # side-scan pings sent (or batched)
         self.side_scan: dict | None = None  # the child's object front end's counts, at finish()
         self._block_ping = -1   # the count of the ping that completes the child's next block
+        # no side product of the samples sent has a τ below this: +∞ while the ping that
+        # completes the next block is not sent, that ping's time once it is (the child's τ
+        # there is at least that), −∞ when not known (sent before the child said which)
+        self._block_t = -math.inf
+        self.on_block_ping = None  # called when that ping is sent (LaggedCalibrator)
         # the runner's deferrable work (replay: DeferredSinks.work), done while it waits for
         # the child instead of sleeping: a slice per call, False when there is none
         self.idle: Any = None
@@ -365,16 +383,23 @@ class ProcessBackend:
                 # progress said): sent now, so that the child detects while the runner goes
                 # on; held back, it reached the child only when the runner needed its
                 # progress, and the runner waited for the whole detection
+                t = sample.t_s
+                self._block_t = t if type(t) is float and t == t else -math.inf
                 self._flush()
+                if self.on_block_ping is not None:
+                    self.on_block_ping()
                 return
         if len(self._batch) >= self.batch_size:
             self._flush()
 
-    def _flush(self) -> None:
+    def _flush(self, progress_every: int = 0) -> None:
+        """Send the batch; ``progress_every``: samples between the child's progress messages
+        inside it (0: at its end and after a block's ping only)."""
         if self._batch:
             items, imu, echoes = pack_batch(self._batch)
             try:
-                self._w.send((self._sent, len(self._batch), items, imu, sum(e.size for e in echoes)))
+                self._w.send((self._sent, len(self._batch), items, imu, sum(e.size for e in echoes),
+                              progress_every))
                 if echoes:
                     _write_all(self._w.fileno(), echoes)
             except (BrokenPipeError, OSError) as e:
@@ -410,7 +435,10 @@ class ProcessBackend:
                                release_from_dict(body) if kind == "release" else body))
         elif kind == "progress":
             if type(body) is tuple:
-                body, self._block_ping = body
+                body, block_ping = body
+                if block_ping != self._block_ping:  # (the same one again: what _block_t says holds)
+                    self._block_ping = block_ping
+                    self._block_t = math.inf if block_ping > self._pings_out else -math.inf
             self._done, self._child_tau = int(body), float(tau) + self._unacked_shift_s
         elif kind == "shifted":
             self._unacked_shift_s -= float(tau)
@@ -428,21 +456,38 @@ class ProcessBackend:
         never decreases)."""
         return self._child_tau
 
-    def sync(self, t_s: float) -> None:
-        """Block until every release with ``τ ≤ t_s`` is in :attr:`ready`: the child has
-        processed a sample later than ``t_s`` (τ is non-decreasing and messages are in
-        order) or every sample observed so far."""
-        if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
+    @property
+    def products_from_s(self) -> float:
+        """Every side product not yet in :attr:`ready` has a τ no earlier (:meth:`sync`)."""
+        return max(self._child_tau, self._block_t)
+
+    def _synced(self, t_s: float, release_t_s: float) -> bool:
+        # every output the child makes from now on has a τ ≥ its τ so far, a side product
+        # also ≥ _block_t (products come only from the ping that completes a block)
+        tau = self._child_tau
+        return tau > t_s or (tau > release_t_s and self._block_t > t_s)
+
+    def sync(self, t_s: float, release_t_s: float | None = None) -> None:
+        """Block until every output with ``τ ≤ t_s`` is in :attr:`ready` — of the releases,
+        every one with ``τ ≤ release_t_s`` (≤ ``t_s``; default ``t_s``): the child has processed
+        a sample later than ``t_s`` (τ is non-decreasing and messages are in order) or every
+        sample observed so far, or it has processed one later than ``release_t_s`` and no side
+        product can have a τ ≤ ``t_s`` (the ping that completes its next block is not sent,
+        or is later than ``t_s``; such a ping is what the runner waited for, not the child's
+        EM windows)."""
+        if release_t_s is None:
+            release_t_s = t_s
+        if self._synced(t_s, release_t_s) or self._done >= self._sent + len(self._batch):
             return
         # what the child reported already may do (its progress comes every PROGRESS_EVERY
         # samples): read it before sending the batch, which would otherwise go out a few
         # samples long after every progress message
         while self._read(block=False):
-            if self._child_tau > t_s or self._done >= self._sent + len(self._batch):
+            if self._synced(t_s, release_t_s) or self._done >= self._sent + len(self._batch):
                 return
-        self._flush()
+        self._flush(PROGRESS_EVERY)
         t0, idle0 = time.monotonic(), self.idle_s
-        while not (self._child_tau > t_s or self._done >= self._sent):
+        while not (self._synced(t_s, release_t_s) or self._done >= self._sent):
             self._wait_read()
         self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)
 
@@ -456,6 +501,8 @@ class ProcessBackend:
             raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
         self._unacked_shift_s += delta_s
         self._child_tau += delta_s
+        if self._block_t != math.inf:  # a block ping sent before the jump: its time not re-based
+            self._block_t = -math.inf
 
     def finish(self) -> None:
         """Wait for the child to process everything observed, then for what it still holds
@@ -487,6 +534,14 @@ class ProcessBackend:
                 proc.join(1.0)
         self._w.close()
         self._r.close()
+
+
+def _below(bound_s: float) -> float:
+    """``bound_s`` less a margin far above the rounding of ``t − lag`` (the backend's test is
+    ``τ_child > t − lag``)."""
+    if math.isfinite(bound_s):
+        bound_s -= _QUIET_MARGIN_S + _QUIET_MARGIN_REL * abs(bound_s)
+    return bound_s
 
 
 class LaggedCalibrator:
@@ -524,6 +579,13 @@ class LaggedCalibrator:
         self.observe = backend.send  # the runner calls it for every sample: no extra frame
         if lp < latency_s:
             self.observe = self._observe
+        # a backend that bounds its side products' τ apart from its releases' (ProcessBackend:
+        # products come only from the ping that completes a block) syncs for each by its lag
+        self._bounds_products = hasattr(backend, "products_from_s")
+        if self._bounds_products:
+            # the ping that completes the child's next block was sent: a side product may be
+            # due L_p after it (quiet_until_s assumed none before the next release's due time)
+            backend.on_block_ping = self._wake
 
     def _observe(self, sample: Any) -> None:
         if sample.KIND == "sonar":
@@ -532,14 +594,21 @@ class LaggedCalibrator:
             self.observe = self.backend.send
         self.backend.send(sample)
 
+    def _wake(self) -> None:
+        self.quiet_until_s = -math.inf
+
     def poll(self, data_time_s: float) -> list:
         """The releases with ``τ + L ≤ data_time_s`` (the runner's data time) and the side
         products with ``τ + L_p ≤ data_time_s``, oldest first, once the calibrator has caught
         up with ``data_time_s − L`` (``− L_p`` once products can come); ``data_time_s = ∞``:
         the data ended, the calibrator finishes and everything is due."""
         backend = self.backend
+        # side products can come (their L_p is shorter), bounded apart by the backend
+        products = self._bounds_products and self._sync_lag_s < self.latency_s
         if data_time_s == math.inf:
             backend.finish()
+        elif products:
+            backend.sync(data_time_s - self._sync_lag_s, data_time_s - self.latency_s)
         else:
             backend.sync(data_time_s - self._sync_lag_s)
         ready = backend.ready
@@ -555,11 +624,13 @@ class LaggedCalibrator:
         # τ ≥ caught_up_s: due no earlier than caught_up_s + L_p. The sync bound with a margin
         # far above the rounding of ``t − lag`` (the child's test is ``τ_child > t − lag``)
         caught_up = backend.caught_up_s
-        sync_bound = caught_up + self._sync_lag_s
-        if math.isfinite(sync_bound):
-            sync_bound -= _QUIET_MARGIN_S + _QUIET_MARGIN_REL * abs(sync_bound)
-        self.quiet_until_s = min(sync_bound, caught_up + self.product_latency_s,
-                                 next_due(ready, self.latency_s, self.product_latency_s))
+        if products:  # a product's τ is bounded apart from a release's (ProcessBackend.sync)
+            self.quiet_until_s = min(_below(caught_up + self.latency_s),
+                                     _below(backend.products_from_s + self.product_latency_s),
+                                     next_due(ready, self.latency_s, self.product_latency_s))
+        else:
+            self.quiet_until_s = min(_below(caught_up + self._sync_lag_s), caught_up + self.product_latency_s,
+                                     next_due(ready, self.latency_s, self.product_latency_s))
         return due
 
     def shift_time(self, delta_s: float) -> None:
