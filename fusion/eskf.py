@@ -73,7 +73,7 @@ from .adaptive_noise import SurgeVariance
 from .alignment import Alignment, Start, initial_covariance
 from .config import FilterConfig
 from .frames import GRAVITY_M_S2, GeoOrigin, euler_to_quat, quat_conj, quat_from_rotvec, quat_mul, quat_to_dcm, \
-    quat_to_euler, rotvec_from_quat
+    rotvec_from_quat
 from .integrity import NisMonitor
 from .motion_model import MotionParams, RpmSpeedTable
 from .samples import (SENSORS, DepthSample, DvlSample, HeadingSample, ImuBatch, ImuSample, InertialVelocitySample,

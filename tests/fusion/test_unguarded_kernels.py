@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from adaptnav import kernels
-from adaptnav.fusion import eskf, kalman
+from adaptnav.fusion import kalman
 from adaptnav.fusion.config import FilterConfig
 from adaptnav.fusion.eskf import Estimator, _unguarded
 from adaptnav.fusion.motion_model import MotionParams, RpmSpeedTable
