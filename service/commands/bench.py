@@ -20,6 +20,9 @@ def add_arguments(parser):
     parser.add_argument("--only", metavar="PARTS", default=None,
                         help="service: comma-separated parts to measure (replay, floor, latency, mavlink_cpu, "
                              "cold_call, cold_start, memory, live_work; default all)")
+    parser.add_argument("--latency-s", metavar="SECONDS", type=float, default=None,
+                        help="service: the outside client's latency window per rate (default 60, --quick 15); "
+                             "~300 s gives ~3000 nav states, enough for the p99's interval to decide the target")
     from adaptnav.service.tools.benchmarks import soak
 
     soak.add_arguments(parser)  # --minutes, --sample-s

@@ -64,3 +64,20 @@ def test_the_p99_interval_is_unknown_with_too_few_samples_and_bounds_the_verdict
     assert latency_verdict([1.0, 1.1], [1.4, 1.6], 1.5) == "unknown"  # one rate's interval across it
     assert latency_verdict([1.0, 1.6], [1.4, 2.0], 1.5) == "missed"
     assert latency_verdict([math.nan, 1.0], [math.nan, 1.2], 1.5) == "unknown"  # too few at one rate
+
+
+def test_a_latency_window_that_is_not_a_positive_number_is_refused_before_anything_runs(monkeypatch):
+    import argparse
+
+    import pytest
+
+    from adaptnav.service.tools.benchmarks import service
+
+    def ran(*args, **kwargs):
+        raise AssertionError("a part ran before the window was checked")
+
+    monkeypatch.setattr(service, "replay_speed", ran)  # the part measured first
+    for bad in (0.0, -5.0, math.nan, math.inf):
+        args = argparse.Namespace(quick=True, only="replay,latency", latency_s=bad)
+        with pytest.raises(ValueError, match="--latency-s"):
+            service.run(args)

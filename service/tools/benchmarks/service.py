@@ -916,13 +916,18 @@ def run(args) -> dict:
     if parts - set(PARTS) - set(EXTRA_PARTS):
         raise ValueError(f"--only: unknown parts {sorted(parts - set(PARTS) - set(EXTRA_PARTS))} "
                          f"(known: {', '.join(PARTS + EXTRA_PARTS)})")
+    latency_s = getattr(args, "latency_s", None)
+    if latency_s is None:
+        latency_s = 15.0 if quick else 60.0
+    if not (latency_s > 0.0 and math.isfinite(latency_s)):  # (before minutes of other parts)
+        raise ValueError(f"--latency-s must be a positive number of seconds, got {latency_s}")
     figures: dict[str, Any] = {}
     if "replay" in parts:
         figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
     if "floor" in parts:
         figures.update(zenoh_floor(200 if quick else 1000))
     if "latency" in parts:
-        figures.update(latency(15.0 if quick else 60.0))
+        figures.update(latency(latency_s))
     if "mavlink_cpu" in parts:
         figures.update(mavlink_cpu(20.0 if quick else 60.0))
     if "live_work" in parts:
