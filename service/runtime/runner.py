@@ -424,14 +424,8 @@ class _Loop:
                     self.data_t = data_t
                 else:
                     self.releases_due(t_s)
-        if finite:  # (_reached(t_s, t_s), without its call: every sample)
-            s = self.summary
-            if not (s.first_t_s <= t_s):
-                s.first_t_s = t_s
-            if not (s.last_t_s >= t_s):
-                s.last_t_s = t_s
-            if self.progress is not None:
-                self.progress(t_s)
+        if finite:
+            self._reached(t_s, t_s)
 
     def _batch_item(self, item: ImuBatch) -> None:
         """:meth:`item` of an IMU batch."""
