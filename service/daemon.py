@@ -20,6 +20,9 @@ Threads and processes::
 - Learned params + slow filter states are snapshotted *in the runner* (whichever thread
   drives it: the estimator is not shared) and written by the housekeeping thread atomically
   (:mod:`adaptnav.service.runtime.persistence`), periodically and on shutdown; restored on start.
+- Python's garbage collector: what start-up made is frozen out of its passes, and it
+  collects right after a nav state is published, not on the next epoch's path
+  (:mod:`adaptnav.service.runtime.collector`; health ``gc``).
 - SIGTERM/SIGINT → clean shutdown. With ``NOTIFY_SOCKET`` set (systemd ``Type=notify``)
   READY/WATCHDOG/STOPPING are sent on a plain datagram socket.
 """
@@ -51,6 +54,7 @@ from adaptnav.service.runtime.protocols import Calibrator
 from adaptnav.service.transport import codec
 from adaptnav.service.transport.bus import Bus, encode_sample, message
 from adaptnav.service.runtime.clock import LiveClock
+from adaptnav.service.runtime.collector import CollectorPacing
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.memory import BurstTrimmer
@@ -378,6 +382,7 @@ class BusSink(Sink):
         self.latest_payload = payload
         self.nav_count += 1
         self.d.bus.put(self.d.bus.keys.nav_state, payload)
+        self.d.collector.after_output()  # the state is out: the collector's turn, off its path
         self.state_finite = bool(np.isfinite(pos).all() and np.isfinite(doc["vel_n_m_s"]).all())
         if bridge is not None:
             bridge.offer_nav(state)  # ODOMETRY on its fixed schedule
@@ -448,6 +453,7 @@ class Daemon:
         self.latest_health: dict = {}
         self._threads: list[threading.Thread] = []
         self._health_lock = threading.Lock()
+        self.collector = CollectorPacing()
         self._malformed_reported: Counter[str] = Counter()
         self._overflow_reported: Counter[str] = Counter()
         self._trimmer = BurstTrimmer()
@@ -583,6 +589,8 @@ class Daemon:
             t.start()
         if self.rehearsal is not None:
             self.rehearsal.start()
+        self.collector.start()
+        self.collector.freeze()  # all that start-up made, out of every later collection
         sd_notify("READY=1\nSTATUS=navigating")
         log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
 
@@ -709,6 +717,7 @@ class Daemon:
         rep["queue_depth"] = self.source.qsize()
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
         rep["live_path"] = dict(self.live_path)
+        rep["gc"] = self.collector.report()  # paced after outputs vs CPython's own (automatic_*)
         if self.rehearsal is not None:  # the output epochs' rehearsals: done, late, busy, no_room
             rep["epoch_rehearsal"] = dict(self.rehearsal.counts)
         if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
@@ -845,6 +854,7 @@ class Daemon:
         self._persist()
         if self.bus is not None:
             self.bus.close()
+        self.collector.stop()
         self._threads = []
         log.info("adaptnav daemon stopped")
 
