@@ -21,7 +21,10 @@ Figures (``--quick``: shorter missions, same code):
   (``load_avg_*``: on a shared 2-core machine the tail is mostly waiting for a core).
   ``zenoh_floor_*``: bare pub→sub between two sessions of one process.
   ``latency_*_epoch_rehearsal``: the daemon's output-epoch rehearsals over its run (health
-  ``epoch_rehearsal``: done, late, busy, no_room; :mod:`adaptnav.service.runtime.rehearsal`).
+  ``epoch_rehearsal``: done, late, busy, no_room; :mod:`adaptnav.service.runtime.rehearsal`);
+  ``latency_*_gc``: its garbage collections over its run (health ``gc``: objects frozen at
+  start, collections paced after outputs and CPython's own, by generation;
+  :mod:`adaptnav.service.runtime.collector`).
 - ``mavlink_*``: the daemon's CPU share on an ArduSub vehicle's path (:func:`mavlink_cpu`):
   the defaults, MAVLink bridge on UDP loopback, fed ArduSub's own frames from a recorded SITL
   session (``tests/data``) at their logged pace by a third process; ``mavlink_samples``: what
@@ -461,6 +464,7 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
             h = bus.get("health") or {}
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
             fig["epoch_rehearsal"] = h.get("epoch_rehearsal")  # the daemon's, over its whole run
+            fig["gc"] = h.get("gc")  # its collections: paced after outputs, or CPython's own
             fig["load_avg"] = [load_start, os.getloadavg()[0]]
         finally:
             bus.close()
@@ -565,6 +569,7 @@ def latency(latency_s: float) -> dict:
         out[f"calibrator_cpu_percent_{tag}"] = fig["calibrator_cpu_percent"]
         out["latency_calibrator_state"] = fig["calibrator_state"]
         out[f"latency_{tag}_epoch_rehearsal"] = fig["epoch_rehearsal"]
+        out[f"latency_{tag}_gc"] = fig["gc"]
     out["latency_ms_p50"] = max(out["latency_100hz_ms_p50"], out["latency_200hz_ms_p50"])
     out["latency_ms_p99"] = max(out["latency_100hz_ms_p99"], out["latency_200hz_ms_p99"])
     # the target's verdict from both rates' intervals (quantile_ci): "unknown" is not "met"
