@@ -247,6 +247,21 @@ def _guarded(compiled: Callable, specs: list, fallback: Callable) -> Callable:
     return call
 
 
+def unguarded(kernel: Callable) -> Callable:
+    """The compiled function behind a kernel's argument guard (:func:`jit` ahead of time), else
+    the kernel as it is (just in time: a numba dispatcher; a kernel the build did not see; a
+    stand-in). The guard's test per argument and its call cost ~0.5–1.5 µs a call; a caller on
+    a hot path skips them when every call passes what the guard would find every time: arrays
+    that are the caller's own, allocated once as C-contiguous, writeable float64 of the kernel's
+    dimensions (or views of such that are so too), and numbers of the kernel's types. Never for
+    an array that comes from outside (a sample's, a batch's slice, an argument of a public
+    function): the compiled code does not check it and reads wrong memory where the guard
+    would have sent it just in time."""
+    compiled = getattr(kernel, "__wrapped__", None)
+    # (a guard has both; a numba dispatcher's __wrapped__ is its Python function)
+    return compiled if compiled is not None and getattr(kernel, "_kernel", None) is not None else kernel
+
+
 class _Deferred:
     """A kernel missing from the compiled module: compiled just in time on first call,
     with every kernel of its module, in a namespace where they call each other's

@@ -58,6 +58,8 @@ from collections import Counter
 
 import numpy as np
 
+from adaptnav.kernels import unguarded
+
 from . import imu_grades
 from . import kalman
 from . import strapdown as sd
@@ -107,19 +109,6 @@ _FUSIONS_TO_CONVERGE = 10
 _HIST_SNAPSHOT_PERIOD_S = 0.25
 # Roll/pitch random walk across an IMU gap (AUVs stay near level), rad/√s.
 _BLIND_LEVEL_RW_RAD_RTHZ = 0.03
-
-
-def _unguarded(kernel):
-    """The compiled function of a kernel the ahead-of-time build holds, without the argument
-    guard :func:`adaptnav.kernels.jit` puts before it (a test per argument and a call through
-    it: ~1.5 µs of a 10-argument call, for each of ~90k aid samples per data hour); else the
-    kernel as it is (just in time, a kernel the build did not see, a stand-in). Only for calls
-    whose arrays are the estimator's own, allocated once as C-contiguous float64 (the core, the
-    scratch ``_work`` and its views) and whose other arguments are numbers of the kernel's
-    types: what the guard would find every time."""
-    compiled = getattr(kernel, "__wrapped__", None)
-    # (a guard has both; a numba dispatcher's __wrapped__ is its Python function)
-    return compiled if compiled is not None and getattr(kernel, "_kernel", None) is not None else kernel
 
 
 # north, east of the velocity: in the nominal state, in the error state
@@ -303,11 +292,16 @@ class Estimator:
         # the DVL's model in the scratch as a Measurement of views (:meth:`_fast_dvl`: what a
         # velocity reset after a long rejection reads) and its installation packed for its kernel
         self._dvl_meas = aid_dvl.work_measurement(self._work)
-        # the fast paths' compiled updates of the core and this scratch (_fast_scalar, _fast_dvl),
-        # without the guard (looked up when the estimator is made)
-        self._fuse_scalar_core = _unguarded(kalman.fuse_scalar_core)
-        self._fuse_heading_core = _unguarded(kalman.fuse_heading_core)
-        self._fuse_vector_core = _unguarded(kalman.fuse_vector_core)
+        # the compiled calls of the hot paths without their guard (adaptnav.kernels.unguarded,
+        # looked up when the estimator is made): each takes only the estimator's own arrays,
+        # allocated once C-contiguous float64 (the core, the scratch _work and their views, the
+        # learned velocity's kit, a snapshot's copy of the core), and numbers of its types
+        self._fuse_scalar_core = unguarded(kalman.fuse_scalar_core)
+        self._fuse_heading_core = unguarded(kalman.fuse_heading_core)
+        self._fuse_vector_core = unguarded(kalman.fuse_vector_core)
+        self._propagated_covariance = unguarded(kalman.propagated_covariance)  # (_P, _acc, _qdiag)
+        self._lv_epoch = unguarded(kalman.lv_epoch)
+        self._core_positive_definite = unguarded(kalman.core_positive_definite)  # (a _Snapshot's core)
         self._dvl_consts = aid_dvl.packed_setup(self._aid_cfg["dvl"][1])
         # the stationary window's length for the IMU path's kernel (-1: no rest detection)
         self._rest_window_s = config.stationary.window_s if config.stationary.enabled else -1.0
@@ -409,7 +403,7 @@ class Estimator:
         commonest case when asked: the IMU sample before flushed it), the copy that kernel
         returns then, without the call."""
         if not self._acc.item(ACC_T) <= 0.0:
-            return kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+            return self._propagated_covariance(self._P, self._acc, self._qdiag)
         return self._P.copy()
 
     def nav_state(self) -> NavState:
@@ -483,7 +477,7 @@ class Estimator:
             return (ns.t_s, tuple(ns.pos_n_m[:2].tolist()), tuple(ns.vel_n_m_s[:2].tolist()), ns.euler_rad()[2],
                     ns.cov[POS_NE, POS_NE].tolist(), ns.cov[_VEL_NE, _VEL_NE].tolist())
         # _cov_now's numbers, read in place when no step is pending (no copy)
-        cov = self._P if self._acc[ACC_T] <= 0.0 else kalman.propagated_covariance(self._P, self._acc, self._qdiag)
+        cov = self._P if self._acc[ACC_T] <= 0.0 else self._propagated_covariance(self._P, self._acc, self._qdiag)
         (c00, c01), (c10, c11) = cov[POS_NE, POS_NE].tolist()
         if self.dvl_calibration is not None:  # _add_considered's terms of these blocks (the same additions)
             a00, a01, a10, a11 = self.dvl_calibration.position_cov_ne_values()
@@ -805,7 +799,7 @@ class Estimator:
             return
         self._good_candidate = None
         snap, t_imu_last, t_s = candidate
-        if not kalman.core_positive_definite(snap.core):
+        if not self._core_positive_definite(snap.core):
             return  # not positive definite: not a state to come back to (the next sample tries again)
         self._good = (snap, t_imu_last)
         self._good_t = t_s
@@ -1638,9 +1632,9 @@ class Estimator:
         r = self._rpm
         surge = self._surge
         r_hat = surge.r_hat_m2_s2
-        out = kalman.lv_epoch(self._core, self._qdiag, kit[2], kit[3], self._dx, r[1], r[2], r[5], r[6],
-                              0.0 if r_hat is None else r_hat, r_hat is not None, t - self._t_release,
-                              self._gate[3], True)
+        out = self._lv_epoch(self._core, self._qdiag, kit[2], kit[3], self._dx, r[1], r[2], r[5], r[6],
+                             0.0 if r_hat is None else r_hat, r_hat is not None, t - self._t_release,
+                             self._gate[3], True)
         if out[12]:
             surge.r_hat_m2_s2 = out[11]
         return self._attempt(t, "learned_velocity", out[2:5], out[5:8], out[8:11], out[0], out[1])

@@ -13,12 +13,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from adaptnav.kernels import unguarded
 
 from ..frames import GRAVITY_M_S2
 from ..kalman import median_window_push
 from ..state import N_ERR, X_POS
 from ..config import DepthConfig
 from .common import NOT_ANGULAR, AidContext, AidSource, Measurement
+
+# DepthNoise's window kernel without its argument guard (adaptnav.kernels.unguarded): its only
+# array is DepthNoise's own window (np.zeros, C-contiguous float64), its value a number
+_median_window_push = unguarded(median_window_push)
 
 
 def pressure_to_depth(pressure_pa, water_density_kg_m3: float, atmospheric_pressure_pa: float):
@@ -178,7 +183,7 @@ class DepthNoise:
         gap = self.MAX_GAP_S
         # (max and min as comparisons: the builtins' calls were a tenth of this; both finite here)
         if 0.0 < dt1 <= gap and 0.0 < dt2 <= gap and abs(dt2 - dt1) <= self.MAX_UNEVEN * (dt2 if dt2 > dt1 else dt1):
-            self._n, self._median = median_window_push(self._window, abs(depth_m - 2.0 * z1 + self._z0))
+            self._n, self._median = _median_window_push(self._window, abs(depth_m - 2.0 * z1 + self._z0))
         self._t0, self._z0, self._t1, self._z1 = t1, z1, t_s, depth_m
         enabled = self.enabled
         if self._n >= self.MIN_COUNT:

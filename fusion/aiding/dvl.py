@@ -62,6 +62,7 @@ from collections import deque
 from typing import NamedTuple
 
 import numpy as np
+from adaptnav.kernels import unguarded
 
 from ..frames import euler_to_quat, quat_to_dcm
 from ..config import DvlConfig
@@ -69,6 +70,10 @@ from ..state import ACC_OMEGA, ATT, BG, CUR, N_ERR, VEL, X_CUR, X_VEL
 from ..kalman import (CORE_ACC, CORE_SIZE, CORE_X, WORK_DVL_H, WORK_DVL_R, WORK_DVL_SMALL_H, WORK_DVL_Z, WORK_SIZE,
                       dvl_bottom_track_core)
 from .common import NOT_ANGULAR, AidContext, AidSource, Measurement, dcm, make, skew
+
+# bottom_track_into's kernel without its argument guard (adaptnav.kernels.unguarded): its callers'
+# arrays are always their own C-contiguous float64 ones (below), its numbers Python floats
+_bottom_track_core = unguarded(dvl_bottom_track_core)
 
 
 class StraightSegment(NamedTuple):
@@ -597,11 +602,17 @@ def bottom_track_into(sample, core: np.ndarray, work: np.ndarray, consts: np.nda
     with the installation ``consts`` (:func:`packed_setup` of ``setup``): the same numbers and
     the same calls of the calibration, by one compiled call of three arrays
     (:func:`adaptnav.fusion.kalman.dvl_bottom_track_core`) and no new array (the estimator's
-    compiled DVL path, :meth:`adaptnav.fusion.eskf.Estimator._fast_dvl`)."""
+    compiled DVL path, :meth:`adaptnav.fusion.eskf.Estimator._fast_dvl`).
+
+    The kernel is called without its argument guard: ``core``, ``work`` and ``consts`` must be
+    C-contiguous, writeable float64 arrays of ``kalman.CORE_SIZE``, ``kalman.WORK_SIZE`` and
+    ``kalman.DVL_CONST_SIZE`` made by the caller (``np.zeros``, :func:`packed_setup`), never an
+    array from outside (every caller's: the estimator's core and scratch, :func:`bottom_track`'s
+    own)."""
     cal = setup.calibration
     v0, v1, v2, sigma_m_s, theta, s_err, psi = _model_inputs(sample, config, cal)
-    aux = dvl_bottom_track_core(core, consts, work, float(v0), float(v1), float(v2), s_err, psi,
-                                float(sigma_m_s), float(config.lever_arm_sigma_m))
+    aux = _bottom_track_core(core, consts, work, float(v0), float(v1), float(v2), s_err, psi,
+                             float(sigma_m_s), float(config.lever_arm_sigma_m))
     z = sample.vel_d_m_s if cal is None else _calibrate(sample, cal, theta, aux)
     if z is not None:  # (as bottom_track's np.array of it)
         work[WORK_DVL_Z:WORK_DVL_Z + 3] = z
