@@ -40,7 +40,9 @@ class CollectorPacing:
         if not 0.0 < young_fraction <= 1.0:
             raise ValueError(f"young_fraction must be within (0, 1], got {young_fraction!r}")
         self.young_fraction = float(young_fraction)
-        self.counts: Counter[str] = Counter()
+        # every key there from the start: the health report reads them from another thread, and a
+        # key added while it copies (a collection its own allocation triggered) would break it
+        self.counts: Counter[str] = Counter({f"{how}_{g}": 0 for how in ("paced", "automatic") for g in range(3)})
         self.frozen_objects = 0
         # the thread running a paced collection: the callback counts everything else as
         # automatic (another thread may trigger one meanwhile, waiting for the GIL after it)
@@ -102,4 +104,4 @@ class CollectorPacing:
             self.counts[f"automatic_{info['generation']}"] += 1
 
     def report(self) -> dict[str, int]:
-        return {"frozen_objects": self.frozen_objects, **dict(sorted(self.counts.items()))}
+        return {"frozen_objects": self.frozen_objects, **self.counts}
