@@ -443,7 +443,11 @@ class OutputsConfig:
     """Publication rates (Hz): nav state, aid statuses and health. ``rehearsal_lead_s``: live,
     the nav state's path is rehearsed this long before an output epoch's IMU sample is
     expected, so that the sample finds it in the caches (0: off;
-    :mod:`adaptnav.service.runtime.rehearsal`)."""
+    :mod:`adaptnav.service.runtime.rehearsal`). ``cpu_wakeup_latency_us``: live, the longest an idle
+    CPU may take to wake, held while the daemon runs (Linux PM QoS, root's
+    ``/dev/cpu_dma_latency``; 0: the CPUs poll instead of sleeping; −1: no bound, the kernel's
+    choice): an IMU sample that finds the CPUs asleep waits for them
+    (:mod:`adaptnav.service.runtime.wakeup`)."""
 
     nav_rate_hz: float = 10.0
     health_rate_hz: float = 1.0
@@ -452,6 +456,7 @@ class OutputsConfig:
     # sample, and the caches still warm (outside client at 100 Hz: decode → put p50
     # 0.32–0.39 → 0.23–0.26 ms)
     rehearsal_lead_s: float = 0.0015
+    cpu_wakeup_latency_us: int = -1
 
     def validate(self) -> None:
         # above 1 kHz the output epochs outrun any IMU (and 1e308 Hz made the loop spin)
@@ -460,6 +465,9 @@ class OutputsConfig:
                 raise ValueError(f"{name} must be within (0, {top:g}] Hz, got {getattr(self, name)!r}")
         if not 0.0 <= self.rehearsal_lead_s <= 0.05:  # longer ago, the caches are cold again
             raise ValueError(f"rehearsal_lead_s must be within [0, 0.05] s, got {self.rehearsal_lead_s!r}")
+        w = self.cpu_wakeup_latency_us
+        if type(w) is not int or not -1 <= w <= 2_000_000:  # (beyond 2 s it bounds nothing)
+            raise ValueError(f"cpu_wakeup_latency_us must be an integer within [-1, 2000000] µs, got {w!r}")
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,7 @@ from adaptnav.service.runtime.memory import BurstTrimmer
 from adaptnav.service.runtime.persistence import load_state, save_state
 from adaptnav.service.runtime.rehearsal import EpochRehearsal
 from adaptnav.service.runtime.sinks import Sink, geo_time_fields
+from adaptnav.service.runtime.wakeup import WakeupLatencyRequest
 
 log = logging.getLogger(__name__)
 
@@ -461,6 +462,9 @@ class Daemon:
         self.rehearsal: EpochRehearsal | None = (
             EpochRehearsal(self._runner_lock, self._rehearse, cfg.outputs.rehearsal_lead_s)
             if cfg.outputs.rehearsal_lead_s > 0.0 else None)
+        # idle CPUs kept quick to wake while the daemon runs (held in start())
+        self.wakeup: WakeupLatencyRequest | None = (
+            WakeupLatencyRequest(cfg.outputs.cpu_wakeup_latency_us) if cfg.outputs.cpu_wakeup_latency_us >= 0 else None)
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
@@ -591,6 +595,8 @@ class Daemon:
             self.rehearsal.start()
         self.collector.start()
         self.collector.freeze()  # all that start-up made, out of every later collection
+        if self.wakeup is not None:
+            self.wakeup.hold()  # refused: logged, in the health report, and on without it
         sd_notify("READY=1\nSTATUS=navigating")
         log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
 
@@ -718,6 +724,8 @@ class Daemon:
         rep["reordered"] = dict(self.source.counters)  # samples held until the IMU passed them
         rep["live_path"] = dict(self.live_path)
         rep["gc"] = self.collector.report()  # paced after outputs vs CPython's own (automatic_*)
+        if self.wakeup is not None:  # the CPU wake-up latency bound: asked for, held, why not
+            rep["cpu_wakeup_latency"] = self.wakeup.report()
         if self.rehearsal is not None:  # the output epochs' rehearsals: done, late, busy, no_room
             rep["epoch_rehearsal"] = dict(self.rehearsal.counts)
         if self.bridge is not None:  # what the MAVLink link did, lost or refused, counted
@@ -855,6 +863,8 @@ class Daemon:
         if self.bus is not None:
             self.bus.close()
         self.collector.stop()
+        if self.wakeup is not None:
+            self.wakeup.release()
         self._threads = []
         log.info("adaptnav daemon stopped")
 

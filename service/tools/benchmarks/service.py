@@ -427,7 +427,8 @@ def _run_beside(proc: subprocess.Popen, cal: int | None, code: str, duration_s: 
             float(100.0 * (arr[i1, 2] - arr[i0, 2]) / wall))
 
 
-def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool = False) -> dict:
+def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool = False,
+                    wakeup_us: int | None = None) -> dict:
     """Latency as an outside client sees it, and the daemon's CPU share meanwhile.
 
     A daemon (calibrator child on) — or, ``echo``, the plain Zenoh echo of
@@ -435,7 +436,11 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
     latency percentiles over ``duration_s`` of real time at ``rate_hz``, after 8 s of
     alignment; CPU of the daemon (the echo) and its calibrator child over the same
     window, in % of one core; the 1-min load average at the window's start and end.
+    ``wakeup_us``: the CPU wake-up latency bound (:mod:`adaptnav.service.runtime.wakeup`) held
+    meanwhile — by the daemon (``outputs.cpu_wakeup_latency_us``), or for the echo by this
+    process; ``cpu_wakeup_latency`` says whether it was held.
     """
+    from adaptnav.service.runtime.wakeup import WakeupLatencyRequest
     from adaptnav.sim.scenario import load_scenario
 
     from adaptnav.service.config import ZenohConfig
@@ -445,13 +450,17 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
                                              f"sonar.enabled={str(sonar).lower()}"])
     port = _free_port()
     with tempfile.TemporaryDirectory(prefix="adaptnav-bench-") as tmp:
+        wakeup = WakeupLatencyRequest(wakeup_us) if echo and wakeup_us is not None else None
         if echo:
             code = ("import sys; from adaptnav.service.tools.benchmarks.service import echo_main; "
                     f"sys.exit(echo_main({port}, 'bench'))")
             proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE)
+            if wakeup is not None:
+                wakeup.hold()
         else:
-            proc = _start_daemon(scenario, port, tmp)
+            proc = _start_daemon(scenario, port, tmp, overrides=(
+                () if wakeup_us is None else (f"outputs.cpu_wakeup_latency_us={wakeup_us}",)))
         bus = Bus(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",), listen=()), "bench")
         try:
             _wait_up(bus, proc)
@@ -465,10 +474,13 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
             fig["epoch_rehearsal"] = h.get("epoch_rehearsal")  # the daemon's, over its whole run
             fig["gc"] = h.get("gc")  # its collections: paced after outputs, or CPython's own
+            fig["cpu_wakeup_latency"] = wakeup.report() if wakeup is not None else h.get("cpu_wakeup_latency")
             fig["load_avg"] = [load_start, os.getloadavg()[0]]
         finally:
             bus.close()
             _stop(proc)
+            if wakeup is not None:
+                wakeup.release()
     return fig
 
 
@@ -546,17 +558,26 @@ def latency_verdict(ci_bottoms_ms, ci_tops_ms, goal_ms: float) -> str:
 
 
 def latency(latency_s: float) -> dict:
-    """Outside-client latency and daemon CPU at 100 Hz, 200 Hz and 200 Hz with sonar; at
-    100 and 200 Hz the plain Zenoh echo just before, same client, same window length."""
+    """Outside-client latency and daemon CPU at 100 Hz, 200 Hz and 200 Hz with sonar, the
+    daemon on its defaults; then at 100 and 200 Hz again with the CPUs kept from sleeping
+    (``_wakeup0``: ``outputs.cpu_wakeup_latency_us=0``, :mod:`adaptnav.service.runtime.wakeup`).
+    Before each daemon window without sonar, the plain Zenoh echo at the same rate, same
+    client, same window length, same bound (held by this process)."""
     out: dict[str, Any] = {}
-    for rate, sonar, tag in ((100.0, False, "100hz"), (200.0, False, "200hz"), (200.0, True, "200hz_sonar")):
+    for rate, sonar, tag, wakeup_us in ((100.0, False, "100hz", None), (200.0, False, "200hz", None),
+                                        (200.0, True, "200hz_sonar", None),
+                                        (100.0, False, "100hz_wakeup0", 0), (200.0, False, "200hz_wakeup0", 0)):
         if not sonar:
-            floor = outside_latency(rate, False, latency_s, echo=True)
+            floor = outside_latency(rate, False, latency_s, echo=True, wakeup_us=wakeup_us)
             for q in ("p50", "p90", "p99", "max", "p99_ci95"):
                 out[f"zenoh_echo_{tag}_ms_{q}"] = floor[q]
             out[f"zenoh_echo_{tag}_cpu_percent"] = floor["daemon_cpu_percent"]
             out[f"load_avg_{tag}_echo"] = floor["load_avg"]
-        fig = outside_latency(rate, sonar, latency_s)
+            if wakeup_us is not None:
+                out[f"zenoh_echo_{tag}_cpu_wakeup_latency"] = floor["cpu_wakeup_latency"]
+        fig = outside_latency(rate, sonar, latency_s, wakeup_us=wakeup_us)
+        if wakeup_us is not None:  # held or refused (not root): the figures say which
+            out[f"latency_{tag}_cpu_wakeup_latency"] = fig["cpu_wakeup_latency"]
         for q in ("p50", "p90", "p99", "max", "p99_ci95"):
             out[f"latency_{tag}_ms_{q}"] = fig[q]
         if not sonar:
@@ -576,6 +597,10 @@ def latency(latency_s: float) -> dict:
     tops = [out[f"latency_{tag}_ms_p99_ci95"][1] for tag in ("100hz", "200hz")]
     bottoms = [out[f"latency_{tag}_ms_p99_ci95"][0] for tag in ("100hz", "200hz")]
     out["latency_p99_goal_verdict"] = latency_verdict(bottoms, tops, LATENCY_P99_GOAL_MS)
+    out["latency_ms_p99_wakeup0"] = max(out["latency_100hz_wakeup0_ms_p99"], out["latency_200hz_wakeup0_ms_p99"])
+    out["latency_p99_goal_verdict_wakeup0"] = latency_verdict(
+        [out[f"latency_{tag}_wakeup0_ms_p99_ci95"][0] for tag in ("100hz", "200hz")],
+        [out[f"latency_{tag}_wakeup0_ms_p99_ci95"][1] for tag in ("100hz", "200hz")], LATENCY_P99_GOAL_MS)
     out["daemon_cpu_percent"] = out["daemon_cpu_percent_200hz"]
     out["calibrator_cpu_percent"] = out["calibrator_cpu_percent_200hz"]
     return out
