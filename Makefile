@@ -29,7 +29,7 @@ browser:
 	  echo "make browser: chromium could not be installed; the report test will skip"
 
 test: $(STAMP) $(KERNELS) browser
-	$(BIN)/python -m pytest -q -n 2 tests
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup tests
 
 # regenerate the golden replay references (tests/golden/) after a change of behaviour made
 # on purpose; the commit says why the numbers moved

@@ -458,13 +458,17 @@ class Daemon:
         self._malformed_reported: Counter[str] = Counter()
         self._overflow_reported: Counter[str] = Counter()
         self._trimmer = BurstTrimmer()
+        # idle CPUs kept quick to wake while the daemon runs, or around each output epoch (held
+        # in start())
+        outputs_cfg = cfg.outputs
+        self.wakeup: WakeupLatencyRequest | None = (
+            WakeupLatencyRequest(outputs_cfg.cpu_wakeup_latency_us, outputs_cfg.cpu_wakeup_scope)
+            if outputs_cfg.cpu_wakeup_latency_us >= 0 else None)
         # the output epoch's path rehearsed before its IMU sample comes (started in start())
         self.rehearsal: EpochRehearsal | None = (
-            EpochRehearsal(self._runner_lock, self._rehearse, cfg.outputs.rehearsal_lead_s)
-            if cfg.outputs.rehearsal_lead_s > 0.0 else None)
-        # idle CPUs kept quick to wake while the daemon runs (held in start())
-        self.wakeup: WakeupLatencyRequest | None = (
-            WakeupLatencyRequest(cfg.outputs.cpu_wakeup_latency_us) if cfg.outputs.cpu_wakeup_latency_us >= 0 else None)
+            EpochRehearsal(self._runner_lock, self._rehearse, outputs_cfg.rehearsal_lead_s,
+                           window=self.wakeup if outputs_cfg.cpu_wakeup_scope == "epochs" else None)
+            if outputs_cfg.rehearsal_lead_s > 0.0 else None)
 
     # -- construction ---------------------------------------------------------------------
     def _make_estimator(self) -> Any:
@@ -591,12 +595,12 @@ class Daemon:
         self._threads = [runner, house]
         for t in self._threads:
             t.start()
+        if self.wakeup is not None:  # (before the rehearsals, which tighten it around the epochs)
+            self.wakeup.hold()  # refused: logged, in the health report, and on without it
         if self.rehearsal is not None:
             self.rehearsal.start()
         self.collector.start()
         self.collector.freeze()  # all that start-up made, out of every later collection
-        if self.wakeup is not None:
-            self.wakeup.hold()  # refused: logged, in the health report, and on without it
         sd_notify("READY=1\nSTATUS=navigating")
         log.info("adaptnav daemon up: vehicle %s, zenoh %s", cfg.vehicle.name, cfg.zenoh.mode)
 

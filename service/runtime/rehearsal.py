@@ -15,6 +15,12 @@ states are the same, bit for bit, with or without it. Timed across the outside c
 the daemon's processes at 100 Hz (alternated windows; docs/measurements.md, stop 40): decode →
 ``put`` p50 0.32–0.39 → 0.21–0.26 ms; ~0.3 ms of CPU per epoch.
 
+With a ``window`` (:class:`adaptnav.service.runtime.wakeup.WakeupLatencyRequest` of scope
+"epochs"), idle CPUs are also kept quick to wake from the moment a rehearsal is planned (the
+sample before the epoch's has run) to ``hold_after_s`` after the epoch's sample is expected: the
+sample and the nav state it makes find the CPUs quick to wake, and between epochs they may sleep
+deeply.
+
 A rehearsal that would start more than half its lead late is skipped (``late``: it could still
 hold the lock when the sample comes), and so is one that finds the runner busy (``busy``); the
 counts are in the health report (``epoch_rehearsal``). An epoch's sample that comes while a
@@ -23,6 +29,7 @@ rehearsal holds the lock waits for it (it is short) instead of going to the runn
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -36,12 +43,19 @@ class EpochRehearsal:
 
     ``lock``: the runner lock; ``rehearse(dt_s)``: the rehearsal of a sample ``dt_s`` after the
     state time, False when there was nothing to rehearse (no navigation yet); ``lead_s``: how
-    long before the epoch's sample is expected; ``clock``: the monotonic clock (s)."""
+    long before the epoch's sample is expected; ``clock``: the monotonic clock (s); ``window``:
+    ``tighten()`` when a rehearsal is planned, ``relax()`` ``hold_after_s`` after the sample is
+    expected (module docstring)."""
 
     def __init__(self, lock: Any, rehearse: Callable[[float], Any], lead_s: float,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, window: Any = None,
+                 hold_after_s: float = 0.0035) -> None:
         if not lead_s > 0.0:
             raise ValueError(f"lead_s must be > 0, got {lead_s!r}")
+        if not 0.0 < hold_after_s <= 0.05:
+            raise ValueError(f"hold_after_s must be within (0, 0.05] s, got {hold_after_s!r}")
+        self.window = window
+        self.hold_after_s = float(hold_after_s)
         self.lock = lock
         self.rehearse = rehearse
         self.lead_s = float(lead_s)
@@ -66,6 +80,10 @@ class EpochRehearsal:
         if at - self.clock() < self.lead_s:
             self.counts["no_room"] += 1
             return False
+        if self.window is not None:
+            # from now, not from the rehearsal's timer: that timer wakes a CPU that may be asleep
+            # deeply (at 100 Hz, late more often), this thread is running now
+            self.window.tighten()
         with self._cond:
             self._plan = (at, period)
             self._cond.notify()
@@ -109,16 +127,28 @@ class EpochRehearsal:
             self._thread = None
 
     def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._stopped:
-                    if self._plan is None:
-                        self._cond.wait()
-                        continue
-                    wait_s = self._plan[0] - self.clock()
-                    if wait_s <= 0.0:
-                        break
-                    self._cond.wait(wait_s)  # a new plan or the stop wakes it sooner
-                if self._stopped:
-                    return
-            self.run_due()
+        window, relax_at = self.window, math.inf  # (monotonic s: the open window's end)
+        try:
+            while True:
+                with self._cond:
+                    while not self._stopped:
+                        due_at = self._plan[0] if self._plan is not None else math.inf
+                        wait_s = min(due_at, relax_at) - self.clock()
+                        if wait_s <= 0.0:
+                            break
+                        # a new plan or the stop wakes it sooner
+                        self._cond.wait(None if wait_s == math.inf else wait_s)
+                    if self._stopped:
+                        return
+                now = self.clock()
+                if relax_at <= now:
+                    window.relax()
+                    relax_at = math.inf
+                if due_at <= now:
+                    if window is not None:
+                        window.tighten()  # (tightened when planned; again if it was relaxed since)
+                        relax_at = due_at + self.lead_s + self.hold_after_s
+                    self.run_due()
+        finally:
+            if window is not None:
+                window.relax()
