@@ -448,8 +448,8 @@ class OutputsConfig:
     ``/dev/cpu_dma_latency``; 0: the CPUs poll instead of sleeping; −1: no bound, the kernel's
     choice): an IMU sample that finds the CPUs asleep waits for them
     (:mod:`adaptnav.service.runtime.wakeup`). ``cpu_wakeup_scope``: "always" (start to stop) or
-    "epochs" (around each output epoch's sample only, from its rehearsal on: needs
-    ``rehearsal_lead_s`` > 0)."""
+    "epochs" (around each output epoch's sample only, from its rehearsal's planning to 3.5 ms after
+    the sample is expected: needs ``rehearsal_lead_s`` > 0)."""
 
     nav_rate_hz: float = 10.0
     health_rate_hz: float = 1.0
@@ -458,9 +458,10 @@ class OutputsConfig:
     # sample, and the caches still warm (outside client at 100 Hz: decode → put p50
     # 0.32–0.39 → 0.23–0.26 ms)
     rehearsal_lead_s: float = 0.0015
-    # 0 µs around each epoch (issue 17): at 100 / 200 Hz, 120 s windows alternated, the
-    # outside client's p99 1.37 / 1.24 and 1.28 / 1.80 ms, without it 1.72 / 1.81 and 5.14 / 2.20;
-    # held all along it did no better, and it keeps the CPUs polling between epochs
+    # 0 µs around each epoch (issue 17; docs/measurements.md, stop 49): the outside client's p99
+    # in alternated 120 s windows, 100 Hz 1.37 / 1.24 ms against 1.72 / 1.61 without, 200 Hz
+    # 2.91 (a host stall) / 1.52 against 1.72 / 1.84; held all along it did no better, and that
+    # keeps the CPUs polling between epochs
     cpu_wakeup_latency_us: int = 0
     cpu_wakeup_scope: str = "epochs"
 
