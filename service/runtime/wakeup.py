@@ -21,9 +21,9 @@ power: CPUs that may not sleep deeply draw more while idle (0 µs: they poll). T
   moment its rehearsal is planned (:mod:`adaptnav.service.runtime.rehearsal`: the IMU sample
   before it has run) to ``hold_after_s`` after it is expected (:meth:`~WakeupLatencyRequest.tighten`,
   :meth:`~WakeupLatencyRequest.relax`); between epochs the request stays open at the kernel's
-  "no bound". At 10 Hz outputs and a 100 Hz IMU that is ~14 ms in 100 (200 Hz: ~9). Changing the bound makes the kernel kick
-  every idle CPU to choose its idle state again, so tightening also wakes them ahead of the
-  sample.
+  "no bound". At 10 Hz outputs and a 100 Hz IMU that is ~14 ms in 100 (200 Hz: ~9). Changing
+  the bound makes the kernel kick every idle CPU to choose its idle state again, so tightening
+  also wakes them ahead of the sample.
 
 The daemon's default is 0 µs around the epochs (``outputs.cpu_wakeup_latency_us``,
 ``outputs.cpu_wakeup_scope``). The file is root's; refused (no permission, no such device), the
