@@ -200,8 +200,9 @@ def test_the_live_daemon_opens_a_window_around_each_output_epoch(live):
     assert health, f"no epoch windows: {bus.get('health')}"
     rep = health["cpu_wakeup_latency"]
     assert rep["scope"] == "epochs" and rep["held"] is True and rep["error"] is None
-    # the windows follow the rehearsals: not more of them than rehearsals that came due
-    assert rep["tightened"] <= sum(health["epoch_rehearsal"].values())
+    # the windows follow the rehearsals: not more of them than rehearsals that came due, and the
+    # one opened at the latest planning, whose rehearsal may not have come due yet
+    assert rep["tightened"] <= sum(health["epoch_rehearsal"].values()) + 1
     daemon.stop()
     assert dropped(5)
 
