@@ -81,3 +81,18 @@ def test_a_latency_window_that_is_not_a_positive_number_is_refused_before_anythi
         args = argparse.Namespace(quick=True, only="replay,latency", latency_s=bad)
         with pytest.raises(ValueError, match="--latency-s"):
             service.run(args)
+
+
+def test_the_latency_windows_with_and_without_the_wakeup_bound_are_side_by_side_at_each_rate():
+    """The bound's comparison is made in the same minutes: at each rate the default window and
+    the one without the bound come one right after the other, in the order A B B A across the
+    two rates (the host's drift between them cancels to first order); every rate has both."""
+    from adaptnav.service.tools.benchmarks.service import LATENCY_WINDOWS
+
+    plain = [(rate, daemon_us) for rate, sonar, _tag, daemon_us, _echo in LATENCY_WINDOWS if not sonar]
+    assert plain == [(100.0, None), (100.0, -1), (200.0, -1), (200.0, None)]
+    tags = [tag for *_, tag, _d, _e in LATENCY_WINDOWS]
+    assert len(set(tags)) == len(tags)
+    for rate, _sonar, tag, daemon_us, echo_us in LATENCY_WINDOWS:
+        assert tag.startswith(f"{int(rate)}hz")
+        assert tag.endswith("_no_wakeup_bound") == (daemon_us == -1) == (echo_us == -1)

@@ -559,17 +559,26 @@ def latency_verdict(ci_bottoms_ms, ci_tops_ms, goal_ms: float) -> str:
     return "unknown"
 
 
+# The latency part's windows (rate Hz, sonar, tag, the daemon's cpu_wakeup_latency_us: None for
+# its default, the echo's bound µs): the daemon on its defaults (the CPUs kept quick to wake
+# around each output epoch, :mod:`adaptnav.service.runtime.wakeup`) and without that bound
+# (``_no_wakeup_bound``) one right after the other at each rate, in the order A B B A: the host's
+# minutes drift (stalls of 0.1–1 s come and go), and a comparison made an hour apart was once
+# 5.1 against 1.3 ms where windows side by side in the same hour gave 3.1 / 3.4 against 4.4 / 3.2.
+LATENCY_WINDOWS = (
+    (100.0, False, "100hz", None, 0), (100.0, False, "100hz_no_wakeup_bound", -1, -1),
+    (200.0, False, "200hz_no_wakeup_bound", -1, -1), (200.0, False, "200hz", None, 0),
+    (200.0, True, "200hz_sonar", None, None))
+
+
 def latency(latency_s: float) -> dict:
     """Outside-client latency and daemon CPU at 100 Hz, 200 Hz and 200 Hz with sonar, the
-    daemon on its defaults (the CPUs kept quick to wake around each output epoch,
-    :mod:`adaptnav.service.runtime.wakeup`); then at 100 and 200 Hz again without that bound
-    (``_no_wakeup_bound``). Before each daemon window without sonar, the plain Zenoh echo at the
-    same rate, same client, same window length: with a 0 µs bound held all along by this
-    process (the echo rehearses no epochs), or without any."""
+    daemon on its defaults, and at 100 and 200 Hz without its wake-up bound
+    (``_no_wakeup_bound``), in :data:`LATENCY_WINDOWS`' order. Before each daemon window without
+    sonar, the plain Zenoh echo at the same rate, same client, same window length: with a 0 µs
+    bound held all along by this process (the echo rehearses no epochs), or without any."""
     out: dict[str, Any] = {}
-    for rate, sonar, tag, daemon_us, echo_us in (
-            (100.0, False, "100hz", None, 0), (200.0, False, "200hz", None, 0), (200.0, True, "200hz_sonar", None, None),
-            (100.0, False, "100hz_no_wakeup_bound", -1, -1), (200.0, False, "200hz_no_wakeup_bound", -1, -1)):
+    for rate, sonar, tag, daemon_us, echo_us in LATENCY_WINDOWS:
         if not sonar:
             floor = outside_latency(rate, False, latency_s, echo=True, wakeup_us=echo_us)
             for q in ("p50", "p90", "p99", "max", "p99_ci95"):
