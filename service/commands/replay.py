@@ -31,6 +31,10 @@ def add_arguments(parser):
     parser.add_argument("--calibrator-location", choices=("process", "inline"), default="process",
                         help="with --calibrate: a child process (default, the second core) or this process "
                              "(same output)")
+    parser.add_argument("--reader", choices=("auto", "process", "inline"), default="auto",
+                        help="where a MAVLink log is read (decoded, converted): a child process on the second "
+                             "core (same output), this process, or auto (a child for a log of 4 MB or more "
+                             "on two cores)")
     parser.add_argument("--config", metavar="FILE", help="service config TOML (as for `adaptnav run`)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override: a scenario key with --scenario, else a config key (repeatable)")
@@ -66,10 +70,13 @@ def run(args):
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
         return 2
-    if args.calibrate and args.calibrator_location == "process":
+    from adaptnav.service.runtime.reader import wants_child
+
+    if (args.calibrate and args.calibrator_location == "process") or (
+            args.file and wants_child(Path(args.file), args.reader)):
         from adaptnav.service.calibrator.lagged import prestart
 
-        prestart()  # the calibrator's process server starts while the input is opened
+        prestart()  # the child processes' server starts while the input is opened
     try:
         if args.scenario:
             inp = rp.open_scenario(args.scenario, args.set)
@@ -99,7 +106,8 @@ def run(args):
                 inp.reopen(), inp.scenario, inp.label, inp.duration_s, inp.reopen)
             res = rp.replay(source_inp, vcfg, out / name, calibrate=calibrate,
                             realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
-                            plots=not args.no_plots, calibrator_location=args.calibrator_location)
+                            plots=not args.no_plots, calibrator_location=args.calibrator_location,
+                            reader=args.reader)
             rows[name] = res.metrics
             scales[name] = _effective_scale(out / name / "trajectory.csv", vcfg.motion.params0.k_v)
             _warn(res.summary, f"{name}: ")
@@ -118,7 +126,7 @@ def run(args):
         cfg = rp.variant_config(cfg, "static_wrong", args.motion_k_v_error)
     res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
                     progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
-                    mcap=args.mcap, report=args.report)
+                    mcap=args.mcap, report=args.report, reader=args.reader)
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))

@@ -212,7 +212,8 @@ _REPLAY_GC_YOUNG_OBJECTS = 20_000
 def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool = False,
            realtime: float | None = None, progress: bool = True, title: str = "",
            plots: bool = True, calibrator_location: str = "process",
-           mcap: str | Path | None = None, report: str | Path | None = None) -> ReplayResult:
+           mcap: str | Path | None = None, report: str | Path | None = None,
+           reader: str = "auto") -> ReplayResult:
     """Run one replay of ``inp`` with config ``cfg`` into ``out_dir`` (see module docstring).
 
     Parameters
@@ -237,6 +238,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         well-known schemas, log times on a real clock (:mod:`adaptnav.service.runtime.foxglove`).
     report : path, optional
         Also write a self-contained HTML report here (:mod:`adaptnav.service.tools.report`).
+    reader : {"auto", "process", "inline"}
+        Where a MAVLink log is read (decoded, converted, ordered): a child process
+        (:mod:`adaptnav.service.runtime.reader`; the same items, the same outputs), this
+        process, or ``auto``: a child for a log of a few MB on a machine with two cores.
     """
     from adaptnav.service.compose import make_estimator
 
@@ -252,6 +257,10 @@ def replay(inp: ReplayInput, cfg: Any, out_dir: str | Path, *, calibrate: bool =
         inp.source.set_convert(cfg.mavlink.convert, cfg.filter.alignment.min_imu_rate_hz)
     if origin_configured and hasattr(inp.source, "set_origin"):
         inp.source.set_origin(cfg.origin.geo())
+    if hasattr(inp.source, "read_in_child"):  # a MAVLink log
+        from adaptnav.service.runtime.reader import wants_child
+
+        inp.source.read_in_child = wants_child(inp.source.tlog.path, reader)
     items: Any = iter(inp.source)
     origin_note = None
     origin_is_start = True  # the vehicle starts at the origin within initial.sigma_pos_m

@@ -262,6 +262,17 @@ class TlogReplaySource(SampleStreamSource):
     def __init__(self, tlog: Any) -> None:
         super().__init__(tlog)
         self.tlog = tlog
+        # read in a child process (:mod:`adaptnav.service.runtime.reader`): the same items; the
+        # configuration calls made before reading are recorded for it
+        self.read_in_child = False
+        self.calls: list[tuple[str, tuple]] = []
+
+    def __iter__(self) -> Iterator[Any]:
+        if self.read_in_child:
+            from adaptnav.service.runtime.reader import read_in_child
+
+            return read_in_child(self)
+        return super().__iter__()
 
     @staticmethod
     def forward_jump_is_gap(from_s: float, to_s: float) -> bool:
@@ -280,11 +291,13 @@ class TlogReplaySource(SampleStreamSource):
     def set_origin(self, origin: Any) -> None:
         """The configured NED origin (places GLOBAL_VISION_POSITION_ESTIMATE and the truth)."""
         self.tlog.set_origin(origin)
+        self.calls.append(("set_origin", (origin,)))
 
     def set_convert(self, convert: Any, min_imu_rate_hz: float | None = None) -> None:
         """The service's ``[mavlink.convert]`` (:class:`ConvertConfig`), as the live bridge uses
         it, and the filter's slowest IMU stream for strapdown (``filter.alignment.min_imu_rate_hz``)."""
         self.tlog.set_convert(convert, min_imu_rate_hz)
+        self.calls.append(("set_convert", (convert, min_imu_rate_hz)))
 
     @property
     def has_truth(self) -> bool:

@@ -1,0 +1,156 @@
+"""A log's reading in a child process: decoding, conversion, re-ordering and batching on the
+second core while this process navigates.
+
+Replaying a MAVLink log (``.tlog``, DataFlash ``.bin``, a BlueOS ``.mcap``) spends about half
+its time reading: pymavlink's decoding of every frame, the conversion into samples, the
+re-order buffer. That half needs nothing of the navigation, so a child process does it and
+hands the items over in chunks through a pipe; this process gets the same items in the same
+order, so the replay's outputs are the same bytes.
+
+What the replay reads of the source while it runs is mirrored item by item: the UNIX time of a
+mission time (:meth:`TlogReplaySource.unix_of`: the clock's offset as the source had learnt it
+when the item was handed out). What it reads at the end (counters, what is missing, whether
+there is truth) comes with the last chunk. The child's log records are logged here, as the
+reading's own are in-process. An exception of the reading is raised here; a child that dies
+raises ``RuntimeError``.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+log = logging.getLogger(__name__)
+
+# items per hand-over (a tlog's busy second is ~100 items: a few hand-overs a second of data)
+CHUNK_ITEMS = 512
+# "auto" reads in a child from this size on: a smaller log reads in less time than the child
+# takes to start (~0.2 s from the forkserver)
+CHILD_MIN_BYTES = 4_000_000
+READERS = ("auto", "process", "inline")
+
+
+def wants_child(path: Path | None, reader: str) -> bool:
+    """Whether ``reader`` (one of :data:`READERS`) reads the log at ``path`` in a child process:
+    ``process`` always, ``inline`` never, ``auto`` for a log of :data:`CHILD_MIN_BYTES` or more
+    on a machine with a second core."""
+    if reader not in READERS:
+        raise ValueError(f"reader must be one of {', '.join(READERS)}, got {reader!r}")
+    if reader != "auto":
+        return reader == "process"
+    try:
+        big = path is not None and os.path.getsize(path) >= CHILD_MIN_BYTES
+    except OSError:
+        return False
+    return big and (os.cpu_count() or 1) >= 2
+
+
+def _context() -> Any:
+    """The calibrator's forkserver (its imports are most of the reader's) where there is one."""
+    if "forkserver" in mp.get_all_start_methods():
+        from adaptnav.service.calibrator.lagged import _forkserver_context
+
+        return _forkserver_context()
+    return mp.get_context("spawn")
+
+
+class _Forward(logging.Handler):
+    """The child's log records, kept for the next hand-over."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[tuple[str, int, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append((record.name, record.levelno, record.getMessage()))
+
+
+def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int) -> None:
+    """The child: open the log as the parent did, make the parent's configuration calls, read."""
+    forward = _Forward()
+    root = logging.getLogger()
+    root.handlers[:] = [forward]
+    root.setLevel(level)
+    try:
+        from adaptnav.service.runtime.sources import tlog_source
+
+        src = tlog_source(Path(path))
+        for name, args in calls:
+            getattr(src, name)(*args)
+        tlog = src.tlog
+        items: list = []
+        offsets: list = []  # (index in the chunk, UNIX offset from then on)
+        last: Any = object()
+        for item in src:
+            offset = tlog.converter.time.unix_offset_s
+            if offset is not last and offset != last:
+                offsets.append((len(items), offset))
+                last = offset
+            items.append(item)
+            if len(items) >= chunk_items:
+                conn.send(("items", items, offsets, forward.records))
+                items, offsets, forward.records = [], [], []
+        conn.send(("items", items, offsets, forward.records))
+        forward.records = []
+        conn.send(("end", tlog.counters, tlog.missing, tlog.has_truth))
+    except BaseException as e:  # noqa: BLE001 — said to the parent, which raises it
+        try:
+            conn.send(("error", e, forward.records))
+        except Exception:  # noqa: BLE001 — an exception that does not pickle: its words
+            conn.send(("error", RuntimeError(f"{type(e).__name__}: {e}"), forward.records))
+    finally:
+        conn.close()
+
+
+def read_in_child(source: Any) -> Iterator[Any]:
+    """Iterate ``source`` (a :class:`adaptnav.service.runtime.sources.TlogReplaySource` not yet
+    read, its configuration calls recorded) in a child process; see the module docstring."""
+    ctx = _context()
+    receive, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_reader_main, name="adaptnav-log-reader", daemon=True,
+                       args=(str(source.tlog.path), list(source.calls), send,
+                             logging.getLogger().getEffectiveLevel(), CHUNK_ITEMS))
+    proc.start()
+    send.close()  # (the child's end: EOF here when the child is gone)
+    clock = source.tlog.converter.time
+    tlog = source.tlog
+    try:
+        while True:
+            try:
+                message = receive.recv()
+            except EOFError:
+                proc.join(5.0)
+                raise RuntimeError(f"the log reader process ended without finishing "
+                                   f"{tlog.path.name} (exit code {proc.exitcode})") from None
+            kind = message[0]
+            if kind == "items":
+                _, items, offsets, records = message
+                _relog(records)
+                changes = iter(offsets)
+                at, offset = next(changes, (None, None))
+                for i, item in enumerate(items):
+                    if i == at:
+                        clock.unix_offset_s = offset
+                        at, offset = next(changes, (None, None))
+                    yield item
+            elif kind == "end":
+                _, counters, missing, has_truth = message
+                tlog.counters, tlog.missing, tlog.has_truth = counters, missing, has_truth
+                return
+            else:
+                _, error, records = message
+                _relog(records)
+                raise error
+    finally:
+        receive.close()
+        proc.join(2.0)
+        if proc.is_alive():  # the replay stopped early: the reader is not needed
+            proc.terminate()
+            proc.join(2.0)
+
+
+def _relog(records: list[tuple[str, int, str]]) -> None:
+    for name, level, text in records:
+        logging.getLogger(name).log(level, "%s", text)

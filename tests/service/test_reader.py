@@ -1,0 +1,88 @@
+"""A MAVLink log read in a child process (:mod:`adaptnav.service.runtime.reader`) replays to the
+same bytes as one read in the replaying process; the child's warnings, its exceptions and its
+end are this process's."""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import multiprocessing as mp
+from pathlib import Path
+
+import pytest
+
+from adaptnav.service.runtime.reader import CHILD_MIN_BYTES, wants_child
+from adaptnav.service.runtime.replay import build_config, open_log, replay
+
+SESSION = Path(__file__).resolve().parents[1] / "data" / "ardusub-sitl-session.tlog"
+OUTPUTS = ("trajectory.csv", "aid_status.csv", "params.csv")
+
+
+def _replay(path: Path, out: Path, reader: str):
+    return replay(open_log(path), build_config(None, None), out, progress=False, plots=False, reader=reader)
+
+
+def _summary(out: Path) -> dict:
+    doc = json.loads((out / "summary.json").read_text())
+    for key in ("wall_s", "realtime_factor"):  # the run's own time
+        doc.pop(key)
+    return doc
+
+
+def test_a_log_read_in_a_child_replays_to_the_same_bytes(tmp_path):
+    inline, child = tmp_path / "inline", tmp_path / "child"
+    _replay(SESSION, inline, "inline")
+    _replay(SESSION, child, "process")
+    for name in OUTPUTS:
+        assert (child / name).read_bytes() == (inline / name).read_bytes(), name
+    assert _summary(child) == _summary(inline)
+    # the UNIX time of each state is what the source had learnt by then: mirrored from the child
+    with open(child / "trajectory.csv") as f:
+        unix = [row["t_unix_s"] for row in csv.DictReader(f)]
+    assert len(unix) > 1000 and all(unix[-500:])
+
+
+def test_the_childs_warnings_are_logged_here_and_its_counts_reported(tmp_path, caplog):
+    data = SESSION.read_bytes()
+    cut = tmp_path / "cut.tlog"
+    cut.write_bytes(data[: len(data) // 2 + 7])  # the recording cut mid-frame
+    with caplog.at_level(logging.WARNING, logger="adaptnav.service.transport.tlog_source"):
+        _replay(cut, tmp_path / "child", "process")
+    said = [r.getMessage() for r in caplog.records if r.name == "adaptnav.service.transport.tlog_source"]
+    assert any("incomplete message" in text for text in said), said
+    _replay(cut, tmp_path / "inline", "inline")
+    child, inline = _summary(tmp_path / "child"), _summary(tmp_path / "inline")
+    assert child["truncated"] and child == inline
+
+
+def test_the_childs_exception_is_raised_here(tmp_path):
+    log = tmp_path / "gone.tlog"
+    log.write_bytes(SESSION.read_bytes())
+    inp = open_log(log)
+    inp.source.read_in_child = True
+    log.unlink()  # gone before the child opens it
+    with pytest.raises(FileNotFoundError, match="not found"):
+        next(iter(inp.source))
+
+
+def test_a_replay_that_stops_early_ends_its_reader():
+    inp = open_log(SESSION)
+    inp.source.read_in_child = True
+    items = iter(inp.source)
+    first = [next(items) for _ in range(10)]
+    assert all(hasattr(item, "KIND") for item in first)
+    assert [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+    items.close()  # the runner let go of the source (an exception, a stop)
+    assert not [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+
+
+def test_where_a_log_is_read(tmp_path):
+    small, big = tmp_path / "small.tlog", tmp_path / "big.tlog"
+    small.write_bytes(b"\0" * (CHILD_MIN_BYTES - 1))
+    big.write_bytes(b"\0" * CHILD_MIN_BYTES)
+    assert wants_child(small, "process") and not wants_child(big, "inline")
+    assert not wants_child(small, "auto")
+    assert wants_child(big, "auto") == ((__import__("os").cpu_count() or 1) >= 2)
+    assert not wants_child(tmp_path / "absent.tlog", "auto")
+    with pytest.raises(ValueError, match="auto, process, inline"):
+        wants_child(big, "thread")
