@@ -70,13 +70,10 @@ def run(args):
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
         return 2
-    from adaptnav.service.runtime.reader import wants_child
-
-    if (args.calibrate and args.calibrator_location == "process") or (
-            args.file and wants_child(Path(args.file), args.reader)):
+    if args.calibrate and args.calibrator_location == "process":
         from adaptnav.service.calibrator.lagged import prestart
 
-        prestart()  # the child processes' server starts while the input is opened
+        prestart()  # the calibrator's process server starts while the input is opened
     try:
         if args.scenario:
             inp = rp.open_scenario(args.scenario, args.set)

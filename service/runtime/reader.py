@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import sys
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -26,8 +27,8 @@ log = logging.getLogger(__name__)
 
 # items per hand-over (a tlog's busy second is ~100 items: a few hand-overs a second of data)
 CHUNK_ITEMS = 512
-# "auto" reads in a child from this size on: a smaller log reads in less time than the child
-# takes to start (~0.2 s from the forkserver)
+# "auto" reads in a child from this size on: a smaller log gains less than the child costs
+# (starting it, handing the items over)
 CHILD_MIN_BYTES = 4_000_000
 READERS = ("auto", "process", "inline")
 
@@ -48,11 +49,13 @@ def wants_child(path: Path | None, reader: str) -> bool:
 
 
 def _context() -> Any:
-    """The calibrator's forkserver (its imports are most of the reader's) where there is one."""
-    if "forkserver" in mp.get_all_start_methods():
-        from adaptnav.service.calibrator.lagged import _forkserver_context
-
-        return _forkserver_context()
+    """A fork of this process where there is fork: it has imported what the reader needs and
+    the child starts at once (the calibrator's forkserver took ~1 s more: its preloading; a
+    spawned child re-imports). The calibrator avoids plain fork for OpenCV's thread pool, which
+    the reader never touches; what it does touch (logging, the import system) CPython
+    re-initialises in a forked child."""
+    if "fork" in mp.get_all_start_methods():
+        return mp.get_context("fork")
     return mp.get_context("spawn")
 
 
@@ -96,10 +99,14 @@ def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int
         forward.records = []
         conn.send(("end", tlog.counters, tlog.missing, tlog.has_truth))
     except BaseException as e:  # noqa: BLE001 — said to the parent, which raises it
-        try:
-            conn.send(("error", e, forward.records))
-        except Exception:  # noqa: BLE001 — an exception that does not pickle: its words
-            conn.send(("error", RuntimeError(f"{type(e).__name__}: {e}"), forward.records))
+        for error in (e, RuntimeError(f"{type(e).__name__}: {e}")):  # (the words of one that does not pickle)
+            try:
+                conn.send(("error", error, forward.records))
+                break
+            except OSError:  # the parent let go of the source (it stopped early): nobody to tell
+                break
+            except Exception:  # noqa: BLE001 — not picklable: its words next
+                continue
     finally:
         conn.close()
 
@@ -108,6 +115,9 @@ def read_in_child(source: Any) -> Iterator[Any]:
     """Iterate ``source`` (a :class:`adaptnav.service.runtime.sources.TlogReplaySource` not yet
     read, its configuration calls recorded) in a child process; see the module docstring."""
     ctx = _context()
+    # a forked child flushes its copy of the standard streams when it ends: nothing pending there
+    sys.stdout.flush()
+    sys.stderr.flush()
     receive, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_reader_main, name="adaptnav-log-reader", daemon=True,
                        args=(str(source.tlog.path), list(source.calls), send,
