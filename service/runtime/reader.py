@@ -4,12 +4,13 @@ second core while this process navigates.
 Replaying a MAVLink log (``.tlog``, DataFlash ``.bin``, a BlueOS ``.mcap``) spends about half
 its time reading: pymavlink's decoding of every frame, the conversion into samples, the
 re-order buffer. That half needs nothing of the navigation, so a child process does it and
-hands the items over in chunks through a pipe; this process gets the same items in the same
+hands the samples over in chunks through a pipe; this process orders and batches them (the
+two processes' shares of the work are then about even) and gets the same items in the same
 order, so the replay's outputs are the same bytes.
 
 What the replay reads of the source while it runs is mirrored item by item: the UNIX time of a
-mission time (:meth:`TlogReplaySource.unix_of`: the clock's offset as the source had learnt it
-when the item was handed out). What it reads at the end (counters, what is missing, whether
+mission time (:meth:`TlogReplaySource.unix_of`: the clock's offset as the log's reader had
+learnt it when it handed the sample out). What it reads at the end (counters, what is missing, whether
 there is truth) comes with the last chunk. The child's log records are logged here, as the
 reading's own are in-process. An exception of the reading is raised here; a child that dies
 raises ``RuntimeError``.
@@ -86,7 +87,7 @@ def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int
         items: list = []
         offsets: list = []  # (index in the chunk, UNIX offset from then on)
         last: Any = object()
-        for item in src:
+        for item in tlog:  # its samples (the parent orders and batches them, as it would in-process)
             offset = tlog.converter.time.unix_offset_s
             if offset is not last and offset != last:
                 offsets.append((len(items), offset))
@@ -112,8 +113,9 @@ def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int
 
 
 def read_in_child(source: Any) -> Iterator[Any]:
-    """Iterate ``source`` (a :class:`adaptnav.service.runtime.sources.TlogReplaySource` not yet
-    read, its configuration calls recorded) in a child process; see the module docstring."""
+    """The samples of ``source``'s log (a :class:`adaptnav.service.runtime.sources.TlogReplaySource`
+    not yet read, its configuration calls recorded), read in a child process; see the module
+    docstring."""
     ctx = _context()
     # a forked child flushes its copy of the standard streams when it ends: nothing pending there
     sys.stdout.flush()

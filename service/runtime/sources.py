@@ -268,10 +268,10 @@ class TlogReplaySource(SampleStreamSource):
         self.calls: list[tuple[str, tuple]] = []
 
     def __iter__(self) -> Iterator[Any]:
-        if self.read_in_child:
+        if self.read_in_child:  # the log's samples from the child, ordered and batched here
             from adaptnav.service.runtime.reader import read_in_child
 
-            return read_in_child(self)
+            return order_and_batch(read_in_child(self), self.counters, self.horizon_s)
         return super().__iter__()
 
     @staticmethod
