@@ -86,3 +86,18 @@ def test_where_a_log_is_read(tmp_path):
     assert not wants_child(tmp_path / "absent.tlog", "auto")
     with pytest.raises(ValueError, match="auto, process, inline"):
         wants_child(big, "thread")
+
+
+def test_a_reader_that_dies_is_an_error_here_not_a_short_log():
+    import os
+    import signal
+
+    inp = open_log(SESSION)
+    inp.source.read_in_child = True
+    items = iter(inp.source)
+    next(items)
+    (reader,) = [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+    os.kill(reader.pid, signal.SIGKILL)
+    with pytest.raises(RuntimeError, match="log reader process ended without finishing"):
+        for _ in items:  # what was handed over before it died, then the error
+            pass
