@@ -1,5 +1,5 @@
-"""A log's reading in a child process: decoding, conversion, re-ordering and batching on the
-second core while this process navigates.
+"""A log's reading in a child process: decoding and conversion on the second core while this
+process navigates.
 
 Replaying a MAVLink log (``.tlog``, DataFlash ``.bin``, a BlueOS ``.mcap``) spends about half
 its time reading: pymavlink's decoding of every frame, the conversion into samples, the
@@ -8,10 +8,10 @@ hands the samples over in chunks through a pipe; this process orders and batches
 two processes' shares of the work are then about even) and gets the same items in the same
 order, so the replay's outputs are the same bytes.
 
-What the replay reads of the source while it runs is mirrored item by item: the UNIX time of a
+What the replay reads of the source while it runs is mirrored sample by sample: the UNIX time of a
 mission time (:meth:`TlogReplaySource.unix_of`: the clock's offset as the log's reader had
-learnt it when it handed the sample out). What it reads at the end (counters, what is missing, whether
-there is truth) comes with the last chunk. The child's log records are logged here, as the
+learnt it when it handed the sample out). What it reads at the end (counters, what is missing,
+whether there is truth) comes with the last chunk. The child's log records are logged here, as the
 reading's own are in-process. An exception of the reading is raised here; a child that dies
 raises ``RuntimeError``.
 """
@@ -23,8 +23,6 @@ import os
 import sys
 from pathlib import Path
 from typing import Any, Iterator
-
-log = logging.getLogger(__name__)
 
 # items per hand-over (a tlog's busy second is ~100 items: a few hand-overs a second of data)
 CHUNK_ITEMS = 512
