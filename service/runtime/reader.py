@@ -158,7 +158,7 @@ def read_in_child(source: Any) -> Iterator[Any]:
         proc.join(2.0)
         if proc.is_alive():  # the replay stopped early: the reader is not needed
             proc.terminate()
-            proc.join(2.0)
+            proc.join()  # (gone once the signal is taken: no reader outlives its replay)
 
 
 def _relog(records: list[tuple[str, int, str]]) -> None:
