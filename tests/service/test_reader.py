@@ -101,3 +101,14 @@ def test_a_reader_that_dies_is_an_error_here_not_a_short_log():
     with pytest.raises(RuntimeError, match="log reader process ended without finishing"):
         for _ in items:  # what was handed over before it died, then the error
             pass
+
+
+def test_a_blueos_recording_read_in_a_child_replays_to_the_same_bytes(tmp_path):
+    from .mavlink_wire import write_blueos_mcap
+
+    mcap = write_blueos_mcap(SESSION, tmp_path / "session.mcap")
+    _replay(mcap, tmp_path / "inline", "inline")
+    _replay(mcap, tmp_path / "child", "process")
+    for name in OUTPUTS:
+        assert (tmp_path / "child" / name).read_bytes() == (tmp_path / "inline" / name).read_bytes(), name
+    assert _summary(tmp_path / "child") == _summary(tmp_path / "inline")
