@@ -19,6 +19,8 @@ HELP = "replay a log (.mcap, .tlog, .bin) or a simulated scenario through the na
 
 
 def add_arguments(parser):
+    from adaptnav.service.runtime.reader import CHILD_MIN_BYTES, READERS  # (stdlib only)
+
     parser.add_argument("file", nargs="?", help="log to replay: .mcap (adaptnav) or .tlog/.bin (MAVLink)")
     parser.add_argument("--scenario", metavar="NAME",
                         help="simulate this scenario (name in sim/scenarios or a .toml path) in memory instead")
@@ -31,10 +33,10 @@ def add_arguments(parser):
     parser.add_argument("--calibrator-location", choices=("process", "inline"), default="process",
                         help="with --calibrate: a child process (default, the second core) or this process "
                              "(same output)")
-    parser.add_argument("--reader", choices=("auto", "process", "inline"), default="auto",
+    parser.add_argument("--reader", choices=READERS, default="auto",
                         help="where a MAVLink log is read (decoded, converted): a child process on the second "
-                             "core (same output), this process, or auto (a child for a log of 4 MB or more "
-                             "on two cores)")
+                             f"core (same output), this process, or auto (a child for a log of "
+                             f"{CHILD_MIN_BYTES / 1e6:g} MB or more on two cores)")
     parser.add_argument("--config", metavar="FILE", help="service config TOML (as for `adaptnav run`)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override: a scenario key with --scenario, else a config key (repeatable)")

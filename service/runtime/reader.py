@@ -87,7 +87,7 @@ def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int
         last: Any = object()
         for item in tlog:  # its samples (the parent orders and batches them, as it would in-process)
             offset = tlog.converter.time.unix_offset_s
-            if offset is not last and offset != last:
+            if offset != last:
                 offsets.append((len(items), offset))
                 last = offset
             items.append(item)

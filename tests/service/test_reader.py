@@ -7,6 +7,7 @@ import csv
 import json
 import logging
 import multiprocessing as mp
+import os
 from pathlib import Path
 
 import pytest
@@ -82,14 +83,13 @@ def test_where_a_log_is_read(tmp_path):
     big.write_bytes(b"\0" * CHILD_MIN_BYTES)
     assert wants_child(small, "process") and not wants_child(big, "inline")
     assert not wants_child(small, "auto")
-    assert wants_child(big, "auto") == ((__import__("os").cpu_count() or 1) >= 2)
+    assert wants_child(big, "auto") == ((os.cpu_count() or 1) >= 2)
     assert not wants_child(tmp_path / "absent.tlog", "auto")
     with pytest.raises(ValueError, match="auto, process, inline"):
         wants_child(big, "thread")
 
 
 def test_a_reader_that_dies_is_an_error_here_not_a_short_log():
-    import os
     import signal
 
     inp = open_log(SESSION)
