@@ -47,9 +47,17 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     # ping and without side-scan), refreshed by this loop after each ping
     last: dict[str, Any] = {"params": params0.to_dict(), "side_scan": side_scan_report(calibrator)}
     received: Counter[str] = Counter()  # samples taken, by kind
-    bus.queryable("calibrator", lambda: json.dumps(
-        {"type": "calibrator_status", "schema_version": 1, **last, "received": dict(received),
-         "overflow": dict(overflow), "malformed": dict(bus.malformed)}).encode())
+    # one lock over `last` and `received`: a status taken between a ping's count and its
+    # side-scan report would say the node took a ping its front end has not seen
+    status_lock = threading.Lock()
+
+    def status() -> bytes:
+        with status_lock:
+            doc = {"type": "calibrator_status", "schema_version": 1, **last, "received": dict(received),
+                   "overflow": dict(overflow), "malformed": dict(bus.malformed)}
+        return json.dumps(doc).encode()
+
+    bus.queryable("calibrator", status)
     log.info("calibrator node up for vehicle %s", cfg.vehicle.name)
     try:
         while not stop.is_set():
@@ -59,15 +67,19 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
                 sample = None
             if sample is not None:
                 kind = getattr(sample, "KIND", type(sample).__name__)
-                received[kind] += 1
                 calibrator.observe(sample)
-                if kind == "sonar":
-                    last["side_scan"] = side_scan_report(calibrator)
+                report = side_scan_report(calibrator) if kind == "sonar" else None
+                with status_lock:
+                    received[kind] += 1
+                    if report is not None:
+                        last["side_scan"] = report
             for release in calibrator.poll():
                 if release.KIND != "calibration_release":
                     continue  # side-scan objects for a filter: a remote node has none (calibration.sidescan)
                 if release.accepted and release.params is not None:
-                    last["params"] = release.params.to_dict()
+                    params = release.params.to_dict()
+                    with status_lock:
+                        last["params"] = params
                 bus.put(bus.keys.params, codec.encode(release))
     finally:
         bus.close()
