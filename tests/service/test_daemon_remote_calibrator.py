@@ -122,3 +122,57 @@ def test_remote_calibrator_node_says_what_its_side_scan_front_end_made_of_the_pi
     report = status["side_scan"]
     assert report["pings"] == pings and report["resampled"] == 0 and "bad geometry" not in report["rejected"]
     assert report["blocks"] >= pings // 160 - 1
+
+
+def test_remote_calibrator_node_counts_a_ping_only_once_its_front_end_took_it(tmp_path, monkeypatch):
+    """A status asked while a ping is still in the front end (a block of pings being searched
+    for objects takes a while) must not count it as received before the front end's report does:
+    the two always agree. The node's real calibrator, held inside its first ping's ``observe``."""
+    import adaptnav.service.calibrator.node as node_module
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+    from adaptnav.sim.scenario import load_scenario
+
+    inside, go_on = threading.Event(), threading.Event()
+
+    class HeldAtFirstPing:
+        def __init__(self, calibrator):
+            self._calibrator = calibrator
+
+        def observe(self, sample):
+            if sample.KIND == "sonar" and not inside.is_set():
+                inside.set()
+                assert go_on.wait(60)
+            self._calibrator.observe(sample)
+
+        def __getattr__(self, name):
+            return getattr(self._calibrator, name)
+
+    real_make = node_module.make_calibrator
+    monkeypatch.setattr(node_module, "make_calibrator", lambda *a: HeldAtFirstPing(real_make(*a)))
+    scenario = load_scenario("survey", ["seed=2", "duration_s=20.0", "dvl.enabled=false", "sonar.enabled=true"])
+    port = free_port()
+    node_cfg = build_config(scenario, None, [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false",
+                                             "vehicle.name=testauv", f'state_dir="{tmp_path}/n"'])
+    vehicle = Bus(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "testauv")
+    stop = threading.Event()
+    node = threading.Thread(target=run_node, args=(node_cfg, stop), daemon=True)
+    node.start()
+    try:
+        assert wait_until(lambda: vehicle.get("calibrator", 0.5), 60), "the calibrator node did not answer"
+        ping = next(s for s in simulate(scenario).iter_samples() if s.KIND == "sonar")
+        vehicle.publish_sample(ping)
+        assert inside.wait(60), "the node did not take the ping"
+        during = vehicle.get("calibrator", 5.0)
+        go_on.set()
+        after = wait_until(lambda: (st := vehicle.get("calibrator", 1.0)) and st["received"].get("sonar") == 1
+                           and st, 60)
+    finally:
+        go_on.set()
+        stop.set()
+        node.join(10)
+        vehicle.close()
+    assert during is not None
+    assert during["received"].get("sonar", 0) == 0 and during["side_scan"] is None, during
+    assert after, "the ping was never counted"
+    assert after["side_scan"]["pings"] == 1
