@@ -83,22 +83,30 @@ def test_remote_calibrator_node_release_reaches_daemon(tmp_path):
     assert node_status and node_status["received"].get("inertial_velocity", 0) > 100, node_status
 
 
-def test_remote_calibrator_node_says_what_its_side_scan_front_end_made_of_the_pings(tmp_path):
-    """The node's status (query ``calibrator``) carries its object front end's counts, as the
-    daemon's health does for a calibrator child: every side-scan ping published is counted."""
+def _side_scan_node(tmp_path, duration_s: float):
+    """A survey with side-scan (no DVL), a calibrator node for it started in a thread, and the
+    vehicle's side of the bus (a peer listening where the node connects): (scenario, vehicle,
+    stop, node)."""
     from adaptnav.service.config import ZenohConfig
     from adaptnav.service.transport.bus import Bus
     from adaptnav.sim.scenario import load_scenario
 
-    scenario = load_scenario("survey", ["seed=2", "duration_s=60.0", "dvl.enabled=false", "sonar.enabled=true"])
+    scenario = load_scenario("survey", ["seed=2", f"duration_s={duration_s}", "dvl.enabled=false",
+                                        "sonar.enabled=true"])
     port = free_port()
     node_cfg = build_config(scenario, None, [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false",
                                              "vehicle.name=testauv", f'state_dir="{tmp_path}/n"'])
-    # the vehicle's side of the bus: a peer listening where the node connects
     vehicle = Bus(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "testauv")
     stop = threading.Event()
     node = threading.Thread(target=run_node, args=(node_cfg, stop), daemon=True)
     node.start()
+    return scenario, vehicle, stop, node
+
+
+def test_remote_calibrator_node_says_what_its_side_scan_front_end_made_of_the_pings(tmp_path):
+    """The node's status (query ``calibrator``) carries its object front end's counts, as the
+    daemon's health does for a calibrator child: every side-scan ping published is counted."""
+    scenario, vehicle, stop, node = _side_scan_node(tmp_path, 60.0)
     try:
         first = wait_until(lambda: vehicle.get("calibrator", 0.5), 60)
         assert first, "the calibrator node did not answer"
@@ -129,9 +137,6 @@ def test_remote_calibrator_node_counts_a_ping_only_once_its_front_end_took_it(tm
     for objects takes a while) must not count it as received before the front end's report does:
     the two always agree. The node's real calibrator, held inside its first ping's ``observe``."""
     import adaptnav.service.calibrator.node as node_module
-    from adaptnav.service.config import ZenohConfig
-    from adaptnav.service.transport.bus import Bus
-    from adaptnav.sim.scenario import load_scenario
 
     inside, go_on = threading.Event(), threading.Event()
 
@@ -150,14 +155,7 @@ def test_remote_calibrator_node_counts_a_ping_only_once_its_front_end_took_it(tm
 
     real_make = node_module.make_calibrator
     monkeypatch.setattr(node_module, "make_calibrator", lambda *a: HeldAtFirstPing(real_make(*a)))
-    scenario = load_scenario("survey", ["seed=2", "duration_s=20.0", "dvl.enabled=false", "sonar.enabled=true"])
-    port = free_port()
-    node_cfg = build_config(scenario, None, [f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "zenoh.scouting=false",
-                                             "vehicle.name=testauv", f'state_dir="{tmp_path}/n"'])
-    vehicle = Bus(ZenohConfig(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "testauv")
-    stop = threading.Event()
-    node = threading.Thread(target=run_node, args=(node_cfg, stop), daemon=True)
-    node.start()
+    scenario, vehicle, stop, node = _side_scan_node(tmp_path, 20.0)
     try:
         assert wait_until(lambda: vehicle.get("calibrator", 0.5), 60), "the calibrator node did not answer"
         ping = next(s for s in simulate(scenario).iter_samples() if s.KIND == "sonar")
