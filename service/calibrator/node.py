@@ -47,6 +47,7 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     # ping and without side-scan), refreshed by this loop after each ping
     last: dict[str, Any] = {"params": params0.to_dict(), "side_scan": side_scan_report(calibrator)}
     received: Counter[str] = Counter()  # samples taken, by kind
+    errors: Counter[str] = Counter()  # samples the calibrator failed on, by kind (logged, not taken)
     # one lock over `last` and `received`: a status taken between a ping's count and its
     # side-scan report would say the node took a ping its front end has not seen
     status_lock = threading.Lock()
@@ -54,7 +55,7 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
     def status() -> bytes:
         with status_lock:
             doc = {"type": "calibrator_status", "schema_version": 1, **last, "received": dict(received),
-                   "overflow": dict(overflow), "malformed": dict(bus.malformed)}
+                   "errors": dict(errors), "overflow": dict(overflow), "malformed": dict(bus.malformed)}
         return json.dumps(doc).encode()
 
     bus.queryable("calibrator", status)
@@ -67,7 +68,15 @@ def run_node(cfg: Any, stop: threading.Event) -> int:
                 sample = None
             if sample is not None:
                 kind = getattr(sample, "KIND", type(sample).__name__)
-                calibrator.observe(sample)
+                try:
+                    calibrator.observe(sample)
+                except Exception as exc:  # one bad sample must not end the node (as the runner's items)
+                    with status_lock:
+                        errors[kind] += 1
+                    if errors[kind] <= 10:
+                        log.exception("calibrator node: error taking a %s sample at t=%s: %s", kind,
+                                      getattr(sample, "t_s", "?"), exc)
+                    continue
                 report = side_scan_report(calibrator) if kind == "sonar" else None
                 with status_lock:
                     received[kind] += 1

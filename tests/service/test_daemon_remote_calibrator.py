@@ -103,6 +103,29 @@ def _side_scan_node(tmp_path, duration_s: float):
     return scenario, vehicle, stop, node
 
 
+class _Intercepted:
+    """The node's real calibrator with ``before(sample)`` run ahead of each ``observe`` (to hold
+    one sample there, or fail on it)."""
+
+    def __init__(self, calibrator, before) -> None:
+        self._calibrator, self._before = calibrator, before
+
+    def observe(self, sample) -> None:
+        self._before(sample)
+        self._calibrator.observe(sample)
+
+    def __getattr__(self, name):
+        return getattr(self._calibrator, name)
+
+
+def _intercept(monkeypatch, before) -> None:
+    """The calibrator node makes an :class:`_Intercepted` calibrator."""
+    import adaptnav.service.calibrator.node as node_module
+
+    real_make = node_module.make_calibrator
+    monkeypatch.setattr(node_module, "make_calibrator", lambda *a: _Intercepted(real_make(*a), before))
+
+
 def test_remote_calibrator_node_says_what_its_side_scan_front_end_made_of_the_pings(tmp_path):
     """The node's status (query ``calibrator``) carries its object front end's counts, as the
     daemon's health does for a calibrator child: every side-scan ping published is counted."""
@@ -136,25 +159,14 @@ def test_remote_calibrator_node_counts_a_ping_only_once_its_front_end_took_it(tm
     """A status asked while a ping is still in the front end (a block of pings being searched
     for objects takes a while) must not count it as received before the front end's report does:
     the two always agree. The node's real calibrator, held inside its first ping's ``observe``."""
-    import adaptnav.service.calibrator.node as node_module
-
     inside, go_on = threading.Event(), threading.Event()
 
-    class HeldAtFirstPing:
-        def __init__(self, calibrator):
-            self._calibrator = calibrator
+    def held_at_first_ping(sample) -> None:
+        if sample.KIND == "sonar" and not inside.is_set():
+            inside.set()
+            assert go_on.wait(60)
 
-        def observe(self, sample):
-            if sample.KIND == "sonar" and not inside.is_set():
-                inside.set()
-                assert go_on.wait(60)
-            self._calibrator.observe(sample)
-
-        def __getattr__(self, name):
-            return getattr(self._calibrator, name)
-
-    real_make = node_module.make_calibrator
-    monkeypatch.setattr(node_module, "make_calibrator", lambda *a: HeldAtFirstPing(real_make(*a)))
+    _intercept(monkeypatch, held_at_first_ping)
     scenario, vehicle, stop, node = _side_scan_node(tmp_path, 20.0)
     try:
         assert wait_until(lambda: vehicle.get("calibrator", 0.5), 60), "the calibrator node did not answer"
@@ -174,3 +186,32 @@ def test_remote_calibrator_node_counts_a_ping_only_once_its_front_end_took_it(tm
     assert during["received"].get("sonar", 0) == 0 and during["side_scan"] is None, during
     assert after, "the ping was never counted"
     assert after["side_scan"]["pings"] == 1
+
+
+def test_remote_calibrator_node_counts_a_sample_its_calibrator_failed_on_and_goes_on(tmp_path, monkeypatch):
+    """An exception out of the calibrator for one sample is logged and counted in the status
+    (``errors``), the sample is not counted as taken, and the node takes the next ones."""
+    failed = []
+
+    def fails_on_first_depth(sample) -> None:
+        if sample.KIND == "depth" and not failed:
+            failed.append(sample)
+            raise ValueError("a sample the calibrator cannot take")
+
+    _intercept(monkeypatch, fails_on_first_depth)
+    scenario, vehicle, stop, node = _side_scan_node(tmp_path, 20.0)
+    try:
+        assert wait_until(lambda: vehicle.get("calibrator", 0.5), 60), "the calibrator node did not answer"
+        depths = [s for s in simulate(scenario).iter_samples() if s.KIND == "depth"][:5]
+        for s in depths:
+            vehicle.publish_sample(s)
+        status = wait_until(lambda: (st := vehicle.get("calibrator", 1.0))
+                            and st["received"].get("depth", 0) + st["errors"].get("depth", 0) == len(depths) and st, 60)
+        alive = node.is_alive()
+    finally:
+        stop.set()
+        node.join(10)
+        vehicle.close()
+    assert status, "the node did not answer for every depth sample"
+    assert alive
+    assert status["errors"] == {"depth": 1} and status["received"]["depth"] == len(depths) - 1
