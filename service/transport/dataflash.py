@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import struct
 import sys
 import threading
@@ -228,8 +229,12 @@ def indexer_complaints() -> Iterator[dict[str, Any]]:
     """While pymavlink's compiled DataFlash indexer runs (it builds a binary log's index when
     the log is opened): its complaints are counted, not printed. On a damaged log it prints
     ``bad header 0x… at <offset>`` to the C stderr for every position it resynchronises at —
-    116,622 lines for one flipped length byte. Yields ``{"bad_headers": n, "first": text}``
-    (``0xffff``, erased flash — a card's unwritten space after the log — is not counted).
+    116,622 lines for one flipped length byte. Yields ``{"bad_headers": n, "first": text,
+    "index_ends_at": offset or None}`` (``0xffff``, erased flash — a card's unwritten space
+    after the log — is not counted). ``index_ends_at``: where the indexer met a record of a
+    type no format declares (its format record lost, or a damaged header's type byte) and
+    stopped: nothing after it is in the index (``unknown msg type 0x… (n) at <offset>``, the
+    legacy indexer's the same).
 
     The process's file descriptor 2 is redirected to a temporary file meanwhile (the only way
     to catch a C library's ``fprintf``); whatever else was written to it then — by another
@@ -237,7 +242,7 @@ def indexer_complaints() -> Iterator[dict[str, Any]]:
     import os
     import tempfile
 
-    said: dict[str, Any] = {"bad_headers": 0, "first": ""}
+    said: dict[str, Any] = {"bad_headers": 0, "first": "", "index_ends_at": None}
     sys.stderr.flush()
     with tempfile.TemporaryFile() as caught, _STDERR_PATCH_LOCK:
         real = os.dup(2)
@@ -256,9 +261,15 @@ def indexer_complaints() -> Iterator[dict[str, Any]]:
                     said["bad_headers"] += 1
                     if not said["first"]:
                         said["first"] = line.decode("ascii", "replace").strip()
+                elif (end := _UNKNOWN_TYPE_AT.match(line)) is not None:
+                    if said["index_ends_at"] is None:  # (the indexer stops at the first)
+                        said["index_ends_at"] = int(end.group(1))
                 else:
                     os.write(2, line)
 
+
+# pymavlink's indexers' last word on a record of a type no format declares (they stop there)
+_UNKNOWN_TYPE_AT = re.compile(rb"unknown msg type 0x[0-9a-fA-F]+ \(\d+\) at (\d+)")
 
 # what pymavlink's DataFlash reader prints when a record does not parse (it is dropped; the
 # other complaints are the resync around one: bytes skipped)
@@ -270,12 +281,13 @@ def reader_complaints() -> Iterator[dict[str, Any]]:
     """While pymavlink's DataFlash reader runs: what it prints (a damaged log made it print a
     line per bad record and per resync — 142,221 lines for one damaged length byte — to the
     terminal of whoever replayed it, and the records it dropped so were counted nowhere) is
-    counted instead. Yields ``{"lines": n, "parse_failures": n, "first": text}``; DFReader's
+    counted instead. Yields ``{"lines": n, "parse_failures": n, "skips": n, "first": text}``
+    (``skips``: the runs of bytes it skipped to the next record it knows); DFReader's
     module-level ``print`` is replaced meanwhile (only that module's: the compiled indexer
     writes to the C stderr, :func:`indexer_complaints`)."""
     from pymavlink import DFReader
 
-    said: dict[str, Any] = {"lines": 0, "parse_failures": 0, "first": ""}
+    said: dict[str, Any] = {"lines": 0, "parse_failures": 0, "skips": 0, "first": ""}
 
     def complain(*args: Any, **kwargs: Any) -> None:  # noqa: ARG001 - print's signature
         said["lines"] += 1
@@ -284,6 +296,8 @@ def reader_complaints() -> Iterator[dict[str, Any]]:
             said["first"] = text
         if text.startswith(_PARSE_FAILED):
             said["parse_failures"] += 1
+        elif text.startswith("Skipped "):
+            said["skips"] += 1
 
     before = DFReader.__dict__.get("print")  # a use around this one (nested): put back after
     DFReader.print = complain
@@ -338,12 +352,50 @@ class SimTruth(NamedTuple):
     q_nb: tuple[float, float, float, float]  # w, x, y, z
 
 
+class LogTimeGuard:
+    """A DataFlash log's ``TimeUS``, judged before the mission clock takes it.
+
+    A log holds one boot of the autopilot (a reboot starts a new file) and its records are
+    written in time order, so a time more than ``back_s`` before the log's latest is no reboot:
+    it is damage — a block of zeros over the record's time (``TimeUS`` 0), a flipped bit — and
+    the mission clock took it for a reboot and moved every later sample on by the log's age
+    (a public log with 20 blocks of 512 zero bytes replayed as 295 s of data, not 24). A time
+    more than ``jump_s`` after the latest, or the log's first, is a logging pause or damage
+    alike: its record is held until the next one says which (:meth:`judge`)."""
+
+    def __init__(self, back_s: float = 1.0, jump_s: float = 5.0) -> None:
+        self.back_s, self.jump_s = back_s, jump_s
+        self.latest_s: float | None = None  # the log's time so far (two records agreed on it)
+        self.held_s: float | None = None    # the time of the record held
+
+    def near(self, t_s: float, level_s: float) -> bool:
+        return level_s - self.back_s <= t_s <= level_s + self.jump_s
+
+    def judge(self, t_s: float) -> tuple[str, bool]:
+        """``(verdict, held record's fate)`` for a record of time ``t_s`` (s): verdict "take",
+        "hold" (until the next record) or "refuse" (damaged); the record held before it, if
+        any, is taken first when True, refused when False (no record held: False)."""
+        held, latest = self.held_s, self.latest_s
+        self.held_s = None
+        if held is not None and self.near(t_s, held):  # the next record agrees: a new level
+            self.latest_s = max(held, t_s)  # (held only ahead of the latest, or as the first)
+            return "take", True
+        if latest is not None and self.near(t_s, latest):
+            self.latest_s = max(latest, t_s)
+            return "take", False
+        if latest is not None and t_s < latest - self.back_s:
+            return "refuse", False
+        self.held_s = t_s  # a jump forward, or the first time
+        return "hold", False
+
+
 class DataflashConverter:
     """DataFlash records → samples (module docstring), on the clock and accounts of ``mav``.
 
-    Shares the :class:`MavlinkConverter`'s :class:`MissionClock` (``TimeUS`` is the boot
-    clock, so reboots and jumps are handled as for a link), its per-type accounts
-    (``summary.json``'s ``message_types``) and its rejection counters.
+    Shares the :class:`MavlinkConverter`'s :class:`MissionClock` and its per-type accounts
+    (``summary.json``'s ``message_types``) and its rejection counters. ``TimeUS`` is the boot
+    clock; a log is one boot, so its jumps are judged first (:class:`LogTimeGuard`: a damaged
+    time is refused as ``time_damaged``, never taken for a reboot).
     """
 
     def __init__(self, mav: MavlinkConverter, baro_instance: int | None = None):
@@ -356,6 +408,8 @@ class DataflashConverter:
         # validity by the receiver's latency (≥ 0, jittering); the least delayed of a window is the best pair
         self._gps_delay = _WindowMin(GPS_TIME_WINDOW_S)
         self.imu_instance = 0
+        self.time_guard = LogTimeGuard()
+        self._held: tuple[Any, str, TypeAccount, float] | None = None  # the record the guard holds
 
     @property
     def baro_instance(self) -> int:
@@ -384,6 +438,33 @@ class DataflashConverter:
             self._sim_vel_n_m_s = (float(msg.VN), float(msg.VE), float(msg.VD))
             self._ignore(acc, IGNORED_WHY[mtype])
             return [], []
+        verdict, held_taken = self.time_guard.judge(t_us / 1e6)
+        samples: list = []
+        truths: list[SimTruth] = []
+        held, self._held = self._held, None
+        if held is not None:
+            if held_taken:
+                samples, truths = self._dated(*held)
+            else:
+                self.mav._count_reject(held[2], "time_damaged")
+        if verdict == "hold":
+            self._held = (msg, mtype, acc, t_us)
+        elif verdict == "refuse":
+            self.mav._count_reject(acc, "time_damaged")
+        else:
+            more, more_truths = self._dated(msg, mtype, acc, t_us)
+            samples, truths = samples + more, truths + more_truths
+        return samples, truths
+
+    def finish(self) -> None:
+        """The log ended: a record still held (a jump of time no record came after to confirm)
+        is refused as damaged."""
+        held, self._held = self._held, None
+        if held is not None:
+            self.mav._count_reject(held[2], "time_damaged")
+
+    def _dated(self, msg: Any, mtype: str, acc: TypeAccount, t_us: float) -> tuple[list, list[SimTruth]]:
+        """``(samples, truths)`` of a record whose ``TimeUS`` the guard took."""
         t_s = self.mav.time.map_boot_s(t_us / 1e6)
         try:
             if mtype == "SIM":

@@ -28,6 +28,7 @@ import logging
 import math
 import statistics
 import tempfile
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator
@@ -176,6 +177,9 @@ class TlogSource:
         self._text_dataflash = suffix == ".log" and _is_text_dataflash(self.path)
         self._dataflash = suffix == ".bin" or self._text_dataflash
         self._index_said = False
+        # a binary DataFlash log whose index stops short (pymavlink's indexers stop at a record of
+        # a type no format declares): the offset of that record, where the rest is read from
+        self._index_ends_at: int | None = None
         self._format_repairs: list | None = None  # a binary DataFlash log's damaged FMT bytes (found once)
         self._tlog = suffix == ".tlog" or (suffix == ".log" and not self._text_dataflash)
         self._text_lines_dropped_said = False
@@ -328,19 +332,26 @@ class TlogSource:
             except Exception:  # pymavlink's tlog index chokes on a truncated file; the reading pass reports it
                 return False
             try:
+                truth_type, next_message = "SIM_STATE", conn.recv_match
                 if self._dataflash:  # DFReader indexes the file by record type: no scan
                     try:
-                        return conn.recv_match(type="SIM") is not None
+                        found = conn.recv_match(type="SIM") is not None
                     except Exception:  # a damaged log: the reading pass reports it
                         return False
+                    if found or self._index_ends_at is None:
+                        return found
+                    # an index that ends early (_unindexed_rest): the records after it, scanned
+                    conn.offset = self._index_ends_at
+                    conn.remaining = conn.data_len - conn.offset
+                    truth_type, next_message = "SIM", conn.recv_msg
                 for _ in range(max_messages):
                     try:
-                        m = conn.recv_match()
+                        m = next_message()
                     except Exception:
                         continue
                     if m is None:
                         return False
-                    if m.get_type() == "SIM_STATE":
+                    if m.get_type() == truth_type:
                         return True
                 return False
             finally:
@@ -415,6 +426,11 @@ class TlogSource:
         if self._index_said:  # opened more than once (the truth scan): said and counted once
             return conn
         self._index_said = True
+        self._index_ends_at = indexer["index_ends_at"]
+        if self._index_ends_at is not None:
+            log.warning("%s: the log's index ends at byte %d of %d, at a record of a type no format declares "
+                        "(its format record lost, or the record's header damaged): the rest is read record by "
+                        "record", self.path.name, self._index_ends_at, int(getattr(conn, "data_len", 0)))
         if damaged:
             self.counters["corrupt_frames"] += len(damaged)
             for name in damaged:
@@ -440,13 +456,20 @@ class TlogSource:
         if self._dataflash:
             with reader_complaints() as said:
                 yield from self._reader_messages()
+            self.dataflash.finish()  # (a record held for a jump of its time that no record confirmed)
             if said["lines"]:
                 failed = said["parse_failures"]  # records dropped (a record may fail more than once)
-                self.counters["corrupt_frames"] += failed
+                # damaged bytes, or records of a type no format declares, skipped to the next
+                # record (only where the index did not reach: it leads to records only)
+                skips = said["skips"]
+                self.counters["corrupt_frames"] += failed + skips
                 if failed:
                     self._reject("reader_parse_failure", failed)
-                log.warning("%s: pymavlink's reader failed to parse records %d time(s) (%d complaint(s), the "
-                            "first: %s)", self.path.name, failed, said["lines"], said["first"][:200])
+                if skips:
+                    self._reject("reader_skipped_bytes", skips)
+                log.warning("%s: pymavlink's reader failed to parse records %d time(s) and skipped damaged bytes "
+                            "%d time(s) (%d complaint(s), the first: %s)", self.path.name, failed, skips,
+                            said["lines"], said["first"][:200])
             return
         yield from self._reader_messages()
 
@@ -459,36 +482,70 @@ class TlogSource:
             self._reject(f"unreadable:{type(e).__name__}")
             log.warning("%s: not a readable MAVLink/DataFlash log (%s: %s)", self.path.name, type(e).__name__, e)
             return
-        stuck_at = None  # the reader's position at its last error
         try:
-            while True:
-                try:
-                    # a DataFlash log: only the records the replay reads are decoded (DFReader
-                    # skips to them through its index); the others are counted from the index
-                    msg = (conn.recv_match(type=DATAFLASH_READ, strict=True) if self._dataflash
-                           else conn.recv_match())
-                except Exception as e:  # a reader bug on garbage must not end the replay
-                    self.counters["corrupt_frames"] += 1
-                    self._reject(f"reader_error:{type(e).__name__}")
-                    position = getattr(conn, "offset", None)
-                    if position is not None and position == stuck_at:  # it failed twice in one place
-                        self._reject("unreadable_rest")
-                        log.warning("%s: the reader cannot go past byte %d (%s: %s); the rest is not read",
-                                    self.path.name, position, type(e).__name__, e)
-                        return
-                    stuck_at = position
-                    continue
-                stuck_at = None
-                if msg is None:
-                    if self._dataflash:
-                        self._count_unread(conn)
+            if not self._dataflash:
+                if (yield from self._read_all(conn, conn.recv_match)):
                     self._note_cut_off(conn)
-                    return
-                msg = self._as_read(msg, getattr(conn, "mav", None))  # a DataFlash reader has no parser
-                if msg is not None:
-                    yield msg
+                return
+            # a DataFlash log: only the records the replay reads are decoded (DFReader skips to
+            # them through its index); the others are counted from the index
+            if not (yield from self._read_all(conn, lambda: conn.recv_match(type=DATAFLASH_READ, strict=True))):
+                return
+            self._count_unread(conn)
+            if self._index_ends_at is not None and not (yield from self._unindexed_rest(conn)):
+                return
+            self._note_cut_off(conn)
         finally:
             conn.close()
+
+    def _read_all(self, conn: Any, next_message: Any) -> Iterator[Any]:
+        """The messages ``next_message()`` gives until it gives None, as read (:meth:`_as_read`);
+        an exception of the reader is counted as a corrupt frame and the reading goes on.
+        Returns False when the reader failed twice in one place (the rest is not read, and said)."""
+        stuck_at = None  # the reader's position at its last error
+        while True:
+            try:
+                msg = next_message()
+            except Exception as e:  # a reader bug on garbage must not end the replay
+                self.counters["corrupt_frames"] += 1
+                self._reject(f"reader_error:{type(e).__name__}")
+                position = getattr(conn, "offset", None)
+                if position is not None and position == stuck_at:  # it failed twice in one place
+                    self._reject("unreadable_rest")
+                    log.warning("%s: the reader cannot go past byte %d (%s: %s); the rest is not read",
+                                self.path.name, position, type(e).__name__, e)
+                    return False
+                stuck_at = position
+                continue
+            stuck_at = None
+            if msg is None:
+                return True
+            msg = self._as_read(msg, getattr(conn, "mav", None))  # a DataFlash reader has no parser
+            if msg is not None:
+                yield msg
+
+    def _unindexed_rest(self, conn: Any) -> Iterator[Any]:
+        """A binary DataFlash log's records after the end of its index (:attr:`_index_ends_at`),
+        read one after the other by DFReader's own parser, which skips what it cannot read to
+        the next record it knows (counted in :meth:`_messages`): those of the types the replay
+        reads, the others counted as unread. Without it one record of a type no format declares
+        — a zeroed block over a format record, one damaged header byte — lost the whole log
+        after it. Returns as :meth:`_read_all`."""
+        conn.offset = self._index_ends_at
+        conn.remaining = conn.data_len - conn.offset
+        unread: Counter[str] = Counter()
+
+        def next_read() -> Any:
+            while True:
+                msg = conn.recv_msg()
+                if msg is None or msg.get_type() in DATAFLASH_READ:
+                    return msg
+                unread[msg.get_type()] += 1
+
+        whole = yield from self._read_all(conn, next_read)
+        self.dataflash.count_unread(dict(unread))
+        self.counters["messages_read"] += sum(unread.values())
+        return whole
 
     def _count_unread(self, conn: Any) -> None:
         """A DataFlash log's records of the types not read, from DFReader's index."""

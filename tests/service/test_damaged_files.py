@@ -444,3 +444,104 @@ def test_a_recording_tells_a_dropout_from_a_step_by_its_log_clock(tmp_path, caps
         assert summary["data_gaps_s"] == [], summary["data_gaps_s"]
         (jump,) = summary["clock_jumps_s"]
         assert jump == pytest.approx(span, abs=1.0)
+
+
+def _dataflash_index(data: bytes):
+    """pymavlink's index of a binary DataFlash log: (name → type id, type id → record offsets,
+    type id → record length)."""
+    import tempfile
+
+    from pymavlink import DFReader
+
+    with tempfile.NamedTemporaryFile(suffix=".BIN") as f:
+        f.write(data)
+        f.flush()
+        r = DFReader.DFReader_binary(f.name, zero_time_base=False)
+        return dict(r.name_to_id), [list(o) for o in r.offsets], {t: f.len for t, f in r.formats.items()}
+
+
+def _sitl_drive_changed(tmp_path, change) -> tuple[Path, Path]:
+    """(the SITL drive's DataFlash log, a copy with ``change(data, names, offsets, lengths)``
+    applied)."""
+    log_name = "ardusub-4.7-sitl-drive.BIN"
+    whole = TEST_DATA / log_name
+    data = bytearray(whole.read_bytes())
+    change(data, *_dataflash_index(bytes(data)))
+    path = tmp_path / log_name
+    path.write_bytes(bytes(data))
+    return whole, path
+
+
+@pytest.mark.parametrize("lost, skipped", [("XKV1", 600), ("VER", 1)])
+def test_a_type_whose_format_record_is_lost_loses_nothing_else(tmp_path, capfd, lost, skipped):
+    """A block of zeros over one FMT record of a type nothing reads (XKV1's: 666 records; VER's:
+    one, before the first SIM record): pymavlink's index stops at the type's first record
+    (``unknown msg type``), and 85 % of the log was lost without a word — with VER, the
+    simulator's truth too. The rest is now read record by record, said, and every sample and
+    truth is the whole log's."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    def change(data, names, offsets, lengths):
+        fmt_at = next(o for o in offsets[names["FMT"]] if data[o + 3] == names[lost])
+        data[fmt_at:fmt_at + lengths[names["FMT"]]] = bytes(lengths[names["FMT"]])
+        assert offsets[names[lost]][0] < len(data) // 2  # (the index stopped early: most of the log)
+
+    whole_path, path = _sitl_drive_changed(tmp_path, change)
+    whole = TlogSource(whole_path)
+    samples_whole = [(s.KIND, s.t_s) for s in whole]
+    src = TlogSource(path)
+    samples = [(s.KIND, s.t_s) for s in src]
+    assert samples == samples_whole and len(samples) > 10000
+    assert src.has_truth and any(kind == "truth" for kind, _ in samples)
+    assert src.counters["rejected"]["reader_skipped_bytes"] >= skipped  # the type's records, skipped
+    assert _nothing_printed(capfd)
+
+
+def test_one_damaged_record_header_loses_that_record_only(tmp_path, capfd):
+    """One bit of a record header's type byte flipped in the log's first quarter, to a type no
+    format declares: the index ended there and the rest of the log with it. Now that record is
+    lost, and at most it."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    def change(data, names, offsets, lengths):
+        imu = offsets[names["IMU"]]
+        at = imu[len(imu) // 4]
+        data[at + 2] ^= 0x40  # IMU's id 163 → 227, which no FMT record declares
+        assert data[at + 2] not in names.values()
+
+    whole_path, path = _sitl_drive_changed(tmp_path, change)
+    kinds_whole = _kinds(TlogSource(whole_path))
+    src = TlogSource(path)
+    kinds = _kinds(src)
+    assert {k: kinds_whole[k] - n for k, n in kinds.items()} in ({"imu": 1} | {k: 0 for k in kinds if k != "imu"},
+                                                                 {k: 0 for k in kinds})
+    assert set(kinds) == set(kinds_whole)
+    assert _nothing_printed(capfd)
+
+
+@pytest.mark.parametrize("damage", ["zeroed", "high bit"])
+def test_a_damaged_record_time_is_refused_not_taken_for_a_reboot(tmp_path, damage):
+    """One ATT record's TimeUS damaged mid-log: zeroed (a block of zeros over the record's
+    body) or a high bit flipped. The mission clock took the first for a reboot and moved every
+    later sample on by the log's age (a public log replayed as 295 s of data, not 24). A log is
+    one boot: the record is refused (``time_damaged``), the clock sees no reboot and every
+    other sample keeps its time."""
+    from adaptnav.service.transport.tlog_source import TlogSource
+
+    def change(data, names, offsets, lengths):
+        att = offsets[names["ATT"]]
+        at = att[len(att) // 2] + 3  # the record's TimeUS, its first field (little-endian Q)
+        if damage == "zeroed":
+            data[at:at + 8] = bytes(8)
+        else:
+            data[at + 5] ^= 0x10  # +2^44 µs
+
+    whole_path, path = _sitl_drive_changed(tmp_path, change)
+    samples_whole = [(s.KIND, s.t_s) for s in TlogSource(whole_path)]
+    src = TlogSource(path)
+    samples = [(s.KIND, s.t_s) for s in src]
+    assert src.converter.time.reboots == 0
+    kept = set(samples)
+    missing = [s for s in samples_whole if s not in kept]
+    assert len(samples) == len(samples_whole) - 1 and len(missing) == 1 and missing[0][0] == "attitude"
+    assert src.counters["rejected"]["time_damaged"] == 1

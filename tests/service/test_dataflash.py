@@ -192,3 +192,31 @@ def test_a_mavlink_gps_s_fixes_are_an_underwater_gps_s_at_any_depth(tmp_path, gp
     fixes = [s for s in samples if s.KIND in ("gnss", "usbl")]
     assert len(fixes) > 90 and {s.KIND for s in fixes} == {kind}
     assert src.counters["gps_fixes"]["taken_as"] == ("acoustic" if kind == "usbl" else "gnss")
+
+
+def test_the_log_time_guard_holds_a_jump_until_the_next_record_says_which():
+    """:class:`LogTimeGuard` on times (s) as a log gives them: a logging pause (both records
+    after it taken, the first once the second agrees), a lone damaged time ahead or behind
+    (refused, the next record taken), a damaged first time (refused when the next disagrees)."""
+    from adaptnav.service.transport.dataflash import LogTimeGuard
+
+    def verdicts(times):
+        guard, out = LogTimeGuard(back_s=1.0, jump_s=5.0), []
+        for t in times:
+            verdict, held_taken = guard.judge(t)
+            if out and out[-1] == "hold":
+                out[-1] = "take" if held_taken else "refuse"
+            out.append(verdict)
+        return out
+
+    # the first record is held until the second agrees
+    assert verdicts([10.0, 10.1, 10.2]) == ["take"] * 3
+    # a pause of 36 s (the public log's last messages): nothing lost
+    assert verdicts([10.0, 10.1, 46.0, 46.1, 46.2]) == ["take"] * 5
+    # a time damaged ahead (a flipped high bit) or behind (zeroed): that record only
+    assert verdicts([10.0, 10.1, 1e7, 10.2, 10.3]) == ["take", "take", "refuse", "take", "take"]
+    assert verdicts([10.0, 10.1, 0.0, 10.2, 10.3]) == ["take", "take", "refuse", "take", "take"]
+    # records a little out of order (within back_s) are taken
+    assert verdicts([10.0, 10.5, 9.8, 10.6]) == ["take"] * 4
+    # a damaged first time: refused when the next disagrees, and the next starts the log
+    assert verdicts([1e7, 10.0, 10.1, 10.2]) == ["refuse", "take", "take", "take"]
