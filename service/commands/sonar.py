@@ -42,6 +42,13 @@ def _fail(msg: str) -> int:
 def run(args) -> int:
     from adaptnav.sonar.xtf import SonarFileError, read_xtf
 
+    if args.sonar_cmd == "waterfall":
+        import cv2
+
+        # before the file is read and the picture made: OpenCV picks its writer by the name's
+        # extension, and without one it raised (a traceback) after all the work
+        if not cv2.haveImageWriter(str(args.out)):
+            return _fail(f"--out {args.out}: not a picture file name OpenCV can write (e.g. waterfall.png, .jpg, .tif)")
     try:
         pings, report = read_xtf(args.file)
     except SonarFileError as exc:

@@ -186,3 +186,15 @@ def test_motion_of_a_dual_frequency_file_says_the_other_frequency_was_skipped(tm
     assert "461 sonar packets of other channels (another frequency) skipped" in err
     assert main(["sonar", "motion", str(need(SCOTSMAN)), *args]) == 0
     assert out == capsys.readouterr().out
+
+
+def test_a_waterfall_named_without_a_picture_extension_is_one_line_before_any_work(tmp_path, capsys):
+    """``--out`` without an extension OpenCV writes (a directory's name, say) raised cv2.error
+    — a traceback — after the file was read and the picture made; now one line, exit 2, and
+    nothing written."""
+    for name in ("waterfall", "waterfall.xyz"):
+        out = tmp_path / name
+        rc = main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(out)])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"--out {out}" in err and "Traceback" not in err
+        assert not list(tmp_path.iterdir())
