@@ -12,7 +12,10 @@ nearest the vehicle on both sides.
 
 Robustness: packets pyxtf cannot decode (``XTFUnknownPacket``) are counted and skipped,
 pyxtf's warnings are captured; a truncated file keeps every complete ping before the
-break and reports it.  A file with no side-scan channel raises :class:`SonarFileError`
+break and reports it. The packets are framed here (``0xFACE`` and each packet's size) and
+each is parsed by pyxtf's class for its type: a packet whose framing or content is damaged
+is counted and skipped, and reading goes on at the next packet start after it (pyxtf's own
+reader ended the file at the first such packet).  A file with no side-scan channel raises :class:`SonarFileError`
 with the packet counts, so a CLI can print a clear message.
 """
 from __future__ import annotations
@@ -63,6 +66,11 @@ class XtfReadReport:
         Pings given the speed of their projected-coordinate track (``NavUnits`` 0, no speed).
     n_sample_format_mended : int
         Channels whose samples' format contradicted their size (read by their size).
+    n_damaged : int
+        Stretches of damaged bytes skipped: a packet whose start, size or content did not
+        read (its pings lost), the reading going on at the next packet start found.
+    first_damage : str or None
+        Where the first was and why.
     error : str or None
         Why reading stopped early (e.g. truncated file), None when it read to the end.
     warnings : list[str]
@@ -78,6 +86,8 @@ class XtfReadReport:
     n_other_channels: int = 0
     n_speed_from_grid: int = 0
     n_sample_format_mended: int = 0
+    n_damaged: int = 0
+    first_damage: str | None = None
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -104,6 +114,8 @@ class XtfReadReport:
                      "their size read by their size")
         if self.n_other_channels:
             text += f"; {self.n_other_channels} sonar packets of other channels (another frequency) skipped"
+        if self.n_damaged:
+            text += f"; {self.n_damaged} damaged stretches skipped (the first: {self.first_damage})"
         if self.error:
             text += f"; stopped early: {self.error}"
         return text
@@ -252,11 +264,13 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
     sides = None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        f = open(path, "rb")
         try:
-            gen = pyxtf.xtf_read_gen(str(path))
-            file_header = next(gen)
+            file_header = pyxtf.XTFFileHeader.create_from_buffer(buffer=f)
         except Exception as exc:  # pyxtf raises RuntimeError/ValueError/struct errors
+            f.close()
             raise SonarFileError(f"{path}: not a readable XTF file ({exc})") from None
+        gen = _packets(f, file_header, path.stat().st_size, report)
         sides = _channel_sides(file_header)
         n_channels = int(getattr(file_header, "NumberOfSonarChannels", 0) or 0)
         nav_units = int(getattr(file_header, "NavUnits", 3))
@@ -265,14 +279,7 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
         info = list(getattr(file_header, "sonar_info", []) or [])
         ibm_float = tuple(k < len(info) and int(getattr(info[k], "SampleFormat", 0)) == _IBM_FLOAT
                           for k in (sides or ()))
-        while True:
-            try:
-                pkt = next(gen)
-            except StopIteration:
-                break
-            except Exception as exc:  # a cut or corrupt packet: keep what we have
-                report.error = f"{type(exc).__name__}: {exc}"
-                break
+        for pkt in gen:
             kind = type(pkt).__name__
             try:
                 name = pyxtf.XTFHeaderType(pkt.HeaderType).name
@@ -303,6 +310,90 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
     if not pings:
         raise SonarFileError(f"{path}: no readable side-scan ping; " + report.summary())
     return pings, report
+
+
+_MAGIC = b"\xce\xfa"  # 0xFACE, little-endian: the first two bytes of every packet
+
+
+def _packets(f, file_header, size: int, report: XtfReadReport):
+    """The packets of an XTF file after its header (``f`` positioned there; closed at the end),
+    each parsed by pyxtf's class for its header type. A packet whose start is not ``0xFACE``,
+    whose size does not fit, or that pyxtf cannot parse is counted in ``report`` (``n_damaged``,
+    ``first_damage``) and the reading goes on at the next packet start after it — one whose
+    size leads to another packet's start, or to the file's end. A packet the file ends inside
+    is parsed as far as it goes (pyxtf keeps a ping's complete channels) and the reading ends
+    there (``report.error``)."""
+    import ctypes
+    import mmap
+
+    import pyxtf
+
+    head_size = ctypes.sizeof(pyxtf.XTFPacketStart)
+    data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # (looked ahead in, not read whole)
+    loc = f.tell()
+
+    def framed(at: int) -> int:
+        """The packet size at ``at`` when a packet plausibly starts there, else 0."""
+        if data[at:at + 2] != _MAGIC or at + head_size > size:
+            return 0
+        n = int.from_bytes(data[at + 10:at + 14], "little")
+        return n if n >= head_size else 0
+
+    def resync(after: int) -> int:
+        at = data.find(_MAGIC, after)
+        while at >= 0:
+            n = framed(at)
+            if n and (at + n >= size or framed(at + n)):
+                return at
+            at = data.find(_MAGIC, at + 1)
+        return size
+
+    def damaged(at: int, why: str) -> int:
+        report.n_damaged += 1
+        if report.first_damage is None:
+            report.first_damage = f"byte {at}: {why}"
+        return resync(at + 1)
+
+    try:
+        while loc < size:
+            n = framed(loc)
+            if not n:
+                if loc + head_size > size:  # the file ends inside a packet's first bytes
+                    report.error = f"the file ends {size - loc} bytes into a packet"
+                    return
+                loc = damaged(loc, "no packet start (0xFACE and a size) where one was due")
+                continue
+            p_start = pyxtf.XTFPacketStart.from_buffer_copy(data, loc)
+            try:
+                header_type = pyxtf.XTFHeaderType(p_start.HeaderType)
+            except ValueError:
+                header_type = pyxtf.XTFHeaderType.unknown
+            p_class = pyxtf.XTFPacketClasses.get(header_type, pyxtf.XTFUnknownPacket)
+            if header_type == pyxtf.XTFHeaderType.unknown:  # (pyxtf's reader says so too)
+                warnings.warn(f"XTFHeaderType ({p_start.HeaderType}) is not known. Returned as XTFUnknownPacket")
+            elif p_class is pyxtf.XTFUnknownPacket:
+                warnings.warn(f"XTFHeaderType ({header_type.name}) has no implementation. Returned as "
+                              "XTFUnknownPacket.")
+            f.seek(loc)
+            try:
+                pkt = p_class.create_from_buffer(buffer=f, file_header=file_header)
+            except Exception as exc:  # pyxtf raises RuntimeError/ValueError/IndexError/struct errors
+                if loc + n > size and resync(loc + 1) >= size:  # the last packet, cut: nothing after it
+                    report.error = f"{type(exc).__name__}: {exc}"
+                    return
+                loc = damaged(loc, f"{type(exc).__name__}: {exc}")
+                continue
+            yield pkt
+            nxt = loc + n
+            if nxt == size or (nxt < size and framed(nxt)):
+                loc = nxt
+            elif (after := resync(loc + 1)) < size:  # its size leads to no packet, though one follows
+                loc = damaged(loc, "a packet size that leads to no packet start")
+            else:  # the last packet, cut (read as far as it goes)
+                loc = after
+    finally:
+        data.close()
+        f.close()
 
 
 def _to_ping(pkt, sides: tuple[int, int], n_channels: int, nav_deg: bool, speed_in_knots: bool,

@@ -53,7 +53,7 @@ def run(args) -> int:
         pings, report = read_xtf(args.file)
     except SonarFileError as exc:
         return _fail(str(exc))
-    if report.error or report.n_truncated:
+    if report.error or report.n_truncated or report.n_damaged:
         print(f"adaptnav sonar: warning: {report.summary()}", file=sys.stderr)
     elif report.mended:
         print(f"adaptnav sonar: note: {report.summary()}", file=sys.stderr)

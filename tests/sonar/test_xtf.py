@@ -255,3 +255,39 @@ def test_ibm_float_samples_are_decoded(tmp_path):
     words = np.array([0x41100000, 0xC276A000, 0x40280000, 0x00000000, 0x42640000], dtype=np.uint32)
     assert ibm32_to_float(words).tolist() == [1.0, -118.625, 0.15625, 0.0, 100.0]
     assert _ibm32_words(np.array([1, 100, 0])).tolist() == [0x41100000, 0x42640000, 0]
+
+
+def _packet_offsets(data: bytes) -> list[int]:
+    """Where each packet of an (undamaged) XTF file starts: after the 1024-byte file header,
+    each packet's size (bytes 10–13) leads to the next."""
+    out, o = [], 1024
+    while o + 14 <= len(data):
+        out.append(o)
+        o += struct.unpack_from("<I", data, o + 10)[0]
+    return out
+
+
+@pytest.mark.parametrize("damage", ["content", "start", "size"])
+def test_a_damaged_packet_loses_at_most_its_own_ping(tmp_path, damage):
+    """One sonar packet damaged mid-file: its channel count (pyxtf raised IndexError), its
+    0xFACE start, or its size (pointing past the file's end). pyxtf's reader ended the file
+    there — the half after it lost. The packet is skipped, counted, and every other ping is the
+    whole file's."""
+    src = need(SCOTSMAN)
+    full, _ = read_xtf(src)
+    data = bytearray(src.read_bytes())
+    at = _packet_offsets(bytes(data))[230]
+    if damage == "content":
+        data[at + 4] = 200  # NumChansToFollow: 200 channels in a two-channel file
+    elif damage == "start":
+        data[at] ^= 0x01
+    else:
+        struct.pack_into("<I", data, at + 10, len(data))
+    odd = tmp_path / "damaged.xtf"
+    odd.write_bytes(bytes(data))
+    pings, report = read_xtf(odd)
+    assert report.n_damaged == 1 and report.error is None and "damaged" in report.summary()
+    lost = [k for k, p in enumerate(full) if not any(p.t_s == q.t_s for q in pings)]
+    assert lost in ([230], []) and len(pings) == len(full) - len(lost)
+    kept = [p for k, p in enumerate(full) if k not in lost]
+    assert all(np.array_equal(p.starboard, q.starboard) and p.t_s == q.t_s for p, q in zip(kept, pings))
