@@ -15,8 +15,8 @@ pyxtf's warnings are captured; a truncated file keeps every complete ping before
 break and reports it. The packets are framed here (``0xFACE`` and each packet's size) and
 each is parsed by pyxtf's class for its type: a packet whose framing or content is damaged
 is counted and skipped, and reading goes on at the next packet start after it (pyxtf's own
-reader ended the file at the first such packet).  A file with no side-scan channel raises :class:`SonarFileError`
-with the packet counts, so a CLI can print a clear message.
+reader ended the file at the first such packet). A file with no side-scan channel raises
+:class:`SonarFileError` with the packet counts, so a CLI can print a clear message.
 """
 from __future__ import annotations
 
@@ -270,6 +270,9 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
         except Exception as exc:  # pyxtf raises RuntimeError/ValueError/struct errors
             f.close()
             raise SonarFileError(f"{path}: not a readable XTF file ({exc})") from None
+        if file_header.channel_count() > 6:  # (pyxtf's reader refuses them too)
+            f.close()
+            raise SonarFileError(f"{path}: {file_header.channel_count()} channels: pyxtf reads at most 6")
         gen = _packets(f, file_header, path.stat().st_size, report)
         sides = _channel_sides(file_header)
         n_channels = int(getattr(file_header, "NumberOfSonarChannels", 0) or 0)
