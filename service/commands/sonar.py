@@ -118,6 +118,10 @@ def _waterfall(args, pings) -> int:
     if len(tiles) > 1 and len(tiles[-1]) < 2:  # a last ping alone makes no picture: to the one before
         tiles[-2] += tiles.pop()
     out = Path(args.out)
+    try:  # (as replay's --out: its directory made when missing; OpenCV only says it could not write)
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return _fail(f"--out {out}: {e.strerror or e}")
     for k, tile in enumerate(tiles):
         path = out if len(tiles) == 1 else out.with_name(f"{out.stem}-{k + 1:03d}{out.suffix}")
         wf = build_waterfall(tile, WaterfallConfig(ground_res_m=res, along_res_m=res, bottom=args.bottom))

@@ -9,7 +9,7 @@ from tests.sonar.conftest import SCOTSMAN, need, rewrite_xtf
 
 
 def test_waterfall_png_port_left_starboard_right(tmp_path, capsys):
-    out = tmp_path / "wf.png"
+    out = tmp_path / "not" / "yet" / "wf.png"  # (its directory made, as replay's --out)
     rc = main(["sonar", "waterfall", str(need(SCOTSMAN)), "--out", str(out), "--res-m", "0.1"])
     assert rc == 0 and out.is_file()
     img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
