@@ -79,6 +79,9 @@ def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int
         from adaptnav.service.runtime.sources import tlog_source
 
         src = tlog_source(Path(path))
+        # what opening the log said (a damaged index, repaired formats): the parent opened the
+        # same file with the same code and has said it already
+        forward.records.clear()
         for name, args in calls:
             getattr(src, name)(*args)
         tlog = src.tlog

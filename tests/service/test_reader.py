@@ -112,3 +112,33 @@ def test_a_blueos_recording_read_in_a_child_replays_to_the_same_bytes(tmp_path):
     for name in OUTPUTS:
         assert (tmp_path / "child" / name).read_bytes() == (tmp_path / "inline" / name).read_bytes(), name
     assert _summary(tmp_path / "child") == _summary(tmp_path / "inline")
+
+
+def test_a_damaged_log_s_warnings_are_said_once_either_way(tmp_path, caplog):
+    """Opening a damaged DataFlash log says what its index lacks; the parent opens the log
+    before the child does, and the child's words were logged here too: every warning twice.
+    Read in a child, the warnings are those of the same log read here, once each."""
+    import struct
+
+    from pymavlink import DFReader
+
+    src = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-drive.BIN"
+    data = bytearray(src.read_bytes())
+    index = DFReader.DFReader_binary(str(src), zero_time_base=False)
+    fmt = index.name_to_id["FMT"]
+    at = next(o for o in index.offsets[fmt] if data[o + 3] == index.name_to_id["XKV1"])
+    data[at:at + index.formats[fmt].len] = bytes(index.formats[fmt].len)  # a format record lost
+    imu = index.offsets[index.name_to_id["IMU"]]
+    struct.pack_into("<H", data, imu[len(imu) // 3], 0)  # a record header zeroed
+    damaged = tmp_path / "damaged.BIN"
+    damaged.write_bytes(bytes(data))
+    said = {}
+    for reader in ("inline", "process"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="adaptnav.service.transport.tlog_source"):
+            _replay(damaged, tmp_path / reader, reader)
+        said[reader] = [rec.getMessage() for rec in caplog.records
+                        if rec.name == "adaptnav.service.transport.tlog_source"]
+    assert any("index ends" in text for text in said["inline"])
+    assert any("no record header" in text for text in said["inline"])
+    assert sorted(said["process"]) == sorted(said["inline"])
