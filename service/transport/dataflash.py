@@ -361,7 +361,8 @@ class LogTimeGuard:
     the mission clock took it for a reboot and moved every later sample on by the log's age
     (a public log with 20 blocks of 512 zero bytes replayed as 295 s of data, not 24). A time
     more than ``jump_s`` after the latest, or the log's first, is a logging pause or damage
-    alike: its record is held until the next one says which (:meth:`judge`)."""
+    alike: its record is held until the next one says which (:meth:`judge`). A record alone
+    between two such jumps cannot be told from damage and is refused with it."""
 
     def __init__(self, back_s: float = 1.0, jump_s: float = 5.0) -> None:
         self.back_s, self.jump_s = back_s, jump_s
