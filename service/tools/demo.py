@@ -213,15 +213,19 @@ def run_live(scenario: Any, result: Any, speed: float, progress: bool = True) ->
         # the daemon drains its queue; then serve the last ODOMETRY messages
         end_t = vehicle.t_data_s or duration
         deadline = time.monotonic() + 30.0
-        # until the last epoch is out, the daemon's input is empty and every published ping
-        # has been taken in (a ping still on the wire, or held for data order, arrives within
-        # its hold time; on a loaded machine that can be after the last epoch): the counts
-        # below are final
-        def pings_taken_in() -> int:
+        # until the last epoch is out, the daemon's input is empty and every published ping and
+        # every USBL fix sent has been taken in (one still on the wire, or held for data order,
+        # arrives within its hold time; on a loaded machine that can be after the last epoch —
+        # the last fix comes with the data's last second): the counts below are final
+        def taken_in(kind: str) -> int:
             sensors = daemon._health_report().get("sensors", {}) if daemon.bus is not None else {}
-            return int(sensors.get("sonar", {}).get("count") or 0)
+            return int(sensors.get(kind, {}).get("count") or 0)
 
-        while ((collector.last_t() < end_t - 0.5 or daemon.source.qsize() > 0 or pings_taken_in() < sonar_count[0])
+        def all_taken_in() -> bool:
+            return (taken_in("sonar") >= sonar_count[0]
+                    and taken_in("usbl") >= int(vehicle.sent.get("GPS_INPUT", 0)))
+
+        while ((collector.last_t() < end_t - 0.5 or daemon.source.qsize() > 0 or not all_taken_in())
                and time.monotonic() < deadline):
             vehicle.run(linger_s=0.25)  # the samples are exhausted: heartbeats + ODOMETRY only
         vehicle.run(linger_s=0.3)

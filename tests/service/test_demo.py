@@ -15,7 +15,9 @@ import pytest
 pytestmark = pytest.mark.timeout(120)
 
 REPO = Path(__file__).resolve().parents[2]
-DURATION_S = 180
+# 5 s of data after the last USBL fix (at 180 s): a fix in the data's last sample reached the
+# daemon's count or not as the machine's load had it (2 of 3 once in a fresh clone's make test)
+DURATION_S = 185
 
 
 def _children(pid: int) -> set[int]:
