@@ -351,11 +351,10 @@ def _packets(f, file_header, size: int, report: XtfReadReport):
             at = data.find(_MAGIC, at + 1)
         return size
 
-    def damaged(at: int, why: str) -> int:
+    def damaged(at: int, why: str) -> None:
         report.n_damaged += 1
         if report.first_damage is None:
             report.first_damage = f"byte {at}: {why}"
-        return resync(at + 1)
 
     try:
         while loc < size:
@@ -364,7 +363,8 @@ def _packets(f, file_header, size: int, report: XtfReadReport):
                 if loc + head_size > size:  # the file ends inside a packet's first bytes
                     report.error = f"the file ends {size - loc} bytes into a packet"
                     return
-                loc = damaged(loc, "no packet start (0xFACE and a size) where one was due")
+                damaged(loc, "no packet start (0xFACE and a size) where one was due")
+                loc = resync(loc + 1)
                 continue
             p_start = pyxtf.XTFPacketStart.from_buffer_copy(data, loc)
             try:
@@ -381,19 +381,22 @@ def _packets(f, file_header, size: int, report: XtfReadReport):
             try:
                 pkt = p_class.create_from_buffer(buffer=f, file_header=file_header)
             except Exception as exc:  # pyxtf raises RuntimeError/ValueError/IndexError/struct errors
-                if loc + n > size and resync(loc + 1) >= size:  # the last packet, cut: nothing after it
+                after = resync(loc + 1)
+                if loc + n > size and after >= size:  # the last packet, cut: nothing after it
                     report.error = f"{type(exc).__name__}: {exc}"
                     return
-                loc = damaged(loc, f"{type(exc).__name__}: {exc}")
+                damaged(loc, f"{type(exc).__name__}: {exc}")
+                loc = after
                 continue
             yield pkt
             nxt = loc + n
             if nxt == size or (nxt < size and framed(nxt)):
                 loc = nxt
-            elif (after := resync(loc + 1)) < size:  # its size leads to no packet, though one follows
-                loc = damaged(loc, "a packet size that leads to no packet start")
-            else:  # the last packet, cut (read as far as it goes)
-                loc = after
+                continue
+            after = resync(loc + 1)
+            if after < size:  # its size leads to no packet, though one follows
+                damaged(loc, "a packet size that leads to no packet start")
+            loc = after  # (else the last packet, cut: read as far as it goes)
     finally:
         data.close()
         f.close()

@@ -340,9 +340,7 @@ class TlogSource:
                         return False
                     if found or self._index_ends_at is None:
                         return found
-                    # an index that ends early (_unindexed_rest): the records after it, scanned
-                    conn.offset = self._index_ends_at
-                    conn.remaining = conn.data_len - conn.offset
+                    self._past_index(conn)  # an index that ends early: the records after it, scanned
                     truth_type, next_message = "SIM", conn.recv_msg
                 for _ in range(max_messages):
                     try:
@@ -524,6 +522,11 @@ class TlogSource:
             if msg is not None:
                 yield msg
 
+    def _past_index(self, conn: Any) -> None:
+        """DFReader set to parse on from where its index ends (:attr:`_index_ends_at`)."""
+        conn.offset = self._index_ends_at
+        conn.remaining = conn.data_len - conn.offset
+
     def _unindexed_rest(self, conn: Any) -> Iterator[Any]:
         """A binary DataFlash log's records after the end of its index (:attr:`_index_ends_at`),
         read one after the other by DFReader's own parser, which skips what it cannot read to
@@ -531,8 +534,7 @@ class TlogSource:
         reads, the others counted as unread. Without it one record of a type no format declares
         — a zeroed block over a format record, one damaged header byte — lost the whole log
         after it. Returns as :meth:`_read_all`."""
-        conn.offset = self._index_ends_at
-        conn.remaining = conn.data_len - conn.offset
+        self._past_index(conn)
         unread: Counter[str] = Counter()
 
         def next_read() -> Any:
