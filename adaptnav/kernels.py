@@ -16,6 +16,16 @@ imported: same numba code generation, no JIT at run time.
 The module is named after a hash of the kernel sources, the Python and the numba
 version (a stale build is ignored, never used), and lives in ``ADAPTNAV_KERNEL_DIR``
 when set, else next to this file. ``ADAPTNAV_KERNELS=jit`` forces just in time.
+
+A build is for the CPU it ran on (``host``: its instruction set extensions, e.g. AVX-512;
+the EM iteration is ~25 % slower without them), and such a module on a CPU without them
+kills the process at its first kernel call (SIGILL: a venv or SD card image copied to
+another computer, a container built on another machine, a VM moved to another host). The
+specs therefore record what the build's CPU offered (:func:`cpu_features`), and a module
+whose CPU offered something this one lacks is passed over like a damaged one: the kernels
+run just in time, the health report says why, the next ``adaptnav warmup`` builds for this
+CPU. ``build(portable=True)`` (``adaptnav warmup --portable``, for an image that runs
+elsewhere) compiles for the architecture's baseline (x86-64, ARMv8-A): any CPU of it.
 A compiled function does not check its arguments (a strided or integer array where it
 was built for a contiguous float one reads wrong memory), so each comes with a guard:
 arguments of the recorded types (dtype, dimensions, contiguous and writeable arrays;
@@ -142,6 +152,8 @@ def _load_module(path: Path, specs_path: Path) -> Any:
     # ~1 ms for its 1.5 MB)
     if arg_specs.pop(_MODULE_DIGEST, None) != [_file_digest(path)]:
         raise ValueError("the module is not the one its specs were written for")
+    build_cpu = arg_specs.pop(_BUILD_CPU, None)
+    _check_cpu(build_cpu)  # before it is loaded: nothing of it runs on a CPU it was not built for
     spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -149,10 +161,57 @@ def _load_module(path: Path, specs_path: Path) -> Any:
     if missing:
         raise ValueError(f"{len(missing)} kernels of its specs missing ({missing[0]}, ...)")
     module.arg_specs = arg_specs
+    module.build_cpu = build_cpu[0]
     return module
 
 
 _MODULE_DIGEST = "__module_sha256__"  # the specs' entry with the compiled module's digest
+# the specs' entry with the build's target: ["portable"], or ["host", *cpu_features() of the build]
+_BUILD_CPU = "__build_cpu__"
+
+
+def cpu_features() -> frozenset[str]:
+    """What this CPU offers that compiled code may use, each name prefixed by where it was
+    read: numpy's run-time detection (``numpy:AVX2``; CPUID with the OS's consent, or the
+    kernel's HWCAP on ARM; exact under an emulator too), and on ARM the instruction set
+    features every core lists in ``/proc/cpuinfo`` (``cpuinfo:atomics``, LSE, and ``lrcpc``,
+    which numpy does not list; x86's ``flags`` there mix in the kernel's and the hypervisor's
+    own, which differ between machines with one instruction set: not read)."""
+    out: set[str] = set()
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as numpy_features
+    except ImportError:  # numpy < 2
+        try:
+            from numpy.core._multiarray_umath import __cpu_features__ as numpy_features
+        except ImportError:
+            numpy_features = {}
+    out.update(f"numpy:{name}" for name, present in numpy_features.items() if present)
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        text = ""
+    shared: set[str] | None = None
+    for line in text.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() == "Features":
+            flags = set(value.split())
+            shared = flags if shared is None else shared & flags
+    out.update(f"cpuinfo:{flag}" for flag in shared or ())
+    return frozenset(out)
+
+
+def _check_cpu(build_cpu: Any) -> None:
+    """Raise ValueError unless this CPU offers everything ``build_cpu`` (the specs' entry)
+    says the build's did (:func:`cpu_features`)."""
+    if not (isinstance(build_cpu, list) and build_cpu and build_cpu[0] in ("host", "portable")):
+        raise ValueError("no record of the CPU it was built for")
+    if build_cpu[0] == "portable":
+        return
+    missing = sorted(set(map(str, build_cpu[1:])) - cpu_features())
+    if missing:
+        shown = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
+        raise ValueError(f"built for another CPU, with {shown}, which this one lacks (its code "
+                         f"would stop the process with an illegal instruction)")
 
 
 def _file_digest(path: Path) -> str:
@@ -172,6 +231,13 @@ def loaded_aot_path() -> Path | None:
     """The compiled module in use (None: the kernels run just in time)."""
     aot = _load_aot()
     return None if aot is None else Path(aot.__file__)
+
+
+def loaded_build() -> str | None:
+    """What the compiled module in use was built for: ``"host"`` (the CPU it was built on,
+    and this one offers everything that one did) or ``"portable"``; None: just in time."""
+    aot = _load_aot()
+    return None if aot is None else aot.build_cpu
 
 
 def jit(**options: Any) -> Callable[[Callable], Any]:
@@ -365,10 +431,36 @@ def _arg_spec(t: Any) -> list | None:
     return None
 
 
-def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
+@contextlib.contextmanager
+def _this_cpus_features():
+    """While ``numba.pycc`` compiles for ``host``: the instruction set extensions this CPU has,
+    as numba's just-in-time code takes them. pycc takes only the CPU model's name, and with it
+    the model's extensions, more than a VM or a kernel may leave on (AVX-512 masked): the code
+    would then need what :func:`cpu_features` does not show. A numba without this hook keeps
+    its own choice."""
+    from numba.core import codegen
+
+    aot = getattr(codegen, "AOTCPUCodegen", None)
+    plain = getattr(aot, "_customize_tm_features", None)
+    if plain is None or not hasattr(codegen, "get_host_cpu_features"):
+        yield
+        return
+
+    def features(self):
+        return codegen.get_host_cpu_features() if getattr(self, "_cpu_name", "") == "host" else plain(self)
+
+    aot._customize_tm_features = features
+    try:
+        yield
+    finally:
+        aot._customize_tm_features = plain
+
+
+def build(warm_up: Callable[[], None], verbose: bool = False, portable: bool = False) -> Path:
     """Record the kernels' signatures while ``warm_up()`` runs them just in time (in
     this process, which must not have loaded a compiled module), then compile them
-    ahead of time into :func:`aot_path`. Returns the path."""
+    ahead of time into :func:`aot_path` for this CPU, or with ``portable`` for any CPU of
+    its architecture (an image to run elsewhere; module docstring). Returns the path."""
     if using_aot():
         raise RuntimeError("build() needs the kernels just in time: set ADAPTNAV_KERNELS=jit")
     for name in KERNEL_MODULES:
@@ -385,7 +477,7 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
     path = aot_path()
     cc = CC(path.name.split(".")[0])
     cc.output_dir = str(path.parent)
-    cc.target_cpu = "host"
+    cc.target_cpu = "" if portable else "host"  # "": the architecture's baseline
     cc.verbose = verbose
     arg_specs: dict[str, list] = {}
     for module in KERNEL_MODULES:
@@ -411,10 +503,11 @@ def build(warm_up: Callable[[], None], verbose: bool = False) -> Path:
     # the specs mark a build complete: gone while the module is rewritten, then written whole
     # (atomically), so that a build cut short leaves nothing that looks complete
     specs_path.unlink(missing_ok=True)
-    with warnings.catch_warnings(), _declared_error_models():
+    with warnings.catch_warnings(), _declared_error_models(), _this_cpus_features():
         warnings.simplefilter("ignore")
         cc.compile()
     arg_specs[_MODULE_DIGEST] = [_file_digest(path)]
+    arg_specs[_BUILD_CPU] = ["portable"] if portable else ["host", *sorted(cpu_features())]
     from adaptnav.files import atomic_write_bytes
 
     # readable by whoever may load the module (a service user, the build run as root)

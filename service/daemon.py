@@ -762,7 +762,8 @@ class Daemon:
                                      dropped_samples=cal.dropped)
         # the filter's kernels: compiled ahead of time, or just in time and why (a damaged build:
         # `adaptnav warmup` builds it again; the filter runs either way, slower to start)
-        rep["kernels"] = {"ahead_of_time": kernels.using_aot(), "problem": kernels.aot_error}
+        rep["kernels"] = {"ahead_of_time": kernels.using_aot(), "build": kernels.loaded_build(),
+                          "problem": kernels.aot_error}
         rep["params"] = self.params.to_dict()
         rep["motion_prior"] = self.motion_prior
         rep["type"] = "health"

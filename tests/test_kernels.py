@@ -203,11 +203,25 @@ def _damaged_copy(tmp_path, damage: str):
         d = json.loads(text)
         del d[kernels.exported_name("adaptnav.fusion.kalman", "core_ok")]
         text = json.dumps(d)
+    elif damage == "built_on_a_cpu_with_more":
+        # the build's CPU had an extension this one lacks (the record as it would be written there)
+        d = json.loads(text)
+        d[kernels._BUILD_CPU] = ["host", *sorted(kernels.cpu_features() | {"numpy:AVX512_BEYOND"})]
+        text = json.dumps(d)
+    elif damage == "built_without_a_cpu_record":
+        d = json.loads(text)
+        del d[kernels._BUILD_CPU]
+        text = json.dumps(d)
+    elif damage == "built_portable":
+        d = json.loads(text)
+        d[kernels._BUILD_CPU] = ["portable"]
+        text = json.dumps(d)
     (tmp_path / specs.name).write_text(text)
     return so
 
 
-_DAMAGE = ["specs_cut_short", "specs_not_an_object", "module_cut_short", "specs_name_a_kernel_the_module_lacks"]
+_DAMAGE = ["specs_cut_short", "specs_not_an_object", "module_cut_short", "specs_name_a_kernel_the_module_lacks",
+           "built_on_a_cpu_with_more", "built_without_a_cpu_record"]
 
 
 @pytest.mark.parametrize("damage", _DAMAGE)
@@ -222,6 +236,45 @@ def test_a_damaged_compiled_module_runs_the_kernels_just_in_time(tmp_path, damag
     assert got["aot"] == "None" and got["error"] and str(tmp_path / so.name) in got["error"], got
     assert "compiled kernels unusable, running them just in time" in got["stderr"], got["stderr"]
     assert got["core_ok"] is True  # the filter's kernels work, just in time
+
+
+def test_a_module_built_for_a_cpu_with_more_than_this_one_is_not_loaded(tmp_path):
+    """A build for a CPU with an extension this one lacks (AVX-512 here, an SD card image of a
+    Pi 5 in a Pi 4) would stop the process with an illegal instruction at its first kernel
+    call: it is passed over, saying which extensions are missing, and the kernels run just in
+    time. (Shown for real under an emulated CPU without AVX-512: docs/measurements.md.)"""
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    _damaged_copy(tmp_path, "built_on_a_cpu_with_more")
+    got = _probe(tmp_path, only=True)
+    assert got["aot"] == "None" and "built for another CPU, with numpy:AVX512_BEYOND, which this one lacks" \
+        in got["error"], got
+    assert got["core_ok"] is True
+
+
+def test_the_build_records_what_this_cpu_offers_and_a_portable_one_runs_on_any():
+    """The installed build (``adaptnav warmup``, for this CPU) records every extension this CPU
+    offers, so that the same files on another CPU are checked against them; a build recorded
+    as portable loads whatever this CPU offers."""
+    import json
+
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    so = kernels.loaded_aot_path()
+    record = json.loads(so.with_name(so.name.split(".")[0] + ".json").read_text())[kernels._BUILD_CPU]
+    assert record[0] == "host" and set(record[1:]) == set(kernels.cpu_features()), record
+    assert any(name.startswith("numpy:") for name in record[1:])  # numpy's detection was read
+    kernels._check_cpu(["portable"])
+    with pytest.raises(ValueError, match="another CPU, with numpy:NO_SUCH"):
+        kernels._check_cpu(["host", *record[1:], "numpy:NO_SUCH"])
+
+
+def test_a_portable_build_is_used_on_this_cpu(tmp_path):
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (run `adaptnav warmup`)")
+    so = _damaged_copy(tmp_path, "built_portable")
+    got = _probe(tmp_path, only=True)
+    assert got["aot"] == str(tmp_path / so.name) and got["error"] is None, got
 
 
 @pytest.mark.parametrize("damage", _DAMAGE[::3])
@@ -242,7 +295,7 @@ def test_a_damaged_compiled_module_is_passed_over_for_a_good_one_further_on(tmp_
     env.pop("ADAPTNAV_KERNELS", None)
     out = subprocess.run([sys.executable, "-m", "adaptnav", "warmup"], capture_output=True, text=True, env=env,
                          check=True)
-    assert f"removed the damaged build {tmp_path / so.name}" in out.stdout, out.stdout
+    assert f"removed the unusable build {tmp_path / so.name}" in out.stdout, out.stdout
     assert not list(tmp_path.glob("_aot_kernels_*")), list(tmp_path.iterdir())
     assert _probe(tmp_path, only=False)["error"] is None
 
@@ -284,3 +337,53 @@ def test_a_big_endian_array_is_not_read_as_a_native_one():
     else:
         assert out == (1, 1.5)
         np.testing.assert_array_equal(big.astype(float), native)
+
+
+_BUILD_ONE = """
+import sys
+import numpy as np
+from adaptnav import kernels
+from adaptnav.fusion import kalman
+
+def warm_up():
+    core = np.zeros(kalman.CORE_SIZE)
+    core[kalman.CORE_P] = np.eye(kalman.N_ERR).ravel()
+    kalman.core_ok(core, 1.0)
+
+print(kernels.build(warm_up, portable=sys.argv[1] == "portable"))
+"""
+
+
+def _instructions(so) -> str:
+    import shutil
+
+    if shutil.which("objdump") is None:
+        return ""
+    return subprocess.run(["objdump", "-d", str(so)], capture_output=True, text=True, check=True).stdout
+
+
+def test_a_portable_build_takes_only_the_architectures_baseline(tmp_path):
+    """``adaptnav warmup --portable`` (the container image's build: it runs on CPUs other than the
+    builder's) records itself as portable and uses no instruction set extension; the build for
+    this CPU uses this CPU's (AVX registers on an x86-64 that has them)."""
+    import json
+    import os
+    import platform
+
+    built = {}
+    for kind in ("portable", "host"):
+        d = tmp_path / kind
+        env = dict(os.environ, ADAPTNAV_KERNELS="jit", ADAPTNAV_KERNEL_DIR=str(d), NUMBA_CACHE_DIR=str(d / "jit"))
+        out = subprocess.run([sys.executable, "-c", _BUILD_ONE, kind], capture_output=True, text=True, env=env,
+                             check=True)
+        so = d / out.stdout.strip().splitlines()[-1].rsplit("/", 1)[-1]
+        record = json.loads(so.with_name(so.name.split(".")[0] + ".json").read_text())[kernels._BUILD_CPU]
+        built[kind] = (so, record)
+    assert built["portable"][1] == ["portable"]
+    assert built["host"][1][0] == "host" and set(built["host"][1][1:]) == set(kernels.cpu_features())
+    if platform.machine() in ("x86_64", "AMD64") and "numpy:AVX2" in kernels.cpu_features():
+        host_code, portable_code = (_instructions(built[k][0]) for k in ("host", "portable"))
+        if not host_code:
+            pytest.skip("no objdump to read the instructions with")
+        assert "%ymm" in host_code or "%zmm" in host_code  # (this CPU's extensions are used)
+        assert "%ymm" not in portable_code and "%zmm" not in portable_code

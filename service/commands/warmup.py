@@ -6,7 +6,9 @@ It runs the filter and one EM window just in time (filling numba's on-disk cache
 every kernel ahead of time into one extension module (:mod:`adaptnav.kernels`): the
 daemon and its calibrator child then import compiled code and never numba (no JIT
 memory, no compile before the first solution). A no-op when the module for the current
-sources exists. Without a C compiler the ahead-of-time step fails with a warning and
+sources exists and this CPU can run it (:mod:`adaptnav.kernels`: one built on a CPU with
+instructions this one lacks is built again); ``--portable`` builds anew for any CPU of the
+architecture (a container image, a copy for other computers). Without a C compiler the ahead-of-time step fails with a warning and
 the just-in-time cache is what the service uses.
 """
 from __future__ import annotations
@@ -20,6 +22,9 @@ def add_arguments(parser):
     add_config_arguments(parser)
     parser.add_argument("--jit-only", action="store_true",
                         help="only fill numba's just-in-time cache (no ahead-of-time module)")
+    parser.add_argument("--portable", action="store_true",
+                        help="build for any CPU of this architecture, not only this one (an image "
+                             "or a copy that runs elsewhere; always builds anew)")
 
 
 def _exercise_calibration_kernels() -> None:
@@ -99,17 +104,21 @@ def run(args):
     from adaptnav import kernels
 
     path = kernels.aot_path()
-    if not args.jit_only and kernels.using_aot():
-        # a damaged build passed over for a good one elsewhere: removed, so that it is not
-        # looked at (and warned of) at every start
-        for damaged in kernels.passed_over:
+    if args.portable and not args.jit_only:
+        # built anew whatever lies there: a build for this CPU has the same name
+        os.environ["ADAPTNAV_KERNELS"] = "jit"
+    elif not args.jit_only and kernels.using_aot():
+        # a build passed over (damaged, or for another CPU) for a good one elsewhere: removed,
+        # so that it is not looked at (and warned of) at every start
+        for unusable in kernels.passed_over:
             try:
-                damaged.with_name(damaged.name.split(".")[0] + ".json").unlink(missing_ok=True)
-                damaged.unlink(missing_ok=True)
-                print(f"adaptnav warmup: removed the damaged build {damaged}")
+                unusable.with_name(unusable.name.split(".")[0] + ".json").unlink(missing_ok=True)
+                unusable.unlink(missing_ok=True)
+                print(f"adaptnav warmup: removed the unusable build {unusable}")
             except OSError as e:
-                print(f"adaptnav warmup: could not remove the damaged build {damaged}: {e}", file=sys.stderr)
-        print(f"adaptnav warmup: kernels compiled ahead of time: {kernels.loaded_aot_path()}")
+                print(f"adaptnav warmup: could not remove the unusable build {unusable}: {e}", file=sys.stderr)
+        print(f"adaptnav warmup: kernels compiled ahead of time ({kernels.loaded_build()}): "
+              f"{kernels.loaded_aot_path()}")
         return 0
     tmp = None
     saved_cache_dir = os.environ.get("NUMBA_CACHE_DIR")
@@ -139,7 +148,7 @@ def run(args):
             return 0
         t0 = time.monotonic()
         try:
-            kernels.build(warm_up)
+            kernels.build(warm_up, portable=args.portable)
         except Exception as e:  # noqa: BLE001 - no compiler, read-only directory: JIT still works
             print(f"adaptnav warmup: ahead-of-time build failed ({type(e).__name__}: {e}); "
                   "the service uses its kernels just in time, cached now", file=sys.stderr)
@@ -154,7 +163,8 @@ def run(args):
             for o in args.overrides:
                 cmd += ["--set", o]
             return subprocess.run(cmd, env=env).returncode
-        print(f"adaptnav warmup: kernels compiled ahead of time in {time.monotonic() - t0:.1f} s: {path}")
+        print(f"adaptnav warmup: kernels compiled ahead of time ({'portable' if args.portable else 'host'}) "
+              f"in {time.monotonic() - t0:.1f} s: {path}")
         return 0
     finally:
         if tmp is not None:

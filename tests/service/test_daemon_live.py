@@ -58,7 +58,7 @@ def test_sample_in_nav_state_out_and_queryables(live):
     assert health["gc"]["frozen_objects"] > 1000
     assert set(health["gc"]) == {"frozen_objects"} | {f"{how}_{g}" for how in ("paced", "automatic") for g in range(3)}
     # the kernels' build as this process found it (a damaged one: tests/test_kernels.py)
-    assert health["kernels"] == {"ahead_of_time": kernels.using_aot(), "problem": None}
+    assert health["kernels"] == {"ahead_of_time": kernels.using_aot(), "build": kernels.loaded_build(), "problem": None}
     # the integrity monitor's window per aid: the vehicle at rest, its heading and depth exact
     integrity = health["integrity"]
     for source in ("heading", "depth"):
