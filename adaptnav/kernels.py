@@ -463,6 +463,13 @@ def build(warm_up: Callable[[], None], verbose: bool = False, portable: bool = F
     its architecture (an image to run elsewhere; module docstring). Returns the path."""
     if using_aot():
         raise RuntimeError("build() needs the kernels just in time: set ADAPTNAV_KERNELS=jit")
+    try:
+        from numba.pycc.platform import external_compiler_works
+    except ImportError:  # a numba without it: its own error, after the warm-up
+        external_compiler_works = None
+    if external_compiler_works is not None and not external_compiler_works():
+        # said before the warm-up (minutes on a Pi), not in numba's words (which suggest conda)
+        raise RuntimeError("no C and C++ compiler numba.pycc can use (it needs both: gcc and g++ on Debian)")
     for name in KERNEL_MODULES:
         importlib.import_module(name)
     warm_up()

@@ -370,6 +370,8 @@ def test_a_portable_build_takes_only_the_architectures_baseline(tmp_path):
     import os
     import platform
 
+    if not kernels.using_aot():
+        pytest.skip("kernels not compiled ahead of time (no C and C++ compiler for numba.pycc?)")
     built = {}
     for kind in ("portable", "host"):
         d = tmp_path / kind
@@ -387,3 +389,19 @@ def test_a_portable_build_takes_only_the_architectures_baseline(tmp_path):
             pytest.skip("no objdump to read the instructions with")
         assert "%ymm" in host_code or "%zmm" in host_code  # (this CPU's extensions are used)
         assert "%ymm" not in portable_code and "%zmm" not in portable_code
+
+
+def test_a_build_without_a_compiler_says_so_before_the_warm_up(tmp_path):
+    """numba.pycc needs a C and a C++ compiler; without them the build stops before the warm-up
+    (minutes of compiling just in time on a Pi, wasted), saying what is missing."""
+    import os
+
+    code = ("from adaptnav import kernels\n"
+            "try:\n"
+            "    kernels.build(lambda: print('WARMED'))\n"
+            "except RuntimeError as e:\n"
+            "    print('ERROR', e)\n")
+    env = dict(os.environ, ADAPTNAV_KERNELS="jit", ADAPTNAV_KERNEL_DIR=str(tmp_path), CC=str(tmp_path / "no-cc"))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    assert "WARMED" not in out and "ERROR no C and C++ compiler numba.pycc can use" in out, out
+    assert not list(tmp_path.glob("_aot_kernels_*"))
