@@ -618,8 +618,11 @@ class LegAssociator:
         S = C_old[kk] + nav_D_new[jj]
         if rel is not None:
             S = np.where(rel_known[kk], rel_D[kk] + D_new[jj], S)
-        # m² (an inverse each) only where it may be in the wide gate
-        need = ~_surely_beyond(d, S, wide_m2)
+        # m² (an inverse each) only where it may be in the wide gate, and where the pair has a
+        # covariance: a degenerate navigation covariance a sighting brought (indefinite, NaN)
+        # gives no m² to gate on — a negative one fell inside every gate — and a NaN clutter area
+        need = ~_surely_beyond(d, S, wide_m2) & (S[:, 0, 0] > 0.0) & (S[:, 1, 1] > 0.0) \
+            & (S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0] > 0.0)
         jj, kk, d, S = jj[need], kk[need], d[need], S[need]
         S_all = np.full(other_leg.shape + (2, 2), np.nan)  # (read only where m² is finite)
         S_all[jj, kk] = S
@@ -713,6 +716,12 @@ class LegAssociator:
         _, first, at = np.unique(np.round(t_old), return_index=True, return_inverse=True)
         cov, ok = self.relative_covs(t_old[first], t_new)
         ok = ok & np.isfinite(cov).all(axis=(1, 2))  # a non-finite one is not known
+        cov = np.where(ok[:, None, None], cov, 0.0)
+        # nor is one that is no covariance (a difference of nearly equal covariances can come
+        # out indefinite): its pairs' m² could be negative, inside every gate, and their clutter
+        # areas NaN, which silenced the chance-inlier bound of the set size (_min_objects)
+        off = 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
+        ok = ok & (cov[:, 0, 0] >= 0.0) & (cov[:, 1, 1] >= 0.0) & (cov[:, 0, 0] * cov[:, 1, 1] >= off * off)
         cov = np.where(ok[:, None, None], cov, 0.0)
         at = at.reshape(-1)
         return cov[at], ok[at]

@@ -174,3 +174,23 @@ def test_the_weak_sightings_are_kept_apart(seed):
         assert all(o.weak for o in fast._weak_old + fast._weak_pending)
         weak_seen += len(fast._weak_pending)
     assert weak_seen > 0 and fast.weak_pairs > 0
+
+
+def test_an_indefinite_relative_covariance_is_not_taken_as_known():
+    """A filter's relative covariance that is no covariance (indefinite: a difference of nearly
+    equal covariances) made pairs' m² negative — inside every gate — and their clutter areas NaN,
+    so the chance-inlier count was NaN and the bound on the set size (``_min_objects``) never
+    rose above its minimum. Such a covariance is not known: every clutter area stays finite."""
+    def indefinite(t_old, t_new):
+        t_old = np.asarray(t_old, float)
+        cov = np.broadcast_to(np.array([[1.0, 0.0], [0.0, -0.5]]), (t_old.size, 2, 2)).copy()
+        return cov, np.ones(t_old.size, bool)
+
+    assoc = LegAssociator(relative_covs=indefinite)
+    areas = 0
+    for batch in _survey(0):
+        _, clutter = assoc.candidates([o for o in batch if not o.weak])
+        assert np.all(np.isfinite(clutter["area_m2"])), clutter["area_m2"]
+        areas += clutter["area_m2"].size
+        assoc.add(batch)
+    assert areas > 0  # (clutter was met: the test saw areas)
