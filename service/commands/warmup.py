@@ -8,8 +8,9 @@ daemon and its calibrator child then import compiled code and never numba (no JI
 memory, no compile before the first solution). A no-op when the module for the current
 sources exists and this CPU can run it (:mod:`adaptnav.kernels`: one built on a CPU with
 instructions this one lacks is built again); ``--portable`` builds anew for any CPU of the
-architecture (a container image, a copy for other computers). Without a C compiler the ahead-of-time step fails with a warning and
-the just-in-time cache is what the service uses.
+architecture (a container image, a copy for other computers). Without a C and a C++
+compiler (numba.pycc needs both) the ahead-of-time step fails with a warning, before the
+warm-up, and the just-in-time cache is what the service uses.
 """
 from __future__ import annotations
 
