@@ -194,3 +194,15 @@ def test_an_indefinite_relative_covariance_is_not_taken_as_known():
         areas += clutter["area_m2"].size
         assoc.add(batch)
     assert areas > 0  # (clutter was met: the test saw areas)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_degenerate_navigation_covariance_leaves_no_nan_clutter_area(seed):
+    """A sighting's navigation covariance that is no covariance (the survey's odd ones: NaN,
+    indefinite, negative) gave its pairs no usable m² and a NaN clutter area (seed 3 did): such
+    a pair is no candidate, every clutter area stays finite."""
+    assoc = LegAssociator()
+    for batch in _survey(seed):
+        _, clutter = assoc.candidates([o for o in batch if not o.weak])
+        assert np.all(np.isfinite(clutter["area_m2"])), clutter["area_m2"]
+        assoc.add(batch)
