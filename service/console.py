@@ -22,7 +22,7 @@ from typing import Any, Iterator
 LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
-_state = {"quiet": False}
+_state = {"quiet": False, "stage": ""}
 
 
 class JsonFormatter(logging.Formatter):
@@ -85,6 +85,12 @@ def quiet() -> bool:
     return bool(_state["quiet"])
 
 
+def stage(text: str) -> None:
+    """What a long command is doing now (e.g. "latency (3 of 8)"): :func:`heartbeat`'s lines
+    say it instead of "running"; "" clears it."""
+    _state["stage"] = str(text)
+
+
 class LineProgress:
     """tqdm's ``update``/``close``/context API as one stderr line every ``period_s``."""
 
@@ -138,7 +144,8 @@ def progress(total: float | None, desc: str, unit: str = "it", enabled: bool = T
 @contextmanager
 def heartbeat(desc: str, period_s: float = 15.0) -> Iterator[None]:
     """While the block runs: "<desc>: running, 1m30s elapsed" on stderr every ``period_s``
-    (rewritten in place on a terminal); nothing with ``--quiet``."""
+    ("running" replaced by the :func:`stage` set inside the block; rewritten in place on a
+    terminal); nothing with ``--quiet``."""
     if quiet():
         yield
         return
@@ -148,8 +155,8 @@ def heartbeat(desc: str, period_s: float = 15.0) -> Iterator[None]:
 
     def beat() -> None:
         while not stop.wait(1.0 if tty else period_s):
-            line = f"{desc}: running, {_hms(time.monotonic() - t0)} elapsed"
-            print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+            line = f"{desc}: {_state['stage'] or 'running'}, {_hms(time.monotonic() - t0)} elapsed"
+            print(("\r\033[K" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
 
     thread = threading.Thread(target=beat, name="adaptnav-heartbeat", daemon=True)
     thread.start()
@@ -158,5 +165,6 @@ def heartbeat(desc: str, period_s: float = 15.0) -> Iterator[None]:
     finally:
         stop.set()
         thread.join()
+        _state["stage"] = ""
         if tty:
             print("\r\033[K", end="", file=sys.stderr, flush=True)

@@ -760,6 +760,9 @@ class Daemon:
         if cal is not None:
             rep["calibrator"].update(state=cal.state, pid=cal.pid(), restarts=cal.restarts,
                                      dropped_samples=cal.dropped)
+            late = getattr(cal, "late_report", None)  # (a remote node's come when they come)
+            if late is not None:
+                rep["calibrator"]["late"] = late()
         # the filter's kernels: compiled ahead of time, or just in time and why (a damaged build:
         # `adaptnav warmup` builds it again; the filter runs either way, slower to start)
         rep["kernels"] = {"ahead_of_time": kernels.using_aot(), "build": kernels.loaded_build(),

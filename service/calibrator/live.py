@@ -8,7 +8,9 @@ fusion cannot afford a stall); a reader thread takes the child's releases (stamp
 the data time τ they were computed at) and holds them; ``poll(data_time_s)`` hands over
 those due by the release rule (:mod:`adaptnav.service.calibrator.lagged`): once the runner's
 data time reaches ``τ + L``. The runner never waits: a release that comes back later
-than ``τ + L`` (EM slower than real time) is applied at the first poll after it arrives.
+than ``τ + L`` (EM slower than real time) is applied at the first poll after it arrives,
+and counted (:meth:`CalibratorProcess.late_report`, health ``calibrator.late``): such a run is
+not what a replay of its log gives, which waits for every release.
 That is the one route of a release into the runner, the child's, a remote node's
 (:class:`adaptnav.service.calibrator.node.RemoteCalibrator`) and replay's
 (:class:`adaptnav.service.calibrator.lagged.LaggedCalibrator`) alike.
@@ -130,6 +132,13 @@ class CalibratorProcess:
         self.state = "stopped"
         self.counters: Counter[str] = Counter()
         self.side_scan: dict | None = None  # the child's object front end's counts, latest
+        # outputs that came back after the runner's data time had passed their due time
+        # (τ + L, τ + L_p): applied at the next poll, later than the rule, so a replay of the
+        # log (which waits for them) does not reproduce this run; by kind, and the largest
+        # lateness in data seconds (:meth:`late_report`)
+        self.late: Counter[str] = Counter()
+        self.late_max_s = 0.0
+        self._data_time_s = -math.inf  # the runner's, at its last poll (read by the reader thread)
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
         self._in_q: Any = None
@@ -196,17 +205,37 @@ class CalibratorProcess:
                     self.params = release.params  # warm start of a restart
                 tau = msg[2] if len(msg) > 2 and msg[2] is not None else -math.inf
                 with self._held_lock:  # stamped before a shift the child had not seen: re-based here
-                    self._held.append((float(tau) + self._unacked_shift_s + self._shift_to_send_s, release))
+                    tau = float(tau) + self._unacked_shift_s + self._shift_to_send_s
+                    self._held.append((tau, release))
+                self._count_late("releases", tau + self.latency_s)
                 self.received += 1
             elif kind == "product":  # side-scan objects for the filter: the release rule too
                 tau = msg[2] if msg[2] is not None else -math.inf
                 with self._held_lock:
-                    self._held.append((float(tau) + self._unacked_shift_s + self._shift_to_send_s, body))
+                    tau = float(tau) + self._unacked_shift_s + self._shift_to_send_s
+                    self._held.append((tau, body))
+                self._count_late("products", tau + self.product_latency_s)
             elif kind == "shifted":
                 with self._held_lock:
                     self._unacked_shift_s -= float(msg[2])
             elif kind == "side_scan":  # the object front end's counts (health)
                 self.side_scan = body
+
+    def _count_late(self, kind: str, due_s: float) -> None:
+        """An output due at data time ``due_s`` has come back: late when the runner's data
+        time had already passed it (its next poll hands it over, after the rule's time)."""
+        late_s = self._data_time_s - due_s
+        if 0.0 < late_s < math.inf:  # (an output with no data time behind it, τ = −∞, is not late)
+            self.late[kind] += 1
+            if late_s > self.late_max_s:
+                self.late_max_s = late_s
+
+    def late_report(self) -> dict:
+        """Health's ``calibrator.late``: releases and side products that came back after their
+        due time, and the largest lateness (data s). Zero while the child keeps up; otherwise
+        their effect on the solution came later than a replay of the log applies it."""
+        return {"releases": int(self.late["releases"]), "products": int(self.late["products"]),
+                "max_s": round(self.late_max_s, 3)}
 
     def wait_running(self, timeout_s: float) -> bool:
         """Block until the child has said it is ready (True) or ``timeout_s`` passed."""
@@ -285,6 +314,7 @@ class CalibratorProcess:
         with self._held_lock:
             self._held = deque((tau + delta_s, rel) for tau, rel in self._held)
             self._shift_to_send_s += delta_s
+            self._data_time_s += delta_s
 
     def poll(self, data_time_s: float) -> list:
         """The held releases with ``τ + L ≤ data_time_s`` (the runner's data time) and side
@@ -292,6 +322,7 @@ class CalibratorProcess:
         # the runner polls after every sample: flushing here unconditionally sent
         # one-sample batches (thousands of queue items per second at the demo's pace,
         # the queue filled and samples were dropped); only a batch older than batch_s goes
+        self._data_time_s = data_time_s  # (the reader thread compares arrivals with it)
         if self._batch and time.monotonic() - self._batch_t0 >= self.batch_s:
             self.flush()
         held, due = self._held, []

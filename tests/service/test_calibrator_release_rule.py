@@ -84,3 +84,60 @@ def test_live_releases_are_held_until_the_data_time_reaches_tau_plus_the_latency
     for k, (t_poll, t_before, _) in enumerate(got):
         assert t_poll >= tau[k] + lag, (k, t_poll, tau[k])
         assert t_before < tau[k] + lag, (k, t_before, tau[k])  # not held longer than the rule says
+    # every release was back before the data time reached its τ + L: none counted late
+    assert proc.late_report() == {"releases": 0, "products": 0, "max_s": 0.0}
+
+
+def _reference_releases(cfg, items) -> tuple[list[float], list[int]]:
+    """τ of each release of the same calibrator and seed in this process, and the item it came after."""
+    ref = make_calibrator(cfg, cfg.motion.params0, cfg.calibrator.seed)
+    tau, at_item, now = [], [], -math.inf
+    for i, it in enumerate(items):
+        ref.observe(it)
+        now = max(now, _t_last(it))
+        for _ in ref.poll():
+            tau.append(now)
+            at_item.append(i)
+    return tau, at_item
+
+
+def test_live_releases_that_come_back_after_their_due_time_are_counted_late():
+    """A release back after the runner's data time passed τ + L is handed over at the next
+    poll, later than the rule (a replay of the log would apply it earlier): health's
+    ``calibrator.late`` counts it with its lateness. Made certain without pacing: the child
+    gets the sample a release comes from only once the runner's data time is past its τ."""
+    scenario = load_scenario("short", ["duration_s=260"])
+    result = simulate(scenario)
+    cfg = rp.build_config(scenario, None, ["calibrator.latency_s=0", "calibrator.product_latency_s=0",
+                                           "calibrator.queue_size=10000000"])
+    items = [it for it in rp.SimSource(scenario, result) if getattr(it, "KIND", None) != "truth"]
+    tau, at_item = _reference_releases(cfg, items)
+    assert len(tau) >= 2
+    proc = CalibratorProcess(cfg, cfg.motion.params0, batch_s=1e9)  # sent when the test says (or 500 pile up)
+    proc.start()
+    lateness = []  # the runner's data time when each release could come back, less its τ
+    try:
+        assert proc.wait_running(_WAIT_S), "calibrator child did not start"
+        now = -math.inf
+        k = 0
+        held_back = False
+        for i, it in enumerate(items):
+            if k < len(at_item) and at_item[k] == i:
+                proc.flush()  # what came before; this sample stays here until the data time passed τ
+                held_back = True
+            proc.observe(it)
+            now = max(now, _t_last(it))
+            proc.poll(now)
+            if held_back and now > tau[k]:
+                proc.flush()
+                lateness.append(now - tau[k])
+                k += 1
+                _wait_received(proc, k)
+                held_back = k < len(at_item) and at_item[k] <= i
+    finally:
+        proc.stop()
+    assert proc.dropped == 0
+    assert k == len(tau)
+    report = proc.late_report()
+    assert report["releases"] == len(tau) and report["products"] == 0, report
+    assert report["max_s"] == pytest.approx(max(lateness), abs=1e-3), (report, lateness)

@@ -67,6 +67,30 @@ def test_line_progress_off_a_terminal(capsys):
     console.setup_logging(logging.WARNING)
 
 
+def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
+    """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
+    (``console.stage``), not only "running"; the stage ends with the block."""
+    from adaptnav.service import console
+
+    console.setup_logging(logging.WARNING)
+    seen: list[str] = []
+
+    def lines_with(text: str) -> bool:  # what the heartbeat thread has printed so far
+        seen.extend(capsys.readouterr().err.splitlines())
+        return any(text in line for line in seen)
+
+    with console.heartbeat("bench service", period_s=0.001):
+        deadline = time.monotonic() + 60.0  # a condition awaited, not a pace
+        while not lines_with("bench service: running, "):
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        console.stage("latency (3 of 8)")
+        while not lines_with("bench service: latency (3 of 8), "):
+            assert time.monotonic() < deadline, seen[-3:]
+            time.sleep(0.001)
+    assert console._state["stage"] == ""  # the next command's heartbeat starts as "running"
+
+
 def test_lifecycle_events_once_each_and_as_json(tmp_path):
     res = _run(["-v", "--log-json", "replay", "--scenario", "short", "--set", "duration_s=300",
                 "--out", str(tmp_path / "r"), "--no-plots", "--no-progress"])

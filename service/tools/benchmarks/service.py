@@ -24,7 +24,9 @@ Figures (``--quick``: shorter missions, same code):
   ``epoch_rehearsal``: done, late, busy, no_room; :mod:`adaptnav.service.runtime.rehearsal`);
   ``latency_*_gc``: its garbage collections over its run (health ``gc``: objects frozen at
   start, collections paced after outputs and CPython's own, by generation;
-  :mod:`adaptnav.service.runtime.collector`).
+  :mod:`adaptnav.service.runtime.collector`); ``latency_*_calibrator_late``: its calibrator's
+  releases and side-scan objects back after their due time (health ``calibrator.late``: the
+  child kept up when both counts are 0).
 - ``mavlink_*``: the daemon's CPU share on an ArduSub vehicle's path (:func:`mavlink_cpu`):
   the defaults, MAVLink bridge on UDP loopback, fed ArduSub's own frames from a recorded SITL
   session (``tests/data``) at their logged pace by a third process; ``mavlink_samples``: what
@@ -66,6 +68,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from adaptnav.service.console import stage
 
 LIVE_SCENARIO = "survey"
 LIVE_OVERRIDES = ["imu.rate_hz=200", "dvl.enabled=true", "sonar.enabled=false"]
@@ -474,6 +478,7 @@ def outside_latency(rate_hz: float, sonar: bool, duration_s: float, echo: bool =
             fig.update(daemon_cpu_percent=daemon_pct, calibrator_cpu_percent=cal_pct)
             h = bus.get("health") or {}
             fig["calibrator_state"] = h.get("calibrator", {}).get("state")
+            fig["calibrator_late"] = h.get("calibrator", {}).get("late")  # its outputs back after their due time
             fig["epoch_rehearsal"] = h.get("epoch_rehearsal")  # the daemon's, over its whole run
             fig["gc"] = h.get("gc")  # its collections: paced after outputs, or CPython's own
             fig["cpu_wakeup_latency"] = wakeup.report() if wakeup is not None else h.get("cpu_wakeup_latency")
@@ -600,6 +605,7 @@ def latency(latency_s: float) -> dict:
         out[f"calibrator_cpu_percent_{tag}"] = fig["calibrator_cpu_percent"]
         out["latency_calibrator_state"] = fig["calibrator_state"]
         out[f"latency_{tag}_epoch_rehearsal"] = fig["epoch_rehearsal"]
+        out[f"latency_{tag}_calibrator_late"] = fig["calibrator_late"]
         out[f"latency_{tag}_gc"] = fig["gc"]
     for suffix in ("", "_no_wakeup_bound"):
         tags = (f"100hz{suffix}", f"200hz{suffix}")
@@ -959,25 +965,22 @@ def run(args) -> dict:
         latency_s = 15.0 if quick else 60.0
     if not (latency_s > 0.0 and math.isfinite(latency_s)):  # (before minutes of other parts)
         raise ValueError(f"--latency-s must be a positive number of seconds, got {latency_s}")
+    measure = {  # in this order
+        "replay": lambda: replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2),
+        "floor": lambda: zenoh_floor(200 if quick else 1000),
+        "latency": lambda: latency(latency_s),
+        "mavlink_cpu": lambda: mavlink_cpu(20.0 if quick else 60.0),
+        "live_work": lambda: live_work(15.0 if quick else 60.0),
+        "cold_call": cold_call,
+        "cold_start": cold_start,
+        "memory": lambda: memory(600.0 if quick else 3600.0),
+        "memory_mavlink": lambda: memory_mavlink(600.0 if quick else 3600.0),
+    }
+    todo = [name for name in measure if name in parts]
     figures: dict[str, Any] = {}
-    if "replay" in parts:
-        figures.update(replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2))
-    if "floor" in parts:
-        figures.update(zenoh_floor(200 if quick else 1000))
-    if "latency" in parts:
-        figures.update(latency(latency_s))
-    if "mavlink_cpu" in parts:
-        figures.update(mavlink_cpu(20.0 if quick else 60.0))
-    if "live_work" in parts:
-        figures.update(live_work(15.0 if quick else 60.0))
-    if "cold_call" in parts:
-        figures.update(cold_call())
-    if "cold_start" in parts:
-        figures.update(cold_start())
-    if "memory" in parts:
-        figures.update(memory(600.0 if quick else 3600.0))
-    if "memory_mavlink" in parts:
-        figures.update(memory_mavlink(600.0 if quick else 3600.0))
+    for k, name in enumerate(todo, start=1):
+        stage(f"{name} ({k} of {len(todo)})")  # the heartbeat's lines say which part runs
+        figures.update(measure[name]())
     figures["goal_latency_p99_ms"] = LATENCY_P99_GOAL_MS  # outside client, 100 and 200 Hz (issue 17)
     figures["goal_replay_realtime_factor"] = 1000.0
     figures["goal_rss_total_mb"] = 250.0              # daemon + calibrator child
