@@ -498,6 +498,9 @@ def run_demo(overrides: list[str] | tuple[str, ...] = (), out_dir: str | Path = 
                        rejected_at_daemon=live.daemon_health.get("rejected", {}),
                        calibrator_dropped_samples=live.daemon_health.get("calibrator", {}).get("dropped_samples"),
                        calibrator_restarts=live.daemon_health.get("calibrator", {}).get("restarts"),
+                       # releases and side-scan objects back after their due time (the demo runs at
+                       # 20x real time: a busy machine shows here, the solution then not a replay's)
+                       calibrator_late=live.daemon_health.get("calibrator", {}).get("late"),
                        final_params=accepted[-1]["params"] if accepted else None,
                        live_wall_s=live.wall_s),
         "scenario": {"name": scenario.name, "duration_s": scenario.duration_s, "seed": scenario.seed,
