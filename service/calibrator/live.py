@@ -138,6 +138,7 @@ class CalibratorProcess:
         # lateness in data seconds (:meth:`late_report`)
         self.late: Counter[str] = Counter()
         self.late_max_s = 0.0
+        self._late_logged_s = 0.0
         self._data_time_s = -math.inf  # the runner's, at its last poll (read by the reader thread)
         self._ctx = mp.get_context("spawn")
         self._proc: Any = None
@@ -228,6 +229,12 @@ class CalibratorProcess:
         if 0.0 < late_s < math.inf:  # (an output with no data time behind it, τ = −∞, is not late)
             self.late[kind] += 1
             if late_s > self.late_max_s:
+                # said when it first happens and whenever it doubles: a few lines, however long
+                if late_s >= 2.0 * self._late_logged_s:
+                    self._late_logged_s = late_s
+                    log.warning("calibrator behind: %s back %.1f s of data after its due time (%d late so "
+                                "far); the solution is not what a replay of this log gives", kind[:-1], late_s,
+                                self.late["releases"] + self.late["products"])
                 self.late_max_s = late_s
 
     def late_report(self) -> dict:

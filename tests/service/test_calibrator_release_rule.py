@@ -102,7 +102,7 @@ def _reference_releases(cfg, items) -> tuple[list[float], list[int]]:
 
 
 @pytest.mark.parametrize("lag", [0.0, 40.0])
-def test_live_releases_that_come_back_after_their_due_time_are_counted_late(lag):
+def test_live_releases_that_come_back_after_their_due_time_are_counted_late(lag, caplog):
     """A release back after the runner's data time passed τ + L is handed over at the next
     poll, later than the rule (a replay of the log would apply it earlier): health's
     ``calibrator.late`` counts it with its lateness. Made certain without pacing: the child
@@ -141,9 +141,13 @@ def test_live_releases_that_come_back_after_their_due_time_are_counted_late(lag)
     assert proc.dropped == 0
     assert k == len(tau)
     report = proc.late_report()
+    said = [r for r in caplog.records if "calibrator behind" in r.getMessage()]
     if lag == 0.0:
         assert report["releases"] == len(tau) and report["products"] == 0, report
         assert report["max_s"] == pytest.approx(max(lateness), abs=1e-3), (report, lateness)
+        # said in the log when it first happened (and when the lateness doubled), not per release
+        assert 1 <= len(said) <= len(tau) and said[0].levelname == "WARNING", [r.getMessage() for r in said]
     else:  # back while the data time was past τ, but short of τ + L: on time
         assert max(lateness) < lag, lateness
         assert report == {"releases": 0, "products": 0, "max_s": 0.0}, report
+        assert not said
