@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import sys
 
 HELP = "benchmarks (fusion, calibration, sonar, service, soak) with ratios against a peer"
 TARGETS = ("fusion", "calibration", "sonar", "service", "soak")
@@ -31,9 +32,15 @@ def add_arguments(parser):
 def run(args):
     from adaptnav.service.console import heartbeat
 
+    from adaptnav.service.tools.benchmarks import BenchArgsError
+
     module = importlib.import_module(f"adaptnav.service.tools.benchmarks.{args.target}")
-    with heartbeat(f"bench {args.target}"):  # benchmarks take minutes: say it is alive (stderr)
-        figures = module.run(args)
+    try:
+        with heartbeat(f"bench {args.target}"):  # benchmarks take minutes: say it is alive (stderr)
+            figures = module.run(args)
+    except BenchArgsError as e:  # (checked before anything is measured)
+        print(f"adaptnav bench {args.target}: {e}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(figures, indent=2, sort_keys=True))
     else:

@@ -67,6 +67,18 @@ def test_line_progress_off_a_terminal(capsys):
     console.setup_logging(logging.WARNING)
 
 
+def test_bench_arguments_it_cannot_run_with_are_one_line_and_exit_2(capsys):
+    """A typo in ``--only`` or a bad ``--latency-s``: one line naming what is wrong (and the
+    parts there are), exit 2, nothing measured — not a traceback."""
+    assert main(["bench", "service", "--only", "replay,latncy"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["adaptnav bench service: --only: unknown parts ['latncy'] (known: replay, floor, latency, "
+                   "mavlink_cpu, cold_call, cold_start, memory, live_work, memory_mavlink)"], err
+    assert main(["bench", "service", "--only", "latency", "--latency-s", "nan"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["adaptnav bench service: --latency-s must be a positive number of seconds, got nan"], err
+
+
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
     """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
     (``console.stage``), not only "running"; the stage ends with the block."""

@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from adaptnav.service.console import stage
+from adaptnav.service.tools.benchmarks import BenchArgsError
 
 LIVE_SCENARIO = "survey"
 LIVE_OVERRIDES = ["imu.rate_hz=200", "dvl.enabled=true", "sonar.enabled=false"]
@@ -958,13 +959,13 @@ def run(args) -> dict:
     only = getattr(args, "only", None)
     parts = set(only.split(",")) if only else set(PARTS)
     if parts - set(PARTS) - set(EXTRA_PARTS):
-        raise ValueError(f"--only: unknown parts {sorted(parts - set(PARTS) - set(EXTRA_PARTS))} "
+        raise BenchArgsError(f"--only: unknown parts {sorted(parts - set(PARTS) - set(EXTRA_PARTS))} "
                          f"(known: {', '.join(PARTS + EXTRA_PARTS)})")
     latency_s = getattr(args, "latency_s", None)
     if latency_s is None:
         latency_s = 15.0 if quick else 60.0
     if not (latency_s > 0.0 and math.isfinite(latency_s)):  # (before minutes of other parts)
-        raise ValueError(f"--latency-s must be a positive number of seconds, got {latency_s}")
+        raise BenchArgsError(f"--latency-s must be a positive number of seconds, got {latency_s}")
     measure = {  # in this order
         "replay": lambda: replay_speed(600.0 if quick else 3600.0, repeats=1 if quick else 2),
         "floor": lambda: zenoh_floor(200 if quick else 1000),
@@ -976,6 +977,9 @@ def run(args) -> dict:
         "memory": lambda: memory(600.0 if quick else 3600.0),
         "memory_mavlink": lambda: memory_mavlink(600.0 if quick else 3600.0),
     }
+    if set(measure) != set(PARTS + EXTRA_PARTS):  # a part named for --only must be measured
+        raise RuntimeError(f"bench service: parts {sorted(set(measure) ^ set(PARTS + EXTRA_PARTS))} "
+                           "are named in PARTS or measured, not both")
     todo = [name for name in measure if name in parts]
     figures: dict[str, Any] = {}
     for k, name in enumerate(todo, start=1):
