@@ -77,6 +77,10 @@ def test_bench_arguments_it_cannot_run_with_are_one_line_and_exit_2(capsys):
     assert main(["bench", "service", "--only", "latency", "--latency-s", "nan"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["adaptnav bench service: --latency-s must be a positive number of seconds, got nan"], err
+    # the soak's sampling period: 0 was taken for 30 s without a word
+    assert main(["bench", "soak", "--sample-s", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["adaptnav bench soak: --sample-s must be within (0, the soak's 3600 s], got 0"], err
 
 
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):

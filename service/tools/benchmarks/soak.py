@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from adaptnav.service.tools.benchmarks import BenchArgsError
+
 GOAL_GROWTH_PERCENT = 5.0
 
 
@@ -135,5 +137,8 @@ def run(args) -> dict:
     minutes = getattr(args, "minutes", None)
     minutes = float(minutes) if minutes is not None else (10.0 if getattr(args, "quick", False) else 60.0)
     if not 1.0 <= minutes <= 24 * 60:
-        raise SystemExit("bench soak: --minutes must be within [1, 1440]")
-    return soak(minutes * 60.0, float(getattr(args, "sample_s", 30.0) or 30.0))
+        raise BenchArgsError(f"--minutes must be within [1, 1440], got {minutes:g}")
+    sample_s = float(getattr(args, "sample_s", 30.0))
+    if not 0.0 < sample_s <= minutes * 60.0:  # (0 or NaN was taken for 30 s without a word)
+        raise BenchArgsError(f"--sample-s must be within (0, the soak's {minutes * 60.0:g} s], got {sample_s:g}")
+    return soak(minutes * 60.0, sample_s)
