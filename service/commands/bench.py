@@ -29,11 +29,19 @@ def add_arguments(parser):
     soak.add_arguments(parser)  # --minutes, --sample-s
 
 
+# the options that belong to one target: given to another, they would be ignored without a word
+TARGET_OPTIONS = {"only": "service", "latency_s": "service", "minutes": "soak", "sample_s": "soak"}
+
+
 def run(args):
     from adaptnav.service.console import heartbeat
-
     from adaptnav.service.tools.benchmarks import BenchArgsError
 
+    for dest, target in TARGET_OPTIONS.items():
+        if getattr(args, dest, None) is not None and args.target != target:
+            print(f"adaptnav bench {args.target}: --{dest.replace('_', '-')} is an option of "
+                  f"`adaptnav bench {target}` only", file=sys.stderr)
+            return 2
     module = importlib.import_module(f"adaptnav.service.tools.benchmarks.{args.target}")
     try:
         with heartbeat(f"bench {args.target}"):  # benchmarks take minutes: say it is alive (stderr)

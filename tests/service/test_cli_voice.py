@@ -77,6 +77,10 @@ def test_bench_arguments_it_cannot_run_with_are_one_line_and_exit_2(capsys):
     assert main(["bench", "service", "--only", "latency", "--latency-s", "nan"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["adaptnav bench service: --latency-s must be a positive number of seconds, got nan"], err
+    # another target's option was ignored without a word
+    assert main(["bench", "calibration", "--only", "replay"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["adaptnav bench calibration: --only is an option of `adaptnav bench service` only"], err
     # the soak's sampling period: 0 was taken for 30 s without a word
     assert main(["bench", "soak", "--sample-s", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -33,7 +33,7 @@ GOAL_GROWTH_PERCENT = 5.0
 def add_arguments(parser) -> None:  # pragma: no cover - argparse wiring
     parser.add_argument("--minutes", type=float, default=None, metavar="N",
                         help="soak: minutes of simulated mission (data time; default 60, --quick 10)")
-    parser.add_argument("--sample-s", type=float, default=30.0, metavar="S",
+    parser.add_argument("--sample-s", type=float, default=None, metavar="S",
                         help="soak: RSS sampled every S seconds of data time (default 30)")
 
 
@@ -138,7 +138,8 @@ def run(args) -> dict:
     minutes = float(minutes) if minutes is not None else (10.0 if getattr(args, "quick", False) else 60.0)
     if not 1.0 <= minutes <= 24 * 60:
         raise BenchArgsError(f"--minutes must be within [1, 1440], got {minutes:g}")
-    sample_s = float(getattr(args, "sample_s", 30.0))
+    sample_s = getattr(args, "sample_s", None)
+    sample_s = 30.0 if sample_s is None else float(sample_s)
     if not 0.0 < sample_s <= minutes * 60.0:  # (0 or NaN was taken for 30 s without a word)
         raise BenchArgsError(f"--sample-s must be within (0, the soak's {minutes * 60.0:g} s], got {sample_s:g}")
     return soak(minutes * 60.0, sample_s)
