@@ -63,6 +63,7 @@ def add_arguments(parser):
 
 def run(args):
     import json
+    import math
     import sys
     from pathlib import Path
 
@@ -71,6 +72,9 @@ def run(args):
 
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
+        return 2
+    if args.realtime is not None and not (0.0 < args.realtime < math.inf):  # (before the input is read)
+        print(f"adaptnav replay: --realtime SPEED must be a positive number, got {args.realtime:g}", file=sys.stderr)
         return 2
     if args.calibrate and args.calibrator_location == "process":
         from adaptnav.service.calibrator.lagged import prestart

@@ -87,6 +87,15 @@ def test_bench_arguments_it_cannot_run_with_are_one_line_and_exit_2(capsys):
     assert err == ["adaptnav bench soak: --sample-s must be within (0, the soak's 3600 s], got 0"], err
 
 
+def test_replay_pace_that_is_no_speed_is_one_line_and_exit_2(capsys, tmp_path):
+    """``--realtime -3`` (or 0, NaN): one line and exit 2 before anything is read — it was the
+    clock's ValueError traceback."""
+    for speed in ("-3", "0", "nan"):
+        assert main(["replay", "--scenario", "short", "--realtime", speed, "--out", str(tmp_path)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"adaptnav replay: --realtime SPEED must be a positive number, got {float(speed):g}"], err
+
+
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
     """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
     (``console.stage``), not only "running"; the stage ends with the block."""
