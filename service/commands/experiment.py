@@ -10,7 +10,16 @@ filter fusing the closures without the calibrator.
 """
 from __future__ import annotations
 
+import math
+import sys
+
 HELP = "reproduce the thesis experiments (static vs learned motion model); side-scan landmark survey"
+
+
+def _usage(message: str) -> None:
+    """An argument the experiment cannot run with: one line, exit 2 (as argparse's own)."""
+    print(f"adaptnav experiment: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -61,9 +70,9 @@ def _rows(args):
                     args.steps if args.steps is not None else base.steps,
                     args.landmarks if args.landmarks is not None else base.landmarks)
     if row.steps < 2 or row.landmarks < 1 or not 0 <= row.change_step <= row.steps:
-        raise SystemExit("adaptnav experiment: need steps ≥ 2, landmarks ≥ 1, 0 ≤ change-step ≤ steps")
-    if min(ini + chg) <= 0 or row.sensor_noise <= 0:
-        raise SystemExit("adaptnav experiment: σ values and sensor noise must be > 0")
+        _usage("need steps ≥ 2, landmarks ≥ 1, 0 ≤ change-step ≤ steps")
+    if not all(0.0 < v < math.inf for v in (*ini, *chg, row.sensor_noise)):  # (NaN too)
+        _usage("σ values and sensor noise must be positive numbers")
     return [row]
 
 
@@ -142,9 +151,9 @@ def run(args):
     from adaptnav.calibration.thesis import row_result, run_seed
 
     if args.seeds < 1:
-        raise SystemExit("adaptnav experiment: --seeds must be ≥ 1")
+        _usage("--seeds must be ≥ 1")
     if args.jobs < 0:
-        raise SystemExit("adaptnav experiment: --jobs must be ≥ 0 (0: one per CPU)")
+        _usage("--jobs must be ≥ 0 (0: one per CPU)")
     try:
         rows = _rows(args)
     except ValueError as e:

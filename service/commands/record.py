@@ -85,6 +85,7 @@ def record(bus, out, stop, duration_s=None, metadata=None, origin=None):
 
 def run(args):
     import logging
+    import math
     import signal
     import sys
     import threading
@@ -99,6 +100,10 @@ def run(args):
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.duration is not None and not 0.0 < args.duration < math.inf:  # (NaN: never stopped)
+        print(f"adaptnav record: --duration must be a positive number of seconds, got {args.duration:g}",
+              file=sys.stderr)
+        return 2
     import zenoh
 
     from adaptnav.service.daemon import startup_error

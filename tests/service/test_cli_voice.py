@@ -96,6 +96,23 @@ def test_replay_pace_that_is_no_speed_is_one_line_and_exit_2(capsys, tmp_path):
         assert err == [f"adaptnav replay: --realtime SPEED must be a positive number, got {float(speed):g}"], err
 
 
+def test_record_duration_and_experiment_numbers_that_are_no_numbers_are_one_line_and_exit_2(capsys, tmp_path):
+    """``record --duration nan`` recorded forever (NaN never reached); ``experiment thesis
+    --sensor-noise nan`` ran with a NaN noise; the experiment's other refusals exited 1. Each is
+    one line and exit 2 now, before anything connects or runs."""
+    assert main(["record", "--out", str(tmp_path / "r.mcap"), "--duration", "nan"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "adaptnav record: --duration must be a positive number of seconds, got nan"]
+    assert not (tmp_path / "r.mcap").exists()
+    for args, said in ((["--sensor-noise", "nan", "--initial", "1,1", "--changed", "1,1"],
+                        "σ values and sensor noise must be positive numbers"),
+                       (["--seeds", "0"], "--seeds must be ≥ 1")):
+        with pytest.raises(SystemExit) as e:
+            main(["experiment", "thesis", *args])
+        assert e.value.code == 2
+        assert capsys.readouterr().err.strip().splitlines() == [f"adaptnav experiment: {said}"]
+
+
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
     """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
     (``console.stage``), not only "running"; the stage ends with the block."""
