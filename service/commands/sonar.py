@@ -49,6 +49,13 @@ def run(args) -> int:
         # extension, and without one it raised (a traceback) after all the work
         if not cv2.haveImageWriter(str(args.out)):
             return _fail(f"--out {args.out}: not a picture file name OpenCV can write (e.g. waterfall.png, .jpg, .tif)")
+        # (NaN and negative sizes raised deep in the waterfall; 0 was taken for the default)
+        if args.res_m is not None and not 0.0 < args.res_m < math.inf:
+            return _fail(f"--res-m must be a positive number of metres, got {args.res_m:g}")
+    elif args.window < 8 or args.step < 1:  # (checked before the file is read, as the others)
+        return _fail("--window must be ≥ 8 and --step ≥ 1")
+    elif args.max_keypoints < 1:  # (the detector's ValueError, a traceback)
+        return _fail(f"--max-keypoints must be ≥ 1, got {args.max_keypoints}")
     try:
         pings, report = read_xtf(args.file)
     except SonarFileError as exc:
@@ -147,8 +154,6 @@ def _motion(args, pings) -> int:
     from adaptnav.sonar.motion import WindowRegistrar
     from adaptnav.sonar.waterfall import WaterfallConfig, along_track_distance_m, build_waterfall
 
-    if args.window < 8 or args.step < 1:
-        return _fail("--window must be ≥ 8 and --step ≥ 1")
     if len(pings) < args.window + args.step:
         return _fail(f"{len(pings)} pings: too few for --window {args.window} --step {args.step}")
     if not np.all(np.isfinite(along_track_distance_m(pings))):

@@ -198,3 +198,18 @@ def test_a_waterfall_named_without_a_picture_extension_is_one_line_before_any_wo
         err = capsys.readouterr().err
         assert rc == 2 and f"--out {out}" in err and "Traceback" not in err
         assert not list(tmp_path.iterdir())
+
+
+def test_numbers_that_are_no_sizes_are_one_line_before_any_work(tmp_path, capsys):
+    """``--res-m nan`` / ``-1`` raised deep in the waterfall (tracebacks) and ``0`` was taken for
+    the default; ``--max-keypoints 0`` was the detector's ValueError. Each is one line, exit 2,
+    and nothing written — checked before the file is read (a missing file would say so first)."""
+    for res in ("nan", "-1", "0"):
+        out = tmp_path / "w.png"
+        rc = main(["sonar", "waterfall", str(tmp_path / "absent.xtf"), "--out", str(out), "--res-m", res])
+        assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [
+            f"adaptnav sonar: --res-m must be a positive number of metres, got {float(res):g}"]
+        assert not out.exists()
+    rc = main(["sonar", "motion", str(tmp_path / "absent.xtf"), "--max-keypoints", "0"])
+    assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [
+        "adaptnav sonar: --max-keypoints must be ≥ 1, got 0"]
