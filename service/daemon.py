@@ -58,7 +58,7 @@ from adaptnav.service.runtime.collector import CollectorPacing
 from adaptnav.service.config import ServiceConfig, config_dict, log_effective
 from adaptnav.service.runtime.health import Health
 from adaptnav.service.runtime.memory import BurstTrimmer
-from adaptnav.service.runtime.persistence import load_state, save_state
+from adaptnav.service.runtime.persistence import load_state, save_state, state_dir_problem
 from adaptnav.service.runtime.rehearsal import EpochRehearsal
 from adaptnav.service.runtime.sinks import Sink, geo_time_fields
 from adaptnav.service.runtime.wakeup import WakeupLatencyRequest
@@ -567,6 +567,11 @@ class Daemon:
         log.info("motion model: %s", self.motion_prior)
         self._warm_up()
         self.estimator = self._make_estimator()
+        problem = state_dir_problem(cfg.state_dir)
+        if problem:  # navigation goes on; what it learns is lost at the next restart
+            log.warning("state dir %s is not writable (%s): the learned motion model and the last position "
+                        "will not survive a restart", cfg.state_dir, problem)
+            self.health.state_save_error = f"state dir not writable at start: {problem}"
         self.bus = Bus(cfg.zenoh, cfg.vehicle.name)
         self.bus.subscribe_samples(self._from_transport)
         if cfg.calibrator.enabled and cfg.calibrator.location == "remote":

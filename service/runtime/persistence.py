@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,21 @@ def save_state(state_dir: str | Path, t_s: float, params: MotionParams | None,
     path = Path(state_dir) / FILENAME
     atomic_write_bytes(path, json.dumps(doc, allow_nan=False, sort_keys=True).encode())
     return path
+
+
+def state_dir_problem(state_dir: str | Path) -> str:
+    """Why the learned state could not be written into ``state_dir`` ("" when it can): the
+    folder made if missing and a temporary file created and removed there. The daemon asks at
+    start, so an operator learns it then, not at the first save minutes later or at shutdown
+    (a root-owned bind mount, a read-only card, a user without ``/var/lib/adaptnav``)."""
+    try:
+        folder = Path(state_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        return f"{type(e).__name__}: {e.strerror or e}"
+    return ""
 
 
 def load_state(state_dir: str | Path) -> LearnedState | None:

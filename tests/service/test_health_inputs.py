@@ -74,3 +74,25 @@ def test_the_heap_is_given_back_once_a_burst_has_drained():
     assert [trimmer.check(d) for d in (40, 150, 90, 1)] == [False] * 4
     assert trimmer.check(0) is True
     assert trimmer.check(0) is False
+
+
+def test_a_state_dir_it_cannot_write_is_said_at_start(live, tmp_path):
+    """The learned state's folder unwritable (here a file stands where it should be: so for root
+    too) was found only at the first save, minutes later, or at shutdown: now health's
+    ``persistence.last_error`` says it from the first report, before any save was tried, and
+    navigation goes on."""
+    blocker = tmp_path / "not-a-directory"
+    blocker.write_text("a file where the state directory should be\n")
+    daemon, bus, col = live(*SETTINGS, f'state_dir="{blocker}/state"', "persistence.period_s=3600")
+    feeder = Feeder(bus)
+    feeder.start()
+    try:
+        health = wait_until(lambda: (h := col.get(bus.keys.health)) and h[-1], timeout_s=60)
+        navs = col.wait_for(bus.keys.nav_state, lambda docs: len(docs) >= 3)
+    finally:
+        feeder.stop()
+    persistence = health["persistence"]
+    assert persistence["saves"] == 0 and persistence["failures"] == 0, persistence  # nothing saved yet
+    assert persistence["last_error"].startswith("state dir not writable at start: "), persistence
+    assert "NotADirectoryError" in persistence["last_error"] or "FileExistsError" in persistence["last_error"]
+    assert len(navs) >= 3
