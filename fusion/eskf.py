@@ -698,7 +698,11 @@ class Estimator:
     def slow_states(self) -> dict:
         """Biases, current and ``k_speed`` with their variances (for persistence); in INS
         mode also the position with its variances and state time (``pos_n_m``,
-        ``var_pos_n_m2``, ``pos_t_s``): a restart seeds from it (:meth:`restore_slow_states`)."""
+        ``var_pos_n_m2``, ``pos_t_s``): a restart seeds from it (:meth:`restore_slow_states`).
+        Empty before the filter has aligned, unless some were restored: the defaults, with no
+        variance yet, are no state to keep (a restart refused them as "not usable")."""
+        if self._mode == "none" and not self._restored:
+            return {}
         d = np.diag(self._P)
         out = {
             "bias_acc_b_m_s2": self._x[X_BA].tolist(), "var_bias_acc": d[BA].tolist(),

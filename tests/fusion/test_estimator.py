@@ -269,6 +269,26 @@ def test_slow_states_survive_a_restart():
         fresh.restore_slow_states({**saved, "k_speed": -1.0})
 
 
+def test_no_slow_states_to_keep_before_alignment_unless_restored():
+    """A filter that never aligned has only its defaults, with zero variances: kept, they were
+    refused at the next start ("persisted slow states not usable"), so there are none to keep;
+    restored ones are kept through the alignment, and an aligned filter's are its own."""
+    m = make_mission(np.random.default_rng(3), 120.0, current_n=(0.2, 0.1))
+    est = _est()
+    run(est, m)
+    saved = est.slow_states()
+    assert saved and all(v > 0 for key in ("var_bias_acc", "var_bias_gyro", "var_current") for v in saved[key])
+    fresh = _est()
+    assert fresh.slow_states() == {}
+    fresh.process(HeadingSample(0.5, 0.0))  # not aligned by a heading alone
+    assert not fresh.initialized and fresh.slow_states() == {}
+    fresh.restore_slow_states(saved)
+    kept = fresh.slow_states()
+    np.testing.assert_allclose(kept["current_n_m_s"], saved["current_n_m_s"])
+    assert kept["var_k_speed"] == pytest.approx(saved["var_k_speed"])
+    _est().restore_slow_states(saved)  # (what was kept is what a restart takes)
+
+
 def test_a_calibrator_release_keeps_the_modelled_speed_continuous():
     est = _aligned()
     before = est.nav_state().k_speed * est.motion_params.k_v

@@ -69,4 +69,18 @@ def test_a_persisted_state_beyond_bounds_is_not_restored(tmp_path):
     assert params == MotionParams()
     assert rejected.get("persisted_params_refused:k_v") == 1
     assert rejected.get("persisted_states_refused:current_n_m_s") == 1
-    assert slow["current_n_m_s"] == [0.0, 0.0]
+    assert slow == {}  # nothing restored (not the spoofed 1.68 m/s): no slow states before alignment
+
+
+def test_a_daemon_that_never_aligned_leaves_a_state_the_next_start_takes(tmp_path, caplog):
+    """Started and stopped without a sample (on the bench, the autopilot not yet up), the daemon
+    saved the filter's defaults with zero variances as its slow states, and the next start said
+    "persisted slow states not usable". It keeps only what it has: its params."""
+    state = tmp_path / "state"
+    for _ in range(2):
+        daemon = Daemon(daemon_config(free_port(), state, "calibrator.enabled=false"))
+        daemon.start()
+        daemon.stop()
+    saved = load_state(state)
+    assert saved is not None and saved.params == MotionParams() and saved.slow_states == {}
+    assert not [r.getMessage() for r in caplog.records if "not usable" in r.getMessage()]
