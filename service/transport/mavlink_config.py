@@ -193,6 +193,47 @@ class StreamRates:
     distance_hz: float = 10.0
 
 
+_NET_SCHEMES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:")
+_OTHER_SCHEMES = ("mcast:", "ws:", "wss:", "wsserver:")  # pymavlink's own, checked when opened
+
+
+def _port_problem(port: str) -> str:
+    return "" if port.isdigit() and 0 < int(port) < 65536 else f"port {port!r} is not 1–65535"
+
+
+def url_problem(url: str) -> str:
+    """Why the bridge's ``url`` can never be opened ("" when its form is one it can), told at
+    start: it was retried forever with pymavlink's message ("invalid literal for int()"). The
+    forms of :func:`adaptnav.service.transport.mavlink_bridge.link_device`; a device that is
+    missing or a host that does not answer is the link's business (retried), not this."""
+    if not url:
+        return "empty"
+    for scheme in _NET_SCHEMES:
+        if url.startswith(scheme):
+            host, sep, port = url[len(scheme):].rpartition(":")
+            if not (sep and host):
+                return f"{scheme[:-1]} needs HOST:PORT"
+            return _port_problem(port)
+    if url.startswith(_OTHER_SCHEMES):
+        return ""
+    if url.startswith("serial:"):
+        device, sep, baud = url[len("serial:"):].rpartition(":")
+        if not sep:
+            device, baud = baud, "1"
+        if not device:
+            return "serial: needs a device (serial:/dev/ttyACM0[:BAUD])"
+        return "" if baud.isdigit() and int(baud) > 0 else f"baud {baud!r} is not a positive integer"
+    if url.startswith("/"):
+        _, sep, baud = url.rpartition(",")
+        return "" if not sep or (baud.isdigit() and int(baud) > 0) else f"baud {baud!r} is not a positive integer"
+    if ":" in url:  # pymavlink takes HOST:PORT without a scheme for UDP
+        host, _, port = url.rpartition(":")
+        problem = _port_problem(port)
+        return f"{problem} (no scheme: pymavlink reads HOST:PORT as UDP; udpin:, udpout:, tcp:, serial: …)" \
+            if problem or not host else ""
+    return ""
+
+
 @dataclass(frozen=True)
 class BridgeConfig:
     """``[mavlink]`` section: link, identity, requested rates, conversion and output."""
@@ -226,6 +267,9 @@ class BridgeConfig:
     output: OdometryConfig = field(default_factory=OdometryConfig)
 
     def validate(self) -> None:
+        problem = url_problem(self.url)
+        if problem:
+            raise ValueError(f"url {self.url!r} cannot be opened: {problem}")
         if self.heartbeat_period_s <= 0 or self.link_timeout_s <= 0:
             raise ValueError("heartbeat_period_s and link_timeout_s must be > 0")
         if not 0 < self.reconnect_min_s <= self.reconnect_max_s:

@@ -85,6 +85,29 @@ def test_bad_values_name_the_key(override, needle):
         load_config(None, [override])
 
 
+@pytest.mark.parametrize("url, why", [
+    ("bogus:foo", "port 'foo'"),                      # a scheme typo: pymavlink's "HOST:PORT" as UDP
+    ("udpin:0.0.0.0:99999", "port '99999'"),
+    ("udpout:192.168.2.1", "udpout needs HOST:PORT"),
+    ("serial:/dev/ttyACM0:fast", "baud 'fast'"),
+    ("/dev/ttyACM0,115k", "baud '115k'"),
+    ("", "empty"),
+])
+def test_a_mavlink_url_that_can_never_be_opened_is_refused_at_load(url, why):
+    """It was accepted and retried forever at run time with pymavlink's "invalid literal for
+    int()"; the forms that can be opened (and a device that is only missing now) still load."""
+    with pytest.raises(ConfigError, match="mavlink") as e:
+        load_config(None, [f'mavlink.url="{url}"'])
+    assert why in str(e.value), str(e.value)
+
+
+@pytest.mark.parametrize("url", ["udpin:127.0.0.1:14550", "udpout:192.168.2.1:14550", "tcp:127.0.0.1:5760",
+                                 "udpin:[::1]:14550", "serial:/dev/ttyACM0:115200", "serial:/dev/ttyUSB9",
+                                 "/dev/ttyACM0,57600", "/dev/ttyACM0", "COM3", "127.0.0.1:14550"])
+def test_the_mavlink_url_forms_the_bridge_opens_load(url):
+    assert load_config(None, [f'mavlink.url="{url}"']).mavlink.url == url
+
+
 def test_bad_file(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[zenoh\nmode = 'peer'\n")
