@@ -156,6 +156,8 @@ def open_log(path: str | Path) -> ReplayInput:
     """Open ``.mcap`` (our logs, or BlueOS's MAVLink recordings) or ``.tlog``/``.bin``
     (MAVLink/DataFlash) for replay."""
     path = Path(path)
+    if path.is_dir():  # (a folder of logs: each is replayed on its own)
+        raise IsADirectoryError(f"{path} is a folder, not a log: give one of its .mcap, .tlog or .bin files")
     if not path.is_file():
         raise FileNotFoundError(f"log not found: {path}")
     suffix = path.suffix.lower()

@@ -113,6 +113,13 @@ def test_record_duration_and_experiment_numbers_that_are_no_numbers_are_one_line
         assert capsys.readouterr().err.strip().splitlines() == [f"adaptnav experiment: {said}"]
 
 
+def test_replay_of_a_folder_says_it_is_a_folder(capsys, tmp_path):
+    """A folder of logs given to replay was "log not found" — it is there; now it says what it is."""
+    assert main(["replay", str(tmp_path), "--out", str(tmp_path / "out")]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"adaptnav replay: {tmp_path} is a folder, not a log: give one of its .mcap, .tlog or .bin files"]
+
+
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
     """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
     (``console.stage``), not only "running"; the stage ends with the block."""
