@@ -76,6 +76,14 @@ def run(args):
     if args.realtime is not None and not (0.0 < args.realtime < math.inf):  # (before the input is read)
         print(f"adaptnav replay: --realtime SPEED must be a positive number, got {args.realtime:g}", file=sys.stderr)
         return 2
+    out = Path(args.out)
+    try:  # the outputs' folder before the input is read or replayed: a traceback came after all of it
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(0, "a file is there")
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"adaptnav replay: --out {out}: cannot make the output folder ({e.strerror or e})", file=sys.stderr)
+        return 2
     if args.calibrate and args.calibrator_location == "process":
         from adaptnav.service.calibrator.lagged import prestart
 
@@ -96,7 +104,6 @@ def run(args):
     except OSError as e:  # not found, unreadable
         print(f"adaptnav replay: {e}", file=sys.stderr)
         return 1
-    out = Path(args.out)
     progress = not args.no_progress and not args.json
 
     if args.compare:

@@ -120,6 +120,20 @@ def test_replay_of_a_folder_says_it_is_a_folder(capsys, tmp_path):
         f"adaptnav replay: {tmp_path} is a folder, not a log: give one of its .mcap, .tlog or .bin files"]
 
 
+def test_an_output_that_cannot_be_written_is_one_line_before_the_work(capsys, tmp_path):
+    """``simulate --out`` a folder, or under a file; ``replay --out`` a file: a traceback after
+    the whole simulation or replay; now one line, exit 2, before any of it."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    for out, said in ((tmp_path, "is a folder"), (blocker / "x.mcap", "its folder cannot be made (")):
+        assert main(["simulate", "short", "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"adaptnav simulate: --out {out}: {said}"), err
+    assert main(["replay", "--scenario", "short", "--out", str(blocker), "--no-plots"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"adaptnav replay: --out {blocker}: cannot make the output folder (a file is there)"], err
+
+
 def test_heartbeat_says_which_stage_a_long_command_is_in(capsys):
     """``adaptnav bench service`` runs for minutes: its heartbeat lines name the part that runs
     (``console.stage``), not only "running"; the stage ends with the block."""
