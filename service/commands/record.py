@@ -100,6 +100,12 @@ def run(args):
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from adaptnav.service.commands.paths import output_file_problem
+
+    problem = output_file_problem(args.out)
+    if problem:  # before connecting: the file was opened once the session was up
+        print(f"adaptnav record: --out {args.out}: {problem}", file=sys.stderr)
+        return 2
     if args.duration is not None and not 0.0 < args.duration < math.inf:  # (NaN: never stopped)
         print(f"adaptnav record: --duration must be a positive number of seconds, got {args.duration:g}",
               file=sys.stderr)

@@ -28,22 +28,6 @@ def add_arguments(parser):
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def output_file_problem(path) -> str:
-    """Why ``path`` cannot be written as an output file ("" when it can): its folder is made
-    if missing, and must be writable; ``path`` must not be a folder."""
-    import os
-    from pathlib import Path
-
-    path = Path(path)
-    if path.is_dir():
-        return "is a folder"
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        return f"its folder cannot be made ({e.strerror or e})"
-    return "" if os.access(path.parent, os.W_OK) else "its folder is not writable"
-
-
 def run(args):
     import sys
     import time
@@ -68,6 +52,8 @@ def run(args):
     if not args.out:
         print("adaptnav simulate: give --out FILE.mcap (or --live zenoh|mavlink)", file=sys.stderr)
         return 2
+    from adaptnav.service.commands.paths import output_file_problem
+
     problem = output_file_problem(args.out)
     if problem:  # before the simulation: a traceback came after all of it
         print(f"adaptnav simulate: --out {args.out}: {problem}", file=sys.stderr)

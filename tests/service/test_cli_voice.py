@@ -129,6 +129,13 @@ def test_an_output_that_cannot_be_written_is_one_line_before_the_work(capsys, tm
         assert main(["simulate", "short", "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"adaptnav simulate: --out {out}: {said}"), err
+    assert main(["record", "--out", str(tmp_path), "--duration", "1"]) == 2  # (before connecting)
+    assert capsys.readouterr().err.strip().splitlines() == [f"adaptnav record: --out {tmp_path}: is a folder"]
+    with pytest.raises(SystemExit) as e:
+        main(["experiment", "thesis", "--seeds", "1", "--initial", "1,1", "--changed", "1,1",
+              "--plots", str(blocker)])
+    assert e.value.code == 2 and capsys.readouterr().err.strip().splitlines() == [
+        f"adaptnav experiment: --plots {blocker}: cannot make the folder (a file is there)"]
     assert main(["replay", "--scenario", "short", "--out", str(blocker), "--no-plots"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"adaptnav replay: --out {blocker}: cannot make the output folder (a file is there)"], err
