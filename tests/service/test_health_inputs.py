@@ -45,20 +45,28 @@ def test_nav_state_and_release_on_a_sensor_key_are_counted_not_taken(live):
     assert health["calibrator"]["releases"] == 0 and daemon.params.k_v == 1.0
 
 
-def test_a_failing_state_save_is_counted_in_health(live, tmp_path):
+def _with_a_file_for_a_state_dir(live, tmp_path, period_s: float, health_ready):
+    """A live daemon whose state dir lies under a file (unwritable for root too), fed until a
+    health report passes ``health_ready`` and 5 more nav states came: (health, nav states before,
+    nav states after)."""
     blocker = tmp_path / "not-a-directory"
     blocker.write_text("a file where the state directory should be\n")
-    daemon, bus, col = live(*SETTINGS, f'state_dir="{blocker}/state"', "persistence.period_s=0.2")
+    daemon, bus, col = live(*SETTINGS, f'state_dir="{blocker}/state"', f"persistence.period_s={period_s}")
     feeder = Feeder(bus)
     feeder.start()
     try:
-        health = wait_until(lambda: (h := col.get(bus.keys.health)) and h[-1]["persistence"]["failures"] >= 2
-                            and h[-1], timeout_s=60)
+        health = wait_until(lambda: (h := col.get(bus.keys.health)) and health_ready(h[-1]) and h[-1], timeout_s=60)
         n_before = len(col.get(bus.keys.nav_state))
         navs = col.wait_for(bus.keys.nav_state, lambda docs: len(docs) >= n_before + 5)
     finally:
         feeder.stop()
-    assert health, f"health never counted the failed saves: {col.get(bus.keys.health)[-1:]}"
+    assert health, f"no health report as awaited: {col.get(bus.keys.health)[-1:]}"
+    return health, n_before, navs
+
+
+def test_a_failing_state_save_is_counted_in_health(live, tmp_path):
+    health, n_before, navs = _with_a_file_for_a_state_dir(live, tmp_path, 0.2,
+                                                          lambda h: h["persistence"]["failures"] >= 2)
     persistence = health["persistence"]
     assert persistence["saves"] == 0
     assert "NotADirectoryError" in persistence["last_error"] or "FileExistsError" in persistence["last_error"]
@@ -81,18 +89,9 @@ def test_a_state_dir_it_cannot_write_is_said_at_start(live, tmp_path):
     too) was found only at the first save, minutes later, or at shutdown: now health's
     ``persistence.last_error`` says it from the first report, before any save was tried, and
     navigation goes on."""
-    blocker = tmp_path / "not-a-directory"
-    blocker.write_text("a file where the state directory should be\n")
-    daemon, bus, col = live(*SETTINGS, f'state_dir="{blocker}/state"', "persistence.period_s=3600")
-    feeder = Feeder(bus)
-    feeder.start()
-    try:
-        health = wait_until(lambda: (h := col.get(bus.keys.health)) and h[-1], timeout_s=60)
-        navs = col.wait_for(bus.keys.nav_state, lambda docs: len(docs) >= 3)
-    finally:
-        feeder.stop()
+    health, n_before, navs = _with_a_file_for_a_state_dir(live, tmp_path, 3600, lambda h: True)
     persistence = health["persistence"]
     assert persistence["saves"] == 0 and persistence["failures"] == 0, persistence  # nothing saved yet
     assert persistence["last_error"].startswith("state dir not writable at start: "), persistence
     assert "NotADirectoryError" in persistence["last_error"] or "FileExistsError" in persistence["last_error"]
-    assert len(navs) >= 3
+    assert len(navs) >= n_before + 5
