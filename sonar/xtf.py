@@ -255,6 +255,8 @@ def read_xtf(path: str | Path, *, speed_in_knots: bool = True) -> tuple[list[Son
     import pyxtf  # heavy import kept local
 
     path = Path(path)
+    if path.is_dir():
+        raise SonarFileError(f"{path}: a folder, not an XTF file")
     if not path.is_file():
         raise SonarFileError(f"{path}: no such file")
     report = XtfReadReport()

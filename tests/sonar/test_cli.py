@@ -213,3 +213,10 @@ def test_numbers_that_are_no_sizes_are_one_line_before_any_work(tmp_path, capsys
     rc = main(["sonar", "motion", str(tmp_path / "absent.xtf"), "--max-keypoints", "0"])
     assert rc == 2 and capsys.readouterr().err.strip().splitlines() == [
         "adaptnav sonar: --max-keypoints must be ≥ 1, got 0"]
+
+
+def test_a_folder_given_for_the_xtf_file_is_said_to_be_a_folder(tmp_path, capsys):
+    """It was "no such file" — the folder is there."""
+    assert main(["sonar", "waterfall", str(tmp_path), "--out", str(tmp_path / "w.png")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"adaptnav sonar: {tmp_path}: a folder, not an XTF file"]
