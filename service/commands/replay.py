@@ -76,6 +76,10 @@ def run(args):
     if args.realtime is not None and not (0.0 < args.realtime < math.inf):  # (before the input is read)
         print(f"adaptnav replay: --realtime SPEED must be a positive number, got {args.realtime:g}", file=sys.stderr)
         return 2
+    e = args.motion_k_v_error
+    if e is not None and not -1.0 < e < math.inf:  # k_V × (1 + E) must stay a speed scale (> 0)
+        print(f"adaptnav replay: --motion-k-v-error E must be above -1 (k_V × (1 + E) > 0), got {e:g}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     try:  # the outputs' folder before the input is read or replayed: a traceback came after all of it
         if out.exists() and not out.is_dir():

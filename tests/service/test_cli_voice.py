@@ -94,6 +94,12 @@ def test_replay_pace_that_is_no_speed_is_one_line_and_exit_2(capsys, tmp_path):
         assert main(["replay", "--scenario", "short", "--realtime", speed, "--out", str(tmp_path)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert err == [f"adaptnav replay: --realtime SPEED must be a positive number, got {float(speed):g}"], err
+    # the wrong model's k_V × (1 + E) must stay positive: -5 was MotionParams' traceback
+    for e in ("-5", "-1", "nan"):
+        assert main(["replay", "--scenario", "short", "--compare", "--motion-k-v-error", e,
+                     "--out", str(tmp_path)]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == [
+            f"adaptnav replay: --motion-k-v-error E must be above -1 (k_V × (1 + E) > 0), got {float(e):g}"]
 
 
 def test_record_duration_and_experiment_numbers_that_are_no_numbers_are_one_line_and_exit_2(capsys, tmp_path):
