@@ -159,12 +159,11 @@ def run(args):
     except ValueError as e:
         _usage(str(e))
     if args.plots:  # the plots' folder before the seeds run: a traceback came after all of them
-        try:
-            if Path(args.plots).exists() and not Path(args.plots).is_dir():
-                raise NotADirectoryError(0, "a file is there")
-            Path(args.plots).mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            _usage(f"--plots {args.plots}: cannot make the folder ({e.strerror or e})")
+        from adaptnav.service.commands.paths import output_folder_problem
+
+        problem = output_folder_problem(args.plots)
+        if problem:
+            _usage(f"--plots {args.plots}: cannot make the folder {problem}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     tasks = [(row, seed) for row in rows for seed in seeds]
     jobs = min(args.jobs if args.jobs > 0 else len(os.sched_getaffinity(0)), len(tasks))

@@ -16,3 +16,16 @@ def output_file_problem(path) -> str:
     except OSError as e:
         return f"its folder cannot be made ({e.strerror or e})"
     return "" if os.access(path.parent, os.W_OK) else "its folder is not writable"
+
+
+def output_folder_problem(path) -> str:
+    """Why ``path`` cannot be the folder of a command's outputs ("" when it can): it is made if
+    missing; a file there, or a folder that cannot be made, is said in parentheses."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        return "(a file is there)"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return f"({e.strerror or e})"
+    return ""

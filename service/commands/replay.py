@@ -80,13 +80,12 @@ def run(args):
     if e is not None and not -1.0 < e < math.inf:  # k_V × (1 + E) must stay a speed scale (> 0)
         print(f"adaptnav replay: --motion-k-v-error E must be above -1 (k_V × (1 + E) > 0), got {e:g}", file=sys.stderr)
         return 2
+    from adaptnav.service.commands.paths import output_folder_problem
+
     out = Path(args.out)
-    try:  # the outputs' folder before the input is read or replayed: a traceback came after all of it
-        if out.exists() and not out.is_dir():
-            raise NotADirectoryError(0, "a file is there")
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        print(f"adaptnav replay: --out {out}: cannot make the output folder ({e.strerror or e})", file=sys.stderr)
+    problem = output_folder_problem(out)  # before the input is read or replayed: a traceback came after it
+    if problem:
+        print(f"adaptnav replay: --out {out}: cannot make the output folder {problem}", file=sys.stderr)
         return 2
     if args.calibrate and args.calibrator_location == "process":
         from adaptnav.service.calibrator.lagged import prestart
