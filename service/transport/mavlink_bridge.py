@@ -59,6 +59,7 @@ from adaptnav.service.transport.mavlink_convert import (  # sets MAVLINK20 befor
 from adaptnav.fusion.frames import GeoOrigin
 
 from adaptnav.service.transport.mavlink_config import BridgeConfig, StreamRates  # noqa: F401 (re-exported)
+from adaptnav.service.transport.mavlink_config import split_link_url
 from adaptnav.service.transport.mavlink_frames import untruncated
 
 from pymavlink import mavutil  # noqa: E402
@@ -67,25 +68,13 @@ log = logging.getLogger(__name__)
 
 
 def link_device(url: str) -> tuple[str, int]:
-    """A bridge URL → (pymavlink device string, baud).
-
-    Accepts pymavlink's own forms (``udpin:H:P``, ``udpout:H:P``, ``tcp:H:P``,
-    ``tcpin:H:P``, ``/dev/ttyACM0`` or ``/dev/ttyACM0,115200``) and
-    ``serial:/dev/ttyACM0[:baud]``.  A path to a regular file is refused: pymavlink
-    would open it as a *log*, which is the replay's job, not the live bridge's.
-    """
-    baud = 115200
-    device = url
-    if url.startswith("serial:"):
-        device = url[len("serial:"):]
-        if ":" in device:
-            device, _, b = device.rpartition(":")
-            baud = int(b)
-    elif url.startswith("/") and "," in url:
-        device, _, b = url.rpartition(",")
-        baud = int(b)
-    if not device:
-        raise ValueError(f"MAVLink URL {url!r}: no device")
+    """A bridge URL → (pymavlink device string, baud) (:func:`split_link_url`'s forms). A path
+    to a regular file is refused: pymavlink would open it as a *log*, which is the replay's
+    job, not the live bridge's."""
+    try:
+        device, baud = split_link_url(url)
+    except ValueError as e:
+        raise ValueError(f"MAVLink URL {url!r}: {e}") from None
     if os.path.isfile(device):
         raise ValueError(f"MAVLink URL {url!r} is a file: replay logs with `adaptnav replay`, not the bridge")
     return device, baud

@@ -197,41 +197,57 @@ _NET_SCHEMES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcpin:", "tcp:")
 _OTHER_SCHEMES = ("mcast:", "ws:", "wss:", "wsserver:")  # pymavlink's own, checked when opened
 
 
-def _port_problem(port: str) -> str:
-    return "" if port.isdigit() and 0 < int(port) < 65536 else f"port {port!r} is not 1–65535"
+_DEFAULT_BAUD = 115200
 
 
-def url_problem(url: str) -> str:
-    """Why the bridge's ``url`` can never be opened ("" when its form is one it can), told at
-    start: it was retried forever with pymavlink's message ("invalid literal for int()"). The
-    forms of :func:`adaptnav.service.transport.mavlink_bridge.link_device`; a device that is
-    missing or a host that does not answer is the link's business (retried), not this."""
+def _check_port(port: str) -> None:
+    if not (port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f"port {port!r} is not 1–65535")
+
+
+def _baud(text: str) -> int:
+    if not (text.isdigit() and int(text) > 0):
+        raise ValueError(f"baud {text!r} is not a positive integer")
+    return int(text)
+
+
+def split_link_url(url: str) -> tuple[str, int]:
+    """A bridge URL → (pymavlink device string, baud); ``ValueError`` (why, in a few words) for
+    one that can never be opened. The forms: pymavlink's own (``udpin:H:P``, ``udpout:H:P``,
+    ``tcp:H:P``, ``tcpin:H:P``, bare ``H:P`` for UDP, ``/dev/ttyACM0[,baud]``, ``COM3``,
+    ``mcast:`` …) and ``serial:/dev/ttyACM0[:baud]``. A device that is missing or a host that
+    does not answer is the link's business (retried), not this."""
     if not url:
-        return "empty"
+        raise ValueError("empty")
     for scheme in _NET_SCHEMES:
         if url.startswith(scheme):
             host, sep, port = url[len(scheme):].rpartition(":")
             if not (sep and host):
-                return f"{scheme[:-1]} needs HOST:PORT"
-            return _port_problem(port)
+                raise ValueError(f"{scheme[:-1]} needs HOST:PORT")
+            _check_port(port)
+            return url, _DEFAULT_BAUD
     if url.startswith(_OTHER_SCHEMES):
-        return ""
+        return url, _DEFAULT_BAUD
     if url.startswith("serial:"):
         device, sep, baud = url[len("serial:"):].rpartition(":")
         if not sep:
-            device, baud = baud, "1"
+            device, baud = baud, str(_DEFAULT_BAUD)
         if not device:
-            return "serial: needs a device (serial:/dev/ttyACM0[:BAUD])"
-        return "" if baud.isdigit() and int(baud) > 0 else f"baud {baud!r} is not a positive integer"
+            raise ValueError("serial: needs a device (serial:/dev/ttyACM0[:BAUD])")
+        return device, _baud(baud)
     if url.startswith("/"):
-        _, sep, baud = url.rpartition(",")
-        return "" if not sep or (baud.isdigit() and int(baud) > 0) else f"baud {baud!r} is not a positive integer"
+        device, sep, baud = url.rpartition(",")
+        return (device, _baud(baud)) if sep else (url, _DEFAULT_BAUD)
     if ":" in url:  # pymavlink takes HOST:PORT without a scheme for UDP
         host, _, port = url.rpartition(":")
-        problem = _port_problem(port)
-        return f"{problem} (no scheme: pymavlink reads HOST:PORT as UDP; udpin:, udpout:, tcp:, serial: …)" \
-            if problem or not host else ""
-    return ""
+        try:
+            _check_port(port)
+            if not host:
+                raise ValueError("no host")
+        except ValueError as e:
+            raise ValueError(f"{e} (no scheme: pymavlink reads HOST:PORT as UDP; udpin:, udpout:, tcp:, serial: …)") \
+                from None
+    return url, _DEFAULT_BAUD
 
 
 @dataclass(frozen=True)
@@ -267,9 +283,10 @@ class BridgeConfig:
     output: OdometryConfig = field(default_factory=OdometryConfig)
 
     def validate(self) -> None:
-        problem = url_problem(self.url)
-        if problem:
-            raise ValueError(f"url {self.url!r} cannot be opened: {problem}")
+        try:  # a form that can never be opened is said at start: it was retried forever with
+            split_link_url(self.url)  # pymavlink's message ("invalid literal for int()")
+        except ValueError as e:
+            raise ValueError(f"url {self.url!r} cannot be opened: {e}") from None
         if self.heartbeat_period_s <= 0 or self.link_timeout_s <= 0:
             raise ValueError("heartbeat_period_s and link_timeout_s must be > 0")
         if not 0 < self.reconnect_min_s <= self.reconnect_max_s:
