@@ -479,3 +479,7 @@ def test_a_log_file_is_not_a_live_link(tmp_path):
         link_device(str(f))
     assert link_device("serial:/dev/ttyACM0:921600") == ("/dev/ttyACM0", 921600)
     assert link_device("udpin:0.0.0.0:14550") == ("udpin:0.0.0.0:14550", 115200)
+    # the same parser as the config's check (mavlink_config.split_link_url): a baud that is no
+    # number was int()'s own "invalid literal" from the link's open, retried forever
+    with pytest.raises(ValueError, match="baud 'fast' is not a positive integer"):
+        link_device("serial:/dev/ttyACM0:fast")
