@@ -45,6 +45,7 @@ from adaptnav.service.calibrator.signals import ignore_sigint, start_ignoring_si
 from adaptnav.service.calibrator.heap import keep_freed_heap
 from adaptnav.service.calibrator.batching import DataClock, data_time, next_due, pack_batch, split_due, unpack_batch
 from adaptnav.service.compose import make_calibrator
+from adaptnav.service.runtime.protocols import RunAborted
 from adaptnav.service.transport.release import release_from_dict, release_to_dict
 
 _STOP = "__stop__"
@@ -55,6 +56,11 @@ PROGRESS_EVERY = 32     # samples between the child's progress messages inside a
 # relative): thousands of times the rounding of ``t − lag`` at any data time (UNIX times too)
 _QUIET_MARGIN_S = 1e-6
 _QUIET_MARGIN_REL = 1e-12
+
+
+class CalibratorGone(RunAborted):
+    """The calibrator's child process died or failed: the replay cannot go on to its
+    deterministic output (the message says how; a failure in the child carries its traceback)."""
 
 
 class InlineBackend:
@@ -403,7 +409,7 @@ class ProcessBackend:
                 if echoes:
                     _write_all(self._w.fileno(), echoes)
             except (BrokenPipeError, OSError) as e:
-                raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+                raise CalibratorGone(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             self._sent += len(self._batch)
             self._batch = []
 
@@ -425,11 +431,11 @@ class ProcessBackend:
         try:
             if not self._readable(1.0 if block else 0.0):
                 if block and not self._proc.is_alive():
-                    raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})")
+                    raise CalibratorGone(f"calibrator process died (exit code {self._proc.exitcode})")
                 return False
             kind, body, tau = self._r.recv()
         except (EOFError, OSError):
-            raise RuntimeError(f"calibrator process died (exit code {self._proc.exitcode})") from None
+            raise CalibratorGone(f"calibrator process died (exit code {self._proc.exitcode})") from None
         if kind in ("release", "product"):  # computed before a shift the child has not seen yet: re-based here
             self.ready.append((float(tau) + self._unacked_shift_s,
                                release_from_dict(body) if kind == "release" else body))
@@ -446,7 +452,7 @@ class ProcessBackend:
             self._finished = True
             self.side_scan = body
         elif kind == "error":
-            raise RuntimeError(f"calibrator process failed: {body}")
+            raise CalibratorGone(f"calibrator process failed: {body}")
         return True
 
     @property
@@ -498,7 +504,7 @@ class ProcessBackend:
         try:
             self._w.send((_SHIFT, float(delta_s)))
         except (BrokenPipeError, OSError) as e:
-            raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+            raise CalibratorGone(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
         self._unacked_shift_s += delta_s
         self._child_tau += delta_s
         if self._block_t != math.inf:  # a block ping sent before the jump: its time not re-based
@@ -515,7 +521,7 @@ class ProcessBackend:
             try:
                 self._w.send(_FINISH)
             except (BrokenPipeError, OSError) as e:
-                raise RuntimeError(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
+                raise CalibratorGone(f"calibrator process gone (exit code {self._proc.exitcode}): {e}") from None
             while not self._finished:
                 self._wait_read()
         self.wait_s += time.monotonic() - t0 - (self.idle_s - idle0)

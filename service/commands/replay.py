@@ -69,6 +69,7 @@ def run(args):
 
     from adaptnav.fusion.typed_config import ConfigError
     from adaptnav.service.runtime import replay as rp
+    from adaptnav.service.runtime.protocols import RunAborted
 
     if bool(args.file) == bool(args.scenario):
         print("adaptnav replay: give either FILE or --scenario NAME", file=sys.stderr)
@@ -117,10 +118,13 @@ def run(args):
             vcfg = rp.variant_config(cfg, variant, k_err)
             source_inp = inp if i == 0 else rp.ReplayInput(
                 inp.reopen(), inp.scenario, inp.label, inp.duration_s, inp.reopen)
-            res = rp.replay(source_inp, vcfg, out / name, calibrate=calibrate,
-                            realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
-                            plots=not args.no_plots, calibrator_location=args.calibrator_location,
-                            reader=args.reader)
+            try:
+                res = rp.replay(source_inp, vcfg, out / name, calibrate=calibrate,
+                                realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
+                                plots=not args.no_plots, calibrator_location=args.calibrator_location,
+                                reader=args.reader)
+            except RunAborted as e:
+                return _stopped(e, out / name)
             rows[name] = res.metrics
             scales[name] = _effective_scale(out / name / "trajectory.csv", vcfg.motion.params0.k_v)
             _warn(res.summary, f"{name}: ")
@@ -137,9 +141,12 @@ def run(args):
 
     if args.motion_k_v_error is not None:
         cfg = rp.variant_config(cfg, "static_wrong", args.motion_k_v_error)
-    res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
-                    progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
-                    mcap=args.mcap, report=args.report, reader=args.reader)
+    try:
+        res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
+                        progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
+                        mcap=args.mcap, report=args.report, reader=args.reader)
+    except RunAborted as e:
+        return _stopped(e, out)
     s = res.summary
     if args.json:
         print(json.dumps(s, indent=2, sort_keys=True, default=str))
@@ -170,6 +177,16 @@ def run(args):
     print(f"outputs: {', '.join(res.files)} in {out}")
     _warn(s)
     return 1 if rp.nothing_usable(s) else 0
+
+
+def _stopped(error, out) -> int:
+    """A replay that could not go on (:class:`~adaptnav.service.runtime.protocols.RunAborted`):
+    said on stderr, exit 1; what it wrote before stays."""
+    import sys
+
+    print(f"adaptnav replay: {error}; the replay stopped there: the files in {out} hold only what came before",
+          file=sys.stderr)
+    return 1
 
 
 def consistency_lines(report: dict) -> list[str]:

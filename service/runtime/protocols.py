@@ -17,6 +17,12 @@ from typing import Any, Protocol, runtime_checkable
 from adaptnav.service.runtime.clock import Clock
 
 
+class RunAborted(RuntimeError):
+    """A collaborator can no longer give the run the output it is defined to have (replay's
+    calibrator child died: what follows would not be the deterministic solution). The runner
+    does not count it as one bad item and go on, as it does other errors: it raises it."""
+
+
 @runtime_checkable
 class Estimator(Protocol):
     """The navigation filter as the runner drives it."""
@@ -57,4 +63,4 @@ class Sink(Protocol):
     def on_nav(self, state: Any) -> None: ...
 
 
-__all__ = ["Calibrator", "Clock", "Estimator", "Sink"]
+__all__ = ["Calibrator", "Clock", "Estimator", "RunAborted", "Sink"]

@@ -62,7 +62,7 @@ from adaptnav.fusion.samples import ImuBatch, kinds
 _CALIBRATOR_UNUSED = frozenset(kinds(calibrator_uses=False))
 
 from adaptnav.service.runtime.health import Health
-from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, Sink
+from adaptnav.service.runtime.protocols import Calibrator, Clock, Estimator, RunAborted, Sink
 from adaptnav.service.runtime.sinks import close_sinks as _close_sinks, sample_methods, sink_methods
 
 log = logging.getLogger(__name__)
@@ -530,6 +530,8 @@ class Runner:
             loop.item(item)
             if self._settle is not None:
                 self._settle()
+        except RunAborted:  # not one bad item: every later one would fail too, or go wrong
+            raise
         except Exception as exc:  # one bad item must not stop navigation
             kind = getattr(item, "KIND", type(item).__name__)
             loop.summary.errors[kind] += 1

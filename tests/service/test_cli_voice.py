@@ -259,3 +259,34 @@ def test_compare_explains_a_wrong_model_that_beats_the_given_one():
     assert "k_speed" in note and "seeds" in note
     rows["given"]["drift_percent_since_fix"] = 0.40  # the given model wins: nothing to explain
     assert compare_note(rows, {}, 0.1) == ""
+
+
+def test_a_calibrator_child_that_dies_stops_the_replay_in_one_error(capsys, caplog, tmp_path, monkeypatch):
+    """Replay's calibrator child killed (the OOM killer, a crash in it): the runner took each
+    of its errors as one bad item, logged them and went on, repacking a batch that never left;
+    an hour's log then ran for tens of minutes, and ended in a traceback. Now the replay stops
+    at the first, says so in one error, and exits 1 with the files it wrote."""
+    import logging
+
+    from adaptnav.service import compose
+
+    made = compose.make_lagged_calibrator
+
+    def with_its_child_killed(*args, **kwargs):
+        calibrator = made(*args, **kwargs)
+        child = calibrator.backend._proc  # a real child process, really killed
+        child.kill()
+        child.join(30.0)
+        assert child.exitcode == -9
+        return calibrator
+
+    monkeypatch.setattr(compose, "make_lagged_calibrator", with_its_child_killed)
+    out = tmp_path / "out"
+    with caplog.at_level(logging.ERROR, logger="adaptnav"):
+        code = main(["replay", "--scenario", "short", "--calibrate", "--out", str(out), "--no-plots", "--no-progress"])
+    assert code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("adaptnav replay: calibrator process "), err
+    assert "(exit code -9)" in err[0] and err[0].endswith(f"the files in {out} hold only what came before"), err
+    assert not [r for r in caplog.records if "error handling" in r.getMessage()]  # not item after item
+    assert (out / "trajectory.csv").is_file()
