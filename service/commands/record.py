@@ -97,9 +97,6 @@ def run(args):
     cfg = load_config_or_report(args, "record")
     if cfg is None:
         return 2
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     from adaptnav.service.commands.paths import output_file_problem
 
     problem = output_file_problem(args.out)
@@ -119,6 +116,11 @@ def run(args):
     except zenoh.ZError as e:
         print(f"adaptnav record: cannot connect: {startup_error(e)}", file=sys.stderr)
         return 2
+    stop = threading.Event()
+    # Ctrl-C and SIGTERM end the recording in order (the file closed); the caller's handlers
+    # come back after it (in-process callers, tests: a handler left here reached every child
+    # they forked later, which then outlived its terminate)
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         print(f"recording adaptnav/{cfg.vehicle.name}/** to {args.out} "
               f"({'until Ctrl-C' if args.duration is None else f'{args.duration:g} s'})", file=sys.stderr)
@@ -128,6 +130,8 @@ def run(args):
                                    origin=cfg.origin.geo())
     finally:
         bus.close()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     total = sum(n for k, n in counts.items() if k != "skipped")
     print(f"wrote {total} messages to {args.out}: "
           + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))

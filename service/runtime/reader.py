@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Iterator
@@ -69,8 +70,20 @@ class _Forward(logging.Handler):
         self.records.append((record.name, record.levelno, record.getMessage()))
 
 
-def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int) -> None:
-    """The child: open the log as the parent did, make the parent's configuration calls, read."""
+def _reader_main(path: str, calls: list, conn: Any, level: int, chunk_items: int, parent_end: Any = None) -> None:
+    """The child: open the log as the parent did, make the parent's configuration calls, read.
+
+    A forked child holds a copy of the parent's end of the pipe (``parent_end``) and the
+    parent's signal handlers. Both go first: with that copy closed, a parent that lets go of
+    the source (a replay stopped early) makes the next hand-over fail here (a broken pipe), and
+    the child ends by itself; with SIGTERM at its default, the parent's ``terminate`` ends it
+    whatever the parent had installed (``adaptnav record``'s handler only set an event: the
+    child, blocked on a full pipe it could read itself, outlived a stopped replay for ever).
+    Ctrl-C is left to the parent, as in the calibrator's child."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if parent_end is not None:
+        parent_end.close()
     forward = _Forward()
     root = logging.getLogger()
     root.handlers[:] = [forward]
@@ -124,7 +137,8 @@ def read_in_child(source: Any) -> Iterator[Any]:
     receive, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_reader_main, name="adaptnav-log-reader", daemon=True,
                        args=(str(source.tlog.path), list(source.calls), send,
-                             logging.getLogger().getEffectiveLevel(), CHUNK_ITEMS))
+                             logging.getLogger().getEffectiveLevel(), CHUNK_ITEMS,
+                             receive if ctx.get_start_method() == "fork" else None))
     proc.start()
     send.close()  # (the child's end: EOF here when the child is gone)
     clock = source.tlog.converter.time
@@ -159,9 +173,12 @@ def read_in_child(source: Any) -> Iterator[Any]:
     finally:
         receive.close()
         proc.join(2.0)
-        if proc.is_alive():  # the replay stopped early: the reader is not needed
+        if proc.is_alive():  # the replay stopped early and the child has not noticed yet
             proc.terminate()
-            proc.join()  # (gone once the signal is taken: no reader outlives its replay)
+            proc.join(5.0)
+            if proc.is_alive():  # (no reader outlives its replay)
+                proc.kill()
+                proc.join()
 
 
 def _relog(records: list[tuple[str, int, str]]) -> None:

@@ -290,3 +290,26 @@ def test_a_calibrator_child_that_dies_stops_the_replay_in_one_error(capsys, capl
     assert "(exit code -9)" in err[0] and err[0].endswith(f"the files in {out} hold only what came before"), err
     assert not [r for r in caplog.records if "error handling" in r.getMessage()]  # not item after item
     assert (out / "trajectory.csv").is_file()
+
+
+def test_record_gives_the_signal_handlers_back(tmp_path):
+    """``adaptnav record`` run in-process left its SIGTERM/SIGINT handlers (they only set its
+    stop event) installed for good, refused or done: a child forked afterwards inherited them,
+    and a log reader stopped by ``terminate`` never ended (test_reader). Both come back now."""
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+
+    from .test_daemon_support import free_port
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    assert main(["record", "--out", str(tmp_path / "refused.mcap"), "--duration", "nan"]) == 2
+    assert {s: signal.getsignal(s) for s in before} == before
+    port = free_port()
+    peer = Bus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "auv")
+    try:  # a recording that connects and ends by its duration
+        assert main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--duration", "0.2",
+                     "--out", str(tmp_path / "done.mcap")]) == 0
+    finally:
+        peer.close()
+    assert (tmp_path / "done.mcap").is_file()
+    assert {s: signal.getsignal(s) for s in before} == before

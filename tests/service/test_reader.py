@@ -8,6 +8,8 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import signal
+import threading
 from pathlib import Path
 
 import pytest
@@ -66,15 +68,30 @@ def test_the_childs_exception_is_raised_here(tmp_path):
         next(iter(inp.source))
 
 
-def test_a_replay_that_stops_early_ends_its_reader():
-    inp = open_log(SESSION)
-    inp.source.read_in_child = True
-    items = iter(inp.source)
-    first = [next(items) for _ in range(10)]
-    assert all(hasattr(item, "KIND") for item in first)
-    assert [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
-    items.close()  # the runner let go of the source (an exception, a stop)
-    assert not [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+@pytest.mark.timeout(120)  # (the old code waited for the reader for ever)
+@pytest.mark.parametrize("parent_sigterm", ["default", "sets_an_event"])
+def test_a_replay_that_stops_early_ends_its_reader(parent_sigterm):
+    """Also when this process has a SIGTERM handler that only sets an event (``adaptnav
+    record`` left one; a program that embeds the replay may have one): the forked reader
+    inherited it, so ``terminate`` did not end it, and it waited on a full pipe whose other end
+    it held itself: the replay's end never came (seen once in `make test` on a slow machine)."""
+    previous = signal.getsignal(signal.SIGTERM)
+    if parent_sigterm == "sets_an_event":
+        stop = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        inp = open_log(SESSION)
+        inp.source.read_in_child = True
+        items = iter(inp.source)
+        first = [next(items) for _ in range(10)]
+        assert all(hasattr(item, "KIND") for item in first)
+        readers = [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+        assert len(readers) == 1
+        items.close()  # the runner let go of the source (an exception, a stop)
+        assert not readers[0].is_alive()
+        assert not [p for p in mp.active_children() if p.name == "adaptnav-log-reader"]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def test_where_a_log_is_read(tmp_path):
