@@ -123,7 +123,7 @@ def run(args):
                                 realtime=args.realtime, progress=progress, title=f"{inp.label}: {name}",
                                 plots=not args.no_plots, calibrator_location=args.calibrator_location,
                                 reader=args.reader)
-            except RunAborted as e:
+            except (RunAborted, OSError) as e:
                 return _stopped(e, out / name)
             rows[name] = res.metrics
             scales[name] = _effective_scale(out / name / "trajectory.csv", vcfg.motion.params0.k_v)
@@ -145,7 +145,7 @@ def run(args):
         res = rp.replay(inp, cfg, out, calibrate=args.calibrate, realtime=args.realtime,
                         progress=progress, plots=not args.no_plots, calibrator_location=args.calibrator_location,
                         mcap=args.mcap, report=args.report, reader=args.reader)
-    except RunAborted as e:
+    except (RunAborted, OSError) as e:  # (OSError: an output written after the run, summary.json, plots)
         return _stopped(e, out)
     s = res.summary
     if args.json:

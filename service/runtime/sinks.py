@@ -37,6 +37,7 @@ import numpy as np
 
 from adaptnav.fusion.aiding import FIX_KINDS
 from adaptnav.fusion.frames import quat_to_euler
+from adaptnav.service.runtime.protocols import RunAborted
 from adaptnav.service.tools.metrics import TrackArrays, TruthArrays, compute_metrics, dvl_outage_metrics
 
 log = logging.getLogger(__name__)
@@ -82,6 +83,36 @@ def _state_slices():
     # imported lazily: fusion.state is the estimator's contract (DESIGN.md named slices)
     from adaptnav.fusion import state as st
     return st
+
+
+class OutputNotWritten(RunAborted):
+    """A replay's output file could not be written (disk full, an I/O error): the run stops
+    there instead of going on item after item without its product."""
+
+
+class _OutputFile:
+    """A replay output's text file (what ``csv.writer`` and the sinks call: ``write``,
+    ``close``); a failure to open, write or close it raises :class:`OutputNotWritten`
+    naming the file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            self._file = open(path, "w", newline="")
+        except OSError as e:
+            raise OutputNotWritten(f"cannot write {path}: {e.strerror or e}") from None
+
+    def write(self, text: str) -> int:
+        try:
+            return self._file.write(text)
+        except OSError as e:
+            raise OutputNotWritten(f"cannot write {self.path}: {e.strerror or e}") from None
+
+    def close(self) -> None:
+        try:
+            self._file.close()
+        except OSError as e:
+            raise OutputNotWritten(f"cannot write {self.path}: {e.strerror or e}") from None
 
 
 class Sink:
@@ -139,14 +170,20 @@ def sample_methods(methods: list, kind: str) -> list:
 
 
 def close_sinks(sinks: list) -> None:
-    """Every sink's ``close()``; one that fails is logged and the others are still closed."""
+    """Every sink's ``close()``; one that fails is logged and the others are still closed. A
+    :class:`RunAborted` (a replay's output not written) is raised once all are closed."""
+    aborted = None
     for s in sinks:
         try:
             close = getattr(s, "close", None)
             if close is not None:
                 close()
+        except RunAborted as e:  # (said by whoever catches it: no traceback per sink)
+            aborted = aborted or e
         except Exception:
             log.exception("runner: closing sink %r failed", s)
+    if aborted is not None:
+        raise aborted
 
 
 class DeferredSinks:
@@ -202,9 +239,11 @@ class DeferredSinks:
         return True
 
     def close(self) -> None:
-        """The calls still queued, then every sink's ``close()``."""
-        self.work(len(self._queue))
-        close_sinks(self.sinks)
+        """The calls still queued, then every sink's ``close()`` (also when a call failed)."""
+        try:
+            self.work(len(self._queue))
+        finally:
+            close_sinks(self.sinks)
 
 
 def geo_time_fields(state: Any, unix_of: Any = None, origin: Any = None) -> dict[str, float]:
@@ -270,7 +309,7 @@ class TrajectoryCsvSink(Sink):
         self.origin = origin
         self.truth = truth
         self.truth_max_age_s = truth_max_age_s
-        self._file = open(self.path, "w", newline="")
+        self._file = _OutputFile(self.path)
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS + (self.TRUTH_COLUMNS if truth else ()))
         self._last_truth = None
@@ -371,7 +410,7 @@ class AidStatusCsvSink(Sink):
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._file = open(self.path, "w", newline="")
+        self._file = _OutputFile(self.path)
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(self.COLUMNS)
         # (source, fused, reason, vector lengths) → the row's format: a handful of them per run
@@ -432,7 +471,7 @@ class ParamsCsvSink(Sink):
 
         self.path = Path(path)
         self.names = tuple(MotionParams().to_dict())
-        self._file = open(self.path, "w", newline="")
+        self._file = _OutputFile(self.path)
         self._writer = csv.writer(self._file, lineterminator="\n")
         self._writer.writerow(("t_s",) + self.names + ("log_likelihood", "accepted", "reason", "iterations",
                                                              "current_n_m_s", "current_e_m_s"))

@@ -313,3 +313,24 @@ def test_record_gives_the_signal_handlers_back(tmp_path):
         peer.close()
     assert (tmp_path / "done.mcap").is_file()
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device every write to fails: disk full)")
+def test_a_replay_whose_output_cannot_be_written_stops_in_one_error(capsys, caplog, tmp_path):
+    """A full disk under ``replay --out``: every later item failed in its turn (logged, with a
+    traceback, ten times), the run went on without its product and died at summary.json in a
+    traceback. Now the first failed write stops the replay: one line naming the file, exit 1.
+    The output is a real device that refuses every write (``/dev/full``: ENOSPC)."""
+    import logging
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "trajectory.csv").symlink_to("/dev/full")
+    with caplog.at_level(logging.ERROR, logger="adaptnav"):
+        code = main(["replay", "--scenario", "short", "--out", str(out), "--no-plots", "--no-progress"])
+    assert code == 1
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if "WARNING" not in line]
+    assert err == [f"adaptnav replay: cannot write {out / 'trajectory.csv'}: No space left on device; "
+                   f"the replay stopped there: the files in {out} hold only what came before"], err
+    assert not [r for r in caplog.records if "error handling" in r.getMessage() or r.exc_info]
+    assert not (out / "summary.json").exists()  # (no summary of a run that did not end)
