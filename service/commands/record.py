@@ -128,6 +128,10 @@ def run(args):
                                    metadata={"recorded_by": "adaptnav record", "vehicle": cfg.vehicle.name,
                                              "service_config": _strict(config_dict(cfg))},
                                    origin=cfg.origin.geo())
+    except OSError as e:  # a full disk, an I/O error: said in one line, not a traceback
+        print(f"adaptnav record: cannot write {args.out}: {e.strerror or e}; the recording stopped there",
+              file=sys.stderr)
+        return 1
     finally:
         bus.close()
         for signum, handler in previous.items():

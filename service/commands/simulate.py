@@ -76,6 +76,9 @@ def run(args):
     try:
         counts = write_mcap(args.out, result.iter_blocks(), metadata, progress=bar.update if bar else None,
                             log_time_ns=tb.ns, extra=bus_message_encoder(scenario.origin.geo(), tb))
+    except OSError as e:  # a full disk, an I/O error: said in one line, not a traceback after the simulation
+        print(f"adaptnav simulate: cannot write {args.out}: {e.strerror or e}", file=sys.stderr)
+        return 1
     finally:
         if bar is not None:
             bar.close()

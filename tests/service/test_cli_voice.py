@@ -334,3 +334,28 @@ def test_a_replay_whose_output_cannot_be_written_stops_in_one_error(capsys, capl
                    f"the replay stopped there: the files in {out} hold only what came before"], err
     assert not [r for r in caplog.records if "error handling" in r.getMessage() or r.exc_info]
     assert not (out / "summary.json").exists()  # (no summary of a run that did not end)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device every write to fails: disk full)")
+def test_simulate_and_record_onto_a_full_disk_say_so_in_one_line(capsys, tmp_path):
+    """``simulate --out`` and ``record --out`` on a full disk ended in a traceback (after the
+    whole simulation); now one line naming the file, exit 1. The file is a real device that
+    refuses every write (``/dev/full``: ENOSPC)."""
+    from adaptnav.service.config import ZenohConfig
+    from adaptnav.service.transport.bus import Bus
+
+    from .test_daemon_support import free_port
+
+    full = tmp_path / "full.mcap"
+    full.symlink_to("/dev/full")
+    assert main(["simulate", "short", "--out", str(full), "--no-progress"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"adaptnav simulate: cannot write {full}: No space left on device"]
+    port = free_port()
+    peer = Bus(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",), scouting=False), "auv")
+    try:
+        assert main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--duration", "0.2", "--out", str(full)]) == 1
+    finally:
+        peer.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"adaptnav record: cannot write {full}: No space left on device; the recording stopped there", err
