@@ -18,9 +18,10 @@ from adaptnav.service.runtime.clock import Clock
 
 
 class RunAborted(RuntimeError):
-    """A collaborator can no longer give the run the output it is defined to have (replay's
-    calibrator child died: what follows would not be the deterministic solution). The runner
-    does not count it as one bad item and go on, as it does other errors: it raises it."""
+    """A collaborator can no longer give the run the output it is defined to have: replay's
+    calibrator child died (what follows would not be the deterministic solution), or a
+    replay's output file cannot be written. The runner does not count it as one bad item and
+    go on, as it does other errors: it raises it. The live daemon's collaborators never raise it."""
 
 
 @runtime_checkable

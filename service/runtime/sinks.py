@@ -100,19 +100,22 @@ class _OutputFile:
         try:
             self._file = open(path, "w", newline="")
         except OSError as e:
-            raise OutputNotWritten(f"cannot write {path}: {e.strerror or e}") from None
+            raise self._not_written(e) from None
 
     def write(self, text: str) -> int:
         try:
             return self._file.write(text)
         except OSError as e:
-            raise OutputNotWritten(f"cannot write {self.path}: {e.strerror or e}") from None
+            raise self._not_written(e) from None
 
     def close(self) -> None:
         try:
             self._file.close()
         except OSError as e:
-            raise OutputNotWritten(f"cannot write {self.path}: {e.strerror or e}") from None
+            raise self._not_written(e) from None
+
+    def _not_written(self, error: OSError) -> OutputNotWritten:
+        return OutputNotWritten(f"cannot write {self.path}: {error.strerror or error}")
 
 
 class Sink:
