@@ -24,14 +24,22 @@ def _replay(path, out):
     return json.loads((out / "summary.json").read_text()), (out / "trajectory.csv").read_bytes()
 
 
+@pytest.fixture(scope="module")
+def session_tlog_replayed(tmp_path_factory):
+    """The session's tlog replayed (summary, trajectory.csv's bytes): what each recording of it
+    must give, replayed once."""
+    return _replay(DATA / "ardusub-sitl-session.tlog", tmp_path_factory.mktemp("session_tlog"))
+
+
+@pytest.mark.xdist_group("blueos_session")  # (the tlog's replay made once: these on one worker)
 @pytest.mark.parametrize("per_type_topics, bitmask_text", [(False, False), (True, False), (False, True)])
-def test_a_blueos_recording_replays_to_the_tlog_s_solution(tmp_path, per_type_topics, bitmask_text):
+def test_a_blueos_recording_replays_to_the_tlog_s_solution(tmp_path, session_tlog_replayed, per_type_topics,
+                                                           bitmask_text):
     """Also with the bitmasks as newer mavlink2rest writes them (text: HIGHRES_IMU's
     ``fields_updated`` says which of its fields are fresh)."""
-    tlog = DATA / "ardusub-sitl-session.tlog"
-    mcap = write_blueos_mcap(tlog, tmp_path / "session.mcap", per_type_topics=per_type_topics,
-                             bitmask_text=bitmask_text)
-    s_tlog, traj_tlog = _replay(tlog, tmp_path / "tlog")
+    mcap = write_blueos_mcap(DATA / "ardusub-sitl-session.tlog", tmp_path / "session.mcap",
+                             per_type_topics=per_type_topics, bitmask_text=bitmask_text)
+    s_tlog, traj_tlog = session_tlog_replayed
     s_mcap, traj_mcap = _replay(mcap, tmp_path / "mcap")
     assert traj_mcap == traj_tlog  # every row, every digit
     assert s_mcap["messages_read"] == s_tlog["messages_read"] and s_mcap["corrupt_frames"] == 0

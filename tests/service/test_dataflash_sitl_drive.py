@@ -28,6 +28,9 @@ from ..fusion.freedrive import score
 
 from pymavlink import mavutil
 
+# its module fixtures' replays made once: its tests on one worker
+pytestmark = pytest.mark.xdist_group("dataflash_sitl_drive")
+
 DRIVE = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-drive.BIN"
 PROFILE = Path(__file__).resolve().parents[2] / "deploy" / "vehicles" / "bluerov2-sitl.toml"
 GPS_EPOCH_UNIX_S, GPS_WEEK_S, GPS_UTC_LEAP_S = 315_964_800, 604_800, 18

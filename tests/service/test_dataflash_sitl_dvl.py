@@ -29,6 +29,9 @@ from ..fusion.freedrive import score
 
 from pymavlink import mavutil
 
+# its module fixtures' replays made once: its tests on one worker
+pytestmark = pytest.mark.xdist_group("dataflash_sitl_dvl")
+
 DRIVE = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-dvl.BIN"
 
 

@@ -24,6 +24,9 @@ from adaptnav.service.cli import main as cli_main
 
 from ..fusion.freedrive import score
 
+# its module fixtures' replays made once: its tests on one worker
+pytestmark = pytest.mark.xdist_group("dataflash_sitl_ugps")
+
 DRIVE = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-ugps.BIN"
 
 

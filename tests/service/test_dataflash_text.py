@@ -18,6 +18,9 @@ from adaptnav.service.cli import main as cli_main
 
 from .dataflash_log import text_log_from_bin
 
+# its module fixtures' replays made once: its tests on one worker
+pytestmark = pytest.mark.xdist_group("dataflash_text")
+
 DRIVE = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-dvl.BIN"
 
 

@@ -19,18 +19,29 @@ Two things it checks:
 import json
 from pathlib import Path
 
+import pytest
+
 from ..fusion.freedrive import replay_scored
 
 MIXED_TLOG = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-mixed-session.tlog"
+# the replay with the defaults is made once for the tests that read it (on one worker)
+pytestmark = pytest.mark.xdist_group("sitl_mixed")
 
 
 def _replay(out: Path, *sets: str) -> dict:
     return replay_scored(MIXED_TLOG, out, *sets)
 
 
-def test_mixed_throttles_and_pivots_stay_within_3_percent_and_7_m_with_the_defaults(tmp_path):
-    s = _replay(tmp_path)
-    summary = json.loads((tmp_path / "summary.json").read_text())
+@pytest.fixture(scope="module")
+def defaults(tmp_path_factory) -> tuple[Path, dict]:
+    """The log replayed with the defaults: its output folder and its score."""
+    out = tmp_path_factory.mktemp("mixed_defaults")
+    return out, _replay(out)
+
+
+def test_mixed_throttles_and_pivots_stay_within_3_percent_and_7_m_with_the_defaults(defaults):
+    out, s = defaults
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["motion_prior"].startswith("uncalibrated")
     assert summary["thrusters"]["curve"] == "simulator"
     assert s["distance_travelled_m"] > 160.0
@@ -40,9 +51,9 @@ def test_mixed_throttles_and_pivots_stay_within_3_percent_and_7_m_with_the_defau
     assert s["valid_outside_99_fraction"] <= 0.02 and s["valid_fraction_submerged"] > 0.95, s
 
 
-def test_a_coasting_pivot_may_skid_at_its_whole_speed(tmp_path):
+def test_a_coasting_pivot_may_skid_at_its_whole_speed(defaults, tmp_path):
     bounded = _replay(tmp_path / "bounded", "filter.learned_velocity.coast_skid_max_fraction=0.2")
-    free = _replay(tmp_path / "free")
+    free = defaults[1]
     # measured 2.08 / 4.48 % at the end, 5.35 / 10.1 m at most
     assert free["end_error_percent"] < 0.6 * bounded["end_error_percent"], (free, bounded)
     assert free["max_error_submerged_m"] < 0.7 * bounded["max_error_submerged_m"], (free, bounded)

@@ -25,6 +25,9 @@ from ..fusion.freedrive import score
 
 from pymavlink import mavutil
 
+# its module fixtures' replays made once: its tests on one worker
+pytestmark = pytest.mark.xdist_group("mavlink_sitl_session")
+
 SESSION = Path(__file__).resolve().parents[1] / "data" / "ardusub-sitl-session.tlog"
 PROFILE = Path(__file__).resolve().parents[2] / "deploy" / "vehicles" / "bluerov2-sitl.toml"
 

@@ -19,18 +19,29 @@ distance at the end, the position thrown 1–2.3 m back at every stop):
 import json
 from pathlib import Path
 
+import pytest
+
 from ..fusion.freedrive import replay_scored
 
 STOPS_TLOG = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-stops-session.tlog"
+# the replay with the defaults is made once for the tests that read it (on one worker)
+pytestmark = pytest.mark.xdist_group("sitl_stops")
 
 
 def _replay(out: Path, *sets: str) -> dict:
     return replay_scored(STOPS_TLOG, out, *sets)
 
 
-def test_stop_and_go_from_a_tlog_stays_within_2_5_percent_and_3_m_with_the_defaults(tmp_path):
-    s = _replay(tmp_path)
-    summary = json.loads((tmp_path / "summary.json").read_text())
+@pytest.fixture(scope="module")
+def defaults(tmp_path_factory) -> tuple[Path, dict]:
+    """The log replayed with the defaults: its output folder and its score."""
+    out = tmp_path_factory.mktemp("stops_defaults")
+    return out, _replay(out)
+
+
+def test_stop_and_go_from_a_tlog_stays_within_2_5_percent_and_3_m_with_the_defaults(defaults):
+    out, s = defaults
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["motion_prior"].startswith("uncalibrated")
     assert s["distance_travelled_m"] > 100.0
     # measured 1.45 % and 1.72 m (4.41 % and 5.19 m before the coast and the tilt's wander;
@@ -39,12 +50,12 @@ def test_stop_and_go_from_a_tlog_stays_within_2_5_percent_and_3_m_with_the_defau
     assert s["valid_outside_99_fraction"] <= 0.02 and s["valid_fraction_submerged"] > 0.95, s
 
 
-def test_the_coast_and_the_tilt_wander_each_carry_part_of_it(tmp_path):
+def test_the_coast_and_the_tilt_wander_each_carry_part_of_it(defaults, tmp_path):
     """Each alone leaves ~3 %: the coast's innovations and the tilt's acceleration both end up
     in k_speed and the position at the stops."""
     old = ("filter.learned_velocity.coast_mean_fraction=0", "filter.learned_velocity.coast_sigma_per_gap=3",
            "filter.attitude.reference_tilt_rw_rad_rthz=0")
-    ends = {"both": _replay(tmp_path / "both")["end_error_percent"],
+    ends = {"both": defaults[1]["end_error_percent"],
             "neither": _replay(tmp_path / "neither", *old)["end_error_percent"],
             "coast_only": _replay(tmp_path / "coast", old[2])["end_error_percent"]}
     # measured 1.45 / 4.31 / 2.88 %
