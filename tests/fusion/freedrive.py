@@ -75,6 +75,19 @@ def replay_scored(log: Path, out: Path, *sets: str, config: Path | None = None) 
     return score(out, log)
 
 
+def replayed_with_defaults(log: Path):
+    """A module-scoped fixture: ``log`` replayed once with the defaults (:func:`replay_scored`),
+    as ``(output folder, score)``, for the tests of a module that read that replay."""
+    import pytest
+
+    @pytest.fixture(scope="module")
+    def defaults(tmp_path_factory) -> tuple[Path, dict]:
+        out = tmp_path_factory.mktemp(f"{log.stem}-defaults")
+        return out, replay_scored(log, out)
+
+    return defaults
+
+
 def score(out_dir: str | Path, tlog: Path = FREEDRIVE, submerged_depth_m: float = 1.0) -> dict:
     """Submerged scores of the replay written to ``out_dir`` (trajectory.csv, summary.json)."""
     from adaptnav.fusion.frames import GeoOrigin

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from ..fusion.freedrive import replay_scored
+from ..fusion.freedrive import replay_scored, replayed_with_defaults
 
 STOPS_TLOG = Path(__file__).resolve().parents[1] / "data" / "ardusub-4.7-sitl-stops-session.tlog"
 # the replay with the defaults is made once for the tests that read it (on one worker)
@@ -32,11 +32,7 @@ def _replay(out: Path, *sets: str) -> dict:
     return replay_scored(STOPS_TLOG, out, *sets)
 
 
-@pytest.fixture(scope="module")
-def defaults(tmp_path_factory) -> tuple[Path, dict]:
-    """The log replayed with the defaults: its output folder and its score."""
-    out = tmp_path_factory.mktemp("stops_defaults")
-    return out, _replay(out)
+defaults = replayed_with_defaults(STOPS_TLOG)  # (output folder, score)
 
 
 def test_stop_and_go_from_a_tlog_stays_within_2_5_percent_and_3_m_with_the_defaults(defaults):
